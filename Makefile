@@ -1,0 +1,46 @@
+# esmm - the two commands a new user needs: `make demo` and `make test`.
+SHELL   := /bin/bash
+PYTHON  ?= python3
+VENV    ?= .venv
+BIN     := $(VENV)/bin
+STAMP   := $(VENV)/.esmm-installed
+DEMO_OUT ?= demo-output
+BENCH_OUT ?= benchmarks/results.json
+
+.DEFAULT_GOAL := help
+.PHONY: help install check-system test test-fast demo bench lint clean
+
+help: ## list the targets
+	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  make %-13s %s\n", $$1, $$2}'
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+
+$(STAMP): pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/python scripts/check_system.py
+	@touch $@
+
+install: $(STAMP) ## create .venv and install esmm with its dependencies
+
+check-system: | $(BIN)/python ## check the system libraries gmsh and VTK need
+	$(BIN)/python scripts/check_system.py
+
+test: install ## install and run the test suite
+	$(BIN)/pytest -q
+
+test-fast: install ## the tests without the slow (meshing, rendering) ones
+	$(BIN)/pytest -q -m "not slow"
+
+demo: install ## run the whole pipeline on the bundled real data (outputs in demo-output/)
+	bash scripts/demo.sh "$(DEMO_OUT)"
+
+bench: install ## run the benchmarks, write JSON to benchmarks/results.json
+	$(BIN)/python benchmarks/run.py --out "$(BENCH_OUT)"
+
+lint: install ## ruff
+	$(BIN)/ruff check cli pipeline tests benchmarks scripts
+
+clean: ## remove the virtual environment and outputs
+	rm -rf $(VENV) $(DEMO_OUT) build *.egg-info .pytest_cache .ruff_cache

@@ -1,0 +1,1 @@
+"""esmm.cli: the ``esmm`` command line (see :func:`esmm.cli.main.main`)."""

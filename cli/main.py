@@ -1,0 +1,93 @@
+"""The ``esmm`` command: thin subcommands over :mod:`esmm.pipeline`.
+
+``main(argv)`` parses, dispatches and turns library exceptions into a one-line
+message on stderr and an exit code; it never raises for a user error.
+
+Exit codes
+----------
+0 success; 1 unexpected internal error (a bug: please report it with the log);
+2 bad input or configuration; 3 fit/meshing/simulation failed; 4 a quality floor
+was not met (``--force`` overrides); 5 a batch finished with failures;
+130 interrupted (Ctrl-C).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from esmm.pipeline import __version__
+from esmm.pipeline.errors import EsmmError
+
+#: subcommand -> module in esmm.cli implementing ``add_parser(sub)`` and ``run(args, ui)``.
+COMMANDS: dict[str, str] = {
+    "calibrate": "esmm.cli.calibrate",
+    "evaluate": "esmm.cli.evaluate",
+    "prepare": "esmm.cli.prepare",
+    "info": "esmm.cli.info",
+    "tables": "esmm.cli.tables",
+    "simulate": "esmm.cli.simulate",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="esmm",
+        description=(
+            "Equivalent Spring-Mass Model pipeline: fit the ESEDF tissue model to tensile "
+            "data (calibrate), turn an organ surface into a spring-network asset (prepare), "
+            "and replay it in real time (simulate)."
+        ),
+        epilog="Run 'esmm COMMAND --help' for the options of each command.",
+    )
+    parser.add_argument("--version", action="version", version=f"esmm {__version__}")
+    verbosity = parser.add_mutually_exclusive_group()
+    verbosity.add_argument("-v", "--verbose", action="count", default=0, help="more detail")
+    verbosity.add_argument("-q", "--quiet", action="store_true", help="only errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, modname in COMMANDS.items():
+        try:
+            mod = importlib.import_module(modname)
+        except ModuleNotFoundError as exc:
+            if exc.name == modname:
+                continue  # command not implemented in this build
+            raise
+        mod.add_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run esmm with *argv* (default: ``sys.argv[1:]``) and return the exit code."""
+    from esmm.cli.ui import UI
+
+    parser = build_parser()
+    try:
+        args = parser.parse_args(list(argv) if argv is not None else None)
+    except SystemExit as exc:  # argparse: --help, --version or a usage error
+        return int(exc.code or 0)
+    if not getattr(args, "command", None):
+        parser.print_help()
+        return 2
+    ui = UI(verbosity=-1 if args.quiet else args.verbose)
+    args._argv = list(argv) if argv is not None else sys.argv[1:]
+    try:
+        return int(args.func(args, ui) or 0)
+    except EsmmError as exc:
+        ui.error(str(exc))
+        return exc.exit_code
+    except KeyboardInterrupt:
+        ui.error("interrupted; no partial output was left behind")
+        return 130
+    except MemoryError:
+        ui.error("out of memory; try a coarser target (--size / --nodes) or fewer files at once")
+        return 1
+
+
+def run() -> None:  # console-script entry point
+    sys.exit(main())
+
+
+if __name__ == "__main__":  # pragma: no cover
+    run()
