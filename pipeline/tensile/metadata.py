@@ -1,0 +1,334 @@
+"""Specimen metadata of a tensile test: its three sources and their precedence.
+
+Metadata come, in rising precedence, from
+
+1. ``# key: value`` comment lines at the top of the data file,
+2. a TOML sidecar with the data file's stem (``test1.csv`` -> ``test1.toml``),
+3. the command line (the ``overrides`` mapping of :func:`esmm.pipeline.tensile.read`).
+
+Each key is taken from the highest source that states it. Dimensional keys
+(``gauge_length``, ``width``, ``thickness``, ``area``) carry their unit as a
+string (``"30 mm"``); a bare number is refused.
+"""
+
+from __future__ import annotations
+
+import codecs
+import difflib
+import math
+import re
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .. import units as _units
+from ..config import load_toml
+from ..errors import ConfigError, EsmmError, InputError
+from .columns import column_keyword
+from .data import MODES
+
+#: The keys of the contract (specs/tensile-data.md) plus ``delimiter`` and ``decimal``.
+KEYS = (
+    "specimen", "gauge_length", "width", "thickness", "area", "columns", "units", "encoding",
+    "mode", "orientation", "tissue", "temperature", "notes", "delimiter", "decimal",
+)
+LENGTH_KEYS = ("gauge_length", "width", "thickness")
+TEXT_KEYS = ("specimen", "tissue", "temperature", "notes")
+
+# Spellings of keys met in exports (after normalise_key) -> key.
+_KEY_ALIASES = {
+    "gauge length": "gauge_length", "gage length": "gauge_length", "initial length": "gauge_length",
+    "initial gauge length": "gauge_length", "l0": "gauge_length", "gauge": "gauge_length",
+    "cross section": "area", "cross section area": "area", "cross sectional area": "area",
+    "section area": "area", "initial area": "area", "a0": "area",
+    "sample": "specimen", "sample id": "specimen", "specimen id": "specimen",
+    "sample name": "specimen", "specimen name": "specimen",
+    "temp": "temperature", "note": "notes", "comment": "notes", "comments": "notes",
+    "material": "tissue", "test mode": "mode", "loading mode": "mode", "test type": "mode",
+    "direction": "orientation", "loading direction": "orientation",
+    "charset": "encoding", "separator": "delimiter", "decimal separator": "decimal",
+    "decimal mark": "decimal", "column": "columns", "unit": "units",
+}
+
+# Spellings of modes -> mode.
+_MODE_ALIASES = {
+    "uniaxial": "uniaxial", "tension": "uniaxial", "compression": "uniaxial",
+    "uniaxial tension": "uniaxial", "uniaxial compression": "uniaxial",
+    "tension compression": "uniaxial", "uniaxial tension compression": "uniaxial",
+    "equibiaxial": "equibiaxial", "equi biaxial": "equibiaxial", "equibiaxial tension": "equibiaxial",
+    "pure shear": "pure_shear", "planar tension": "pure_shear", "planar": "pure_shear",
+    "simple shear": "simple_shear",
+}
+
+_ANGLE = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+))\s*(deg|degree|degrees|°|rad|radian|radians)\s*$", re.I)
+
+# Source levels (rising precedence).
+COMMENT, SIDECAR, OVERRIDE = 1, 2, 3
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One stated metadata value and where it was stated."""
+
+    value: Any
+    where: str   # e.g. "test1.toml: gauge_length" or "test1.csv line 2: gauge_length"
+    level: int   # COMMENT, SIDECAR or OVERRIDE
+
+    @property
+    def error(self) -> type[EsmmError]:
+        return ConfigError if self.level == OVERRIDE else InputError
+
+
+@dataclass
+class Metadata:
+    """The merged metadata: the winning entry of each key, plus unknown comment keys."""
+
+    entries: dict[str, Entry] = field(default_factory=dict)
+    extra: dict[str, str] = field(default_factory=dict)
+    sidecar: Path | None = None
+
+    def get(self, key: str) -> Entry | None:
+        return self.entries.get(key)
+
+    def value(self, key: str, default: Any = None) -> Any:
+        e = self.entries.get(key)
+        return default if e is None else e.value
+
+    def source(self, key: str) -> str | None:
+        e = self.entries.get(key)
+        return None if e is None else {COMMENT: "comment", SIDECAR: "sidecar", OVERRIDE: "override"}[e.level]
+
+    def merged(self, other: Metadata) -> Metadata:
+        """Entries of *other* replace those of the same key of a lower level."""
+        out = Metadata(dict(self.entries), dict(self.extra), other.sidecar or self.sidecar)
+        for k, e in other.entries.items():
+            cur = out.entries.get(k)
+            if cur is None or e.level >= cur.level:
+                out.entries[k] = e
+        out.extra.update(other.extra)
+        return out
+
+
+def normalise_key(key: str) -> str:
+    """``'Gauge length' -> 'gauge_length'``; aliases resolved; unknown keys returned normalised."""
+    k = re.sub(r"[\s_\-.]+", " ", str(key).strip().lower()).strip()
+    if k in _KEY_ALIASES:
+        return _KEY_ALIASES[k]
+    return k.replace(" ", "_")
+
+
+def _unknown_key_message(where: str, key: str) -> str:
+    close = difflib.get_close_matches(key, KEYS, n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return f"{where}: unknown key {key!r}{hint}; accepted keys: {', '.join(KEYS)}"
+
+
+# ---------------------------------------------------------------------------
+# the three sources
+
+_COMMENT_KV = re.compile(r"^#+\s*([^:=#]{1,40}?)\s*[:=：]\s*(.*?)\s*$")
+
+
+def comment_value(text: str) -> Any:
+    """A comment value: TOML syntax if it starts with ``[`` or a quote, else the text as is."""
+    t = text.strip()
+    if t[:1] in ("[", '"', "'"):
+        try:
+            return tomllib.loads(f"v = {t}")["v"]
+        except tomllib.TOMLDecodeError:
+            pass
+    return t
+
+
+def from_comments(lines: list[tuple[int, str]], *, label: str) -> Metadata:
+    """Metadata from ``# key: value`` lines given as (line number, text)."""
+    md = Metadata()
+    for lineno, text in lines:
+        m = _COMMENT_KV.match(text.strip())
+        if not m:
+            continue
+        key = normalise_key(m.group(1))
+        value = comment_value(m.group(2))
+        if key in KEYS:
+            md.entries[key] = Entry(value, f"{label} line {lineno}: {key}", COMMENT)
+        else:
+            md.extra[m.group(1).strip()] = m.group(2).strip()
+    return md
+
+
+def sidecar_path(path: Path) -> Path:
+    """The TOML sidecar of a data file: same folder, same stem, ``.toml``."""
+    return path.with_suffix(".toml")
+
+
+def from_sidecar(path: Path) -> Metadata:
+    """Metadata from the data file's sidecar, or empty metadata when it has none."""
+    side = sidecar_path(path)
+    if side == path or not side.is_file():
+        return Metadata()
+    try:
+        data = load_toml(side)
+    except ConfigError as exc:
+        raise InputError(f"sidecar {exc}") from None
+    md = Metadata(sidecar=side)
+    for k, v in data.items():
+        key = normalise_key(k)
+        if key not in KEYS:
+            raise InputError(_unknown_key_message(str(side), k))
+        md.entries[key] = Entry(v, f"{side}: {key}", SIDECAR)
+    return md
+
+
+def from_overrides(overrides: Mapping[str, Any] | None, *, encoding: str | None = None) -> Metadata:
+    """Metadata from the command line (``None`` values are left out)."""
+    md = Metadata()
+    for k, v in (overrides or {}).items():
+        if v is None:
+            continue
+        key = normalise_key(k)
+        if key not in KEYS:
+            raise ConfigError(_unknown_key_message("command-line metadata", str(k)))
+        md.entries[key] = Entry(v, f"command-line option {key}", OVERRIDE)
+    if encoding is not None:
+        md.entries["encoding"] = Entry(encoding, "encoding argument", OVERRIDE)
+    return md
+
+
+# ---------------------------------------------------------------------------
+# validated values
+
+
+def text_value(e: Entry) -> str:
+    """A free-text key (specimen, tissue, temperature, notes) as a string."""
+    if isinstance(e.value, (dict, list)):
+        raise e.error(f"{e.where}: expected text, got {type(e.value).__name__}")
+    return str(e.value).strip()
+
+
+def mode_value(e: Entry) -> str:
+    """The test mode, one of :data:`~esmm.pipeline.tensile.data.MODES`."""
+    v = re.sub(r"[\s_\-]+", " ", str(e.value).strip().lower())
+    if v in _MODE_ALIASES:
+        return _MODE_ALIASES[v]
+    raise e.error(f"{e.where}: unknown mode {e.value!r}; use one of {', '.join(MODES)}")
+
+
+def encoding_value(e: Entry) -> str:
+    """A Python codec name, checked."""
+    name = str(e.value).strip()
+    try:
+        codecs.lookup(name)
+    except LookupError:
+        raise e.error(
+            f"{e.where}: unknown text encoding {name!r}; use a name such as utf-8, gbk, cp1252, latin-1, shift_jis"
+        ) from None
+    return name
+
+
+def length_value(e: Entry, kind: str = "length") -> float:
+    """A positive dimensional value in SI (``"30 mm" -> 0.03``)."""
+    try:
+        v = _units.parse_quantity(e.value, kind, where=e.where)
+    except InputError as exc:
+        raise e.error(str(exc)) from None
+    if not (v > 0 and math.isfinite(v)):
+        raise e.error(f"{e.where}: {e.value!r} must be positive")
+    return v
+
+
+def orientation_value(e: Entry) -> tuple[str, float | None]:
+    """``'x'``/``'y'``/``'z'`` or an angle; returns (text, angle in rad or None)."""
+    v = e.value
+    if isinstance(v, str):
+        s = v.strip().lower()
+        if s in ("x", "y", "z"):
+            return s, None
+        m = _ANGLE.match(s)
+        if m:
+            number = float(m.group(1))
+            rad = number if m.group(2).startswith("rad") else math.radians(number)
+            unit = "rad" if m.group(2).startswith("rad") else "deg"
+            return f"{number:g} {unit}", rad
+    raise e.error(
+        f"{e.where}: orientation {v!r} not understood; write x, y, z or an angle with its unit, e.g. \"45 deg\""
+    )
+
+
+def list_value(e: Entry) -> list[str]:
+    """A list of strings from a TOML array or a comma-separated string."""
+    v = e.value
+    if isinstance(v, str):
+        items = [s.strip().strip("\"'") for s in v.split(",")]
+    elif isinstance(v, (list, tuple)):
+        items = [str(s).strip() for s in v]
+    else:
+        raise e.error(f"{e.where}: expected a list such as [\"time\", \"displacement\", \"force\"]")
+    return items
+
+
+def columns_value(e: Entry) -> list[str]:
+    """The quantities by position (``'ignore'`` for skipped columns)."""
+    items = list_value(e)
+    out = []
+    for i, item in enumerate(items, 1):
+        try:
+            out.append(column_keyword(item, where=f"{e.where} entry {i}"))
+        except InputError as exc:
+            raise e.error(str(exc)) from None
+    return out
+
+
+def delimiter_value(e: Entry) -> str:
+    v = str(e.value)
+    table = {",": ",", ";": ";", "\t": "\t", "tab": "\t", "\\t": "\t", "|": "|"}
+    key = v if v in table else v.strip().lower()
+    if key not in table:
+        raise e.error(f"{e.where}: delimiter {v!r} not supported; use ',', ';', '|' or 'tab'")
+    return table[key]
+
+
+def decimal_value(e: Entry) -> str:
+    v = str(e.value).strip()
+    if v not in (".", ","):
+        raise e.error(f"{e.where}: decimal must be '.' or ','")
+    return v
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Specimen geometry in SI (None where not stated)."""
+
+    gauge_length: float | None
+    area: float | None
+    width: float | None
+    thickness: float | None
+    area_from: str | None   # "area" or "width x thickness"
+
+
+def geometry(md: Metadata, *, label: str) -> Geometry:
+    """Gauge length and cross-section from the merged metadata.
+
+    ``area`` and ``width`` x ``thickness`` may both be stated; they must then
+    agree within 1 %, otherwise the input is refused (the two cannot both be right).
+    """
+    vals = {k: (length_value(md.entries[k]) if k in md.entries else None) for k in LENGTH_KEYS}
+    area = length_value(md.entries["area"], "area") if "area" in md.entries else None
+    w, t = vals["width"], vals["thickness"]
+    area_from = "area" if area is not None else None
+    if (w is None) != (t is None) and area is None:
+        have, miss = ("width", "thickness") if w is not None else ("thickness", "width")
+        raise InputError(
+            f"{label}: {have} is given but not {miss}; give both, or give area (e.g. area = \"22 mm2\")"
+        )
+    if w is not None and t is not None:
+        wt = w * t
+        if area is None:
+            area, area_from = wt, "width x thickness"
+        elif abs(wt - area) > 0.01 * area:
+            raise InputError(
+                f"{label}: area {md.entries['area'].value!r} ({md.entries['area'].where}) disagrees with "
+                f"width x thickness = {wt * 1e6:.6g} mm2; remove one of them or correct it"
+            )
+    return Geometry(vals["gauge_length"], area, w, t, area_from)

@@ -1,0 +1,782 @@
+"""Read one tensile-test file (a testing machine's CSV-like export) into a :class:`TensileTest`.
+
+The input contract is ``specs/tensile-data.md``; what is accepted, the column
+synonyms, the precedence of metadata and every error message are documented in
+``docs/tensile-input.md``.
+
+Outline of :func:`read`:
+
+1. the sidecar (``test1.toml``) and the command-line ``overrides`` are read;
+2. the bytes are checked to be text and decoded (stated encoding, else a BOM,
+   else UTF-8; a legacy encoding must be stated);
+3. ``#`` comment lines at the top give metadata; the header line, an optional
+   units row and the data rows are found; the delimiter (``,`` ``;`` tab ``|``)
+   and the decimal mark are detected;
+4. columns are matched to quantities by name (or by position from ``columns``),
+   units are taken from the header, a units row, or ``units``;
+5. the numbers are parsed with :func:`numpy.loadtxt` (a slow, exact pass runs
+   only to locate a bad cell) and converted to SI;
+6. stretch (or shear strain) and nominal stress are formed from processed
+   columns, or from displacement and force with the specimen geometry.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..progress import Reporter, ensure
+from . import columns as C
+from . import metadata as M
+from .data import TensileTest
+
+_DELIMITERS = ("\t", ";", ",", "|")
+_DELIM_NAME = {"\t": "tab", ";": "';'", ",": "','", "|": "'|'"}
+_QUOTED = re.compile(r'"[^"]*"')
+_NUMBER = re.compile(r"^[-+]?(?:\d+(?:[.,]\d*)?|[.,]\d+)(?:[eE][-+]?\d+)?$|^[-+]?(?:nan|inf|infinity)$", re.I)
+_ENCODING_COMMENT = re.compile(rb"^[ \t]*#+[ \t]*(?:encoding|charset)[ \t]*[:=][ \t]*[\"']?([A-Za-z0-9_.\-]+)", re.M | re.I)
+_CONTENT = re.compile(rb"[^ \t\r\n\x00\x1a\xef\xbb\xbf\xff\xfe]")
+_SIGNATURES = (
+    (b"PK\x03\x04", "a zip archive (an Excel .xlsx workbook?); open it and save the sheet as CSV"),
+    (b"\xd0\xcf\x11\xe0", "an OLE document (an old Excel .xls workbook?); open it and save the sheet as CSV"),
+    (b"%PDF", "a PDF document; export the test data as CSV from the testing software"),
+    (b"\x89HDF", "an HDF5 file; export the test data as CSV"),
+    (b"\x89PNG", "a PNG image; export the test data as CSV"),
+    (b"\xff\xd8\xff", "a JPEG image; export the test data as CSV"),
+)
+
+
+def read(
+    path,
+    *,
+    overrides: Mapping[str, Any] | None = None,
+    encoding: str | None = None,
+    reporter: Reporter | None = None,
+) -> TensileTest:
+    """Read one tensile-test file into SI units.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The CSV-like export (``,`` ``;`` tab or ``|`` delimited). A TOML
+        sidecar with the same stem is read when present.
+    overrides : mapping, optional
+        Command-line metadata, the highest precedence: e.g.
+        ``{"gauge_length": "30 mm", "area": "22 mm2", "mode": "uniaxial",
+        "columns": ["time", "displacement", "force"], "units": ["s", "mm", "N"],
+        "orientation": "x"}``. ``None`` values are ignored.
+    encoding : str, optional
+        Text encoding of the file (the same as ``overrides["encoding"]``, and
+        preferred to it).
+    reporter : Reporter, optional
+        Receives warnings (ignored columns, units replaced by the sidecar).
+
+    Returns
+    -------
+    TensileTest
+        ``stretch`` (n,) is lambda, or gamma for ``simple_shear``; ``stress`` (n,)
+        is nominal stress [Pa]; ``time`` (n,) [s] from the first sample, or None;
+        ``displacement`` (n,) [m] and ``force`` (n,) [N] when the file has them
+        (with units); ``metadata`` as documented in docs/tensile-input.md.
+
+    Raises
+    ------
+    InputError
+        One line naming the file, the line/column or key, and what to do.
+    ConfigError
+        A bad command-line metadata key or value.
+    """
+    rep = ensure(reporter)
+    p = Path(path)
+    label = str(path)
+    _check_path(p, label)
+    side = M.from_sidecar(p)
+    over = M.from_overrides(overrides, encoding=encoding)
+    pre = side.merged(over)
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{label}: cannot be read ({exc.strerror or exc}); check the path and permissions") from None
+    text, enc_used = _decode(raw, label, pre.get("encoding"))
+    lines = text.split("\n")
+    if lines and lines[-1].strip() == "\x1a":  # DOS end-of-file mark
+        lines.pop()
+
+    delim_entry = pre.get("delimiter")
+    layout = _layout(lines, label, M.delimiter_value(delim_entry) if delim_entry else None)
+    md = M.from_comments(layout.top_comments, label=label).merged(side).merged(over)
+    if md.get("delimiter") and not delim_entry:  # stated only in a comment line
+        d = M.delimiter_value(md.get("delimiter"))
+        if d != layout.delimiter:
+            layout = _layout(lines, label, d)
+    warnings: list[str] = []
+    return _assemble(p, label, layout, md, enc_used, warnings, rep)
+
+
+# ---------------------------------------------------------------------------
+# bytes -> text
+
+
+def _check_path(p: Path, label: str) -> None:
+    if not p.exists():
+        raise InputError(f"{label}: no such file; check the path")
+    if p.is_dir():
+        raise InputError(f"{label}: is a folder; give the test's CSV file")
+    if p.suffix.lower() == ".toml":
+        raise InputError(
+            f"{label}: is a TOML sidecar, not test data; give the CSV file with the same stem (it is read automatically)"
+        )
+
+
+def _decode(raw: bytes, label: str, enc_entry: M.Entry | None) -> tuple[str, str]:
+    """Decode the file's bytes: stated encoding, else comment line, else BOM, else UTF-8."""
+    if _CONTENT.search(raw) is None:
+        raise InputError(f"{label}: empty file; export the test again (one header line and one row per sample)")
+    name = M.encoding_value(enc_entry) if enc_entry else None
+    if name is None:
+        if raw.startswith(b"\xff\xfe\x00\x00") or raw.startswith(b"\x00\x00\xfe\xff"):
+            name = "utf-32"
+        elif raw.startswith(b"\xff\xfe") or raw.startswith(b"\xfe\xff"):
+            name = "utf-16"
+        elif raw.startswith(b"\xef\xbb\xbf"):
+            name = "utf-8-sig"
+    if name is None:
+        m = _ENCODING_COMMENT.search(raw[:8192])
+        if m:
+            name = M.encoding_value(M.Entry(m.group(1).decode("ascii"), f"{label}: '# encoding' line", M.COMMENT))
+    wide = name is not None and _codec(name).startswith(("utf-16", "utf-32"))
+    if not wide:
+        _check_text(raw, label)
+    if name is not None:
+        try:
+            text = raw.decode(name)
+        except UnicodeDecodeError as exc:
+            line = raw.count(b"\n", 0, exc.start) + 1
+            src = enc_entry.where if enc_entry else "its byte-order mark"
+            raise InputError(
+                f"{label}: does not decode as {name} (stated by {src}): byte 0x{raw[exc.start]:02x} "
+                f"on line {line}; state the file's real encoding"
+            ) from None
+    else:
+        try:
+            text = raw.decode("utf-8")
+            name = "utf-8"
+        except UnicodeDecodeError as exc:
+            line = raw.count(b"\n", 0, exc.start) + 1
+            hint = _suggest_encoding(raw)
+            raise InputError(
+                f"{label}: not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line}){hint}; state its encoding: "
+                f"encoding = \"...\" in the sidecar {M.sidecar_path(Path(label)).name}, "
+                f"a '# encoding: ...' first line, or the command line"
+            ) from None
+    if text.startswith("\ufeff"):
+        text = text[1:]
+    if "\r" in text:
+        text = text.replace("\r\n", "\n")
+        if "\r" in text:
+            text = text.replace("\r", "\n")
+    return text, _codec(name)
+
+
+def _codec(name: str) -> str:
+    import codecs
+
+    return codecs.lookup(name).name
+
+
+def _check_text(raw: bytes, label: str) -> None:
+    for sig, what in _SIGNATURES:
+        if raw.startswith(sig):
+            raise InputError(f"{label}: is not a text file but {what}")
+    head = raw[:65536]
+    nul = head.find(b"\x00")
+    if nul >= 0:
+        even, odd = head[0::2].count(0), head[1::2].count(0)
+        if max(even, odd) > 0.4 * len(head) / 2 and min(even, odd) < 0.05 * len(head) / 2:
+            guess = "utf-16-le" if odd > even else "utf-16-be"
+            raise InputError(
+                f"{label}: looks like {guess} text without a byte-order mark; state encoding = \"{guess}\" "
+                f"in the sidecar or on the command line"
+            )
+        raise InputError(
+            f"{label}: is not a text file (binary data at byte {nul}); export the test as CSV text"
+        )
+    control = sum(head.count(bytes([c])) for c in range(32) if c not in (9, 10, 12, 13, 26))
+    if control > 0.01 * len(head):
+        raise InputError(f"{label}: is not a text file (control bytes); export the test as CSV text")
+
+
+def _suggest_encoding(raw: bytes) -> str:
+    """A hint for the error message; the file is never read with a guessed encoding."""
+    head = raw[:4096]
+    try:
+        t = head.decode("gb18030", errors="strict")
+        if any(name in t for name in C.SYNONYMS if any("\u4e00" <= ch <= "\u9fff" for ch in name)):
+            return " (its header reads as Chinese GBK: encoding = \"gbk\"?)"
+    except UnicodeDecodeError:
+        pass
+    for enc, what in (("shift_jis", "Japanese Shift-JIS"), ("cp1252", "Windows Western cp1252")):
+        try:
+            head.decode(enc)
+            return f" (it may be {what})"
+        except UnicodeDecodeError:
+            continue
+    return ""
+
+
+# ---------------------------------------------------------------------------
+# text -> layout (comments, header, units row, data rows)
+
+
+@dataclass
+class _Layout:
+    delimiter: str
+    top_comments: list[tuple[int, str]]
+    header: tuple[int, list[str]] | None       # (line number, cells)
+    units_row: tuple[int, list[str]] | None
+    data_lines: list[str]
+    data_linenos: list[int]
+    n_fields: int                              # fields of the first data row
+
+
+def _split(line: str, delim: str) -> list[str]:
+    if '"' in line:
+        return next(csv.reader([line], delimiter=delim, quotechar='"', skipinitialspace=True))
+    return line.split(delim)
+
+
+def _is_number(cell: str) -> bool:
+    return bool(_NUMBER.match(cell.strip().strip('"').strip()))
+
+
+def _numeric_row(cells: list[str]) -> bool:
+    nonempty = [c for c in cells if c.strip().strip('"').strip()]
+    if not nonempty:
+        return False
+    return sum(_is_number(c) for c in nonempty) * 2 >= len(nonempty)
+
+
+def _units_row(cells: list[str]) -> bool:
+    return any(C.clean_cell(c) for c in cells) and all(C.is_unit_cell(c) for c in cells)
+
+
+def _detect_delimiter(sample: list[str], label: str) -> str:
+    stripped = [_QUOTED.sub("x", s) for s in sample]
+    best = None
+    for d in _DELIMITERS:
+        counts = [s.count(d) for s in stripped]
+        if not counts:
+            continue
+        mode = max(set(counts), key=counts.count)
+        if mode >= 1 and counts.count(mode) >= 0.8 * len(counts):
+            return d
+        share = sum(c >= 1 for c in counts) / len(counts)
+        if best is None or share > best[1]:
+            best = (d, share)
+    if best is not None and best[1] >= 0.5:
+        return best[0]
+    raise InputError(
+        f"{label}: cannot find the column delimiter (',', ';', tab or '|') in the data rows; "
+        f"a test needs at least two columns (e.g. stretch and stress) - export it as CSV, "
+        f"or state delimiter = \"...\" in the sidecar"
+    )
+
+
+def _skip(line: str) -> bool:
+    s = line.strip()
+    return not s or s.startswith("#")
+
+
+_BLANK_LINE = re.compile(r"\n[ \t]+(?:\n|$)")
+
+
+def _layout(lines: list[str], label: str, delimiter: str | None) -> _Layout:
+    """Find the top comments, the header, a units row and the data rows of the file."""
+    if delimiter is None:
+        tail: list[str] = []
+        for ln in reversed(lines):
+            if not _skip(ln):
+                tail.append(ln)
+                if len(tail) == 50:
+                    break
+        if not tail:
+            raise InputError(
+                f"{label}: no numeric rows (only comments or blank lines); export the test data with one row per sample"
+            )
+        delimiter = _detect_delimiter(tail[::-1], label)
+    delim = delimiter
+    head: list[tuple[int, str]] = []   # non-blank, non-comment lines before the first numeric row
+    first = None
+    for i, ln in enumerate(lines):
+        if _skip(ln):
+            continue
+        if _numeric_row(_split(ln, delim)):
+            first = i
+            break
+        head.append((i + 1, ln))
+    if first is None:
+        if not head:
+            raise InputError(
+                f"{label}: no numeric rows (only comments or blank lines); export the test data with one row per sample"
+            )
+        raise InputError(
+            f"{label}: no numeric rows (found {len(head)} text lines, the last on line {head[-1][0]}); "
+            f"the file must hold one row of numbers per sample"
+        )
+    header = units = None
+    j = len(head) - 1
+    if j >= 0:
+        cells = _split(head[j][1], delim)
+        if _units_row(cells):
+            units = (head[j][0], cells)
+            j -= 1
+    if j >= 0:
+        header = (head[j][0], _split(head[j][1], delim))
+    head_end = header[0] if header else (units[0] if units else first + 1)
+    top = [(i, lines[i - 1]) for i in range(1, head_end) if lines[i - 1].lstrip().startswith("#")]
+
+    region = lines[first:]
+    while region and not region[-1].strip():
+        region.pop()
+    joined = "\n".join(region)
+    if "#" not in joined and "\n\n" not in joined and _BLANK_LINE.search(joined) is None:
+        data_lines, linenos = region, list(range(first + 1, first + 1 + len(region)))
+    else:
+        pairs = [(i, ln) for i, ln in enumerate(region, first + 1) if not _skip(ln)]
+        data_lines, linenos = [ln for _, ln in pairs], [i for i, _ in pairs]
+    return _Layout(
+        delimiter=delim,
+        top_comments=top,
+        header=header,
+        units_row=units,
+        data_lines=data_lines,
+        data_linenos=linenos,
+        n_fields=len(_split(data_lines[0], delim)),
+    )
+
+
+# ---------------------------------------------------------------------------
+# columns
+
+
+@dataclass
+class _Column:
+    index: int            # 0-based
+    header: str | None    # header text (name part) or None
+    quantity: str | None  # C.QUANTITIES key, "true_stress", C.IGNORE, or None (unknown name)
+    unit: str | None      # as stated (None: not stated)
+    absolute: bool = False
+
+    def where(self, label: str) -> str:
+        name = f"'{self.header}'" if self.header else (self.quantity or "?")
+        return f"{label}: column {self.index + 1} {name}"
+
+
+def _columns(label: str, layout: _Layout, md: M.Metadata, warnings: list[str]) -> list[_Column]:
+    hdr_cells = [C.clean_cell(c) for c in layout.header[1]] if layout.header else None
+    unit_cells = [C.clean_cell(c) for c in layout.units_row[1]] if layout.units_row else None
+    n = layout.n_fields
+    # Trailing empty cells (a trailing delimiter) do not make columns.
+    if hdr_cells is not None:
+        while len(hdr_cells) > 1 and not hdr_cells[-1]:
+            hdr_cells.pop()
+        if len(hdr_cells) != n:
+            extra = _split(layout.data_lines[0], layout.delimiter)[len(hdr_cells):]
+            if len(hdr_cells) < n and not any(c.strip() for c in extra):
+                n = len(hdr_cells)
+            else:
+                raise InputError(
+                    f"{label}: the header on line {layout.header[0]} has {len(hdr_cells)} columns but the data row "
+                    f"on line {layout.data_linenos[0]} has {n}; make them match"
+                )
+    names: list[str | None] = [None] * n
+    file_units: list[str | None] = [None] * n
+    if hdr_cells is not None:
+        for i, cell in enumerate(hdr_cells):
+            names[i], file_units[i] = C.split_header(cell)
+    if unit_cells is not None:
+        for i, cell in enumerate(unit_cells[:n]):
+            u = cell.strip().strip("()[]{}").strip() if cell else ""
+            if not u:
+                continue
+            if file_units[i] is not None and C.clean_cell(file_units[i]) != u:
+                raise InputError(
+                    f"{label}: column {i + 1}: the header says unit {file_units[i]!r} but the units row on line "
+                    f"{layout.units_row[0]} says {u!r}; keep one"
+                )
+            file_units[i] = u
+
+    col_entry = md.get("columns")
+    if col_entry is not None:
+        qs = M.columns_value(col_entry)
+        if len(qs) != n:
+            raise col_entry.error(
+                f"{col_entry.where}: lists {len(qs)} columns but the file has {n} (data line "
+                f"{layout.data_linenos[0]}); list one quantity per column, 'ignore' for those to skip"
+            )
+        absolute = [bool(nm) and C.normalise_name(nm) in C.ABSOLUTE_POSITION for nm in names]
+    else:
+        if hdr_cells is None:
+            raise InputError(
+                f"{label}: no header line naming the columns (data start on line {layout.data_linenos[0]}); "
+                f"add one such as 'stretch,nominal stress [kPa]', or give columns = [...] and units = [...] "
+                f"in the sidecar {M.sidecar_path(Path(label)).name}"
+            )
+        qs = [C.quantity_of(nm) if nm else None for nm in names]
+        absolute = [bool(nm) and C.normalise_name(nm) in C.ABSOLUTE_POSITION for nm in names]
+
+    units: list[str | None] = list(file_units)
+    unit_entry = md.get("units")
+    if unit_entry is not None:
+        given = M.list_value(unit_entry)
+        if len(given) != n:
+            raise unit_entry.error(
+                f"{unit_entry.where}: lists {len(given)} units but the file has {n} columns; "
+                f"list one unit per column (\"\" for dimensionless ones)"
+            )
+        for i, u in enumerate(given):
+            u = u.strip().strip("()[]{}").strip()
+            if file_units[i] is not None and file_units[i] != "" and u != C.clean_cell(file_units[i]):
+                warnings.append(
+                    f"{label}: column {i + 1}: unit {file_units[i]!r} in the file replaced by {u!r} from {unit_entry.where}"
+                )
+            units[i] = u
+    return [_Column(i, names[i] or None, qs[i], units[i], absolute[i]) for i in range(n)]
+
+
+def _need_unit(col: _Column, label: str, md: M.Metadata) -> float:
+    """SI factor of a used column; a dimensional column without a unit is refused."""
+    kind = C.QUANTITIES[col.quantity]
+    unit = col.unit
+    if unit is not None and unit.strip() in ("", "-") and kind != "dimensionless":
+        unit = None
+    if unit is None and kind != "dimensionless":
+        side = M.sidecar_path(Path(label)).name
+        example = {"time": "s", "length": "mm", "force": "N", "stress": "kPa"}[kind]
+        name = col.header or col.quantity.replace("_", " ")
+        raise InputError(
+            f"{col.where(label)} has no unit; units are never guessed: write it in the header "
+            f"('{name} [{example}]'), in a units row under the header, or as units = [...] in the sidecar {side}"
+        )
+    return C.unit_factor(unit, col.quantity, where=col.where(label))
+
+
+# ---------------------------------------------------------------------------
+# numbers
+
+
+def _parse(layout: _Layout, cols: list[_Column], decimal: str, label: str) -> np.ndarray:
+    """The used columns as floats, shape (n_rows, len(cols)); exact error location on failure."""
+    lines, delim = layout.data_lines, layout.delimiter
+    use = [c.index for c in cols]
+    if not (decimal == "," and delim == ","):
+        src = [ln.replace(",", ".") for ln in lines] if decimal == "," else lines
+        try:
+            arr = np.loadtxt(src, delimiter=delim, quotechar='"', usecols=use, ndmin=2,
+                             comments=None, dtype=np.float64, encoding=None)
+        except (ValueError, IndexError):
+            arr = None
+    else:
+        arr = None
+    if arr is None:
+        arr = _parse_slow(layout, cols, decimal, label)
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        r, k = np.argwhere(bad)[0]
+        raw = _split(lines[r], delim)[cols[k].index].strip()
+        raise InputError(
+            f"{cols[k].where(label)}, line {layout.data_linenos[r]}: {raw!r} is not a finite number; "
+            f"fix or delete that row (or comment it out with #)"
+        )
+    return arr
+
+
+def _parse_slow(layout: _Layout, cols: list[_Column], decimal: str, label: str) -> np.ndarray:
+    delim = layout.delimiter
+    need = max(c.index for c in cols) + 1
+    out = np.empty((len(layout.data_lines), len(cols)))
+    reader = csv.reader(layout.data_lines, delimiter=delim, quotechar='"', skipinitialspace=True)
+    for r, row in enumerate(reader):
+        if len(row) < need:
+            raise InputError(
+                f"{label}: line {layout.data_linenos[r]} has {len(row)} fields, the file has {layout.n_fields} "
+                f"columns; complete or delete that row"
+            )
+        for k, c in enumerate(cols):
+            cell = row[c.index].strip()
+            try:
+                out[r, k] = float(cell.replace(",", ".") if decimal == "," else cell)
+            except ValueError:
+                what = "is empty" if not cell else f"has text {cell!r}"
+                if decimal == "." and re.fullmatch(r"[-+]?\d*,\d+", cell):
+                    what += " (a decimal comma where the file uses '.'?)"
+                raise InputError(
+                    f"{c.where(label)}, line {layout.data_linenos[r]} {what} where a number is expected; "
+                    f"fix or delete that row (or comment it out with #)"
+                ) from None
+    return out
+
+
+def _decimal(layout: _Layout, cols: list[_Column], md: M.Metadata, label: str) -> str:
+    e = md.get("decimal")
+    if e is not None:
+        return M.decimal_value(e)
+    lines = layout.data_lines
+    idx = list(range(len(lines))) if len(lines) <= 400 else list(range(200)) + list(range(len(lines) - 200, len(lines)))
+    comma = dot = None
+    for r in idx:
+        cells = _split(lines[r], layout.delimiter)
+        for c in cols:
+            if c.index < len(cells):
+                v = cells[c.index]
+                if comma is None and "," in v:
+                    comma = r
+                if dot is None and "." in v:
+                    dot = r
+    if comma is not None and dot is not None:
+        raise InputError(
+            f"{label}: numbers mix '.' (line {layout.data_linenos[dot]}) and ',' (line "
+            f"{layout.data_linenos[comma]}) as decimal mark; export without thousands separators, "
+            f"or state decimal = \".\" or \",\" in the sidecar"
+        )
+    return "," if comma is not None else "."
+
+
+# ---------------------------------------------------------------------------
+# assembly
+
+
+def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
+              warnings: list[str], rep: Reporter) -> TensileTest:
+    cols = _columns(label, layout, md, warnings)
+    by_q: dict[str, _Column] = {}
+    for c in cols:
+        if c.quantity in (None, C.IGNORE):
+            continue
+        if c.quantity in by_q:
+            o = by_q[c.quantity]
+            raise InputError(
+                f"{label}: two {c.quantity.replace('_', ' ')} columns, {o.index + 1} '{o.header}' and "
+                f"{c.index + 1} '{c.header}'; keep one, or give columns = [...] with 'ignore' for the other"
+            )
+        by_q[c.quantity] = c
+    unknown = [c for c in cols if c.quantity is None]
+
+    # Mode.
+    mode_e = md.get("mode")
+    shear_cols = [q for q in ("shear_strain", "shear_stress") if q in by_q]
+    axial_cols = [q for q in ("stretch", "strain", "true_strain", "stress") if q in by_q]
+    if mode_e is not None:
+        mode, mode_from = M.mode_value(mode_e), mode_e.where
+    elif shear_cols and not axial_cols:
+        mode, mode_from = "simple_shear", "columns"
+    else:
+        mode, mode_from = "uniaxial", "default"
+    geo = M.geometry(md, label=label)
+
+    def unknown_hint() -> str:
+        if not unknown:
+            return ""
+        names = ", ".join(f"'{c.header}'" for c in unknown if c.header) or "(unnamed)"
+        return (f"; unknown column names {names}: rename them (e.g. time, displacement, force, stretch, strain, "
+                f"stress, shear strain, shear stress; see docs/tensile-input.md) or give columns = [...] "
+                f"in the sidecar {M.sidecar_path(Path(label)).name}")
+
+    hdr_line = f" (header line {layout.header[0]})" if layout.header else ""
+    side = M.sidecar_path(Path(label)).name
+
+    def missing_geometry(key: str, why: str) -> InputError:
+        example = '"30 mm"' if key == "gauge_length" else '"22 mm2" (or width and thickness)'
+        return InputError(
+            f"{label}: missing geometry: {why} needs {key}; give {key} = {example} in the sidecar {side}, "
+            f"a '# {key}: ...' line at the top of the file, or on the command line"
+        )
+
+    if mode == "simple_shear":
+        bad = [q for q in ("stretch", "strain", "true_strain", "stress") if q in by_q and not shear_cols]
+        if bad:
+            raise InputError(
+                f"{label}: mode simple_shear ({mode_from}) needs 'shear strain' and 'shear stress' columns but "
+                f"the file has {', '.join(bad)}{hdr_line}; rename the columns or correct the mode"
+            )
+        x_q, s_q = "shear_strain", "shear_stress"
+    else:
+        if shear_cols:
+            raise InputError(
+                f"{label}: the file has {' and '.join(q.replace('_', ' ') for q in shear_cols)} columns but the "
+                f"mode is {mode} ({mode_from}); state mode = \"simple_shear\""
+            )
+        x_q = next((q for q in ("stretch", "strain", "true_strain") if q in by_q), None)
+        s_q = "stress" if "stress" in by_q else None
+        if s_q is None and "true_stress" in by_q and "force" not in by_q:
+            raise InputError(f"{by_q['true_stress'].where(label)}: {C.REFUSED['true_stress']}")
+    x_col = by_q.get(x_q) if x_q else None
+    s_col = by_q.get(s_q) if s_q else None
+    d_col, f_col, t_col = by_q.get("displacement"), by_q.get("force"), by_q.get("time")
+    x_name = "shear strain" if mode == "simple_shear" else "stretch"
+    x_from = s_from = None
+    if x_col is None:
+        if d_col is None:
+            what = ("a 'shear strain' column" if mode == "simple_shear"
+                    else "a stretch or strain column")
+            have = "stress" if (s_col or f_col) else "no stress either"
+            raise InputError(
+                f"{label}: no {x_name}: the file has {have} but neither {what} nor a displacement column"
+                f"{hdr_line}{unknown_hint()}"
+            )
+        if geo.gauge_length is None:
+            raise missing_geometry("gauge_length", f"{x_name} from displacement")
+        x_from = "displacement / gauge_length"
+    if s_col is None:
+        if f_col is None:
+            raise InputError(
+                f"{label}: no stress: the file has neither a {'shear stress' if mode == 'simple_shear' else 'stress'} "
+                f"nor a force column{hdr_line}{unknown_hint()}"
+            )
+        if mode == "simple_shear" and "area" not in md.entries:
+            raise missing_geometry("area", "shear stress from force (area = the sheared face)")
+        if geo.area is None:
+            raise missing_geometry("area", "stress from force")
+        s_from = "force / area"
+
+    # Columns to read: the ones used, plus time, and raw channels that have units.
+    used: dict[str, _Column] = {}
+    if x_col is not None:
+        used["x"] = x_col
+    if s_col is not None:
+        used["s"] = s_col
+    if t_col is not None:
+        used["time"] = t_col
+    for key, col, needed in (("displacement", d_col, x_from is not None), ("force", f_col, s_from is not None)):
+        if col is None:
+            continue
+        if needed or (col.unit not in (None, "", "-")):
+            used[key] = col
+    factors = {k: _need_unit(c, label, md) for k, c in used.items()}
+    order = list(used)
+    decimal = _decimal(layout, [used[k] for k in order], md, label)
+    arr = _parse(layout, [used[k] for k in order], decimal, label)
+    col_of = {k: arr[:, i] * factors[k] for i, k in enumerate(order)}
+    linenos = layout.data_linenos
+    meta_extra: dict[str, Any] = {}
+
+    time = None
+    if "time" in col_of:
+        t = col_of["time"]
+        back = np.flatnonzero(np.diff(t) < 0)
+        if back.size:
+            i = back[0] + 1
+            f = factors["time"]
+            raise InputError(
+                f"{t_col.where(label)}, line {linenos[i]}: time goes backwards ({t[i] / f:g} after "
+                f"{t[i - 1] / f:g} on line {linenos[i - 1]}); a file must hold one test in time order - "
+                f"split joined records into separate files"
+            )
+        meta_extra["time_start"] = float(t[0])
+        time = t - t[0]
+    disp = col_of.get("displacement")
+    if disp is not None and d_col.absolute:
+        meta_extra["displacement_start"] = float(disp[0])
+        disp = disp - disp[0]
+    force = col_of.get("force")
+
+    if x_col is not None:
+        v = col_of["x"]
+        if x_q == "strain":
+            x, x_from = 1.0 + v, "strain column (stretch = 1 + strain)"
+        elif x_q == "true_strain":
+            x, x_from = np.exp(v), "true strain column (stretch = exp(strain))"
+        else:
+            x, x_from = v, f"{x_q.replace('_', ' ')} column"
+        xc = x_col
+    else:
+        x = disp / geo.gauge_length
+        if mode != "simple_shear":
+            x = 1.0 + x
+        xc = d_col
+    if mode != "simple_shear":
+        bad = np.flatnonzero(x <= 0)
+        if bad.size:
+            i = bad[0]
+            raise InputError(
+                f"{xc.where(label)}, line {linenos[i]}: gives stretch {x[i]:.4g} <= 0; check the column's unit, "
+                f"the gauge length and that strain is engineering strain"
+            )
+    if s_col is not None:
+        stress, s_from = col_of["s"], f"{s_q.replace('_', ' ')} column"
+    else:
+        stress = force / geo.area
+
+    for c in cols:
+        if c.quantity is None and c.header:
+            warnings.append(f"{c.where(label)}: unknown column name, ignored")
+    for w in warnings:
+        rep.warn(w)
+
+    def text(key):
+        e = md.get(key)
+        return None if e is None else M.text_value(e)
+
+    orient = orient_rad = None
+    if md.get("orientation") is not None:
+        orient, orient_rad = M.orientation_value(md.get("orientation"))
+    metadata: dict[str, Any] = {
+        "specimen": text("specimen"),
+        "gauge_length": geo.gauge_length,
+        "area": geo.area,
+        "width": geo.width,
+        "thickness": geo.thickness,
+        "area_from": geo.area_from,
+        "orientation": orient,
+        "orientation_rad": orient_rad,
+        "tissue": text("tissue"),
+        "temperature": text("temperature"),
+        "notes": text("notes"),
+        "mode": mode,
+        "mode_from": mode_from,
+        "encoding": enc,
+        "delimiter": layout.delimiter,
+        "decimal": decimal,
+        "columns": [c.quantity or C.IGNORE for c in cols],
+        "units": [c.unit or "" for c in cols],
+        "headers": [c.header for c in cols],
+        "used_columns": {
+            c.quantity: {"index": c.index + 1, "header": c.header, "unit": c.unit or "", "factor": factors[k]}
+            for k, c in used.items()
+        },
+        "stretch_from": x_from,
+        "stress_from": s_from,
+        "raw": bool(x_col is None or s_col is None),
+        "n_rows": int(len(x)),
+        "header_row": layout.header[0] if layout.header else None,
+        "units_row": layout.units_row[0] if layout.units_row else None,
+        "first_data_row": linenos[0],
+        "last_data_row": linenos[-1],
+        "sidecar": str(md.sidecar) if md.sidecar else None,
+        "sources": {k: md.source(k) for k in md.entries},
+        "extra": dict(md.extra),
+        "warnings": list(warnings),
+        **meta_extra,
+    }
+    rep.step(
+        f"read {label}: {len(x)} rows, {mode}, {x_name} {np.min(x):.4g}..{np.max(x):.4g}, "
+        f"stress {np.min(stress):.4g}..{np.max(stress):.4g} Pa"
+    )
+    return TensileTest(
+        source=p,
+        mode=mode,
+        stretch=np.ascontiguousarray(x, dtype=np.float64),
+        stress=np.ascontiguousarray(stress, dtype=np.float64),
+        time=time,
+        displacement=disp,
+        force=force,
+        metadata=metadata,
+    )
