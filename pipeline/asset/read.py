@@ -1,0 +1,459 @@
+"""Reading and validating assets.
+
+:func:`read_asset` dispatches on each group's ``esmm_type``/``esmm_version``,
+verifies every dataset's SHA-256 and the root checksum, and raises a one-line
+:class:`~esmm.pipeline.errors.AssetError` for anything it cannot trust
+(truncated, tampered, of another schema or a newer version).
+:func:`validate_asset` collects every problem instead of stopping at the first.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from ..errors import AssetError
+from ..network.springs import SpringNetwork
+from . import _h5
+from .provenance import Provenance
+from .schema import ASSET_TYPE, ASSET_VERSION, CHECKSUM_ATTR, DATASETS, GROUPS, KNOWN_UNITS
+
+ADVICE = "re-create it with 'esmm prepare'"
+
+
+@dataclass
+class Asset:
+    """An asset read back from disk.
+
+    Attributes
+    ----------
+    path : Path
+    network : SpringNetwork
+    material : object or None
+        The ``Material`` (when the materials module can parse ``material_toml``).
+    material_toml : str
+        The material as stored ("" when the asset has none).
+    tables : StiffnessTables or None
+    quality, cleaning : dict or None
+        The reports as stored (JSON objects).
+    quality_passes : bool or None
+    provenance : Provenance
+    fixed_region : str
+        How the fixed nodes were chosen.
+    schema_version : int
+    attrs : dict
+        The root attributes (sizes, volume, creation time).
+    """
+
+    path: Path
+    network: SpringNetwork
+    material: Any = None
+    material_toml: str = ""
+    tables: Any = None
+    quality: dict | None = None
+    quality_passes: bool | None = None
+    cleaning: dict | None = None
+    provenance: Provenance = field(default_factory=Provenance)
+    fixed_region: str = ""
+    schema_version: int = ASSET_VERSION
+    attrs: dict = field(default_factory=dict)
+
+    def summary(self) -> dict[str, Any]:
+        """Figures for ``esmm info`` (JSON-serialisable)."""
+        net = self.network
+        out: dict[str, Any] = {
+            "path": str(self.path), "schema_version": self.schema_version, "structure": net.structure,
+            "nodes": net.n_nodes, "springs": net.n_springs, "tets": net.n_tets,
+            "surface_faces": int(net.surface_faces.shape[0]), "volume_mL": net.total_volume() * 1e6,
+            "mass_g": net.total_mass() * 1e3, "density_kg_m3": net.density, "fixed_nodes": int(net.fixed.size),
+            "fixed_region": self.fixed_region,
+            "rest_length_mm": _stats(net.rest_length * 1e3),
+            "bounds_mm": (np.vstack([net.points.min(0), net.points.max(0)]) * 1e3).round(3).tolist(),
+            "bandwidth": net.bandwidth(),
+            "material": _material_name(self.material_toml),
+            "tables": None if self.tables is None else {
+                "lam_min": self.tables.lam_min, "lam_max": self.tables.lam_max, "n": self.tables.n,
+                "volume_factor": getattr(self.tables, "volume_factor", 1.0),
+                "default_law": getattr(self.tables, "default_law", "")},
+            "quality_passes": self.quality_passes,
+            "created_utc": _h5.attr_str(self.attrs.get("created_utc", "")),
+            "input": self.provenance.input_path, "input_sha256": self.provenance.input_sha256,
+            "esmm_version": self.provenance.packages.get("esmm", ""),
+        }
+        if self.quality:
+            q = self.quality
+            out["quality"] = {k: q[k] for k in ("min_dihedral_deg", "sicn", "gamma", "radius_ratio")
+                              if k in q}
+        return out
+
+
+def _stats(a: np.ndarray) -> dict[str, float]:
+    if a.size == 0:
+        return {}
+    return {"min": float(a.min()), "mean": float(a.mean()), "max": float(a.max())}
+
+
+def _material_name(text: str) -> str:
+    if not text:
+        return ""
+    import tomllib
+
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError:
+        return "(unreadable TOML)"
+    m = data.get("material", data)
+    return str(m.get("name") or m.get("model") or "")
+
+
+# -- opening --------------------------------------------------------------------------------
+
+def _open(path: Path) -> h5py.File:
+    if not path.exists():
+        raise AssetError(f"{path}: no such file; give the .h5 written by 'esmm prepare'")
+    if path.is_dir():
+        raise AssetError(f"{path}: is a folder; give the .h5 file written by 'esmm prepare'")
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:
+        reason = str(exc).split("(")[-1].rstrip(")") if "(" in str(exc) else str(exc)
+        if "truncated" in str(exc).lower():
+            raise AssetError(f"{path}: the file is truncated ({reason}); {ADVICE}") from None
+        if not _looks_hdf5(path):
+            raise AssetError(f"{path}: not an HDF5 file (an esmm asset is written by 'esmm prepare')") from None
+        raise AssetError(f"{path}: cannot open the HDF5 file ({reason}); {ADVICE}") from None
+
+
+def _looks_hdf5(path: Path) -> bool:
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(8)
+    except OSError:
+        return False
+    return head == b"\x89HDF\r\n\x1a\n"
+
+
+def _root_problems(f: h5py.File) -> list[str]:
+    kind = _h5.attr_str(f.attrs.get("esmm_type"))
+    if kind != ASSET_TYPE:
+        return [f"not an esmm asset (root esmm_type is {kind or 'missing'!r}, expected {ASSET_TYPE!r})"]
+    version = _h5.attr_int(f.attrs.get("esmm_version"))
+    if version < 1:
+        return [f"root esmm_version {f.attrs.get('esmm_version')!r} is not a schema version"]
+    if version > ASSET_VERSION:
+        return [f"asset schema version {version} is newer than this esmm reads ({ASSET_VERSION}); "
+                f"upgrade esmm"]
+    return []
+
+
+def _integrity_problems(f: h5py.File) -> list[str]:
+    out: list[str] = []
+
+    def visit(name: str, obj) -> None:
+        if isinstance(obj, h5py.Dataset):
+            stored = _h5.attr_str(obj.attrs.get("sha256"))
+            if not stored:
+                out.append(f"/{name}: no sha256 attribute")
+                return
+            try:
+                digest = _h5.dataset_digest(obj)
+            except (OSError, ValueError, TypeError) as exc:
+                out.append(f"/{name}: cannot be read ({exc})")
+                return
+            if digest != stored:
+                out.append(f"/{name}: content does not match its sha256 (modified or damaged)")
+
+    try:
+        f.visititems(visit)
+    except (OSError, RuntimeError, ValueError) as exc:
+        out.append(f"the file structure cannot be read ({exc})")
+        return out
+    stored = _h5.attr_str(f.attrs.get(CHECKSUM_ATTR))
+    if not stored:
+        out.append(f"root attribute {CHECKSUM_ATTR} is missing")
+    else:
+        try:
+            if _h5.manifest(f) != stored:
+                out.append("attributes do not match the root checksum (an attribute was modified)")
+        except (OSError, RuntimeError, ValueError) as exc:
+            out.append(f"attributes cannot be read ({exc})")
+    return out
+
+
+def _schema_problems(f: h5py.File) -> list[str]:
+    out: list[str] = []
+    for gpath, (gtype, gver, required) in GROUPS.items():
+        if gpath not in f:
+            if required:
+                out.append(f"{gpath}: required group is missing")
+            continue
+        g = f[gpath]
+        if not isinstance(g, h5py.Group):
+            out.append(f"{gpath}: expected a group")
+            continue
+        t = _h5.attr_str(g.attrs.get("esmm_type"))
+        v = _h5.attr_int(g.attrs.get("esmm_version"))
+        if t != gtype:
+            out.append(f"{gpath}: esmm_type is {t or 'missing'!r}, expected {gtype!r}")
+        elif v < 1:
+            out.append(f"{gpath}: esmm_version {g.attrs.get('esmm_version')!r} is not a version")
+        elif v > gver:
+            out.append(f"{gpath}: {gtype} version {v} is newer than this esmm reads ({gver}); upgrade esmm")
+    for dpath, (units, kinds, required) in DATASETS.items():
+        gpath = dpath.rsplit("/", 1)[0]
+        if gpath not in f:
+            continue
+        if dpath not in f:
+            if required:
+                out.append(f"{dpath}: required dataset is missing")
+            continue
+        ds = f[dpath]
+        if not isinstance(ds, h5py.Dataset):
+            out.append(f"{dpath}: expected a dataset")
+            continue
+        u = _h5.attr_str(ds.attrs.get("units"))
+        if u != units:
+            out.append(f"{dpath}: units are {u or 'missing'!r}, expected {units!r}")
+        if ds.dtype.kind not in kinds:
+            out.append(f"{dpath}: dtype {ds.dtype} is not of the expected kind")
+
+    def visit(name: str, obj) -> None:
+        if isinstance(obj, h5py.Dataset):
+            u = _h5.attr_str(obj.attrs.get("units"))
+            if not u:
+                out.append(f"/{name}: no units attribute")
+            elif u not in KNOWN_UNITS:
+                out.append(f"/{name}: unknown units {u!r}")
+        elif isinstance(obj, h5py.Group) and ("esmm_type" not in obj.attrs or "esmm_version" not in obj.attrs):
+            out.append(f"/{name}: group without esmm_type/esmm_version")
+
+    f.visititems(visit)
+    return out
+
+
+def _arr(f: h5py.File, path: str, dtype=None) -> np.ndarray:
+    a = np.asarray(f[path][()])
+    return a.astype(dtype) if dtype is not None else a
+
+
+def _shape_problems(f: h5py.File) -> list[str]:
+    out: list[str] = []
+    pts = f["/mesh/points"]
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        return [f"/mesh/points: shape {pts.shape}, expected (n, 3)"]
+    n = pts.shape[0]
+    s = f["/springs/pairs"].shape[0] if f["/springs/pairs"].ndim == 2 else -1
+    expect = {
+        "/mesh/node_kind": (n,), "/nodes/mass": (n,), "/nodes/fixed_mask": (n,),
+        "/springs/pairs": (s, 2), "/springs/rest_length": (s,), "/springs/volume": (s,),
+        "/springs/volume_weight": (s,), "/springs/cos2": (s, 3), "/springs/fibre_frame": (3, 3),
+        "/springs/affine_elasticity": (6, 6),
+    }
+    for path, shape in expect.items():
+        if f[path].shape != shape:
+            out.append(f"{path}: shape {f[path].shape}, expected {shape}")
+    for path, width in (("/mesh/tets", 4), ("/mesh/surface_faces", 3)):
+        if path in f and (f[path].ndim != 2 or f[path].shape[1] != width):
+            out.append(f"{path}: shape {f[path].shape}, expected (k, {width})")
+    if f["/nodes/fixed"].ndim != 1:
+        out.append(f"/nodes/fixed: shape {f['/nodes/fixed'].shape}, expected (f,)")
+    structure = _h5.attr_str(f["/mesh"].attrs.get("structure"))
+    if structure == "tetra" and "/mesh/tets" not in f:
+        out.append("/mesh/tets: missing for a tetra structure")
+    if out:
+        return out
+    for path in ("/mesh/points", "/springs/rest_length", "/springs/volume", "/springs/volume_weight",
+                 "/springs/cos2", "/nodes/mass", "/springs/fibre_frame"):
+        if not np.all(np.isfinite(_arr(f, path))):
+            out.append(f"{path}: contains NaN or infinite values")
+    mask = _arr(f, "/nodes/fixed_mask")
+    fixed = _arr(f, "/nodes/fixed", np.int64)
+    if fixed.size and (fixed.min() < 0 or fixed.max() >= n):
+        out.append(f"/nodes/fixed: indices outside 0..{n - 1}")
+    elif not np.array_equal(np.flatnonzero(mask), np.unique(fixed)) or np.any(mask > 1):
+        out.append("/nodes/fixed and /nodes/fixed_mask disagree")
+    return out
+
+
+def _network(f: h5py.File) -> SpringNetwork:
+    return SpringNetwork(
+        points=_arr(f, "/mesh/points", np.float64),
+        springs=_arr(f, "/springs/pairs", np.int64),
+        rest_length=_arr(f, "/springs/rest_length", np.float64),
+        volume=_arr(f, "/springs/volume", np.float64),
+        volume_weight=_arr(f, "/springs/volume_weight", np.float64),
+        cos2=_arr(f, "/springs/cos2", np.float64),
+        mass=_arr(f, "/nodes/mass", np.float64),
+        surface_faces=_arr(f, "/mesh/surface_faces", np.int64),
+        fixed=_arr(f, "/nodes/fixed", np.int64),
+        tets=_arr(f, "/mesh/tets", np.int64) if "/mesh/tets" in f else None,
+        node_kind=_arr(f, "/mesh/node_kind", np.uint8),
+        structure=_h5.attr_str(f["/mesh"].attrs.get("structure", "tetra")),
+        fibre_frame=_arr(f, "/springs/fibre_frame", np.float64),
+        density=float(f["/nodes"].attrs.get("density_kg_m3", 0.0)),
+    )
+
+
+def _tables(f: h5py.File):
+    if "/tables" not in f:
+        return None
+    try:
+        from ..network.tables import StiffnessTables
+    except ImportError:
+        return None
+    return StiffnessTables.from_hdf5(f["/tables"])
+
+
+def _material(text: str):
+    """Parse the stored material TOML with the materials module, if it offers a way."""
+    if not text:
+        return None
+    try:
+        from ..materials import material as mm
+    except ImportError:
+        return None
+    for name in ("material_from_toml_string", "from_toml_string", "loads"):
+        fn = getattr(mm, name, None) or getattr(getattr(mm, "Material", None), name, None)
+        if callable(fn):
+            return fn(text)
+    return None
+
+
+def _json(f: h5py.File, path: str) -> dict | None:
+    if path not in f:
+        return None
+    try:
+        return json.loads(_h5.get_text(f[path]))
+    except json.JSONDecodeError:
+        return None
+
+
+def _provenance(f: h5py.File) -> Provenance:
+    g = f["/provenance"]
+    a = g.attrs
+    try:
+        argv = json.loads(_h5.get_text(g["command_line"]))
+        packages = json.loads(_h5.get_text(g["packages"]))
+        extra = json.loads(_h5.attr_str(a.get("extra", "{}")) or "{}")
+    except json.JSONDecodeError as exc:
+        raise AssetError(f"/provenance: damaged JSON ({exc})") from None
+    return Provenance(
+        input_path=_h5.attr_str(a.get("input_path")), input_sha256=_h5.attr_str(a.get("input_sha256")),
+        config_toml=_h5.get_text(g["config_toml"]), command_line=list(argv), utc_time=_h5.attr_str(a.get("utc_time")),
+        host=_h5.attr_str(a.get("host")), packages=dict(packages), python=_h5.attr_str(a.get("python")),
+        platform=_h5.attr_str(a.get("platform")), extra=extra,
+    )
+
+
+# -- public API -----------------------------------------------------------------------------
+
+def read_asset(path: str | os.PathLike, *, verify: bool = True) -> Asset:
+    """Read an asset written by :func:`~esmm.pipeline.asset.write.write_asset`.
+
+    Parameters
+    ----------
+    path
+        The ``.h5`` file.
+    verify : bool
+        Check every dataset's SHA-256 and the root checksum (default; costs
+        one pass over the data).
+
+    Raises
+    ------
+    AssetError
+        Missing, truncated, not HDF5, not an esmm asset, a newer schema,
+        tampered with or inconsistent; the message names the first problem.
+    """
+    p = Path(path)
+    with _open(p) as f:
+        try:
+            probs = _root_problems(f)
+            if not probs:
+                probs = _schema_problems(f)
+            if not probs and verify:
+                probs = _integrity_problems(f)
+            if not probs:
+                probs = _shape_problems(f)
+            if probs:
+                more = f" (and {len(probs) - 1} more; run 'esmm info' to list them)" if len(probs) > 1 else ""
+                raise AssetError(f"{p}: {probs[0]}{more}; {ADVICE}")
+            net = _network(f)
+            net_probs = net.problems()
+            if net_probs:
+                raise AssetError(f"{p}: {net_probs[0]}; {ADVICE}")
+            text = _h5.get_text(f["/material/toml"]) if "/material/toml" in f else ""
+            quality = _json(f, "/quality/report")
+            passes = f["/quality"].attrs.get("passes") if "/quality" in f else None
+            asset = Asset(
+                path=p, network=net, material=None, material_toml=text, tables=_tables(f),
+                quality=quality, quality_passes=None if passes is None else bool(passes),
+                cleaning=_json(f, "/cleaning/report"), provenance=_provenance(f),
+                fixed_region=_h5.attr_str(f["/nodes"].attrs.get("fixed_region", "")),
+                schema_version=_h5.attr_int(f.attrs.get("esmm_version")),
+                attrs={k: (v.item() if isinstance(v, np.generic) else v) for k, v in f.attrs.items()},
+            )
+        except (OSError, KeyError, ValueError, TypeError) as exc:
+            raise AssetError(f"{p}: damaged asset ({type(exc).__name__}: {exc}); {ADVICE}") from None
+    try:
+        asset.material = _material(text)
+    except Exception as exc:  # noqa: BLE001 - the stored text is kept; say why it could not be parsed
+        raise AssetError(f"{p}: /material/toml cannot be read as a material ({exc}); {ADVICE}") from None
+    return asset
+
+
+def validate_asset(path: str | os.PathLike) -> list[str]:
+    """Every problem of an asset file, one line each (empty list: valid).
+
+    Checks the schema (types, versions, required groups and datasets, units),
+    integrity (per-dataset SHA-256, root checksum), shapes, NaNs, index
+    ranges, positive tet volumes, ``i < j`` springs inside the node range,
+    positive masses, ``cos2`` rows summing to 1, the stiffness tables and the
+    XDMF sidecar when present.
+    """
+    p = Path(path)
+    try:
+        f = _open(p)
+    except AssetError as exc:
+        return [str(exc)]
+    problems: list[str] = []
+    with f:
+        try:
+            problems += _root_problems(f)
+            if problems:
+                return problems
+            schema = _schema_problems(f)
+            problems += schema
+            problems += _integrity_problems(f)
+            if any("required" in s or "expected a" in s or "shape" in s for s in schema):
+                return problems
+            shapes = _shape_problems(f)
+            problems += shapes
+            if shapes:
+                return problems
+            problems += _network(f).problems()
+            if "/tables" in f:
+                from ..errors import EsmmError
+
+                try:
+                    _tables(f)
+                except EsmmError as exc:
+                    problems.append(f"/tables: {exc}")
+            if "/provenance" in f:
+                try:
+                    _provenance(f)
+                except AssetError as exc:
+                    problems.append(str(exc))
+        except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:
+            problems.append(f"damaged asset ({type(exc).__name__}: {exc})")
+    from .xdmf import check_sidecar, sidecar_path
+
+    side = sidecar_path(p)
+    if side.exists():
+        problems += check_sidecar(side)
+    return problems
