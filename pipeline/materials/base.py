@@ -100,6 +100,9 @@ class MaterialModel:
     name: ClassVar[str] = ""
     parameters: ClassVar[tuple[Parameter, ...]] = ()
     equation: ClassVar[str] = ""
+    #: Names that users may carry over from a source paper but that are not
+    #: parameters of this model -> why (used in the "unknown parameter" error).
+    not_parameters: ClassVar[dict[str, str]] = {}
 
     # ------------------------------------------------------------------ API
     def energy(self, I1, I2, params: Mapping[str, float]):
@@ -142,10 +145,7 @@ class MaterialModel:
         for p in self.parameters:
             if p.name == name:
                 return p
-        raise ConfigError(
-            f"model {self.name!r} has no parameter {name!r}; its parameters are "
-            f"{', '.join(self.parameter_names)}"
-        )
+        raise self.unknown_parameter_error(name)
 
     def defaults(self) -> dict[str, float]:
         """The default parameter values (SI)."""
@@ -179,10 +179,7 @@ class MaterialModel:
         loc = f"{where}: " if where else ""
         unknown = [k for k in params if k not in self.parameter_names]
         if unknown:
-            raise ConfigError(
-                f"{loc}unknown parameter {unknown[0]!r} for model {self.name!r}; "
-                f"its parameters are {', '.join(self.parameter_names)}"
-            )
+            raise self.unknown_parameter_error(unknown[0], where=where)
         out: dict[str, float] = {}
         for p in self.parameters:
             if p.name not in params:
@@ -193,6 +190,18 @@ class MaterialModel:
             out[p.name] = self.check_value(p.name, params[p.name], where=where)
         self._check_extra(out, where=where)
         return out
+
+    def unknown_parameter_error(self, name: str, *, where: str = "") -> ConfigError:
+        """The one-line error for a key that is not a parameter of this model."""
+        loc = f"{where}: " if where else ""
+        if name in self.not_parameters:
+            return ConfigError(
+                f"{loc}{name!r} is not a parameter of model {self.name!r}: {self.not_parameters[name]}"
+            )
+        return ConfigError(
+            f"{loc}unknown parameter {name!r} for model {self.name!r}; "
+            f"its parameters are {', '.join(self.parameter_names)}"
+        )
 
     def check_value(self, name: str, value, *, where: str = "") -> float:
         """Validate one parameter value (SI); return it as float."""

@@ -105,6 +105,12 @@ class ESEDF(MaterialModel):
         "W = (1-f)*{mu*N*[lr*beta + ln(beta/sinh(beta))] - c} + f*[A1*(I4-1) + A2*(I4-1)^2],"
         "  I4 = I1/3,  lr = sqrt(I1/(3N)),  beta = Linv(lr)"
     )
+    not_parameters = {
+        k: "in the reading implemented here the paper's b and C belong to terms in the isotropized "
+           "third invariant I3i, which vanish in incompressible deformation (docs/model.md); "
+           "keep the value under [material.reported]"
+        for k in ("b", "C")
+    }
     parameters = (
         Parameter("mu", "stress", 2.973, 0.0, 1.0e10,
                   "Arruda-Boyce matrix chain modulus C_R"),
