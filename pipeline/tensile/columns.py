@@ -171,6 +171,15 @@ EXTRA_UNITS: dict[str, dict[str, float]] = {
     "dimensionless": {"mm/mm": 1.0, "m/m": 1.0, "in/in": 1.0, "pct": 1e-2},
 }
 
+#: The units named in messages (all spellings of esmm.pipeline.units and EXTRA_UNITS are accepted).
+SHOWN_UNITS = {
+    "time": ("s", "ms", "min", "h"),
+    "length": ("m", "cm", "mm", "um", "in"),
+    "force": ("N", "mN", "kN", "lbf", "kgf"),
+    "stress": ("Pa", "kPa", "MPa", "GPa", "N/mm2", "psi"),
+    "dimensionless": ("(none)", "-", "%", "mm/mm"),
+}
+
 # Spellings that lower-casing would misread: refused with a reason.
 _CASE_REFUSED = {
     "MN": "MN is meganewton (for millinewton write mN)",
@@ -201,8 +210,5 @@ def unit_factor(unit: str | None, quantity: str, *, where: str) -> float:
         return table[u]
     if u in EXTRA_UNITS.get(kind, {}):
         return EXTRA_UNITS[kind][u]
-    accepted = sorted({k for k in table if k} | set(EXTRA_UNITS.get(kind, {})))
     what = quantity.replace("_", " ")
-    raise InputError(
-        f"{where}: unknown {what} unit {raw!r}; write one of {', '.join(accepted)}"
-    )
+    raise InputError(f"{where}: unknown {what} unit {raw!r}; write one of {', '.join(SHOWN_UNITS[kind])}")

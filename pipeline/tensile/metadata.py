@@ -189,8 +189,8 @@ def from_overrides(overrides: Mapping[str, Any] | None, *, encoding: str | None 
             continue
         key = normalise_key(k)
         if key not in KEYS:
-            raise ConfigError(_unknown_key_message("command-line metadata", str(k)))
-        md.entries[key] = Entry(v, f"command-line option {key}", OVERRIDE)
+            raise ConfigError(_unknown_key_message("command line", str(k)))
+        md.entries[key] = Entry(v, f"command line --{key.replace('_', '-')}", OVERRIDE)
     if encoding is not None:
         md.entries["encoding"] = Entry(encoding, "encoding argument", OVERRIDE)
     return md

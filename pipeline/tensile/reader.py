@@ -22,8 +22,8 @@ Outline of :func:`read`:
 
 from __future__ import annotations
 
+import codecs
 import csv
-import math
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -175,7 +175,7 @@ def _decode(raw: bytes, label: str, enc_entry: M.Entry | None) -> tuple[str, str
             raise InputError(
                 f"{label}: not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line}){hint}; state its encoding: "
                 f"encoding = \"...\" in the sidecar {M.sidecar_path(Path(label)).name}, "
-                f"a '# encoding: ...' first line, or the command line"
+                f"a '# encoding: ...' first line, or --encoding on the command line"
             ) from None
     if text.startswith("\ufeff"):
         text = text[1:]
@@ -187,8 +187,6 @@ def _decode(raw: bytes, label: str, enc_entry: M.Entry | None) -> tuple[str, str
 
 
 def _codec(name: str) -> str:
-    import codecs
-
     return codecs.lookup(name).name
 
 
@@ -245,6 +243,7 @@ class _Layout:
     data_lines: list[str]
     data_linenos: list[int]
     n_fields: int                              # fields of the first data row
+    preamble: list[str]                        # text lines above the header (not read)
 
 
 def _split(line: str, delim: str) -> list[str]:
@@ -318,17 +317,19 @@ def _layout(lines: list[str], label: str, delimiter: str | None) -> _Layout:
     for i, ln in enumerate(lines):
         if _skip(ln):
             continue
-        if _numeric_row(_split(ln, delim)):
+        cells = _split(ln, delim)
+        if _numeric_row(cells):
             first = i
             break
-        head.append((i + 1, ln))
+        if any(C.clean_cell(c) for c in cells):  # a row of bare delimiters is blank
+            head.append((i + 1, ln))
     if first is None:
         if not head:
             raise InputError(
                 f"{label}: no numeric rows (only comments or blank lines); export the test data with one row per sample"
             )
         raise InputError(
-            f"{label}: no numeric rows (found {len(head)} text lines, the last on line {head[-1][0]}); "
+            f"{label}: no numeric rows (found {len(head)} text line(s), the last on line {head[-1][0]}); "
             f"the file must hold one row of numbers per sample"
         )
     header = units = None
@@ -360,6 +361,7 @@ def _layout(lines: list[str], label: str, delimiter: str | None) -> _Layout:
         data_lines=data_lines,
         data_linenos=linenos,
         n_fields=len(_split(data_lines[0], delim)),
+        preamble=[ln.strip() for _, ln in head[: max(j, 0)]],
     )
 
 
@@ -507,7 +509,7 @@ def _parse_slow(layout: _Layout, cols: list[_Column], decimal: str, label: str) 
     for r, row in enumerate(reader):
         if len(row) < need:
             raise InputError(
-                f"{label}: line {layout.data_linenos[r]} has {len(row)} fields, the file has {layout.n_fields} "
+                f"{label}: line {layout.data_linenos[r]} has {len(row)} field(s), the file has {layout.n_fields} "
                 f"columns; complete or delete that row"
             )
         for k, c in enumerate(cols):
@@ -582,14 +584,6 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
         mode, mode_from = "uniaxial", "default"
     geo = M.geometry(md, label=label)
 
-    def unknown_hint() -> str:
-        if not unknown:
-            return ""
-        names = ", ".join(f"'{c.header}'" for c in unknown if c.header) or "(unnamed)"
-        return (f"; unknown column names {names}: rename them (e.g. time, displacement, force, stretch, strain, "
-                f"stress, shear strain, shear stress; see docs/tensile-input.md) or give columns = [...] "
-                f"in the sidecar {M.sidecar_path(Path(label)).name}")
-
     hdr_line = f" (header line {layout.header[0]})" if layout.header else ""
     side = M.sidecar_path(Path(label)).name
 
@@ -597,7 +591,7 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
         example = '"30 mm"' if key == "gauge_length" else '"22 mm2" (or width and thickness)'
         return InputError(
             f"{label}: missing geometry: {why} needs {key}; give {key} = {example} in the sidecar {side}, "
-            f"a '# {key}: ...' line at the top of the file, or on the command line"
+            f"a '# {key}: ...' line at the top of the file, or --{key.replace('_', '-')} on the command line"
         )
 
     if mode == "simple_shear":
@@ -623,24 +617,37 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
     d_col, f_col, t_col = by_q.get("displacement"), by_q.get("force"), by_q.get("time")
     x_name = "shear strain" if mode == "simple_shear" else "stretch"
     x_from = s_from = None
-    if x_col is None:
-        if d_col is None:
-            what = ("a 'shear strain' column" if mode == "simple_shear"
-                    else "a stretch or strain column")
-            have = "stress" if (s_col or f_col) else "no stress either"
+    x_missing = x_col is None and d_col is None
+    s_missing = s_col is None and f_col is None
+    if x_missing or s_missing:
+        x_need = ("a 'shear strain' (gamma) column or a displacement column" if mode == "simple_shear"
+                  else "a stretch or strain column, or a displacement column")
+        s_need = ("a 'shear stress' column or a force column" if mode == "simple_shear"
+                  else "a stress column or a force column")
+        found = ", ".join(f"'{c.header}'" for c in cols if c.header) or "none named"
+        if unknown:
+            names = ", ".join(f"'{c.header}'" for c in unknown if c.header)
             raise InputError(
-                f"{label}: no {x_name}: the file has {have} but neither {what} nor a displacement column"
-                f"{hdr_line}{unknown_hint()}"
+                f"{label}: unknown column names {names}{hdr_line}; the test needs "
+                f"{x_need if x_missing else s_need}: rename the columns (time, displacement, force, stretch, "
+                f"strain, stress, shear strain, shear stress, or a synonym in docs/tensile-input.md) or give "
+                f"columns = [...] in the sidecar {side}"
             )
+        if x_missing:
+            have = "stress" if not s_missing else "neither stretch nor stress"
+            raise InputError(
+                f"{label}: the file has {have} but no {x_name}: it needs {x_need} (columns found{hdr_line}: "
+                f"{found}); add the column or name it in the header"
+            )
+        raise InputError(
+            f"{label}: the file has {x_name} but no stress: it needs {s_need} (columns found{hdr_line}: "
+            f"{found}); add the column or name it in the header"
+        )
+    if x_col is None:
         if geo.gauge_length is None:
             raise missing_geometry("gauge_length", f"{x_name} from displacement")
         x_from = "displacement / gauge_length"
     if s_col is None:
-        if f_col is None:
-            raise InputError(
-                f"{label}: no stress: the file has neither a {'shear stress' if mode == 'simple_shear' else 'stress'} "
-                f"nor a force column{hdr_line}{unknown_hint()}"
-            )
         if mode == "simple_shear" and "area" not in md.entries:
             raise missing_geometry("area", "shear stress from force (area = the sheared face)")
         if geo.area is None:
@@ -674,10 +681,10 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
         back = np.flatnonzero(np.diff(t) < 0)
         if back.size:
             i = back[0] + 1
-            f = factors["time"]
+            f, u = factors["time"], t_col.unit
             raise InputError(
-                f"{t_col.where(label)}, line {linenos[i]}: time goes backwards ({t[i] / f:g} after "
-                f"{t[i - 1] / f:g} on line {linenos[i - 1]}); a file must hold one test in time order - "
+                f"{t_col.where(label)}, line {linenos[i]}: time goes backwards ({t[i] / f:g} {u} after "
+                f"{t[i - 1] / f:g} {u} on line {linenos[i - 1]}); a file must hold one test in time order - "
                 f"split joined records into separate files"
             )
         meta_extra["time_start"] = float(t[0])
@@ -763,6 +770,7 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
         "sidecar": str(md.sidecar) if md.sidecar else None,
         "sources": {k: md.source(k) for k in md.entries},
         "extra": dict(md.extra),
+        "preamble": layout.preamble,
         "warnings": list(warnings),
         **meta_extra,
     }

@@ -1,0 +1,230 @@
+"""Bad tensile files: each is refused with one line naming the file, the place, and what to do."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+from esmm.pipeline.errors import ConfigError, EsmmError, InputError
+from esmm.pipeline.tensile import read
+
+RAW = "time [s],displacement [mm],force [N]\n0,0,0\n1,1,1\n"
+GEOM = {"gauge_length": "10 mm", "area": "1 mm2"}
+
+
+def refuse(tmp_path: Path, content, *, sidecar: str | None = None, error=InputError, name="bad.csv",
+           **kwargs) -> str:
+    """Write *content*, read it, check the refusal; return the message."""
+    p = tmp_path / name
+    p.write_bytes(content if isinstance(content, bytes) else content.encode("utf-8"))
+    side = p.with_suffix(".toml")
+    if sidecar is not None:
+        side.write_text(sidecar, encoding="utf-8")
+    elif side.exists():
+        side.unlink()
+    before = sorted(os.listdir(tmp_path))
+    with pytest.raises(EsmmError) as info:
+        read(p, **kwargs)
+    assert type(info.value) is error
+    msg = str(info.value)
+    assert "\n" not in msg and len(msg) < 600
+    assert name in msg or p.with_suffix(".toml").name in msg or "command line" in msg
+    assert sorted(os.listdir(tmp_path)) == before          # nothing written
+    return msg
+
+
+def test_empty_file(tmp_path):
+    assert "empty file" in refuse(tmp_path, b"")
+    assert "empty file" in refuse(tmp_path, b"\r\n \t\n")
+
+
+def test_no_numeric_rows(tmp_path):
+    msg = refuse(tmp_path, "# specimen: a\nstretch,stress [kPa]\n")
+    assert "no numeric rows" in msg and "line 2" in msg
+    assert "no numeric rows" in refuse(tmp_path, "# only a comment\n\n")
+
+
+def test_unknown_units(tmp_path):
+    msg = refuse(tmp_path, "stretch,stress [furlong]\n1,0\n")
+    assert "column 2 'stress'" in msg and "'furlong'" in msg and "kPa" in msg
+    msg = refuse(tmp_path, "strain [mm],stress [kPa]\n0,0\n")
+    assert "unknown strain unit 'mm'" in msg
+
+
+def test_ambiguous_case_units_are_refused(tmp_path):
+    msg = refuse(tmp_path, "stretch,stress [mPa]\n1,0\n")
+    assert "millipascal" in msg and "MPa" in msg
+
+
+def test_missing_units(tmp_path):
+    msg = refuse(tmp_path, "stretch,stress\n1,0\n")
+    assert "column 2 'stress' has no unit" in msg and "'stress [kPa]'" in msg and "units = [...]" in msg
+    msg = refuse(tmp_path, "time,displacement,force\n0,0,0\n", overrides=GEOM)
+    assert "column 1 'time' has no unit" in msg
+    # an empty cell of a units row is a missing unit too
+    msg = refuse(tmp_path, "time,displacement,force\n(s),,(N)\n0,0,0\n", overrides=GEOM)
+    assert "column 2 'displacement' has no unit" in msg
+
+
+def test_missing_geometry(tmp_path):
+    msg = refuse(tmp_path, RAW, overrides={"area": "1 mm2"})
+    assert "missing geometry" in msg and "gauge_length" in msg and "--gauge-length" in msg
+    msg = refuse(tmp_path, RAW, overrides={"gauge_length": "10 mm"})
+    assert "missing geometry" in msg and "area" in msg and "width and thickness" in msg
+    msg = refuse(tmp_path, RAW, overrides={"gauge_length": "10 mm", "width": "2 mm"})
+    assert "width is given but not thickness" in msg
+
+
+def test_bare_number_for_a_dimensional_key(tmp_path):
+    msg = refuse(tmp_path, "# gauge_length: 30\n" + RAW, overrides={"area": "1 mm2"})
+    assert "line 1: gauge_length" in msg and "no unit" in msg and '"30 mm"' in msg
+    msg = refuse(tmp_path, RAW, sidecar='gauge_length = 30\narea = "1 mm2"\n')
+    assert "bad.toml: gauge_length" in msg and "no unit" in msg
+    msg = refuse(tmp_path, RAW, overrides={"gauge_length": "30", "area": "1 mm2"}, error=ConfigError)
+    assert "--gauge-length" in msg
+    # refused even where the value would not be used (a processed file)
+    assert "no unit" in refuse(tmp_path, "# area: 22\nstretch,stress [kPa]\n1,0\n")
+
+
+def test_non_positive_geometry(tmp_path):
+    msg = refuse(tmp_path, RAW, overrides={"gauge_length": "-1 mm", "area": "1 mm2"}, error=ConfigError)
+    assert "must be positive" in msg
+
+
+def test_nan_and_text_in_a_numeric_column(tmp_path):
+    msg = refuse(tmp_path, "stretch,stress [kPa]\n1,0\n1.1,nan\n")
+    assert "column 2 'stress', line 3" in msg and "'nan'" in msg and "fix or delete" in msg
+    msg = refuse(tmp_path, "stretch,stress [kPa]\n1,0\n1.1,abc\n1.2,3\n")
+    assert "column 2 'stress', line 3" in msg and "'abc'" in msg
+    msg = refuse(tmp_path, "stretch;stress [kPa]\n1;0\n1.1;\n")
+    assert "line 3 is empty" in msg
+    msg = refuse(tmp_path, "stretch,stress [kPa]\n1,0\n1.1,-inf\n")
+    assert "'-inf' is not a finite number" in msg
+    msg = refuse(tmp_path, "stretch,stress [kPa]\n1,0\n1.1,1\nMaximum,1\n")      # a footer
+    assert "column 1 'stretch', line 4" in msg and "'Maximum'" in msg
+    msg = refuse(tmp_path, 'stretch,stress [kPa]\n"1","0"\n"1,1","2"\n"1.2","3"\n')
+    assert "numbers mix '.' (line 4) and ',' (line 3)" in msg
+
+
+def test_short_row_and_header_mismatch(tmp_path):
+    assert "line 3 has 1 field(s)" in refuse(tmp_path, "stretch,stress [kPa]\n1,0\n1.1\n")
+    msg = refuse(tmp_path, "stretch,stress [kPa]\n1,0,5\n")
+    assert "header on line 1 has 2 columns but the data row on line 2 has 3" in msg
+
+
+def test_time_going_backwards(tmp_path):
+    msg = refuse(tmp_path, "time [ms],stretch,stress [kPa]\n0,1,0\n10,1.1,1\n5,1.2,2\n")
+    assert "line 4: time goes backwards (5 ms after 10 ms on line 3)" in msg and "separate files" in msg
+
+
+def test_binary_files(tmp_path):
+    assert "binary data" in refuse(tmp_path, bytes(range(256)) * 4)
+    assert "xlsx" in refuse(tmp_path, b"PK\x03\x04" + bytes(100), name="bad.xlsx")
+    assert "save the sheet as CSV" in refuse(tmp_path, b"\xd0\xcf\x11\xe0" + bytes(100))
+    assert "utf-16-le" in refuse(tmp_path, "stretch,stress [kPa]\n1,0\n".encode("utf-16-le"))
+    assert "control bytes" in refuse(tmp_path, bytes([1, 2, 3, 4, 5, 6, 7, 8, 14, 15] * 40))
+
+
+def test_unknown_column_names(tmp_path):
+    msg = refuse(tmp_path, "Kraft2,Weg2\n1,0\n")
+    assert "unknown column names 'Kraft2', 'Weg2' (header line 1)" in msg and "columns = [...]" in msg
+
+
+def test_refused_true_stress(tmp_path):
+    msg = refuse(tmp_path, "stretch,true stress [kPa]\n1,0\n")
+    assert "Cauchy" in msg and "nominal stress" in msg
+
+
+def test_duplicate_columns(tmp_path):
+    msg = refuse(tmp_path, "stretch,stress [kPa],nominal stress [kPa]\n1,0,0\n")
+    assert "two stress columns" in msg and "'ignore'" in msg
+
+
+def test_stress_without_stretch(tmp_path):
+    msg = refuse(tmp_path, "time [s],stress [kPa]\n0,0\n1,1\n")
+    assert "has stress but no stretch" in msg and "'time', 'stress'" in msg
+    msg = refuse(tmp_path, "stretch\t time [s]\n1\t0\n")
+    assert "no stress" in msg
+
+
+def test_no_header_and_no_columns(tmp_path):
+    msg = refuse(tmp_path, "1,0\n1.1,1\n")
+    assert "no header line" in msg and "columns = [...]" in msg and "bad.toml" in msg
+
+
+def test_mismatched_sidecar_columns_and_units(tmp_path):
+    msg = refuse(tmp_path, RAW, sidecar='columns = ["time", "displacement"]\n')
+    assert "bad.toml: columns" in msg and "lists 2 columns but the file has 3" in msg
+    msg = refuse(tmp_path, RAW, sidecar='units = ["s", "mm"]\n')
+    assert "lists 2 units but the file has 3 columns" in msg
+    msg = refuse(tmp_path, "1,0\n", sidecar='columns = ["strech", "stress"]\nunits = ["", "kPa"]\n')
+    assert "unknown column quantity 'strech'" in msg
+
+
+def test_unknown_mode(tmp_path):
+    msg = refuse(tmp_path, "# mode: biaxial\nstretch,stress [kPa]\n1,0\n")
+    assert "line 1: mode" in msg and "unknown mode 'biaxial'" in msg and "equibiaxial" in msg
+    msg = refuse(tmp_path, "stretch,stress [kPa]\n1,0\n", overrides={"mode": "torsion"}, error=ConfigError)
+    assert "--mode" in msg
+
+
+def test_mode_and_columns_disagree(tmp_path):
+    msg = refuse(tmp_path, "# mode: uniaxial\ngamma,shear stress [kPa]\n0,0\n")
+    assert 'state mode = "simple_shear"' in msg
+    msg = refuse(tmp_path, "# mode: simple shear\nstretch,stress [kPa]\n1,0\n")
+    assert "needs 'shear strain' and 'shear stress' columns" in msg
+
+
+def test_non_positive_stretch(tmp_path):
+    msg = refuse(tmp_path, "strain [%],stress [kPa]\n0,0\n-120,1\n")
+    assert "column 1 'strain', line 3: gives stretch -0.2 <= 0" in msg
+
+
+def test_encodings(tmp_path):
+    gbk = "时间,位移,力\n(s),(mm),(N)\n0,0,0\n".encode("gbk")
+    msg = refuse(tmp_path, gbk, overrides=GEOM)
+    assert "not UTF-8" in msg and 'encoding = "gbk"' in msg and "line 1" in msg
+    msg = refuse(tmp_path, gbk, encoding="utf-8")
+    assert "does not decode as utf-8 (stated by encoding argument)" in msg
+    msg = refuse(tmp_path, RAW, overrides={"encoding": "klingon"}, error=ConfigError)
+    assert "unknown text encoding 'klingon'" in msg
+
+
+def test_bad_sidecars(tmp_path):
+    msg = refuse(tmp_path, RAW, sidecar='guage_length = "10 mm"\n')
+    assert "unknown key 'guage_length' (did you mean 'gauge_length'?)" in msg
+    msg = refuse(tmp_path, RAW, sidecar="gauge_length = \n")
+    assert "not valid TOML" in msg and "bad.toml" in msg
+    msg = refuse(tmp_path, RAW, overrides={"colour": "red"}, error=ConfigError)
+    assert "unknown key 'colour'" in msg
+
+
+def test_inconsistent_geometry(tmp_path):
+    msg = refuse(tmp_path, RAW, overrides={"gauge_length": "1 mm", "area": "5 mm2", "width": "1 mm",
+                                           "thickness": "1 mm"})
+    assert "disagrees with width x thickness = 1 mm2" in msg
+
+
+def test_units_disagree_within_the_file(tmp_path):
+    msg = refuse(tmp_path, "stretch,stress [kPa]\n(-),(MPa)\n1,0\n")
+    assert "header says unit 'kPa' but the units row on line 2 says 'MPa'" in msg
+
+
+def test_orientation_needs_a_unit(tmp_path):
+    msg = refuse(tmp_path, "stretch,stress [kPa]\n1,0\n", overrides={"orientation": "45"}, error=ConfigError)
+    assert '"45 deg"' in msg
+
+
+def test_single_column(tmp_path):
+    assert "cannot find the column delimiter" in refuse(tmp_path, "stretch\n1\n1.1\n")
+
+
+def test_paths(tmp_path):
+    with pytest.raises(InputError, match="no such file"):
+        read(tmp_path / "missing.csv")
+    with pytest.raises(InputError, match="is a folder"):
+        read(tmp_path)
+    (tmp_path / "x.toml").write_text('gauge_length = "1 mm"\n')
+    with pytest.raises(InputError, match="TOML sidecar, not test data"):
+        read(tmp_path / "x.toml")
