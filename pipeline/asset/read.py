@@ -311,18 +311,19 @@ def _tables(f: h5py.File):
 
 
 def _material(text: str):
-    """Parse the stored material TOML with the materials module, if it offers a way."""
+    """Parse the stored material TOML with the materials module (None if it is not installed)."""
     if not text:
         return None
     try:
-        from ..materials import material as mm
+        from ..materials.material import load_material
     except ImportError:
         return None
-    for name in ("material_from_toml_string", "from_toml_string", "loads"):
-        fn = getattr(mm, name, None) or getattr(getattr(mm, "Material", None), name, None)
-        if callable(fn):
-            return fn(text)
-    return None
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="esmm-material-") as tmp:
+        path = Path(tmp) / "material.toml"
+        path.write_text(text, encoding="utf-8")
+        return load_material(path)
 
 
 def _json(f: h5py.File, path: str) -> dict | None:

@@ -48,29 +48,54 @@ def material_text(material) -> tuple[str, dict[str, str]]:
     return text, attrs
 
 
+def _param_units(material) -> dict[str, str]:
+    """Parameter name -> SI unit ("Pa" for stress-like parameters, "1" otherwise)."""
+    try:
+        specs = material.model_obj.parameters
+    except (AttributeError, Exception):  # noqa: BLE001 - a duck-typed material without specs
+        return {}
+    return {p.name: ("Pa" if getattr(p, "kind", "") == "stress" else "1") for p in specs}
+
+
 def _write_material(f: h5py.File, material) -> None:
-    text, attrs = material_text(material)
+    if isinstance(material, str):
+        from .read import _material
+
+        parsed = _material(material)  # validates the text (ConfigError naming the key)
+        if parsed is not None:
+            attrs = {"name": parsed.name, "model": parsed.model}
+            text, material = material, parsed
+        else:
+            text, attrs = material, {}
+    else:
+        text, attrs = material_text(material)
     if not text:
         raise InputError("material: cannot serialise it as TOML; pass a Material (or its TOML text)")
     g = _h5.typed_group(f, "material", *GROUPS["/material"][:2])
     for k, v in attrs.items():
         g.attrs[k] = str(v)
     _h5.put_text(g, "toml", text, description="the Material as TOML text (esmm material format)")
-    params = getattr(material, "parameters", None)
-    if isinstance(params, dict) and params:
-        pg = g.create_group("parameters")
-        pg.attrs["esmm_type"] = "material_parameters"
-        pg.attrs["esmm_version"] = 1
-        units = getattr(material, "units", None) or getattr(material, "parameter_units", None) or {}
-        if callable(units):
-            units = units()
-        for name, value in params.items():
+    params = getattr(material, "params", None)
+    if not isinstance(params, dict) or not params:
+        return
+    units = _param_units(material)
+    sets = [("parameters", params)]
+    for d, over in sorted((getattr(material, "directions", None) or {}).items()):
+        if over:
+            sets.append((f"directions/{d}", over))
+    for sub, values in sets:
+        pg = g.require_group(sub)
+        for grp in (pg, pg.parent):
+            if grp.name != g.name and "esmm_type" not in grp.attrs:
+                grp.attrs["esmm_type"] = "material_parameters"
+                grp.attrs["esmm_version"] = 1
+        for name, value in values.items():
             try:
                 val = float(value)
             except (TypeError, ValueError):
                 continue
-            u = units.get(name, "1") if isinstance(units, dict) else "1"
-            _h5.put(pg, name, val, u if u else "1", dtype=np.float64)
+            _h5.put(pg, name, val, units.get(name, "1"), dtype=np.float64,
+                    description="SI value (stress-like parameters in Pa)")
 
 
 def _report_group(f: h5py.File, name: str, report, summary_keys=()) -> None:
