@@ -228,3 +228,16 @@ def test_paths(tmp_path):
     (tmp_path / "x.toml").write_text('gauge_length = "1 mm"\n')
     with pytest.raises(InputError, match="TOML sidecar, not test data"):
         read(tmp_path / "x.toml")
+
+
+def test_encoding_statements_that_contradict_the_file(tmp_path):
+    bom = b"\xef\xbb\xbfstretch,stress [kPa]\n1,0\n"
+    msg = refuse(tmp_path, bom, sidecar='encoding = "gbk"\n')
+    assert "UTF-8" not in msg and "utf-8-sig byte-order mark but" in msg and "bad.toml: encoding" in msg
+    msg = refuse(tmp_path, "# encoding: ascii\nstretch,stress [kPa]\n1,0\n1.1,1 µ\n".encode("utf-8"))
+    assert "does not decode as ascii (stated by" in msg and "line 1: encoding" in msg and "line 4" in msg
+
+
+def test_absurd_true_strain(tmp_path):
+    msg = refuse(tmp_path, "true strain,stress [kPa]\n0,0\n1000,1\n")
+    assert "line 3: gives a stretch that is not finite" in msg

@@ -246,6 +246,7 @@ P_KPA = [0.0, 3.5, 8.25, 15.0]
         "Stretch,Tensile stress [kPa]",
         "stretch,应力 (kPa)",
         "stretch,应力（kPa）",
+        'Stretch,"Stress, kPa"',
     ],
 )
 def test_header_spellings(tmp_path, header):
@@ -305,6 +306,12 @@ def test_preamble_text_lines_before_header(tmp_path):
     t = read(write(tmp_path, "t.csv", text))
     assert t.metadata["header_row"] == 3
     np.testing.assert_allclose(t.stress, [0, 5e3])
+
+
+def test_excel_sep_line(tmp_path):
+    t = read(write(tmp_path, "t.csv", "sep=;\nstretch;stress [kPa]\n1,0;0\n1,5;2,5\n"))
+    assert t.metadata["header_row"] == 2 and t.metadata["delimiter"] == ";"
+    np.testing.assert_allclose(t.stress, [0.0, 2500.0])
 
 
 def test_trailing_delimiter(tmp_path):
@@ -539,3 +546,109 @@ def test_message_lines_are_single(tmp_path):
     rep = ListReporter()
     read(FIXTURES / "instron_like.csv", reporter=rep)
     assert len(rep.steps) == 1 and "\n" not in rep.steps[0] and re.search(r"21 rows", rep.steps[0])
+
+
+# ---------------------------------------------------------------------------
+# round trip over random combinations of the format variants (hypothesis)
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_NAMES = {
+    "utf-8": {"time": ["Time", "t", "elapsed time"], "displacement": ["Extension", "Crosshead", "displacement"],
+              "force": ["Load", "Standard force", "force"], "stretch": ["stretch", "Lambda"],
+              "strain": ["Strain", "Tensile strain"], "stress": ["Stress", "Nominal stress", "engineering stress"]},
+    "gbk": {"time": ["时间"], "displacement": ["位移"], "force": ["力", "载荷"], "stretch": ["拉伸比"],
+            "strain": ["应变"], "stress": ["应力"]},
+    "cp1252": {"time": ["Zeit", "Prüfzeit"], "displacement": ["Standardweg", "Verlängerung"],
+               "force": ["Standardkraft", "Kraft"], "stretch": ["stretch"], "strain": ["Dehnung"],
+               "stress": ["Spannung"]},
+}
+_UNITS = {"time": {"s": 1.0, "ms": 1e-3, "min": 60.0}, "displacement": {"mm": 1e-3, "m": 1.0, "um": 1e-6},
+          "force": {"N": 1.0, "mN": 1e-3, "kN": 1e3}, "stress": {"Pa": 1.0, "kPa": 1e3, "MPa": 1e6},
+          "strain": {"%": 1e-2, "-": 1.0}, "stretch": {"-": 1.0}}
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.data())
+def test_round_trip_of_random_format_variants(data):
+    import tempfile
+
+    d = data.draw
+    n = d(st.integers(2, 25))
+    kind = d(st.sampled_from(["raw", "stretch", "strain"]))
+    enc = d(st.sampled_from(["utf-8", "utf-8-sig", "utf-16", "gbk", "cp1252"]))
+    names_enc = "gbk" if enc == "gbk" else "cp1252" if enc == "cp1252" else "utf-8"
+    delim = d(st.sampled_from([",", ";", "\t", "|"]))
+    quote = d(st.booleans())
+    decimal = d(st.sampled_from([".", ","])) if (delim != "," or quote) else "."
+    style = d(st.sampled_from(["brackets", "parens", "row", "slash", "sidecar"]))
+    eol = d(st.sampled_from(["\n", "\r\n"]))
+    geometry_in = d(st.sampled_from(["comment", "sidecar", "override"]))
+
+    L, A = 0.025, 8e-6
+    t_si = np.arange(n) * 0.05
+    lam = 1 + 0.8 * np.sin(np.linspace(0, np.pi, n)) ** 2
+    p_si = MU * (lam - lam**-2)
+    qs = ["time", "displacement", "force"] if kind == "raw" else ["time", kind, "stress"]
+    units = [d(st.sampled_from(sorted(_UNITS[q]))) for q in qs]
+    names = [d(st.sampled_from(_NAMES[names_enc][q])) for q in qs]
+    si = {"time": t_si, "displacement": (lam - 1) * L, "force": p_si * A, "stretch": lam,
+          "strain": lam - 1, "stress": p_si}
+
+    def fmt(x: float) -> str:
+        s = repr(float(x))
+        s = s.replace(".", ",") if decimal == "," else s
+        return f'"{s}"' if quote else s
+
+    if style == "brackets":
+        header = [f"{nm} [{u}]" for nm, u in zip(names, units)]
+    elif style == "parens":
+        header = [f"{nm} ({u})" for nm, u in zip(names, units)]
+    elif style == "slash":
+        header = [f"{nm} / {u}" for nm, u in zip(names, units)]
+    else:
+        header = list(names)
+    lines = []
+    side: list[str] = []
+    geo = {"gauge_length": "25 mm", "area": "8 mm2"}
+    if geometry_in == "comment":
+        lines += [f"# {k}: {v}" for k, v in geo.items()]
+    elif geometry_in == "sidecar":
+        side += [f'{k} = "{v}"' for k, v in geo.items()]
+    lines.append(delim.join(header))
+    if style == "row":
+        lines.append(delim.join(f"({u})" for u in units))
+    if style == "sidecar":
+        side.append("units = [" + ", ".join(f'"{u}"' for u in units) + "]")
+    for i in range(n):
+        lines.append(delim.join(fmt(si[q][i] / _UNITS[q][u]) for q, u in zip(qs, units)))
+    if enc in ("gbk", "cp1252"):
+        side.append(f'encoding = "{enc}"')
+    text = eol.join(lines) + eol
+    with tempfile.TemporaryDirectory() as tmp:
+        p = Path(tmp) / "t.csv"
+        p.write_bytes(text.encode(enc))
+        if side:
+            p.with_suffix(".toml").write_text("\n".join(side) + "\n", encoding="utf-8")
+        t = read(p, overrides=geo if geometry_in == "override" else None)
+    assert t.n == n and t.mode == "uniaxial"
+    assert t.metadata["delimiter"] == delim and t.metadata["decimal"] == decimal
+    np.testing.assert_allclose(t.time, t_si, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(t.stretch, lam, rtol=1e-12)
+    np.testing.assert_allclose(t.stress, p_si, rtol=1e-12, atol=1e-9)
+    assert t.metadata["raw"] == (kind == "raw")
+
+
+def test_units_compared_by_meaning_not_spelling(tmp_path):
+    # header 'kPa', units row 'KPA': the same unit, no conflict; sidecar '-' vs none: no warning
+    p = write(tmp_path, "t.csv", "stretch,stress [kPa]\n(),(KPA)\n1,0\n1.1,1\n", sidecar='units = ["-", "kpa"]\n')
+    rep = ListReporter()
+    t = read(p, reporter=rep)
+    np.testing.assert_allclose(t.stress, [0, 1e3])
+    assert rep.warnings == []
+
+
+def test_no_header_with_trailing_delimiter(tmp_path):
+    p = write(tmp_path, "t.csv", "1,0,\n1.1,1,\n", sidecar='columns = ["stretch", "stress"]\nunits = ["", "Pa"]\n')
+    np.testing.assert_allclose(read(p).stress, [0, 1])

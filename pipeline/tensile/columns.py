@@ -57,7 +57,7 @@ _add("time", "time", "t", "elapsed time", "test time", "total time", "time elaps
      "时间", "试验时间", "测试时间", "时间 s")
 _add("displacement", "displacement", "extension", "elongation", "position", "crosshead",
      "crosshead position", "crosshead displacement", "crosshead extension", "crosshead travel",
-     "machine extension", "tensile extension", "compressive extension", "travel", "stroke",
+     "machine extension", "tensile extension", "travel", "stroke",
      "standard travel", "grip separation", "grip to grip separation", "deformation",
      "weg", "standardweg", "traversenweg", "traversenposition", "verlängerung", "dehnweg",
      "位移", "伸长", "伸长量", "变形", "横梁位移", "横梁位置", "试验机位移")
@@ -92,6 +92,7 @@ _TRANSLATE = str.maketrans({
 })
 _UNIT_TAIL = re.compile(r"^(?P<name>.*?)\s*[\[({](?P<unit>[^\[\](){}]*)[\])}]\s*$", re.S)
 _UNIT_SLASH = re.compile(r"^(?P<name>.*\S)\s+/\s*(?P<unit>\S+)$")
+_UNIT_COMMA = re.compile(r"^(?P<name>.*\S)\s*,\s*(?P<unit>\S+)$")
 _SEPARATORS = re.compile(r"[\s_\-.:]+")
 _CHANNEL = re.compile(r"\s+\d+$")
 
@@ -108,7 +109,8 @@ def split_header(cell: str) -> tuple[str, str | None]:
     """Split a header cell into (name, unit or None).
 
     ``"Time (s)" -> ("Time", "s")``, ``"Strain [%]" -> ("Strain", "%")``,
-    ``"Kraft / N" -> ("Kraft", "N")``, ``"stretch" -> ("stretch", None)``,
+    ``"Kraft / N" -> ("Kraft", "N")``, ``"Load, kN" -> ("Load", "kN")`` (a known unit only),
+    ``"stretch" -> ("stretch", None)``,
     ``"Strain [-]" -> ("Strain", "-")``.
     """
     c = clean_cell(cell)
@@ -117,6 +119,9 @@ def split_header(cell: str) -> tuple[str, str | None]:
         return m.group("name").strip(), m.group("unit").strip()
     m = _UNIT_SLASH.match(c)
     if m:
+        return m.group("name").strip(), m.group("unit").strip()
+    m = _UNIT_COMMA.match(c)
+    if m and is_unit_cell(m.group("unit")):
         return m.group("name").strip(), m.group("unit").strip()
     return c, None
 

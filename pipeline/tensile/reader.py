@@ -32,15 +32,17 @@ from typing import Any
 
 import numpy as np
 
+from .. import units as _units
 from ..errors import InputError
 from ..progress import Reporter, ensure
 from . import columns as C
 from . import metadata as M
 from .data import TensileTest
 
-_DELIMITERS = ("\t", ";", ",", "|")
+_DELIMITERS = ("\t", ";", "|", ",")
 _DELIM_NAME = {"\t": "tab", ";": "';'", ",": "','", "|": "'|'"}
 _QUOTED = re.compile(r'"[^"]*"')
+_EXCEL_SEP = re.compile(r'^\s*"?sep=(.)"?\s*$', re.I)
 _NUMBER = re.compile(r"^[-+]?(?:\d+(?:[.,]\d*)?|[.,]\d+)(?:[eE][-+]?\d+)?$|^[-+]?(?:nan|inf|infinity)$", re.I)
 _ENCODING_COMMENT = re.compile(rb"^[ \t]*#+[ \t]*(?:encoding|charset)[ \t]*[:=][ \t]*[\"']?([A-Za-z0-9_.\-]+)", re.M | re.I)
 _CONTENT = re.compile(rb"[^ \t\r\n\x00\x1a\xef\xbb\xbf\xff\xfe]")
@@ -137,21 +139,25 @@ def _check_path(p: Path, label: str) -> None:
 
 
 def _decode(raw: bytes, label: str, enc_entry: M.Entry | None) -> tuple[str, str]:
-    """Decode the file's bytes: stated encoding, else comment line, else BOM, else UTF-8."""
+    """Decode the file's bytes: stated encoding, else a BOM, else a ``# encoding:`` line, else UTF-8."""
     if _CONTENT.search(raw) is None:
         raise InputError(f"{label}: empty file; export the test again (one header line and one row per sample)")
     name = M.encoding_value(enc_entry) if enc_entry else None
+    bom = _bom(raw)
+    if name is not None and bom is not None and not _codec(name).startswith(bom.split("-sig")[0]):
+        raise InputError(
+            f"{label}: starts with a {bom} byte-order mark but {enc_entry.where} says {name}; "
+            f"remove the encoding statement (the mark is definitive)"
+        )
+    src = enc_entry.where if enc_entry else "its byte-order mark"
     if name is None:
-        if raw.startswith(b"\xff\xfe\x00\x00") or raw.startswith(b"\x00\x00\xfe\xff"):
-            name = "utf-32"
-        elif raw.startswith(b"\xff\xfe") or raw.startswith(b"\xfe\xff"):
-            name = "utf-16"
-        elif raw.startswith(b"\xef\xbb\xbf"):
-            name = "utf-8-sig"
+        name = bom
     if name is None:
         m = _ENCODING_COMMENT.search(raw[:8192])
         if m:
-            name = M.encoding_value(M.Entry(m.group(1).decode("ascii"), f"{label}: '# encoding' line", M.COMMENT))
+            line = raw.count(b"\n", 0, m.start(1)) + 1
+            src = f"{label} line {line}: encoding"
+            name = M.encoding_value(M.Entry(m.group(1).decode("ascii"), src, M.COMMENT))
     wide = name is not None and _codec(name).startswith(("utf-16", "utf-32"))
     if not wide:
         _check_text(raw, label)
@@ -160,7 +166,6 @@ def _decode(raw: bytes, label: str, enc_entry: M.Entry | None) -> tuple[str, str
             text = raw.decode(name)
         except UnicodeDecodeError as exc:
             line = raw.count(b"\n", 0, exc.start) + 1
-            src = enc_entry.where if enc_entry else "its byte-order mark"
             raise InputError(
                 f"{label}: does not decode as {name} (stated by {src}): byte 0x{raw[exc.start]:02x} "
                 f"on line {line}; state the file's real encoding"
@@ -184,6 +189,16 @@ def _decode(raw: bytes, label: str, enc_entry: M.Entry | None) -> tuple[str, str
         if "\r" in text:
             text = text.replace("\r", "\n")
     return text, _codec(name)
+
+
+def _bom(raw: bytes) -> str | None:
+    if raw.startswith((b"\xff\xfe\x00\x00", b"\x00\x00\xfe\xff")):
+        return "utf-32"
+    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
+        return "utf-16"
+    if raw.startswith(b"\xef\xbb\xbf"):
+        return "utf-8-sig"
+    return None
 
 
 def _codec(name: str) -> str:
@@ -268,20 +283,26 @@ def _units_row(cells: list[str]) -> bool:
 
 
 def _detect_delimiter(sample: list[str], label: str) -> str:
+    """The delimiter that splits the (last) lines into a steady number of fields, most of them numbers.
+
+    Ties go to tab, ``;``, ``|``, ``,`` in this order (a decimal comma makes ``,``
+    steady in ``;``- and ``|``-delimited files too, but its fields are not numbers).
+    """
     stripped = [_QUOTED.sub("x", s) for s in sample]
     best = None
-    for d in _DELIMITERS:
+    for rank, d in enumerate(_DELIMITERS):
         counts = [s.count(d) for s in stripped]
-        if not counts:
-            continue
         mode = max(set(counts), key=counts.count)
-        if mode >= 1 and counts.count(mode) >= 0.8 * len(counts):
-            return d
-        share = sum(c >= 1 for c in counts) / len(counts)
-        if best is None or share > best[1]:
-            best = (d, share)
-    if best is not None and best[1] >= 0.5:
-        return best[0]
+        steady = counts.count(mode) / len(counts)
+        if mode < 1 or steady < 0.5:
+            continue
+        cells = [c for s in sample for c in _split(s, d)]
+        numeric = sum(_is_number(c) for c in cells) / max(len(cells), 1)
+        score = (steady >= 0.8, numeric, steady, -rank)
+        if best is None or score > best[0]:
+            best = (score, d)
+    if best is not None:
+        return best[1]
     raise InputError(
         f"{label}: cannot find the column delimiter (',', ';', tab or '|') in the data rows; "
         f"a test needs at least two columns (e.g. stretch and stress) - export it as CSV, "
@@ -299,6 +320,16 @@ _BLANK_LINE = re.compile(r"\n[ \t]+(?:\n|$)")
 
 def _layout(lines: list[str], label: str, delimiter: str | None) -> _Layout:
     """Find the top comments, the header, a units row and the data rows of the file."""
+    excel_sep = None
+    for k, ln in enumerate(lines):
+        if ln.strip():
+            m = _EXCEL_SEP.match(ln)
+            if m:  # Excel's "sep=;" first line
+                excel_sep = k
+                delimiter = delimiter or m.group(1)
+            break
+    if excel_sep is not None:
+        lines = [""] * (excel_sep + 1) + lines[excel_sep + 1:]
     if delimiter is None:
         tail: list[str] = []
         for ln in reversed(lines):
@@ -387,6 +418,10 @@ def _columns(label: str, layout: _Layout, md: M.Metadata, warnings: list[str]) -
     unit_cells = [C.clean_cell(c) for c in layout.units_row[1]] if layout.units_row else None
     n = layout.n_fields
     # Trailing empty cells (a trailing delimiter) do not make columns.
+    if hdr_cells is None:
+        first = _split(layout.data_lines[0], layout.delimiter)
+        while n > 1 and not first[n - 1].strip():
+            n -= 1
     if hdr_cells is not None:
         while len(hdr_cells) > 1 and not hdr_cells[-1]:
             hdr_cells.pop()
@@ -409,7 +444,7 @@ def _columns(label: str, layout: _Layout, md: M.Metadata, warnings: list[str]) -
             u = cell.strip().strip("()[]{}").strip() if cell else ""
             if not u:
                 continue
-            if file_units[i] is not None and C.clean_cell(file_units[i]) != u:
+            if file_units[i] is not None and not _same_unit(file_units[i], u):
                 raise InputError(
                     f"{label}: column {i + 1}: the header says unit {file_units[i]!r} but the units row on line "
                     f"{layout.units_row[0]} says {u!r}; keep one"
@@ -446,12 +481,18 @@ def _columns(label: str, layout: _Layout, md: M.Metadata, warnings: list[str]) -
             )
         for i, u in enumerate(given):
             u = u.strip().strip("()[]{}").strip()
-            if file_units[i] is not None and file_units[i] != "" and u != C.clean_cell(file_units[i]):
+            if file_units[i] is not None and not _same_unit(file_units[i], u):
                 warnings.append(
                     f"{label}: column {i + 1}: unit {file_units[i]!r} in the file replaced by {u!r} from {unit_entry.where}"
                 )
             units[i] = u
     return [_Column(i, names[i] or None, qs[i], units[i], absolute[i]) for i in range(n)]
+
+
+def _same_unit(a: str, b: str) -> bool:
+    na, nb = (_units.normalise_unit(C.clean_cell(x)) for x in (a, b))
+    none = ("", "-", "1")
+    return na == nb or (na in none and nb in none)
 
 
 def _need_unit(col: _Column, label: str, md: M.Metadata) -> float:
@@ -700,7 +741,9 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
         if x_q == "strain":
             x, x_from = 1.0 + v, "strain column (stretch = 1 + strain)"
         elif x_q == "true_strain":
-            x, x_from = np.exp(v), "true strain column (stretch = exp(strain))"
+            with np.errstate(over="ignore"):
+                x = np.exp(v)
+            x_from = "true strain column (stretch = exp(strain))"
         else:
             x, x_from = v, f"{x_q.replace('_', ' ')} column"
         xc = x_col
@@ -721,6 +764,12 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
         stress, s_from = col_of["s"], f"{s_q.replace('_', ' ')} column"
     else:
         stress = force / geo.area
+    for arr, col, what in ((x, xc, x_name), (stress, s_col or f_col, "stress")):
+        bad = np.flatnonzero(~np.isfinite(arr))
+        if bad.size:  # e.g. exp() of an absurd true strain
+            raise InputError(
+                f"{col.where(label)}, line {linenos[bad[0]]}: gives a {what} that is not finite; check the value"
+            )
 
     for c in cols:
         if c.quantity is None and c.header:
