@@ -234,7 +234,7 @@ def test_encoding_statements_that_contradict_the_file(tmp_path):
     bom = b"\xef\xbb\xbfstretch,stress [kPa]\n1,0\n"
     msg = refuse(tmp_path, bom, sidecar='encoding = "gbk"\n')
     assert "UTF-8" not in msg and "utf-8-sig byte-order mark but" in msg and "bad.toml: encoding" in msg
-    msg = refuse(tmp_path, "# encoding: ascii\nstretch,stress [kPa]\n1,0\n1.1,1 µ\n".encode("utf-8"))
+    msg = refuse(tmp_path, "# encoding: ascii\nstretch,stress [kPa]\n1,0\n1.1,1 µ\n".encode())
     assert "does not decode as ascii (stated by" in msg and "line 1: encoding" in msg and "line 4" in msg
 
 
