@@ -293,3 +293,15 @@ def test_drucker_argument_errors():
         drucker_check(get_model("arruda-boyce"), TRELOAR, lo=1.2, hi=2.0)
     with pytest.raises(ConfigError, match="unknown mode 'shear'"):
         drucker_check(get_model("arruda-boyce"), TRELOAR, modes=["shear"])
+
+
+@pytest.mark.parametrize("N", [1.1074, 26.5, 1e5])
+def test_arruda_boyce_energy_keeps_relative_precision_near_reference(N):
+    m = get_model("arruda-boyce")
+    p = {"mu": 1e4, "N": N}
+    u = 2.0 ** -np.arange(10, 40, 6)  # exact increments: I1 = 3 + u has no rounding
+    w = m.energy(3.0 + u, 3.0, p)
+    w1, _ = m.dW(3.0, 3.0, p)
+    w11 = m.d2W(3.0, 3.0, p)[0]
+    taylor = w1 * u + w11 * u**2 / 2
+    assert np.allclose(w, taylor, rtol=1e-12 + 10 * u * abs(w11 / w1))

@@ -84,28 +84,37 @@ def _elementwise(func):
 
 
 def _kernel(a: np.ndarray):
-    """(L(a), 1 - L(a), L'(a)) for a >= 0, both branches evaluated without masks.
+    """(L(a), 1 - L(a), L'(a)) for a >= 0.
 
     Below ``_SMALL`` L comes from its Taylor series and
     :math:`L' = 1 - L^2 - 2L/a` (cancellation-free there: L' is about 1/3);
     above, everything is written with :math:`e^{-2a}` so nothing overflows,
     and :math:`L' = 1/a^2 - 4e^{-2a}/(1-e^{-2a})^2` keeps full relative
-    precision as :math:`a \\to \\infty`. Both branches are evaluated on clipped
-    arguments and selected with ``np.where`` (much faster than masking).
+    precision as :math:`a \\to \\infty`. When both branches occur they are
+    evaluated on clipped arguments and selected with ``np.where`` (faster
+    than masked assignment); usually all values fall in one branch and only
+    that one is computed.
     """
-    sm = np.minimum(a, _SMALL)
-    l_small = sm * _poly_even(_C, sm * sm)
+    small = a < _SMALL
+    n_small = np.count_nonzero(small)
+    if n_small:
+        sm = np.minimum(a, _SMALL)
+        l_small = sm * _poly_even(_C, sm * sm)
+        sm_safe = np.where(sm > 0.0, sm, 1.0)
+        dl_small = np.where(sm > 0.0, 1.0 - l_small * (l_small + 2.0 / sm_safe), 1.0 / 3.0)
+        if n_small == a.size:
+            return l_small, 1.0 - l_small, dl_small
     ab = np.maximum(a, _SMALL)
     e = np.exp(-2.0 * ab)
     ome = -np.expm1(-2.0 * ab)
     inv = 1.0 / ab
     oml_big = inv - 2.0 * e / ome
-    small = a < _SMALL
+    dl_big = inv * inv - 4.0 * e / (ome * ome)
+    if not n_small:
+        return 1.0 - oml_big, oml_big, dl_big
     lang = np.where(small, l_small, 1.0 - oml_big)
     oml = np.where(small, 1.0 - l_small, oml_big)
-    sm_safe = np.where(sm > 0.0, sm, 1.0)
-    dl_small = np.where(sm > 0.0, 1.0 - l_small * (l_small + 2.0 / sm_safe), 1.0 / 3.0)
-    dlang = np.where(small, dl_small, inv * inv - 4.0 * e / (ome * ome))
+    dlang = np.where(small, dl_small, dl_big)
     return lang, oml, dlang
 
 

@@ -70,12 +70,13 @@ STRETCH_MODES = ("uniaxial", "equibiaxial", "pure_shear")
 _STRESS_DIVISOR = {"uniaxial": 1.0, "equibiaxial": 2.0, "pure_shear": 1.0, "simple_shear": 1.0}
 
 # Gauss-Legendre rule on [0, 1] for the small-energy integral. Used where the
-# locking singularity is at least _NEAR_MARGIN increments away: error below
-# (1/(2*9+...))**16 ~ 1e-20.
+# locking singularity is at least _NEAR_MARGIN increments away (quadrature
+# error ~ 1e-20) and I1 - 3 < _NEAR_U; above that the direct W(3 + u) has a
+# relative round-off of about 3 eps / u < 1e-12 and is used instead.
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(8)
 _GL_T = 0.5 * (_GL_X + 1.0)
 _GL_W01 = 0.5 * _GL_W
-_NEAR_U = 0.1  # I1 - 3 below which the integral form is used
+_NEAR_U = 1e-3  # I1 - 3 below which the integral form is used
 _NEAR_MARGIN = 5.0
 
 
