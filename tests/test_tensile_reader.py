@@ -381,6 +381,23 @@ def test_machine_header_variants(tmp_path):
     assert any("Cycle count" in w and "ignored" in w for w in rep.warnings)
 
 
+def test_bluehill_qualifiers_and_quoted_units_row(tmp_path):
+    text = ('"Time","Extension","Load","Tensile strain (Extension)","Tensile stress"\r\n'
+            '"(s)","(mm)","(N)","(%)","(MPa)"\r\n"0.0","0.0","0.0","0.0","0.0"\r\n"1.0","2.0","5.0","10.0","0.5"\r\n')
+    t = read(write(tmp_path, "t.csv", text))
+    assert t.metadata["headers"][3] == "Tensile strain" and t.metadata["units"][3] == "%"
+    np.testing.assert_allclose(t.stretch, [1.0, 1.1])
+    np.testing.assert_allclose(t.stress, [0.0, 0.5e6])
+
+
+def test_mts_like_tab_export_with_unit_words(tmp_path):
+    text = "Test data\nRunning Time sec\tAxial Displacement mm\tAxial Force kN\n0\t0\t0\n1\t1.5\t0.02\n"
+    t = read(write(tmp_path, "t.csv", text), overrides={"gauge_length": "15 mm", "area": "40 mm2"})
+    assert t.metadata["preamble"] == ["Test data"]
+    np.testing.assert_allclose(t.stretch, [1.0, 1.1])
+    np.testing.assert_allclose(t.stress, [0.0, 0.02e3 / 40e-6])
+
+
 def test_german_headers_slash_units(tmp_path):
     text = "Zeit / s;Weg / mm;Kraft / N\n0;0;0\n1;5;10\n"
     t = read(write(tmp_path, "t.csv", text), overrides={"gauge_length": "50 mm", "area": "10 mm2"})

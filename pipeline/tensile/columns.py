@@ -55,13 +55,13 @@ def _add(quantity: str, *names: str) -> None:
 _add("time", "time", "t", "elapsed time", "test time", "total time", "time elapsed",
      "running time", "zeit", "prüfzeit", "pruefzeit", "testzeit",
      "时间", "试验时间", "测试时间", "时间 s")
-_add("displacement", "displacement", "extension", "elongation", "position", "crosshead",
+_add("displacement", "displacement", "extension", "axial displacement", "elongation", "position", "crosshead",
      "crosshead position", "crosshead displacement", "crosshead extension", "crosshead travel",
      "machine extension", "tensile extension", "travel", "stroke",
      "standard travel", "grip separation", "grip to grip separation", "deformation",
      "weg", "standardweg", "traversenweg", "traversenposition", "verlängerung", "dehnweg",
      "位移", "伸长", "伸长量", "变形", "横梁位移", "横梁位置", "试验机位移")
-_add("force", "force", "load", "standard force", "tensile force", "load cell", "tensile load",
+_add("force", "force", "load", "axial force", "axial load", "standard force", "tensile force", "load cell", "tensile load",
      "kraft", "standardkraft", "prüfkraft", "力", "载荷", "负荷", "拉力", "试验力")
 _add("stretch", "stretch", "lambda", "λ", "stretch ratio", "extension ratio", "伸长比", "拉伸比")
 _add("strain", "strain", "engineering strain", "nominal strain", "tensile strain", "eng strain",
@@ -93,6 +93,7 @@ _TRANSLATE = str.maketrans({
 _UNIT_TAIL = re.compile(r"^(?P<name>.*?)\s*[\[({](?P<unit>[^\[\](){}]*)[\])}]\s*$", re.S)
 _UNIT_SLASH = re.compile(r"^(?P<name>.*\S)\s+/\s*(?P<unit>\S+)$")
 _UNIT_COMMA = re.compile(r"^(?P<name>.*\S)\s*,\s*(?P<unit>\S+)$")
+_UNIT_WORD = re.compile(r"^(?P<name>.*\S)\s+(?P<unit>\S+)$")
 _SEPARATORS = re.compile(r"[\s_\-.:]+")
 _CHANNEL = re.compile(r"\s+\d+$")
 
@@ -109,21 +110,38 @@ def split_header(cell: str) -> tuple[str, str | None]:
     """Split a header cell into (name, unit or None).
 
     ``"Time (s)" -> ("Time", "s")``, ``"Strain [%]" -> ("Strain", "%")``,
-    ``"Kraft / N" -> ("Kraft", "N")``, ``"Load, kN" -> ("Load", "kN")`` (a known unit only),
-    ``"stretch" -> ("stretch", None)``,
-    ``"Strain [-]" -> ("Strain", "-")``.
+    ``"Kraft / N" -> ("Kraft", "N")``, ``"Load, kN" -> ("Load", "kN")``,
+    ``"Extension mm" -> ("Extension", "mm")`` (the last two only with a known
+    unit and name), ``"Strain [-]" -> ("Strain", "-")``, ``"stretch" -> ("stretch", None)``.
+    A bracketed qualifier that names a quantity is dropped, not taken as a unit:
+    ``"Tensile strain (Extension)" -> ("Tensile strain", None)``.
     """
     c = clean_cell(cell)
-    m = _UNIT_TAIL.match(c)
-    if m:
-        return m.group("name").strip(), m.group("unit").strip()
-    m = _UNIT_SLASH.match(c)
-    if m:
-        return m.group("name").strip(), m.group("unit").strip()
-    m = _UNIT_COMMA.match(c)
-    if m and is_unit_cell(m.group("unit")):
-        return m.group("name").strip(), m.group("unit").strip()
+    unit = None
+    while True:
+        m = _UNIT_TAIL.match(c)
+        if not m or not m.group("name").strip():
+            break
+        content = m.group("unit").strip()
+        if _is_qualifier(content):
+            c = m.group("name").strip()
+        elif unit is None:
+            unit, c = content, m.group("name").strip()
+        else:
+            break
+    if unit is not None:
+        return c, unit
+    for pattern in (_UNIT_SLASH, _UNIT_COMMA, _UNIT_WORD):
+        m = pattern.match(c)
+        if m and (pattern is _UNIT_SLASH or (is_unit_cell(m.group("unit")) and
+                                              (pattern is _UNIT_COMMA or quantity_of(m.group("name"))))):
+            return m.group("name").strip(), m.group("unit").strip()
     return c, None
+
+
+def _is_qualifier(content: str) -> bool:
+    """``(Extension)`` in ``Tensile strain (Extension)``: a quantity name, not a unit."""
+    return bool(content) and not is_unit_cell(content) and quantity_of(content) is not None
 
 
 def normalise_name(name: str) -> str:
