@@ -352,6 +352,15 @@ def _mesh(surface, s: _Settings, rep, clock: _Clock):
     return mesh
 
 
+def input_stem(path: str | os.PathLike) -> str:
+    """The input's name without its extension (``liver.stl`` -> ``liver``, ``seg.nii.gz`` -> ``seg``)."""
+    name = Path(path).name
+    for compound in (".nii.gz", ".vtk.gz", ".stl.gz"):
+        if name.lower().endswith(compound):
+            return name[: -len(compound)]
+    return Path(name).stem
+
+
 def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None = None,
             config: str | os.PathLike | dict | None = None, size: float | None = None,
             nodes: int | None = None, elements: int | None = None, structure: str | None = None,
@@ -420,7 +429,7 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
         raise InputError(f"{inp}: no such file")
     if inp.is_dir():
         raise InputError(f"{inp}: is a folder; give the organ surface file (STL, OBJ, PLY, VTK, NIfTI)")
-    out = Path(output) if output is not None else Path.cwd() / (inp.name.split(".")[0] + ".h5")
+    out = Path(output) if output is not None else Path.cwd() / (input_stem(inp) + ".h5")
     if out.suffix.lower() not in (".h5", ".hdf5"):
         raise ConfigError(f"-o {out}: the asset file name must end in .h5")
     if out.resolve() == inp.resolve():
@@ -460,11 +469,10 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
     if s.structure == "skeleton" and (s.size is not None or s.nodes is not None or s.elements is not None):
         raise ConfigError("size/nodes/elements set the tet mesh; for the skeleton structure use "
                           "[skeleton] n_surface")
-    rep.step(f"config: {source}; structure {s.structure}; material {s.material}")
-
     clock = _Clock()
     # Fail fast on the material before any meshing.
     mat = clock.run("material", _load_material, s.material)
+    rep.step(f"config: {source}; structure {s.structure}; material {s.material}")
     if mat is None:
         warn("the materials module is not available: the asset has no /material or /tables")
 
@@ -484,7 +492,7 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
 
     from .network.springs import network_from_skeleton, network_from_tets
 
-    quality, passed, mesher, mesh_log = None, True, "skeleton", []
+    quality, passed, mesher, mesh_log, floors = None, True, "skeleton", [], None
     if s.structure == "tetra":
         mesh = _mesh(clean, s, rep, clock)
         mesher = getattr(mesh, "path", "gmsh")
@@ -520,9 +528,8 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
         kind = np.where(np.asarray(sk.kind) == 0, NODE_SURFACE, NODE_SKELETON).astype(np.uint8)
         net = clock.run("network", network_from_skeleton, sk.points, sk.edges, volume=abs(clean.volume()),
                         surface_faces=sk.surface_faces, node_kind=kind, density=s.density,
-                        fibre_frame=s.frame, reorder=s.reorder, weight_exponent=s.weight_exponent,
-                        reporter=rep)
-    rep.step(f"network: {net.summary()} ({clock.timings['network']:.2f} s)")
+                        fibre_frame=s.frame, reorder=s.reorder, weight_exponent=s.weight_exponent)
+    rep.step(f"network: {net.summary()}, bandwidth {net.bandwidth()} ({clock.timings['network']:.2f} s)")
 
     tables = clock.run("tables", _build_tables, mat, s.tables)
     if tables is not None:
@@ -544,7 +551,7 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
                                      "mesher": mesher, "warnings": warnings,
                                      "mesh_log": [str(x) for x in mesh_log[-50:]]})
     clock.run("write", write_asset, out, net, material=mat, tables=tables, quality=quality,
-              cleaning=cleaning, provenance=prov, fixed_region=s.fixed.describe())
+              cleaning=cleaning, provenance=prov, quality_floors=floors, fixed_region=s.fixed.describe())
     rep.step(f"write: {out} ({clock.timings['write']:.2f} s)")
     return PrepareResult(asset=out, xdmf=sidecar_path(out), network=net, quality=quality, quality_passed=passed,
                          cleaning=cleaning, tables=tables, material=mat, timings=clock.timings,

@@ -11,9 +11,14 @@ from types import SimpleNamespace
 import h5py
 import numpy as np
 import pytest
-
-from esmm.pipeline.asset import Provenance, collect_provenance, read_asset, validate_asset, write_asset
-from esmm.pipeline.asset import _h5
+from esmm.pipeline.asset import (
+    Provenance,
+    _h5,
+    collect_provenance,
+    read_asset,
+    validate_asset,
+    write_asset,
+)
 from esmm.pipeline.asset.xdmf import check_sidecar, referenced_datasets, sidecar_path
 from esmm.pipeline.errors import AssetError, InputError
 from esmm.pipeline.network.springs import network_from_skeleton, network_from_tets
@@ -258,7 +263,7 @@ def test_xdmf_sidecar_refers_to_existing_datasets(asset, network):
             "/springs/rest_length", "/springs/volume_weight"} <= paths
     assert all(r[0] == "organ.h5" for r in refs)
     with h5py.File(asset, "r") as f:
-        for h5, path, dims, _, _ in refs:
+        for _, path, dims, _, _ in refs:
             assert f[path].shape == dims
     # a sidecar pointing at a dataset that is gone is reported
     with h5py.File(asset, "r+") as f:

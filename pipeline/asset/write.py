@@ -98,7 +98,7 @@ def _write_material(f: h5py.File, material) -> None:
                     description="SI value (stress-like parameters in Pa)")
 
 
-def _report_group(f: h5py.File, name: str, report, summary_keys=()) -> None:
+def _report_group(f: h5py.File, name: str, report, summary_keys=(), floors: dict | None = None) -> None:
     g = _h5.typed_group(f, name, *GROUPS["/" + name][:2])
     text = _h5.to_json(report)
     _h5.put_text(g, "report", text, description=f"the {name} report as JSON")
@@ -112,11 +112,13 @@ def _report_group(f: h5py.File, name: str, report, summary_keys=()) -> None:
         passes = getattr(report, "passes", None)
         if callable(passes):
             try:
-                ok, problems = passes()
+                ok, problems = passes(floors) if floors is not None else passes()
             except Exception as exc:  # noqa: BLE001 - a report that cannot judge itself is recorded as such
                 ok, problems = False, [f"passes() failed: {exc}"]
             g.attrs["passes"] = bool(ok)
             g.attrs["problems"] = json.dumps(list(problems))
+            if floors is not None:
+                g.attrs["floors"] = json.dumps(floors, sort_keys=True)
 
 
 def _write_provenance(f: h5py.File, prov: Provenance) -> None:
@@ -184,7 +186,7 @@ def _write_core(f: h5py.File, net: SpringNetwork, fixed_region: str) -> None:
 
 def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=None, tables=None,
                 quality=None, cleaning=None, provenance: Provenance | None = None,
-                fixed_region: str = "", xdmf: bool = True) -> Path:
+                quality_floors: dict | None = None, fixed_region: str = "", xdmf: bool = True) -> Path:
     """Write *network* and what goes with it to an HDF5 asset (docs/asset-format.md).
 
     The file is written to a temporary name and renamed when complete; the
@@ -205,6 +207,8 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
         (written by its ``to_hdf5``); None to omit.
     quality, cleaning
         The mesh quality and cleaning reports (dataclasses or dicts); None to omit.
+    quality_floors : dict, optional
+        The floors the quality report was judged against (default: its own defaults).
     provenance : Provenance, optional
         Default: collected for this process without an input file.
     fixed_region : str
@@ -241,7 +245,8 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
                     if "esmm_type" not in g.attrs or "esmm_version" not in g.attrs:
                         raise AssetError("tables: StiffnessTables.to_hdf5 did not set esmm_type/esmm_version")
                 if quality is not None:
-                    _report_group(f, "quality", quality, ("min_dihedral_deg", "n_tets", "n_nodes", "volume"))
+                    _report_group(f, "quality", quality, ("min_dihedral_deg", "n_tets", "n_nodes", "volume"),
+                                  floors=quality_floors)
                 if cleaning is not None:
                     _report_group(f, "cleaning", cleaning, ("volume_before", "volume_after", "bodies_found",
                                                             "relative_volume_change"))

@@ -532,15 +532,12 @@ def network_from_tets(mesh, *, density: float = DEFAULT_DENSITY, fibre_frame=Non
         cos2=direction_cos2(points, edges, frame), mass=mass, surface_faces=faces, tets=tets,
         node_kind=kind, structure="tetra", fibre_frame=frame, density=rho,
     )
-    rep.step(f"network: {net.n_nodes} nodes, {net.n_springs} springs from {net.n_tets} tets "
-             f"(reorder {reorder or 'none'}, bandwidth {net.bandwidth()})")
     return net
 
 
 def network_from_skeleton(points, edges, *, volume: float, surface_faces=None, node_kind=None,
                           density: float = DEFAULT_DENSITY, fibre_frame=None,
-                          reorder: str | None = "rcm", weight_exponent: float = 2.0,
-                          reporter=None) -> SpringNetwork:
+                          reorder: str | None = "rcm", weight_exponent: float = 2.0) -> SpringNetwork:
     """Build the spring network of a surface + skeleton structure.
 
     There are no tetrahedra to share the volume, so the organ volume ``V`` is
@@ -571,7 +568,6 @@ def network_from_skeleton(points, edges, *, volume: float, surface_faces=None, n
     weight_exponent : float
         ``p`` above.
     """
-    rep = ensure(reporter)
     rho = _check_density(density)
     reorder = _check_reorder(reorder)
     pts = np.asarray(points, dtype=np.float64)
@@ -631,7 +627,6 @@ def network_from_skeleton(points, edges, *, volume: float, surface_faces=None, n
         cos2=direction_cos2(pts, edges_u, frame), mass=mass, surface_faces=faces, tets=None,
         node_kind=kind, structure="skeleton", fibre_frame=frame, density=rho,
     )
-    rep.step(f"network: {net.n_nodes} nodes, {net.n_springs} springs (skeleton, reorder {reorder or 'none'})")
     return net
 
 
