@@ -190,7 +190,7 @@ EXTRA_UNITS: dict[str, dict[str, float]] = {
     "length": {"inch": 0.0254, "inches": 0.0254},
     "force": {"lbf": 4.4482216152605, "kgf": 9.80665, "gf": 9.80665e-3},
     "stress": {"n/mm²": 1e6, "psi": 6894.757293168361, "kpsi": 6894757.293168361,
-               "kn/m2": 1e3, "kn/m^2": 1e3, "mn/m2": 1e6},
+               "kn/m2": 1e3, "kn/m^2": 1e3},
     "dimensionless": {"mm/mm": 1.0, "m/m": 1.0, "in/in": 1.0, "pct": 1e-2},
 }
 

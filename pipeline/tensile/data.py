@@ -35,7 +35,8 @@ class TensileTest:
     metadata : dict
         Specimen keys (``specimen``, ``gauge_length`` [m], ``area`` [m2],
         ``orientation``, ``tissue``, ``temperature``, ``notes``) plus
-        ``columns``/``units`` as found, ``encoding`` and ``raw`` (bool).
+        ``columns``/``units`` as found, ``encoding`` and ``raw`` (bool); the
+        full list of keys is in docs/tensile-input.md ("What the reader returns").
     """
 
     source: Path
