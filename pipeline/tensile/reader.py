@@ -46,6 +46,7 @@ _EXCEL_SEP = re.compile(r'^\s*"?sep=(.)"?\s*$', re.I)
 _NUMBER = re.compile(r"^[-+]?(?:\d+(?:[.,]\d*)?|[.,]\d+)(?:[eE][-+]?\d+)?$|^[-+]?(?:nan|inf|infinity)$", re.I)
 _ENCODING_COMMENT = re.compile(rb"^[ \t]*#+[ \t]*(?:encoding|charset)[ \t]*[:=][ \t]*[\"']?([A-Za-z0-9_.\-]+)", re.M | re.I)
 _CONTENT = re.compile(rb"[^ \t\r\n\x00\x1a\xef\xbb\xbf\xff\xfe]")
+_CONTROL_BYTES = bytes(c for c in range(32) if c not in (9, 10, 12, 13, 26))
 _SIGNATURES = (
     (b"PK\x03\x04", "a zip archive (an Excel .xlsx workbook?); open it and save the sheet as CSV"),
     (b"\xd0\xcf\x11\xe0", "an OLE document (an old Excel .xls workbook?); open it and save the sheet as CSV"),
@@ -222,7 +223,7 @@ def _check_text(raw: bytes, label: str) -> None:
         raise InputError(
             f"{label}: is not a text file (binary data at byte {nul}); export the test as CSV text"
         )
-    control = sum(head.count(bytes([c])) for c in range(32) if c not in (9, 10, 12, 13, 26))
+    control = len(head) - len(head.translate(None, _CONTROL_BYTES))
     if control > 0.01 * len(head):
         raise InputError(f"{label}: is not a text file (control bytes); export the test as CSV text")
 
