@@ -51,7 +51,7 @@ def _tensile_dirs(shared_data, bundled_data):
 def test_every_shared_and_bundled_file_reads(shared_data, bundled_data):
     for root in _tensile_dirs(shared_data, bundled_data):
         files = sorted(root.rglob("*.csv"))
-        assert len(files) == 22, root
+        assert len(files) >= 22, root   # 8 brain + 3 Treloar + 11 VHB at the time of writing
         for f in files:
             t = read(f)
             assert isinstance(t, TensileTest) and t.mode in MODES
