@@ -27,6 +27,7 @@ from .schema import ASSET_TYPE, ASSET_VERSION, CHECKSUM_ATTR, DATASETS, GROUPS, 
 ADVICE = "re-create it with 'esmm prepare'"
 
 
+
 @dataclass
 class Asset:
     """An asset read back from disk.
@@ -186,25 +187,31 @@ def _integrity_problems(f: h5py.File) -> list[str]:
     return out
 
 
-def _schema_problems(f: h5py.File) -> list[str]:
+def _schema_problems(f: h5py.File) -> tuple[list[str], bool]:
+    """Schema problems, and whether one of them makes the content checks impossible."""
     out: list[str] = []
+    fatal = False
     for gpath, (gtype, gver, required) in GROUPS.items():
         if gpath not in f:
             if required:
                 out.append(f"{gpath}: required group is missing")
+                fatal = True
             continue
         g = f[gpath]
         if not isinstance(g, h5py.Group):
             out.append(f"{gpath}: expected a group")
+            fatal = True
             continue
         t = _h5.attr_str(g.attrs.get("esmm_type"))
         v = _h5.attr_int(g.attrs.get("esmm_version"))
         if t != gtype:
             out.append(f"{gpath}: esmm_type is {t or 'missing'!r}, expected {gtype!r}")
+            fatal = True
         elif v < 1:
             out.append(f"{gpath}: esmm_version {g.attrs.get('esmm_version')!r} is not a version")
         elif v > gver:
             out.append(f"{gpath}: {gtype} version {v} is newer than this esmm reads ({gver}); upgrade esmm")
+            fatal = True
     for dpath, (units, kinds, required) in DATASETS.items():
         gpath = dpath.rsplit("/", 1)[0]
         if gpath not in f:
@@ -212,16 +219,19 @@ def _schema_problems(f: h5py.File) -> list[str]:
         if dpath not in f:
             if required:
                 out.append(f"{dpath}: required dataset is missing")
+                fatal = True
             continue
         ds = f[dpath]
         if not isinstance(ds, h5py.Dataset):
             out.append(f"{dpath}: expected a dataset")
+            fatal = True
             continue
         u = _h5.attr_str(ds.attrs.get("units"))
         if u != units:
             out.append(f"{dpath}: units are {u or 'missing'!r}, expected {units!r}")
         if ds.dtype.kind not in kinds:
             out.append(f"{dpath}: dtype {ds.dtype} is not of the expected kind")
+            fatal = True
 
     def visit(name: str, obj) -> None:
         if isinstance(obj, h5py.Dataset):
@@ -234,7 +244,7 @@ def _schema_problems(f: h5py.File) -> list[str]:
             out.append(f"/{name}: group without esmm_type/esmm_version")
 
     f.visititems(visit)
-    return out
+    return out, fatal
 
 
 def _arr(f: h5py.File, path: str, dtype=None) -> np.ndarray:
@@ -376,7 +386,7 @@ def read_asset(path: str | os.PathLike, *, verify: bool = True) -> Asset:
         try:
             probs = _root_problems(f)
             if not probs:
-                probs = _schema_problems(f)
+                probs = _schema_problems(f)[0]
             if not probs and verify:
                 probs = _integrity_problems(f)
             if not probs:
@@ -428,10 +438,10 @@ def validate_asset(path: str | os.PathLike) -> list[str]:
             problems += _root_problems(f)
             if problems:
                 return problems
-            schema = _schema_problems(f)
+            schema, fatal = _schema_problems(f)
             problems += schema
             problems += _integrity_problems(f)
-            if any("required" in s or "expected a" in s or "shape" in s for s in schema):
+            if fatal:
                 return problems
             shapes = _shape_problems(f)
             problems += shapes
