@@ -119,6 +119,10 @@ def test_material_constructor_validates():
         Material(model="arruda-boyce", params={"mu": 1e5, "N": 5.0}, directions={"q": {"mu": 1.0}})
     with pytest.raises(ConfigError, match="'N'.*shared"):
         Material(model="arruda-boyce", params={"mu": 1e5, "N": 5.0}, directions={"x": {"N": 6.0}})
+    # full per-direction sets (as a fitter produces them): equal shared values are dropped
+    full = Material(model="arruda-boyce", params={"mu": 1e5, "N": 5.0},
+                    directions={d: {"mu": 1e5 * (i + 1), "N": 5.0} for i, d in enumerate("xyz")})
+    assert full.directions == {"x": {"mu": 1e5}, "y": {"mu": 2e5}, "z": {"mu": 3e5}}
     m = Material(model="Arruda_Boyce", params={"mu": 1e5, "N": 5.0}, directions={"y": {"mu": 2e5}})
     assert m.model == "arruda-boyce"
     assert m.youngs_modulus("y") == pytest.approx(2 * m.youngs_modulus(), rel=1e-14)

@@ -61,7 +61,9 @@ class Material:
         Every parameter of the model, SI (stress in Pa).
     directions : dict[str, dict[str, float]] or None
         Per-direction overrides (keys ``"x"``, ``"y"``, ``"z"``) of the model's
-        directional parameters, SI; None for an isotropic material.
+        directional parameters, SI; None for an isotropic material. Full
+        parameter sets are accepted: shared (non-directional) entries equal to
+        ``params`` are dropped, different ones are an error.
     name : str
         Human-readable name.
     source : str
@@ -99,6 +101,13 @@ class Material:
                     raise ConfigError(
                         f"{where}: unknown direction {d!r}; use {', '.join(DIRECTIONS)}"
                     )
+                # full per-direction parameter sets are accepted: shared
+                # parameters equal to the base value are redundant and dropped
+                over = {
+                    k: v for k, v in dict(over).items()
+                    if not (k in self.params and not m.parameter(k).directional
+                            and _same(v, self.params[k]))
+                }
                 dirs[d] = _check_overrides(m, over, where=f"{where} directions.{d}")
             self.directions = dirs
         for key in self.metadata:
@@ -242,6 +251,13 @@ def _check_overrides(m: MaterialModel, over: Mapping[str, Any], *, where: str) -
             )
         out[k] = m.check_value(k, v, where=where)
     return out
+
+
+def _same(a, b) -> bool:
+    try:
+        return math.isclose(float(a), float(b), rel_tol=1e-12, abs_tol=0.0)
+    except (TypeError, ValueError):
+        return False
 
 
 def _directional(m: MaterialModel) -> list[str]:

@@ -91,6 +91,7 @@ class DruckerReport:
     first_failure: dict[str, float | None] = field(default_factory=dict)
     min_tangent: dict[str, tuple[float, float]] = field(default_factory=dict)
 
+    @property
     def summary(self) -> str:
         """One line: stable, or the modes and stretches where it fails."""
         if self.stable:
@@ -101,6 +102,9 @@ class DruckerReport:
             for m in self.modes.values() if not m.stable
         ]
         return "Drucker unstable: " + "; ".join(bad)
+
+    def __str__(self) -> str:
+        return self.summary
 
 
 def drucker_check(
