@@ -41,6 +41,8 @@ def add_parser(sub) -> None:
                    help="weight of one file (by name or stem); repeatable")
     p.add_argument("--fix", action="append", default=[], metavar="NAME=VALUE",
                    help="hold a parameter (value with unit for stress-like ones, e.g. mu=\"3e-6 MPa\")")
+    p.add_argument("--free", action="append", default=[], metavar="NAME",
+                   help="fit a parameter the model holds by default (e.g. the ESEDF's f); repeatable")
     p.add_argument("--by", choices=["specimen", "folder"], help="batch: fit each group of files on its own")
     p.add_argument("--jobs", type=int, default=None, metavar="N", help="batch worker processes (default: all cores)")
     g = p.add_argument_group("specimen metadata (overrides the file's comments and sidecar)")
@@ -147,7 +149,8 @@ def run(args, ui) -> int:
     overrides = _overrides(args)
     opts = _fit_options(args)
     fit_kwargs = dict(model=opts["model"], loss=opts["loss"], n_starts=int(opts["n_starts"]),
-                      seed=int(opts["seed"]), weights=opts["weights"] or None, fixed=opts["fixed"] or None)
+                      seed=int(opts["seed"]), weights=opts["weights"] or None, fixed=opts["fixed"] or None,
+                      free=tuple(args.free))
 
     if args.by:
         from esmm.pipeline.calibrate.batch import run_batch
@@ -168,7 +171,7 @@ def run(args, ui) -> int:
         ui.info(f"{n_ok} group(s) fitted, {batch.n_failed} failed or unreadable")
         return 0 if batch.n_failed == 0 else 5
 
-    tests = [read(p, overrides=overrides) for p in args.files]
+    tests = [read(p, overrides=overrides, reporter=ui) for p in args.files]
     result = fit_material(tests, **fit_kwargs, reporter=ui)
 
     unit, fac = display_stress_unit([abs(e.value) for e in result.estimates if e.kind == "stress"] or [1.0])

@@ -68,7 +68,8 @@ def test_anisotropic_fit_gives_direction_specific_parameters():
     base = {p.name: p.default for p in model.parameters}
     lam = np.linspace(1.0, 1.25, 50)
     stiff = dict(base)
-    stiff[directional[0]] = base[directional[0]] * 3.0
+    for name in directional:
+        stiff[name] = base[name] * 3.0
     tests = [
         _synthetic("esedf", base, "uniaxial", lam, noise=0.005, seed=3, name="x.csv", orientation="x"),
         _synthetic("esedf", stiff, "uniaxial", lam, noise=0.005, seed=4, name="y.csv", orientation="y"),

@@ -133,7 +133,8 @@ class _Problem:
     """Maps an optimiser vector to per-direction parameter dicts, and evaluates residuals."""
 
     def __init__(self, model, tests: Sequence[TensileTest], weights: Sequence[float],
-                 fixed: Mapping[str, float], directions: list[str] | None):
+                 fixed: Mapping[str, float], directions: list[str] | None,
+                 free: Sequence[str] = ()):
         from ..materials.loading import invariants
 
         self.model = model
@@ -142,10 +143,10 @@ class _Problem:
         self.fixed = dict(fixed)
         self.directions = directions
         specs = {p.name: p for p in model.parameters}
-        unknown = set(self.fixed) - set(specs)
+        unknown = (set(self.fixed) | set(free)) - set(specs)
         if unknown:
             raise ConfigError(
-                f"--fix: unknown parameter(s) {', '.join(sorted(unknown))} for model "
+                f"--fix/--free: unknown parameter(s) {', '.join(sorted(unknown))} for model "
                 f"{model.name!r}; its parameters are {', '.join(specs)}"
             )
         # Chain locking: the model must stay finite on every sample.
@@ -153,6 +154,11 @@ class _Problem:
         for t in self.tests:
             i1, _ = invariants(t.mode, t.stretch)
             self.i1_max = max(self.i1_max, float(np.nanmax(i1)))
+        # Parameters the model marks as not identifiable from homogeneous tests
+        # (``fit=False``) are held at their default unless freed.
+        for p in model.parameters:
+            if not getattr(p, "fit", True) and p.name not in self.fixed and p.name not in free:
+                self.fixed[p.name] = float(p.default)
         self.slots: list[_Slot] = []
         for p in model.parameters:
             if p.name in self.fixed:
@@ -162,8 +168,14 @@ class _Problem:
                 lo, hi = float(p.lower), float(p.upper)
                 if p.name == "N" and math.isfinite(model.max_I1({p.name: 1.0, **_defaults(model)})):
                     lo = max(lo, self._n_lower())
-                log = p.kind == "stress" and lo > 0
+                log = (p.kind == "stress" and hi > 0) or (lo > 0 and hi / lo > 1e3)
                 if log:
+                    # stress-like parameters live in log space; a zero lower bound becomes
+                    # a floor twelve decades below the default (or the upper bound)
+                    floor = 1e-12 * (p.default if p.default > 0 else hi)
+                    lo = max(lo, floor)
+                    # a dimensionless range of many decades, e.g. N in (1, 1e8), is
+                    # searched in log space too
                     self.slots.append(_Slot(p.name, d, p.kind, True, math.log(lo), math.log(hi)))
                 else:
                     self.slots.append(_Slot(p.name, d, p.kind, False, lo, hi))
@@ -273,6 +285,7 @@ def fit_material(
     weights: Mapping[str, float] | Sequence[float] | None = None,
     fixed: Mapping[str, float] | None = None,
     initial: Mapping[str, float] | None = None,
+    free: Sequence[str] = (),
     seed: int = 0,
     reporter: Reporter | None = None,
 ) -> FitResult:
@@ -300,6 +313,9 @@ def fit_material(
         Parameters held at a value (SI units), e.g. ``{"f": 0.0019}``.
     initial : mapping, optional
         A starting point (SI units).
+    free : sequence of str
+        Parameters the model holds by default (``Parameter.fit`` is False, e.g. the
+        ESEDF's fibre fraction f, of which only products are identifiable) to fit anyway.
     seed : int
         Seed of the starting-point sample.
 
@@ -322,7 +338,7 @@ def fit_material(
     m = get_model(model)
     w = _weights(tests, weights)
     directions = _directions(tests)
-    prob = _Problem(m, tests, w, fixed or {}, directions)
+    prob = _Problem(m, tests, w, fixed or {}, directions, free)
     if not prob.slots:
         raise FitError("every parameter is fixed; nothing to fit")
     p = len(prob.slots)
@@ -361,7 +377,7 @@ def fit_material(
 
     result = _summarise(prob, m, sol, loss, len(starts))
     result.seconds = time.perf_counter() - t0
-    result.fixed = dict(fixed or {})
+    result.fixed = dict(prob.fixed)
     for msg in result.warnings:
         rep.warn(msg)
     rep.step(
