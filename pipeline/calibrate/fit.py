@@ -516,9 +516,10 @@ def _summarise(prob: _Problem, model, sol, loss: str, n_starts: int) -> FitResul
             wide = (not math.isfinite(half)) or (2 * half > WIDE_REL_WIDTH * max(abs(val), 1e-12))
         estimates.append(ParameterEstimate(s.name, val, lo_v, hi_v, s.kind, s.direction, at_bound))
         if wide:
+            span = ("unbounded" if not (math.isfinite(half) and half < 50)
+                    else f"[{lo_v:.4g}, {hi_v:.4g}]")
             warnings.append(
-                f"{keys[i]} is not identifiable from these data: 95 % interval "
-                f"[{lo_v:.4g}, {hi_v:.4g}] around {val:.4g}"
+                f"{keys[i]} is not identifiable from these data: 95 % interval {span} around {val:.4g}"
             )
         if at_bound:
             warnings.append(f"{keys[i]} = {val:.4g} sits at its bound; the optimum may lie outside the allowed range")
