@@ -516,8 +516,8 @@ def _summarise(prob: _Problem, model, sol, loss: str, n_starts: int) -> FitResul
             wide = (not math.isfinite(half)) or (2 * half > WIDE_REL_WIDTH * max(abs(val), 1e-12))
         estimates.append(ParameterEstimate(s.name, val, lo_v, hi_v, s.kind, s.direction, at_bound))
         if wide:
-            span = ("unbounded" if not (math.isfinite(half) and half < 50)
-                    else f"[{lo_v:.4g}, {hi_v:.4g}]")
+            bounded = math.isfinite(half) and (half < 46.0 or not s.log)  # 20 decades
+            span = f"[{lo_v:.4g}, {hi_v:.4g}]" if bounded else "unbounded"
             warnings.append(
                 f"{keys[i]} is not identifiable from these data: 95 % interval {span} around {val:.4g}"
             )
