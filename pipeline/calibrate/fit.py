@@ -486,15 +486,23 @@ def _summarise(prob: _Problem, model, sol, loss: str, n_starts: int) -> FitResul
     inflation = (1 + rho) / (1 - rho)
     warnings: list[str] = []
     try:
-        U, sv, Vt = np.linalg.svd(J, full_matrices=False)
-        tol = sv.max() * max(J.shape) * np.finfo(float).eps
-        if np.any(sv <= tol):
-            warnings.append("the Jacobian is singular at the optimum: some parameter combination has no effect on these data")
-        inv_sv2 = np.where(sv > tol, 1.0 / np.maximum(sv, tol) ** 2, np.inf)
-        cov = (Vt.T * np.where(np.isfinite(inv_sv2), inv_sv2, 1e300)) @ Vt * s2 * inflation
+        _, sv, Vt = np.linalg.svd(J, full_matrices=False)
+        # Directions of parameter space the data do not see (relative singular value
+        # below 1e-7): the parameters with weight in them are unbounded; the others get
+        # their interval from the pseudo-inverse restricted to the identified subspace.
+        null = sv <= 1e-7 * sv.max() if sv.size and sv.max() > 0 else np.ones_like(sv, bool)
+        if null.any():
+            warnings.append("the Jacobian is (nearly) singular at the optimum: some parameter "
+                            "combination has no effect on these data")
+        keep = ~null
+        cov = (Vt[keep].T / sv[keep] ** 2) @ Vt[keep] * s2 * inflation
+        null_weight = np.sum(Vt[null] ** 2, axis=0) if null.any() else np.zeros(p)
+        unbounded = null_weight > 1e-2
     except np.linalg.LinAlgError:
-        cov = np.full((p, p), np.inf)
+        cov = np.zeros((p, p))
+        unbounded = np.ones(p, bool)
     sd = np.sqrt(np.clip(np.diag(cov), 0, np.inf))
+    sd = np.where(unbounded, np.inf, sd)
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(sd, sd)
     corr = np.where(np.isfinite(corr), corr, 0.0)
