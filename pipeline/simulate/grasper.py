@@ -1,0 +1,153 @@
+"""The scripted grasper: which nodes it holds and the path of its tip.
+
+The grasper closes at ``grasp_time`` on a patch of surface nodes (those
+within ``radius`` of a target node), moves its tip along a piecewise-linear
+path given relative to the grasp point, holds the last waypoint, and opens at
+``release_time``. The force it feels (the pull of the tissue and its weight
+on the held nodes) is recorded at every integration step: it is the force a
+haptic device renders.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import ConfigError
+from .integrator import Grasp
+from .scene import GrasperSpec
+
+
+@dataclass(frozen=True)
+class GraspPlan:
+    """A grasper resolved on a network.
+
+    Attributes
+    ----------
+    target : int
+        The node the tip is placed on.
+    nodes : ndarray, shape (g,), int64
+        Held nodes (surface nodes within the radius of the target, not fixed).
+    direction : ndarray, shape (3,)
+        Unit pull direction for ``distance`` waypoints.
+    normal : ndarray, shape (3,)
+        Outward surface normal at the target (the instrument's shaft axis).
+    times : ndarray, shape (p,)
+        Waypoint times [s], starting at the grasp time.
+    offsets : ndarray, shape (p, 3)
+        Tip offsets from the grasp point [m].
+    spec : GrasperSpec
+    """
+
+    target: int
+    nodes: np.ndarray
+    direction: np.ndarray
+    normal: np.ndarray
+    times: np.ndarray
+    offsets: np.ndarray
+    spec: GrasperSpec
+
+    def make_grasp(self, x: np.ndarray, mass: np.ndarray) -> Grasp:
+        """The :class:`~.integrator.Grasp` that closes on the current positions *x*."""
+        tip0 = np.asarray(x[self.target], dtype=np.float64).copy()
+        offsets = x[self.nodes] - tip0
+        stiffness = None
+        if self.spec.mode == "spring":
+            m = mass[self.nodes]
+            stiffness = self.spec.stiffness * m / m.sum()
+        return Grasp(nodes=self.nodes.copy(), offsets=offsets, wp_t=self.times.copy(),
+                     wp_x=tip0[None, :] + self.offsets, mode=self.spec.mode, stiffness=stiffness)
+
+    def describe(self) -> str:
+        far = np.linalg.norm(self.offsets, axis=1).max() * 1e3
+        return (f"grasper on node {self.target} ({self.nodes.size} nodes held), path of "
+                f"{self.times.size} waypoints up to {far:.3g} mm, mode {self.spec.mode}")
+
+
+def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted outward vertex normals of a triangle surface, shape (n, 3) (zero off the surface)."""
+    p = np.asarray(points, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    fn = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])
+    out = np.zeros_like(p)
+    for k in range(3):
+        np.add.at(out, f[:, k], fn)
+    norm = np.linalg.norm(out, axis=1)
+    nz = norm > 0
+    out[nz] /= norm[nz, None]
+    return out
+
+
+def plan_grasp(spec: GrasperSpec, points: np.ndarray, surface_faces: np.ndarray, fixed: np.ndarray,
+               gravity: np.ndarray) -> GraspPlan:
+    """Resolve *spec* on a network.
+
+    Parameters
+    ----------
+    spec : GrasperSpec
+    points : ndarray, shape (n, 3)
+        Rest positions [m].
+    surface_faces : ndarray, shape (k, 3)
+        Outward boundary triangles.
+    fixed : ndarray of int
+        Fixed nodes (never grasped).
+    gravity : ndarray, shape (3,)
+        [m/s2], for ``direction = "up"``.
+
+    Raises
+    ------
+    ConfigError
+        No free surface node, or ``direction = "up"`` without gravity.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    faces = np.asarray(surface_faces, dtype=np.int64).reshape(-1, 3)
+    fixed = np.asarray(fixed, dtype=np.int64)
+    surface = np.unique(faces)
+    if surface.size == 0:
+        raise ConfigError("[grasper]: the network has no surface triangles to grasp; disable the grasper "
+                          "([grasper] enabled = false) or rebuild the asset")
+    is_fixed = np.zeros(p.shape[0], bool)
+    is_fixed[fixed] = True
+    cand = surface[~is_fixed[surface]]
+    if cand.size == 0:
+        raise ConfigError("[grasper]: every surface node is fixed; shrink the fixed region")
+    if isinstance(spec.target, str):  # "auto": farthest from the fixed region (or the centroid)
+        if fixed.size:
+            d, _ = cKDTree(p[fixed]).query(p[cand])
+        else:
+            d = np.linalg.norm(p[cand] - p.mean(axis=0), axis=1)
+        target = int(cand[np.argmax(d)])
+    else:
+        d = np.linalg.norm(p[cand] - np.asarray(spec.target), axis=1)
+        target = int(cand[np.argmin(d)])
+    near = cKDTree(p[cand]).query_ball_point(p[target], r=spec.radius)
+    nodes = np.union1d(cand[np.asarray(near, dtype=np.int64)], [target]).astype(np.int64)
+
+    normal = vertex_normals(p, faces)[target]
+    if not np.any(normal):
+        normal = p[target] - p.mean(axis=0)
+        normal = normal / (np.linalg.norm(normal) or 1.0)
+    if isinstance(spec.direction, str):
+        if spec.direction == "up":
+            gn = float(np.linalg.norm(gravity))
+            if gn == 0:
+                raise ConfigError("[grasper] direction: \"up\" needs gravity; give a vector instead")
+            direction = -np.asarray(gravity, dtype=np.float64) / gn
+        else:
+            ref = p[fixed].mean(axis=0) if fixed.size else p.mean(axis=0)
+            direction = p[target] - ref
+            norm = float(np.linalg.norm(direction))
+            direction = direction / norm if norm > 0 else normal
+    else:
+        direction = np.asarray(spec.direction, dtype=np.float64)
+
+    times = [w.time for w in spec.waypoints]
+    offs = [w.offset if w.offset is not None else w.distance * direction for w in spec.waypoints]
+    if times[0] > spec.grasp_time:
+        times.insert(0, spec.grasp_time)
+        offs.insert(0, np.zeros(3))
+    return GraspPlan(target=target, nodes=nodes, direction=direction, normal=normal,
+                     times=np.asarray(times, dtype=np.float64), offsets=np.asarray(offs, dtype=np.float64),
+                     spec=spec)

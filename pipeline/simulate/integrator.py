@@ -1,0 +1,623 @@
+r"""Time integration of a spring network: symplectic Euler, stability bound, FIRE.
+
+:class:`ForceModel` turns a :class:`~esmm.pipeline.network.springs.SpringNetwork`
+and :class:`~esmm.pipeline.network.tables.StiffnessTables` into the compiled
+kernels' arrays; :class:`Simulator` holds the state (positions, velocities,
+time) and advances it.
+
+Integrator (per step, time :math:`t_n = n\,\Delta t`)
+
+.. math::
+
+    \mathbf f_n = \mathbf f(\mathbf x_n, \mathbf v_n) + m\mathbf g, \quad
+    \mathbf v_{n+1} = \frac{\mathbf v_n + \Delta t\,\mathbf f_n/m}{1 + \alpha\Delta t}, \quad
+    \mathbf x_{n+1} = \mathbf x_n + \Delta t\,\mathbf v_{n+1}
+
+(semi-implicit Euler; :math:`\alpha = 1/\tau` is the optional mass-proportional
+Rayleigh damping, treated implicitly so that it never limits the step).
+Fixed nodes have :math:`1/m = 0`.
+
+Stability bound. For a network whose spring ``ij`` has axial tangent
+:math:`k^t_{ij}` and force :math:`F_{ij}`, the tangent stiffness
+:math:`K = \sum_{ij} [k^t u u^T + (F/L)(I - u u^T)]` (assembled with the usual
+signs) satisfies, for any :math:`y = M^{1/2}x`,
+:math:`x^TKx \le 2\sum_i |y_i|^2 \sum_j \kappa_{ij}/m_i` with
+:math:`\kappa_{ij} = \max(k^t_{ij}, F_{ij}/L_{ij}, 0)`. Hence
+
+.. math::  \omega_{max}^2 \le \Omega^2 = 2\max_i \frac{1}{m_i}\sum_j \kappa_{ij}
+
+and :math:`\kappa_{ij}` is bounded over *every* stretch by the tables:
+:math:`\kappa_{ij} \le \sum_d a_{ij,d} G_d`, :math:`G_d = \sup_\lambda
+\max(f_d'(\lambda), f_d(\lambda)/\lambda)` over the grid and its extrapolation
+(both laws keep a bounded tangent off the grid). With spring dashpots
+:math:`c_{ij}` (damping bound :math:`\Gamma = 2\max_i \sum_j c_{ij}/m_i`), the
+semi-implicit Euler step of a mode :math:`\ddot q + \gamma\dot q + \omega^2 q
+= 0` is stable iff :math:`\omega^2\Delta t^2 + 2\gamma\Delta t < 4`, so
+
+.. math::  \Delta t = s\,\frac{4}{\Gamma + \sqrt{\Gamma^2 + 4\Omega^2}}
+
+with a safety factor :math:`s` (default 0.9). The bound holds whatever the
+deformation (locking included), because it uses the largest tangent of the
+table; it is exact for Rayleigh damping of a linear network and conservative
+(Gershgorin) otherwise.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import ConfigError, InputError, SimulationError
+from . import kernels as K
+
+PRECISIONS = ("float64", "float32")
+LAW_CODES = {"secant": K.LAW_SECANT, "energy": K.LAW_ENERGY}
+DEFAULT_SAFETY = 0.9
+
+
+# ---------------------------------------------------------------------------
+# force model
+# ---------------------------------------------------------------------------
+
+@dataclass
+class ForceModel:
+    """The compiled kernels' view of a network and its tables.
+
+    Attributes
+    ----------
+    n_nodes : int
+    ij : ndarray, shape (2, s), uint32
+        Springs (rows i and j), ``i < j``, sorted by ``(i, j)``.
+    order : ndarray, shape (s,), int64
+        Spring p of the model is ``network.springs[order[p]]``.
+    sd : ndarray, shape (4, s) or (5, s)
+        Rows ``1/L0, w_x, w_y, w_z(, c_ij)`` with ``w_d = c V_ij cos2_d / L0``
+        [m2] and the dashpot ``c_ij`` [N s/m].
+    tab : ndarray, shape (n_grid - 1, 6)
+        Per cell ``[f_x, f_y, f_z, df_x, df_y, df_z]`` [Pa] of the law's table.
+    lam_min, inv_h : float
+        Grid start and inverse step.
+    law : str
+        ``"secant"`` or ``"energy"``.
+    kappa : ndarray, shape (s,)
+        Upper bound of each spring's tangent stiffness over all stretches [N/m].
+    rest_tangent : ndarray, shape (s,)
+        Axial tangent stiffness at rest [N/m].
+    dashpot : float
+        Stiffness-proportional dashpot time beta [s]; ``c_ij = beta * rest_tangent``.
+    """
+
+    n_nodes: int
+    ij: np.ndarray
+    order: np.ndarray
+    sd: np.ndarray
+    tab: np.ndarray
+    lam_min: float
+    inv_h: float
+    law: str
+    kappa: np.ndarray
+    rest_tangent: np.ndarray
+    dashpot: float = 0.0
+    lam_max: float = math.inf
+    _layouts: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def n_springs(self) -> int:
+        return int(self.ij.shape[1])
+
+    @property
+    def law_code(self) -> int:
+        return LAW_CODES[self.law]
+
+    @property
+    def damped(self) -> bool:
+        return self.dashpot > 0.0
+
+    @property
+    def last_cell(self) -> int:
+        return int(self.tab.shape[0] - 1)
+
+    def kernel_args(self) -> tuple:
+        """(ij, sd, tab, lam_min, inv_h, last_cell, law, damped) for the kernels."""
+        return (self.ij, self.sd, self.tab, self.lam_min, self.inv_h, self.last_cell,
+                self.law_code, self.damped)
+
+    def bytes_per_spring(self) -> int:
+        """Bytes of spring data streamed per spring per step (indices + data rows)."""
+        return int(self.ij.itemsize * 2 + self.sd.itemsize * self.sd.shape[0])
+
+    # -- evaluation ------------------------------------------------------
+    def forces(self, x: np.ndarray, v: np.ndarray | None = None, *, fext: np.ndarray | None = None,
+               damped: bool | None = None) -> np.ndarray:
+        """Nodal forces (n, 3) [N] at positions *x* (and velocities *v* for the dashpots)."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        if x.shape != (self.n_nodes, 3):
+            raise InputError(f"x: expected shape ({self.n_nodes}, 3), got {x.shape}")
+        use_damp = self.damped if damped is None else (bool(damped) and self.damped)
+        v = np.zeros_like(x) if v is None else np.ascontiguousarray(v, dtype=np.float64)
+        fe = np.zeros_like(x) if fext is None else np.ascontiguousarray(fext, dtype=np.float64)
+        f = np.empty_like(x)
+        K.forces_serial(x, v, f, fe, self.ij, self.sd, self.tab, self.lam_min, self.inv_h,
+                        self.last_cell, self.law_code, use_damp)
+        return f
+
+    def stretch_range(self, x: np.ndarray) -> tuple[float, float]:
+        """(min, max) stretch over the springs at positions *x*."""
+        lo, hi = K.stretch_range(np.ascontiguousarray(x, dtype=np.float64), self.ij, self.sd)
+        return float(lo), float(hi)
+
+    # -- threading ---------------------------------------------------------
+    def layout(self, chunks: int) -> tuple:
+        """Owner/halo layout for *chunks* threads (cached): see :mod:`.kernels`."""
+        chunks = max(1, int(chunks))
+        if chunks not in self._layouts:
+            self._layouts[chunks] = thread_layout(self.ij, self.n_nodes, chunks)
+        return self._layouts[chunks]
+
+
+def _tables_arrays(tables, law: str) -> np.ndarray:
+    return np.asarray(tables.values if law == "secant" else tables.stress, dtype=np.float64)
+
+
+def tangent_bound(tables, law: str) -> np.ndarray:
+    """G_d = sup over all stretches of max(f_d', f_d/lam, 0) [Pa], shape (3,).
+
+    Follows the tables' interpolation and extrapolation exactly (linear cells;
+    secant: mu_e held off the grid; energy: stress continued linearly).
+    """
+    lam = np.linspace(tables.lam_min, tables.lam_max, tables.n)
+    vals = _tables_arrays(tables, law)
+    h = lam[1] - lam[0]
+    slope = np.diff(vals, axis=1) / h                        # (3, n-1)
+    if law == "secant":
+        # f = mu (lam-1): f' = mu + (lam-1) mu' is linear in each cell -> max at its ends;
+        # f/lam <= mu for lam >= 1 (and negative below 1); off the grid f' = mu_end.
+        fa = vals[:, :-1] + (lam[:-1] - 1.0) * slope
+        fb = vals[:, 1:] + (lam[1:] - 1.0) * slope
+        g = np.maximum(np.maximum(fa.max(axis=1), fb.max(axis=1)), vals.max(axis=1))
+    else:
+        # f' is the cell slope (the end slopes continue off the grid); f/lam is bounded by
+        # its grid values and, beyond lam_max, by max(f_end/lam_max, end slope).
+        g = np.maximum(slope.max(axis=1), (vals / lam).max(axis=1))
+    return np.maximum(g, 0.0)
+
+
+def build_force_model(network, tables, *, law: str | None = None, dashpot: float = 0.0,
+                      precision: str = "float64") -> ForceModel:
+    """Build the :class:`ForceModel` of *network* with *tables*.
+
+    Parameters
+    ----------
+    network : SpringNetwork
+        ``points`` (n, 3), ``springs`` (s, 2), ``rest_length`` (s,),
+        ``volume_weight`` (s,), ``cos2`` (s, 3).
+    tables : StiffnessTables
+    law : {"secant", "energy"}, optional
+        Default: the tables' default law.
+    dashpot : float
+        Stiffness-proportional dashpot time beta [s] (0: none): each spring gets
+        a dashpot ``c_ij = beta * k_t,ij(lam=1)`` along its axis.
+    precision : {"float64", "float32"}
+        Storage of the per-spring data (the arithmetic is float64 either way).
+    """
+    from ..network.tables import spring_factors
+
+    law = tables.check_law(law)
+    if precision not in PRECISIONS:
+        raise ConfigError(f"precision: unknown {precision!r}; use one of {', '.join(PRECISIONS)}")
+    if not (np.isfinite(dashpot) and dashpot >= 0):
+        raise ConfigError(f"dashpot: must be a time >= 0 s, got {dashpot!r}")
+    springs = np.asarray(network.springs, dtype=np.int64).reshape(-1, 2)
+    n = int(np.asarray(network.points).shape[0])
+    s = springs.shape[0]
+    if s == 0:
+        raise InputError("network has no springs; rebuild the asset")
+    if springs.min() < 0 or springs.max() >= n:
+        raise InputError(f"network springs reference nodes outside 0..{n - 1}; rebuild the asset")
+    if n >= 2**32 - 1:
+        raise InputError(f"network has {n} nodes; the simulator supports fewer than 2**32")
+    L0 = np.asarray(network.rest_length, dtype=np.float64)
+    if np.any(~np.isfinite(L0)) or np.any(L0 <= 0):
+        raise InputError("network has springs of zero or non-finite rest length; rebuild the asset")
+    a = spring_factors(tables, network)                      # (s, 3) = c v cos2   [m]
+    lo = springs.min(axis=1)
+    hi = springs.max(axis=1)
+    order = np.lexsort((hi, lo))
+    ij = np.ascontiguousarray(np.stack([lo[order], hi[order]], axis=0).astype(np.uint32))
+    a = a[order]
+    L0 = L0[order]
+    fdt = np.float64 if precision == "float64" else np.float32
+    rest_tangent = a @ np.asarray(tables.tangent_function(1.0, law=law), dtype=np.float64)
+    kappa = a @ tangent_bound(tables, law)
+    rows = 5 if dashpot > 0 else 4
+    sd = np.empty((rows, s), dtype=fdt)
+    sd[0] = 1.0 / L0
+    sd[1:4] = (a * L0[:, None]).T
+    if dashpot > 0:
+        sd[4] = dashpot * rest_tangent
+    vals = _tables_arrays(tables, law)
+    tab = np.ascontiguousarray(np.concatenate([vals[:, :-1].T, np.diff(vals, axis=1).T], axis=1))
+    return ForceModel(n_nodes=n, ij=ij, order=order, sd=np.ascontiguousarray(sd), tab=tab,
+                      lam_min=float(tables.lam_min), inv_h=1.0 / float(tables.dlam), law=law,
+                      kappa=kappa, rest_tangent=rest_tangent, dashpot=float(dashpot),
+                      lam_max=float(tables.lam_max))
+
+
+def thread_layout(ij: np.ndarray, n_nodes: int, chunks: int) -> tuple:
+    """Owner/halo arrays for the race-free parallel force pass.
+
+    Returns
+    -------
+    (node_start, spring_start, halo_start, hbuf, own_start, own_slot, own_node)
+        ``node_start`` (T+1,): node ranges with about equal spring counts;
+        ``spring_start`` (T+1,): their spring ranges; ``halo_start`` (T+1,):
+        slot ranges of the springs whose ``j`` lies beyond their chunk;
+        ``hbuf`` (H, 3) the slots; ``own_*``: for each chunk, the slots that
+        land in its nodes, with the node.
+    """
+    i = ij[0].astype(np.int64)
+    j = ij[1].astype(np.int64)
+    s = i.size
+    chunks = max(1, min(int(chunks), max(1, n_nodes)))
+    targets = np.linspace(0, s, chunks + 1)[1:-1]
+    cuts = i[np.minimum(targets.astype(np.int64), s - 1)] if s else np.zeros(0, np.int64)
+    node_start = np.concatenate([[0], np.maximum.accumulate(cuts), [n_nodes]]).astype(np.int64)
+    node_start = np.maximum.accumulate(node_start)
+    spring_start = np.searchsorted(i, node_start).astype(np.int64)
+    owner_i = np.searchsorted(node_start, i, side="right") - 1
+    owner_j = np.searchsorted(node_start, j, side="right") - 1
+    halo = owner_j != owner_i
+    halo_idx = np.flatnonzero(halo)
+    counts = np.bincount(owner_i[halo_idx], minlength=chunks)
+    halo_start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    slots = np.arange(halo_idx.size, dtype=np.int64)     # spring order = slot order within a chunk
+    owners = owner_j[halo_idx]
+    by_owner = np.argsort(owners, kind="stable")
+    own_counts = np.bincount(owners, minlength=chunks)
+    own_start = np.concatenate([[0], np.cumsum(own_counts)]).astype(np.int64)
+    own_slot = np.ascontiguousarray(slots[by_owner])
+    own_node = np.ascontiguousarray(j[halo_idx][by_owner]).astype(np.int64)
+    hbuf = np.zeros((max(1, halo_idx.size), 3))
+    return (node_start, spring_start, halo_start, hbuf, own_start, own_slot, own_node)
+
+
+# ---------------------------------------------------------------------------
+# stability
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class StepBound:
+    """The stable time step and what it is made of."""
+
+    dt: float            #: step used [s] (safety included)
+    dt_critical: float   #: bound without the safety factor [s]
+    omega_max: float     #: Gershgorin bound of the highest angular frequency [rad/s]
+    gamma_max: float     #: bound of the dashpots' damping rate [1/s]
+    safety: float
+    node: int            #: the node that sets the bound
+
+
+def stable_step(model: ForceModel, mass: np.ndarray, *, free: np.ndarray | None = None,
+                extra_stiffness: np.ndarray | None = None, safety: float = DEFAULT_SAFETY) -> StepBound:
+    """Largest stable semi-implicit Euler step of *model* with node masses *mass*.
+
+    Parameters
+    ----------
+    model : ForceModel
+    mass : ndarray, shape (n,)
+        Node masses [kg].
+    free : ndarray of bool, shape (n,), optional
+        Nodes that move (default: all). Fixed nodes do not limit the step.
+    extra_stiffness : ndarray, shape (n,), optional
+        Stiffness to the ground per node [N/m] (grasper coupling springs).
+    safety : float
+        Factor in (0, 1] applied to the critical step.
+    """
+    if not (0 < safety <= 1):
+        raise ConfigError(f"safety: must be in (0, 1], got {safety}")
+    m = np.asarray(mass, dtype=np.float64)
+    n = model.n_nodes
+    i, j = model.ij[0], model.ij[1]
+    ksum = np.bincount(i, weights=model.kappa, minlength=n) + np.bincount(j, weights=model.kappa, minlength=n)
+    row = 2.0 * ksum
+    if extra_stiffness is not None:
+        row = row + np.asarray(extra_stiffness, dtype=np.float64)
+    if model.damped:
+        c = model.sd[4].astype(np.float64)
+        csum = np.bincount(i, weights=c, minlength=n) + np.bincount(j, weights=c, minlength=n)
+        crow = 2.0 * csum
+    else:
+        crow = np.zeros(n)
+    mask = np.ones(n, bool) if free is None else np.asarray(free, bool)
+    if not mask.any():
+        return StepBound(math.inf, math.inf, 0.0, 0.0, safety, -1)
+    w2 = np.where(mask, row / m, 0.0)
+    g = np.where(mask, crow / m, 0.0)
+    node = int(np.argmax(w2))
+    omega2 = float(w2.max())
+    gamma = float(g.max())
+    if omega2 <= 0:
+        return StepBound(math.inf, math.inf, 0.0, gamma, safety, node)
+    dtc = 4.0 / (gamma + math.sqrt(gamma * gamma + 4.0 * omega2))
+    return StepBound(safety * dtc, dtc, math.sqrt(omega2), gamma, safety, node)
+
+
+# ---------------------------------------------------------------------------
+# the simulator
+# ---------------------------------------------------------------------------
+
+@dataclass
+class Grasp:
+    """Nodes held by the grasper.
+
+    Attributes
+    ----------
+    nodes : ndarray, shape (g,), int64
+    offsets : ndarray, shape (g, 3)
+        Node position minus tip position when grasped [m].
+    wp_t : ndarray, shape (p,)
+        Path times [s] (increasing).
+    wp_x : ndarray, shape (p, 3)
+        Tip positions at those times [m].
+    mode : {"prescribed", "spring"}
+    stiffness : ndarray, shape (g,)
+        Coupling stiffness per node [N/m] (mode "spring").
+    """
+
+    nodes: np.ndarray
+    offsets: np.ndarray
+    wp_t: np.ndarray
+    wp_x: np.ndarray
+    mode: str = "prescribed"
+    stiffness: np.ndarray | None = None
+
+    def tip(self, t: float) -> np.ndarray:
+        pos, _ = K.tip_state(float(t), self.wp_t, self.wp_x)
+        return pos
+
+
+class Simulator:
+    """State and time stepping of a spring network.
+
+    Parameters
+    ----------
+    model : ForceModel
+    points : ndarray, shape (n, 3)
+        Rest positions [m] (the initial state).
+    mass : ndarray, shape (n,)
+        Node masses [kg].
+    fixed : ndarray of int, shape (f,)
+        Nodes held in place.
+    gravity : array-like, shape (3,)
+        Acceleration of gravity [m/s2].
+    mass_damping : float
+        Rayleigh mass-proportional coefficient alpha [1/s] (0: none).
+    dt : float, optional
+        Time step [s]; default: :func:`stable_step` with *safety*. A larger one
+        than the bound raises :class:`SimulationError`.
+    safety : float
+    threads : int
+        1: the serial kernel; more: the owner/halo parallel kernel with that
+        many chunks (``numba.set_num_threads``).
+    """
+
+    def __init__(self, model: ForceModel, points: np.ndarray, mass: np.ndarray, *, fixed=(),
+                 gravity=(0.0, 0.0, 0.0), mass_damping: float = 0.0, dt: float | None = None,
+                 safety: float = DEFAULT_SAFETY, threads: int = 1):
+        n = model.n_nodes
+        self.model = model
+        self.rest = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(n, 3)).copy()
+        self.x = self.rest.copy()
+        self.v = np.zeros_like(self.x)
+        self.f = np.zeros_like(self.x)
+        self.mass = np.asarray(mass, dtype=np.float64).reshape(n).copy()
+        if np.any(~np.isfinite(self.mass)) or np.any(self.mass <= 0):
+            raise InputError("network has nodes of zero, negative or non-finite mass; rebuild the asset")
+        self.fixed = np.unique(np.asarray(fixed, dtype=np.int64).ravel())
+        if self.fixed.size and (self.fixed[0] < 0 or self.fixed[-1] >= n):
+            raise InputError(f"fixed nodes outside 0..{n - 1}")
+        g = np.asarray(gravity, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(g)):
+            raise ConfigError("gravity: must be three finite numbers (m/s2)")
+        self.gravity = g
+        if not (np.isfinite(mass_damping) and mass_damping >= 0):
+            raise ConfigError(f"mass_damping: must be >= 0 1/s, got {mass_damping}")
+        self.alpha = float(mass_damping)
+        self.safety = float(safety)
+        self.threads = max(1, int(threads))
+        self.fext = np.ascontiguousarray(self.mass[:, None] * g[None, :])
+        self.grasp: Grasp | None = None
+        self.step_count = 0
+        self.t0 = 0.0
+        self._free = np.ones(n, bool)
+        self._free[self.fixed] = False
+        self._update_inv_mass()
+        self.bound = self._bound()
+        if dt is None:
+            self.dt = self.bound.dt
+        else:
+            if not (np.isfinite(dt) and dt > 0):
+                raise ConfigError(f"dt: must be a positive time step, got {dt}")
+            if dt > self.bound.dt_critical:
+                raise SimulationError(
+                    f"dt: {dt:.3g} s exceeds the stability bound {self.bound.dt_critical:.3g} s of "
+                    f"this network; use a smaller step or none (automatic)")
+            self.dt = float(dt)
+
+    # -- state ------------------------------------------------------------
+    @property
+    def t(self) -> float:
+        """Current time [s]."""
+        return self.t0 + self.step_count * self.dt
+
+    @property
+    def free(self) -> np.ndarray:
+        """Nodes integrated in time (not fixed, not held by a prescribed grasp), shape (n,)."""
+        return self.inv_mass > 0
+
+    def displacement(self) -> np.ndarray:
+        return self.x - self.rest
+
+    def _update_inv_mass(self) -> None:
+        inv = np.where(self._free, 1.0 / self.mass, 0.0)
+        if self.grasp is not None and self.grasp.mode == "prescribed":
+            inv[self.grasp.nodes] = 0.0
+        self.inv_mass = np.ascontiguousarray(inv)
+
+    def _bound(self) -> StepBound:
+        extra = None
+        if self.grasp is not None and self.grasp.mode == "spring":
+            extra = np.zeros(self.model.n_nodes)
+            np.add.at(extra, self.grasp.nodes, self.grasp.stiffness)
+        return stable_step(self.model, self.mass, free=self.free, extra_stiffness=extra,
+                           safety=self.safety)
+
+    def set_time_step(self, dt: float) -> None:
+        """Change the step (keeps the current time); refuses steps above the bound."""
+        if not (np.isfinite(dt) and dt > 0):
+            raise ConfigError(f"dt: must be a positive time step, got {dt}")
+        if dt > self.bound.dt_critical:
+            raise SimulationError(f"dt: {dt:.3g} s exceeds the stability bound {self.bound.dt_critical:.3g} s")
+        self.t0 = self.t
+        self.step_count = 0
+        self.dt = float(dt)
+
+    # -- grasper -------------------------------------------------------------
+    def attach(self, grasp: Grasp) -> None:
+        """Start holding ``grasp.nodes`` (at the current time)."""
+        nodes = np.asarray(grasp.nodes, dtype=np.int64).ravel()
+        if nodes.size == 0:
+            raise ConfigError("grasper: no node to grasp")
+        if np.any(~self._free[nodes]):
+            raise ConfigError("grasper: a grasped node is fixed; grasp elsewhere or change the fixed region")
+        if grasp.mode not in ("prescribed", "spring"):
+            raise ConfigError(f"grasper.mode: unknown {grasp.mode!r}; use \"prescribed\" or \"spring\"")
+        if grasp.mode == "spring":
+            k = np.asarray(grasp.stiffness, dtype=np.float64).reshape(nodes.size)
+            if np.any(~np.isfinite(k)) or np.any(k <= 0):
+                raise ConfigError("grasper.stiffness: must be positive (N/m)")
+            grasp.stiffness = k
+        else:
+            grasp.stiffness = np.zeros(nodes.size)
+        grasp.nodes = nodes
+        grasp.offsets = np.ascontiguousarray(np.asarray(grasp.offsets, dtype=np.float64).reshape(nodes.size, 3))
+        grasp.wp_t = np.ascontiguousarray(np.asarray(grasp.wp_t, dtype=np.float64).ravel())
+        grasp.wp_x = np.ascontiguousarray(np.asarray(grasp.wp_x, dtype=np.float64).reshape(-1, 3))
+        self.grasp = grasp
+        self._update_inv_mass()
+        self.bound = self._bound()
+        if self.dt > self.bound.dt_critical:
+            raise SimulationError(
+                f"grasper.stiffness: the coupling springs need a step below {self.bound.dt_critical:.3g} s "
+                f"(current {self.dt:.3g} s); lower the stiffness or use mode = \"prescribed\"")
+        if grasp.mode == "prescribed":
+            tip, tip_v = K.tip_state(self.t, grasp.wp_t, grasp.wp_x)
+            self.x[nodes] = tip + grasp.offsets
+            self.v[nodes] = tip_v
+
+    def release(self) -> None:
+        """Let go: the grasped nodes become free again (keeping their velocity)."""
+        self.grasp = None
+        self._update_inv_mass()
+        self.bound = self._bound()
+
+    # -- stepping --------------------------------------------------------------
+    def advance(self, nsteps: int, *, record: np.ndarray | None = None) -> np.ndarray:
+        """Run *nsteps* steps; return the force on the grasper at each step, shape (nsteps, 3) [N].
+
+        The force is the one the tissue (with its weight) exerts on the grasper
+        (what a haptic device renders); zeros when nothing is grasped.
+        """
+        nsteps = int(nsteps)
+        rec = np.zeros((max(nsteps, 0), 3)) if record is None else record
+        if nsteps <= 0:
+            return rec
+        vfac = 1.0 / (1.0 + self.alpha * self.dt)
+        g = self.grasp
+        if g is None:
+            g_mode, g_nodes, g_off, g_k = K.GRASP_NONE, np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+            wp_t, wp_x = np.zeros(1), np.zeros((1, 3))
+        else:
+            g_mode = K.GRASP_PRESCRIBED if g.mode == "prescribed" else K.GRASP_SPRING
+            g_nodes, g_off, g_k, wp_t, wp_x = g.nodes, g.offsets, g.stiffness, g.wp_t, g.wp_x
+        common = (nsteps, self.dt, self.t0, self.step_count, self.x, self.v, self.f, self.fext,
+                  self.inv_mass, vfac) + self.model.kernel_args() + (
+                  g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec)
+        if self.threads == 1:
+            K.run_serial(*common)
+        else:
+            import numba
+
+            numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
+            K.run_parallel(*common, *self.model.layout(self.threads))
+        self.step_count += nsteps
+        return rec
+
+    def check_finite(self) -> None:
+        """Raise :class:`SimulationError` if the state has blown up (NaN/inf)."""
+        if not np.all(np.isfinite(self.x)):
+            raise SimulationError(
+                f"the simulation became unstable at t = {self.t:.4g} s (non-finite positions); "
+                f"lower integrator.safety or check the asset's masses and tables")
+
+    def kinetic_energy(self) -> float:
+        return 0.5 * float(np.sum(self.mass[:, None] * self.v**2))
+
+    def gravity_energy(self) -> float:
+        return -float(np.sum(self.fext * self.x))
+
+    # -- quasi-static --------------------------------------------------------------
+    def relax(self, *, ftol: float | None = None, rtol: float = 1e-8, max_iter: int = 200_000) -> dict:
+        """Move to static equilibrium under gravity (and a held grasp) with FIRE.
+
+        Parameters
+        ----------
+        ftol : float, optional
+            Largest residual force on a free node [N]; default ``rtol`` times
+            the largest external force on a node (or times the largest spring
+            force scale when there is no gravity).
+        rtol : float
+        max_iter : int
+
+        Returns
+        -------
+        dict with ``iterations``, ``residual`` [N], ``ftol`` [N].
+        """
+        free = self.free
+        if ftol is None:
+            scale = float(np.abs(self.fext[free]).max()) if free.any() else 0.0
+            if scale == 0.0:
+                scale = float(np.median(self.model.rest_tangent / self.model.sd[0])) or 1.0
+            ftol = rtol * scale
+        dt0 = 0.2 * self.bound.dt_critical
+        it, res = K.fire_relax(self.x, self.v, self.f, self.fext, self.inv_mass, free,
+                               *self.model.kernel_args()[:-1], dt0, 0.9 * self.bound.dt_critical,
+                               float(ftol), int(max_iter))
+        self.v[:] = 0.0
+        if it < 0 or not np.isfinite(res):
+            raise SimulationError("quasi-static relaxation diverged (non-finite forces); check the asset")
+        if res >= ftol:
+            raise SimulationError(
+                f"quasi-static relaxation did not converge in {max_iter} iterations "
+                f"(residual {res:.3g} N > {ftol:.3g} N); raise max_iter or the tolerance")
+        return {"iterations": int(it), "residual": float(res), "ftol": float(ftol)}
+
+
+def warm_up(model: ForceModel, *, threads: int = 1) -> float:
+    """Compile (or load from cache) the kernels on a 2-node problem; return the seconds spent."""
+    t = time.perf_counter()
+    x = np.array([[0.0, 0, 0], [1.0, 0, 0]])
+    sub = ForceModel(n_nodes=2, ij=np.array([[0], [1]], np.uint32), order=np.zeros(1, np.int64),
+                     sd=np.zeros((model.sd.shape[0], 1), model.sd.dtype), tab=model.tab[:2].copy(),
+                     lam_min=model.lam_min, inv_h=model.inv_h, law=model.law, kappa=np.zeros(1),
+                     rest_tangent=np.zeros(1), dashpot=model.dashpot)
+    sub.sd[0, 0] = 1.0
+    sim = Simulator(sub, x, np.ones(2), fixed=[0], dt=1e-3, threads=threads)
+    sim.advance(1)
+    sim.attach(Grasp(nodes=np.array([1]), offsets=np.zeros((1, 3)), wp_t=np.array([0.0, 1.0]),
+                     wp_x=np.array([[1.0, 0, 0], [1.0, 0, 0]])))
+    sim.advance(1)
+    return time.perf_counter() - t

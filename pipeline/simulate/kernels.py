@@ -1,0 +1,487 @@
+r"""Compiled (numba) hot loops of the simulator.
+
+Everything here works on plain arrays in SI units; :mod:`.integrator` builds
+them from a :class:`~esmm.pipeline.network.springs.SpringNetwork` and
+:class:`~esmm.pipeline.network.tables.StiffnessTables`.
+
+Spring force (the tables module's convention, paper Eq. 8-9)::
+
+    lam = L / L0
+    F   = sum_d w_d * f_d(lam)          w_d = c * V_ij / L0 * cos2_d   [m^2]
+    f_d = mu_e,d(lam) * (lam - 1)       secant law (mu_e held constant off the grid)
+    f_d = W_T,d'(lam)                   energy law (stress continued linearly off the grid)
+    F_i = +F (P_j - P_i) / L,  F_j = -F_i
+
+plus an optional dashpot along the spring, ``c_ij ((v_j - v_i) . u) u``. A
+spring of zero current length carries no force.
+
+Data layout
+-----------
+* node arrays ``x``, ``v``, ``f``: (n, 3) float64, C order - the three
+  components of a node sit in one cache line, which is what the gather of a
+  spring's two end nodes reads;
+* spring indices ``ij``: (2, s) uint32 (rows ``i`` and ``j``; ``i < j``,
+  sorted by ``i`` then ``j``; unsigned so that no negative-index wraparound
+  code is generated);
+* spring data ``sd``: (4, s) or (5, s) float64 or float32, rows ``1/L0, w_x,
+  w_y, w_z(, c_ij)`` (structure of arrays: each row is one sequential stream);
+* table ``tab``: (n_cells, 6) float64, per cell ``[f_x, f_y, f_z, df_x, df_y,
+  df_z]`` (value at the cell's left node and increment to the right node), so
+  a lookup reads one 48-byte row.
+
+Blocking
+--------
+Springs are processed in blocks of :data:`BLOCK`: (1) gather the end-node
+differences into block buffers (scalar), (2) length, stretch, table cell and
+weight (contiguous: LLVM vectorises it, sqrt included), (3) table fetch, (4)
+force coefficient ``F/L`` (vectorised, the division included), (5) scatter.
+This is ~20 % faster than the one-loop form on AVX-512 hardware and gives
+bitwise the same numbers.
+
+Race-free threading
+-------------------
+Springs are sorted by their lower node ``i``. The nodes are cut into ``T``
+contiguous ranges with about equal spring counts; chunk ``t`` owns the
+springs whose ``i`` lies in its range. It writes ``f[i]`` (owned) and
+``f[j]`` when ``j`` is also owned; a spring whose ``j`` lies in a later
+chunk's range (a *halo* spring: few after a bandwidth-reducing node order)
+writes its force into a private slot ``hbuf[h]`` instead. A second parallel
+pass over the node ranges adds the halo slots of each range (precomputed per
+owner) and integrates its nodes. No two threads ever write the same address:
+no atomics and no reduction buffers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+LAW_SECANT = 0
+LAW_ENERGY = 1
+
+GRASP_NONE = 0
+GRASP_PRESCRIBED = 1
+GRASP_SPRING = 2
+
+#: Springs per block (buffers of 10 x BLOCK doubles stay in L1).
+BLOCK = 64
+
+_OPTS = dict(cache=True, error_model="numpy")
+
+
+# ---------------------------------------------------------------------------
+# one block of springs
+# ---------------------------------------------------------------------------
+
+@njit(inline="always", **_OPTS)
+def _block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, buf, kk):
+    """Force coefficients of springs p0..p0+nb-1 into buf[6] (F/L + dashpot), d into buf[0:3].
+
+    buf rows: 0-2 dx dy dz, 3 L, 4 lam, 5 coefficient, 6 t, 7 d.dv.
+    """
+    last = float(last_cell)
+    for b in range(nb):
+        i = ij[0, p0 + b]
+        j = ij[1, p0 + b]
+        buf[0, b] = x[j, 0] - x[i, 0]
+        buf[1, b] = x[j, 1] - x[i, 1]
+        buf[2, b] = x[j, 2] - x[i, 2]
+        if damped:
+            buf[7, b] = ((v[j, 0] - v[i, 0]) * buf[0, b] + (v[j, 1] - v[i, 1]) * buf[1, b]
+                         + (v[j, 2] - v[i, 2]) * buf[2, b])
+    for b in range(nb):
+        L = np.sqrt(buf[0, b] * buf[0, b] + buf[1, b] * buf[1, b] + buf[2, b] * buf[2, b])
+        buf[3, b] = L
+        lam = L * sd[0, p0 + b]
+        buf[4, b] = lam
+        s = (lam - lam_min) * inv_h
+        # max/min with the constant first: a NaN stretch gives s = 0 (cell 0), and the NaN
+        # still propagates through lam into the force.
+        sc = min(max(s, 0.0), last + 1.0)
+        k = min(np.int64(sc), last_cell)
+        kk[b] = k
+        if law == LAW_SECANT:
+            buf[6, b] = min(sc - k, 1.0)          # mu_e held constant off the grid
+        else:
+            buf[6, b] = s - k                      # stress continued linearly off the grid
+    for b in range(nb):
+        k = kk[b]
+        t = buf[6, b]
+        p = p0 + b
+        buf[5, b] = (sd[1, p] * (tab[k, 0] + t * tab[k, 3]) + sd[2, p] * (tab[k, 1] + t * tab[k, 4])
+                     + sd[3, p] * (tab[k, 2] + t * tab[k, 5]))
+    for b in range(nb):
+        L = buf[3, b]
+        rinv = 1.0 / L if L > 0.0 else 0.0
+        F = buf[5, b]
+        if law == LAW_SECANT:
+            F = F * (buf[4, b] - 1.0)
+        c = F * rinv
+        if damped:
+            c += sd[4, p0 + b] * buf[7, b] * rinv * rinv
+        buf[5, b] = c
+
+
+@njit(inline="always", **_OPTS)
+def _scatter_all(nb, p0, ij, f, buf):
+    for b in range(nb):
+        i = ij[0, p0 + b]
+        j = ij[1, p0 + b]
+        c = buf[5, b]
+        fx = c * buf[0, b]
+        fy = c * buf[1, b]
+        fz = c * buf[2, b]
+        f[i, 0] += fx
+        f[i, 1] += fy
+        f[i, 2] += fz
+        f[j, 0] -= fx
+        f[j, 1] -= fy
+        f[j, 2] -= fz
+
+
+@njit(inline="always", **_OPTS)
+def _scatter_owned(nb, p0, hi, h, ij, f, buf, hbuf):
+    for b in range(nb):
+        i = ij[0, p0 + b]
+        j = ij[1, p0 + b]
+        c = buf[5, b]
+        fx = c * buf[0, b]
+        fy = c * buf[1, b]
+        fz = c * buf[2, b]
+        f[i, 0] += fx
+        f[i, 1] += fy
+        f[i, 2] += fz
+        if j < hi:
+            f[j, 0] -= fx
+            f[j, 1] -= fy
+            f[j, 2] -= fz
+        else:
+            hbuf[h, 0] = fx
+            hbuf[h, 1] = fy
+            hbuf[h, 2] = fz
+            h += 1
+    return h
+
+
+@njit(inline="always", **_OPTS)
+def _range_forces(p0, p1, hi, h, x, v, f, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+                  hbuf, owned):
+    buf = np.empty((8, BLOCK))
+    kk = np.empty(BLOCK, np.int64)
+    for q in range(p0, p1, BLOCK):
+        nb = min(BLOCK, p1 - q)
+        _block(q, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, buf, kk)
+        if owned:
+            h = _scatter_owned(nb, q, hi, h, ij, f, buf, hbuf)
+        else:
+            _scatter_all(nb, q, ij, f, buf)
+
+
+# ---------------------------------------------------------------------------
+# force passes
+# ---------------------------------------------------------------------------
+
+@njit(**_OPTS)
+def forces_serial(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped):
+    """f = fext + spring forces (+ dashpots), one thread, scatter over the springs."""
+    n = x.shape[0]
+    for a in range(n):
+        f[a, 0] = fext[a, 0]
+        f[a, 1] = fext[a, 1]
+        f[a, 2] = fext[a, 2]
+    hbuf = np.empty((0, 3))
+    if law == LAW_SECANT:
+        if damped:
+            _range_forces(0, ij.shape[1], n, 0, x, v, f, ij, sd, tab, lam_min, inv_h, last_cell,
+                          LAW_SECANT, True, hbuf, False)
+        else:
+            _range_forces(0, ij.shape[1], n, 0, x, v, f, ij, sd, tab, lam_min, inv_h, last_cell,
+                          LAW_SECANT, False, hbuf, False)
+    else:
+        if damped:
+            _range_forces(0, ij.shape[1], n, 0, x, v, f, ij, sd, tab, lam_min, inv_h, last_cell,
+                          LAW_ENERGY, True, hbuf, False)
+        else:
+            _range_forces(0, ij.shape[1], n, 0, x, v, f, ij, sd, tab, lam_min, inv_h, last_cell,
+                          LAW_ENERGY, False, hbuf, False)
+
+
+@njit(inline="always", **_OPTS)
+def _chunk_forces(c, x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+                  node_start, spring_start, halo_start, hbuf):
+    lo = node_start[c]
+    hi = node_start[c + 1]
+    for a in range(lo, hi):
+        f[a, 0] = fext[a, 0]
+        f[a, 1] = fext[a, 1]
+        f[a, 2] = fext[a, 2]
+    if law == LAW_SECANT:
+        if damped:
+            _range_forces(spring_start[c], spring_start[c + 1], hi, halo_start[c], x, v, f, ij, sd,
+                          tab, lam_min, inv_h, last_cell, LAW_SECANT, True, hbuf, True)
+        else:
+            _range_forces(spring_start[c], spring_start[c + 1], hi, halo_start[c], x, v, f, ij, sd,
+                          tab, lam_min, inv_h, last_cell, LAW_SECANT, False, hbuf, True)
+    else:
+        if damped:
+            _range_forces(spring_start[c], spring_start[c + 1], hi, halo_start[c], x, v, f, ij, sd,
+                          tab, lam_min, inv_h, last_cell, LAW_ENERGY, True, hbuf, True)
+        else:
+            _range_forces(spring_start[c], spring_start[c + 1], hi, halo_start[c], x, v, f, ij, sd,
+                          tab, lam_min, inv_h, last_cell, LAW_ENERGY, False, hbuf, True)
+
+
+@njit(inline="always", **_OPTS)
+def _apply_halo(c, f, own_start, own_slot, own_node, hbuf):
+    for q in range(own_start[c], own_start[c + 1]):
+        h = own_slot[q]
+        a = own_node[q]
+        f[a, 0] -= hbuf[h, 0]
+        f[a, 1] -= hbuf[h, 1]
+        f[a, 2] -= hbuf[h, 2]
+
+
+@njit(parallel=True, **_OPTS)
+def forces_parallel(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+                    node_start, spring_start, halo_start, hbuf, own_start, own_slot, own_node):
+    """:func:`forces_serial` with the owner/halo threading (see the module doc)."""
+    nchunk = node_start.shape[0] - 1
+    for c in prange(nchunk):
+        _chunk_forces(c, x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+                      node_start, spring_start, halo_start, hbuf)
+    for c in prange(nchunk):
+        _apply_halo(c, f, own_start, own_slot, own_node, hbuf)
+
+
+# ---------------------------------------------------------------------------
+# grasper path
+# ---------------------------------------------------------------------------
+
+@njit(**_OPTS)
+def tip_state(t, wp_t, wp_x):
+    """Position (3,) and velocity (3,) of a piecewise-linear path at time t (held at the ends)."""
+    pos = np.empty(3)
+    vel = np.zeros(3)
+    m = wp_t.shape[0]
+    if m == 1 or t <= wp_t[0]:
+        for d in range(3):
+            pos[d] = wp_x[0, d]
+        return pos, vel
+    if t >= wp_t[m - 1]:
+        for d in range(3):
+            pos[d] = wp_x[m - 1, d]
+        return pos, vel
+    k = 0
+    while wp_t[k + 1] < t:
+        k += 1
+    span = wp_t[k + 1] - wp_t[k]
+    r = (t - wp_t[k]) / span
+    for d in range(3):
+        pos[d] = wp_x[k, d] + r * (wp_x[k + 1, d] - wp_x[k, d])
+        vel[d] = (wp_x[k + 1, d] - wp_x[k, d]) / span
+    return pos, vel
+
+
+@njit(inline="always", **_OPTS)
+def _grasp_forces(f, x, g_nodes, g_off, g_k, tip, mode, out):
+    """Add the coupling springs (mode SPRING); put the force on the grasper in *out*."""
+    out[0] = 0.0
+    out[1] = 0.0
+    out[2] = 0.0
+    for q in range(g_nodes.shape[0]):
+        a = g_nodes[q]
+        if mode == GRASP_SPRING:
+            for d in range(3):
+                fs = g_k[q] * (tip[d] + g_off[q, d] - x[a, d])
+                f[a, d] += fs
+                out[d] -= fs
+        else:  # prescribed: the pull of the tissue (springs + weight) on the held nodes
+            for d in range(3):
+                out[d] += f[a, d]
+
+
+@njit(inline="always", **_OPTS)
+def _place_grasped(x, v, g_nodes, g_off, tip, tip_v):
+    for q in range(g_nodes.shape[0]):
+        a = g_nodes[q]
+        for d in range(3):
+            x[a, d] = tip[d] + g_off[q, d]
+            v[a, d] = tip_v[d]
+
+
+@njit(inline="always", **_OPTS)
+def _integrate_range(lo, hi, dt, x, v, f, inv_mass, vfac):
+    for a in range(lo, hi):
+        s = dt * inv_mass[a]
+        v[a, 0] = (v[a, 0] + s * f[a, 0]) * vfac
+        v[a, 1] = (v[a, 1] + s * f[a, 1]) * vfac
+        v[a, 2] = (v[a, 2] + s * f[a, 2]) * vfac
+        x[a, 0] += dt * v[a, 0]
+        x[a, 1] += dt * v[a, 1]
+        x[a, 2] += dt * v[a, 2]
+
+
+# ---------------------------------------------------------------------------
+# time stepping (symplectic Euler)
+# ---------------------------------------------------------------------------
+
+@njit(**_OPTS)
+def run_serial(nsteps, dt, t0, step0, x, v, f, fext, inv_mass, vfac,
+               ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+               g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec):
+    """Advance *nsteps* semi-implicit Euler steps on one thread.
+
+    Step k (time ``t = t0 + (step0 + k) * dt``): forces at (x, v); the force on
+    the grasper goes to ``rec[k]``; ``v <- (v + dt f / m) * vfac`` (``vfac =
+    1 / (1 + alpha dt)``: implicit mass-proportional damping), ``x <- x + dt
+    v``. Nodes with ``inv_mass = 0`` keep ``v = 0`` (fixed) unless grasped in
+    prescribed mode: those are put on the path at ``t + dt``.
+    """
+    n = x.shape[0]
+    out = np.zeros(3)
+    for k in range(nsteps):
+        t = t0 + (step0 + k) * dt
+        forces_serial(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped)
+        if g_mode != GRASP_NONE:
+            tip, tip_v = tip_state(t, wp_t, wp_x)
+            _grasp_forces(f, x, g_nodes, g_off, g_k, tip, g_mode, out)
+            rec[k, 0] = out[0]
+            rec[k, 1] = out[1]
+            rec[k, 2] = out[2]
+        _integrate_range(0, n, dt, x, v, f, inv_mass, vfac)
+        if g_mode == GRASP_PRESCRIBED:
+            tip, tip_v = tip_state(t0 + (step0 + k + 1) * dt, wp_t, wp_x)
+            _place_grasped(x, v, g_nodes, g_off, tip, tip_v)
+
+
+@njit(parallel=True, **_OPTS)
+def run_parallel(nsteps, dt, t0, step0, x, v, f, fext, inv_mass, vfac,
+                 ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+                 g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec,
+                 node_start, spring_start, halo_start, hbuf, own_start, own_slot, own_node):
+    """:func:`run_serial` with the race-free owner/halo threading (same arithmetic)."""
+    nchunk = node_start.shape[0] - 1
+    out = np.zeros(3)
+    for k in range(nsteps):
+        t = t0 + (step0 + k) * dt
+        for c in prange(nchunk):
+            _chunk_forces(c, x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+                          node_start, spring_start, halo_start, hbuf)
+        if g_mode != GRASP_NONE:
+            # The grasped nodes' halo contributions must be in before the force on the
+            # grasper is read: apply all halos, read, then integrate.
+            for c in prange(nchunk):
+                _apply_halo(c, f, own_start, own_slot, own_node, hbuf)
+            tip, tip_v = tip_state(t, wp_t, wp_x)
+            _grasp_forces(f, x, g_nodes, g_off, g_k, tip, g_mode, out)
+            rec[k, 0] = out[0]
+            rec[k, 1] = out[1]
+            rec[k, 2] = out[2]
+            for c in prange(nchunk):
+                _integrate_range(node_start[c], node_start[c + 1], dt, x, v, f, inv_mass, vfac)
+        else:
+            for c in prange(nchunk):
+                _apply_halo(c, f, own_start, own_slot, own_node, hbuf)
+                _integrate_range(node_start[c], node_start[c + 1], dt, x, v, f, inv_mass, vfac)
+        if g_mode == GRASP_PRESCRIBED:
+            tip, tip_v = tip_state(t0 + (step0 + k + 1) * dt, wp_t, wp_x)
+            _place_grasped(x, v, g_nodes, g_off, tip, tip_v)
+
+
+# ---------------------------------------------------------------------------
+# quasi-static relaxation (FIRE)
+# ---------------------------------------------------------------------------
+
+@njit(**_OPTS)
+def fire_relax(x, v, f, fext, inv_mass, free, ij, sd, tab, lam_min, inv_h, last_cell, law,
+               dt0, dt_max, ftol, max_iter):
+    """FIRE minimisation (Bitzek et al. 2006) of the network energy under fext.
+
+    Uses the dynamics' force pass (without dashpots) and a mass-weighted
+    semi-implicit Euler MD step. Converged when the largest residual force on a
+    free node is below *ftol* [N]. Returns (iterations, final max residual);
+    iterations = -1 when the forces became non-finite.
+    """
+    n = x.shape[0]
+    n_min = 5
+    f_inc = 1.1
+    f_dec = 0.5
+    alpha_start = 0.1
+    f_alpha = 0.99
+    alpha = alpha_start
+    dt = dt0
+    since_neg = 0
+    for a in range(n):
+        for d in range(3):
+            v[a, d] = 0.0
+    resid = np.inf
+    for it in range(max_iter):
+        forces_serial(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, False)
+        resid = 0.0
+        P = 0.0
+        vn2 = 0.0
+        fn2 = 0.0
+        for a in range(n):
+            if free[a]:
+                fa2 = f[a, 0] ** 2 + f[a, 1] ** 2 + f[a, 2] ** 2
+                if fa2 > resid:
+                    resid = fa2
+                P += f[a, 0] * v[a, 0] + f[a, 1] * v[a, 1] + f[a, 2] * v[a, 2]
+                vn2 += v[a, 0] ** 2 + v[a, 1] ** 2 + v[a, 2] ** 2
+                fn2 += fa2
+        resid = np.sqrt(resid)
+        if not np.isfinite(resid):
+            return -1, resid
+        if resid < ftol:
+            return it, resid
+        if P > 0.0:
+            vn = np.sqrt(vn2)
+            fn = np.sqrt(fn2)
+            if fn > 0.0:
+                for a in range(n):
+                    if free[a]:
+                        for d in range(3):
+                            v[a, d] = (1.0 - alpha) * v[a, d] + alpha * vn * f[a, d] / fn
+            since_neg += 1
+            if since_neg > n_min:
+                dt = min(dt * f_inc, dt_max)
+                alpha *= f_alpha
+        else:
+            since_neg = 0
+            dt *= f_dec
+            alpha = alpha_start
+            for a in range(n):
+                for d in range(3):
+                    v[a, d] = 0.0
+        for a in range(n):
+            if free[a]:
+                s = dt * inv_mass[a]
+                for d in range(3):
+                    v[a, d] += s * f[a, d]
+                    x[a, d] += dt * v[a, d]
+    return max_iter, resid
+
+
+# ---------------------------------------------------------------------------
+# diagnostics
+# ---------------------------------------------------------------------------
+
+@njit(**_OPTS)
+def stretch_range(x, ij, sd):
+    """(min, max) spring stretch of configuration *x* (NaN if a stretch is not finite)."""
+    lo = np.inf
+    hi = -np.inf
+    for p in range(ij.shape[1]):
+        i = ij[0, p]
+        j = ij[1, p]
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        lam = np.sqrt(dx * dx + dy * dy + dz * dz) * sd[0, p]
+        if not np.isfinite(lam):
+            return np.nan, np.nan
+        if lam < lo:
+            lo = lam
+        if lam > hi:
+            hi = lam
+    return lo, hi

@@ -1,0 +1,351 @@
+"""``esmm simulate``: run a scene on an asset and write its outputs.
+
+Outputs in the output folder (each written atomically):
+
+* ``history.h5`` + ``history.xdmf``: displacement per frame (ParaView replay),
+  grasper tip per frame and grasper force per integration step
+  (:mod:`.history`);
+* ``grasper_force.png``: force of the tissue on the grasper vs time;
+* ``summary.json``: the figures of the run (step, bound, timings, real-time
+  factor, extremes) and the scene;
+* the video, when asked for (:mod:`.render`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..atomicio import atomic_path, write_text
+from ..errors import AssetError, ConfigError, SimulationError
+from ..progress import ensure
+from .grasper import GraspPlan, plan_grasp
+from .history import HistoryWriter
+from .integrator import Simulator, build_force_model, stable_step, warm_up
+from .scene import Scene, load_scene
+
+#: Below this many springs one thread is used ("auto"): the parallel pass's
+#: fork/join costs more than it saves (benchmarks/bench_simulate.py).
+AUTO_PARALLEL_MIN_SPRINGS = 20_000
+
+
+@dataclass
+class SimulationResult:
+    """Files and figures of a run."""
+
+    out_dir: Path
+    history: Path
+    xdmf: Path
+    force_plot: Path | None
+    summary_path: Path
+    video: Path | None = None
+    summary: dict = field(default_factory=dict)
+
+
+def _threads_available() -> int:
+    import numba
+
+    return int(numba.config.NUMBA_NUM_THREADS)
+
+
+def choose_threads(sim: Simulator, requested, *, trial_steps: int = 30) -> tuple[int, dict]:
+    """Resolve ``threads = "auto"`` by timing both kernels on the current state (then restored)."""
+    avail = _threads_available()
+    if requested != "auto":
+        return max(1, min(int(requested), avail)), {}
+    if avail == 1 or sim.model.n_springs < AUTO_PARALLEL_MIN_SPRINGS:
+        return 1, {}
+    x, v, step = sim.x.copy(), sim.v.copy(), sim.step_count
+    timing = {}
+    for th in (1, avail):
+        sim.threads = th
+        sim.advance(2)
+        t = time.perf_counter()
+        sim.advance(trial_steps)
+        timing[th] = (time.perf_counter() - t) / trial_steps
+        sim.x[:] = x
+        sim.v[:] = v
+        sim.step_count = step
+    best = min(timing, key=timing.get)
+    return best, {str(k): v for k, v in timing.items()}
+
+
+def _fixed_nodes(network, scene: Scene) -> np.ndarray:
+    if scene.fixed is None:
+        return np.asarray(network.fixed, dtype=np.int64)
+    from ..network.regions import select_fixed
+
+    return select_fixed(network.points, scene.fixed, node_kind=getattr(network, "node_kind", None),
+                        where="[fixed]")
+
+
+def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None, reporter=None,
+                     asset_label: str = "") -> SimulationResult:
+    """Run *scene* on a network with its tables and write the outputs into *out_dir*.
+
+    Parameters
+    ----------
+    network : SpringNetwork
+    tables : StiffnessTables
+    scene : Scene
+    out_dir : path-like
+    video_path : path-like, optional
+        Also render the video there.
+    reporter : Reporter, optional
+
+    Returns
+    -------
+    SimulationResult
+
+    Raises
+    ------
+    ConfigError
+        A scene that does not fit the network (fixed region, grasper).
+    SimulationError
+        Too many steps, or the run became unstable.
+    """
+    rep = ensure(reporter)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    law = tables.check_law(None if scene.law == "asset" else scene.law)
+    fixed = _fixed_nodes(network, scene)
+    if fixed.size == 0 and np.any(scene.gravity) and (scene.grasper is None):
+        rep.warn("no node is fixed and gravity is on: the organ will fall freely")
+
+    t_build = time.perf_counter()
+    model = build_force_model(network, tables, law=law, dashpot=scene.dashpot, precision=scene.precision)
+    build_s = time.perf_counter() - t_build
+    warm = warm_up(model, threads=1)
+    if _threads_available() > 1 and model.n_springs >= AUTO_PARALLEL_MIN_SPRINGS:
+        warm += warm_up(model, threads=_threads_available())
+    sim = Simulator(model, network.points, network.mass, fixed=fixed, gravity=scene.gravity,
+                    mass_damping=scene.mass_damping, safety=scene.safety)
+
+    plan: GraspPlan | None = None
+    extra = None
+    if scene.grasper is not None:
+        plan = plan_grasp(scene.grasper, network.points, network.surface_faces, fixed, scene.gravity)
+        rep.step(plan.describe())
+        if scene.grasper.mode == "spring":
+            # The coupling springs enter the stability bound.
+            extra = np.zeros(model.n_nodes)
+            extra[plan.nodes] = plan.make_grasp(sim.x, sim.mass).stiffness
+    bound = stable_step(model, sim.mass, free=sim.free, extra_stiffness=extra, safety=scene.safety)
+    frame_dt = 1.0 / scene.frame_rate
+    spf = max(1, int(math.ceil(frame_dt / bound.dt * (1 - 1e-12))))
+    dt = frame_dt / spf
+    n_frames = scene.n_frames
+    total_steps = n_frames * spf
+    if total_steps > scene.max_steps:
+        raise SimulationError(
+            f"the scene needs {total_steps} steps of {dt:.3g} s (stability bound of this asset: "
+            f"{bound.dt_critical:.3g} s, set by node {bound.node}); over [integrator] max_steps = "
+            f"{scene.max_steps}; shorten the duration, coarsen the asset or raise max_steps")
+    sim.set_time_step(dt)
+    threads, thread_timing = choose_threads(sim, scene.threads)
+    sim.threads = threads
+    rep.step(f"{model.n_springs} springs, {model.n_nodes} nodes ({fixed.size} fixed), law {law}; step "
+             f"{dt * 1e6:.4g} us ({spf} per frame; bound {bound.dt_critical * 1e6:.4g} us, "
+             f"omega_max {bound.omega_max:.4g} rad/s), {threads} thread(s)")
+
+    # Events at step boundaries.
+    grasp_step = release_step = None
+    if plan is not None:
+        grasp_step = int(round(scene.grasper.grasp_time / dt))
+        if scene.grasper.release_time is not None:
+            release_step = int(round(scene.grasper.release_time / dt))
+
+    hist_path = out / "history.h5"
+    attrs = {
+        "asset": asset_label, "law": law, "dt": dt, "steps_per_frame": spf, "frame_rate": scene.frame_rate,
+        "gravity": scene.gravity.tolist(), "scene_source": scene.source, "scene": scene.describe(),
+        "units": "SI (m, s, N)",
+    }
+    if plan is not None:
+        attrs["grasper_normal"] = plan.normal.tolist()
+        attrs["grasper_target"] = plan.target
+    cells = network.tets if getattr(network, "tets", None) is not None and len(network.tets) else network.surface_faces
+    lam_lo, lam_hi = math.inf, -math.inf
+    step_wall = 0.0
+    fmax = np.zeros(3)
+    fmax_norm = 0.0
+    warned_table = False
+    rec = np.zeros((spf, 3))
+    with HistoryWriter(hist_path, points=network.points, cells=cells, surface=network.surface_faces,
+                       fixed=fixed, attrs=attrs) as hw:
+        if plan is not None:
+            hw.set_grasped(plan.nodes)
+        hw.add_frame(0.0, sim.displacement(), tip=None)
+        with rep.task("simulating", total=n_frames) as advance:
+            for fr in range(n_frames):
+                s0 = fr * spf
+                s1 = s0 + spf
+                cuts = sorted({s0, s1} | {e for e in (grasp_step, release_step) if e is not None and s0 <= e < s1})
+                for a, b in zip(cuts[:-1], cuts[1:]):
+                    if grasp_step == a and sim.grasp is None and plan is not None:
+                        sim.attach(plan.make_grasp(sim.x, sim.mass))
+                    if release_step == a and sim.grasp is not None:
+                        sim.release()
+                    t = time.perf_counter()
+                    held = sim.grasp is not None
+                    r = sim.advance(b - a, record=rec[: b - a])
+                    step_wall += time.perf_counter() - t
+                    if held:
+                        times = (np.arange(a, b) * dt)
+                        hw.add_forces(times, r)
+                        norms = np.linalg.norm(r, axis=1)
+                        k = int(np.argmax(norms))
+                        if norms[k] > fmax_norm:
+                            fmax_norm = float(norms[k])
+                            fmax = r[k].copy()
+                if not np.all(np.isfinite(sim.x)):
+                    raise SimulationError(
+                        f"the simulation became unstable at t = {sim.t:.4g} s (non-finite positions); "
+                        f"lower [integrator] safety or check the asset's masses and tables")
+                lo, hi = model.stretch_range(sim.x)
+                lam_lo, lam_hi = min(lam_lo, lo), max(lam_hi, hi)
+                if not warned_table and (lo < model.lam_min or hi > model.lam_max):
+                    warned_table = True
+                    rep.warn(f"at t = {sim.t:.3g} s springs left the table's stretch range "
+                             f"[{model.lam_min:.4g}, {model.lam_max:.4g}] (now {lo:.4g}..{hi:.4g}); "
+                             "there the tables' extrapolation applies (see docs/simulate.md)")
+                tip = sim.grasp.tip(sim.t) if sim.grasp is not None else None
+                hw.add_frame(sim.t, sim.displacement(), tip=tip)
+                advance(1)
+        umax = float(np.linalg.norm(sim.displacement(), axis=1).max())
+        sim_time = n_frames * frame_dt
+        summary = {
+            "asset": asset_label, "scene": scene.describe(), "scene_source": scene.source,
+            "nodes": model.n_nodes, "springs": model.n_springs, "fixed_nodes": int(fixed.size),
+            "law": law, "precision": scene.precision, "dt_s": dt, "steps_per_frame": spf,
+            "steps": total_steps, "dt_bound_s": bound.dt_critical, "safety": bound.safety,
+            "omega_max_rad_s": bound.omega_max, "gamma_max_1_s": bound.gamma_max,
+            "dashpot_s": scene.dashpot, "velocity_decay_s": scene.velocity_decay,
+            "threads": threads, "thread_trial_s_per_step": thread_timing,
+            "build_s": build_s, "warm_up_s": warm, "stepping_wall_s": step_wall,
+            "wall_per_step_us": step_wall / total_steps * 1e6,
+            "ns_per_spring_step": step_wall / total_steps / model.n_springs * 1e9,
+            "simulated_s": sim_time, "real_time_factor": sim_time / step_wall if step_wall > 0 else math.inf,
+            "stretch_min": lam_lo, "stretch_max": lam_hi, "table_range": [model.lam_min, model.lam_max],
+            "final_max_displacement_m": umax,
+            "grasper": None if plan is None else {
+                "target_node": plan.target, "held_nodes": int(plan.nodes.size), "mode": plan.spec.mode,
+                "direction": plan.direction.tolist(), "max_force_N": fmax_norm, "force_at_max_N": fmax.tolist()},
+        }
+        hw.set_attrs(summary=summary)
+    rep.step(f"simulated {sim_time:g} s in {step_wall:.3g} s of stepping (real-time factor "
+             f"{summary['real_time_factor']:.3g}, {summary['ns_per_spring_step']:.3g} ns per spring per step)")
+
+    force_png = None
+    if plan is not None:
+        force_png = out / "grasper_force.png"
+        plot_forces(hist_path, force_png, plan=plan)
+    video = None
+    if video_path is not None:
+        from .render import render_video
+
+        info = render_video(hist_path, video_path, video=scene.video, reporter=rep)
+        video = Path(video_path)
+        summary["video"] = {"path": str(video), "frames": info["frames"], "render_s": info["seconds"],
+                            "render_fps": info["render_fps"]}
+        rep.step(f"video: {info['frames']} frames in {info['seconds']:.3g} s ({info['render_fps']:.3g} frames/s)")
+    summary_path = out / "summary.json"
+    write_text(summary_path, json.dumps(summary, indent=2, default=_json_default) + "\n")
+    return SimulationResult(out_dir=out, history=hist_path, xdmf=hist_path.with_suffix(".xdmf"),
+                            force_plot=force_png, summary_path=summary_path, video=video, summary=summary)
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    return str(o)
+
+
+def plot_forces(history_path, png_path, *, plan: GraspPlan | None = None) -> Path:
+    """Plot the grasper force (components and magnitude) vs time into *png_path*."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    from .history import History
+
+    with History(history_path) as h:
+        t, f = h.forces()
+    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=120)
+    if t.size:
+        step = max(1, t.size // 20000)          # plot at most ~20 000 points per curve
+        ts, fs = t[::step], f[::step]
+        for k, (name, col) in enumerate(zip("xyz", ("tab:red", "tab:green", "tab:blue"))):
+            ax.plot(ts, fs[:, k], color=col, lw=0.8, label=f"F{name}")
+        ax.plot(ts, np.linalg.norm(fs, axis=1), color="black", lw=1.2, label="|F|")
+        ax.legend(loc="best", fontsize=8)
+    else:
+        ax.text(0.5, 0.5, "the grasper held nothing", ha="center", va="center", transform=ax.transAxes)
+    if plan is not None:
+        for tt, lab in ((plan.spec.grasp_time, "grasp"), (plan.spec.release_time, "release")):
+            if tt is not None:
+                ax.axvline(tt, color="gray", ls=":", lw=0.8)
+                ax.text(tt, ax.get_ylim()[1], f" {lab}", va="top", fontsize=7, color="gray")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("force of the tissue on the grasper [N]")
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(png_path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return Path(png_path)
+
+
+def read_asset_for_simulation(path):
+    """(network, tables, label) of an asset file."""
+    p = Path(path)
+    if not p.is_file():
+        raise AssetError(f"{p}: no such asset file; build one with 'esmm prepare'")
+    try:
+        from ..asset import read_asset
+    except ImportError:  # pragma: no cover - the asset module is part of esmm
+        raise AssetError("this esmm build cannot read assets (esmm.pipeline.asset missing)") from None
+    asset = read_asset(p)
+    network = getattr(asset, "network", None)
+    tables = getattr(asset, "tables", None)
+    if network is None or tables is None:
+        raise AssetError(f"{p}: the asset has no spring network or no stiffness tables; rebuild it with "
+                         "'esmm prepare'")
+    return network, tables, str(p)
+
+
+def simulate(asset_path, *, scene=None, out_dir=None, video_path=None, duration=None, threads=None,
+             law=None, reporter=None) -> SimulationResult:
+    """Run a scene on an asset file (the ``esmm simulate`` command).
+
+    Parameters
+    ----------
+    asset_path : path-like
+        HDF5 asset written by ``esmm prepare``.
+    scene : Scene, str or path-like, optional
+        A :class:`Scene`, a bundled scene name or a TOML path (default: ``"default"``).
+    out_dir : path-like, optional
+        Output folder (default: ``<asset stem>-sim`` beside the asset).
+    video_path : path-like, optional
+    duration : float, optional
+        Override of the scene's duration [s].
+    threads : "auto" or int, optional
+    law : {"asset", "secant", "energy"}, optional
+    """
+    sc = scene if isinstance(scene, Scene) else load_scene(scene)
+    sc = sc.with_overrides(duration=duration, threads=threads, law=law)
+    network, tables, label = read_asset_for_simulation(asset_path)
+    if out_dir is None:
+        out_dir = Path(asset_path).with_name(Path(asset_path).stem + "-sim")
+    if video_path is not None and Path(video_path).suffix.lower() not in (".mp4", ".mkv", ".mov", ".avi"):
+        raise ConfigError(f"--video: {video_path} should end in .mp4 (or .mkv, .mov, .avi)")
+    return simulate_network(network, tables, sc, out_dir, video_path=video_path, reporter=reporter,
+                            asset_label=label)

@@ -1,0 +1,480 @@
+"""Scenes: what happens to the organ during ``esmm simulate``.
+
+A scene is a TOML file (or a bundled preset, ``configs/scenes/<name>.toml``).
+Every dimensional value carries its unit, as in every esmm config; the full
+schema with defaults is ``configs/scenes/default.toml`` and docs/simulate.md.
+Tables and keys::
+
+    [scene]       duration, frame_rate, gravity, gravity_unit, law
+    [damping]     dashpot, velocity_decay
+    [integrator]  safety, threads, precision, max_steps
+    [fixed]       kind = "asset" (keep the asset's fixed nodes) or a region
+                  table as in prepare configs (band / box / nearest / none)
+    [grasper]     enabled, target, radius, mode, stiffness, direction,
+                  grasp_time, release_time, waypoints
+    [video]       width, height, colormap, view, zoom, show_fixed, show_edges
+
+Unknown tables or keys are errors (a typo must not be ignored silently).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from ..config import load as load_config
+from ..errors import ConfigError, InputError
+from ..units import parse_quantity
+
+DEFAULT_SCENE = "default"
+
+_TABLES = {
+    "scene": {"duration", "frame_rate", "gravity", "gravity_unit", "law"},
+    "damping": {"dashpot", "velocity_decay"},
+    "integrator": {"safety", "threads", "precision", "max_steps"},
+    "fixed": None,  # validated by esmm.pipeline.network.regions (plus kind = "asset")
+    "grasper": {"enabled", "target", "radius", "mode", "stiffness", "direction", "grasp_time",
+                "release_time", "waypoints"},
+    "video": {"width", "height", "colormap", "view", "zoom", "show_fixed", "show_edges"},
+}
+_GRAVITY_UNITS = {"m/s2": 1.0, "m/s^2": 1.0, "mm/s2": 1e-3, "mm/s^2": 1e-3, "g": 9.80665}
+_STIFFNESS_UNITS = {"n/m": 1.0, "n/mm": 1e3, "kn/m": 1e3}
+VIEWS = ("auto", "xy", "xz", "yz", "iso")
+LAWS = ("asset", "secant", "energy")
+GRASP_MODES = ("prescribed", "spring")
+
+
+@dataclass(frozen=True)
+class Waypoint:
+    """A grasper waypoint: at *time* [s] the tip is at grasp point + offset."""
+
+    time: float
+    offset: np.ndarray | None = None      #: (3,) [m], or None when *distance* is given
+    distance: float | None = None         #: [m] along the grasper direction
+
+
+@dataclass(frozen=True)
+class GrasperSpec:
+    """The scripted grasper (SI units).
+
+    Attributes
+    ----------
+    target : "auto" or ndarray (3,)
+        "auto": the surface node farthest from the fixed nodes; else the
+        surface node nearest to this point [m].
+    radius : float
+        Every surface node within this distance of the target node is held [m].
+    mode : {"prescribed", "spring"}
+        Held nodes follow the tip exactly, or are tied to it by springs.
+    stiffness : float
+        Total coupling stiffness in mode "spring" [N/m] (shared by mass).
+    direction : "away", "up" or ndarray (3,)
+        Unit direction of ``distance`` waypoints: away from the fixed nodes'
+        centroid, against gravity, or a given vector.
+    grasp_time, release_time : float
+        When the grasper closes and opens [s]; release_time None: never.
+    waypoints : tuple of Waypoint
+        Tip path relative to the grasp point (linear in between; held after).
+    """
+
+    target: Any = "auto"
+    radius: float = 0.005
+    mode: str = "prescribed"
+    stiffness: float = 0.0
+    direction: Any = "away"
+    grasp_time: float = 0.0
+    release_time: float | None = 2.0
+    waypoints: tuple = ()
+
+
+@dataclass(frozen=True)
+class VideoSpec:
+    width: int = 960
+    height: int = 720
+    colormap: str = "viridis"
+    view: str = "auto"
+    zoom: float = 1.0
+    show_fixed: bool = True
+    show_edges: bool = False
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A validated scene (SI units).
+
+    Attributes
+    ----------
+    duration : float
+        Simulated time [s].
+    frame_rate : float
+        History frames (and video frames) per second of simulated time.
+    gravity : ndarray, shape (3,)
+        [m/s2] in the asset's coordinates.
+    law : {"asset", "secant", "energy"}
+    dashpot : float
+        Stiffness-proportional dashpot time beta [s] (0: none).
+    velocity_decay : float or None
+        Time constant tau of the mass-proportional damping [s] (None: none).
+    safety : float
+        Fraction of the critical time step used.
+    threads : "auto" or int
+    precision : {"float64", "float32"}
+    max_steps : int
+        Refuse a run that needs more steps than this (a bad asset or scene).
+    fixed : FixedRegion or None
+        None: the asset's fixed nodes.
+    grasper : GrasperSpec or None
+    video : VideoSpec
+    source : str
+        Where the scene came from.
+    """
+
+    duration: float = 3.0
+    frame_rate: float = 30.0
+    gravity: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.80665]))
+    law: str = "asset"
+    dashpot: float = 0.0
+    velocity_decay: float | None = 0.2
+    safety: float = 0.9
+    threads: Any = "auto"
+    precision: str = "float64"
+    max_steps: int = 50_000_000
+    fixed: Any = None
+    grasper: GrasperSpec | None = field(default_factory=GrasperSpec)
+    video: VideoSpec = field(default_factory=VideoSpec)
+    source: str = "built-in defaults"
+
+    @property
+    def mass_damping(self) -> float:
+        """alpha = 1 / tau [1/s] (0 without velocity decay)."""
+        return 0.0 if self.velocity_decay is None else 1.0 / self.velocity_decay
+
+    @property
+    def n_frames(self) -> int:
+        """Frames after the initial one."""
+        return max(1, int(math.ceil(self.duration * self.frame_rate - 1e-9)))
+
+    def with_overrides(self, *, duration: float | None = None, threads=None, law: str | None = None) -> Scene:
+        """A copy with command-line overrides applied (validated)."""
+        out = self
+        if duration is not None:
+            out = replace(out, duration=_positive(duration, "--duration", "s"))
+        if threads is not None:
+            out = replace(out, threads=_threads(threads, "--threads"))
+        if law is not None:
+            if law not in LAWS:
+                raise ConfigError(f"--law: {law!r} is not one of {', '.join(LAWS)}")
+            out = replace(out, law=law)
+        if out.grasper is not None:
+            _check_grasper_times(out.grasper, out.duration, "[grasper]")
+        return out
+
+    def describe(self) -> str:
+        g = self.grasper
+        grasp = "no grasper" if g is None else (
+            f"grasper {g.mode}, {len(g.waypoints)} waypoints, release "
+            + ("never" if g.release_time is None else f"{g.release_time:g} s"))
+        return (f"{self.duration:g} s at {self.frame_rate:g} frames/s, gravity "
+                f"{np.round(self.gravity, 3).tolist()} m/s2, law {self.law}, dashpot {self.dashpot * 1e3:g} ms, "
+                f"velocity decay {'none' if self.velocity_decay is None else f'{self.velocity_decay:g} s'}, {grasp}")
+
+
+# ---------------------------------------------------------------------------
+# parsing helpers
+# ---------------------------------------------------------------------------
+
+def _quantity(value, kind: str, where: str) -> float:
+    try:
+        return parse_quantity(value, kind, where=where)
+    except InputError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _positive(value, where: str, unit: str) -> float:
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        v = float(value)                       # CLI numbers are in the stated unit
+    else:
+        v = _quantity(value, "time", where)
+    if not (math.isfinite(v) and v > 0):
+        raise ConfigError(f"{where}: must be a positive time, got {value!r}")
+    return v
+
+
+def _number(value, where: str, *, lo: float | None = None, hi: float | None = None,
+            lo_open: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"{where}: expected a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v) or (lo is not None and (v < lo or (lo_open and v == lo))) or (hi is not None and v > hi):
+        rng = f"{'(' if lo_open else '['}{lo if lo is not None else '-inf'}, {hi if hi is not None else 'inf'}]"
+        raise ConfigError(f"{where}: expected a number in {rng}, got {value!r}")
+    return v
+
+
+def _threads(value, where: str):
+    if value == "auto":
+        return "auto"
+    if isinstance(value, str) and value.isdigit():
+        value = int(value)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"{where}: expected \"auto\" or a whole number >= 1, got {value!r}")
+    return int(value)
+
+
+def _bool(value, where: str) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(f"{where}: expected true or false, got {value!r}")
+    return value
+
+
+def _vec3(value, where: str, *, lengths: bool) -> np.ndarray:
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        ex = '["10 mm", "0 mm", "5 mm"]' if lengths else "[0, 0, 1]"
+        raise ConfigError(f"{where}: expected a list of 3 {'lengths with units' if lengths else 'numbers'}, e.g. {ex}")
+    if lengths:
+        return np.array([_quantity(v, "length", f"{where}[{k}]") for k, v in enumerate(value)])
+    return np.array([_number(v, f"{where}[{k}]") for k, v in enumerate(value)])
+
+
+_STIFF = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(\S+)\s*$")
+
+
+def _stiffness(value, where: str) -> float:
+    m = _STIFF.match(value) if isinstance(value, str) else None
+    if not m or m.group(2).lower() not in _STIFFNESS_UNITS:
+        raise ConfigError(f"{where}: expected a stiffness with its unit ({', '.join(['N/m', 'N/mm', 'kN/m'])}), "
+                          f"e.g. \"200 N/m\", got {value!r}")
+    v = float(m.group(1)) * _STIFFNESS_UNITS[m.group(2).lower()]
+    if not (math.isfinite(v) and v > 0):
+        raise ConfigError(f"{where}: must be positive, got {value!r}")
+    return v
+
+
+def _check_keys(table: dict, name: str) -> None:
+    allowed = _TABLES[name]
+    if not isinstance(table, dict):
+        raise ConfigError(f"[{name}]: expected a table, got {type(table).__name__}")
+    if allowed is None:
+        return
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise ConfigError(f"[{name}]: unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(allowed))}")
+
+
+def _check_grasper_times(g: GrasperSpec, duration: float, where: str) -> None:
+    if g.grasp_time >= duration:
+        raise ConfigError(f"{where} grasp_time: {g.grasp_time:g} s is not before the end of the scene "
+                          f"({duration:g} s); shorten it or lengthen the duration")
+
+
+# ---------------------------------------------------------------------------
+# the parser
+# ---------------------------------------------------------------------------
+
+def scene_from_dict(data: dict, *, source: str = "<dict>") -> Scene:
+    """Validate a scene table (as read from TOML) into a :class:`Scene`.
+
+    Raises
+    ------
+    ConfigError
+        Unknown table or key, a value without unit, out of range or inconsistent.
+    """
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: a scene must be a TOML table")
+    unknown = sorted(set(data) - set(_TABLES))
+    if unknown:
+        raise ConfigError(f"{source}: unknown table(s) {', '.join('[' + u + ']' for u in unknown)}; "
+                          f"allowed: {', '.join('[' + t + ']' for t in _TABLES)}")
+    kw: dict[str, Any] = {"source": source}
+
+    sc = data.get("scene", {})
+    _check_keys(sc, "scene")
+    if "duration" in sc:
+        kw["duration"] = _positive(sc["duration"], "[scene] duration", "s") if isinstance(sc["duration"], str) \
+            else _bad_unit("[scene] duration", sc["duration"], "3 s")
+    if "frame_rate" in sc:
+        kw["frame_rate"] = _number(sc["frame_rate"], "[scene] frame_rate (frames per second)", lo=0.0,
+                                   hi=10_000.0, lo_open=True)
+    unit = sc.get("gravity_unit", "m/s2")
+    if not isinstance(unit, str) or unit.lower().replace(" ", "") not in _GRAVITY_UNITS:
+        raise ConfigError(f"[scene] gravity_unit: {unit!r} is not one of {', '.join(_GRAVITY_UNITS)}")
+    if "gravity" in sc:
+        kw["gravity"] = _vec3(sc["gravity"], "[scene] gravity", lengths=False) * _GRAVITY_UNITS[unit.lower().replace(" ", "")]
+    if "law" in sc:
+        if sc["law"] not in LAWS:
+            raise ConfigError(f"[scene] law: {sc['law']!r} is not one of {', '.join(LAWS)}")
+        kw["law"] = sc["law"]
+
+    dm = data.get("damping", {})
+    _check_keys(dm, "damping")
+    if "dashpot" in dm:
+        v = dm["dashpot"]
+        kw["dashpot"] = 0.0 if v in ("none", 0) else _quantity(v, "time", "[damping] dashpot")
+        if not (math.isfinite(kw["dashpot"]) and kw["dashpot"] >= 0):
+            raise ConfigError(f"[damping] dashpot: must be a time >= 0, got {v!r}")
+    if "velocity_decay" in dm:
+        v = dm["velocity_decay"]
+        kw["velocity_decay"] = None if v in ("none", 0) else _positive(v, "[damping] velocity_decay", "s") \
+            if isinstance(v, str) else _bad_unit("[damping] velocity_decay", v, "0.2 s")
+
+    it = data.get("integrator", {})
+    _check_keys(it, "integrator")
+    if "safety" in it:
+        kw["safety"] = _number(it["safety"], "[integrator] safety", lo=0.0, hi=1.0, lo_open=True)
+    if "threads" in it:
+        kw["threads"] = _threads(it["threads"], "[integrator] threads")
+    if "precision" in it:
+        if it["precision"] not in ("float64", "float32"):
+            raise ConfigError(f"[integrator] precision: {it['precision']!r} is not \"float64\" or \"float32\"")
+        kw["precision"] = it["precision"]
+    if "max_steps" in it:
+        ms = it["max_steps"]
+        if isinstance(ms, bool) or not isinstance(ms, int) or ms < 1:
+            raise ConfigError(f"[integrator] max_steps: expected a whole number >= 1, got {ms!r}")
+        kw["max_steps"] = ms
+
+    if "fixed" in data:
+        fx = data["fixed"]
+        _check_keys(fx, "fixed")
+        if fx.get("kind") == "asset":
+            if set(fx) - {"kind"}:
+                raise ConfigError("[fixed]: kind = \"asset\" takes no other key")
+            kw["fixed"] = None
+        else:
+            from ..network.regions import region_from_config
+
+            kw["fixed"] = region_from_config(fx, where="[fixed]")
+
+    gr = data.get("grasper", {})
+    _check_keys(gr, "grasper")
+    kw["grasper"] = None if gr.get("enabled", True) is False else _grasper(gr)
+    if "enabled" in gr:
+        _bool(gr["enabled"], "[grasper] enabled")
+
+    vd = data.get("video", {})
+    _check_keys(vd, "video")
+    kw["video"] = _video(vd)
+
+    scene = Scene(**kw)
+    if scene.grasper is not None:
+        _check_grasper_times(scene.grasper, scene.duration, "[grasper]")
+    return scene
+
+
+def _bad_unit(where: str, value, example: str):
+    raise ConfigError(f"{where}: {value!r} has no unit; write it as a string with its unit, e.g. \"{example}\"")
+
+
+def _grasper(gr: dict) -> GrasperSpec:
+    kw: dict[str, Any] = {}
+    target = gr.get("target", "auto")
+    kw["target"] = "auto" if target == "auto" else _vec3(target, "[grasper] target", lengths=True)
+    if "radius" in gr:
+        kw["radius"] = _quantity(gr["radius"], "length", "[grasper] radius")
+        if not (kw["radius"] >= 0):
+            raise ConfigError(f"[grasper] radius: must be >= 0, got {gr['radius']!r}")
+    mode = gr.get("mode", "prescribed")
+    if mode not in GRASP_MODES:
+        raise ConfigError(f"[grasper] mode: {mode!r} is not one of {', '.join(GRASP_MODES)}")
+    kw["mode"] = mode
+    if mode == "spring":
+        if "stiffness" not in gr:
+            raise ConfigError("[grasper] stiffness: mode \"spring\" needs a stiffness, e.g. \"500 N/m\"")
+        kw["stiffness"] = _stiffness(gr["stiffness"], "[grasper] stiffness")
+    elif "stiffness" in gr:
+        raise ConfigError("[grasper] stiffness: only used with mode = \"spring\"; remove it or change the mode")
+    direction = gr.get("direction", "away")
+    if isinstance(direction, str):
+        if direction not in ("away", "up"):
+            raise ConfigError(f"[grasper] direction: {direction!r} is not \"away\", \"up\" or a vector [x, y, z]")
+        kw["direction"] = direction
+    else:
+        d = _vec3(direction, "[grasper] direction", lengths=False)
+        if np.linalg.norm(d) == 0:
+            raise ConfigError("[grasper] direction: the zero vector is not a direction")
+        kw["direction"] = d / np.linalg.norm(d)
+    grasp_time = _time_or(gr.get("grasp_time"), "[grasper] grasp_time", 0.0)
+    if grasp_time < 0:
+        raise ConfigError(f"[grasper] grasp_time: must be >= 0, got {gr['grasp_time']!r}")
+    kw["grasp_time"] = grasp_time
+    rt = gr.get("release_time", "2 s")
+    kw["release_time"] = None if rt == "never" else _time_or(rt, "[grasper] release_time", 2.0)
+    if kw["release_time"] is not None and kw["release_time"] <= grasp_time:
+        raise ConfigError(f"[grasper] release_time: {kw['release_time']:g} s must come after grasp_time "
+                          f"({grasp_time:g} s), or be \"never\"")
+    wps = gr.get("waypoints", None)
+    if wps is None:
+        wps = [{"time": "0 s", "distance": "0 mm"}, {"time": "1 s", "distance": "15 mm"}]
+    if not isinstance(wps, list) or not wps:
+        raise ConfigError("[grasper] waypoints: expected a list of tables like {time = \"1 s\", distance = \"15 mm\"}")
+    out = []
+    for k, w in enumerate(wps):
+        where = f"[grasper] waypoints[{k}]"
+        if not isinstance(w, dict):
+            raise ConfigError(f"{where}: expected a table like {{time = \"1 s\", distance = \"15 mm\"}}")
+        extra = sorted(set(w) - {"time", "distance", "offset"})
+        if extra:
+            raise ConfigError(f"{where}: unknown key(s) {', '.join(extra)}; use time and distance or offset")
+        if "time" not in w:
+            raise ConfigError(f"{where}: needs a time, e.g. time = \"1 s\"")
+        t = _quantity(w["time"], "time", f"{where} time")
+        if ("distance" in w) == ("offset" in w):
+            raise ConfigError(f"{where}: give exactly one of distance = \"15 mm\" (along direction) "
+                              f"or offset = [\"0 mm\", \"0 mm\", \"15 mm\"]")
+        if "distance" in w:
+            out.append(Waypoint(time=t, distance=_quantity(w["distance"], "length", f"{where} distance")))
+        else:
+            out.append(Waypoint(time=t, offset=_vec3(w["offset"], f"{where} offset", lengths=True)))
+    times = np.array([w.time for w in out])
+    if np.any(np.diff(times) <= 0):
+        raise ConfigError("[grasper] waypoints: times must increase strictly")
+    if times[0] < grasp_time - 1e-12:
+        raise ConfigError(f"[grasper] waypoints: the first waypoint ({times[0]:g} s) is before grasp_time "
+                          f"({grasp_time:g} s); the path starts when the grasper closes")
+    kw["waypoints"] = tuple(out)
+    return GrasperSpec(**kw)
+
+
+def _time_or(value, where: str, default: float) -> float:
+    if value is None:
+        return default
+    if not isinstance(value, str):
+        _bad_unit(where, value, "1 s")
+    return _quantity(value, "time", where)
+
+
+def _video(vd: dict) -> VideoSpec:
+    kw: dict[str, Any] = {}
+    for key in ("width", "height"):
+        if key in vd:
+            v = vd[key]
+            if isinstance(v, bool) or not isinstance(v, int) or not 64 <= v <= 4096:
+                raise ConfigError(f"[video] {key}: expected a whole number of pixels in 64..4096, got {v!r}")
+            kw[key] = v + (v % 2)           # H.264 with yuv420p needs even sizes
+    if "colormap" in vd:
+        cm = vd["colormap"]
+        import matplotlib
+
+        if not isinstance(cm, str) or cm not in matplotlib.colormaps:
+            raise ConfigError(f"[video] colormap: {cm!r} is not a matplotlib colormap name (e.g. \"viridis\")")
+        kw["colormap"] = cm
+    if "view" in vd:
+        if vd["view"] not in VIEWS:
+            raise ConfigError(f"[video] view: {vd['view']!r} is not one of {', '.join(VIEWS)}")
+        kw["view"] = vd["view"]
+    if "zoom" in vd:
+        kw["zoom"] = _number(vd["zoom"], "[video] zoom", lo=0.1, hi=10.0)
+    for key in ("show_fixed", "show_edges"):
+        if key in vd:
+            kw[key] = _bool(vd[key], f"[video] {key}")
+    return VideoSpec(**kw)
+
+
+def load_scene(name_or_path=None) -> Scene:
+    """Load a scene by bundled name (default ``"default"``) or path to a TOML file."""
+    data, source = load_config("scenes", DEFAULT_SCENE if name_or_path is None else name_or_path)
+    return scene_from_dict(data, source=source)
