@@ -1,0 +1,322 @@
+r"""Volumetric compensation: calibrate the network on a virtual tensile test.
+
+The ESMM spring stiffness :math:`k_{ij} = v_{ij}\mu_e(\lambda)` with
+:math:`V_{ij} = \sum_{t \ni ij} V_t/6` makes the network far softer than the
+tissue: in small strain an affine, isotropically oriented edge set stores
+:math:`\tfrac{1}{15}(\operatorname{tr}^2\varepsilon + 2\,\varepsilon:\varepsilon)\,E/2`
+per volume, i.e. Lamé constants :math:`\lambda_L = \mu_L = E/15` and a Young's
+modulus :math:`E/6` (Poisson ratio 1/4, the Cauchy relation of central-force
+networks). Nodal relaxation softens it a little more, and at finite stretch the
+off-axis springs are stretched less than the specimen, so a stiffening tissue
+is matched worse the further it is stretched (docs/model-tables.md).
+
+:func:`calibrate_compensation` fixes both with one numerical test per mesh:
+
+1. **Scalar factor** :math:`c`: a small-strain test (stretch :math:`1+10^{-4}`)
+   gives :math:`c = P_{cont}/P_{net}`; it multiplies every :math:`v_{ij}`
+   (``StiffnessTables.volume_factor``). Under displacement control the
+   network's stress is exactly proportional to :math:`c`.
+2. **Stretch-dependent correction** :math:`g(\lambda)`, :math:`g(1) = 1`: the
+   law's table row is multiplied by :math:`g` at each grid node. :math:`g` is
+   found by the fixed-point iteration
+   :math:`g_{m+1}(\lambda_k) = g_m(\lambda_k)\,P_{cont}(\lambda_k)/P_{net,m}(\lambda_k)`
+   at the test stretches (tension up to ``tension``, compression down to
+   ``compression``), linear between them and held constant beyond them. It
+   converges because the axial force at specimen stretch :math:`\lambda` comes
+   mostly from springs near the axis, whose stretch is :math:`\lambda`.
+
+Both are properties of the mesh (element shape statistics and size relative to
+the specimen) and of the law; the record stored in the tables' metadata says
+on what specimen they were found.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..progress import ensure
+from .tables import LAWS, StiffnessTables
+from .tensile_test import Specimen, TensileResult, continuum_stress, virtual_tensile_test
+
+__all__ = ["CompensationResult", "calibrate_compensation", "correction_on_grid"]
+
+#: Small-strain stretch of the scalar calibration.
+SMALL_STRAIN = 1e-4
+
+
+@dataclass(frozen=True, eq=False)
+class CompensationResult:
+    """What :func:`calibrate_compensation` found.
+
+    Attributes
+    ----------
+    law : str
+    factor : float
+        Scalar :math:`c` on :math:`v_{ij}`.
+    knots : ndarray, shape (k,)
+        Stretches where :math:`g` was calibrated (including 1).
+    g : ndarray, shape (k,)
+        :math:`g` at the knots.
+    before, scalar, after : TensileResult
+        Tests without compensation (:math:`c = 1`; derived exactly from the
+        scalar run), with :math:`c` only, and with :math:`c` and :math:`g`.
+        Tension and compression points are concatenated (compression first).
+    iterations : int
+        Fixed-point iterations used.
+    converged : bool
+        True when the largest relative error is below ``tol``.
+    specimen : dict
+        :meth:`Specimen.describe`.
+    """
+
+    law: str
+    factor: float
+    knots: np.ndarray
+    g: np.ndarray
+    before: TensileResult
+    scalar: TensileResult
+    after: TensileResult
+    iterations: int
+    converged: bool
+    specimen: dict[str, Any] = field(default_factory=dict)
+
+    def record(self) -> dict[str, Any]:
+        """JSON-serialisable summary (stored in ``tables.metadata["compensation"]``)."""
+        def errs(r: TensileResult) -> dict[str, float]:
+            return {"max_abs_rel_error": r.max_abs_rel_error, "rms_rel_error": r.rms_rel_error}
+
+        return {
+            "method": "virtual uniaxial test on a gmsh cylinder (pipeline/network/compensation.py): "
+                      "scalar factor from a small-strain test, stretch-dependent correction by "
+                      "fixed-point iteration",
+            "law": self.law, "volume_factor": self.factor,
+            "knots": self.knots.tolist(), "g": self.g.tolist(),
+            "stretch_range": [float(self.after.stretch.min()), float(self.after.stretch.max())],
+            "iterations": self.iterations, "converged": self.converged,
+            "errors_before": errs(self.before), "errors_scalar": errs(self.scalar),
+            "errors_after": errs(self.after), "specimen": self.specimen,
+        }
+
+
+def correction_on_grid(tables: StiffnessTables, knots, g) -> np.ndarray:
+    """:math:`g` on the tables' grid: linear between *knots*, constant beyond, shape (n,)."""
+    knots = np.asarray(knots, dtype=np.float64)
+    g = np.asarray(g, dtype=np.float64)
+    order = np.argsort(knots)
+    return np.interp(tables.lam, knots[order], g[order])
+
+
+def _stretches(end: float | None, spacing: float, *, tension: bool, tables: StiffnessTables) -> np.ndarray:
+    """Test stretches of one side, from 1 to *end* in steps of about *spacing*."""
+    if end is None:
+        return np.zeros(0)
+    if tension:
+        if not (1.0 < end <= tables.lam_max):
+            raise ConfigError(f"tension: calibration stretch {end:g} must lie in (1, {tables.lam_max:.4g}] "
+                              "(the tables' grid)")
+    elif not (tables.lam_min <= end < 1.0):
+        raise ConfigError(f"compression: calibration stretch {end:g} must lie in "
+                          f"[{tables.lam_min:.4g}, 1) (the tables' grid)")
+    steps = max(2, int(math.ceil(abs(end - 1.0) / spacing - 1e-9)))
+    return 1.0 + (end - 1.0) * np.arange(1, steps + 1) / steps
+
+
+def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: str | None = None,
+                           material=None, tension: float | None = 1.3, compression: float | None = 0.9,
+                           spacing: float = 0.02, tol: float = 0.01, max_iter: int = 8,
+                           reporter=None) -> tuple[StiffnessTables, CompensationResult]:
+    """Find the scalar factor and the stretch correction of *law* on *specimen*.
+
+    Parameters
+    ----------
+    tables : StiffnessTables
+        Material tables; their current compensation for *law* is replaced.
+    specimen : Specimen
+        From :func:`~esmm.pipeline.network.tensile_test.cylinder_specimen`.
+    law : {"secant", "energy"}, optional
+        Default: ``tables.default_law``.
+    material : Material, optional
+        Continuum reference; default the tables' own stress along z.
+    tension, compression : float or None
+        Largest and smallest calibration stretch (None: skip that side; the
+        correction is then 1 on that side).
+    spacing : float
+        Approximate stretch step between test points (= knots of g).
+    tol : float
+        Stop when every relative stress error is below *tol*.
+    max_iter : int
+        Fixed-point iterations at most; the best correction found is kept.
+
+    Returns
+    -------
+    (StiffnessTables, CompensationResult)
+        The compensated tables (``metadata["compensation"]`` holds the record)
+        and the details.
+    """
+    rep = ensure(reporter)
+    law = tables.check_law(law)
+    if not (isinstance(tol, float | int) and 0 < tol < 1):
+        raise ConfigError(f"tol: must be a fraction in (0, 1), got {tol!r}")
+    if not (isinstance(max_iter, int) and max_iter >= 1):
+        raise ConfigError(f"max_iter: must be a positive integer, got {max_iter!r}")
+    if not (isinstance(spacing, float | int) and 0 < spacing <= 0.5):
+        raise ConfigError(f"spacing: must be a stretch step in (0, 0.5], got {spacing!r}")
+    lam_t = _stretches(tension, spacing, tension=True, tables=tables)
+    lam_c = _stretches(compression, spacing, tension=False, tables=tables)
+    if lam_t.size + lam_c.size == 0:
+        raise ConfigError("tension/compression: give at least one side to calibrate on")
+    li = LAWS.index(law)
+    base_corr = np.array(tables.correction, copy=True)
+    base_corr[li] = 1.0
+    base = StiffnessTables(
+        lam_min=tables.lam_min, lam_max=tables.lam_max, n=tables.n, values=tables.values,
+        stress=tables.stress, energy=tables.energy, default_law=tables.default_law, volume_factor=1.0,
+        correction=base_corr, material_toml=tables.material_toml, metadata=dict(tables.metadata),
+    )
+
+    def reference(lam):
+        if material is not None:
+            return continuum_stress(material, lam)
+        return np.interp(lam, base.lam, base.stress[2])
+
+    # 1. scalar factor from a small-strain test
+    small = virtual_tensile_test(specimen, base, stretch=[1.0 + SMALL_STRAIN], law=law, material=material)
+    c = float(reference(np.array([1.0 + SMALL_STRAIN]))[0] / small.stress[0])
+    if not (math.isfinite(c) and c > 0):
+        raise ConfigError(f"specimen: small-strain network stress {small.stress[0]:.3g} Pa gives no "
+                          "usable compensation factor; check the tables and the specimen")
+    rep.step(f"compensation ({law}): scalar factor c = {c:.4f} from a small-strain test")
+
+    knots = np.concatenate([lam_c[::-1], [1.0], lam_t])
+    g = np.ones_like(knots)
+    best: tuple[float, np.ndarray, TensileResult] | None = None
+    first: TensileResult | None = None
+    converged = False
+    it = 0
+    history: dict[str, np.ndarray] = {}
+    with rep.task(f"compensation ({law} law)", total=max_iter) as advance:
+        for it in range(1, max_iter + 1):
+            cur = base.with_compensation(c, correction={law: correction_on_grid(base, knots, g)})
+            res = _both_sides(specimen, cur, lam_t, lam_c, law, reference)
+            if first is None:
+                first = res
+            err = res.max_abs_rel_error
+            if best is None or err < best[0]:
+                best = (err, g.copy(), res)
+            advance(1)
+            rep.step(f"compensation ({law}) iteration {it}: max |error| {100 * err:.2f} %")
+            if err <= tol:
+                converged = True
+                break
+            ratio = res.reference / res.stress
+            nc = lam_c.size        # res: compression (1 -> end) then tension; knots ascending
+            log_r = np.zeros_like(g)
+            log_r[:nc] = np.log(ratio[:nc][::-1])
+            log_r[nc + 1:] = np.log(ratio[nc:])
+            if not np.all(np.isfinite(log_r)):
+                break
+            g = _update(g, log_r, history)
+            g = _limit_ends(knots, g, nc)
+    assert best is not None and first is not None
+    err, g_best, after = best
+    scalar = first                          # the first iteration ran with c and g = 1
+    before = _scaled(first, 1.0 / c, 1.0)   # stress is proportional to c under displacement control
+    result = CompensationResult(law=law, factor=c, knots=knots, g=g_best, before=before, scalar=scalar,
+                                after=after, iterations=it, converged=converged,
+                                specimen=specimen.describe())
+    if not converged:
+        rep.warn(f"compensation ({law}): stopped after {it} iterations at max |error| "
+                 f"{100 * err:.2f} % (tolerance {100 * tol:.2g} %)")
+    out = tables.with_compensation(c, correction={law: correction_on_grid(base, knots, g_best)},
+                                   record=_merge_record(tables, law, result.record()))
+    return out, result
+
+
+def _update(g: np.ndarray, log_r: np.ndarray, history: dict[str, np.ndarray]) -> np.ndarray:
+    """One fixed-point step on log g, with a per-knot secant step length.
+
+    The plain step is ``log g += log r``. The stress at a knot responds to its
+    own ``log g`` with a sensitivity ``beta`` (``-dlog r / dlog g``, estimated
+    from the last two iterations): below 1 where the neighbouring knots carry
+    much of the load (slow, one-signed convergence: the step is lengthened to
+    ``log r / beta`` with beta >= 0.25), above 1 where they amplify it (the
+    error changed sign: the step is shortened, beta <= 4). Steps are limited to
+    a factor 3 per iteration.
+    """
+    log_g = np.log(g)
+    beta = np.ones_like(g)
+    if history:
+        dg = log_g - history["log_g"]
+        dr = log_r - history["log_r"]
+        ok = np.abs(dg) > 1e-9
+        with np.errstate(divide="ignore", invalid="ignore"):
+            est = np.where(ok, -dr / dg, 1.0)
+        est = np.where(np.isfinite(est) & (est > 0), est, 1.0)
+        flipped = np.sign(log_r) != np.sign(history["log_r"])
+        beta = np.where(flipped, np.clip(est, 1.0, 4.0), np.clip(est, 0.25, 1.0))
+    history["log_g"], history["log_r"] = log_g, log_r
+    step = np.clip(log_r / beta, -math.log(3.0), math.log(3.0))
+    return np.exp(log_g + step)
+
+
+def _limit_ends(knots: np.ndarray, g: np.ndarray, nc: int, *, growth: float = 1.5) -> np.ndarray:
+    """Keep g at the outermost knot of each side from spiking.
+
+    The stress at the last test stretch depends only weakly on g at that very
+    stretch (few springs are stretched as far as the specimen), so the plain
+    update can drive g there far above its neighbours, and the constant
+    extension beyond the last knot would carry that spike to every larger
+    stretch. The log-slope of g on the outermost interval is limited to
+    *growth* times the log-slope on the interval before it (in absolute value).
+    """
+    g = g.copy()
+    lg = np.log(g)
+    sides = []
+    if nc >= 2:
+        sides.append((0, 1, 2))
+    if g.size - 1 - nc >= 2:
+        sides.append((g.size - 1, g.size - 2, g.size - 3))
+    for end, a, b in sides:
+        prev = (lg[a] - lg[b]) / (knots[a] - knots[b])
+        last = (lg[end] - lg[a]) / (knots[end] - knots[a])
+        lim = growth * abs(prev)
+        if abs(last) > lim:
+            lg[end] = lg[a] + np.sign(last) * lim * (knots[end] - knots[a])
+    return np.exp(lg)
+
+
+def _merge_record(tables: StiffnessTables, law: str, rec: dict[str, Any]) -> dict[str, Any]:
+    """Keep the records of the other law (the scalar factor is shared)."""
+    old = tables.metadata.get("compensation")
+    merged = dict(old) if isinstance(old, dict) and "laws" in old else {"laws": {}}
+    merged["laws"] = dict(merged.get("laws", {}))
+    merged["laws"][law] = rec
+    merged["volume_factor"] = rec["volume_factor"]
+    return merged
+
+
+def _both_sides(specimen, tables, lam_t, lam_c, law, reference) -> TensileResult:
+    parts = []
+    for lam in (lam_c, lam_t):
+        if lam.size:
+            parts.append(virtual_tensile_test(specimen, tables, stretch=lam, law=law))
+    stretch = np.concatenate([p.stretch for p in parts])
+    return TensileResult(
+        stretch=stretch, stress=np.concatenate([p.stress for p in parts]), reference=reference(stretch),
+        lateral_stretch=np.concatenate([p.lateral_stretch for p in parts]),
+        iterations=np.concatenate([p.iterations for p in parts]), law=law,
+        volume_factor=tables.volume_factor, residual=max(p.residual for p in parts),
+        info=parts[0].info,
+    )
+
+
+def _scaled(r: TensileResult, s: float, c: float) -> TensileResult:
+    """*r* with the network stress multiplied by *s* and volume factor *c*."""
+    return TensileResult(stretch=r.stretch, stress=r.stress * s, reference=r.reference,
+                         lateral_stretch=r.lateral_stretch, iterations=r.iterations, law=r.law,
+                         volume_factor=c, residual=r.residual, info=r.info)

@@ -1,0 +1,699 @@
+r"""Stiffness tables of the Equivalent Spring-Mass Model (the paper's Eq. 8-9).
+
+A spring *i-j* of rest length :math:`L_0` and volume weight
+:math:`v_{ij} = V_{ij}/L_0^2` has, at stretch :math:`\lambda = L/L_0`, the
+stiffness
+
+.. math::
+
+    k_{ij}(\lambda) = c\,v_{ij}\,\bigl[\mu_{ex}(\lambda)\cos^2\alpha
+        + \mu_{ey}(\lambda)\cos^2\beta + \mu_{ez}(\lambda)\cos^2\gamma\bigr],
+    \qquad
+    \mu_e(\lambda) = \frac{2\,W_T(\lambda)}{(\lambda-1)^2},
+
+where :math:`W_T` is the strain energy of the tissue in incompressible
+uniaxial stretch along a material direction, the angles are those of the
+spring's rest direction with the fibre frame, and :math:`c` is the volumetric
+compensation factor of :mod:`esmm.pipeline.network.compensation` (1 when not
+calibrated). Two force laws use the same tables; both are central forces
+whose magnitude is a function of :math:`\lambda` only,
+
+.. math::
+
+    F_{ij} = \frac{c\,V_{ij}}{L_0}\sum_d \cos^2\theta_d\, f_d(\lambda),
+    \qquad
+    f_d(\lambda) = \begin{cases}
+        \mu_{e,d}(\lambda)\,(\lambda-1) & \text{secant (paper, Eq. 9)}\\
+        W_{T,d}'(\lambda) & \text{energy (}F = \partial E/\partial L,\ E = c V_{ij} W_T\text{)}
+    \end{cases}
+
+:class:`StiffnessTables` holds, on one uniform stretch grid, the three rows
+(x, y, z) of :math:`\mu_e` (``values``), of the nominal uniaxial stress
+:math:`W_T'` (``stress``) and of an energy :math:`W_T` that is the exact
+integral of the interpolated stress (``energy``), so a consumer can evaluate
+both laws, their energies and tangents from the file alone.
+
+Lookup (O(1), what a kernel does)::
+
+    s = (lam - lam_min) / dlam
+    i = min(max(int(floor(s)), 0), n - 2)
+    t = s - i                                    # unclipped
+    mu_e   = values[d, i] + (values[d, i+1] - values[d, i]) * clip(t, 0, 1)
+    stress = stress[d, i] + (stress[d, i+1] - stress[d, i]) * t
+
+Outside the grid, :math:`\mu_e` is held at its end value (the secant spring
+becomes linear with its end secant stiffness) and the stress continues with
+the slope of its end segment (a quadratic energy extension: constant tangent
+stiffness). Both keep a positive tangent because :func:`build_tables` refuses
+a material whose uniaxial stress does not increase over the grid.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field, replace
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+
+from ..errors import AssetError, ConfigError, InputError
+
+#: Names of the force laws, in the order of preference.
+LAWS = ("secant", "energy")
+#: The rows of every table: material directions in the fibre frame.
+DIRECTIONS = ("x", "y", "z")
+#: Default number of grid points.
+DEFAULT_N = 1024
+#: Default grid ends when the material has no locking stretch.
+DEFAULT_LAM_MIN = 0.5
+DEFAULT_LAM_MAX = 2.0
+#: Fraction of the distance between 1 and a locking stretch kept free at each end.
+LOCK_MARGIN = 0.02
+
+ESMM_TYPE = "stiffness_tables"
+ESMM_VERSION = 1
+
+GRID_RULE = (
+    "uniform grid of n points from lam_min to lam_max; defaults: "
+    f"lam_min = max({DEFAULT_LAM_MIN}, lower admissible stretch + {LOCK_MARGIN:g}*(1 - lower)), "
+    f"lam_max = upper admissible stretch - {LOCK_MARGIN:g}*(upper - 1) "
+    f"(or {DEFAULT_LAM_MAX} when the material does not lock); the step is then shortened "
+    "(lam_max lowered, by less than one step per point above 1) so that stretch 1 is a grid node"
+)
+EXTRAPOLATION = (
+    "linear interpolation inside the grid; outside, mu_e is held at its end value "
+    "and the stress continues with the slope of its end segment"
+)
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=np.float64, copy=True)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class StiffnessTables:
+    """:math:`\\mu_e(\\lambda)` and :math:`W_T'(\\lambda)` per fibre direction on a uniform grid.
+
+    Attributes
+    ----------
+    lam_min, lam_max : float
+        Grid ends (stretch, dimensionless); ``lam_min < 1 < lam_max``.
+    n : int
+        Number of grid points (>= 3).
+    values : ndarray, shape (3, n)
+        The material's :math:`\\mu_e = 2W_T/(\\lambda-1)^2` [Pa] for the x, y, z
+        directions (equal rows for an isotropic material).
+    stress : ndarray, shape (3, n)
+        The material's :math:`W_T'(\\lambda)`, the nominal uniaxial stress [Pa].
+    energy : ndarray, shape (3, n)
+        :math:`W_T(\\lambda)` [Pa = J/m3], computed as the exact integral from
+        1 of the linearly interpolated ``stress`` (so that the energy law's
+        force is exactly the derivative of its energy).
+    default_law : str
+        ``"secant"`` (the paper's Eq. 9) or ``"energy"``.
+    volume_factor : float
+        Volumetric compensation factor :math:`c` that multiplies every
+        :math:`v_{ij}` (1 = uncalibrated).
+    correction : ndarray, shape (2, n)
+        Stretch-dependent compensation :math:`g(\\lambda)` on the grid, one row
+        per law (:data:`LAWS` order: secant, energy); all ones when not
+        calibrated. The law's table row is multiplied by it node by node
+        (``mu_e_eff = g_secant * values``, ``stress_eff = g_energy * stress``).
+    material_toml : str
+        The material the tables were built from, as TOML text.
+    metadata : dict
+        Free-form provenance (``material_name``, ``compensation`` records, ...);
+        JSON-serialisable.
+    """
+
+    lam_min: float
+    lam_max: float
+    n: int
+    values: np.ndarray
+    stress: np.ndarray
+    energy: np.ndarray
+    default_law: str = "secant"
+    volume_factor: float = 1.0
+    correction: np.ndarray | None = None
+    material_toml: str = ""
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        n = int(self.n)
+        object.__setattr__(self, "n", n)
+        object.__setattr__(self, "lam_min", float(self.lam_min))
+        object.__setattr__(self, "lam_max", float(self.lam_max))
+        object.__setattr__(self, "volume_factor", float(self.volume_factor))
+        if n < 3:
+            raise ValueError(f"n: need at least 3 grid points, got {n}")
+        if not (0.0 < self.lam_min < 1.0 < self.lam_max and math.isfinite(self.lam_max)):
+            raise ValueError(
+                f"lam_min/lam_max: need 0 < lam_min < 1 < lam_max, got {self.lam_min}, {self.lam_max}"
+            )
+        if self.correction is None:
+            object.__setattr__(self, "correction", np.ones((len(LAWS), n)))
+        for name, shape in (("values", (3, n)), ("stress", (3, n)), ("energy", (3, n)),
+                            ("correction", (len(LAWS), n))):
+            arr = _readonly(getattr(self, name))
+            if arr.shape != shape:
+                raise ValueError(f"{name}: expected shape {shape}, got {arr.shape}")
+            if not np.all(np.isfinite(arr)):
+                raise ValueError(f"{name}: contains non-finite values")
+            object.__setattr__(self, name, arr)
+        if np.any(self.correction <= 0):
+            raise ValueError("correction: must be positive")
+        if self.default_law not in LAWS:
+            raise ValueError(f"default_law: must be one of {', '.join(LAWS)}, got {self.default_law!r}")
+        if not (math.isfinite(self.volume_factor) and self.volume_factor > 0):
+            raise ValueError(f"volume_factor: must be a positive number, got {self.volume_factor}")
+
+    # -- grid --------------------------------------------------------------
+    @property
+    def dlam(self) -> float:
+        """Grid step."""
+        return (self.lam_max - self.lam_min) / (self.n - 1)
+
+    @property
+    def lam(self) -> np.ndarray:
+        """The grid, shape (n,)."""
+        return np.linspace(self.lam_min, self.lam_max, self.n)
+
+    @property
+    def isotropic(self) -> bool:
+        """True when the three rows are identical."""
+        return bool(
+            np.array_equal(self.values[0], self.values[1])
+            and np.array_equal(self.values[0], self.values[2])
+            and np.array_equal(self.stress[0], self.stress[1])
+            and np.array_equal(self.stress[0], self.stress[2])
+        )
+
+    def is_corrected(self, law: str | None = None) -> bool:
+        """True when the law's stretch-dependent correction is not identically 1."""
+        return bool(np.any(self.correction[LAWS.index(self.check_law(law))] != 1.0))
+
+    def _locate(self, lam) -> tuple[np.ndarray, np.ndarray]:
+        """Segment index (clamped to [0, n-2]) and unclipped offset t in grid steps."""
+        s = (np.asarray(lam, dtype=np.float64) - self.lam_min) / self.dlam
+        i = np.clip(np.floor(s), 0, self.n - 2).astype(np.intp)
+        return i, s - i
+
+    def check_law(self, law: str | None) -> str:
+        """Return *law* (or the default law) after validation."""
+        law = self.default_law if law is None else law
+        if law not in LAWS:
+            raise ConfigError(f"law: unknown force law {law!r}; use one of {', '.join(LAWS)}")
+        return law
+
+    # -- effective rows (what the network uses) ----------------------------
+    @cached_property
+    def mu_e_eff(self) -> np.ndarray:
+        """``correction[secant] * values`` [Pa], shape (3, n): the secant law's table."""
+        return _readonly(self.values * self.correction[0][None, :])
+
+    @cached_property
+    def stress_eff(self) -> np.ndarray:
+        """``correction[energy] * stress`` [Pa], shape (3, n): the energy law's table."""
+        return _readonly(self.stress * self.correction[1][None, :])
+
+    @cached_property
+    def energy_eff(self) -> np.ndarray:
+        """Integral from 1 of the interpolated :attr:`stress_eff` [Pa], shape (3, n)."""
+        return _readonly(_integrate_from_one(self.lam, self.stress_eff))
+
+    # -- evaluation --------------------------------------------------------
+    def mu_e(self, lam) -> np.ndarray:
+        """The material's :math:`\\mu_e` [Pa] interpolated, shape (3, *lam.shape); held off the grid."""
+        return self._interp_clamped(self.values, lam)
+
+    def stiffness_modulus(self, lam) -> np.ndarray:
+        """Secant-law modulus ``g(lam) * mu_e(lam)`` [Pa], shape (3, *lam.shape).
+
+        The spring stiffness is ``k_ij = c * v_ij * cos2_ij @ stiffness_modulus(lam)``.
+        """
+        return self._interp_clamped(self.mu_e_eff, lam)
+
+    def _interp_clamped(self, rows: np.ndarray, lam) -> np.ndarray:
+        i, t = self._locate(lam)
+        tc = np.clip(t, 0.0, 1.0)
+        return rows[:, i] + (rows[:, i + 1] - rows[:, i]) * tc
+
+    def force_function(self, lam, *, law: str | None = None) -> np.ndarray:
+        """:math:`f_d(\\lambda)` [Pa] of the module docstring (with the correction), shape (3, *lam.shape).
+
+        The spring force magnitude (positive = tension) is
+        ``c * V / L0 * sum_d cos2[d] * f[d]``.
+        """
+        law = self.check_law(law)
+        lam = np.asarray(lam, dtype=np.float64)
+        if law == "secant":
+            return self.stiffness_modulus(lam) * (lam - 1.0)
+        i, t = self._locate(lam)
+        s = self.stress_eff
+        return s[:, i] + (s[:, i + 1] - s[:, i]) * t
+
+    def tangent_function(self, lam, *, law: str | None = None) -> np.ndarray:
+        """:math:`df_d/d\\lambda` [Pa] of the interpolant, shape (3, *lam.shape).
+
+        At a grid node the slope of the segment to the right is returned.
+        """
+        law = self.check_law(law)
+        lam = np.asarray(lam, dtype=np.float64)
+        i, t = self._locate(lam)
+        if law == "energy":
+            s = self.stress_eff
+            return (s[:, i + 1] - s[:, i]) / self.dlam
+        v = self.mu_e_eff
+        inside = (t >= 0.0) & (t <= 1.0)
+        dmu = np.where(inside, (v[:, i + 1] - v[:, i]) / self.dlam, 0.0)
+        return self.stiffness_modulus(lam) + (lam - 1.0) * dmu
+
+    def potential(self, lam, *, law: str | None = None) -> np.ndarray:
+        """:math:`\\int_1^\\lambda f_d\\,d\\lambda` [Pa], shape (3, *lam.shape).
+
+        The exact integral of :meth:`force_function` (piecewise polynomial), so
+        a spring's energy ``c * V * sum_d cos2[d] * potential[d]`` has
+        :math:`\\partial E/\\partial L` equal to its force for either law. For
+        the uncorrected energy law this is :math:`W_T(\\lambda)` up to the
+        interpolation error. For the secant law it differs from the paper's
+        :math:`\\tfrac12 k (L-L_0)^2 = V W_T` (which is not the potential of the
+        secant force).
+        """
+        law = self.check_law(law)
+        lam = np.asarray(lam, dtype=np.float64)
+        p1 = self._potential_raw(np.asarray(1.0), law)
+        return self._potential_raw(lam, law) - p1.reshape((3,) + (1,) * lam.ndim)
+
+    def _potential_raw(self, lam: np.ndarray, law: str) -> np.ndarray:
+        h = self.dlam
+        i, t = self._locate(lam)
+        lam_i = self.lam_min + i * h
+        if law == "energy":
+            cum = self._cum_energy
+            s = self.stress_eff
+            tau = t * h
+            return cum[:, i] + s[:, i] * tau + (s[:, i + 1] - s[:, i]) * tau**2 / (2.0 * h)
+        cum = self._cum_secant
+        v = self.mu_e_eff
+        tau = np.clip(t, 0.0, 1.0) * h
+        a = v[:, i]
+        b = (v[:, i + 1] - v[:, i]) / h
+        c = lam_i - 1.0
+        inside = cum[:, i] + a * c * tau + (a + b * c) * tau**2 / 2.0 + b * tau**3 / 3.0
+        # Off the grid the modulus is constant: f = mu_end * (lam - 1).
+        lo = t < 0.0
+        hi = t > 1.0
+        lam_end = np.where(lo, self.lam_min, np.where(hi, self.lam_max, lam))
+        shape = (3,) + (1,) * lam.ndim
+        mu_end = np.where(lo, v[:, 0].reshape(shape), v[:, -1].reshape(shape))
+        ext = 0.5 * mu_end * ((lam - 1.0) ** 2 - (lam_end - 1.0) ** 2)
+        return inside + np.where(lo | hi, ext, 0.0)
+
+    @cached_property
+    def _cum_energy(self) -> np.ndarray:
+        s = self.stress_eff
+        seg = 0.5 * (s[:, 1:] + s[:, :-1]) * self.dlam
+        return np.concatenate([np.zeros((3, 1)), np.cumsum(seg, axis=1)], axis=1)
+
+    @cached_property
+    def _cum_secant(self) -> np.ndarray:
+        h = self.dlam
+        v = self.mu_e_eff
+        a = v[:, :-1]
+        b = (v[:, 1:] - v[:, :-1]) / h
+        c = self.lam[:-1] - 1.0
+        seg = a * c * h + (a + b * c) * h**2 / 2.0 + b * h**3 / 3.0
+        return np.concatenate([np.zeros((3, 1)), np.cumsum(seg, axis=1)], axis=1)
+
+    # -- derived -----------------------------------------------------------
+    def with_compensation(self, factor: float, *, correction: dict[str, np.ndarray] | None = None,
+                          record: dict[str, Any] | None = None) -> StiffnessTables:
+        """A copy with ``volume_factor = factor`` and, per law, a new correction row.
+
+        Parameters
+        ----------
+        factor : float
+            The scalar :math:`c`.
+        correction : dict, optional
+            ``{law: g}`` with ``g`` of shape (n,); laws not given keep their row.
+        record : dict, optional
+            Stored as ``metadata["compensation"]`` (a calibration report).
+        """
+        corr = np.array(self.correction, copy=True)
+        for law, g in (correction or {}).items():
+            corr[LAWS.index(self.check_law(law))] = np.asarray(g, dtype=np.float64)
+        meta = dict(self.metadata)
+        if record is not None:
+            meta["compensation"] = record
+        return replace(self, volume_factor=float(factor), correction=corr, metadata=meta)
+
+    def without_compensation(self) -> StiffnessTables:
+        """A copy with ``volume_factor = 1`` and no correction."""
+        meta = {k: v for k, v in self.metadata.items() if k != "compensation"}
+        return replace(self, volume_factor=1.0, correction=np.ones((len(LAWS), self.n)), metadata=meta)
+
+    def with_law(self, law: str) -> StiffnessTables:
+        """A copy whose default force law is *law*."""
+        return replace(self, default_law=self.check_law(law))
+
+    # -- HDF5 --------------------------------------------------------------
+    def to_hdf5(self, group) -> None:
+        """Write the tables into an open h5py group (existing datasets are replaced).
+
+        Layout: attributes ``esmm_type``, ``esmm_version``, ``lam_min``,
+        ``lam_max``, ``n``, ``dlam``, ``default_law``, ``laws``,
+        ``volume_factor``, ``directions``, ``isotropic``, ``grid_rule``,
+        ``extrapolation``, ``force_law``, ``material_toml``, ``metadata``
+        (JSON); datasets (each with ``units`` and ``description``): ``lam``
+        (n,), the material's ``mu_e``, ``stress``, ``energy`` (3, n), the
+        ``correction`` (2, n) and the effective tables a simulator uses,
+        ``mu_e_eff``, ``stress_eff``, ``energy_eff`` (3, n).
+        """
+        for name in _DATASETS:
+            if name in group:
+                del group[name]
+        a = group.attrs
+        a["esmm_type"] = ESMM_TYPE
+        a["esmm_version"] = ESMM_VERSION
+        a["lam_min"] = self.lam_min
+        a["lam_max"] = self.lam_max
+        a["n"] = self.n
+        a["dlam"] = self.dlam
+        a["default_law"] = self.default_law
+        a["laws"] = ",".join(LAWS)
+        a["volume_factor"] = self.volume_factor
+        a["directions"] = ",".join(DIRECTIONS)
+        a["isotropic"] = self.isotropic
+        a["grid_rule"] = GRID_RULE
+        a["extrapolation"] = EXTRAPOLATION
+        a["force_law"] = FORCE_LAW
+        a["material_toml"] = self.material_toml
+        a["metadata"] = json.dumps(self.metadata, sort_keys=True, default=_json_default)
+        for name, data, units, desc in (
+            ("lam", self.lam, "1", "stretch grid (uniform)"),
+            ("mu_e", self.values, "Pa", "material mu_e = 2 W_T / (lam-1)^2, rows x, y, z"),
+            ("stress", self.stress, "Pa", "material W_T'(lam), nominal uniaxial stress, rows x, y, z"),
+            ("energy", self.energy, "Pa", "material W_T(lam) = integral of interpolated stress from 1"),
+            ("correction", self.correction, "1", "stretch-dependent compensation g(lam), rows secant, energy"),
+            ("mu_e_eff", self.mu_e_eff, "Pa", "secant-law table g_secant * mu_e: k = volume_factor * v_ij * cos2 @ mu_e_eff"),
+            ("stress_eff", self.stress_eff, "Pa", "energy-law table g_energy * stress: F = volume_factor * V_ij / L0 * cos2 @ stress_eff"),
+            ("energy_eff", self.energy_eff, "Pa", "integral from 1 of interpolated stress_eff (energy-law potential per volume)"),
+        ):
+            ds = group.create_dataset(name, data=np.asarray(data, dtype=np.float64))
+            ds.attrs["units"] = units
+            ds.attrs["description"] = desc
+
+    @classmethod
+    def from_hdf5(cls, group) -> StiffnessTables:
+        """Read tables written by :meth:`to_hdf5`; raise :class:`AssetError` if they are not valid."""
+        where = f"{getattr(getattr(group, 'file', None), 'filename', '?')}:{getattr(group, 'name', '?')}"
+        a = group.attrs
+        kind = _attr_str(a.get("esmm_type"))
+        if kind != ESMM_TYPE:
+            raise AssetError(f"{where}: not a stiffness-table group (esmm_type={kind!r}); "
+                             "rebuild the tables with 'esmm tables'")
+        version = int(a.get("esmm_version", -1))
+        if version != ESMM_VERSION:
+            raise AssetError(f"{where}: stiffness tables of version {version}, this esmm reads "
+                             f"version {ESMM_VERSION}; rebuild them with 'esmm tables'")
+        try:
+            n = int(a["n"])
+            tables = cls(
+                lam_min=float(a["lam_min"]), lam_max=float(a["lam_max"]), n=n,
+                values=np.asarray(group["mu_e"][()]), stress=np.asarray(group["stress"][()]),
+                energy=np.asarray(group["energy"][()]),
+                default_law=_attr_str(a.get("default_law", "secant")),
+                volume_factor=float(a.get("volume_factor", 1.0)),
+                correction=np.asarray(group["correction"][()]) if "correction" in group else None,
+                material_toml=_attr_str(a.get("material_toml", "")),
+                metadata=json.loads(_attr_str(a.get("metadata", "{}")) or "{}"),
+            )
+        except (KeyError, ValueError, TypeError, OSError) as exc:
+            raise AssetError(f"{where}: damaged stiffness tables ({exc}); rebuild them with "
+                             "'esmm tables'") from None
+        if "dlam" in a and not math.isclose(float(a["dlam"]), tables.dlam, rel_tol=1e-9):
+            raise AssetError(f"{where}: dlam attribute disagrees with lam_min/lam_max/n; "
+                             "rebuild the tables with 'esmm tables'")
+        for name, mine in (("mu_e_eff", tables.mu_e_eff), ("stress_eff", tables.stress_eff)):
+            if name in group and not np.allclose(group[name][()], mine, rtol=1e-12, atol=0):
+                raise AssetError(f"{where}: {name} disagrees with the material table times its "
+                                 "correction (edited file?); rebuild the tables with 'esmm tables'")
+        return tables
+
+
+_DATASETS = ("lam", "mu_e", "stress", "energy", "correction", "mu_e_eff", "stress_eff", "energy_eff")
+FORCE_LAW = (
+    "F = volume_factor * V_ij / L0 * sum_d cos2_d * f_d(lam), lam = L/L0, positive = tension; "
+    "secant (paper Eq. 9): f = mu_e_eff(lam) * (lam - 1), i.e. F = k (L - L0) with "
+    "k = volume_factor * v_ij * sum_d cos2_d * mu_e_eff_d(lam); energy: f = stress_eff(lam)"
+)
+
+
+def _attr_str(v) -> str:
+    if isinstance(v, bytes):
+        return v.decode("utf-8")
+    return "" if v is None else str(v)
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
+
+
+# ---------------------------------------------------------------------------
+# Building from a material
+# ---------------------------------------------------------------------------
+
+def _material_directions(material) -> tuple[str | None, str | None, str | None]:
+    """The ``direction=`` argument to pass for the x, y, z rows (all None if isotropic)."""
+    iso = getattr(material, "is_isotropic", None)
+    if iso is None:
+        iso = not getattr(material, "directions", None)
+    if iso:
+        return (None, None, None)
+    return tuple(DIRECTIONS)  # type: ignore[return-value]
+
+
+def _material_curves(material, lam: np.ndarray, direction: str | None):
+    """(W, W', mu_e) of *material* in uniaxial stretch *lam* along *direction*."""
+    from ..materials.loading import nominal_stress
+
+    W = np.asarray(material.uniaxial_energy(lam, direction), dtype=np.float64)
+    mu = np.asarray(material.mu_e(lam, direction), dtype=np.float64)
+    P = np.asarray(nominal_stress(material.model_obj, material.params_for(direction), "uniaxial", lam),
+                   dtype=np.float64)
+    return W, P, mu
+
+
+def _admissible(material, direction: str | None) -> tuple[float, float]:
+    lo, hi = material.stretch_range(direction)
+    return float(lo), float(hi)
+
+
+def default_grid(material) -> tuple[float, float]:
+    """The default (lam_min, lam_max) for *material* (see :data:`GRID_RULE`)."""
+    lo_all, hi_all = 0.0, math.inf
+    for d in sorted(set(_material_directions(material)), key=str):
+        lo, hi = _admissible(material, d)
+        lo_all, hi_all = max(lo_all, lo), min(hi_all, hi)
+    lam_min = DEFAULT_LAM_MIN if lo_all <= 0 else max(DEFAULT_LAM_MIN, lo_all + LOCK_MARGIN * (1 - lo_all))
+    lam_max = DEFAULT_LAM_MAX if not math.isfinite(hi_all) else hi_all - LOCK_MARGIN * (hi_all - 1)
+    return lam_min, lam_max
+
+
+def material_toml_text(material) -> str:
+    """The material as TOML text, for provenance (empty if it cannot be serialised)."""
+    for attr in ("to_toml_string", "to_toml", "dumps"):
+        fn = getattr(material, attr, None)
+        if callable(fn):
+            try:
+                out = fn()
+            except TypeError:
+                continue
+            if isinstance(out, str):
+                return out
+    return ""
+
+
+def build_tables(material, *, n: int = DEFAULT_N, lam_min: float | None = None,
+                 lam_max: float | None = None, law: str = "secant") -> StiffnessTables:
+    """Tabulate :math:`\\mu_e`, :math:`W_T'` and :math:`W_T` of *material*.
+
+    Parameters
+    ----------
+    material : esmm.pipeline.materials.material.Material
+        The tissue; per-direction parameters give three different rows.
+    n : int
+        Number of grid points (>= 3).
+    lam_min, lam_max : float, optional
+        Grid ends; default from the material's admissible uniaxial range (see
+        :data:`GRID_RULE`). Both must lie in that range with
+        ``lam_min < 1 < lam_max``.
+    law : {"secant", "energy"}
+        The default force law recorded in the tables.
+
+    Returns
+    -------
+    StiffnessTables
+
+    Raises
+    ------
+    ConfigError
+        Bad grid options.
+    InputError
+        The material's energy is not finite on the grid, or its uniaxial
+        stress does not increase with stretch there (the network would be
+        unstable); narrow the grid.
+    """
+    if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 3:
+        raise ConfigError(f"n: number of grid points must be an integer >= 3, got {n!r}")
+    if law not in LAWS:
+        raise ConfigError(f"law: unknown force law {law!r}; use one of {', '.join(LAWS)}")
+    d_lo, d_hi = default_grid(material)
+    lo = d_lo if lam_min is None else float(lam_min)
+    hi = d_hi if lam_max is None else float(lam_max)
+    if not (0.0 < lo < 1.0):
+        raise ConfigError(f"lam_min: must lie in (0, 1), got {lo}")
+    if not (1.0 < hi < math.inf):
+        raise ConfigError(f"lam_max: must be a finite stretch > 1, got {hi}")
+    name = getattr(material, "name", None) or getattr(material, "model", "material")
+    dirs = _material_directions(material)
+    for d in sorted(set(dirs), key=str):
+        a_lo, a_hi = _admissible(material, d)
+        if lo <= a_lo or hi >= a_hi:
+            raise ConfigError(
+                f"lam_min/lam_max: grid [{lo:g}, {hi:g}] leaves the admissible uniaxial range "
+                f"({a_lo:.4g}, {a_hi:.4g}) of {name}"
+                + (f" along {d}" if d else "") + "; choose a grid inside it"
+            )
+    lo, hi = _grid_through_one(lo, hi, n)
+    lam = np.linspace(lo, hi, n)
+    lam[int(round((1.0 - lo) / ((hi - lo) / (n - 1))))] = 1.0
+    rows_mu, rows_P = [], []
+    cache: dict[str | None, tuple[np.ndarray, np.ndarray]] = {}
+    for d in dirs:
+        if d not in cache:
+            W, P, mu = _material_curves(material, lam, d)
+            where = f"{name}" + (f" along {d}" if d else "")
+            if not (np.all(np.isfinite(W)) and np.all(np.isfinite(P)) and np.all(np.isfinite(mu))):
+                bad = lam[~(np.isfinite(W) & np.isfinite(P) & np.isfinite(mu))]
+                raise InputError(f"{where}: uniaxial energy is not finite at stretch {bad[0]:.4g}; "
+                                 "narrow the grid (lam_min/lam_max)")
+            if np.any(np.diff(P) <= 0):
+                k = int(np.argmax(np.diff(P) <= 0))
+                raise InputError(
+                    f"{where}: uniaxial nominal stress does not increase near stretch {lam[k]:.4g} "
+                    "(a spring network would be unstable there); narrow the grid (lam_min/lam_max) "
+                    "or check the material parameters"
+                )
+            if np.any(mu <= 0):
+                k = int(np.argmax(mu <= 0))
+                raise InputError(f"{where}: mu_e is not positive at stretch {lam[k]:.4g}; "
+                                 "check the material parameters")
+            cache[d] = (P, mu)
+        P, mu = cache[d]
+        rows_P.append(P)
+        rows_mu.append(mu)
+    stress = np.vstack(rows_P)
+    values = np.vstack(rows_mu)
+    energy = _integrate_from_one(lam, stress)
+    meta = {"material_name": str(name), "units": {"lam": "1", "mu_e": "Pa", "stress": "Pa",
+                                                   "energy": "Pa"}}
+    return StiffnessTables(lam_min=lo, lam_max=hi, n=n, values=values, stress=stress, energy=energy,
+                           default_law=law, material_toml=material_toml_text(material), metadata=meta)
+
+
+def _grid_through_one(lo: float, hi: float, n: int) -> tuple[float, float]:
+    """Grid ends with *lo* kept and *hi* lowered (never raised) so that 1 is a grid node.
+
+    With ``k = ceil((1 - lo) / dlam)`` steps below 1 the step becomes
+    ``(1 - lo) / k <= dlam``; the rest state then has exactly zero force for
+    both laws (no interpolation across 1).
+    """
+    h = (hi - lo) / (n - 1)
+    k = max(1, math.ceil((1.0 - lo) / h - 1e-9))
+    if k > n - 2:
+        raise ConfigError(f"n: {n} grid points leave no room above stretch 1 in [{lo:g}, {hi:g}]; "
+                          "use more points or a larger lam_max")
+    h = (1.0 - lo) / k
+    return lo, lo + (n - 1) * h
+
+
+def _integrate_from_one(lam: np.ndarray, stress: np.ndarray) -> np.ndarray:
+    """Exact integral from 1 of the piecewise-linear interpolant of *stress* at the nodes."""
+    h = lam[1] - lam[0]
+    seg = 0.5 * (stress[:, 1:] + stress[:, :-1]) * h
+    cum = np.concatenate([np.zeros((stress.shape[0], 1)), np.cumsum(seg, axis=1)], axis=1)
+    i = int(np.clip(np.floor((1.0 - lam[0]) / h), 0, lam.size - 2))
+    tau = 1.0 - lam[i]
+    at_one = cum[:, i] + stress[:, i] * tau + (stress[:, i + 1] - stress[:, i]) * tau**2 / (2 * h)
+    return cum - at_one[:, None]
+
+
+# ---------------------------------------------------------------------------
+# Per-spring factors and tables
+# ---------------------------------------------------------------------------
+
+def _network_arrays(network) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    v = np.asarray(network.volume_weight, dtype=np.float64)
+    cos2 = np.asarray(network.cos2, dtype=np.float64)
+    L0 = np.asarray(network.rest_length, dtype=np.float64)
+    s = v.shape[0]
+    if cos2.shape != (s, 3) or L0.shape != (s,):
+        raise InputError(f"network: volume_weight {v.shape}, cos2 {cos2.shape} and rest_length "
+                         f"{L0.shape} do not describe the same {s} springs; rebuild the network")
+    return v, cos2, L0
+
+
+def spring_factors(tables: StiffnessTables, network) -> np.ndarray:
+    """Per-spring direction weights :math:`a_{ij,d} = c\\,v_{ij}\\cos^2\\theta_d` [m], shape (s, 3).
+
+    ``k_ij(lam) = a[ij] @ tables.stiffness_modulus(lam)`` (secant law); the force magnitude is
+    ``L0 * a[ij] @ f(lam)`` for either law (:meth:`StiffnessTables.force_function`).
+    """
+    v, cos2, _ = _network_arrays(network)
+    return (tables.volume_factor * v)[:, None] * cos2
+
+
+def per_spring_table(tables: StiffnessTables, network, *, dtype=np.float32) -> np.ndarray:
+    """Materialised stiffness :math:`k_{ij}(\\lambda_m)` [N/m] on the table grid, shape (s, n)."""
+    a = spring_factors(tables, network)
+    return (a @ tables.mu_e_eff).astype(dtype, copy=False)
+
+
+def write_per_spring(group, tables: StiffnessTables, network, *, name: str = "k_per_spring",
+                     dtype=np.float32, compression: str = "gzip", level: int = 4,
+                     chunk_springs: int = 4096) -> None:
+    """Write :func:`per_spring_table` into *group* as a chunked, compressed dataset.
+
+    The dataset ``name`` has shape (s, n), units N/m, and attributes
+    ``lam_min``, ``lam_max``, ``n`` (the grid of the tables). It is written
+    block by block, so memory stays at one block of ``chunk_springs`` rows.
+    """
+    a = spring_factors(tables, network)
+    s = a.shape[0]
+    if name in group:
+        del group[name]
+    rows = max(1, min(chunk_springs, s))
+    cols = tables.n
+    chunk_rows = max(1, min(s, (1 << 16) // cols))  # ~256 KiB chunks of float32
+    ds = group.create_dataset(name, shape=(s, cols), dtype=dtype, chunks=(chunk_rows, cols) if s else None,
+                              compression=compression if s else None,
+                              compression_opts=level if s and compression == "gzip" else None,
+                              shuffle=bool(s))
+    for start in range(0, s, rows):
+        stop = min(s, start + rows)
+        ds[start:stop] = (a[start:stop] @ tables.mu_e_eff).astype(dtype, copy=False)
+    ds.attrs["units"] = "N/m"
+    ds.attrs["description"] = "k_ij(lam) = volume_factor * v_ij * sum_d cos2_d * mu_e_eff_d(lam) on the table grid (secant law)"
+    ds.attrs["lam_min"] = tables.lam_min
+    ds.attrs["lam_max"] = tables.lam_max
+    ds.attrs["n"] = tables.n
+    ds.attrs["volume_factor"] = tables.volume_factor
