@@ -1,13 +1,439 @@
-"""Reading organ surfaces (STL, OBJ, PLY, VTK/VTP, legacy gmsh .msh, NIfTI masks)."""
+"""Reading organ surfaces: STL, OBJ, PLY, VTK/VTP, gmsh .msh and NIfTI masks.
+
+Every reader returns a :class:`~esmm.pipeline.mesh.surface.Surface` in metres.
+The file's unit is never guessed: ``unit`` says what the coordinates are in
+(``"mm"`` by default, as InVesalius and 3D Slicer write), and the size check
+(:func:`check_unit_sanity`) refuses an organ whose largest extent is not
+between 10 and 400 mm, suggesting the ``--unit`` that would make it plausible.
+
+Formats
+-------
+* STL, binary and ASCII: parsed here with numpy (a truncated binary file is
+  detected from its triangle count); duplicate corners are merged by exact
+  coordinates, as every STL writer duplicates them.
+* OBJ, PLY, VTP, legacy VTK (polydata or unstructured grid): VTK readers via
+  pyvista, with VTK's error output captured; a volume mesh gives its boundary.
+* gmsh ``.msh`` (any version, including MSH 1 that meshio cannot read; meshio
+  calls ``sys.exit`` on it): read by gmsh itself in a subprocess; a volume mesh
+  gives its boundary surface.
+* NIfTI masks (``.nii``, ``.nii.gz``): the label is surfaced as InVesalius'
+  "Binary" method does: a 0/255 mask with one voxel of padding (so the surface
+  is closed where the organ touches the scan border), marching cubes at 127
+  with the voxel spacing from the affine, Y negated, origin at voxel (0, 0, 0).
+"""
 
 from __future__ import annotations
 
 import os
+import re
+from pathlib import Path
 
+import numpy as np
+
+from ..errors import InputError
+from ..progress import ensure
+from ..units import factor, normalise_unit
 from .surface import Surface
+
+#: Plausible organ size: largest bounding-box extent in mm.
+ORGAN_EXTENT_MM = (10.0, 400.0)
+
+SURFACE_SUFFIXES = (".stl", ".obj", ".ply", ".vtk", ".vtp", ".vtu", ".msh", ".nii", ".nii.gz")
+
+
+def _suffix(path: Path) -> str:
+    name = path.name.lower()
+    if name.endswith(".nii.gz"):
+        return ".nii.gz"
+    return path.suffix.lower()
 
 
 def read_surface(path: str | os.PathLike, *, unit: str = "mm", label: int | None = None,
                  reporter=None) -> Surface:
-    """Read an organ surface and convert it to metres (work in progress)."""
-    raise NotImplementedError
+    """Read an organ surface and convert it to metres.
+
+    Parameters
+    ----------
+    path
+        A surface file (STL, OBJ, PLY, VTK, VTP, VTU, MSH) or a NIfTI mask.
+    unit
+        Length unit of the file's coordinates (``"mm"``, ``"cm"``, ``"m"``,
+        ...). For NIfTI the header's spatial unit wins when it is set.
+    label
+        For a multi-label NIfTI segmentation, the label of the organ
+        (TotalSegmentator: liver = 5). Not needed for a binary mask.
+    reporter
+        Progress reporter (one step: what was read).
+
+    Returns
+    -------
+    Surface
+        Points (n, 3) [m], triangles (m, 3). Not cleaned: islands, holes,
+        inward normals and duplicates are left for
+        :func:`~esmm.pipeline.mesh.cleaning.clean_surface`.
+
+    Raises
+    ------
+    InputError
+        The file is missing, empty, truncated, of an unknown format, has no
+        triangles, or its size is not plausible in ``unit``.
+    """
+    rep = ensure(reporter)
+    p = Path(path)
+    scale = factor(unit, "length", where="unit")
+    if not p.exists():
+        raise InputError(f"{p}: no such file")
+    if p.is_dir():
+        raise InputError(f"{p}: is a folder; give a surface file (STL, OBJ, PLY, VTK, MSH) or a NIfTI mask")
+    if p.stat().st_size == 0:
+        raise InputError(f"{p}: the file is empty; export the surface again")
+    if label is not None and (isinstance(label, bool) or not isinstance(label, (int, np.integer))):
+        raise InputError(f"label: expected an integer label, got {label!r}")
+    suf = _suffix(p)
+    if label is not None and suf not in (".nii", ".nii.gz"):
+        raise InputError(f"label: --label applies to NIfTI masks only, not to {p.name}")
+    if suf == ".stl":
+        pts, faces = _read_stl(p)
+        what = "STL"
+    elif suf in (".nii", ".nii.gz"):
+        pts, faces, scale, what = _read_nifti(p, label=label, scale=scale)
+    elif suf == ".msh":
+        pts, faces, what = _read_msh(p)
+    elif suf in (".obj", ".ply", ".vtk", ".vtp", ".vtu"):
+        pts, faces, what = _read_vtk_family(p)
+    else:
+        raise InputError(
+            f"{p}: unknown surface format {suf or '(no extension)'!r}; "
+            f"give one of {', '.join(SURFACE_SUFFIXES)}"
+        )
+    if faces.shape[0] == 0:
+        raise InputError(f"{p}: contains no triangles; export the organ as a surface (STL) or a mask (NIfTI)")
+    if not np.all(np.isfinite(pts)):
+        raise InputError(f"{p}: has non-finite (NaN/inf) coordinates; the file is corrupt, export it again")
+    if faces.min() < 0 or faces.max() >= pts.shape[0]:
+        raise InputError(f"{p}: a triangle refers to a point that does not exist; the file is corrupt")
+    surf = Surface(pts * scale, faces, f"{p.name} ({what}, {unit})")
+    check_unit_sanity(surf, unit=unit, where=str(p))
+    rep.step(f"read {p.name}: {what}, {surf.n_points} points, {surf.n_faces} triangles, "
+             f"extent {surf.extent() * 1e3:.1f} mm")
+    return surf
+
+
+def check_unit_sanity(surface: Surface, *, unit: str, where: str = "") -> None:
+    """Refuse an organ whose largest extent is not 10-400 mm; suggest a unit.
+
+    Never rescales: a wrong unit changes every stiffness and mass downstream.
+    """
+    ext_m = surface.extent()
+    lo, hi = ORGAN_EXTENT_MM
+    if lo <= ext_m * 1e3 <= hi:
+        return
+    f_given = factor(unit, "length")
+    raw = ext_m / f_given  # extent in file units
+    good = [u for u in ("m", "cm", "mm", "um") if lo <= raw * factor(u, "length") * 1e3 <= hi
+            and u != unit]
+    loc = f"{where}: " if where else ""
+    hint = (f"if the file is in {' or '.join(good)}, give --unit {good[0]}" if good
+            else "check that the file holds one organ and export it again in mm")
+    conv = f" ({ext_m * 1e3:.4g} mm)" if normalise_unit(unit) != "mm" else ""
+    raise InputError(
+        f"{loc}the organ is {raw:.4g} {unit} across{conv}, not a plausible organ size "
+        f"({lo:g}-{hi:g} mm); {hint}"
+    )
+
+
+# --------------------------------------------------------------------- STL
+def _read_stl(p: Path) -> tuple[np.ndarray, np.ndarray]:
+    data = p.read_bytes()
+    size = len(data)
+    n_bin = int(np.frombuffer(data[80:84], "<u4")[0]) if size >= 84 else -1
+    looks_ascii = data[:5].lower() == b"solid" and b"facet" in data[:2048]
+    if size >= 84 and size == 84 + 50 * n_bin and not (looks_ascii and n_bin == 0):
+        rec = np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+        arr = np.frombuffer(data, rec, count=n_bin, offset=84)
+        corners = arr["v"].reshape(-1, 3) + np.float32(0.0)  # -0.0 -> 0.0
+    elif looks_ascii or data[:5].lower() == b"solid":
+        corners = _parse_ascii_stl(p, data)
+    elif size < 84:
+        raise InputError(f"{p}: only {size} bytes, too short for an STL file; export it again")
+    else:
+        expected = 84 + 50 * n_bin
+        raise InputError(
+            f"{p}: binary STL header announces {n_bin} triangles ({expected} bytes) but the file has "
+            f"{size} bytes; it is truncated or not an STL file, export it again"
+        )
+    if corners.shape[0] == 0:
+        raise InputError(f"{p}: contains no triangles; export the organ surface again")
+    return _merge_exact(corners)
+
+
+_ASCII_VERTEX = re.compile(rb"vertex\s+(\S+)\s+(\S+)\s+(\S+)")
+
+
+def _parse_ascii_stl(p: Path, data: bytes) -> np.ndarray:
+    found = _ASCII_VERTEX.findall(data)
+    if len(found) % 3:
+        raise InputError(f"{p}: ASCII STL with {len(found)} vertices, not a multiple of 3; the file is truncated")
+    if not re.search(rb"endsolid", data[-4096:]) and found:
+        raise InputError(f"{p}: ASCII STL without 'endsolid'; the file is truncated, export it again")
+    try:
+        corners = np.array(found, dtype=np.float64).reshape(-1, 3)
+    except ValueError:
+        bad = next(t for v in found for t in v if not _is_float(t))
+        raise InputError(f"{p}: ASCII STL has a non-numeric coordinate {bad[:20]!r}; the file is corrupt") from None
+    return corners
+
+
+def _is_float(t: bytes) -> bool:
+    try:
+        float(t)
+        return True
+    except ValueError:
+        return False
+
+
+def _merge_exact(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Merge triangle corners with identical coordinates; return points and faces.
+
+    Sorts the coordinates' bit patterns (two keys: x|y packed in 64 bits, then
+    z), which is several times faster than ``np.unique(axis=0)``.
+    """
+    c = np.ascontiguousarray(corners)
+    if c.dtype == np.float32:
+        u = c.view(np.uint32).astype(np.uint64)
+        shift = np.uint64(32)
+        k1 = (u[:, 0] << shift) | u[:, 1]
+        k2 = u[:, 2]
+        order = np.lexsort((k2, k1))
+        s1, s2 = k1[order], k2[order]
+        new = np.ones(order.size, bool)
+        new[1:] = (s1[1:] != s1[:-1]) | (s2[1:] != s2[:-1])
+    else:
+        c = c.astype(np.float64) + 0.0  # +0.0 turns -0.0 into 0.0 so they merge
+        u = c.view(np.uint64)
+        order = np.lexsort((u[:, 2], u[:, 1], u[:, 0]))
+        su = u[order]
+        new = np.ones(order.size, bool)
+        new[1:] = np.any(su[1:] != su[:-1], axis=1)
+    ids = np.cumsum(new) - 1
+    inverse = np.empty(order.size, np.int64)
+    inverse[order] = ids
+    pts = c[order[new]].astype(np.float64)
+    return pts, inverse.reshape(-1, 3)
+
+
+def write_stl(surface: Surface, path: str | os.PathLike, *, unit: str = "mm", ascii: bool = False) -> Path:
+    """Write *surface* as an STL file (binary by default) in *unit*, atomically.
+
+    Parameters
+    ----------
+    surface
+        The surface (points in metres).
+    path
+        Target file.
+    unit
+        Unit of the written coordinates (``"mm"`` like InVesalius).
+    ascii
+        Write ASCII STL instead of binary.
+    """
+    from ..atomicio import atomic_path
+
+    s = 1.0 / factor(unit, "length", where="unit")
+    pts = surface.points * s
+    tri = pts[surface.faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    ln = np.linalg.norm(n, axis=1)
+    ln[ln == 0] = 1
+    n = n / ln[:, None]
+    with atomic_path(path) as tmp:
+        if ascii:
+            with open(tmp, "w", encoding="ascii") as fh:
+                fh.write("solid esmm\n")
+                for k in range(tri.shape[0]):
+                    fh.write(f"facet normal {n[k, 0]:.6e} {n[k, 1]:.6e} {n[k, 2]:.6e}\n outer loop\n")
+                    for j in range(3):
+                        fh.write(f"  vertex {tri[k, j, 0]:.9e} {tri[k, j, 1]:.9e} {tri[k, j, 2]:.9e}\n")
+                    fh.write(" endloop\nendfacet\n")
+                fh.write("endsolid esmm\n")
+        else:
+            rec = np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+            arr = np.zeros(tri.shape[0], rec)
+            arr["n"] = n
+            arr["v"] = tri
+            header = b"esmm binary STL, unit " + unit.encode() + b" "
+            header = header.ljust(80, b" ")[:80]
+            with open(tmp, "wb") as fh:
+                fh.write(header)
+                fh.write(np.uint32(tri.shape[0]).tobytes())
+                fh.write(arr.tobytes())
+    return Path(path)
+
+
+# --------------------------------------------------------------- VTK family
+def _read_vtk_family(p: Path) -> tuple[np.ndarray, np.ndarray, str]:
+    import pyvista as pv
+    import vtk
+
+    what = p.suffix.lower().lstrip(".").upper()
+    logger = vtk.vtkLogger
+    prev = logger.GetCurrentVerbosityCutoff()
+    logger.SetStderrVerbosity(logger.VERBOSITY_OFF)  # the library never prints; errors are caught below
+    try:
+        with pv.VtkErrorCatcher(raise_errors=False, send_to_logging=False) as catcher:
+            try:
+                mesh = pv.read(str(p))
+            except (Exception, SystemExit) as exc:  # meshio (behind pyvista) may call sys.exit
+                raise InputError(f"{p}: cannot read it as {what} ({_short(exc)}); export the surface again") from None
+    finally:
+        logger.SetStderrVerbosity(prev)
+    errors = [e for e in catcher.events if e.kind == "ERROR"]
+    if errors:
+        raise InputError(
+            f"{p}: the {what} file is corrupt or truncated (VTK reader: {_short(errors[0].alert.split(':')[0])}); export it again"
+        )
+    if isinstance(mesh, pv.MultiBlock):
+        mesh = mesh.combine()
+    if not isinstance(mesh, pv.PolyData):
+        # A volume mesh (unstructured grid of tetrahedra): take its boundary.
+        mesh = mesh.extract_surface()
+        what += " volume mesh, boundary"
+    if mesh.n_points == 0 or mesh.n_cells == 0:
+        raise InputError(f"{p}: contains no points or cells; the file is empty or corrupt")
+    poly = mesh
+    if len(poly.faces) == 0:
+        raise InputError(f"{p}: has no polygons (only points or lines); export the organ as a surface")
+    tri = poly.triangulate()
+    faces = np.asarray(tri.faces, np.int64).reshape(-1, 4)[:, 1:]
+    return np.asarray(tri.points, np.float64), faces, what
+
+
+def _short(x) -> str:
+    s = " ".join(str(x).split())
+    s = "".join(ch if ch.isprintable() else "?" for ch in s)
+    return s[:120] + ("..." if len(s) > 120 else "")
+
+
+# ----------------------------------------------------------------- gmsh MSH
+def _read_msh(p: Path) -> tuple[np.ndarray, np.ndarray, str]:
+    from .gmsh_worker import GmshFailure, GmshTimeout, run_worker
+
+    try:
+        out = run_worker("read", {"path": str(p.resolve())}, timeout=60.0)
+    except GmshTimeout:
+        raise InputError(f"{p}: gmsh did not finish reading it within 60 s; the file is corrupt or huge") from None
+    except GmshFailure as exc:
+        raise InputError(f"{p}: gmsh cannot read it ({_short(exc)}); export the surface again") from None
+    nodes = out["nodes"]
+    tets = out["tets"]
+    tris = out["triangles"]
+    if tets.shape[0]:
+        faces = boundary_of_tets(nodes, tets)
+        what = f"MSH volume mesh ({tets.shape[0]} tetrahedra), boundary"
+    else:
+        faces = tris
+        what = "MSH surface mesh"
+    if faces.shape[0] == 0:
+        raise InputError(f"{p}: holds no triangles or tetrahedra; export the organ surface again")
+    used = np.unique(faces)
+    remap = np.full(nodes.shape[0], -1, np.int64)
+    remap[used] = np.arange(used.size)
+    return nodes[used], remap[faces], what
+
+
+def boundary_of_tets(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Boundary triangles of a tetrahedral mesh, oriented outward.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    tets : ndarray, shape (t, 4)
+        Any orientation; each tetrahedron is first made positive.
+
+    Returns
+    -------
+    ndarray, shape (k, 3), int64
+        The faces used by exactly one tetrahedron, counter-clockwise seen
+        from outside.
+    """
+    t = np.asarray(tets, np.int64).copy()
+    p = np.asarray(points, np.float64)
+    d = np.einsum("ij,ij->i", p[t[:, 1]] - p[t[:, 0]],
+                  np.cross(p[t[:, 2]] - p[t[:, 0]], p[t[:, 3]] - p[t[:, 0]]))
+    neg = d < 0
+    t[neg, 2], t[neg, 3] = t[neg, 3].copy(), t[neg, 2].copy()
+    # Faces of a positive tet (0,1,2,3), outward: (0,2,1), (0,1,3), (0,3,2), (1,2,3).
+    f = np.concatenate([t[:, [0, 2, 1]], t[:, [0, 1, 3]], t[:, [0, 3, 2]], t[:, [1, 2, 3]]])
+    key = np.sort(f, axis=1)
+    _, idx, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
+    return f[idx[counts == 1]]
+
+
+# -------------------------------------------------------------------- NIfTI
+def _read_nifti(p: Path, *, label: int | None, scale: float) -> tuple[np.ndarray, np.ndarray, float, str]:
+    import nibabel as nib
+
+    try:
+        img = nib.load(str(p))
+        data = np.asanyarray(img.dataobj)
+    except Exception as exc:  # nibabel raises many kinds on corrupt files
+        raise InputError(f"{p}: cannot read it as NIfTI ({_short(exc)}); export the mask again") from None
+    if data.ndim > 3:
+        if all(s == 1 for s in data.shape[3:]):
+            data = data.reshape(data.shape[:3])
+        else:
+            raise InputError(f"{p}: a {data.ndim}-D image of shape {data.shape}; give a 3-D mask")
+    if data.ndim != 3:
+        raise InputError(f"{p}: a {data.ndim}-D image; give a 3-D mask")
+    spatial_unit = img.header.get_xyzt_units()[0]
+    unit_scale = {"meter": 1.0, "mm": 1e-3, "micron": 1e-6}.get(spatial_unit, scale)
+    spacing = np.sqrt((np.asarray(img.affine)[:3, :3] ** 2).sum(axis=0))
+    if not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
+        raise InputError(f"{p}: the affine gives voxel sizes {spacing}; the header is corrupt")
+    if not np.issubdtype(data.dtype, np.integer):
+        rounded = np.rint(data)
+        if not np.allclose(rounded, data):
+            raise InputError(f"{p}: holds non-integer values (a probability map?); give a label mask")
+        data = rounded.astype(np.int64)
+    values, counts = np.unique(data, return_counts=True)
+    nonzero = [(int(v), int(c)) for v, c in zip(values, counts) if v != 0]
+    if not nonzero:
+        raise InputError(f"{p}: the mask is empty (all voxels are 0)")
+    if label is None:
+        if len(nonzero) > 1:
+            listing = ", ".join(f"{v} ({c} voxels)" for v, c in sorted(nonzero, key=lambda t: -t[1])[:8])
+            raise InputError(
+                f"{p}: a multi-label segmentation ({len(nonzero)} labels: {listing}{', ...' if len(nonzero) > 8 else ''}); "
+                f"choose the organ with --label N (TotalSegmentator liver: 5)"
+            )
+        label = nonzero[0][0]
+    elif label not in {v for v, _ in nonzero}:
+        listing = ", ".join(str(v) for v, _ in nonzero[:20])
+        raise InputError(f"label: {label} is not in {p.name}; labels present: {listing}")
+    verts, faces = surface_from_mask(data == label, spacing=spacing)
+    what = f"NIfTI label {label}, voxel {'x'.join(f'{s:g}' for s in spacing)}"
+    return verts, faces, unit_scale, what
+
+
+def surface_from_mask(mask: np.ndarray, *, spacing) -> tuple[np.ndarray, np.ndarray]:
+    """Surface a boolean mask as InVesalius' "Binary" method does.
+
+    Parameters
+    ----------
+    mask : ndarray, shape (nx, ny, nz), bool
+    spacing : sequence of 3 floats
+        Voxel size along each axis (file units).
+
+    Returns
+    -------
+    points : ndarray, shape (n, 3)
+        Vertex coordinates in file units, origin at voxel (0, 0, 0), Y negated.
+    faces : ndarray, shape (m, 3), int64
+    """
+    from skimage.measure import marching_cubes
+
+    vol = np.pad(np.where(mask, 255, 0).astype(np.float32), 1)
+    spacing = tuple(float(s) for s in spacing)
+    verts, faces, _n, _v = marching_cubes(vol, level=127.0, spacing=spacing, allow_degenerate=False)
+    verts = verts - np.asarray(spacing)  # undo the padding offset
+    verts[:, 1] *= -1.0
+    return verts.astype(np.float64), faces.astype(np.int64)

@@ -90,8 +90,14 @@ class Surface:
         """Bounding box, shape (2, 3): row 0 the minimum, row 1 the maximum [m]."""
         if self.n_points == 0:
             return np.zeros((2, 3))
-        used = self.points[np.unique(self.faces)] if self.n_faces else self.points
+        used = self.points[self.used_mask()] if self.n_faces else self.points
         return np.vstack([used.min(axis=0), used.max(axis=0)])
+
+    def used_mask(self) -> np.ndarray:
+        """Boolean mask (n,) of the points that some face uses."""
+        used = np.zeros(self.n_points, bool)
+        used[self.faces.ravel()] = True
+        return used
 
     def extent(self) -> float:
         """Largest bounding-box side [m]."""
@@ -112,10 +118,12 @@ class Surface:
         f = self.faces
         if f.shape[0] == 0:
             return np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
-        e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-        e.sort(axis=1)
-        uniq, counts = np.unique(e, axis=0, return_counts=True)
-        return uniq, counts
+        a = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
+        b = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        n = np.int64(max(self.n_points, int(f.max()) + 1))
+        key, counts = np.unique(lo * n + hi, return_counts=True)
+        return np.column_stack([key // n, key % n]), counts
 
     def n_boundary_edges(self) -> int:
         """Number of edges used by exactly one face."""
@@ -137,13 +145,13 @@ class Surface:
     def euler_characteristic(self) -> int:
         """V - E + F over the used vertices (2 for a sphere, 0 for a torus)."""
         e, _ = self.edges()
-        v = np.unique(self.faces).size
+        v = int(np.count_nonzero(self.used_mask()))
         return int(v - e.shape[0] + self.n_faces)
 
     # -- conversions ---------------------------------------------------------
     def compact(self) -> Surface:
         """The same surface without unused points."""
-        used = np.unique(self.faces)
+        used = np.flatnonzero(self.used_mask())
         if used.size == self.n_points:
             return self
         remap = np.full(self.n_points, -1, np.int64)
