@@ -1,0 +1,269 @@
+"""``esmm calibrate --by specimen|folder FILES...`` as a cached, parallel batch.
+
+The files are read once here to form the groups (by specimen id: metadata
+``specimen``, else the file stem; or by folder). Each group becomes one
+:class:`~esmm.pipeline.batch.jobs.Job` whose worker reads its files again,
+fits (:func:`esmm.pipeline.calibrate.fit.fit_material`) and writes
+``<out>/<group>/params.toml, fit.png, report.md, fit.json``
+(:func:`esmm.pipeline.calibrate.report.write_outputs`). A file that cannot be
+read is one failed row; the other groups still run. After the batch,
+``<out>/summary.csv`` tabulates every group's parameters and errors, cached
+groups included (from their manifests).
+
+The key of a group covers the bytes of its files and of their TOML sidecars,
+the reader overrides and the fit options.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import re
+import statistics
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from ..atomicio import write_text
+from ..errors import ConfigError, EsmmError
+from ..progress import Reporter, ensure
+from .jobs import BatchSummary, Job, JobOutput
+from .runner import run_jobs
+
+GROUP_BY = ("specimen", "folder")
+KIND = "calibrate"
+#: Name of the parameters table in the batch folder.
+PARAMS_TABLE = "summary.csv"
+
+
+def safe_name(text: str) -> str:
+    """A file-system-safe folder name for a group (letters, digits, ``-_.``)."""
+    s = re.sub(r"[^A-Za-z0-9_.\-]+", "_", str(text)).strip("._")
+    return s[:120] or "group"
+
+
+def _unique(names: dict[str, list[str]]) -> dict[str, str]:
+    """group key -> unique folder name: the safe name, else more of the path, else a suffix."""
+    out: dict[str, str] = {}
+    taken: set[str] = set()
+    for key, candidates in names.items():
+        for c in candidates:
+            if c not in taken:
+                break
+        else:
+            base, n = candidates[0], 2
+            while f"{base}-{n}" in taken:
+                n += 1
+            c = f"{base}-{n}"
+        out[key] = c
+        taken.add(c)
+    return out
+
+
+def _candidates(key: str, by: str) -> list[str]:
+    if by == "folder":
+        parts = Path(key).parts
+        return [safe_name("_".join(parts[-k:])) for k in range(1, len(parts) + 1)]
+    return [safe_name(key)]
+
+
+def sidecars(paths: Sequence[str | os.PathLike]) -> list[Path]:
+    """The TOML sidecars (``x.toml`` beside ``x.csv``) that exist for *paths*."""
+    out = []
+    for p in paths:
+        side = Path(p).with_suffix(".toml")
+        if side != Path(p) and side.is_file():
+            out.append(side)
+    return out
+
+
+def fit_group(files: Sequence[str], out_dir: str, name: str, read_kwargs: Mapping[str, Any],
+              fit_kwargs: Mapping[str, Any]) -> JobOutput:
+    """Worker function: read *files*, fit them jointly, write ``<out_dir>/<name>/``.
+
+    Returns
+    -------
+    JobOutput
+        The four output files and a summary: ``estimates`` (key, value, 95 %
+        interval, kind), ``rmse``/``nrmse``/``r2``, ``files``, ``warnings``.
+    """
+    from ..calibrate.fit import fit_material
+    from ..calibrate.report import write_outputs
+    from ..tensile import read
+
+    tests = [read(p, **dict(read_kwargs)) for p in files]
+    result = fit_material(tests, **dict(fit_kwargs))
+    written = write_outputs(Path(out_dir) / name, result, tests, name=name)
+    summary = {
+        "model": result.model,
+        "estimates": [{"key": e.key, "value": e.value, "lower": e.lower, "upper": e.upper, "kind": e.kind,
+                       "at_bound": e.at_bound} for e in result.estimates],
+        "fixed": dict(result.fixed),
+        "rmse": result.rmse, "nrmse": result.nrmse, "r2": result.r2,
+        "files": [str(t.source) for t in tests],
+        "specimens": sorted({t.specimen for t in tests}),
+        "warnings": list(result.warnings),
+    }
+    return JobOutput(outputs=[p for k, p in written.items() if k != "json_extra"], summary=summary)
+
+
+def calibrate_jobs(files: Sequence[str | os.PathLike], *, by: str = "specimen",
+                   out_dir: str | os.PathLike, read_kwargs: Mapping[str, Any] | None = None,
+                   fit_kwargs: Mapping[str, Any] | None = None,
+                   reporter: Reporter | None = None) -> list[Job]:
+    """Group *files* and make one job per group (plus a failed job per unreadable file).
+
+    Parameters
+    ----------
+    files : sequence of path
+        Tensile files.
+    by : {"specimen", "folder"}
+    out_dir : path
+        The batch folder (``<out_dir>/<group>/`` per group).
+    read_kwargs : mapping, optional
+        Keyword arguments of :func:`esmm.pipeline.tensile.read` (``overrides``,
+        ``encoding``).
+    fit_kwargs : mapping, optional
+        Keyword arguments of :func:`esmm.pipeline.calibrate.fit.fit_material`
+        (plain data: model, loss, n_starts, seed, weights, fixed, free, ...).
+
+    Raises
+    ------
+    ConfigError
+        *by* is unknown, or the reader options are invalid (they would fail
+        every file alike).
+    """
+    from ..tensile import read
+
+    if by not in GROUP_BY:
+        raise ConfigError(f"--by: choose one of {', '.join(GROUP_BY)}, got {by!r}")
+    rep = ensure(reporter)
+    read_kwargs = {k: v for k, v in dict(read_kwargs or {}).items() if k != "reporter"}
+    fit_kwargs = {k: v for k, v in dict(fit_kwargs or {}).items() if k != "reporter"}
+    if "free" in fit_kwargs and fit_kwargs["free"] is not None:
+        fit_kwargs["free"] = list(fit_kwargs["free"])
+    jobs: list[Job] = []
+    groups: dict[str, list[str]] = {}
+    seen: set[str] = set()
+    for f in files:
+        p = str(Path(f).resolve())
+        if p in seen:
+            continue
+        seen.add(p)
+        try:
+            t = read(p, **read_kwargs)
+        except ConfigError:
+            raise
+        except EsmmError as exc:
+            jobs.append(Job.failed(str(f), KIND, str(exc), exit_code=exc.exit_code))
+            rep.warn(f"skipped: {exc}")
+            continue
+        key = t.specimen if by == "specimen" else str(Path(p).parent)
+        groups.setdefault(key, []).append(p)
+    names = _unique({k: _candidates(k, by) for k in groups})
+    for key, paths in groups.items():
+        name = names[key]
+        config = {"by": by, "group": key, "read": read_kwargs, "fit": fit_kwargs}
+        jobs.append(Job(name=name, kind=KIND, fn=fit_group,
+                        args=(paths, str(Path(out_dir).resolve()), name, read_kwargs, fit_kwargs),
+                        key_inputs=[*paths, *map(str, sidecars(paths))], config=config))
+    return jobs
+
+
+def params_table(summary: BatchSummary) -> str:
+    """CSV: one row per group (status, parameters [SI], errors, reason) plus mean and std rows."""
+    keys: list[str] = []
+    for o in summary.outcomes:
+        for e in o.summary.get("estimates", []) if o.status in ("done", "cached") else []:
+            if e["key"] not in keys:
+                keys.append(e["key"])
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["group", "status", "files", *[f"{k} [SI]" for k in keys], "rmse [Pa]", "nrmse", "r2", "seconds",
+                "reason"])
+    cols: dict[str, list[float]] = {k: [] for k in [*keys, "rmse", "nrmse", "r2"]}
+    for o in summary.outcomes:
+        s = o.summary
+        status = "skipped (cached)" if o.status == "cached" else o.status
+        if o.status in ("done", "cached") and "estimates" in s:
+            vals = {e["key"]: float(e["value"]) for e in s["estimates"]}
+            for k in keys:
+                cols[k].append(vals.get(k, math.nan))
+            for k in ("rmse", "nrmse", "r2"):
+                cols[k].append(float(s.get(k, math.nan)))
+            w.writerow([o.name, status, len(s.get("files", [])), *[f"{vals.get(k, math.nan):.8g}" for k in keys],
+                        f"{float(s.get('rmse', math.nan)):.6g}", f"{float(s.get('nrmse', math.nan)):.6g}",
+                        f"{float(s.get('r2', math.nan)):.6g}", f"{o.seconds:.2f}", ""])
+        else:
+            w.writerow([o.name, status, "", *[""] * len(keys), "", "", "", f"{o.seconds:.2f}", o.reason])
+    n_ok = len(cols["rmse"])
+    if n_ok:
+        def mean(v):
+            f = [x for x in v if math.isfinite(x)]
+            return statistics.fmean(f) if f else math.nan
+
+        def std(v):
+            f = [x for x in v if math.isfinite(x)]
+            return statistics.stdev(f) if len(f) > 1 else math.nan
+
+        for label, fn in (("mean", mean), ("std", std)):
+            w.writerow([label, f"{n_ok} group(s)", "", *[f"{fn(cols[k]):.8g}" for k in keys],
+                        *[f"{fn(cols[k]):.6g}" for k in ("rmse", "nrmse", "r2")], "", ""])
+    return buf.getvalue()
+
+
+def batch_document(summary: BatchSummary, *, by: str) -> dict[str, Any]:
+    """The ``--json`` document of a calibration batch (schema ``esmm.calibrate-batch/2``).
+
+    Each group carries its status, reason, outputs and, when it succeeded
+    (now or before: cached), the contents of its ``fit.json``.
+    """
+    groups = []
+    for o in summary.outcomes:
+        result = None
+        fit_json = next((p for p in o.outputs if p.endswith("fit.json")), None)
+        if fit_json is not None and o.status in ("done", "cached"):
+            p = Path(fit_json) if Path(fit_json).is_absolute() else summary.out_dir / fit_json
+            try:
+                result = json.loads(p.read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                result = None
+        groups.append({"group": o.name, "status": o.status, "ok": o.status in ("done", "cached"),
+                       "reason": o.reason, "files": o.summary.get("files", []), "outputs": o.outputs,
+                       "seconds": o.seconds, "result": result})
+    return {"schema": "esmm.calibrate-batch/2", "by": by, "exit_code": summary.exit_code,
+            "counts": {"done": summary.n_done, "cached": summary.n_cached, "failed": summary.n_failed,
+                       "interrupted": summary.n_interrupted},
+            "groups": groups}
+
+
+def calibrate_batch(files: Sequence[str | os.PathLike], *, out_dir: str | os.PathLike, by: str = "specimen",
+                    read_kwargs: Mapping[str, Any] | None = None, fit_kwargs: Mapping[str, Any] | None = None,
+                    scheduler: Any = None, workers: int | None = None, force: bool = False,
+                    reporter: Reporter | None = None) -> BatchSummary:
+    """Fit every group of *files* on its own, in parallel, with caching; tabulate.
+
+    Parameters
+    ----------
+    files, by, read_kwargs, fit_kwargs
+        See :func:`calibrate_jobs`.
+    out_dir : path
+        Batch folder: ``<group>/`` outputs, ``summary.csv`` (parameters),
+        ``batch-summary.csv`` (status), ``esmm-batch-<time>.log``, ``.esmm-cache/``.
+    scheduler, workers, force, reporter
+        See :func:`esmm.pipeline.batch.runner.run_jobs`.
+
+    Returns
+    -------
+    BatchSummary
+        ``exit_code`` 0, 5 (a file or group failed) or 130 (interrupted).
+    """
+    jobs = calibrate_jobs(files, by=by, out_dir=out_dir, read_kwargs=read_kwargs, fit_kwargs=fit_kwargs,
+                          reporter=reporter)
+    summary = run_jobs(jobs, out_dir=out_dir, scheduler=scheduler, workers=workers, force=force,
+                       reporter=reporter, title="calibrating")
+    write_text(summary.out_dir / PARAMS_TABLE, params_table(summary))
+    return summary

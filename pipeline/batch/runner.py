@@ -1,0 +1,444 @@
+"""Run a batch of jobs: cached ones skipped, the rest on a local pool or a Dask cluster.
+
+:func:`run_jobs` is the one entry point. It locks the output folder, removes
+temporary files a killed run left behind, computes every job's key
+(:func:`~esmm.pipeline.batch.jobs.cache_key`), skips jobs whose complete result
+is already there (unless ``force``), runs the others, and writes a log
+(``<out>/esmm-batch-<UTC time>.log``: every job's outcome and timing) and a CSV
+table (``<out>/batch-summary.csv``). One job failing, raising, or killing its
+worker never stops the others. Ctrl-C (or SIGTERM) stops the batch: queued jobs
+are not started, running local jobs are stopped (their temporary files
+removed), and the summary of what finished is still written.
+
+Schedulers
+----------
+``None`` / ``"local"``
+    A pool of local worker processes (:class:`~esmm.pipeline.batch.local.LocalPool`),
+    ``workers`` of them (default: the CPUs available).
+``"serial"``
+    In this process, one job after the other (debugging; no crash isolation).
+``"tcp://HOST:PORT"`` (or ``tls://``, ``ucx://``), or a ``distributed.Client``
+    An existing Dask cluster: every job is one ``client.submit(..., pure=False)``.
+    The workers must have the same esmm installed and see the input and output
+    folders at the same paths (a shared file system).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import logging
+import os
+import re
+import signal
+import threading
+import time
+import uuid
+from collections.abc import Callable, Sequence
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from ..atomicio import write_text
+from ..errors import ConfigError, EsmmError
+from ..progress import Reporter, ensure
+from . import cache as _cache
+from .jobs import BatchSummary, Job, JobOutcome, _canonical, cache_key, code_version, input_digests
+from .local import LocalPool, available_cpus
+from .worker import execute, one_line
+
+#: Name of the CSV table of the last batch in the output folder.
+SUMMARY_NAME = "batch-summary.csv"
+
+_DASK_ADDRESS = re.compile(r"^(tcp|tls|ucx|ws|wss|inproc)://\S+$")
+_counter = itertools.count()
+
+
+def parse_scheduler(scheduler: Any) -> tuple[str, Any]:
+    """``(kind, target)`` with kind ``"local"``, ``"serial"`` or ``"dask"``.
+
+    Raises
+    ------
+    ConfigError
+        Not ``local``, ``serial``, a Dask address or a ``distributed.Client``.
+    """
+    if scheduler is None:
+        return "local", None
+    if isinstance(scheduler, str):
+        s = scheduler.strip()
+        if s.lower() in ("local", "processes", ""):
+            return "local", None
+        if s.lower() in ("serial", "inline", "none"):
+            return "serial", None
+        if _DASK_ADDRESS.match(s):
+            return "dask", s
+        if re.match(r"^[A-Za-z0-9_.\-]+:\d+$", s):  # host:port
+            return "dask", f"tcp://{s}"
+        raise ConfigError(f"--scheduler: {scheduler!r} is not 'local', 'serial' or a Dask scheduler address "
+                          f"such as tcp://10.0.0.5:8786")
+    try:
+        from distributed import Client
+    except ImportError:  # pragma: no cover - dask is a dependency
+        Client = ()  # type: ignore[assignment]
+    if Client and isinstance(scheduler, Client):
+        return "dask", scheduler
+    raise ConfigError(f"--scheduler: expected an address or a dask Client, got {type(scheduler).__name__}")
+
+
+def _check_workers(workers: int | None) -> int | None:
+    if workers is None:
+        return None
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ConfigError(f"--jobs/workers: expected a whole number >= 1, got {workers!r}")
+    return workers
+
+
+# ----------------------------------------------------------------------------- logging
+def _open_log(out: Path) -> tuple[logging.Logger, logging.Handler, Path]:
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    path = out / f"esmm-batch-{stamp}.log"
+    n = 2
+    while path.exists():
+        path = out / f"esmm-batch-{stamp}-{n}.log"
+        n += 1
+    handler = logging.FileHandler(path, encoding="utf-8", delay=False)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)-7s %(message)s"))
+    logger = logging.getLogger(f"esmm.batch.run{next(_counter)}")
+    logger.setLevel(logging.DEBUG)
+    logger.addHandler(handler)
+    return logger, handler, path
+
+
+# ----------------------------------------------------------------------------- SIGTERM -> Ctrl-C
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """While the batch runs, SIGTERM (a cluster's time limit, ``kill``) stops it like Ctrl-C."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt("SIGTERM")
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+# ----------------------------------------------------------------------------- backends
+Task = dict[str, Any]
+OnEvent = Callable[[Task, dict[str, Any]], None]
+
+
+def _interrupted(task: Task, why: str) -> dict[str, Any]:
+    return {"name": task["name"], "status": "interrupted", "reason": why, "exit_code": 130, "seconds": 0.0,
+            "outputs": [], "summary": {}, "worker": "", "detail": ""}
+
+
+def _failed(task: Task, reason: str, exit_code: int = 1, detail: str = "") -> dict[str, Any]:
+    return {"name": task["name"], "status": "failed", "reason": one_line(reason), "exit_code": exit_code,
+            "seconds": 0.0, "outputs": [], "summary": {}, "worker": "", "detail": detail}
+
+
+def _run_serial(tasks: list[Task], on_event: OnEvent) -> None:
+    for i, t in enumerate(tasks):
+        try:
+            res = execute(t)
+        except KeyboardInterrupt:
+            on_event(t, _interrupted(t, "stopped by Ctrl-C"))
+            for rest in tasks[i + 1:]:
+                on_event(rest, _interrupted(rest, "not started: the batch was interrupted"))
+            raise
+        on_event(t, res)
+
+
+def _run_local(tasks: list[Task], workers: int, on_event: OnEvent) -> None:
+    by_id = dict(enumerate(tasks))
+    pool = LocalPool(min(workers, len(tasks)))
+    reported: set[int] = set()
+    try:
+        for i, t in by_id.items():
+            pool.submit(i, execute, t)
+        for tid, kind, value in pool.events():
+            reported.add(tid)
+            t = by_id[tid]
+            if kind == "result":
+                on_event(t, value)
+            elif kind == "died":
+                reason, tail = value
+                on_event(t, _failed(t, reason, 1, f"worker output (last lines):\n{tail}" if tail else ""))
+            elif kind == "interrupted":
+                on_event(t, _interrupted(t, "stopped"))
+            else:
+                last = value.strip().splitlines()[-1] if value.strip() else "unknown error"
+                on_event(t, _failed(t, f"internal error in the worker: {last}", 1, value))
+        pool.close()
+    except KeyboardInterrupt:
+        running = set(pool.busy)
+        for tid, kind, value in pool.interrupt():
+            if tid in reported:
+                continue
+            reported.add(tid)
+            t = by_id[tid]
+            if kind == "result":
+                on_event(t, value)
+            elif kind == "died":
+                on_event(t, _failed(t, value[0], 1))
+        for tid, t in by_id.items():
+            if tid not in reported:
+                why = "stopped by Ctrl-C" if tid in running else "not started: the batch was interrupted"
+                on_event(t, _interrupted(t, why))
+        raise
+    except BaseException:
+        pool.close(kill=True)
+        raise
+
+
+def _dask_client(target: Any):
+    """A connected ``distributed.Client`` and whether we own it."""
+    if not isinstance(target, str):
+        return target, False
+    try:
+        from distributed import Client
+    except ImportError:  # pragma: no cover - dask is a dependency
+        raise ConfigError("--scheduler: dask.distributed is not installed; pip install 'dask[distributed]'") from None
+    try:
+        return Client(target, timeout="15s", set_as_default=False), True
+    except (OSError, TimeoutError) as exc:
+        raise ConfigError(f"--scheduler {target}: cannot connect to a Dask scheduler ({one_line(str(exc), 160)}); "
+                          f"check the address and that 'dask scheduler' is running there") from None
+
+
+def _dask_reason(exc: BaseException) -> tuple[str, int]:
+    name = type(exc).__name__
+    if name == "KilledWorker":
+        return ("worker died (the job's worker process ended every time it ran it; "
+                "out of memory or a crash, see the Dask worker logs)"), 1
+    if name in ("CancelledError", "FutureCancelledError"):
+        return "cancelled on the Dask cluster (a worker or the scheduler was restarted?)", 1
+    return f"internal error on the Dask worker: {name}: {one_line(str(exc), 300)}", 1
+
+
+def _run_dask(tasks: list[Task], target: Any, on_event: OnEvent, logger: logging.Logger) -> str:
+    from distributed import as_completed
+
+    client, owned = _dask_client(target)
+    address = getattr(client.scheduler, "address", str(target))
+    logger.info("dask scheduler %s: %d worker(s)", address, len(client.scheduler_info().get("workers", {})))
+    futures = {}
+    reported: set[int] = set()
+    try:
+        for i, t in enumerate(tasks):
+            key = f"esmm-{t['kind']}-{re.sub(r'[^A-Za-z0-9_.-]', '_', t['name'])[:60]}-{uuid.uuid4().hex[:10]}"
+            futures[client.submit(execute, t, pure=False, key=key, retries=0)] = i
+        for fut in as_completed(list(futures), with_results=False):
+            i = futures[fut]
+            t = tasks[i]
+            reported.add(i)
+            if fut.status == "finished":
+                try:
+                    on_event(t, fut.result())
+                except Exception as exc:  # noqa: BLE001 - result lost in transit
+                    reason, code = _dask_reason(exc)
+                    on_event(t, _failed(t, reason, code))
+            else:
+                try:
+                    exc = fut.exception()
+                except BaseException as e:  # noqa: BLE001 - cancelled futures raise here
+                    exc = e
+                reason, code = _dask_reason(exc)
+                on_event(t, _failed(t, reason, code))
+    except KeyboardInterrupt:
+        pending = [f for f, i in futures.items() if i not in reported]
+        with contextlib.suppress(Exception):
+            client.cancel(pending, force=True)
+        for f in pending:
+            i = futures[f]
+            on_event(tasks[i], _interrupted(tasks[i], "cancelled by Ctrl-C (a job already running on a "
+                                                      "worker may still complete)"))
+        raise
+    finally:
+        if owned:
+            with contextlib.suppress(Exception):
+                client.close(timeout=10)
+    return address
+
+
+# ----------------------------------------------------------------------------- run_jobs
+def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any = None,
+             workers: int | None = None, force: bool = False, reporter: Reporter | None = None,
+             title: str = "batch") -> BatchSummary:
+    """Run *jobs*, skipping those whose result is cached; never stop for one failure.
+
+    Parameters
+    ----------
+    jobs : sequence of Job
+        Names must be unique.
+    out_dir : path
+        The batch folder: outputs, ``.esmm-cache/``, the log and the table.
+    scheduler : None, "local", "serial", "tcp://HOST:PORT" or distributed.Client
+        Where jobs run (see the module docstring).
+    workers : int, optional
+        Local worker processes (default: the CPUs available; capped at the
+        number of jobs to run). Ignored for Dask (the cluster decides).
+    force : bool
+        Recompute every job even when its result is cached.
+    reporter : Reporter, optional
+        Progress (one task advancing per job), a step per outcome and a
+        warning per failure.
+    title : str
+        What the progress bar calls the batch (e.g. "calibrating").
+
+    Returns
+    -------
+    BatchSummary
+        ``exit_code`` is 0, 5 (some job failed) or 130 (interrupted). An
+        interruption is *returned* (``interrupted=True``), not raised, after
+        the log and table are written.
+
+    Raises
+    ------
+    ConfigError
+        Duplicate job names, a bad scheduler or worker count, an output folder
+        that cannot be created or is locked by another batch, or a Dask
+        scheduler that cannot be reached.
+    """
+    rep = ensure(reporter)
+    kind, target = parse_scheduler(scheduler)
+    workers = _check_workers(workers)
+    names = [j.name for j in jobs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ConfigError(f"two batch jobs would write the same output {dup[0]!r}; rename one of the inputs")
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from None
+    out = out.resolve()
+    t_start = time.perf_counter()
+    outcomes: dict[str, JobOutcome] = {}
+    by_name = {j.name: j for j in jobs}
+    summary = BatchSummary([], out)
+    desc = ""
+
+    with _cache.locked(out):
+        swept = _cache.sweep_temp(out)
+        logger, handler, log_path = _open_log(out)
+        summary.log_path = log_path
+        try:
+            version = code_version()
+            if kind == "local":
+                n_workers = workers or available_cpus()
+                desc = f"local ({n_workers} process{'es' if n_workers > 1 else ''})"
+            elif kind == "serial":
+                n_workers, desc = 1, "serial (this process)"
+            else:
+                n_workers, desc = 0, f"dask {target if isinstance(target, str) else 'client'}"
+            logger.info("batch start: %d job(s); scheduler %s; out %s; force %s; esmm %s; pid %d",
+                        len(jobs), desc, out, force, version, os.getpid())
+            if swept:
+                logger.info("removed %d temporary file(s) left by an interrupted run: %s", len(swept),
+                            ", ".join(str(p.relative_to(out)) for p in swept[:20]))
+
+            # -- plan: known failures, keys, cache hits
+            tasks: list[Task] = []
+            for job in jobs:
+                if job.error is not None or job.fn is None:
+                    reason = job.error or "the job has no function to run"
+                    outcomes[job.name] = JobOutcome(job.name, job.kind, "failed", reason=reason,
+                                                    exit_code=job.error_exit_code)
+                    logger.warning("job %s: failed before running (exit %d): %s", job.name,
+                                   job.error_exit_code, reason)
+                    continue
+                try:
+                    digests = input_digests(job.key_inputs)
+                    config = _canonical(job.config, "config")
+                    key = cache_key(job, digests=digests)
+                except EsmmError as exc:
+                    outcomes[job.name] = JobOutcome(job.name, job.kind, "failed", reason=str(exc),
+                                                    exit_code=exc.exit_code)
+                    logger.warning("job %s: failed before running (exit %d): %s", job.name, exc.exit_code, exc)
+                    continue
+                if not force:
+                    doc, why = _cache.lookup(out, key)
+                    if doc is not None:
+                        outcomes[job.name] = JobOutcome(
+                            job.name, job.kind, "cached", key=key,
+                            outputs=[r["path"] for r in doc["outputs"]], summary=doc.get("summary") or {},
+                            worker=str(doc.get("worker", "")))
+                        logger.info("job %s: skipped, cached (key %s, made %s in %.2f s)", job.name, key[:12],
+                                    doc.get("finished_utc", "?"), float(doc.get("seconds") or 0.0))
+                        continue
+                    if why:
+                        logger.info("job %s: recomputing, the cached result is not usable: %s", job.name, why)
+                tasks.append({"name": job.name, "kind": job.kind, "key": key, "fn": job.fn,
+                              "args": tuple(job.args), "kwargs": dict(job.kwargs), "out_dir": str(out),
+                              "key_inputs": [os.fspath(p) for p in job.key_inputs], "digests": digests,
+                              "config": config, "code_version": version})
+            n_cached = sum(o.status == "cached" for o in outcomes.values())
+            if n_cached:
+                rep.step(f"{n_cached} job(s) already done (cached); {len(tasks)} to run")
+
+            # -- run
+            def on_event(task: Task, res: dict[str, Any]) -> None:
+                o = JobOutcome(task["name"], task["kind"], res["status"], reason=res.get("reason", ""),
+                               seconds=float(res.get("seconds") or 0.0), key=task["key"],
+                               outputs=list(res.get("outputs") or []), summary=res.get("summary") or {},
+                               worker=res.get("worker", ""), exit_code=int(res.get("exit_code", 0)))
+                outcomes[o.name] = o
+                if o.status == "done":
+                    logger.info("job %s: done in %.2f s on %s (key %s); outputs: %s", o.name, o.seconds, o.worker,
+                                o.key[:12], ", ".join(o.outputs) or "-")
+                    rep.step(f"done     {o.name} ({o.seconds:.1f} s)")
+                elif o.status == "failed":
+                    logger.warning("job %s: failed after %.2f s on %s (exit %d): %s", o.name, o.seconds,
+                                   o.worker or "?", o.exit_code, o.reason)
+                    if res.get("detail"):
+                        logger.error("job %s: traceback:\n%s", o.name, res["detail"].rstrip())
+                    rep.warn(f"{o.name} failed: {o.reason}")
+                else:
+                    logger.warning("job %s: %s: %s", o.name, o.status, o.reason)
+                advance(1)
+
+            if tasks:
+                where = desc if kind != "local" else f"{min(n_workers, len(tasks))} local process(es)"
+                with _sigterm_as_interrupt(), rep.task(f"{title}: {len(tasks)} job(s) on {where}",
+                                                       total=len(tasks)) as advance:
+                    try:
+                        if kind == "serial":
+                            _run_serial(tasks, on_event)
+                        elif kind == "local":
+                            _run_local(tasks, n_workers, on_event)
+                        else:
+                            addr = _run_dask(tasks, target, on_event, logger)
+                            summary.scheduler = f"dask {addr}"
+                    except KeyboardInterrupt:
+                        summary.interrupted = True
+                        logger.warning("batch interrupted (Ctrl-C or SIGTERM): queued jobs not started")
+                        if kind != "dask":
+                            late = _cache.sweep_temp(out)
+                            if late:
+                                logger.info("removed %d temporary file(s) of stopped jobs", len(late))
+        except KeyboardInterrupt:  # during planning
+            summary.interrupted = True
+            logger.warning("batch interrupted before any job ran")
+        finally:
+            summary.outcomes = [outcomes.get(n) or JobOutcome(n, by_name[n].kind, "interrupted",
+                                                              reason="not started: the batch was interrupted",
+                                                              exit_code=130)
+                                for n in names]
+            summary.scheduler = summary.scheduler or desc
+            summary.seconds = time.perf_counter() - t_start
+            try:
+                summary.table_path = write_text(out / SUMMARY_NAME, summary.table("csv"))
+            except OSError as exc:  # pragma: no cover - disk full
+                logger.error("cannot write %s: %s", SUMMARY_NAME, exc)
+            logger.info("summary (%s):\n%s", "INTERRUPTED" if summary.interrupted else "complete",
+                        summary.table("text"))
+            logger.info("batch end: exit code %d", summary.exit_code)
+            logger.removeHandler(handler)
+            handler.close()
+    return summary
