@@ -40,7 +40,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..progress import ensure
-from .tables import LAWS, StiffnessTables
+from .tables import StiffnessTables
 from .tensile_test import Specimen, TensileResult, continuum_stress, virtual_tensile_test
 
 __all__ = ["CompensationResult", "calibrate_compensation", "correction_on_grid"]
@@ -170,19 +170,12 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
     lam_c = _stretches(compression, spacing, tension=False, tables=tables)
     if lam_t.size + lam_c.size == 0:
         raise ConfigError("tension/compression: give at least one side to calibrate on")
-    li = LAWS.index(law)
-    base_corr = np.array(tables.correction, copy=True)
-    base_corr[li] = 1.0
-    base = StiffnessTables(
-        lam_min=tables.lam_min, lam_max=tables.lam_max, n=tables.n, values=tables.values,
-        stress=tables.stress, energy=tables.energy, default_law=tables.default_law, volume_factor=1.0,
-        correction=base_corr, material_toml=tables.material_toml, metadata=dict(tables.metadata),
-    )
+    base = tables.with_compensation(1.0, correction={law: np.ones(tables.n)})
 
     def reference(lam):
         if material is not None:
             return continuum_stress(material, lam)
-        return np.interp(lam, base.lam, base.stress[2])
+        return np.interp(lam, base.lam, base.material_stress[2])
 
     # 1. scalar factor from a small-strain test
     small = virtual_tensile_test(specimen, base, stretch=[1.0 + SMALL_STRAIN], law=law, material=material)

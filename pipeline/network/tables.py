@@ -31,7 +31,11 @@ whose magnitude is a function of :math:`\lambda` only,
 (x, y, z) of :math:`\mu_e` (``values``), of the nominal uniaxial stress
 :math:`W_T'` (``stress``) and of an energy :math:`W_T` that is the exact
 integral of the interpolated stress (``energy``), so a consumer can evaluate
-both laws, their energies and tangents from the file alone.
+both laws, their energies and tangents from the file alone. When the network
+has been calibrated (:mod:`esmm.pipeline.network.compensation`), ``values``
+and ``stress`` already include the stretch correction :math:`g(\lambda)`
+(``correction``; the material's own curves are ``values / correction``), so a
+consumer never applies it separately; only ``volume_factor`` multiplies.
 
 Lookup (O(1), what a kernel does)::
 
@@ -105,24 +109,29 @@ class StiffnessTables:
     n : int
         Number of grid points (>= 3).
     values : ndarray, shape (3, n)
-        The material's :math:`\\mu_e = 2W_T/(\\lambda-1)^2` [Pa] for the x, y, z
-        directions (equal rows for an isotropic material).
+        :math:`g_{secant}(\\lambda)\\,\\mu_e(\\lambda)` [Pa] for the x, y, z
+        directions (equal rows for an isotropic material), with
+        :math:`\\mu_e = 2W_T/(\\lambda-1)^2` the material's modulus and
+        :math:`g` the stretch correction (1 unless calibrated): the secant
+        law's table, ``k_ij = volume_factor * v_ij * cos2_ij @ values(lam)``.
     stress : ndarray, shape (3, n)
-        The material's :math:`W_T'(\\lambda)`, the nominal uniaxial stress [Pa].
+        :math:`g_{energy}(\\lambda)\\,W_T'(\\lambda)` [Pa], with :math:`W_T'` the
+        material's nominal uniaxial stress: the energy law's table.
     energy : ndarray, shape (3, n)
-        :math:`W_T(\\lambda)` [Pa = J/m3], computed as the exact integral from
-        1 of the linearly interpolated ``stress`` (so that the energy law's
-        force is exactly the derivative of its energy).
+        Integral from 1 of the linearly interpolated ``stress`` [Pa = J/m3]
+        (:math:`W_T` when uncorrected), so that the energy law's force is
+        exactly the derivative of its energy.
     default_law : str
         ``"secant"`` (the paper's Eq. 9) or ``"energy"``.
     volume_factor : float
         Volumetric compensation factor :math:`c` that multiplies every
         :math:`v_{ij}` (1 = uncalibrated).
     correction : ndarray, shape (2, n)
-        Stretch-dependent compensation :math:`g(\\lambda)` on the grid, one row
-        per law (:data:`LAWS` order: secant, energy); all ones when not
-        calibrated. The law's table row is multiplied by it node by node
-        (``mu_e_eff = g_secant * values``, ``stress_eff = g_energy * stress``).
+        The stretch correction :math:`g` already applied to ``values`` (row 0)
+        and ``stress`` (row 1), in :data:`LAWS` order; all ones when not
+        calibrated. The material's own curves are ``values / correction[0]``
+        and ``stress / correction[1]`` (:attr:`material_values`,
+        :attr:`material_stress`).
     material_toml : str
         The material the tables were built from, as TOML text.
     metadata : dict
@@ -209,33 +218,29 @@ class StiffnessTables:
             raise ConfigError(f"law: unknown force law {law!r}; use one of {', '.join(LAWS)}")
         return law
 
-    # -- effective rows (what the network uses) ----------------------------
+    # -- the material's own curves ---------------------------------------------
     @cached_property
-    def mu_e_eff(self) -> np.ndarray:
-        """``correction[secant] * values`` [Pa], shape (3, n): the secant law's table."""
-        return _readonly(self.values * self.correction[0][None, :])
+    def material_values(self) -> np.ndarray:
+        """The material's :math:`\\mu_e` on the grid [Pa], shape (3, n) (``values / correction[0]``)."""
+        return _readonly(self.values / self.correction[0][None, :])
 
     @cached_property
-    def stress_eff(self) -> np.ndarray:
-        """``correction[energy] * stress`` [Pa], shape (3, n): the energy law's table."""
-        return _readonly(self.stress * self.correction[1][None, :])
-
-    @cached_property
-    def energy_eff(self) -> np.ndarray:
-        """Integral from 1 of the interpolated :attr:`stress_eff` [Pa], shape (3, n)."""
-        return _readonly(_integrate_from_one(self.lam, self.stress_eff))
+    def material_stress(self) -> np.ndarray:
+        """The material's :math:`W_T'` on the grid [Pa], shape (3, n) (``stress / correction[1]``)."""
+        return _readonly(self.stress / self.correction[1][None, :])
 
     # -- evaluation --------------------------------------------------------
     def mu_e(self, lam) -> np.ndarray:
         """The material's :math:`\\mu_e` [Pa] interpolated, shape (3, *lam.shape); held off the grid."""
-        return self._interp_clamped(self.values, lam)
+        return self._interp_clamped(self.material_values, lam)
 
     def stiffness_modulus(self, lam) -> np.ndarray:
-        """Secant-law modulus ``g(lam) * mu_e(lam)`` [Pa], shape (3, *lam.shape).
+        """Interpolated ``values`` (the secant law's corrected modulus) [Pa], shape (3, *lam.shape).
 
-        The spring stiffness is ``k_ij = c * v_ij * cos2_ij @ stiffness_modulus(lam)``.
+        The spring stiffness is ``k_ij = c * v_ij * cos2_ij @ stiffness_modulus(lam)``;
+        held constant off the grid.
         """
-        return self._interp_clamped(self.mu_e_eff, lam)
+        return self._interp_clamped(self.values, lam)
 
     def _interp_clamped(self, rows: np.ndarray, lam) -> np.ndarray:
         i, t = self._locate(lam)
@@ -253,7 +258,7 @@ class StiffnessTables:
         if law == "secant":
             return self.stiffness_modulus(lam) * (lam - 1.0)
         i, t = self._locate(lam)
-        s = self.stress_eff
+        s = self.stress
         return s[:, i] + (s[:, i + 1] - s[:, i]) * t
 
     def tangent_function(self, lam, *, law: str | None = None) -> np.ndarray:
@@ -265,9 +270,9 @@ class StiffnessTables:
         lam = np.asarray(lam, dtype=np.float64)
         i, t = self._locate(lam)
         if law == "energy":
-            s = self.stress_eff
+            s = self.stress
             return (s[:, i + 1] - s[:, i]) / self.dlam
-        v = self.mu_e_eff
+        v = self.values
         inside = (t >= 0.0) & (t <= 1.0)
         dmu = np.where(inside, (v[:, i + 1] - v[:, i]) / self.dlam, 0.0)
         return self.stiffness_modulus(lam) + (lam - 1.0) * dmu
@@ -294,11 +299,11 @@ class StiffnessTables:
         lam_i = self.lam_min + i * h
         if law == "energy":
             cum = self._cum_energy
-            s = self.stress_eff
+            s = self.stress
             tau = t * h
             return cum[:, i] + s[:, i] * tau + (s[:, i + 1] - s[:, i]) * tau**2 / (2.0 * h)
         cum = self._cum_secant
-        v = self.mu_e_eff
+        v = self.values
         tau = np.clip(t, 0.0, 1.0) * h
         a = v[:, i]
         b = (v[:, i + 1] - v[:, i]) / h
@@ -315,14 +320,14 @@ class StiffnessTables:
 
     @cached_property
     def _cum_energy(self) -> np.ndarray:
-        s = self.stress_eff
+        s = self.stress
         seg = 0.5 * (s[:, 1:] + s[:, :-1]) * self.dlam
         return np.concatenate([np.zeros((3, 1)), np.cumsum(seg, axis=1)], axis=1)
 
     @cached_property
     def _cum_secant(self) -> np.ndarray:
         h = self.dlam
-        v = self.mu_e_eff
+        v = self.values
         a = v[:, :-1]
         b = (v[:, 1:] - v[:, :-1]) / h
         c = self.lam[:-1] - 1.0
@@ -345,16 +350,25 @@ class StiffnessTables:
         """
         corr = np.array(self.correction, copy=True)
         for law, g in (correction or {}).items():
-            corr[LAWS.index(self.check_law(law))] = np.asarray(g, dtype=np.float64)
+            g = np.asarray(g, dtype=np.float64)
+            if g.shape != (self.n,) or not np.all(np.isfinite(g)) or np.any(g <= 0):
+                raise ValueError(f"correction[{law!r}]: need {self.n} positive finite values")
+            corr[LAWS.index(self.check_law(law))] = g
         meta = dict(self.metadata)
         if record is not None:
             meta["compensation"] = record
-        return replace(self, volume_factor=float(factor), correction=corr, metadata=meta)
+        return self._with_rows(corr, volume_factor=float(factor), metadata=meta)
+
+    def _with_rows(self, corr: np.ndarray, **changes) -> StiffnessTables:
+        values = self.material_values * corr[0][None, :]
+        stress = self.material_stress * corr[1][None, :]
+        return replace(self, values=values, stress=stress,
+                       energy=_integrate_from_one(self.lam, stress), correction=corr, **changes)
 
     def without_compensation(self) -> StiffnessTables:
-        """A copy with ``volume_factor = 1`` and no correction."""
+        """A copy with ``volume_factor = 1`` and no correction (the material's own curves)."""
         meta = {k: v for k, v in self.metadata.items() if k != "compensation"}
-        return replace(self, volume_factor=1.0, correction=np.ones((len(LAWS), self.n)), metadata=meta)
+        return self._with_rows(np.ones((len(LAWS), self.n)), volume_factor=1.0, metadata=meta)
 
     def with_law(self, law: str) -> StiffnessTables:
         """A copy whose default force law is *law*."""
@@ -369,9 +383,9 @@ class StiffnessTables:
         ``volume_factor``, ``directions``, ``isotropic``, ``grid_rule``,
         ``extrapolation``, ``force_law``, ``material_toml``, ``metadata``
         (JSON); datasets (each with ``units`` and ``description``): ``lam``
-        (n,), the material's ``mu_e``, ``stress``, ``energy`` (3, n), the
-        ``correction`` (2, n) and the effective tables a simulator uses,
-        ``mu_e_eff``, ``stress_eff``, ``energy_eff`` (3, n).
+        (n,), ``mu_e`` (= :attr:`values`), ``stress``, ``energy`` (3, n) and
+        ``correction`` (2, n). ``mu_e`` and ``stress`` are what a simulator
+        interpolates (the correction is already applied).
         """
         for name in _DATASETS:
             if name in group:
@@ -395,13 +409,14 @@ class StiffnessTables:
         a["metadata"] = json.dumps(self.metadata, sort_keys=True, default=_json_default)
         for name, data, units, desc in (
             ("lam", self.lam, "1", "stretch grid (uniform)"),
-            ("mu_e", self.values, "Pa", "material mu_e = 2 W_T / (lam-1)^2, rows x, y, z"),
-            ("stress", self.stress, "Pa", "material W_T'(lam), nominal uniaxial stress, rows x, y, z"),
-            ("energy", self.energy, "Pa", "material W_T(lam) = integral of interpolated stress from 1"),
-            ("correction", self.correction, "1", "stretch-dependent compensation g(lam), rows secant, energy"),
-            ("mu_e_eff", self.mu_e_eff, "Pa", "secant-law table g_secant * mu_e: k = volume_factor * v_ij * cos2 @ mu_e_eff"),
-            ("stress_eff", self.stress_eff, "Pa", "energy-law table g_energy * stress: F = volume_factor * V_ij / L0 * cos2 @ stress_eff"),
-            ("energy_eff", self.energy_eff, "Pa", "integral from 1 of interpolated stress_eff (energy-law potential per volume)"),
+            ("mu_e", self.values, "Pa", "secant-law table: correction[0] * material mu_e, mu_e = 2 W_T / "
+             "(lam-1)^2; k_ij = volume_factor * v_ij * sum_d cos2_d * mu_e_d(lam); rows x, y, z"),
+            ("stress", self.stress, "Pa", "energy-law table: correction[1] * material W_T'(lam) (nominal "
+             "uniaxial stress); F = volume_factor * V_ij / L0 * sum_d cos2_d * stress_d(lam); rows x, y, z"),
+            ("energy", self.energy, "Pa", "integral from 1 of the interpolated stress (energy-law potential "
+             "per volume); rows x, y, z"),
+            ("correction", self.correction, "1", "stretch correction g(lam) already applied to mu_e "
+             "(row 0, secant) and stress (row 1, energy); the material's curves are mu_e/g, stress/g"),
         ):
             ds = group.create_dataset(name, data=np.asarray(data, dtype=np.float64))
             ds.attrs["units"] = units
@@ -438,18 +453,15 @@ class StiffnessTables:
         if "dlam" in a and not math.isclose(float(a["dlam"]), tables.dlam, rel_tol=1e-9):
             raise AssetError(f"{where}: dlam attribute disagrees with lam_min/lam_max/n; "
                              "rebuild the tables with 'esmm tables'")
-        for name, mine in (("mu_e_eff", tables.mu_e_eff), ("stress_eff", tables.stress_eff)):
-            if name in group and not np.allclose(group[name][()], mine, rtol=1e-12, atol=0):
-                raise AssetError(f"{where}: {name} disagrees with the material table times its "
-                                 "correction (edited file?); rebuild the tables with 'esmm tables'")
         return tables
 
 
-_DATASETS = ("lam", "mu_e", "stress", "energy", "correction", "mu_e_eff", "stress_eff", "energy_eff")
+_DATASETS = ("lam", "mu_e", "stress", "energy", "correction")
 FORCE_LAW = (
     "F = volume_factor * V_ij / L0 * sum_d cos2_d * f_d(lam), lam = L/L0, positive = tension; "
-    "secant (paper Eq. 9): f = mu_e_eff(lam) * (lam - 1), i.e. F = k (L - L0) with "
-    "k = volume_factor * v_ij * sum_d cos2_d * mu_e_eff_d(lam); energy: f = stress_eff(lam)"
+    "secant (paper Eq. 9): f = mu_e(lam) * (lam - 1), i.e. F = k (L - L0) with "
+    "k = volume_factor * v_ij * sum_d cos2_d * mu_e_d(lam); energy: f = stress(lam); "
+    "mu_e and stress are the datasets (stretch correction included)"
 )
 
 
@@ -665,7 +677,7 @@ def spring_factors(tables: StiffnessTables, network) -> np.ndarray:
 def per_spring_table(tables: StiffnessTables, network, *, dtype=np.float32) -> np.ndarray:
     """Materialised stiffness :math:`k_{ij}(\\lambda_m)` [N/m] on the table grid, shape (s, n)."""
     a = spring_factors(tables, network)
-    return (a @ tables.mu_e_eff).astype(dtype, copy=False)
+    return (a @ tables.values).astype(dtype, copy=False)
 
 
 def write_per_spring(group, tables: StiffnessTables, network, *, name: str = "k_per_spring",
@@ -690,9 +702,9 @@ def write_per_spring(group, tables: StiffnessTables, network, *, name: str = "k_
                               shuffle=bool(s))
     for start in range(0, s, rows):
         stop = min(s, start + rows)
-        ds[start:stop] = (a[start:stop] @ tables.mu_e_eff).astype(dtype, copy=False)
+        ds[start:stop] = (a[start:stop] @ tables.values).astype(dtype, copy=False)
     ds.attrs["units"] = "N/m"
-    ds.attrs["description"] = "k_ij(lam) = volume_factor * v_ij * sum_d cos2_d * mu_e_eff_d(lam) on the table grid (secant law)"
+    ds.attrs["description"] = "k_ij(lam) = volume_factor * v_ij * sum_d cos2_d * mu_e_d(lam) on the table grid (secant law)"
     ds.attrs["lam_min"] = tables.lam_min
     ds.attrs["lam_max"] = tables.lam_max
     ds.attrs["n"] = tables.n

@@ -229,6 +229,10 @@ class TensileResult:
     volume_factor : float
     residual : float
         Largest relative equilibrium residual at convergence.
+    points : ndarray, shape (n, 3)
+        Node positions at the last stretch [m].
+    info : dict
+        The specimen's :meth:`Specimen.describe`.
     """
 
     stretch: np.ndarray
@@ -239,6 +243,7 @@ class TensileResult:
     law: str
     volume_factor: float
     residual: float
+    points: np.ndarray | None = None
     info: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -357,7 +362,7 @@ def virtual_tensile_test(specimen: Specimen, tables: StiffnessTables, *, stretch
         ref = tables.force_function(lam_list, law="energy")[2] * 1.0
     res = TensileResult(stretch=lam_list, stress=stress, reference=ref,
                         lateral_stretch=np.asarray(out_lat), iterations=np.asarray(out_it),
-                        law=law, volume_factor=tables.volume_factor, residual=worst,
+                        law=law, volume_factor=tables.volume_factor, residual=worst, points=x,
                         info={"specimen": specimen.describe()})
     rep.step(f"virtual tensile test ({law}, c={tables.volume_factor:.4g}): max |error| "
              f"{100 * res.max_abs_rel_error:.2f} % over stretch {lam_list.min():.3g}-{lam_list.max():.3g}")
