@@ -104,9 +104,11 @@ def test_config_file_overrides_and_keeps_defaults(tmp_path):
 
 
 def test_size_for_elements_matches_its_definition():
-    # a regular tet of edge h has volume h^3/(6 sqrt 2); gmsh's average 1.4 times that
+    # a regular tet of edge h has volume h^3/(6 sqrt 2); the mesher's average r times that
+    from esmm.pipeline.prepare import MESHER_VOLUME_RATIO as r
+
     h = size_for_elements(1e-3, 5000)
-    assert 5000 * 1.4 * h**3 / (6 * 2**0.5) == pytest.approx(1e-3, rel=1e-12)
+    assert 5000 * r * h**3 / (6 * 2**0.5) == pytest.approx(1e-3, rel=1e-12)
 
 
 # -- bad command lines: one line, nonzero exit, nothing written -------------------------------
@@ -191,6 +193,7 @@ def test_info_on_bad_assets(run_cli, small_asset, tmp_path):
 
 # -- end to end ------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_prepare_sphere_end_to_end(run_cli, tmp_path, monkeypatch, sphere_stl):
     """A 30 mm ball through the whole pipeline with the coarse preset (default output name)."""
     monkeypatch.chdir(tmp_path)
@@ -207,7 +210,7 @@ def test_prepare_sphere_end_to_end(run_cli, tmp_path, monkeypatch, sphere_stl):
     v_ball = 4 / 3 * np.pi * 0.03**3
     assert net.total_volume() == pytest.approx(v_ball, rel=0.1)  # smoothing + faceting shrink a little
     assert net.total_mass() == pytest.approx(1060 * net.total_volume(), rel=1e-9)
-    assert 700 < net.n_tets < 2500
+    assert 600 < net.n_tets < 3750  # coarse: ~1 500; the mesher's size fidelity is its own business
     assert a.provenance.input_sha256 and "prepare" in a.provenance.command_line
     assert a.quality_passes is True
     assert net.fixed.size > 0
@@ -215,6 +218,7 @@ def test_prepare_sphere_end_to_end(run_cli, tmp_path, monkeypatch, sphere_stl):
     assert rc == 0 and "valid        yes" in out
 
 
+@pytest.mark.slow
 def test_quality_gate_and_force(run_cli, tmp_path, monkeypatch, sphere_stl):
     from esmm.pipeline.mesh.quality import QUALITY_FLOORS
 
