@@ -40,13 +40,21 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..progress import ensure
-from .tables import StiffnessTables
-from .tensile_test import Specimen, TensileResult, continuum_stress, virtual_tensile_test
+from .tables import LAWS, StiffnessTables
+from .tensile_test import (
+    Specimen,
+    TensileResult,
+    continuum_stress,
+    cylinder_specimen,
+    virtual_tensile_test,
+)
 
-__all__ = ["CompensationResult", "calibrate_compensation", "correction_on_grid"]
+__all__ = ["CompensationResult", "calibrate_compensation", "correction_on_grid", "specimen_for"]
 
 #: Small-strain stretch of the scalar calibration.
 SMALL_STRAIN = 1e-4
+#: Radius of the calibration cylinder of :func:`specimen_for`, in element sizes.
+DEFAULT_RADIUS_ELEMENTS = 4.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -129,7 +137,7 @@ def _stretches(end: float | None, spacing: float, *, tension: bool, tables: Stif
 def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: str | None = None,
                            material=None, tension: float | None = 1.3, compression: float | None = 0.9,
                            spacing: float = 0.02, tol: float = 0.01, max_iter: int = 8,
-                           reporter=None) -> tuple[StiffnessTables, CompensationResult]:
+                           rtol: float = 1e-8, reporter=None) -> tuple[StiffnessTables, CompensationResult]:
     """Find the scalar factor and the stretch correction of *law* on *specimen*.
 
     Parameters
@@ -151,6 +159,9 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
         Stop when every relative stress error is below *tol*.
     max_iter : int
         Fixed-point iterations at most; the best correction found is kept.
+    rtol : float
+        Equilibrium tolerance of the virtual tests (see
+        :func:`~esmm.pipeline.network.tensile_test.virtual_tensile_test`).
 
     Returns
     -------
@@ -192,10 +203,11 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
     converged = False
     it = 0
     history: dict[str, np.ndarray] = {}
+    guesses: dict[str, np.ndarray] = {}
     with rep.task(f"compensation ({law} law)", total=max_iter) as advance:
         for it in range(1, max_iter + 1):
             cur = base.with_compensation(c, correction={law: correction_on_grid(base, knots, g)})
-            res = _both_sides(specimen, cur, lam_t, lam_c, law, reference)
+            res = _both_sides(specimen, cur, lam_t, lam_c, law, reference, guesses, rtol)
             if first is None:
                 first = res
             err = res.max_abs_rel_error
@@ -225,9 +237,28 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
     if not converged:
         rep.warn(f"compensation ({law}): stopped after {it} iterations at max |error| "
                  f"{100 * err:.2f} % (tolerance {100 * tol:.2g} %)")
-    out = tables.with_compensation(c, correction={law: correction_on_grid(base, knots, g_best)},
-                                   record=_merge_record(tables, law, result.record()))
+    # Other laws' corrections were found relative to the old factor: keep c * g unchanged.
+    corr = {law: correction_on_grid(base, knots, g_best)}
+    for other in LAWS:
+        if other != law and tables.is_corrected(other):
+            corr[other] = tables.correction[LAWS.index(other)] * (tables.volume_factor / c)
+    out = tables.with_compensation(c, correction=corr, record=_merge_record(tables, law, result.record()))
     return out, result
+
+
+def specimen_for(network, *, radius_elements: float = DEFAULT_RADIUS_ELEMENTS, reporter=None) -> Specimen:
+    """A calibration cylinder meshed like *network*: element size = its median rest length.
+
+    The network's stress response is scale-free (forces scale with V/L0, areas
+    with L0^2), so what the compensation depends on is the mesh's shape
+    statistics and the specimen's resolution, not its size in metres. The
+    specimen has radius ``radius_elements`` element sizes and length 4 radii.
+    """
+    h = float(np.median(network.rest_length))
+    if not (math.isfinite(h) and h > 0):
+        raise ConfigError("network: rest lengths are not positive; rebuild the network")
+    r = radius_elements * h
+    return cylinder_specimen(radius=r, length=4.0 * r, size=h, reporter=reporter)
 
 
 def _update(g: np.ndarray, log_r: np.ndarray, history: dict[str, np.ndarray]) -> np.ndarray:
@@ -293,11 +324,15 @@ def _merge_record(tables: StiffnessTables, law: str, rec: dict[str, Any]) -> dic
     return merged
 
 
-def _both_sides(specimen, tables, lam_t, lam_c, law, reference) -> TensileResult:
+def _both_sides(specimen, tables, lam_t, lam_c, law, reference, guesses, rtol) -> TensileResult:
+    """Compression then tension tests; *guesses* (dict side -> path) is updated in place."""
     parts = []
-    for lam in (lam_c, lam_t):
+    for side, lam in (("c", lam_c), ("t", lam_t)):
         if lam.size:
-            parts.append(virtual_tensile_test(specimen, tables, stretch=lam, law=law))
+            r = virtual_tensile_test(specimen, tables, stretch=lam, law=law, rtol=rtol,
+                                     predictors=guesses.get(side), keep_path=True)
+            guesses[side] = r.path
+            parts.append(r)
     stretch = np.concatenate([p.stretch for p in parts])
     return TensileResult(
         stretch=stretch, stress=np.concatenate([p.stress for p in parts]), reference=reference(stretch),

@@ -709,3 +709,78 @@ def write_per_spring(group, tables: StiffnessTables, network, *, name: str = "k_
     ds.attrs["lam_max"] = tables.lam_max
     ds.attrs["n"] = tables.n
     ds.attrs["volume_factor"] = tables.volume_factor
+
+
+# ---------------------------------------------------------------------------
+# Rewriting the /tables group of an asset
+# ---------------------------------------------------------------------------
+
+def update_asset_tables(path, tables: StiffnessTables, *, material=None, per_spring: bool = False,
+                        reporter=None):
+    """Replace the ``/tables`` group (and optionally ``/material``) of an asset, atomically.
+
+    The asset is read and verified first (checksums); a new file is written
+    next to it with every other group copied unchanged, the new tables (and,
+    with *per_spring*, the materialised ``/tables/k_per_spring``), re-sealed
+    (dataset digests and root checksum), validated, and only then renamed
+    over the original. The XDMF sidecar stays valid (it does not reference
+    ``/tables`` or ``/material``).
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.h5`` asset.
+    tables : StiffnessTables
+    material : Material, optional
+        Also replace ``/material`` (when the tables were built from another material).
+    per_spring : bool
+        Write the (s, n) per-spring stiffness table too.
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    AssetError
+        The asset cannot be read, or the rewritten file does not validate.
+    """
+    from pathlib import Path
+
+    import h5py
+
+    from ..asset import read_asset, validate_asset
+    from ..asset._h5 import seal
+    from ..atomicio import atomic_path
+    from ..progress import ensure
+
+    rep = ensure(reporter)
+    p = Path(path)
+    asset = read_asset(p)
+    skip = {"tables"} | ({"material"} if material is not None else set())
+    try:
+        with atomic_path(p) as tmp:
+            with h5py.File(p, "r") as src, h5py.File(tmp, "w") as dst:
+                for k, v in src.attrs.items():
+                    dst.attrs[k] = v
+                for name in src:
+                    if name not in skip:
+                        src.copy(src[name], dst, name=name)
+                if material is not None:
+                    from ..asset.write import _write_material
+
+                    _write_material(dst, material)
+                g = dst.create_group("tables")
+                tables.to_hdf5(g)
+                if per_spring:
+                    write_per_spring(g, tables, asset.network)
+                    rep.step(f"per-spring table: {asset.network.n_springs} x {tables.n} (float32, gzip)")
+                seal(dst)
+            problems = validate_asset(tmp)
+            if problems:
+                raise AssetError(f"{p}: the rewritten asset does not validate ({problems[0]}); "
+                                 "the original file is unchanged")
+    except OSError as exc:
+        raise AssetError(f"{p}: cannot rewrite the asset ({exc.strerror or exc}); check the folder "
+                         "is writable and has space") from None
+    return p

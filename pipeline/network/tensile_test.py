@@ -231,6 +231,8 @@ class TensileResult:
         Largest relative equilibrium residual at convergence.
     points : ndarray, shape (n, 3)
         Node positions at the last stretch [m].
+    path : ndarray, shape (m, n, 3) or None
+        Positions at every stretch (``keep_path=True``).
     info : dict
         The specimen's :meth:`Specimen.describe`.
     """
@@ -244,6 +246,7 @@ class TensileResult:
     volume_factor: float
     residual: float
     points: np.ndarray | None = None
+    path: np.ndarray | None = None
     info: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -285,7 +288,8 @@ def continuum_stress(material, stretch, *, direction: str | None = "z") -> np.nd
 
 def virtual_tensile_test(specimen: Specimen, tables: StiffnessTables, *, stretch=None,
                          law: str | None = None, material=None, rtol: float = 1e-9,
-                         max_iter: int = 40, reporter=None) -> TensileResult:
+                         max_iter: int = 40, predictors=None, keep_path: bool = False,
+                         reporter=None) -> TensileResult:
     """Stretch *specimen* quasi-statically and measure its nominal stress.
 
     Parameters
@@ -306,6 +310,13 @@ def virtual_tensile_test(specimen: Specimen, tables: StiffnessTables, *, stretch
         largest spring force.
     max_iter : int
         Newton iterations per (sub-)step before the step is halved.
+    predictors : sequence of ndarray, shape (m, n, 3), optional
+        Initial guesses of the node positions at each stretch (e.g. the
+        ``path`` of an earlier test with slightly different tables); the grip
+        coordinates are reset exactly. A step whose guess does not converge
+        falls back to continuation from the previous stretch.
+    keep_path : bool
+        Keep the equilibrium positions of every stretch in ``result.path``.
 
     Returns
     -------
@@ -341,19 +352,35 @@ def virtual_tensile_test(specimen: Specimen, tables: StiffnessTables, *, stretch
     side = _side_nodes(specimen)
     r0 = np.linalg.norm(X[side, :2], axis=1)
 
+    if predictors is not None and len(predictors) != lam_list.size:
+        raise ConfigError(f"predictors: need one position array per stretch ({lam_list.size}), "
+                          f"got {len(predictors)}")
     x = X.copy()
     lam_prev = 1.0
-    out_P, out_lat, out_it = [], [], []
+    out_P, out_lat, out_it, path = [], [], [], []
     worst = 0.0
     with rep.task(f"virtual tensile test ({law} law)", total=lam_list.size) as advance:
-        for lam in lam_list:
-            x, its, res = _advance(x, lam_prev, lam, net, tables, law, free, H, rtol, max_iter)
+        for k, lam in enumerate(lam_list):
+            done = False
+            if predictors is not None and np.shape(predictors[k]) == X.shape:
+                guess = np.array(predictors[k], dtype=np.float64)
+                guess[specimen.bottom, 2] = 0.0
+                guess[specimen.top, 2] = lam * H
+                guess[specimen.centre, :2] = 0.0
+                guess[specimen.rim, 1] = 0.0
+                ok, xg, its, res = _newton(guess, net, tables, law, free, H, rtol, max_iter)
+                if ok:
+                    x, done = xg, True
+            if not done:
+                x, its, res = _advance(x, lam_prev, lam, net, tables, law, free, H, rtol, max_iter)
             worst = max(worst, res)
             lam_prev = lam
             f = forcelaw.spring_forces(x, net, tables, law=law)
             out_P.append(-f[specimen.top, 2].sum() / specimen.area)
             out_lat.append(float(np.mean(np.linalg.norm(x[side, :2], axis=1) / r0)))
             out_it.append(its)
+            if keep_path:
+                path.append(x.copy())
             advance(1)
     stress = np.asarray(out_P)
     if material is not None:
@@ -363,6 +390,7 @@ def virtual_tensile_test(specimen: Specimen, tables: StiffnessTables, *, stretch
     res = TensileResult(stretch=lam_list, stress=stress, reference=ref,
                         lateral_stretch=np.asarray(out_lat), iterations=np.asarray(out_it),
                         law=law, volume_factor=tables.volume_factor, residual=worst, points=x,
+                        path=np.asarray(path) if keep_path else None,
                         info={"specimen": specimen.describe()})
     rep.step(f"virtual tensile test ({law}, c={tables.volume_factor:.4g}): max |error| "
              f"{100 * res.max_abs_rel_error:.2f} % over stretch {lam_list.min():.3g}-{lam_list.max():.3g}")
