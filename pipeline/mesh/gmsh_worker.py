@@ -187,12 +187,14 @@ def _cmd_mesh(opts: dict, arrays: dict) -> tuple[dict, dict]:
     gmsh.option.setNumber("Mesh.MeshSizeMax", size)
     gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
     gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 1)
-    gmsh.option.setNumber("Mesh.Algorithm", int(opts.get("algorithm2d", 6)))
+    gmsh.option.setNumber("Mesh.Algorithm", int(opts.get("algorithm2d", 5)))
     gmsh.option.setNumber("Mesh.Algorithm3D", int(opts.get("algorithm3d", 1)))
-    gmsh.option.setNumber("Mesh.Optimize", 1)
+    gmsh.option.setNumber("Mesh.Optimize", 1 if opts.get("optimize", True) else 0)
     gmsh.option.setNumber("Mesh.OptimizeNetgen", 1 if opts.get("optimize_netgen", True) else 0)
     gmsh.option.setNumber("Mesh.MaxNumThreads3D", max(1, int(opts.get("threads", 1))))
     t1 = time.perf_counter()
+    gmsh.model.mesh.generate(2)
+    t2a = time.perf_counter()
     gmsh.model.mesh.generate(3)
     t2 = time.perf_counter()
     tags, coords, _ = gmsh.model.mesh.getNodes()
@@ -200,7 +202,7 @@ def _cmd_mesh(opts: dict, arrays: dict) -> tuple[dict, dict]:
     index[tags.astype(np.int64)] = np.arange(tags.size)
     _, ntags = gmsh.model.mesh.getElementsByType(4)
     tets = index[np.asarray(ntags, np.int64)].reshape(-1, 4) if len(ntags) else np.zeros((0, 4), np.int64)
-    info = {"n_patches": len(surfaces), "t_geometry": t1 - t0, "t_mesh": t2 - t1}
+    info = {"n_patches": len(surfaces), "t_geometry": t1 - t0, "t_surface": t2a - t1, "t_volume": t2 - t2a}
     return {"nodes": coords.reshape(-1, 3), "tets": tets}, info
 
 

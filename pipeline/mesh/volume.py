@@ -42,11 +42,12 @@ MAX_MESH_VOLUME_ERROR = 0.01
 #: Node count aimed at when neither ``size`` nor ``nodes`` is given.
 DEFAULT_NODES = 5000
 
-#: Tetrahedra per node in a gmsh Delaunay mesh of an organ, measured (see docs/prepare.md).
-_TETS_PER_NODE = 5.0
+#: Node-count model N = a V / h^3 + b A / h^2 (interior + surface nodes), fitted on gmsh
+#: Delaunay meshes of three livers at 1 200-18 000 nodes (docs/prepare.md); within ~25 %.
+_NODES_A, _NODES_B = 0.387, 2.44
 
-#: Ratio of the mean tetrahedron volume to that of a regular one of edge h.
-_VOLUME_FILL = 0.75
+#: Relative node-count error that triggers one re-run with a corrected size.
+_NODES_TOLERANCE = 0.2
 
 
 @dataclass(frozen=True)
@@ -100,15 +101,39 @@ class VolumeMesh:
         return Surface(self.points, self.boundary_faces, f"boundary of a {self.path} mesh").compact()
 
 
-def size_for_nodes(volume: float, nodes: int) -> float:
-    """Element size h [m] expected to give about *nodes* nodes in *volume* [m3].
+def expected_nodes(volume: float, area: float, h: float) -> float:
+    """Node count a gmsh mesh of element size *h* [m] is expected to have."""
+    return _NODES_A * volume / h ** 3 + _NODES_B * area / h ** 2
 
-    A regular tetrahedron of edge h has volume h^3 / (6 sqrt 2); a Delaunay
-    mesh has about 5 tetrahedra per node, filling the volume at ~75 % of the
-    regular value (both measured on organ meshes; :func:`mesh_volume` corrects
-    the size once from the first result).
+
+def size_for_nodes(volume: float, nodes: int, area: float | None = None) -> float:
+    """Element size h [m] expected to give about *nodes* nodes.
+
+    Solves ``nodes = a V / h^3 + b A / h^2`` (interior plus surface nodes;
+    ``a``, ``b`` fitted on organ meshes, see docs/prepare.md). Without the
+    area, a sphere's area for the volume is used.
+
+    Parameters
+    ----------
+    volume : float
+        Enclosed volume [m3].
+    nodes : int
+        Wanted node count.
+    area : float, optional
+        Surface area [m2].
     """
-    return (6.0 * math.sqrt(2.0) * volume / (_TETS_PER_NODE * _VOLUME_FILL * nodes)) ** (1.0 / 3.0)
+    if area is None:
+        area = (36.0 * math.pi * volume ** 2) ** (1.0 / 3.0)
+    # a V x^3 + b A x^2 - N = 0 for x = 1/h: one positive root (Descartes).
+    roots = np.roots([_NODES_A * volume, _NODES_B * area, 0.0, -float(nodes)])
+    x = max(r.real for r in roots if abs(r.imag) < 1e-9 * max(1.0, abs(r.real)) and r.real > 0)
+    return 1.0 / x
+
+
+def _nodes_exponent(volume: float, area: float, h: float) -> float:
+    """-d ln N / d ln h of the node-count model (between 2 and 3)."""
+    vi, ar = _NODES_A * volume / h ** 3, _NODES_B * area / h ** 2
+    return (3 * vi + 2 * ar) / (vi + ar)
 
 
 def mesh_volume(surface: Surface, *, size: float | None = None, nodes: int | None = None,
@@ -124,8 +149,8 @@ def mesh_volume(surface: Surface, *, size: float | None = None, nodes: int | Non
         Target tetrahedron edge [m].
     nodes
         Target number of nodes instead (ignored if ``size`` is given); the size
-        is estimated from the volume and corrected once if the result is more
-        than 25 % off. Default: :data:`DEFAULT_NODES`.
+        is estimated from the volume and area and corrected once if the result
+        is more than 20 % off. Default: :data:`DEFAULT_NODES`.
     timeout
         Time limit of each mesher run [s]; a run that exceeds it is killed.
     reporter
@@ -162,14 +187,14 @@ def mesh_volume(surface: Surface, *, size: float | None = None, nodes: int | Non
     target_nodes = None
     if size is None:
         target_nodes = int(nodes) if nodes is not None else DEFAULT_NODES
-        h = size_for_nodes(v_surf, target_nodes)
+        h = size_for_nodes(v_surf, target_nodes, surface.area())
     else:
         h = float(size)
     extent = surface.extent()
     if h > extent:
         raise ConfigError(f"size: {h * 1e3:.3g} mm is larger than the organ ({extent * 1e3:.3g} mm); "
                           f"give a smaller --size or more --nodes")
-    est_nodes = _TETS_PER_NODE and v_surf / (h ** 3 / (6 * math.sqrt(2)) * _VOLUME_FILL * _TETS_PER_NODE)
+    est_nodes = expected_nodes(v_surf, surface.area(), h)
     if est_nodes > 2_000_000:
         raise ConfigError(f"size: {h * 1e3:.3g} mm would give about {est_nodes:.3g} nodes; give a larger --size")
 
@@ -186,8 +211,8 @@ def mesh_volume(surface: Surface, *, size: float | None = None, nodes: int | Non
         mesh, msg = _attempt(path, surf, h, v_surf, timeout, log)
         if mesh is not None and target_nodes is not None:
             ratio = mesh.n_nodes / target_nodes
-            if abs(ratio - 1.0) > 0.25:
-                h2 = h * ratio ** (1.0 / 3.0)
+            if abs(ratio - 1.0) > _NODES_TOLERANCE:
+                h2 = h * ratio ** (1.0 / _nodes_exponent(v_surf, surface.area(), h))
                 log.append(f"{path}: {mesh.n_nodes} nodes for a target of {target_nodes}; "
                            f"size {h * 1e3:.3g} -> {h2 * 1e3:.3g} mm")
                 mesh2, msg2 = _attempt(path, surf, h2, v_surf, timeout, log)
@@ -261,12 +286,64 @@ def check_tets(nodes: np.ndarray, tets: np.ndarray, v_surf: float, *, path: str 
         return False, f"{bad} inverted or flat tetrahedra", None
     vol = float(det.sum() / 6.0)
     err = vol / v_surf - 1.0
+    bfaces = boundary_of_tets(pts, t)
+    note = ""
+    if abs(err) > MAX_MESH_VOLUME_ERROR:
+        moved = restore_volume(pts, t, bfaces, v_surf)
+        if moved is not None:
+            pts, delta = moved
+            vol2 = float(VolumeMesh(pts, t, bfaces).volume())
+            note = (f"; boundary nodes moved {delta * 1e3:+.3f} mm along their normals to restore the "
+                    f"volume ({err * 100:+.2f} % -> {(vol2 / v_surf - 1) * 100:+.2f} %)")
+            err = vol2 / v_surf - 1.0
     if abs(err) > MAX_MESH_VOLUME_ERROR:
         return False, (f"mesh volume {vol * 1e6:.1f} mL is {err * 100:+.2f} % off the surface's "
                        f"{v_surf * 1e6:.1f} mL"), None
-    bfaces = boundary_of_tets(pts, t)
     mesh = VolumeMesh(pts, t, bfaces, path, [])
-    return True, f"{pts.shape[0]} nodes, {t.shape[0]} tets, volume {err * 100:+.2f} %", mesh
+    return True, f"{pts.shape[0]} nodes, {t.shape[0]} tets, volume {err * 100:+.2f} %{note}", mesh
+
+
+def restore_volume(points: np.ndarray, tets: np.ndarray, boundary_faces: np.ndarray,
+                   target_volume: float) -> tuple[np.ndarray, float] | None:
+    """Move the boundary nodes along their normals so the mesh volume matches.
+
+    A mesh whose boundary nodes lie on a curved surface is inside it by the
+    chord sagitta (about h^2 / 8R), so a coarse mesh loses volume (mass). A
+    uniform normal offset ``delta = (V_target - V) / A`` (two passes)
+    restores it; ``delta`` is a fraction of the element size, so the boundary
+    then straddles the surface. Returns None if an element would invert.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    tets : ndarray, shape (t, 4), positively oriented
+    boundary_faces : ndarray, shape (k, 3), outward
+    target_volume : float
+
+    Returns
+    -------
+    (points, delta) or None
+        New coordinates (n, 3) and the total offset [m].
+    """
+    p = points.copy()
+    f = boundary_faces
+    bn = np.unique(f)
+    total = 0.0
+    for _ in range(2):
+        n_face = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])  # 2 * area * normal
+        area = 0.5 * float(np.linalg.norm(n_face, axis=1).sum())
+        vn = np.zeros_like(p)
+        for k in range(3):
+            np.add.at(vn, f[:, k], n_face)
+        ln = np.linalg.norm(vn[bn], axis=1)
+        ln[ln == 0] = 1.0
+        vol = VolumeMesh(p, tets, f).volume()
+        delta = (target_volume - vol) / area
+        p[bn] += delta * vn[bn] / ln[:, None]
+        total += delta
+    if np.any(VolumeMesh(p, tets, f).tet_volumes() <= 0):
+        return None
+    return p, total
 
 
 def _repair_for_gmsh(surface: Surface) -> Surface:
