@@ -556,6 +556,21 @@ class Simulator:
         self.step_count += nsteps
         return rec
 
+    def forces(self) -> np.ndarray:
+        """Total nodal forces (springs, dashpots, gravity) at the current state, shape (n, 3) [N]."""
+        return self.model.forces(self.x, self.v, fext=self.fext)
+
+    def grasper_force(self) -> np.ndarray:
+        """Force of the tissue on the grasper at the current state, shape (3,) [N] (zeros if open)."""
+        g = self.grasp
+        if g is None:
+            return np.zeros(3)
+        f = self.forces()
+        if g.mode == "spring":
+            tip = g.tip(self.t)
+            return -(g.stiffness[:, None] * (tip + g.offsets - self.x[g.nodes])).sum(axis=0)
+        return f[g.nodes].sum(axis=0)
+
     def check_finite(self) -> None:
         """Raise :class:`SimulationError` if the state has blown up (NaN/inf)."""
         if not np.all(np.isfinite(self.x)):
@@ -571,7 +586,7 @@ class Simulator:
 
     # -- quasi-static --------------------------------------------------------------
     def relax(self, *, ftol: float | None = None, rtol: float = 1e-8, max_iter: int = 200_000) -> dict:
-        """Move to static equilibrium under gravity (and a held grasp) with FIRE.
+        """Move to static equilibrium under gravity (and a held grasp, at its current tip) with FIRE.
 
         Parameters
         ----------
@@ -593,8 +608,13 @@ class Simulator:
                 scale = float(np.median(self.model.rest_tangent / self.model.sd[0])) or 1.0
             ftol = rtol * scale
         dt0 = 0.2 * self.bound.dt_critical
+        g = self.grasp
+        if g is not None and g.mode == "spring":
+            gargs = (K.GRASP_SPRING, g.nodes, g.offsets, g.stiffness, g.tip(self.t))
+        else:
+            gargs = (K.GRASP_NONE, np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(3))
         it, res = K.fire_relax(self.x, self.v, self.f, self.fext, self.inv_mass, free,
-                               *self.model.kernel_args()[:-1], dt0, 0.9 * self.bound.dt_critical,
+                               *self.model.kernel_args()[:-1], *gargs, dt0, 0.9 * self.bound.dt_critical,
                                float(ftol), int(max_iter))
         self.v[:] = 0.0
         if it < 0 or not np.isfinite(res):

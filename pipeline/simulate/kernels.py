@@ -75,18 +75,28 @@ _OPTS = dict(cache=True, error_model="numpy")
 
 @njit(inline="always", **_OPTS)
 def _block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, buf, kk):
-    """Force coefficients of springs p0..p0+nb-1 into buf[6] (F/L + dashpot), d into buf[0:3].
+    """Force coefficients of springs p0..p0+nb-1 into buf[5] (F/L + dashpot), d into buf[0:3].
 
-    buf rows: 0-2 dx dy dz, 3 L, 4 lam, 5 coefficient, 6 t, 7 d.dv.
+    buf rows: 0-2 dx dy dz, 3 L, 4 lam, 5 coefficient, 6 t, 7 d.dv. The law is
+    applied without branches: secant clips t to [0, 1] and multiplies by
+    (lam - 1); energy leaves t unclipped and multiplies by 1.
     """
     last = float(last_cell)
+    secant = law == LAW_SECANT
+    t_lo = 0.0 if secant else -np.inf
+    t_hi = 1.0 if secant else np.inf
+    a1 = 1.0 if secant else 0.0          # factor = a1 * (lam - 1) + a0
+    a0 = 0.0 if secant else 1.0
     for b in range(nb):
         i = ij[0, p0 + b]
         j = ij[1, p0 + b]
         buf[0, b] = x[j, 0] - x[i, 0]
         buf[1, b] = x[j, 1] - x[i, 1]
         buf[2, b] = x[j, 2] - x[i, 2]
-        if damped:
+    if damped:
+        for b in range(nb):
+            i = ij[0, p0 + b]
+            j = ij[1, p0 + b]
             buf[7, b] = ((v[j, 0] - v[i, 0]) * buf[0, b] + (v[j, 1] - v[i, 1]) * buf[1, b]
                          + (v[j, 2] - v[i, 2]) * buf[2, b])
     for b in range(nb):
@@ -95,15 +105,12 @@ def _block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, bu
         lam = L * sd[0, p0 + b]
         buf[4, b] = lam
         s = (lam - lam_min) * inv_h
-        # max/min with the constant first: a NaN stretch gives s = 0 (cell 0), and the NaN
+        # max/min with the constant first: a NaN stretch gives cell 0, and the NaN
         # still propagates through lam into the force.
         sc = min(max(s, 0.0), last + 1.0)
         k = min(np.int64(sc), last_cell)
         kk[b] = k
-        if law == LAW_SECANT:
-            buf[6, b] = min(sc - k, 1.0)          # mu_e held constant off the grid
-        else:
-            buf[6, b] = s - k                      # stress continued linearly off the grid
+        buf[6, b] = min(max(s - k, t_lo), t_hi)
     for b in range(nb):
         k = kk[b]
         t = buf[6, b]
@@ -113,13 +120,11 @@ def _block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, bu
     for b in range(nb):
         L = buf[3, b]
         rinv = 1.0 / L if L > 0.0 else 0.0
-        F = buf[5, b]
-        if law == LAW_SECANT:
-            F = F * (buf[4, b] - 1.0)
-        c = F * rinv
-        if damped:
-            c += sd[4, p0 + b] * buf[7, b] * rinv * rinv
-        buf[5, b] = c
+        buf[5, b] = buf[5, b] * (a1 * (buf[4, b] - 1.0) + a0) * rinv
+    if damped:
+        for b in range(nb):
+            rinv = 1.0 / buf[3, b] if buf[3, b] > 0.0 else 0.0
+            buf[5, b] += sd[4, p0 + b] * buf[7, b] * rinv * rinv
 
 
 @njit(inline="always", **_OPTS)
@@ -190,48 +195,26 @@ def forces_serial(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, da
         f[a, 1] = fext[a, 1]
         f[a, 2] = fext[a, 2]
     hbuf = np.empty((0, 3))
-    if law == LAW_SECANT:
-        if damped:
-            _range_forces(0, ij.shape[1], n, 0, x, v, f, ij, sd, tab, lam_min, inv_h, last_cell,
-                          LAW_SECANT, True, hbuf, False)
-        else:
-            _range_forces(0, ij.shape[1], n, 0, x, v, f, ij, sd, tab, lam_min, inv_h, last_cell,
-                          LAW_SECANT, False, hbuf, False)
-    else:
-        if damped:
-            _range_forces(0, ij.shape[1], n, 0, x, v, f, ij, sd, tab, lam_min, inv_h, last_cell,
-                          LAW_ENERGY, True, hbuf, False)
-        else:
-            _range_forces(0, ij.shape[1], n, 0, x, v, f, ij, sd, tab, lam_min, inv_h, last_cell,
-                          LAW_ENERGY, False, hbuf, False)
+    _range_forces(0, ij.shape[1], n, 0, x, v, f, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+                  hbuf, False)
 
 
-@njit(inline="always", **_OPTS)
+@njit(**_OPTS)
 def _chunk_forces(c, x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
                   node_start, spring_start, halo_start, hbuf):
+    # Not inlined: the parallel loops only call it, which keeps their (slow) parfor
+    # compilation small; it is compiled and cached once like forces_serial.
     lo = node_start[c]
     hi = node_start[c + 1]
     for a in range(lo, hi):
         f[a, 0] = fext[a, 0]
         f[a, 1] = fext[a, 1]
         f[a, 2] = fext[a, 2]
-    if law == LAW_SECANT:
-        if damped:
-            _range_forces(spring_start[c], spring_start[c + 1], hi, halo_start[c], x, v, f, ij, sd,
-                          tab, lam_min, inv_h, last_cell, LAW_SECANT, True, hbuf, True)
-        else:
-            _range_forces(spring_start[c], spring_start[c + 1], hi, halo_start[c], x, v, f, ij, sd,
-                          tab, lam_min, inv_h, last_cell, LAW_SECANT, False, hbuf, True)
-    else:
-        if damped:
-            _range_forces(spring_start[c], spring_start[c + 1], hi, halo_start[c], x, v, f, ij, sd,
-                          tab, lam_min, inv_h, last_cell, LAW_ENERGY, True, hbuf, True)
-        else:
-            _range_forces(spring_start[c], spring_start[c + 1], hi, halo_start[c], x, v, f, ij, sd,
-                          tab, lam_min, inv_h, last_cell, LAW_ENERGY, False, hbuf, True)
+    _range_forces(spring_start[c], spring_start[c + 1], hi, halo_start[c], x, v, f, ij, sd, tab, lam_min,
+                  inv_h, last_cell, law, damped, hbuf, True)
 
 
-@njit(inline="always", **_OPTS)
+@njit(**_OPTS)
 def _apply_halo(c, f, own_start, own_slot, own_node, hbuf):
     for q in range(own_start[c], own_start[c + 1]):
         h = own_slot[q]
@@ -394,12 +377,13 @@ def run_parallel(nsteps, dt, t0, step0, x, v, f, fext, inv_mass, vfac,
 
 @njit(**_OPTS)
 def fire_relax(x, v, f, fext, inv_mass, free, ij, sd, tab, lam_min, inv_h, last_cell, law,
-               dt0, dt_max, ftol, max_iter):
+               g_mode, g_nodes, g_off, g_k, tip, dt0, dt_max, ftol, max_iter):
     """FIRE minimisation (Bitzek et al. 2006) of the network energy under fext.
 
     Uses the dynamics' force pass (without dashpots) and a mass-weighted
-    semi-implicit Euler MD step. Converged when the largest residual force on a
-    free node is below *ftol* [N]. Returns (iterations, final max residual);
+    semi-implicit Euler MD step; grasper coupling springs (mode SPRING) pull
+    the held nodes to ``tip + g_off``. Converged when the largest residual force
+    on a free node is below *ftol* [N]. Returns (iterations, final max residual);
     iterations = -1 when the forces became non-finite.
     """
     n = x.shape[0]
@@ -415,8 +399,11 @@ def fire_relax(x, v, f, fext, inv_mass, free, ij, sd, tab, lam_min, inv_h, last_
         for d in range(3):
             v[a, d] = 0.0
     resid = np.inf
+    out = np.zeros(3)
     for it in range(max_iter):
         forces_serial(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, False)
+        if g_mode == GRASP_SPRING:
+            _grasp_forces(f, x, g_nodes, g_off, g_k, tip, g_mode, out)
         resid = 0.0
         P = 0.0
         vn2 = 0.0
