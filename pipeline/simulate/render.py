@@ -54,6 +54,58 @@ def _pyvista():
     return pv
 
 
+def auto_view(points: np.ndarray, motion: np.ndarray, gravity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera direction (from the focal point to the camera) and up vector for view "auto".
+
+    Look across the dominant motion (so it shows in the picture plane), as close
+    as possible to the organ's thinnest principal axis (so the organ looks
+    large), tilted 25 degrees towards "up" (against gravity) for depth; "up" is
+    against gravity when that is not along the line of sight.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    p = p - p.mean(axis=0)
+    _, _, vt = np.linalg.svd(p[:: max(1, p.shape[0] // 20000)], full_matrices=False)
+    m = np.asarray(motion, dtype=np.float64)
+    mn = float(np.linalg.norm(m))
+    look = vt[2].copy()
+    if mn > 0:
+        m = m / mn
+        for cand in (vt[2], vt[1], vt[0]):
+            q = cand - m * (cand @ m)
+            if np.linalg.norm(q) > 0.3:
+                look = q / np.linalg.norm(q)
+                break
+    g = np.asarray(gravity, dtype=np.float64)
+    up = -g if np.linalg.norm(g) > 0 else (m if mn > 0 else vt[1])
+    up = up - look * (up @ look)
+    if np.linalg.norm(up) < 1e-6:
+        up = vt[1] - look * (vt[1] @ look)
+    up = up / np.linalg.norm(up)
+    tilt = np.deg2rad(25.0)
+    look2 = np.cos(tilt) * look + np.sin(tilt) * up
+    up2 = -np.sin(tilt) * look + np.cos(tilt) * up
+    return look2 / np.linalg.norm(look2), up2 / np.linalg.norm(up2)
+
+
+def _attr_vector(attrs, key, default) -> np.ndarray:
+    """A 3-vector attribute of a history (stored as JSON text or as an array)."""
+    v = attrs.get(key, None)
+    if isinstance(v, bytes):
+        v = v.decode()
+    if isinstance(v, str):
+        import json
+
+        try:
+            v = json.loads(v)
+        except ValueError:
+            v = None
+    try:
+        out = np.asarray(default if v is None else v, dtype=np.float64).reshape(3)
+    except (TypeError, ValueError):
+        out = np.asarray(default, dtype=np.float64)
+    return out if np.all(np.isfinite(out)) else np.asarray(default, dtype=np.float64)
+
+
 class FrameRenderer:
     """Draw the frames of a :class:`History` off-screen.
 
@@ -80,7 +132,7 @@ class FrameRenderer:
         tri = remap[faces]
         cells = np.hstack([np.full((tri.shape[0], 1), 3), tri]).ravel()
         self.mesh = pv.PolyData(rest[used].copy(), cells)
-        self.mesh.point_data["displacement [mm]"] = np.zeros(used.size)
+        self.mesh.point_data["|u| [mm]"] = np.zeros(used.size)
         self.umax_mm = max(history.max_displacement() * 1e3, 1e-6)
         size = float(np.linalg.norm(np.ptp(rest, axis=0)))
         self.size = size
@@ -95,11 +147,12 @@ class FrameRenderer:
         except Exception:
             pass
         pl.set_background("white")
-        pl.add_mesh(self.mesh, scalars="displacement [mm]", cmap=video.colormap, clim=(0.0, self.umax_mm),
+        fs = max(6, int(round(video.height / 48)))
+        pl.add_mesh(self.mesh, scalars="|u| [mm]", cmap=video.colormap, clim=(0.0, self.umax_mm),
                     show_edges=video.show_edges, edge_color="gray", smooth_shading=True,
-                    scalar_bar_args=dict(title="displacement [mm]", vertical=True, position_x=0.86,
-                                         position_y=0.2, height=0.6, width=0.06, color="black",
-                                         fmt="%.1f", title_font_size=14, label_font_size=12))
+                    scalar_bar_args=dict(title="|u| [mm]", vertical=True, position_x=0.87,
+                                         position_y=0.25, height=0.55, width=0.05, color="black",
+                                         fmt="%.1f", title_font_size=fs, label_font_size=fs))
         self.fixed_cloud = None
         fixed_vis = np.intersect1d(history.fixed, used)
         if video.show_fixed and fixed_vis.size:
@@ -108,11 +161,7 @@ class FrameRenderer:
             pl.add_mesh(self.fixed_cloud, color="#303030", point_size=max(2.0, video.height / 240),
                         render_points_as_spheres=False)
         # The grasper: a sphere at the tip and a shaft along the outward normal.
-        normal = np.asarray(history.attrs.get("grasper_normal", [0.0, 0.0, 1.0]), dtype=np.float64)
-        if isinstance(history.attrs.get("grasper_normal"), str):
-            import json
-
-            normal = np.asarray(json.loads(history.attrs["grasper_normal"]), dtype=np.float64)
+        normal = _attr_vector(history.attrs, "grasper_normal", (0.0, 0.0, 1.0))
         self.normal = normal / (np.linalg.norm(normal) or 1.0)
         r = 0.02 * size
         self.tip_actor = pl.add_mesh(pv.Sphere(radius=r, center=(0, 0, 0)), color="#c0c0c0",
@@ -122,7 +171,7 @@ class FrameRenderer:
                             radius=0.35 * r, height=shaft_len)
         self.shaft_actor = pl.add_mesh(shaft, color="#808080", smooth_shading=True)
         self._set_grasper(None)
-        self.text = pl.add_text("", position="upper_left", font_size=12, color="black")
+        self.text = pl.add_text("", position="upper_left", font_size=fs, color="black")
         self._ft, self._ff = history.forces() if forces else (np.zeros(0), np.zeros((0, 3)))
         self._fit_camera()
 
@@ -142,6 +191,13 @@ class FrameRenderer:
             p = h.points + h.displacement(k)
             lo = np.minimum(lo, p.min(axis=0))
             hi = np.maximum(hi, p.max(axis=0))
+        # The dominant motion: displacement of the node that moves most, at its largest.
+        motion = np.zeros(3)
+        for k in range(h.n_frames):
+            u = h.displacement(k)
+            a = int(np.argmax(np.einsum("ij,ij->i", u, u)))
+            if u[a] @ u[a] > motion @ motion:
+                motion = u[a].copy()
         tips = h.tips[np.all(np.isfinite(h.tips), axis=1)]
         if tips.size:
             lo = np.minimum(lo, tips.min(axis=0))
@@ -158,24 +214,7 @@ class FrameRenderer:
         elif view == "iso":
             pl.view_isometric()
         else:
-            # Look along the organ's thinnest principal axis (it then fills the picture),
-            # with "up" against gravity when gravity is not along the line of sight.
-            p = h.points - h.points.mean(axis=0)
-            _, _, vt = np.linalg.svd(p[:: max(1, p.shape[0] // 20000)], full_matrices=False)
-            look = vt[2]
-            g = np.asarray(h.attrs.get("gravity", [0.0, 0.0, -1.0]))
-            if isinstance(g, str):
-                import json
-
-                g = np.asarray(json.loads(g))
-            up = -g if np.linalg.norm(g) > 0 else vt[1]
-            up = up - look * (up @ look)
-            if np.linalg.norm(up) < 1e-6 * max(np.linalg.norm(g), 1e-30):
-                up = vt[1]
-            up = up / np.linalg.norm(up)
-            # Look from the side the grasper comes from, when there is one.
-            if look @ self.normal < 0:
-                look = -look
+            look, up = auto_view(h.points, motion, _attr_vector(h.attrs, "gravity", (0.0, 0.0, -1.0)))
             c = 0.5 * (lo + hi)
             cam = pl.camera
             cam.focal_point = tuple(c)
@@ -192,7 +231,7 @@ class FrameRenderer:
         u = h.displacement(k)
         p = h.points + u
         self.mesh.points[:] = p[self._used]
-        self.mesh.point_data["displacement [mm]"][:] = np.linalg.norm(u[self._used], axis=1) * 1e3
+        self.mesh.point_data["|u| [mm]"][:] = np.linalg.norm(u[self._used], axis=1) * 1e3
         self.mesh.Modified()
         if self.fixed_cloud is not None:
             self.fixed_cloud.points[:] = p[self._fixed_idx]
@@ -204,7 +243,7 @@ class FrameRenderer:
         if self._ft.size:
             j = int(np.clip(np.searchsorted(self._ft, t), 0, self._ft.size - 1))
             if np.all(np.isfinite(tip)):
-                label += f"\ngrasper force {np.linalg.norm(self._ff[j]):.3g} N"
+                label += f"\nF = {np.linalg.norm(self._ff[j]):.3g} N"
         self.text.SetText(2, label)
         self.pl.render()
         img = self.pl.screenshot(return_img=True)

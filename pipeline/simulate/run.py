@@ -176,6 +176,7 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
     fmax_norm = 0.0
     warned_table = False
     rec = np.zeros((spf, 3))
+    organ_size = float(np.ptp(np.asarray(network.points), axis=0).max())
     with HistoryWriter(hist_path, points=network.points, cells=cells, surface=network.surface_faces,
                        fixed=fixed, attrs=attrs) as hw:
         if plan is not None:
@@ -203,9 +204,11 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
                         if norms[k] > fmax_norm:
                             fmax_norm = float(norms[k])
                             fmax = r[k].copy()
-                if not np.all(np.isfinite(sim.x)):
+                disp = sim.displacement()
+                if not np.all(np.isfinite(disp)) or np.abs(disp).max() > 10.0 * organ_size:
                     raise SimulationError(
-                        f"the simulation became unstable at t = {sim.t:.4g} s (non-finite positions); "
+                        f"the simulation became unstable at t = {sim.t:.4g} s (displacements beyond 10 organ "
+                        f"sizes or non-finite); "
                         f"lower [integrator] safety or check the asset's masses and tables")
                 lo, hi = model.stretch_range(sim.x)
                 lam_lo, lam_hi = min(lam_lo, lo), max(lam_hi, hi)
@@ -215,7 +218,7 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
                              f"[{model.lam_min:.4g}, {model.lam_max:.4g}] (now {lo:.4g}..{hi:.4g}); "
                              "there the tables' extrapolation applies (see docs/simulate.md)")
                 tip = sim.grasp.tip(sim.t) if sim.grasp is not None else None
-                hw.add_frame(sim.t, sim.displacement(), tip=tip)
+                hw.add_frame(sim.t, disp, tip=tip)
                 advance(1)
         umax = float(np.linalg.norm(sim.displacement(), axis=1).max())
         sim_time = n_frames * frame_dt

@@ -1,0 +1,341 @@
+"""Scenes, grasper planning, the history file and the whole `simulate` run."""
+
+from __future__ import annotations
+
+import itertools
+import json
+from types import SimpleNamespace
+
+import h5py
+import numpy as np
+import pytest
+
+from esmm.pipeline.config import bundled_names
+from esmm.pipeline.errors import ConfigError, SimulationError
+from esmm.pipeline.network.springs import network_from_tets
+from esmm.pipeline.network.tables import StiffnessTables
+from esmm.pipeline.progress import ListReporter
+from esmm.pipeline.simulate.grasper import plan_grasp, vertex_normals
+from esmm.pipeline.simulate.history import History, HistoryWriter
+from esmm.pipeline.simulate.run import simulate_network
+from esmm.pipeline.simulate.scene import Scene, load_scene, scene_from_dict
+
+
+def box_tets(nx, ny, nz, size):
+    xs = [np.linspace(0.0, size[k], n + 1) for k, n in enumerate((nx, ny, nz))]
+    X, Y, Z = np.meshgrid(*xs, indexing="ij")
+    pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+    idx = np.arange(pts.shape[0]).reshape(nx + 1, ny + 1, nz + 1)
+    cells = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), -1).reshape(-1, 3)
+    tets = []
+    for perm in itertools.permutations(range(3)):
+        corners = [cells.copy()]
+        c = cells.copy()
+        for ax in perm:
+            c = c.copy()
+            c[:, ax] += 1
+            corners.append(c)
+        tets.append(np.stack([idx[q[:, 0], q[:, 1], q[:, 2]] for q in corners], axis=1))
+    return SimpleNamespace(points=pts, tets=np.concatenate(tets))
+
+
+def stiff_tables(mu0=2.0e5):
+    lam = np.linspace(0.5, 2.0, 301)
+    mu = np.vstack([mu0 * (1 + 4 * (lam - 1) ** 2)] * 3)
+    stress = mu * (lam - 1)
+    return StiffnessTables(lam_min=0.5, lam_max=2.0, n=301, values=mu, stress=stress, energy=np.zeros((3, 301)))
+
+
+@pytest.fixture(scope="module")
+def slab():
+    """A 60 x 30 x 15 mm slab, fixed at x = 0."""
+    net = network_from_tets(box_tets(8, 4, 2, (0.06, 0.03, 0.015)))
+    return net.with_fixed(np.flatnonzero(net.points[:, 0] < 1e-9))
+
+
+# ---------------------------------------------------------------------------
+# scene files
+# ---------------------------------------------------------------------------
+
+def test_bundled_scenes_load():
+    assert "default" in bundled_names("scenes")
+    for name in bundled_names("scenes"):
+        sc = load_scene(name)
+        assert sc.duration > 0 and sc.frame_rate > 0
+
+
+def test_default_scene_values():
+    sc = load_scene()
+    assert sc.duration == 3.0 and sc.frame_rate == 30
+    np.testing.assert_allclose(sc.gravity, [0, 0, -9.80665])
+    assert sc.dashpot == pytest.approx(0.5e-3) and sc.velocity_decay == pytest.approx(0.15)
+    assert sc.mass_damping == pytest.approx(1 / 0.15)
+    g = sc.grasper
+    assert g.mode == "prescribed" and g.release_time == 2.0 and g.radius == pytest.approx(0.006)
+    assert [w.time for w in g.waypoints] == [0.0, 1.0]
+    assert g.waypoints[1].distance == pytest.approx(0.015)
+    assert sc.fixed is None and sc.n_frames == 90
+
+
+@pytest.mark.parametrize("data, match", [
+    ({"scene": {"duration": 3}}, "has no unit"),
+    ({"scene": {"durations": "3 s"}}, "unknown key"),
+    ({"scen": {}}, "unknown table"),
+    ({"scene": {"frame_rate": 0}}, "frame_rate"),
+    ({"scene": {"gravity": [0, 0]}}, "3 numbers"),
+    ({"scene": {"gravity_unit": "ft/s2"}}, "gravity_unit"),
+    ({"scene": {"law": "hooke"}}, "law"),
+    ({"damping": {"dashpot": "-1 ms"}}, "dashpot"),
+    ({"damping": {"velocity_decay": 0.2}}, "has no unit"),
+    ({"integrator": {"safety": 1.5}}, "safety"),
+    ({"integrator": {"threads": 0}}, "threads"),
+    ({"fixed": {"kind": "asset", "width": "3 mm"}}, "asset"),
+    ({"fixed": {"kind": "band", "width": "3"}}, "no unit"),
+    ({"grasper": {"mode": "magnet"}}, "mode"),
+    ({"grasper": {"mode": "spring"}}, "stiffness"),
+    ({"grasper": {"mode": "spring", "stiffness": "500 N"}}, "stiffness"),
+    ({"grasper": {"release_time": "0 s"}}, "release_time"),
+    ({"grasper": {"waypoints": [{"time": "1 s", "distance": "1 mm"}, {"time": "0.5 s", "distance": "2 mm"}]}},
+     "increase"),
+    ({"grasper": {"waypoints": [{"time": "1 s", "distance": "1 mm", "offset": ["0 mm"] * 3}]}}, "exactly one"),
+    ({"grasper": {"grasp_time": "1 s", "waypoints": [{"time": "0.5 s", "distance": "1 mm"}]}}, "before grasp_time"),
+    ({"grasper": {"direction": [0, 0, 0]}}, "zero vector"),
+    ({"scene": {"duration": "1 s"}, "grasper": {"grasp_time": "2 s", "waypoints": [{"time": "2 s", "distance": "0 mm"}], "release_time": "3 s"}},
+     "before the end"),
+    ({"video": {"width": 10}}, "width"),
+    ({"video": {"colormap": "nonesuch"}}, "colormap"),
+])
+def test_scene_errors_are_one_line_config_errors(data, match):
+    with pytest.raises(ConfigError, match=match) as exc:
+        scene_from_dict(data, source="t.toml")
+    assert "\n" not in str(exc.value)
+
+
+def test_scene_from_file_and_overrides(tmp_path):
+    p = tmp_path / "s.toml"
+    p.write_text('[scene]\nduration = "500 ms"\ngravity = [0, -1, 0]\ngravity_unit = "g"\n'
+                 '[grasper]\nenabled = false\n[fixed]\nkind = "band"\naxis = [1, 0, 0]\nend = "max"\nwidth = "5 mm"\n'
+                 '[video]\nwidth = 321\n', encoding="utf-8")
+    sc = load_scene(str(p))
+    assert sc.duration == 0.5 and sc.grasper is None and sc.video.width == 322
+    np.testing.assert_allclose(sc.gravity, [0, -9.80665, 0])
+    assert sc.fixed.kind == "band" and sc.fixed.width == pytest.approx(0.005)
+    sc2 = sc.with_overrides(duration=2.0, threads=2, law="energy")
+    assert (sc2.duration, sc2.threads, sc2.law) == (2.0, 2, "energy")
+    with pytest.raises(ConfigError, match="--duration"):
+        sc.with_overrides(duration=-1.0)
+    with pytest.raises(ConfigError, match="no scenes preset"):
+        load_scene("no-such-scene").source  # noqa: B018
+    
+
+def test_unknown_bundled_scene_lists_choices():
+    with pytest.raises(ConfigError, match="choose one of .*default"):
+        load_scene("nonesuch")
+
+
+# ---------------------------------------------------------------------------
+# grasper planning
+# ---------------------------------------------------------------------------
+
+def test_grasp_plan_auto_target_is_farthest_from_fixed(slab):
+    sc = load_scene()
+    plan = plan_grasp(sc.grasper, slab.points, slab.surface_faces, slab.fixed, sc.gravity)
+    assert slab.points[plan.target, 0] == pytest.approx(0.06)          # the free end
+    assert plan.target in plan.nodes and not np.isin(plan.nodes, slab.fixed).any()
+    d = np.linalg.norm(slab.points[plan.nodes] - slab.points[plan.target], axis=1)
+    assert d.max() <= 0.006 + 1e-12
+    # "away": from the fixed nodes' centroid to the target.
+    ref = slab.points[slab.fixed].mean(axis=0)
+    exp = (slab.points[plan.target] - ref) / np.linalg.norm(slab.points[plan.target] - ref)
+    np.testing.assert_allclose(plan.direction, exp)
+    np.testing.assert_allclose(plan.offsets[-1], 0.015 * exp)
+    assert plan.normal @ (slab.points[plan.target] - slab.points.mean(axis=0)) > 0      # outward
+
+
+def test_grasp_plan_target_point_up_and_implicit_start(slab):
+    spec = scene_from_dict({"grasper": {
+        "target": ["30 mm", "15 mm", "20 mm"], "radius": "0 mm", "direction": "up", "grasp_time": "0.1 s",
+        "waypoints": [{"time": "0.5 s", "offset": ["0 mm", "0 mm", "4 mm"]}]}}).grasper
+    plan = plan_grasp(spec, slab.points, slab.surface_faces, slab.fixed, np.array([0, 0, -9.81]))
+    np.testing.assert_allclose(slab.points[plan.target], [0.03, 0.015, 0.015])
+    assert plan.nodes.tolist() == [plan.target]
+    np.testing.assert_allclose(plan.direction, [0, 0, 1])
+    np.testing.assert_allclose(plan.times, [0.1, 0.5])
+    np.testing.assert_allclose(plan.offsets, [[0, 0, 0], [0, 0, 0.004]])
+    with pytest.raises(ConfigError, match="needs gravity"):
+        plan_grasp(spec, slab.points, slab.surface_faces, slab.fixed, np.zeros(3))
+
+
+def test_vertex_normals_of_a_box_point_outward(slab):
+    n = vertex_normals(slab.points, slab.surface_faces)
+    surf = np.unique(slab.surface_faces)
+    c = slab.points.mean(axis=0)
+    assert np.all(np.einsum("ij,ij->i", n[surf], slab.points[surf] - c) > 0)
+
+
+# ---------------------------------------------------------------------------
+# history file
+# ---------------------------------------------------------------------------
+
+def test_history_roundtrip_and_xdmf_readable_by_vtk(tmp_path, slab):
+    p = tmp_path / "h.h5"
+    with HistoryWriter(p, points=slab.points, cells=slab.tets, surface=slab.surface_faces, fixed=slab.fixed,
+                       attrs={"frame_rate": 30.0, "gravity": [0, 0, -9.81]}) as w:
+        for k in range(3):
+            w.add_frame(k / 30, np.tile([0.001 * k, 0.0, -0.0005 * k], (slab.n_nodes, 1)),
+                        tip=None if k == 0 else np.array([0.06, 0.0, 0.001 * k]))
+        w.add_forces(np.arange(5) * 1e-3, np.arange(15.0).reshape(5, 3))
+        w.set_grasped([3, 4])
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["h.h5", "h.xdmf"]
+    with History(p) as h:
+        assert h.n_frames == 3
+        np.testing.assert_allclose(h.displacement(2)[0], [0.002, 0, -0.001], rtol=1e-6)
+        assert np.isnan(h.tips[0]).all() and h.tips[2, 2] == pytest.approx(0.002)
+        t, f = h.forces()
+        assert t.size == 5 and f[4, 2] == 14.0
+        assert h.max_displacement() == pytest.approx(np.hypot(0.002, 0.001), rel=1e-6)
+
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as S
+    from vtkmodules.vtkIOXdmf2 import vtkXdmfReader
+
+    r = vtkXdmfReader()
+    r.SetFileName(str(tmp_path / "h.xdmf"))
+    r.UpdateInformation()
+    times = r.GetOutputInformation(0).Get(S.TIME_STEPS())
+    np.testing.assert_allclose(times, [0, 1 / 30, 2 / 30])
+    r.UpdateTimeStep(times[2])
+    out = r.GetOutputDataObject(0)
+    assert out.GetNumberOfCells() == slab.n_tets
+    pts = vtk_to_numpy(out.GetPoints().GetData())
+    np.testing.assert_allclose(pts - slab.points, np.tile([0.002, 0, -0.001], (slab.n_nodes, 1)), atol=1e-8)
+    disp = vtk_to_numpy(out.GetPointData().GetArray("displacement"))
+    np.testing.assert_allclose(disp[0], [0.002, 0, -0.001], rtol=1e-6)
+
+
+def test_history_writer_leaves_nothing_on_error(tmp_path, slab):
+    with pytest.raises(RuntimeError):
+        with HistoryWriter(tmp_path / "h.h5", points=slab.points, cells=slab.tets, surface=slab.surface_faces) as w:
+            w.add_frame(0.0, np.zeros((slab.n_nodes, 3)))
+            raise RuntimeError("boom")
+    assert list(tmp_path.iterdir()) == []
+
+
+# ---------------------------------------------------------------------------
+# whole runs
+# ---------------------------------------------------------------------------
+
+def short_scene(**grasper) -> Scene:
+    g = {"radius": "8 mm", "release_time": "0.2 s",
+         "waypoints": [{"time": "0 s", "distance": "0 mm"}, {"time": "0.1 s", "distance": "3 mm"}]}
+    g.update(grasper)
+    # No gravity: after the release the slab recoils towards its rest shape.
+    return scene_from_dict({"scene": {"duration": "0.3 s", "frame_rate": 30, "gravity": [0, 0, 0]},
+                            "damping": {"dashpot": "0.2 ms", "velocity_decay": "0.05 s"},
+                            "integrator": {"threads": 1}, "grasper": g}, source="test")
+
+
+def test_simulate_network_outputs(tmp_path, slab):
+    rep = ListReporter()
+    res = simulate_network(slab, stiff_tables(), short_scene(), tmp_path, reporter=rep, asset_label="slab")
+    names = sorted(x.name for x in tmp_path.iterdir())
+    assert names == ["grasper_force.png", "history.h5", "history.xdmf", "summary.json"]
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["springs"] == slab.n_springs and s["threads"] == 1
+    assert s["dt_s"] <= s["dt_bound_s"] * s["safety"] * (1 + 1e-12)
+    assert s["steps"] == 9 * s["steps_per_frame"]
+    assert s["real_time_factor"] > 0 and s["grasper"]["held_nodes"] >= 1
+    with History(res.history) as h:
+        assert h.n_frames == 10
+        np.testing.assert_allclose(h.times, np.arange(10) / 30, atol=1e-12)
+        t, f = h.forces()
+        # Forces recorded at every step while held: 0 .. 0.2 s.
+        assert t.size == int(round(0.2 / s["dt_s"]))
+        np.testing.assert_allclose(np.diff(t), s["dt_s"], rtol=1e-9)
+        # The tip follows the path: 3 mm away at 0.1 s, released (NaN) after 0.2 s.
+        plan_dir = np.asarray(s["grasper"]["direction"])
+        tip0 = h.tips[0] if np.isfinite(h.tips[0]).all() else None
+        assert tip0 is None or np.isfinite(tip0).all()
+        k01 = 3
+        moved = h.tips[k01] - slab.points[s["grasper"]["target_node"]]
+        np.testing.assert_allclose(moved @ plan_dir, 0.003, rtol=1e-9)
+        assert np.isnan(h.tips[-1]).all()
+        # Fixed nodes never move.
+        assert np.abs(h.displacement(9)[slab.fixed]).max() == 0.0
+        # The pulled end moved, and came back towards rest after release.
+        tgt = s["grasper"]["target_node"]
+        assert np.linalg.norm(h.displacement(6)[tgt]) > np.linalg.norm(h.displacement(9)[tgt])
+    assert any("real-time factor" in m for m in rep.steps)
+
+
+def test_pulling_harder_needs_more_force(tmp_path, slab):
+    forces = []
+    for dist in ("1 mm", "2 mm"):
+        sc = short_scene(waypoints=[{"time": "0 s", "distance": "0 mm"}, {"time": "0.1 s", "distance": dist}],
+                         release_time="never")
+        res = simulate_network(slab, stiff_tables(), sc, tmp_path / dist.replace(" ", ""))
+        with History(res.history) as h:
+            t, f = h.forces()
+        d = np.asarray(res.summary["grasper"]["direction"])
+        forces.append(-(f[-50:] @ d).mean())      # the tissue pulls back against the pull
+    assert forces[0] > 0
+    assert forces[1] > 1.8 * forces[0]            # stiffening material: more than proportional-ish
+
+
+def test_spring_grasper_and_fixed_override(tmp_path, slab):
+    sc = scene_from_dict({
+        "scene": {"duration": "0.1 s"}, "integrator": {"threads": 1},
+        "fixed": {"kind": "band", "axis": [1, 0, 0], "end": "min", "width": "1 mm"},
+        "grasper": {"mode": "spring", "stiffness": "20 N/m", "release_time": "never",
+                    "waypoints": [{"time": "0 s", "distance": "0 mm"}, {"time": "0.1 s", "distance": "1 mm"}]}},
+        source="test")
+    res = simulate_network(slab.with_fixed([]), stiff_tables(), sc, tmp_path)
+    assert res.summary["fixed_nodes"] == int((slab.points[:, 0] < 1e-9).sum())
+    assert res.summary["grasper"]["max_force_N"] > 0
+
+
+def test_too_many_steps_refused(tmp_path, slab):
+    sc = scene_from_dict({"scene": {"duration": "10 s"}, "integrator": {"max_steps": 1000}})
+    with pytest.raises(SimulationError, match="max_steps"):
+        simulate_network(slab, stiff_tables(), sc, tmp_path)
+
+
+def test_unstable_run_is_reported(tmp_path, slab, monkeypatch):
+    # Force a step far above the bound: the run must stop with a one-line error, and
+    # leave no history behind.
+    from esmm.pipeline.simulate import run as runmod
+
+    real = runmod.stable_step
+
+    def wrong(*a, **k):
+        b = real(*a, **k)
+        return type(b)(b.dt * 50, b.dt_critical * 50, b.omega_max, b.gamma_max, b.safety, b.node)
+
+    monkeypatch.setattr(runmod, "stable_step", wrong)
+    monkeypatch.setattr(runmod.Simulator, "set_time_step", lambda self, dt: setattr(self, "dt", dt))
+    sc = scene_from_dict({"scene": {"duration": "0.5 s"}, "grasper": {"enabled": False}, "integrator": {"threads": 1}})
+    with pytest.raises(SimulationError, match="unstable"):
+        simulate_network(slab, stiff_tables(), sc, tmp_path)
+    assert not (tmp_path / "history.h5").exists()
+    assert not any(p.name.startswith(".") for p in tmp_path.iterdir())
+
+
+def test_history_attrs_carry_the_run(tmp_path, slab):
+    res = simulate_network(slab, stiff_tables(), short_scene(), tmp_path)
+    with h5py.File(res.history, "r") as f:
+        assert f.attrs["esmm_type"] == "simulation_history"
+        assert f.attrs["law"] == "secant"
+        assert json.loads(f.attrs["summary"])["steps"] == res.summary["steps"]
+        assert f["grasper/nodes"].shape[0] == res.summary["grasper"]["held_nodes"]
+
+
+def test_cli_missing_asset(run_cli, tmp_path):
+    code, out, err = run_cli("simulate", tmp_path / "none.h5")
+    assert code == 2 and "no such asset file" in err and "Traceback" not in err
+
+
+def test_cli_bad_options(run_cli, tmp_path):
+    code, out, err = run_cli("simulate", tmp_path / "a.h5", "--threads", "zero")
+    assert code == 2 and "--threads" in err
+    code, out, err = run_cli("simulate", tmp_path / "a.h5", "--law", "hooke")
+    assert code == 2
