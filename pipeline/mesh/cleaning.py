@@ -40,13 +40,13 @@ from scipy.sparse.csgraph import connected_components
 
 from ..errors import ConfigError, MeshingError
 from ..progress import ensure
-from .surface import Surface
+from .surface import Surface, cross3, triple
 
 #: Largest accepted relative change of the enclosed volume by the cleaning.
 MAX_VOLUME_CHANGE = 0.02
 
 #: Decimation target when neither ``target_faces`` nor ``target_edge`` is given.
-DEFAULT_TARGET_FACES = 40_000
+DEFAULT_TARGET_FACES = 20_000
 
 #: Points closer than this fraction of the extent are merged.
 MERGE_TOLERANCE = 1e-7
@@ -164,7 +164,8 @@ def capped_volume(points: np.ndarray, faces: np.ndarray) -> float:
     return float(capped_volumes(points, faces, np.zeros(faces.shape[0], np.int64), 1)[0])
 
 
-def capped_volumes(points: np.ndarray, faces: np.ndarray, label: np.ndarray, n: int) -> np.ndarray:
+def capped_volumes(points: np.ndarray, faces: np.ndarray, label: np.ndarray, n: int,
+                   loops: tuple | None = None) -> np.ndarray:
     """:func:`capped_volume` of each body, vectorised.
 
     Parameters
@@ -175,6 +176,9 @@ def capped_volumes(points: np.ndarray, faces: np.ndarray, label: np.ndarray, n: 
         Body id (0 .. n-1) of each face; bodies must not share vertices.
     n : int
         Number of bodies.
+    loops : tuple, optional
+        ``_boundary_loops(n_points, faces)`` if already known (it depends on
+        the faces only).
 
     Returns
     -------
@@ -186,14 +190,14 @@ def capped_volumes(points: np.ndarray, faces: np.ndarray, label: np.ndarray, n: 
     c0 = points[faces[:, 0]].mean(axis=0)
     p = points - c0
     a, b, c = p[faces[:, 0]], p[faces[:, 1]], p[faces[:, 2]]
-    vol = np.bincount(label, np.einsum("ij,ij->i", a, np.cross(b, c)), minlength=n) / 6.0
-    heads, tails, loop, hface = _boundary_loops(points.shape[0], faces)
+    vol = np.bincount(label, triple(a, b, c), minlength=n) / 6.0
+    heads, tails, loop, hface = loops if loops is not None else _boundary_loops(points.shape[0], faces)
     if heads.size:
         # The cap runs along each border half-edge (u -> v) backwards: triangle (c_L, v, u).
         n_loops = int(loop.max()) + 1
         cnt = np.bincount(loop, minlength=n_loops).astype(float)
         cent = np.column_stack([np.bincount(loop, p[heads][:, k], minlength=n_loops) for k in range(3)]) / cnt[:, None]
-        cap = np.einsum("ij,ij->i", cent[loop], np.cross(p[tails], p[heads]))
+        cap = triple(cent[loop], p[tails], p[heads])
         vol += np.bincount(label[hface], cap, minlength=n) / 6.0
     return vol
 
@@ -207,7 +211,7 @@ def _half_edge_keys(faces: np.ndarray, n: int):
 def _boundary_loops(n_points: int, faces: np.ndarray):
     """Border half-edges (u -> v, used by one face), a loop id and the face of each."""
     u, v, key = _half_edge_keys(faces, n_points)
-    order = np.argsort(key, kind="stable")
+    order = np.argsort(key)
     sk = key[order]
     first = np.ones(sk.size, bool)
     first[1:] = sk[1:] != sk[:-1]
@@ -258,7 +262,7 @@ def orient_consistently(n_points: int, faces: np.ndarray) -> tuple[np.ndarray, i
         return faces, 0, 0
     u, v, key = _half_edge_keys(faces, n_points)
     fid = np.repeat(np.arange(m), 3)
-    order = np.argsort(key, kind="stable")
+    order = np.argsort(key)
     sk = key[order]
     first = np.ones(sk.size, bool)
     first[1:] = sk[1:] != sk[:-1]
@@ -303,6 +307,8 @@ def _merge_points(points: np.ndarray, faces: np.ndarray, tol: float):
     ids = np.cumsum(new) - 1
     remap = np.empty(order.size, np.int64)
     remap[order] = ids
+    if new.all():
+        return points, faces, 0  # nothing to merge: the same arrays
     pts = points[order[new]]
     return pts, remap[faces], int(points.shape[0] - pts.shape[0])
 
@@ -311,7 +317,7 @@ def _drop_degenerate(points: np.ndarray, faces: np.ndarray, area_tol: float):
     f = faces
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
     a, b, c = points[f[:, 0]], points[f[:, 1]], points[f[:, 2]]
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    area = 0.5 * np.linalg.norm(cross3(b - a, c - a), axis=1)
     zero = (area <= area_tol) & ~repeated
     keep = ~(repeated | zero)
     f = f[keep]
@@ -324,6 +330,8 @@ def _drop_degenerate(points: np.ndarray, faces: np.ndarray, area_tol: float):
         _, idx = np.unique(s, axis=0, return_index=True)
     idx.sort()
     dup = f.shape[0] - idx.size
+    if idx.size == faces.shape[0]:
+        return faces, 0, 0, 0  # nothing dropped: the same array
     return f[idx], int(repeated.sum()), int(zero.sum()), int(dup)
 
 
@@ -362,22 +370,6 @@ def _smooth(points: np.ndarray, faces: np.ndarray, iterations: int, passband: fl
     if out.shape != points.shape:  # pragma: no cover - VTK keeps the points
         raise MeshingError("smoothing changed the number of points; use --smooth-iterations 0")
     return out
-
-
-def _pymeshfix(points: np.ndarray, faces: np.ndarray, *, fill: bool, clean: bool):
-    import pymeshfix
-
-    tm = pymeshfix.PyTMesh()
-    tm.set_quiet(True)
-    tm.load_array(np.ascontiguousarray(points, np.float64), np.ascontiguousarray(faces, np.int32))
-    info = {"borders_before": int(tm.n_boundaries)}
-    if fill:
-        info["holes_filled"] = int(tm.fill_small_boundaries(0, True))
-    if clean:
-        info["clean_converged"] = bool(tm.clean(10, 3))
-    info["borders_after"] = int(tm.n_boundaries)
-    v, f = tm.return_arrays()
-    return np.asarray(v, np.float64), np.asarray(f, np.int64), info
 
 
 def _keep_largest(points, faces):
@@ -448,11 +440,16 @@ def clean_surface(surface: Surface, *, options: CleaningOptions | None = None,
     extent = float((pts.max(axis=0) - pts.min(axis=0)).max())
 
     cache: dict = {}
+    loops_cache: dict = {}
 
     def figures(p, f):
         if cache.get("key") == (id(p), id(f)):
             return cache["v"], cache["a"]
-        v, a = capped_volume(p, f), Surface(p, f).area()
+        if loops_cache.get("key") != id(f):  # the border loops depend on the faces only
+            loops_cache.update(key=id(f), loops=_boundary_loops(p.shape[0], f), keep=f)
+        lab0 = np.zeros(f.shape[0], np.int64)
+        v = float(capped_volumes(p, f, lab0, 1, loops_cache["loops"])[0]) if f.shape[0] else 0.0
+        a = Surface(p, f).area()
         cache.update(key=(id(p), id(f)), v=v, a=a, keep=(p, f))  # keep: ids stay valid
         return v, a
 
@@ -494,7 +491,7 @@ def clean_surface(surface: Surface, *, options: CleaningOptions | None = None,
     f_or, _, _ = orient_consistently(pts.shape[0], fcs)
     vols = np.abs(capped_volumes(pts, f_or, lab, n_bodies))
     p0 = pts
-    tri_area = 0.5 * np.linalg.norm(np.cross(p0[fcs[:, 1]] - p0[fcs[:, 0]], p0[fcs[:, 2]] - p0[fcs[:, 0]]), axis=1)
+    tri_area = 0.5 * np.linalg.norm(cross3(p0[fcs[:, 1]] - p0[fcs[:, 0]], p0[fcs[:, 2]] - p0[fcs[:, 0]]), axis=1)
     areas = np.bincount(lab, tri_area, minlength=n_bodies)
     nf = np.bincount(lab, minlength=n_bodies)
     rank = np.lexsort((-areas, -vols))  # by volume, then area
@@ -510,7 +507,12 @@ def clean_surface(surface: Surface, *, options: CleaningOptions | None = None,
         kept = [int(rank[0])]
     dropped = [int(k) for k in rank if k not in kept]
     report.bodies_dropped = [(int(nf[k]), float(vols[k])) for k in dropped]
-    p1, f1 = _compact(pts, fcs[np.isin(lab, kept)])
+    if len(kept) == n_bodies:
+        p1, f1, f1_or = pts, fcs, f_or
+    else:
+        sel = np.isin(lab, kept)
+        p1, f1 = _compact(pts, fcs[sel])
+        _, f1_or = _compact(pts, f_or[sel])
     note = f"{n_bodies} found, {len(kept)} kept"
     if dropped:
         note += ", dropped " + ", ".join(f"{nf[k]} faces/{vols[k] * 1e6:.3g} mL" for k in dropped[:5])
@@ -519,32 +521,38 @@ def clean_surface(surface: Surface, *, options: CleaningOptions | None = None,
     record("bodies", t0, pts, fcs, p1, f1, note, bodies_found=n_bodies, bodies_kept=len(kept),
            bodies_dropped=[(int(nf[k]), float(vols[k])) for k in dropped],
            body_volumes=[float(vols[k]) for k in rank], body_faces=[int(nf[k]) for k in rank])
-    if dropped and len(dropped) and vols[dropped].max() > 0.1 * vols[kept].sum():
+    if dropped and vols[dropped].max() > 0.1 * vols[kept].sum():
         rep.warn(f"{where}: dropped a second body of {vols[dropped].max() * 1e6:.3g} mL "
                  f"(kept {vols[kept].sum() * 1e6:.3g} mL); use keep='all' or body=N to choose")
     pts, fcs = p1, f1
 
-    # 4. orient
+    # 4. orient (the consistent orientation was found with the bodies; now the sign)
     t0 = time.perf_counter()
-    f1, n_flip, conflicts, flipped_bodies = _orient_outward(pts, fcs)
+    n_kept, lab_k = face_components(pts.shape[0], f1_or)
+    signs = capped_volumes(pts, f1_or, lab_k, n_kept)
+    neg = signs < 0
+    f1 = f1_or.copy()
+    fl = neg[lab_k]
+    f1[fl] = f1[fl][:, ::-1]
+    changed = np.any(f1 != fcs, axis=1)
+    n_flip = int(np.count_nonzero(changed))
+    if n_flip == 0:
+        f1 = fcs
     record("orient", t0, pts, fcs, pts, f1,
-           f"{n_flip} faces flipped ({flipped_bodies} bodies turned outward)"
-           + (f", {conflicts} non-orientable pieces left to the repair" if conflicts else ""),
-           faces_flipped=n_flip, bodies_flipped=flipped_bodies, non_orientable=conflicts)
+           f"{n_flip} faces flipped ({int(neg.sum())} bodies turned outward)",
+           faces_flipped=n_flip, bodies_flipped=int(neg.sum()))
     fcs = f1
     v_ref = capped_volume(pts, fcs)
     report.volume_before = v_ref
     if not v_ref > 0:
         raise MeshingError(f"{where}: the kept body encloses no volume (a flat sheet?); check the input file")
-    open_borders = Surface(pts, fcs).n_boundary_edges()
 
     # 5-8 with decreasing smoothing until the volume is kept.
     target = _target_faces(opts, Surface(pts, fcs).area())
     iters = int(opts.smooth_iterations)
     tried: list[str] = []
     while True:
-        result = _smooth_to_closed(pts, fcs, iters, opts.smooth_passband, target, record, where,
-                                   has_borders=open_borders > 0)
+        result = _smooth_to_closed(pts, fcs, iters, opts.smooth_passband, target, record, where)
         p_out, f_out = result
         v_out = capped_volume(p_out, f_out)
         change = v_out / v_ref - 1.0
@@ -584,7 +592,7 @@ def _target_faces(opts: CleaningOptions, area: float) -> int:
     return DEFAULT_TARGET_FACES
 
 
-def _smooth_to_closed(pts, fcs, iters, passband, target, record, where, *, has_borders: bool):
+def _smooth_to_closed(pts, fcs, iters, passband, target, record, where):
     import fast_simplification
 
     # 5. smooth
@@ -603,8 +611,9 @@ def _smooth_to_closed(pts, fcs, iters, passband, target, record, where, *, has_b
     # 6. decimate
     t0 = time.perf_counter()
     if fcs.shape[0] > 1.1 * target:
-        p1, f1 = fast_simplification.simplify(pts, fcs.astype(np.int32), target_count=int(target),
-                                              preserve_border=has_borders)
+        # Borders are not preserved: holding them keeps the scan-border loops at voxel
+        # resolution, and the hole filling then refines the caps down to it.
+        p1, f1 = fast_simplification.simplify(pts, fcs.astype(np.int32), target_count=int(target))
         p1 = np.asarray(p1, np.float64)
         f1 = np.asarray(f1, np.int64)
         p1, f1 = _compact(p1, f1)
@@ -615,31 +624,39 @@ def _smooth_to_closed(pts, fcs, iters, passband, target, record, where, *, has_b
     record("decimate", t0, pts, fcs, p1, f1, note, target_faces=int(target))
     pts, fcs = p1, f1
 
-    # 7. close open borders
+    # 7. close open borders and 8. repair, in one pymeshfix session
+    import pymeshfix
+
     t0 = time.perf_counter()
     s = Surface(pts, fcs)
     n_border = s.n_boundary_edges()
-    if n_border or s.n_nonmanifold_edges():
-        p1, f1, info = _pymeshfix(pts, fcs, fill=True, clean=False)
-        note = f"{info.get('holes_filled', 0)} holes filled ({n_border} border edges)"
-    else:
-        p1, f1, info = pts, fcs, {"holes_filled": 0}
-        note = "already closed"
-    record("close", t0, pts, fcs, p1, f1, note, border_edges=n_border, **info)
-    pts, fcs = p1, f1
-    if fcs.shape[0] == 0:
+    n_nonman = s.n_nonmanifold_edges()
+    tm = pymeshfix.PyTMesh()
+    tm.set_quiet(True)
+    tm.load_array(np.ascontiguousarray(pts, np.float64), np.ascontiguousarray(fcs, np.int32))
+    loops = int(tm.n_boundaries)
+    filled = int(tm.fill_small_boundaries(0, True)) if loops else 0
+    v, f = tm.return_arrays()
+    p1, f1 = np.asarray(v, np.float64), np.asarray(f, np.int64)
+    if f1.shape[0] == 0:
         raise MeshingError(f"{where}: nothing is left after hole filling; check the input file")
+    record("close", t0, pts, fcs, p1, f1,
+           f"{filled} holes filled ({n_border} border edges, {n_nonman} non-manifold edges split)",
+           border_edges=n_border, nonmanifold_edges=n_nonman, holes_filled=filled)
+    pts, fcs = p1, f1
 
-    # 8. repair
     t0 = time.perf_counter()
-    p1, f1, info = _pymeshfix(pts, fcs, fill=True, clean=True)
+    converged = bool(tm.clean(10, 3))
+    refilled = int(tm.fill_small_boundaries(0, True)) if tm.n_boundaries else 0
+    v, f = tm.return_arrays()
+    p1, f1 = np.asarray(v, np.float64), np.asarray(f, np.int64)
     p1, f1, n_pieces = _keep_largest(p1, f1) if f1.shape[0] else (p1, f1, 0)
     if f1.shape[0] == 0:
         raise MeshingError(f"{where}: nothing is left after repair; check the input file")
     f1, n_flip, _, _ = _orient_outward(p1, f1)
     s1 = Surface(p1, f1)
     record("repair", t0, pts, fcs, p1, f1,
-           f"non-manifold edges, degeneracies and self-intersections (pymeshfix); "
+           f"degeneracies and self-intersections (pymeshfix, converged={converged}); "
            f"{n_pieces} stray pieces dropped; closed={s1.is_closed()}",
-           pieces_dropped=n_pieces, **info)
+           pieces_dropped=n_pieces, converged=converged, holes_refilled=refilled)
     return p1, f1

@@ -12,6 +12,22 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of two (n, 3) arrays (several times faster than np.cross)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.result_type(a, b))
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
+def triple(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Row-wise a . (b x c) of three (n, 3) arrays."""
+    return (a[:, 0] * (b[:, 1] * c[:, 2] - b[:, 2] * c[:, 1])
+            + a[:, 1] * (b[:, 2] * c[:, 0] - b[:, 0] * c[:, 2])
+            + a[:, 2] * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0]))
+
+
 @dataclass(frozen=True)
 class Surface:
     """A triangle surface in SI units.
@@ -55,7 +71,7 @@ class Surface:
     def face_normals(self, *, unit: bool = True) -> np.ndarray:
         """Face normals, shape (m, 3); unit length (or twice the area if ``unit=False``)."""
         a, b, c = self._corners()
-        n = np.cross(b - a, c - a)
+        n = cross3(b - a, c - a)
         if unit:
             ln = np.linalg.norm(n, axis=1)
             ln[ln == 0] = 1.0
@@ -80,7 +96,7 @@ class Surface:
         p = self.points - c0
         f = self.faces
         a, b, c = p[f[:, 0]], p[f[:, 1]], p[f[:, 2]]
-        return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+        return float(triple(a, b, c).sum() / 6.0)
 
     def area(self) -> float:
         """Total surface area [m2]."""
