@@ -367,6 +367,21 @@ def _mesh(surface, s: _Settings, rep, clock: _Clock):
     return mesh2
 
 
+def _check_floor_names(floors: dict) -> None:
+    """Refuse [quality] keys that are not quality figures, before any meshing."""
+    from types import SimpleNamespace
+
+    from .mesh.quality import QUALITY_FLOORS, tet_quality
+
+    probe = SimpleNamespace(points=np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]),
+                            tets=np.array([[0, 1, 2, 3]]))
+    report = tet_quality(probe)
+    known = set(report.values()) if hasattr(report, "values") else set(QUALITY_FLOORS)
+    unknown = sorted(set(floors) - known)
+    if unknown:
+        raise ConfigError(f"[quality]: unknown figure(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+
+
 def input_stem(path: str | os.PathLike) -> str:
     """The input's name without its extension (``liver.stl`` -> ``liver``, ``seg.nii.gz`` -> ``seg``)."""
     name = Path(path).name
@@ -484,6 +499,8 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
     if s.structure == "skeleton" and (s.size is not None or s.nodes is not None or s.elements is not None):
         raise ConfigError("size/nodes/elements set the tet mesh; for the skeleton structure use "
                           "[skeleton] n_surface")
+    if s.structure == "tetra" and s.floors:
+        _check_floor_names(s.floors)
     clock = _Clock()
     # Fail fast on the material before any meshing.
     mat = clock.run("material", _load_material, s.material)
@@ -516,10 +533,6 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
                  f"({clock.timings['mesh']:.1f} s)")
         from .mesh.quality import QUALITY_FLOORS, tet_quality
 
-        unknown = sorted(set(s.floors) - set(QUALITY_FLOORS))
-        if unknown:
-            raise ConfigError(f"[quality]: unknown floor(s) {', '.join(unknown)}; known: "
-                              f"{', '.join(sorted(QUALITY_FLOORS))}")
         floors = {**QUALITY_FLOORS, **s.floors}
         quality = clock.run("quality", tet_quality, mesh)
         passed, problems = quality.passes(floors)

@@ -84,11 +84,15 @@ def test_bundled_presets_are_complete_and_valid():
     ({"fixed": {"kind": "box"}}, "lower"),
     ({"tables": {"law": "spline"}}, "law"),
     ({"tables": {"n": 2}}, "\\[tables\\] n"),
+    ({"quality": {"min_dihedral": 3}}, "unknown figure"),
+    ({"quality": {"sicn_p1": "high"}}, "expected a number"),
 ])
 def test_bad_config_values_are_one_line_errors(config, match):
+    from esmm.pipeline.prepare import _check_floor_names
+
     with pytest.raises(ConfigError, match=match) as info:
         cfg, src = load_prepare_config(config)
-        _settings(cfg, src)
+        _check_floor_names(_settings(cfg, src).floors)
     assert "\n" not in str(info.value)
 
 
@@ -222,7 +226,8 @@ def test_prepare_sphere_end_to_end(run_cli, tmp_path, monkeypatch, sphere_stl):
 def test_quality_gate_and_force(run_cli, tmp_path, monkeypatch, sphere_stl):
     from esmm.pipeline.mesh.quality import QUALITY_FLOORS
 
-    key = "min_dihedral_deg" if "min_dihedral_deg" in QUALITY_FLOORS else sorted(QUALITY_FLOORS)[0]
+    assert "min_dihedral_deg" in QUALITY_FLOORS
+    key = "min_dihedral_deg"
     cfg = tmp_path / "strict.toml"
     cfg.write_text(f'[mesh]\nelements = 800\n[quality]\n{key} = 1e9\n')
     monkeypatch.chdir(tmp_path)
