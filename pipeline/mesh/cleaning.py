@@ -372,14 +372,15 @@ def _smooth(points: np.ndarray, faces: np.ndarray, iterations: int, passband: fl
     return out
 
 
-def _keep_largest(points, faces):
+def _keep_largest(points, faces, n_keep: int = 1):
+    """Keep the *n_keep* bodies of largest enclosed volume; return points, faces, dropped count."""
     n, lab = face_components(points.shape[0], faces)
-    if n <= 1:
+    if n <= n_keep:
         return points, faces, 0
     vols = np.abs(capped_volumes(points, faces, lab, n))
-    k = int(np.argmax(vols))
-    p, f = _compact(points, faces[lab == k])
-    return p, f, n - 1
+    keep = np.argsort(-vols)[:n_keep]
+    p, f = _compact(points, faces[np.isin(lab, keep)])
+    return p, f, n - n_keep
 
 
 def _orient_outward(points, faces):
@@ -552,7 +553,8 @@ def clean_surface(surface: Surface, *, options: CleaningOptions | None = None,
     iters = int(opts.smooth_iterations)
     tried: list[str] = []
     while True:
-        result = _smooth_to_closed(pts, fcs, iters, opts.smooth_passband, target, record, where)
+        result = _smooth_to_closed(pts, fcs, iters, opts.smooth_passband, target, record, where,
+                                   n_bodies=len(kept))
         p_out, f_out = result
         v_out = capped_volume(p_out, f_out)
         change = v_out / v_ref - 1.0
@@ -592,7 +594,7 @@ def _target_faces(opts: CleaningOptions, area: float) -> int:
     return DEFAULT_TARGET_FACES
 
 
-def _smooth_to_closed(pts, fcs, iters, passband, target, record, where):
+def _smooth_to_closed(pts, fcs, iters, passband, target, record, where, n_bodies: int = 1):
     import fast_simplification
 
     # 5. smooth
@@ -650,7 +652,7 @@ def _smooth_to_closed(pts, fcs, iters, passband, target, record, where):
     refilled = int(tm.fill_small_boundaries(0, True)) if tm.n_boundaries else 0
     v, f = tm.return_arrays()
     p1, f1 = np.asarray(v, np.float64), np.asarray(f, np.int64)
-    p1, f1, n_pieces = _keep_largest(p1, f1) if f1.shape[0] else (p1, f1, 0)
+    p1, f1, n_pieces = _keep_largest(p1, f1, n_bodies) if f1.shape[0] else (p1, f1, 0)
     if f1.shape[0] == 0:
         raise MeshingError(f"{where}: nothing is left after repair; check the input file")
     f1, n_flip, _, _ = _orient_outward(p1, f1)

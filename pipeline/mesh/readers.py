@@ -295,7 +295,10 @@ def _read_vtk_family(p: Path) -> tuple[np.ndarray, np.ndarray, str]:
         mesh = mesh.combine()
     if not isinstance(mesh, pv.PolyData):
         # A volume mesh (unstructured grid of tetrahedra): take its boundary.
-        mesh = mesh.extract_surface()
+        try:
+            mesh = mesh.extract_surface(algorithm="dataset_surface")
+        except TypeError:  # older pyvista without the keyword
+            mesh = mesh.extract_surface()
         what += " volume mesh, boundary"
     if mesh.n_points == 0 or mesh.n_cells == 0:
         raise InputError(f"{p}: contains no points or cells; the file is empty or corrupt")
