@@ -78,8 +78,9 @@ def run(args, ui) -> int:
     res = simulate(args.asset, scene=args.scene, out_dir=args.out, video_path=args.video,
                    duration=args.duration, threads=args.threads, law=args.law, reporter=ui)
     s = res.summary
-    ui.info(f"simulated {s['simulated_s']:g} s: {s['springs']} springs, step {s['dt_s'] * 1e6:.4g} us, "
-            f"real-time factor {s['real_time_factor']:.3g} ({s['threads']} thread(s))")
+    ui.info(f"simulated {s['simulated_s']:g} s: {s['springs']} springs, {s['steps']} steps of "
+            f"{s['dt_min_s'] * 1e6:.4g}..{s['dt_max_s'] * 1e6:.4g} us, real-time factor "
+            f"{s['real_time_factor']:.3g} ({s['threads']} thread(s))")
     ui.info(f"history: {res.xdmf}")
     if res.force_plot is not None:
         g = s.get("grasper") or {}

@@ -22,8 +22,10 @@ from esmm.pipeline.simulate.integrator import (
     Grasp,
     Simulator,
     build_force_model,
+    cell_tangent_bound,
     stable_step,
     tangent_bound,
+    windowed_bound,
 )
 
 # ---------------------------------------------------------------------------
@@ -227,6 +229,42 @@ def test_tangent_bound_covers_the_table(tables):
         sampled = np.maximum(fp, np.where(lam > 0, f / lam, 0)).max(axis=1)
         assert np.all(g >= sampled * (1 - 1e-6)), (law, g, sampled)
         assert np.all(g <= sampled * 1.05)          # and it is not uselessly loose
+
+
+def test_cell_and_window_bounds_cover_the_tangent(tables):
+    h = tables.dlam
+    for law in ("secant", "energy"):
+        cb = cell_tangent_bound(tables, law)
+        assert cb.shape == (tables.n - 1, 3)
+        np.testing.assert_allclose(cb.max(axis=0), tangent_bound(tables, law), rtol=1e-12)
+        lam = np.linspace(0.3, 2.6, 40001)
+        f = tables.force_function(lam, law=law)
+        g = np.maximum(np.gradient(f, lam, axis=1), f / lam)
+        cell = np.clip(np.floor((lam - tables.lam_min) / h), 0, tables.n - 2).astype(int)
+        inner = np.abs(np.gradient(cell)) == 0          # away from cell edges (one-sided slopes)
+        assert np.all(cb[cell[inner]].T >= g[:, inner] * (1 - 1e-6) - 1e-9)
+        w = windowed_bound(cb, 5)
+        for k in (0, 7, 150, tables.n - 2):
+            lo, hi = max(0, k - 5), min(tables.n - 2, k + 5)
+            np.testing.assert_array_equal(w[k], cb[lo:hi + 1].max(axis=0))
+
+
+def test_window_bound_at_rest_is_larger_and_safe(box, tables):
+    fixed = np.flatnonzero(box.points[:, 0] < 1e-9)
+    free = ~np.isin(np.arange(box.n_nodes), fixed)
+    m = build_force_model(box, tables)
+    whole = stable_step(m, box.mass, free=free)
+    near = stable_step(m, box.mass, free=free, x=box.points, window=0.02)
+    assert near.dt_critical > 2 * whole.dt_critical
+    # Exact check of the windowed bound at rest: the tangent stiffness at rest (no
+    # prestress) has its largest frequency below the bound.
+    from esmm.pipeline.network.forcelaw import tangent_stiffness
+
+    H = tangent_stiffness(box.points, box, tables).toarray()
+    dofs = (3 * np.flatnonzero(free)[:, None] + np.arange(3)).ravel()
+    minv = 1 / np.sqrt(np.repeat(box.mass[free], 3))
+    w_true = np.sqrt(np.linalg.eigvalsh(minv[:, None] * H[np.ix_(dofs, dofs)] * minv[None, :]).max())
+    assert near.omega_max >= w_true
 
 
 def test_gershgorin_bound_exceeds_true_omega_and_is_sharp(box):

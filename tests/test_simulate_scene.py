@@ -71,7 +71,8 @@ def test_default_scene_values():
     assert sc.dashpot == pytest.approx(0.5e-3) and sc.velocity_decay == pytest.approx(0.15)
     assert sc.mass_damping == pytest.approx(1 / 0.15)
     g = sc.grasper
-    assert g.mode == "prescribed" and g.release_time == 2.0 and g.radius == pytest.approx(0.006)
+    assert g.mode == "prescribed" and g.release_time == 2.0 and g.radius == "auto"
+    assert sc.step == "adaptive" and sc.window == 0.05
     assert [w.time for w in g.waypoints] == [0.0, 1.0]
     assert g.waypoints[1].distance == pytest.approx(0.015)
     assert sc.fixed is None and sc.n_frames == 90
@@ -89,6 +90,8 @@ def test_default_scene_values():
     ({"damping": {"velocity_decay": 0.2}}, "has no unit"),
     ({"integrator": {"safety": 1.5}}, "safety"),
     ({"integrator": {"threads": 0}}, "threads"),
+    ({"integrator": {"step": "tiny"}}, "step"),
+    ({"integrator": {"window": 0}}, "window"),
     ({"fixed": {"kind": "asset", "width": "3 mm"}}, "asset"),
     ({"fixed": {"kind": "band", "width": "3"}}, "no unit"),
     ({"grasper": {"mode": "magnet"}}, "mode"),
@@ -242,16 +245,16 @@ def test_simulate_network_outputs(tmp_path, slab):
     assert names == ["grasper_force.png", "history.h5", "history.xdmf", "summary.json"]
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["springs"] == slab.n_springs and s["threads"] == 1
-    assert s["dt_s"] <= s["dt_bound_s"] * s["safety"] * (1 + 1e-12)
-    assert s["steps"] == 9 * s["steps_per_frame"]
+    assert s["step_mode"] == "adaptive" and s["dt_min_s"] >= s["dt_table_bound_s"] * s["safety"] * (1 - 1e-12)
+    assert s["steps"] * s["dt_mean_s"] == pytest.approx(0.3)
     assert s["real_time_factor"] > 0 and s["grasper"]["held_nodes"] >= 1
     with History(res.history) as h:
         assert h.n_frames == 10
         np.testing.assert_allclose(h.times, np.arange(10) / 30, atol=1e-12)
         t, f = h.forces()
-        # Forces recorded at every step while held: 0 .. 0.2 s.
-        assert t.size == int(round(0.2 / s["dt_s"]))
-        np.testing.assert_allclose(np.diff(t), s["dt_s"], rtol=1e-9)
+        # Forces recorded at every step while held: 0 .. 0.2 s, in steps of dt_min..dt_max.
+        assert t[0] == 0.0 and 0.2 - s["dt_max_s"] <= t[-1] < 0.2
+        assert np.all(np.diff(t) >= s["dt_min_s"] * (1 - 1e-9)) and np.all(np.diff(t) <= s["dt_max_s"] * (1 + 1e-9))
         # The tip follows the path: 3 mm away at 0.1 s, released (NaN) after 0.2 s.
         plan_dir = np.asarray(s["grasper"]["direction"])
         tip0 = h.tips[0] if np.isfinite(h.tips[0]).all() else None
@@ -294,6 +297,33 @@ def test_spring_grasper_and_fixed_override(tmp_path, slab):
     assert res.summary["grasper"]["max_force_N"] > 0
 
 
+def test_table_step_mode_uses_one_step(tmp_path, slab):
+    sc = scene_from_dict({"scene": {"duration": "0.1 s", "gravity": [0, 0, 0]},
+                          "integrator": {"threads": 1, "step": "table"}}, source="t")
+    s = simulate_network(slab, stiff_tables(), sc, tmp_path).summary
+    assert s["dt_min_s"] == s["dt_max_s"] <= s["dt_table_bound_s"] * s["safety"] * (1 + 1e-12)
+    assert s["frames_redone"] == 0
+
+
+def test_adaptive_redoes_frames_that_leave_the_window(tmp_path, slab):
+    # A fast pull (6 mm in 0.05 s) on a narrow window: frames must be redone, and the run
+    # must agree with the safe whole-table step to within the difference of their steps.
+    g = {"radius": "8 mm", "release_time": "never",
+         "waypoints": [{"time": "0 s", "distance": "0 mm"}, {"time": "0.05 s", "distance": "6 mm"}]}
+    out = {}
+    for mode in ("adaptive", "table"):
+        sc = scene_from_dict({"scene": {"duration": "0.2 s", "gravity": [0, 0, 0]}, "grasper": g,
+                              "damping": {"velocity_decay": "0.02 s"},
+                              "integrator": {"threads": 1, "step": mode, "window": 0.002}}, source="t")
+        res = simulate_network(slab, stiff_tables(), sc, tmp_path / mode)
+        with History(res.history) as h:
+            out[mode] = (res.summary, h.displacement(h.n_frames - 1))
+    assert out["adaptive"][0]["frames_redone"] > 0
+    assert out["adaptive"][0]["dt_max_s"] > out["table"][0]["dt_max_s"]
+    u_a, u_t = out["adaptive"][1], out["table"][1]
+    assert np.abs(u_a - u_t).max() < 0.02 * np.abs(u_t).max()
+
+
 def test_too_many_steps_refused(tmp_path, slab):
     sc = scene_from_dict({"scene": {"duration": "10 s"}, "integrator": {"max_steps": 1000}})
     with pytest.raises(SimulationError, match="max_steps"):
@@ -312,8 +342,15 @@ def test_unstable_run_is_reported(tmp_path, slab, monkeypatch):
         return type(b)(b.dt * 50, b.dt_critical * 50, b.omega_max, b.gamma_max, b.safety, b.node)
 
     monkeypatch.setattr(runmod, "stable_step", wrong)
-    monkeypatch.setattr(runmod.Simulator, "set_time_step", lambda self, dt: setattr(self, "dt", dt))
-    sc = scene_from_dict({"scene": {"duration": "0.5 s"}, "grasper": {"enabled": False}, "integrator": {"threads": 1}})
+    real_set = runmod.Simulator.set_time_step
+    monkeypatch.setattr(runmod.Simulator, "set_time_step",
+                        lambda self, dt, bound=None, t0=None: real_set(self, dt, bound=b_big(bound), t0=t0))
+
+    def b_big(b):
+        return None if b is None else type(b)(b.dt, b.dt_critical * 1e3, b.omega_max, b.gamma_max, b.safety, b.node)
+
+    sc = scene_from_dict({"scene": {"duration": "0.5 s"}, "grasper": {"enabled": False},
+                          "integrator": {"threads": 1, "step": "table"}})
     with pytest.raises(SimulationError, match="unstable"):
         simulate_network(slab, stiff_tables(), sc, tmp_path)
     assert not (tmp_path / "history.h5").exists()

@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import ConfigError
 from .integrator import Grasp
-from .scene import GrasperSpec
+from .scene import JAW_RADIUS, GrasperSpec
 
 
 @dataclass(frozen=True)
@@ -39,6 +39,8 @@ class GraspPlan:
     offsets : ndarray, shape (p, 3)
         Tip offsets from the grasp point [m].
     spec : GrasperSpec
+    radius : float
+        The grasp radius used [m].
     """
 
     target: int
@@ -48,6 +50,7 @@ class GraspPlan:
     times: np.ndarray
     offsets: np.ndarray
     spec: GrasperSpec
+    radius: float = 0.0
 
     def make_grasp(self, x: np.ndarray, mass: np.ndarray) -> Grasp:
         """The :class:`~.integrator.Grasp` that closes on the current positions *x*."""
@@ -62,7 +65,7 @@ class GraspPlan:
 
     def describe(self) -> str:
         far = np.linalg.norm(self.offsets, axis=1).max() * 1e3
-        return (f"grasper on node {self.target} ({self.nodes.size} nodes held), path of "
+        return (f"grasper on node {self.target} ({self.nodes.size} nodes held within {self.radius * 1e3:.3g} mm), path of "
                 f"{self.times.size} waypoints up to {far:.3g} mm, mode {self.spec.mode}")
 
 
@@ -81,7 +84,7 @@ def vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def plan_grasp(spec: GrasperSpec, points: np.ndarray, surface_faces: np.ndarray, fixed: np.ndarray,
-               gravity: np.ndarray) -> GraspPlan:
+               gravity: np.ndarray, *, springs: np.ndarray | None = None) -> GraspPlan:
     """Resolve *spec* on a network.
 
     Parameters
@@ -95,6 +98,8 @@ def plan_grasp(spec: GrasperSpec, points: np.ndarray, surface_faces: np.ndarray,
         Fixed nodes (never grasped).
     gravity : ndarray, shape (3,)
         [m/s2], for ``direction = "up"``.
+    springs : ndarray, shape (s, 2), optional
+        The network's springs, for ``radius = "auto"``.
 
     Raises
     ------
@@ -122,7 +127,16 @@ def plan_grasp(spec: GrasperSpec, points: np.ndarray, surface_faces: np.ndarray,
     else:
         d = np.linalg.norm(p[cand] - np.asarray(spec.target), axis=1)
         target = int(cand[np.argmin(d)])
-    near = cKDTree(p[cand]).query_ball_point(p[target], r=spec.radius)
+    radius = spec.radius
+    if isinstance(radius, str):      # "auto"
+        radius = JAW_RADIUS
+        if springs is not None:
+            sp = np.asarray(springs)
+            inc = (sp[:, 0] == target) | (sp[:, 1] == target)
+            if inc.any():
+                lengths = np.linalg.norm(p[sp[inc, 1]] - p[sp[inc, 0]], axis=1)
+                radius = max(radius, 1.05 * float(np.median(lengths)))
+    near = cKDTree(p[cand]).query_ball_point(p[target], r=radius)
     nodes = np.union1d(cand[np.asarray(near, dtype=np.int64)], [target]).astype(np.int64)
 
     normal = vertex_normals(p, faces)[target]
@@ -150,4 +164,4 @@ def plan_grasp(spec: GrasperSpec, points: np.ndarray, surface_faces: np.ndarray,
         offs.insert(0, np.zeros(3))
     return GraspPlan(target=target, nodes=nodes, direction=direction, normal=normal,
                      times=np.asarray(times, dtype=np.float64), offsets=np.asarray(offs, dtype=np.float64),
-                     spec=spec)
+                     spec=spec, radius=float(radius))

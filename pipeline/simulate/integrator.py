@@ -102,7 +102,9 @@ class ForceModel:
     rest_tangent: np.ndarray
     dashpot: float = 0.0
     lam_max: float = math.inf
+    cell_bound: np.ndarray | None = None
     _layouts: dict = field(default_factory=dict, repr=False)
+    _windows: dict = field(default_factory=dict, repr=False)
 
     @property
     def n_springs(self) -> int:
@@ -149,6 +151,13 @@ class ForceModel:
         lo, hi = K.stretch_range(np.ascontiguousarray(x, dtype=np.float64), self.ij, self.sd)
         return float(lo), float(hi)
 
+    def window(self, delta: float) -> np.ndarray:
+        """Tangent bound per cell over a stretch window of +-*delta* (cached), shape (n_cells, 3)."""
+        cells = int(math.ceil(delta * self.inv_h - 1e-9))
+        if cells not in self._windows:
+            self._windows[cells] = windowed_bound(self.cell_bound, cells)
+        return self._windows[cells]
+
     # -- threading ---------------------------------------------------------
     def layout(self, chunks: int) -> tuple:
         """Owner/halo layout for *chunks* threads (cached): see :mod:`.kernels`."""
@@ -183,6 +192,36 @@ def tangent_bound(tables, law: str) -> np.ndarray:
         # its grid values and, beyond lam_max, by max(f_end/lam_max, end slope).
         g = np.maximum(slope.max(axis=1), (vals / lam).max(axis=1))
     return np.maximum(g, 0.0)
+
+
+def cell_tangent_bound(tables, law: str) -> np.ndarray:
+    """Per grid cell, the sup of max(f_d', f_d/lam, 0) over the cell [Pa], shape (n - 1, 3).
+
+    The first and last cells also cover the extrapolation beyond the grid (a
+    stretch off the grid is looked up in the end cell).
+    """
+    lam = np.linspace(tables.lam_min, tables.lam_max, tables.n)
+    vals = _tables_arrays(tables, law)
+    h = lam[1] - lam[0]
+    slope = np.diff(vals, axis=1) / h
+    if law == "secant":
+        fa = vals[:, :-1] + (lam[:-1] - 1.0) * slope
+        fb = vals[:, 1:] + (lam[1:] - 1.0) * slope
+        g = np.maximum(np.maximum(fa, fb), np.maximum(vals[:, :-1], vals[:, 1:]))
+        g[:, 0] = np.maximum(g[:, 0], vals[:, 0])          # mu held below the grid
+        g[:, -1] = np.maximum(g[:, -1], vals[:, -1])       # ... and above it
+    else:
+        fl = vals / lam
+        g = np.maximum(slope, np.maximum(fl[:, :-1], fl[:, 1:]))
+    return np.ascontiguousarray(np.maximum(g, 0.0).T)
+
+
+def windowed_bound(cell_bound: np.ndarray, cells: int) -> np.ndarray:
+    """Running max of *cell_bound* (n_cells, 3) over +-*cells* cells, same shape."""
+    from scipy.ndimage import maximum_filter1d
+
+    size = 2 * int(cells) + 1
+    return np.ascontiguousarray(maximum_filter1d(cell_bound, size=size, axis=0, mode="nearest"))
 
 
 def build_force_model(network, tables, *, law: str | None = None, dashpot: float = 0.0,
@@ -243,7 +282,7 @@ def build_force_model(network, tables, *, law: str | None = None, dashpot: float
     return ForceModel(n_nodes=n, ij=ij, order=order, sd=np.ascontiguousarray(sd), tab=tab,
                       lam_min=float(tables.lam_min), inv_h=1.0 / float(tables.dlam), law=law,
                       kappa=kappa, rest_tangent=rest_tangent, dashpot=float(dashpot),
-                      lam_max=float(tables.lam_max))
+                      lam_max=float(tables.lam_max), cell_bound=cell_tangent_bound(tables, law))
 
 
 def thread_layout(ij: np.ndarray, n_nodes: int, chunks: int) -> tuple:
@@ -301,8 +340,16 @@ class StepBound:
 
 
 def stable_step(model: ForceModel, mass: np.ndarray, *, free: np.ndarray | None = None,
-                extra_stiffness: np.ndarray | None = None, safety: float = DEFAULT_SAFETY) -> StepBound:
+                extra_stiffness: np.ndarray | None = None, safety: float = DEFAULT_SAFETY,
+                x: np.ndarray | None = None, window: float | None = None) -> StepBound:
     """Largest stable semi-implicit Euler step of *model* with node masses *mass*.
+
+    By default the springs' tangents are bounded over every stretch (the whole
+    table and its extrapolation): the step is then safe whatever happens. With
+    positions *x* and a stretch *window* delta, each spring's tangent is
+    bounded only over ``[lam - delta, lam + delta]`` around its stretch in *x*:
+    a larger step that is safe as long as no stretch moves by more than delta
+    (the caller checks that and redoes the interval otherwise).
 
     Parameters
     ----------
@@ -321,7 +368,12 @@ def stable_step(model: ForceModel, mass: np.ndarray, *, free: np.ndarray | None 
     m = np.asarray(mass, dtype=np.float64)
     n = model.n_nodes
     i, j = model.ij[0], model.ij[1]
-    ksum = np.bincount(i, weights=model.kappa, minlength=n) + np.bincount(j, weights=model.kappa, minlength=n)
+    if x is None or window is None:
+        ksum = np.bincount(i, weights=model.kappa, minlength=n) + np.bincount(j, weights=model.kappa, minlength=n)
+    else:
+        ksum = np.empty(n)
+        K.node_tangent_sums(np.ascontiguousarray(x, dtype=np.float64), model.ij, model.sd, model.window(window),
+                            model.lam_min, model.inv_h, model.last_cell, ksum)
     row = 2.0 * ksum
     if extra_stiffness is not None:
         row = row + np.asarray(extra_stiffness, dtype=np.float64)
@@ -475,19 +527,43 @@ class Simulator:
         return stable_step(self.model, self.mass, free=self.free, extra_stiffness=extra,
                            safety=self.safety)
 
-    def set_time_step(self, dt: float) -> None:
-        """Change the step (keeps the current time); refuses steps above the bound."""
+    def set_time_step(self, dt: float, *, bound: StepBound | None = None, t0: float | None = None) -> None:
+        """Change the step, keeping the current time (or restarting the count at *t0*).
+
+        Refuses a step above *bound* (default: the whole-table bound of the
+        current configuration of fixed and held nodes).
+        """
         if not (np.isfinite(dt) and dt > 0):
             raise ConfigError(f"dt: must be a positive time step, got {dt}")
-        if dt > self.bound.dt_critical:
-            raise SimulationError(f"dt: {dt:.3g} s exceeds the stability bound {self.bound.dt_critical:.3g} s")
-        self.t0 = self.t
+        limit = (self.bound if bound is None else bound).dt_critical
+        if dt > limit * (1 + 1e-12):
+            raise SimulationError(f"dt: {dt:.3g} s exceeds the stability bound {limit:.3g} s")
+        self.t0 = self.t if t0 is None else float(t0)
         self.step_count = 0
         self.dt = float(dt)
 
+    def snapshot(self) -> tuple:
+        """The state, for :meth:`restore` (positions, velocities, time, step, grasp)."""
+        return (self.x.copy(), self.v.copy(), self.t0, self.step_count, self.dt, self.grasp)
+
+    def restore(self, state: tuple) -> None:
+        x, v, t0, steps, dt, grasp = state
+        self.x[:] = x
+        self.v[:] = v
+        self.t0, self.step_count, self.dt = t0, steps, dt
+        if grasp is not self.grasp:
+            self.grasp = grasp
+            self._update_inv_mass()
+            self.bound = self._bound()
+
     # -- grasper -------------------------------------------------------------
-    def attach(self, grasp: Grasp) -> None:
-        """Start holding ``grasp.nodes`` (at the current time)."""
+    def attach(self, grasp: Grasp, *, check_step: bool = True) -> None:
+        """Start holding ``grasp.nodes`` (at the current time).
+
+        With *check_step*, a step above the whole-table bound with the coupling
+        springs is refused (callers that bound the step themselves, per frame,
+        pass False).
+        """
         nodes = np.asarray(grasp.nodes, dtype=np.int64).ravel()
         if nodes.size == 0:
             raise ConfigError("grasper: no node to grasp")
@@ -509,7 +585,7 @@ class Simulator:
         self.grasp = grasp
         self._update_inv_mass()
         self.bound = self._bound()
-        if self.dt > self.bound.dt_critical:
+        if check_step and self.dt > self.bound.dt_critical:
             raise SimulationError(
                 f"grasper.stiffness: the coupling springs need a step below {self.bound.dt_critical:.3g} s "
                 f"(current {self.dt:.3g} s); lower the stiffness or use mode = \"prescribed\"")

@@ -472,3 +472,50 @@ def stretch_range(x, ij, sd):
         if lam > hi:
             hi = lam
     return lo, hi
+
+
+@njit(**_OPTS)
+def node_tangent_sums(x, ij, sd, gwin, lam_min, inv_h, last_cell, out):
+    """out[a] = sum over the springs of node a of kappa_ij = sum_d (w_d / L0) gwin[cell(lam), d].
+
+    *gwin* (n_cells, 3) bounds the tangent per fibre direction over a stretch
+    window around each cell; the sums feed the Gershgorin bound of the step.
+    """
+    for a in range(out.shape[0]):
+        out[a] = 0.0
+    last = float(last_cell)
+    for p in range(ij.shape[1]):
+        i = ij[0, p]
+        j = ij[1, p]
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        lam = np.sqrt(dx * dx + dy * dy + dz * dz) * sd[0, p]
+        s = min(max((lam - lam_min) * inv_h, 0.0), last + 1.0)
+        k = min(np.int64(s), last_cell)
+        kap = sd[0, p] * (sd[1, p] * gwin[k, 0] + sd[2, p] * gwin[k, 1] + sd[3, p] * gwin[k, 2])
+        if not np.isfinite(lam):
+            kap = np.inf
+        out[i] += kap
+        out[j] += kap
+
+
+@njit(**_OPTS)
+def stretch_change(x, x0, ij, sd):
+    """Largest |lam(x) - lam(x0)| over the springs (inf if not finite)."""
+    worst = 0.0
+    for p in range(ij.shape[1]):
+        i = ij[0, p]
+        j = ij[1, p]
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        ex = x0[j, 0] - x0[i, 0]
+        ey = x0[j, 1] - x0[i, 1]
+        ez = x0[j, 2] - x0[i, 2]
+        d = abs(np.sqrt(dx * dx + dy * dy + dz * dz) - np.sqrt(ex * ex + ey * ey + ez * ez)) * sd[0, p]
+        if not np.isfinite(d):
+            return np.inf
+        if d > worst:
+            worst = d
+    return worst

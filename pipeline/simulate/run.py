@@ -26,6 +26,7 @@ from ..errors import AssetError, ConfigError, SimulationError
 from ..progress import ensure
 from .grasper import GraspPlan, plan_grasp
 from .history import HistoryWriter
+from . import kernels as K
 from .integrator import Simulator, build_force_model, stable_step, warm_up
 from .scene import Scene, load_scene
 
@@ -129,40 +130,52 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
     plan: GraspPlan | None = None
     extra = None
     if scene.grasper is not None:
-        plan = plan_grasp(scene.grasper, network.points, network.surface_faces, fixed, scene.gravity)
+        plan = plan_grasp(scene.grasper, network.points, network.surface_faces, fixed, scene.gravity,
+                          springs=network.springs)
         rep.step(plan.describe())
         if scene.grasper.mode == "spring":
             # The coupling springs enter the stability bound.
             extra = np.zeros(model.n_nodes)
             extra[plan.nodes] = plan.make_grasp(sim.x, sim.mass).stiffness
-    bound = stable_step(model, sim.mass, free=sim.free, extra_stiffness=extra, safety=scene.safety)
+    table_bound = stable_step(model, sim.mass, free=sim.free, extra_stiffness=extra, safety=scene.safety)
     frame_dt = 1.0 / scene.frame_rate
-    spf = max(1, int(math.ceil(frame_dt / bound.dt * (1 - 1e-12))))
-    dt = frame_dt / spf
     n_frames = scene.n_frames
-    total_steps = n_frames * spf
-    if total_steps > scene.max_steps:
+    adaptive = scene.step == "adaptive"
+    span = model.lam_max - model.lam_min        # a window this wide is the whole table
+
+    def frame_bound(delta):
+        if not adaptive or delta is None:
+            return table_bound
+        b = stable_step(model, sim.mass, free=sim.free, extra_stiffness=extra, safety=scene.safety,
+                        x=sim.x, window=delta)
+        return b if b.dt_critical >= table_bound.dt_critical else table_bound
+
+    first = frame_bound(scene.window)
+    spf0 = max(1, int(math.ceil(frame_dt / first.dt * (1 - 1e-12))))
+    # The whole-table bound gives the worst case: refuse runs that could need too many steps.
+    worst = n_frames * max(1, int(math.ceil(frame_dt / table_bound.dt * (1 - 1e-12))))
+    if (worst if not adaptive else n_frames * spf0) > scene.max_steps:
         raise SimulationError(
-            f"the scene needs {total_steps} steps of {dt:.3g} s (stability bound of this asset: "
-            f"{bound.dt_critical:.3g} s, set by node {bound.node}); over [integrator] max_steps = "
+            f"the scene needs {worst if not adaptive else n_frames * spf0} steps (stability bound of this asset: "
+            f"{first.dt_critical:.3g} s, set by node {first.node}); over [integrator] max_steps = "
             f"{scene.max_steps}; shorten the duration, coarsen the asset or raise max_steps")
-    sim.set_time_step(dt)
+    sim.set_time_step(frame_dt / spf0, bound=first, t0=0.0)
     threads, thread_timing = choose_threads(sim, scene.threads)
     sim.threads = threads
     rep.step(f"{model.n_springs} springs, {model.n_nodes} nodes ({fixed.size} fixed), law {law}; step "
-             f"{dt * 1e6:.4g} us ({spf} per frame; bound {bound.dt_critical * 1e6:.4g} us, "
-             f"omega_max {bound.omega_max:.4g} rad/s), {threads} thread(s)")
+             f"{sim.dt * 1e6:.4g} us at start ({spf0} per frame; {'adaptive, window ' + format(scene.window, 'g') if adaptive else 'fixed'}); "
+             f"whole-table bound {table_bound.dt_critical * 1e6:.4g} us, omega_max {table_bound.omega_max:.4g} rad/s; "
+             f"{threads} thread(s)")
 
-    # Events at step boundaries.
-    grasp_step = release_step = None
+    events = []
     if plan is not None:
-        grasp_step = int(round(scene.grasper.grasp_time / dt))
+        events.append(("grasp", scene.grasper.grasp_time))
         if scene.grasper.release_time is not None:
-            release_step = int(round(scene.grasper.release_time / dt))
+            events.append(("release", scene.grasper.release_time))
 
     hist_path = out / "history.h5"
     attrs = {
-        "asset": asset_label, "law": law, "dt": dt, "steps_per_frame": spf, "frame_rate": scene.frame_rate,
+        "asset": asset_label, "law": law, "step_mode": scene.step, "frame_rate": scene.frame_rate,
         "gravity": scene.gravity.tolist(), "scene_source": scene.source, "scene": scene.describe(),
         "units": "SI (m, s, N)",
     }
@@ -172,11 +185,14 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
     cells = network.tets if getattr(network, "tets", None) is not None and len(network.tets) else network.surface_faces
     lam_lo, lam_hi = math.inf, -math.inf
     step_wall = 0.0
+    total_steps = 0
+    redone = 0
+    dts = []
     fmax = np.zeros(3)
     fmax_norm = 0.0
     warned_table = False
-    rec = np.zeros((spf, 3))
     organ_size = float(np.ptp(np.asarray(network.points), axis=0).max())
+    done = set()
     with HistoryWriter(hist_path, points=network.points, cells=cells, surface=network.surface_faces,
                        fixed=fixed, attrs=attrs) as hw:
         if plan is not None:
@@ -184,32 +200,70 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
         hw.add_frame(0.0, sim.displacement(), tip=None)
         with rep.task("simulating", total=n_frames) as advance:
             for fr in range(n_frames):
-                s0 = fr * spf
-                s1 = s0 + spf
-                cuts = sorted({s0, s1} | {e for e in (grasp_step, release_step) if e is not None and s0 <= e < s1})
-                for a, b in zip(cuts[:-1], cuts[1:]):
-                    if grasp_step == a and sim.grasp is None and plan is not None:
-                        sim.attach(plan.make_grasp(sim.x, sim.mass))
-                    if release_step == a and sim.grasp is not None:
-                        sim.release()
-                    t = time.perf_counter()
-                    held = sim.grasp is not None
-                    r = sim.advance(b - a, record=rec[: b - a])
-                    step_wall += time.perf_counter() - t
-                    if held:
-                        times = (np.arange(a, b) * dt)
-                        hw.add_forces(times, r)
-                        norms = np.linalg.norm(r, axis=1)
-                        k = int(np.argmax(norms))
-                        if norms[k] > fmax_norm:
-                            fmax_norm = float(norms[k])
-                            fmax = r[k].copy()
+                t_start = fr * frame_dt
+                # The window widens when a frame had to be redone, and narrows back slowly.
+                delta = max(scene.window, 0.75 * delta) if (adaptive and fr) else (scene.window if adaptive else None)
+                state = sim.snapshot()
+                done_before = set(done)
+                while True:
+                    bound = frame_bound(delta)
+                    spf = max(1, int(math.ceil(frame_dt / bound.dt * (1 - 1e-12))))
+                    dt = frame_dt / spf
+                    sim.set_time_step(dt, bound=bound, t0=t_start)
+                    x0 = sim.x.copy()
+                    cuts = {0, spf}
+                    for name, te in events:
+                        k = int(round((te - t_start) / dt))
+                        if 0 <= k < spf and name not in done:
+                            cuts.add(k)
+                    if delta is not None:                 # check the window along the frame
+                        cuts |= set(range(0, spf, max(1, spf // 8)))
+                    cuts = sorted(cuts)
+                    rec = np.zeros((spf, 3))
+                    held_rows = np.zeros(spf, bool)
+                    moved = 0.0
+                    for a, b in zip(cuts[:-1], cuts[1:]):
+                        for name, te in events:
+                            if name not in done and int(round((te - t_start) / dt)) == a:
+                                done.add(name)
+                                if name == "grasp":
+                                    sim.attach(plan.make_grasp(sim.x, sim.mass), check_step=False)
+                                else:
+                                    sim.release()
+                        held = sim.grasp is not None
+                        t = time.perf_counter()
+                        sim.advance(b - a, record=rec[a:b])
+                        step_wall += time.perf_counter() - t
+                        held_rows[a:b] = held
+                        if delta is not None:
+                            moved = max(moved, float(K.stretch_change(sim.x, x0, model.ij, model.sd)))
+                            if moved > delta and delta < span:
+                                break
+                    if delta is not None and moved > delta and delta < span:
+                        # A stretch left the window the step was chosen for: redo the frame
+                        # with a wider window (and the step that goes with it).
+                        sim.restore(state)
+                        done = set(done_before)
+                        delta = 2.0 * max(delta, moved)
+                        redone += 1
+                        continue
+                    break
+                total_steps += spf
+                dts.append(dt)
+                if held_rows.any():
+                    rows = np.flatnonzero(held_rows)
+                    r = rec[rows]
+                    hw.add_forces(t_start + rows * dt, r)
+                    norms = np.linalg.norm(r, axis=1)
+                    k = int(np.argmax(norms))
+                    if norms[k] > fmax_norm:
+                        fmax_norm = float(norms[k])
+                        fmax = r[k].copy()
                 disp = sim.displacement()
                 if not np.all(np.isfinite(disp)) or np.abs(disp).max() > 10.0 * organ_size:
                     raise SimulationError(
                         f"the simulation became unstable at t = {sim.t:.4g} s (displacements beyond 10 organ "
-                        f"sizes or non-finite); "
-                        f"lower [integrator] safety or check the asset's masses and tables")
+                        f"sizes or non-finite); lower [integrator] safety or check the asset's masses and tables")
                 lo, hi = model.stretch_range(sim.x)
                 lam_lo, lam_hi = min(lam_lo, lo), max(lam_hi, hi)
                 if not warned_table and (lo < model.lam_min or hi > model.lam_max):
@@ -220,14 +274,21 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
                 tip = sim.grasp.tip(sim.t) if sim.grasp is not None else None
                 hw.add_frame(sim.t, disp, tip=tip)
                 advance(1)
+                if total_steps > scene.max_steps:
+                    raise SimulationError(
+                        f"the run needed more than [integrator] max_steps = {scene.max_steps} steps by "
+                        f"t = {sim.t:.3g} s; shorten the duration, coarsen the asset or raise max_steps")
         umax = float(np.linalg.norm(sim.displacement(), axis=1).max())
         sim_time = n_frames * frame_dt
+        sim_time_total = sim_time
         summary = {
             "asset": asset_label, "scene": scene.describe(), "scene_source": scene.source,
             "nodes": model.n_nodes, "springs": model.n_springs, "fixed_nodes": int(fixed.size),
-            "law": law, "precision": scene.precision, "dt_s": dt, "steps_per_frame": spf,
-            "steps": total_steps, "dt_bound_s": bound.dt_critical, "safety": bound.safety,
-            "omega_max_rad_s": bound.omega_max, "gamma_max_1_s": bound.gamma_max,
+            "law": law, "precision": scene.precision, "step_mode": scene.step, "window": scene.window,
+            "dt_min_s": min(dts), "dt_max_s": max(dts), "dt_mean_s": sim_time_total / total_steps,
+            "steps": total_steps, "frames_redone": redone, "dt_table_bound_s": table_bound.dt_critical,
+            "safety": scene.safety, "omega_max_table_rad_s": table_bound.omega_max,
+            "gamma_max_1_s": table_bound.gamma_max,
             "dashpot_s": scene.dashpot, "velocity_decay_s": scene.velocity_decay,
             "threads": threads, "thread_trial_s_per_step": thread_timing,
             "build_s": build_s, "warm_up_s": warm, "stepping_wall_s": step_wall,

@@ -7,7 +7,7 @@ Tables and keys::
 
     [scene]       duration, frame_rate, gravity, gravity_unit, law
     [damping]     dashpot, velocity_decay
-    [integrator]  safety, threads, precision, max_steps
+    [integrator]  safety, step, window, threads, precision, max_steps
     [fixed]       kind = "asset" (keep the asset's fixed nodes) or a region
                   table as in prepare configs (band / box / nearest / none)
     [grasper]     enabled, target, radius, mode, stiffness, direction,
@@ -31,11 +31,13 @@ from ..errors import ConfigError, InputError
 from ..units import parse_quantity
 
 DEFAULT_SCENE = "default"
+#: Half-width of a laparoscopic grasper's jaws [m] (radius "auto" grasps at least this).
+JAW_RADIUS = 0.004
 
 _TABLES = {
     "scene": {"duration", "frame_rate", "gravity", "gravity_unit", "law"},
     "damping": {"dashpot", "velocity_decay"},
-    "integrator": {"safety", "threads", "precision", "max_steps"},
+    "integrator": {"safety", "threads", "precision", "max_steps", "step", "window"},
     "fixed": None,  # validated by esmm.pipeline.network.regions (plus kind = "asset")
     "grasper": {"enabled", "target", "radius", "mode", "stiffness", "direction", "grasp_time",
                 "release_time", "waypoints"},
@@ -66,8 +68,11 @@ class GrasperSpec:
     target : "auto" or ndarray (3,)
         "auto": the surface node farthest from the fixed nodes; else the
         surface node nearest to this point [m].
-    radius : float
-        Every surface node within this distance of the target node is held [m].
+    radius : float or "auto"
+        Every surface node within this distance of the target node is held [m];
+        "auto": the larger of :data:`JAW_RADIUS` and 1.05 times the median
+        length of the target's springs (so that a coarse mesh is grasped by a
+        patch, not by one node).
     mode : {"prescribed", "spring"}
         Held nodes follow the tip exactly, or are tied to it by springs.
     stiffness : float
@@ -82,7 +87,7 @@ class GrasperSpec:
     """
 
     target: Any = "auto"
-    radius: float = 0.005
+    radius: Any = "auto"
     mode: str = "prescribed"
     stiffness: float = 0.0
     direction: Any = "away"
@@ -121,6 +126,14 @@ class Scene:
         Time constant tau of the mass-proportional damping [s] (None: none).
     safety : float
         Fraction of the critical time step used.
+    step : {"adaptive", "table"}
+        "table": one step for the whole run, bounded with the largest tangent
+        of the whole table (safe whatever happens); "adaptive": per frame, the
+        bound over a stretch window around the current stretches (checked
+        along the frame; the frame is redone with a wider window if a stretch
+        leaves it).
+    window : float
+        Half-width delta of the stretch window of "adaptive".
     threads : "auto" or int
     precision : {"float64", "float32"}
     max_steps : int
@@ -140,6 +153,8 @@ class Scene:
     dashpot: float = 0.0
     velocity_decay: float | None = 0.2
     safety: float = 0.9
+    step: str = "adaptive"
+    window: float = 0.05
     threads: Any = "auto"
     precision: str = "float64"
     max_steps: int = 50_000_000
@@ -327,6 +342,12 @@ def scene_from_dict(data: dict, *, source: str = "<dict>") -> Scene:
         kw["safety"] = _number(it["safety"], "[integrator] safety", lo=0.0, hi=1.0, lo_open=True)
     if "threads" in it:
         kw["threads"] = _threads(it["threads"], "[integrator] threads")
+    if "step" in it:
+        if it["step"] not in ("adaptive", "table"):
+            raise ConfigError(f"[integrator] step: {it['step']!r} is not \"adaptive\" or \"table\"")
+        kw["step"] = it["step"]
+    if "window" in it:
+        kw["window"] = _number(it["window"], "[integrator] window (stretch)", lo=0.0, hi=1.0, lo_open=True)
     if "precision" in it:
         if it["precision"] not in ("float64", "float32"):
             raise ConfigError(f"[integrator] precision: {it['precision']!r} is not \"float64\" or \"float32\"")
@@ -373,10 +394,10 @@ def _grasper(gr: dict) -> GrasperSpec:
     kw: dict[str, Any] = {}
     target = gr.get("target", "auto")
     kw["target"] = "auto" if target == "auto" else _vec3(target, "[grasper] target", lengths=True)
-    if "radius" in gr:
+    if "radius" in gr and gr["radius"] != "auto":
         kw["radius"] = _quantity(gr["radius"], "length", "[grasper] radius")
         if not (kw["radius"] >= 0):
-            raise ConfigError(f"[grasper] radius: must be >= 0, got {gr['radius']!r}")
+            raise ConfigError(f"[grasper] radius: must be >= 0 or \"auto\", got {gr['radius']!r}")
     mode = gr.get("mode", "prescribed")
     if mode not in GRASP_MODES:
         raise ConfigError(f"[grasper] mode: {mode!r} is not one of {', '.join(GRASP_MODES)}")
