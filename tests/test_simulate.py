@@ -23,6 +23,7 @@ from esmm.pipeline.simulate.integrator import (
     Simulator,
     build_force_model,
     cell_tangent_bound,
+    mass_scaling,
     stable_step,
     tangent_bound,
     windowed_bound,
@@ -488,3 +489,45 @@ def test_grasper_follows_path_and_releases(box, tables):
     x_before = sim.x[tgt].copy()
     sim.advance(50)
     assert np.linalg.norm(sim.x[tgt] - x_before) > 0       # it moves back once released
+
+
+# ---------------------------------------------------------------------------
+# selective mass scaling
+# ---------------------------------------------------------------------------
+
+def test_mass_scaling_respects_budget_and_raises_the_step():
+    # An irregular mesh: jitter the box so that some nodes are light.
+    rng = np.random.default_rng(7)
+    mesh = box_tets(6, 5, 4, (0.06, 0.05, 0.04))
+    h = 0.01
+    mesh.points = mesh.points + rng.uniform(-0.3 * h, 0.3 * h, size=mesh.points.shape) * (
+        (mesh.points > 1e-9) & (mesh.points < np.array([0.06, 0.05, 0.04]) - 1e-9))
+    net = network_from_tets(mesh)
+    tb = make_tables()
+    m = build_force_model(net, tb)
+    fixed = np.flatnonzero(net.points[:, 0] < 1e-9)
+    free = ~np.isin(np.arange(net.n_nodes), fixed)
+    base = stable_step(m, net.mass, free=free, safety=1.0)
+    for budget in (1e-4, 1e-3, 1e-2):
+        scaled, info = mass_scaling(m, net.mass, free=free, budget=budget)
+        assert np.all(scaled >= net.mass) and np.all(scaled[~free] == net.mass[~free])
+        assert (scaled - net.mass).sum() <= budget * net.mass.sum() * (1 + 1e-9)
+        assert info["added_fraction"] == pytest.approx((scaled - net.mass).sum() / net.mass.sum())
+        b = stable_step(m, scaled, free=free, safety=1.0)
+        assert b.dt_critical == pytest.approx(base.dt_critical * info["gain"], rel=1e-6)
+        assert info["gain"] > 1.0
+    _, none = mass_scaling(m, net.mass, free=free, budget=0.0)
+    assert none == {"added_fraction": 0.0, "nodes": 0, "gain": 1.0}
+
+
+def test_mass_scaling_keeps_the_true_weight(box, tables):
+    scaled, info = mass_scaling(build_force_model(box, tables), box.mass, budget=0.05)
+    assert info["added_fraction"] > 0.01
+    m = build_force_model(box, tables)
+    sim = Simulator(m, box.points, scaled, fixed=[], gravity=(0, 0, -9.81), gravity_mass=box.mass)
+    top = np.flatnonzero(box.points[:, 2] > 0.03 - 1e-9)
+    sim.attach(Grasp(nodes=top, offsets=box.points[top] - box.points[top[0]], wp_t=np.array([0.0]),
+                     wp_x=box.points[top[0]][None, :]))
+    sim.relax(rtol=1e-10)
+    W = box.mass.sum() * 9.81
+    np.testing.assert_allclose(sim.grasper_force(), [0, 0, -W], rtol=1e-6, atol=1e-7 * W)

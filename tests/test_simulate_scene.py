@@ -72,7 +72,7 @@ def test_default_scene_values():
     assert sc.mass_damping == pytest.approx(1 / 0.15)
     g = sc.grasper
     assert g.mode == "prescribed" and g.release_time == 2.0 and g.radius == "auto"
-    assert sc.step == "adaptive" and sc.window == 0.05
+    assert sc.step == "adaptive" and sc.window == 0.05 and sc.mass_scaling == 0.001
     assert [w.time for w in g.waypoints] == [0.0, 1.0]
     assert g.waypoints[1].distance == pytest.approx(0.015)
     assert sc.fixed is None and sc.n_frames == 90
@@ -92,6 +92,7 @@ def test_default_scene_values():
     ({"integrator": {"threads": 0}}, "threads"),
     ({"integrator": {"step": "tiny"}}, "step"),
     ({"integrator": {"window": 0}}, "window"),
+    ({"integrator": {"mass_scaling": 0.5}}, "mass_scaling"),
     ({"fixed": {"kind": "asset", "width": "3 mm"}}, "asset"),
     ({"fixed": {"kind": "band", "width": "3"}}, "no unit"),
     ({"grasper": {"mode": "magnet"}}, "mode"),

@@ -79,7 +79,8 @@ def _block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, bu
 
     buf rows: 0-2 dx dy dz, 3 L, 4 lam, 5 coefficient, 6 t, 7 d.dv. The law is
     applied without branches: secant clips t to [0, 1] and multiplies by
-    (lam - 1); energy leaves t unclipped and multiplies by 1.
+    (lam - 1); energy leaves t unclipped and multiplies by 1. The damping
+    branch is outside the loops, so that both versions vectorise.
     """
     last = float(last_cell)
     secant = law == LAW_SECANT
@@ -87,21 +88,27 @@ def _block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, bu
     t_hi = 1.0 if secant else np.inf
     a1 = 1.0 if secant else 0.0          # factor = a1 * (lam - 1) + a0
     a0 = 0.0 if secant else 1.0
-    for b in range(nb):
-        i = ij[0, p0 + b]
-        j = ij[1, p0 + b]
-        buf[0, b] = x[j, 0] - x[i, 0]
-        buf[1, b] = x[j, 1] - x[i, 1]
-        buf[2, b] = x[j, 2] - x[i, 2]
     if damped:
         for b in range(nb):
             i = ij[0, p0 + b]
             j = ij[1, p0 + b]
-            buf[7, b] = ((v[j, 0] - v[i, 0]) * buf[0, b] + (v[j, 1] - v[i, 1]) * buf[1, b]
-                         + (v[j, 2] - v[i, 2]) * buf[2, b])
+            dx = x[j, 0] - x[i, 0]
+            dy = x[j, 1] - x[i, 1]
+            dz = x[j, 2] - x[i, 2]
+            buf[0, b] = dx
+            buf[1, b] = dy
+            buf[2, b] = dz
+            buf[7, b] = (v[j, 0] - v[i, 0]) * dx + (v[j, 1] - v[i, 1]) * dy + (v[j, 2] - v[i, 2]) * dz
+    else:
+        for b in range(nb):
+            i = ij[0, p0 + b]
+            j = ij[1, p0 + b]
+            buf[0, b] = x[j, 0] - x[i, 0]
+            buf[1, b] = x[j, 1] - x[i, 1]
+            buf[2, b] = x[j, 2] - x[i, 2]
     for b in range(nb):
         L = np.sqrt(buf[0, b] * buf[0, b] + buf[1, b] * buf[1, b] + buf[2, b] * buf[2, b])
-        buf[3, b] = L
+        buf[3, b] = 1.0 / L if L > 0.0 else 0.0
         lam = L * sd[0, p0 + b]
         buf[4, b] = lam
         s = (lam - lam_min) * inv_h
@@ -117,14 +124,14 @@ def _block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, bu
         p = p0 + b
         buf[5, b] = (sd[1, p] * (tab[k, 0] + t * tab[k, 3]) + sd[2, p] * (tab[k, 1] + t * tab[k, 4])
                      + sd[3, p] * (tab[k, 2] + t * tab[k, 5]))
-    for b in range(nb):
-        L = buf[3, b]
-        rinv = 1.0 / L if L > 0.0 else 0.0
-        buf[5, b] = buf[5, b] * (a1 * (buf[4, b] - 1.0) + a0) * rinv
     if damped:
         for b in range(nb):
-            rinv = 1.0 / buf[3, b] if buf[3, b] > 0.0 else 0.0
-            buf[5, b] += sd[4, p0 + b] * buf[7, b] * rinv * rinv
+            rinv = buf[3, b]
+            buf[5, b] = (buf[5, b] * (a1 * (buf[4, b] - 1.0) + a0)
+                         + sd[4, p0 + b] * buf[7, b] * rinv) * rinv
+    else:
+        for b in range(nb):
+            buf[5, b] = buf[5, b] * (a1 * (buf[4, b] - 1.0) + a0) * buf[3, b]
 
 
 @njit(inline="always", **_OPTS)

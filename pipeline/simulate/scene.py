@@ -7,7 +7,7 @@ Tables and keys::
 
     [scene]       duration, frame_rate, gravity, gravity_unit, law
     [damping]     dashpot, velocity_decay
-    [integrator]  safety, step, window, threads, precision, max_steps
+    [integrator]  safety, step, window, mass_scaling, threads, precision, max_steps
     [fixed]       kind = "asset" (keep the asset's fixed nodes) or a region
                   table as in prepare configs (band / box / nearest / none)
     [grasper]     enabled, target, radius, mode, stiffness, direction,
@@ -37,7 +37,7 @@ JAW_RADIUS = 0.004
 _TABLES = {
     "scene": {"duration", "frame_rate", "gravity", "gravity_unit", "law"},
     "damping": {"dashpot", "velocity_decay"},
-    "integrator": {"safety", "threads", "precision", "max_steps", "step", "window"},
+    "integrator": {"safety", "threads", "precision", "max_steps", "step", "window", "mass_scaling"},
     "fixed": None,  # validated by esmm.pipeline.network.regions (plus kind = "asset")
     "grasper": {"enabled", "target", "radius", "mode", "stiffness", "direction", "grasp_time",
                 "release_time", "waypoints"},
@@ -134,6 +134,9 @@ class Scene:
         leaves it).
     window : float
         Half-width delta of the stretch window of "adaptive".
+    mass_scaling : float
+        Largest inertial mass added to the step-limiting light nodes, as a
+        fraction of the organ's mass (0: none); gravity keeps the true masses.
     threads : "auto" or int
     precision : {"float64", "float32"}
     max_steps : int
@@ -155,6 +158,7 @@ class Scene:
     safety: float = 0.9
     step: str = "adaptive"
     window: float = 0.05
+    mass_scaling: float = 1e-3
     threads: Any = "auto"
     precision: str = "float64"
     max_steps: int = 50_000_000
@@ -346,6 +350,9 @@ def scene_from_dict(data: dict, *, source: str = "<dict>") -> Scene:
         if it["step"] not in ("adaptive", "table"):
             raise ConfigError(f"[integrator] step: {it['step']!r} is not \"adaptive\" or \"table\"")
         kw["step"] = it["step"]
+    if "mass_scaling" in it:
+        kw["mass_scaling"] = _number(it["mass_scaling"], "[integrator] mass_scaling (fraction of the mass)",
+                                     lo=0.0, hi=0.1)
     if "window" in it:
         kw["window"] = _number(it["window"], "[integrator] window (stretch)", lo=0.0, hi=1.0, lo_open=True)
     if "precision" in it:

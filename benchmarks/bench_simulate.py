@@ -1,0 +1,212 @@
+"""Simulator speed: ns per spring per step, memory-bandwidth bound, demo real-time factor, render rate.
+
+Networks are structured (Kuhn) tetrahedral boxes of increasing density built
+with ``network_from_tets`` (RCM order), about 5 000, 50 000, 100 000 and
+500 000 springs, with the stiffness tables of the bundled porcine-liver
+material (secant law). For each: build time, kernel compile/cache-load time
+(reported apart), and the median over repeats of the wall time of a block of
+steps, single thread and all threads. The ESMM paper needed 3.517 ms per step
+for 5 322 elements (~660 ns per element). Goals: < 20 ns per spring per step
+on one thread; a step of a >= 100 000-spring network < 1 ms.
+
+Memory-bandwidth bound: bytes streamed per spring per step (spring indices and
+data, plus the node arrays divided by the springs per node) over a STREAM-like
+copy bandwidth measured with numpy (large arrays: DRAM; 8 MB arrays: cache).
+
+Demo: the paper-sized liver asset (``esmm prepare`` of data/meshes/sofa_liver.stl,
+preset "paper") in the default scene for 1 s of simulated time, adaptive and
+whole-table step; then the off-screen rendering rate at 960 x 720.
+
+Note: on a shared machine the wall times include other processes' load; CPU
+(thread) time of the single-thread runs is reported beside them.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import statistics
+import tempfile
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+SIZES = {"5k": 9, "50k": 19, "100k": 24, "500k": 41}       # Kuhn box cells per side
+PAPER_NS_PER_ELEMENT = 3.517e-3 / 5322 * 1e9
+REPO = Path(__file__).resolve().parent.parent
+
+
+def box_tets(n: int, size: float = 0.1):
+    xs = np.linspace(0.0, size, n + 1)
+    X, Y, Z = np.meshgrid(xs, xs, xs, indexing="ij")
+    pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+    idx = np.arange(pts.shape[0]).reshape(n + 1, n + 1, n + 1)
+    cells = np.stack(np.meshgrid(*(np.arange(n),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    tets = []
+    for perm in itertools.permutations(range(3)):
+        corners = [cells]
+        c = cells
+        for ax in perm:
+            c = c.copy()
+            c[:, ax] += 1
+            corners.append(c)
+        tets.append(np.stack([idx[q[:, 0], q[:, 1], q[:, 2]] for q in corners], axis=1))
+    return SimpleNamespace(points=pts, tets=np.concatenate(tets))
+
+
+def _tables():
+    from esmm.pipeline.materials.material import load_material
+    from esmm.pipeline.network.tables import build_tables
+
+    return build_tables(load_material("porcine_liver_paper"))
+
+
+def copy_bandwidth(nbytes: int, repeats: int = 5) -> float:
+    """STREAM-like copy bandwidth [GB/s] (bytes read + written) of float64 arrays of *nbytes*."""
+    src = np.random.default_rng(0).random(nbytes // 8)
+    dst = np.empty_like(src)
+    np.copyto(dst, src)
+    best = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        np.copyto(dst, src)
+        best.append(time.perf_counter() - t)
+    return 2 * nbytes / statistics.median(best) / 1e9
+
+
+def _time_steps(sim, steps: int, repeats: int) -> tuple[float, float]:
+    """Median wall and thread-CPU seconds per step."""
+    sim.advance(max(2, steps // 10))
+    walls, cpus = [], []
+    for _ in range(repeats):
+        t, c = time.perf_counter(), time.thread_time()
+        sim.advance(steps)
+        walls.append((time.perf_counter() - t) / steps)
+        cpus.append((time.thread_time() - c) / steps)
+    return statistics.median(walls), statistics.median(cpus)
+
+
+def bench_sizes(tables, threads_all: int) -> dict:
+    import numba
+
+    from esmm.pipeline.network.springs import network_from_tets
+    from esmm.pipeline.simulate.integrator import Simulator, build_force_model, warm_up
+
+    out = {}
+    for name, n in SIZES.items():
+        t = time.perf_counter()
+        net = network_from_tets(box_tets(n))
+        t_net = time.perf_counter() - t
+        t = time.perf_counter()
+        model = build_force_model(net, tables)
+        t_model = time.perf_counter() - t
+        warm = warm_up(model, threads=1) + (warm_up(model, threads=threads_all) if threads_all > 1 else 0.0)
+        fixed = np.flatnonzero(net.points[:, 2] < 1e-9)
+        sim = Simulator(model, net.points, net.mass, fixed=fixed, gravity=(0, 0, -9.81), mass_damping=5.0)
+        s = model.n_springs
+        steps = int(np.clip(3e7 / s / 10, 10, 4000))          # ~0.1 s per repeat at 10 ns/spring
+        row = {"springs": s, "nodes": net.n_nodes, "network_build_s": t_net, "model_build_s": t_model,
+               "warm_up_s": warm, "steps_per_repeat": steps,
+               "halo_springs_2_threads": int(model.layout(2)[2][-1]) if threads_all > 1 else 0}
+        sim.threads = 1
+        w, c = _time_steps(sim, steps, 5)
+        row.update({"t1_us_per_step": w * 1e6, "t1_ns_per_spring_step": w / s * 1e9,
+                    "t1_cpu_ns_per_spring_step": c / s * 1e9})
+        if threads_all > 1:
+            sim.threads = threads_all
+            w2, _ = _time_steps(sim, steps, 5)
+            row.update({f"t{threads_all}_us_per_step": w2 * 1e6, f"t{threads_all}_ns_per_spring_step": w2 / s * 1e9,
+                        "speedup": w / w2})
+        if name == "50k":   # float32 spring data
+            m32 = build_force_model(net, tables, precision="float32")
+            warm_up(m32)
+            sim32 = Simulator(m32, net.points, net.mass, fixed=fixed, gravity=(0, 0, -9.81))
+            w32, c32 = _time_steps(sim32, steps, 5)
+            row["float32_t1_ns_per_spring_step"] = w32 / s * 1e9
+            row["float32_t1_cpu_ns_per_spring_step"] = c32 / s * 1e9
+        row["bytes_per_spring_step"] = bytes_touched(model, net)
+        out[name] = row
+    numba.set_num_threads(threads_all)
+    return out
+
+
+def bytes_touched(model, net) -> float:
+    """Bytes moved per spring per step: spring stream + node arrays (x r/w, v r/w, f r/w, fext r, 1/m r)."""
+    node_bytes = 8 * (3 * 2 + 3 * 2 + 3 * 2 + 3 + 1)
+    return model.bytes_per_spring() + node_bytes * net.n_nodes / model.n_springs
+
+
+def bench_demo(tables_unused=None) -> dict:
+    from esmm.pipeline.prepare import prepare
+    from esmm.pipeline.simulate.render import render_video
+    from esmm.pipeline.simulate.run import simulate_network
+    from esmm.pipeline.simulate.scene import VideoSpec, load_scene
+    from esmm.pipeline.asset import read_asset
+    from dataclasses import replace
+
+    src = REPO / "data" / "meshes" / "sofa_liver.stl"
+    out: dict = {}
+    with tempfile.TemporaryDirectory() as d:
+        t = time.perf_counter()
+        prepare(src, output=Path(d) / "liver.h5")
+        out["prepare_s"] = time.perf_counter() - t
+        asset = read_asset(Path(d) / "liver.h5")
+        base = load_scene("default").with_overrides(duration=1.0)
+        for mode in ("adaptive", "table"):
+            sc = replace(base, step=mode)
+            res = simulate_network(asset.network, asset.tables, sc, Path(d) / mode)
+            s = res.summary
+            out[mode] = {k: s[k] for k in ("springs", "nodes", "threads", "steps", "dt_min_s", "dt_max_s",
+                                           "dt_mean_s", "dt_table_bound_s", "frames_redone", "stepping_wall_s",
+                                           "wall_per_step_us", "ns_per_spring_step", "real_time_factor",
+                                           "warm_up_s")}
+        t = time.perf_counter()
+        info = render_video(Path(d) / "adaptive" / "history.h5", Path(d) / "demo.mp4", video=VideoSpec())
+        out["render"] = {"frames": info["frames"], "seconds": info["seconds"], "fps_960x720": info["render_fps"]}
+    return out
+
+
+def run() -> dict:
+    import numba
+
+    threads_all = int(numba.config.NUMBA_NUM_THREADS)
+    t0 = time.perf_counter()
+    tables = _tables()
+    res: dict = {"threads_available": threads_all, "threading_layer": None}
+    res["sizes"] = bench_sizes(tables, threads_all)
+    try:
+        res["threading_layer"] = numba.threading_layer()
+    except ValueError:
+        pass
+    bw_dram = copy_bandwidth(1 << 30, repeats=3)
+    bw_cache = copy_bandwidth(8 << 20, repeats=20)
+    res["copy_bandwidth_GBps"] = {"dram_1GiB": bw_dram, "cache_8MiB": bw_cache}
+    for name, row in res["sizes"].items():
+        b = row["bytes_per_spring_step"]
+        row["bandwidth_bound_ns_dram"] = b / bw_dram
+        row["bandwidth_bound_ns_cache"] = b / bw_cache
+        row["fraction_of_dram_bound"] = row["bandwidth_bound_ns_dram"] / row["t1_ns_per_spring_step"]
+    res["paper_ns_per_element_step"] = PAPER_NS_PER_ELEMENT
+    s5 = res["sizes"]["5k"]
+    res["speedup_vs_paper_5k"] = PAPER_NS_PER_ELEMENT / s5["t1_ns_per_spring_step"]
+    res["goal_lt_20ns_single_thread"] = all(r["t1_ns_per_spring_step"] < 20 for r in res["sizes"].values())
+    r100 = res["sizes"]["100k"]
+    best100 = min(r100["t1_us_per_step"], r100.get(f"t{threads_all}_us_per_step", np.inf))
+    res["step_100k_best_us"] = best100
+    res["goal_100k_step_lt_1ms"] = best100 < 1000.0
+    try:
+        res["demo"] = bench_demo()
+    except Exception as exc:  # the demo needs gmsh and the bundled liver; report, don't fail the rest
+        res["demo"] = {"error": f"{type(exc).__name__}: {exc}"}
+    res["bench_seconds"] = time.perf_counter() - t0
+    return res
+
+
+if __name__ == "__main__":
+    import json
+    import sys
+
+    print(json.dumps(run(), indent=2, default=float))
+    sys.exit(0)
