@@ -214,6 +214,7 @@ def _cmd_tetwild(opts: dict, arrays: dict) -> tuple[dict, dict]:
         np.asarray(arrays["points"], np.float64), np.asarray(arrays["faces"], np.int32),
         edge_length_abs=float(opts["edge_length"]), epsilon=float(opts.get("epsilon", 1e-3)),
         optimize=True, num_threads=int(opts.get("threads", 1)), quiet=True,
+        num_opt_iter=int(opts.get("num_opt_iter", 80)), stop_energy=float(opts.get("stop_energy", 10.0)),
     )
     return {"nodes": np.asarray(v, np.float64), "tets": np.asarray(t, np.int64)}, {"t_mesh": time.perf_counter() - t0}
 
@@ -241,9 +242,11 @@ def _main(folder: str) -> int:
             if gmsh.isInitialized():
                 log = list(gmsh.logger.get())
         msg = " ".join(str(exc).split()) or type(exc).__name__
-        errors = [ln for ln in log if ln.startswith("Error")]
-        if errors and errors[-1] not in msg:
-            msg = f"{msg} ({errors[-1]})"
+        errors = [" ".join(ln.split()) for ln in log if ln.startswith("Error")]
+        if errors:
+            last = errors[-1].removeprefix("Error: ")
+            if last not in " ".join(msg.split()):
+                msg = f"{msg} ({last})"
         (d / "error.json").write_text(json.dumps({"error": msg, "log": log[-200:]}))
         return 1
     np.savez(d / "out.npz", **out)
