@@ -496,9 +496,9 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
             raise ConfigError(f"density: expected a number of kg/m3, got {density!r}")
         cfg["prepare"]["density"] = f"{float(density):.12g} kg/m3"
     s = _settings(cfg, source)
-    if s.structure == "skeleton" and (s.size is not None or s.nodes is not None or s.elements is not None):
-        raise ConfigError("size/nodes/elements set the tet mesh; for the skeleton structure use "
-                          "[skeleton] n_surface")
+    if s.structure == "skeleton" and given:
+        raise ConfigError(f"{given[0]} sets the tet mesh; for the skeleton structure set "
+                          f"[skeleton] n_surface in the config")
     if s.structure == "tetra" and s.floors:
         _check_floor_names(s.floors)
     clock = _Clock()

@@ -131,6 +131,7 @@ def test_size_for_elements_matches_its_definition():
     (["{stl}", "--material", "no_such_material"], 2, "no_such_material"),
     (["{stl}", "--unit", "furlong"], 2, "unit"),
     (["{stl}", "-o", "{stl}"], 2, "must end in .h5"),
+    (["{stl}", "--structure", "skeleton", "--nodes", "300"], 2, "[skeleton] n_surface"),
 ])
 def test_bad_prepare_input(run_cli, tmp_path, monkeypatch, sphere_stl, args, code, match):
     monkeypatch.chdir(tmp_path)
@@ -255,3 +256,21 @@ def test_prepare_liver_paper(run_cli, tmp_path, bundled_data):
     assert 3500 < net.n_tets < 6500
     assert net.total_volume() == pytest.approx(1.04e-3, rel=0.1)
     assert Path(tmp_path / "liver.xdmf").exists()
+
+
+@pytest.mark.slow
+def test_prepare_skeleton_structure(run_cli, tmp_path, sphere_stl):
+    """The surface + skeleton structure: no tets, the organ volume shared over the springs."""
+    out = tmp_path / "sk.h5"
+    rc, stdout, err = run_cli("prepare", sphere_stl, "--structure", "skeleton", "--config", "coarse", "-o", out)
+    assert rc == 0, err
+    from esmm.pipeline.asset import read_asset, validate_asset
+
+    assert validate_asset(out) == []
+    a = read_asset(out)
+    net = a.network
+    assert net.structure == "skeleton" and net.tets is None and a.quality is None
+    v = float(a.cleaning["volume_after"])
+    assert net.volume.sum() == pytest.approx(v, rel=1e-9)
+    assert net.total_mass() == pytest.approx(1060 * v, rel=1e-9)
+    np.testing.assert_allclose(net.volume_weight, net.volume_weight[0], rtol=1e-12)  # p = 2
