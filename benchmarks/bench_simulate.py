@@ -24,7 +24,6 @@ Note: on a shared machine the wall times include other processes' load; CPU
 from __future__ import annotations
 
 import itertools
-import os
 import statistics
 import tempfile
 import time
@@ -90,7 +89,6 @@ def _time_steps(sim, steps: int, repeats: int) -> tuple[float, float]:
 
 def bench_sizes(tables, threads_all: int) -> dict:
     import numba
-
     from esmm.pipeline.network.springs import network_from_tets
     from esmm.pipeline.simulate.integrator import Simulator, build_force_model, warm_up
 
@@ -139,12 +137,13 @@ def bytes_touched(model, net) -> float:
 
 
 def bench_demo(tables_unused=None) -> dict:
+    from dataclasses import replace
+
+    from esmm.pipeline.asset import read_asset
     from esmm.pipeline.prepare import prepare
     from esmm.pipeline.simulate.render import render_video
     from esmm.pipeline.simulate.run import simulate_network
     from esmm.pipeline.simulate.scene import VideoSpec, load_scene
-    from esmm.pipeline.asset import read_asset
-    from dataclasses import replace
 
     src = REPO / "data" / "meshes" / "sofa_liver.stl"
     out: dict = {}
@@ -183,7 +182,7 @@ def run() -> dict:
     bw_dram = copy_bandwidth(1 << 30, repeats=3)
     bw_cache = copy_bandwidth(8 << 20, repeats=20)
     res["copy_bandwidth_GBps"] = {"dram_1GiB": bw_dram, "cache_8MiB": bw_cache}
-    for name, row in res["sizes"].items():
+    for row in res["sizes"].values():
         b = row["bytes_per_spring_step"]
         row["bandwidth_bound_ns_dram"] = b / bw_dram
         row["bandwidth_bound_ns_cache"] = b / bw_cache

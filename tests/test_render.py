@@ -18,7 +18,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-
 from esmm.pipeline.network.springs import network_from_tets
 from esmm.pipeline.simulate.history import History, HistoryWriter
 from esmm.pipeline.simulate.scene import VideoSpec
@@ -81,13 +80,12 @@ def rms(a, b):
 
 def test_frames_match_reference_images(history):
     import imageio.v3 as iio
-
     from esmm.pipeline.simulate.render import FrameRenderer
 
     video = VideoSpec(width=SIZE[0], height=SIZE[1])
     with History(history) as h, FrameRenderer(h, video) as fr:
         imgs = {k: fr.frame(k) for k in FRAMES}
-    for k, img in imgs.items():
+    for img in imgs.values():
         assert img.shape == (SIZE[1], SIZE[0], 3) and img.dtype == np.uint8
         # Not blank: the organ covers a good part of the picture, in colour.
         nonwhite = np.any(img < 240, axis=2).mean()
@@ -107,7 +105,6 @@ def test_frames_match_reference_images(history):
 
 def test_video_is_written_atomically_and_plays(history, tmp_path):
     import imageio_ffmpeg
-
     from esmm.pipeline.simulate.render import render_video
 
     out = tmp_path / "v.mp4"

@@ -13,7 +13,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-
 from esmm.pipeline.errors import SimulationError
 from esmm.pipeline.network.forcelaw import spring_energy, spring_forces
 from esmm.pipeline.network.springs import SpringNetwork, network_from_tets, stiffness_matrix
@@ -151,6 +150,21 @@ def test_kernel_matches_reference(box, tables, law, precision):
     assert lo < 0.5 and hi > 2.0
     rtol = 1e-13 if precision == "float64" else 1e-6
     assert np.abs(f - ref).max() <= rtol * np.abs(ref).max()
+
+
+@pytest.mark.parametrize("law", ["secant", "energy"])
+def test_isotropic_fast_path_matches_three_directions(box, law):
+    tb = make_tables("constant")            # three equal rows
+    rng = np.random.default_rng(5)
+    x = box.points + rng.normal(scale=2e-3, size=box.points.shape)
+    v = rng.normal(size=x.shape)
+    one = build_force_model(box, tb, law=law, dashpot=1e-4)
+    three = build_force_model(box, tb, law=law, dashpot=1e-4, isotropic_fast=False)
+    assert (one.n_directions, three.n_directions) == (1, 3)
+    f1, f3 = one.forces(x, v), three.forces(x, v)
+    assert np.abs(f1 - f3).max() <= 1e-13 * np.abs(f3).max()
+    b1, b3 = stable_step(one, box.mass, x=x, window=0.05), stable_step(three, box.mass, x=x, window=0.05)
+    assert b1.dt_critical == pytest.approx(b3.dt_critical, rel=1e-12)
 
 
 @pytest.mark.slow  # compiles the parallel kernels on a cold numba cache (~10 s CPU)
@@ -319,7 +333,7 @@ def test_energy_bounded_without_damping(box, tables, law):
         free = sim.free
         sim.v[free] = rng.normal(scale=0.05, size=(int(free.sum()), 3))
 
-        def energy():
+        def energy(sim=sim):
             return sim.kinetic_energy() + spring_energy(sim.x, box, tables, law=law) + sim.gravity_energy()
 
         e0 = energy()

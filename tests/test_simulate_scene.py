@@ -9,7 +9,6 @@ from types import SimpleNamespace
 import h5py
 import numpy as np
 import pytest
-
 from esmm.pipeline.config import bundled_names
 from esmm.pipeline.errors import ConfigError, SimulationError
 from esmm.pipeline.network.springs import network_from_tets
@@ -130,7 +129,7 @@ def test_scene_from_file_and_overrides(tmp_path):
         sc.with_overrides(duration=-1.0)
     with pytest.raises(ConfigError, match="no scenes preset"):
         load_scene("no-such-scene").source  # noqa: B018
-    
+
 
 def test_unknown_bundled_scene_lists_choices():
     with pytest.raises(ConfigError, match="choose one of .*default"):
@@ -377,3 +376,26 @@ def test_cli_bad_options(run_cli, tmp_path):
     assert code == 2 and "--threads" in err
     code, out, err = run_cli("simulate", tmp_path / "a.h5", "--law", "hooke")
     assert code == 2
+
+
+def test_cli_end_to_end_on_an_asset(run_cli, tmp_path, slab):
+    """esmm simulate on a real asset file: outputs, summary, exit code (video in test_render)."""
+    from esmm.pipeline.asset import write_asset
+
+    asset = write_asset(tmp_path / "slab.h5", slab, tables=stiff_tables())
+    scene = tmp_path / "s.toml"
+    scene.write_text('[scene]\nduration = "2 s"\n[integrator]\nthreads = 1\n'
+                     '[grasper]\nrelease_time = "0.1 s"\nwaypoints = [{time = "0 s", distance = "0 mm"}, '
+                     '{time = "0.1 s", distance = "2 mm"}]\n', encoding="utf-8")
+    code, out, err = run_cli("simulate", asset, "--scene", scene, "--duration", "200 ms", "--law", "energy",
+                             "--out", tmp_path / "run")
+    assert code == 0, err
+    assert "real-time factor" in out and "history:" in out
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert s["law"] == "energy" and s["simulated_s"] == pytest.approx(0.2, abs=1 / 30)
+    assert (tmp_path / "run" / "history.xdmf").is_file() and (tmp_path / "run" / "grasper_force.png").is_file()
+    # A scene that does not fit this asset: one-line error, exit code 2, no traceback.
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[fixed]\nkind = "box"\nlower = ["1 m", "1 m", "1 m"]\nupper = ["2 m", "2 m", "2 m"]\n')
+    code, out, err = run_cli("simulate", asset, "--scene", bad, "--out", tmp_path / "run2")
+    assert code == 2 and "holds no" in err and "Traceback" not in err

@@ -73,9 +73,10 @@ class ForceModel:
         Springs (rows i and j), ``i < j``, sorted by ``(i, j)``.
     order : ndarray, shape (s,), int64
         Spring p of the model is ``network.springs[order[p]]``.
-    sd : ndarray, shape (4, s) or (5, s)
+    sd : ndarray, shape (4, s) or (5, s); isotropic tables: (2, s) or (3, s)
         Rows ``1/L0, w_x, w_y, w_z(, c_ij)`` with ``w_d = c V_ij cos2_d / L0``
-        [m2] and the dashpot ``c_ij`` [N s/m].
+        [m2] and the dashpot ``c_ij`` [N s/m]; isotropic: ``1/L0, w(, c_ij)``
+        with ``w = sum_d w_d``.
     tab : ndarray, shape (n_grid - 1, 6)
         Per cell ``[f_x, f_y, f_z, df_x, df_y, df_z]`` [Pa] of the law's table.
     lam_min, inv_h : float
@@ -117,6 +118,11 @@ class ForceModel:
     @property
     def damped(self) -> bool:
         return self.dashpot > 0.0
+
+    @property
+    def n_directions(self) -> int:
+        """3, or 1 when the tables are isotropic (one weight and one lookup per spring)."""
+        return int(self.sd.shape[0] - 1 - (1 if self.damped else 0))
 
     @property
     def last_cell(self) -> int:
@@ -225,7 +231,7 @@ def windowed_bound(cell_bound: np.ndarray, cells: int) -> np.ndarray:
 
 
 def build_force_model(network, tables, *, law: str | None = None, dashpot: float = 0.0,
-                      precision: str = "float64") -> ForceModel:
+                      precision: str = "float64", isotropic_fast: bool = True) -> ForceModel:
     """Build the :class:`ForceModel` of *network* with *tables*.
 
     Parameters
@@ -241,6 +247,9 @@ def build_force_model(network, tables, *, law: str | None = None, dashpot: float
         a dashpot ``c_ij = beta * k_t,ij(lam=1)`` along its axis.
     precision : {"float64", "float32"}
         Storage of the per-spring data (the arithmetic is float64 either way).
+    isotropic_fast : bool
+        When the three table rows are equal, store one weight per spring and do
+        one lookup (the same forces up to rounding; False keeps three).
     """
     from ..network.tables import spring_factors
 
@@ -271,12 +280,17 @@ def build_force_model(network, tables, *, law: str | None = None, dashpot: float
     fdt = np.float64 if precision == "float64" else np.float32
     rest_tangent = a @ np.asarray(tables.tangent_function(1.0, law=law), dtype=np.float64)
     kappa = a @ tangent_bound(tables, law)
-    rows = 5 if dashpot > 0 else 4
-    sd = np.empty((rows, s), dtype=fdt)
+    vals = _tables_arrays(tables, law)
+    iso = bool(np.array_equal(vals[0], vals[1]) and np.array_equal(vals[0], vals[2])) and isotropic_fast
+    ndir = 1 if iso else 3
+    sd = np.empty((1 + ndir + (dashpot > 0), s), dtype=fdt)
     sd[0] = 1.0 / L0
-    sd[1:4] = (a * L0[:, None]).T
+    if iso:    # one lookup per spring: sum_d cos2_d f(lam) = f(lam) sum_d cos2_d
+        sd[1] = (a * L0[:, None]).sum(axis=1)
+    else:
+        sd[1:4] = (a * L0[:, None]).T
     if dashpot > 0:
-        sd[4] = dashpot * rest_tangent
+        sd[-1] = dashpot * rest_tangent
     vals = _tables_arrays(tables, law)
     tab = np.ascontiguousarray(np.concatenate([vals[:, :-1].T, np.diff(vals, axis=1).T], axis=1))
     return ForceModel(n_nodes=n, ij=ij, order=order, sd=np.ascontiguousarray(sd), tab=tab,
@@ -373,12 +387,12 @@ def stable_step(model: ForceModel, mass: np.ndarray, *, free: np.ndarray | None 
     else:
         ksum = np.empty(n)
         K.node_tangent_sums(np.ascontiguousarray(x, dtype=np.float64), model.ij, model.sd, model.window(window),
-                            model.lam_min, model.inv_h, model.last_cell, ksum)
+                            model.lam_min, model.inv_h, model.last_cell, model.n_directions == 3, ksum)
     row = 2.0 * ksum
     if extra_stiffness is not None:
         row = row + np.asarray(extra_stiffness, dtype=np.float64)
     if model.damped:
-        c = model.sd[4].astype(np.float64)
+        c = model.sd[-1].astype(np.float64)
         csum = np.bincount(i, weights=c, minlength=n) + np.bincount(j, weights=c, minlength=n)
         crow = 2.0 * csum
     else:

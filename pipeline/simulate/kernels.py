@@ -25,6 +25,8 @@ Data layout
   code is generated);
 * spring data ``sd``: (4, s) or (5, s) float64 or float32, rows ``1/L0, w_x,
   w_y, w_z(, c_ij)`` (structure of arrays: each row is one sequential stream);
+  for isotropic tables (three equal rows) (2, s) or (3, s): ``1/L0, w(, c_ij)``
+  with ``w = sum_d w_d``, and one lookup per spring;
 * table ``tab``: (n_cells, 6) float64, per cell ``[f_x, f_y, f_z, df_x, df_y,
   df_z]`` (value at the cell's left node and increment to the right node), so
   a lookup reads one 48-byte row.
@@ -118,17 +120,23 @@ def _block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, bu
         k = min(np.int64(sc), last_cell)
         kk[b] = k
         buf[6, b] = min(max(s - k, t_lo), t_hi)
-    for b in range(nb):
-        k = kk[b]
-        t = buf[6, b]
-        p = p0 + b
-        buf[5, b] = (sd[1, p] * (tab[k, 0] + t * tab[k, 3]) + sd[2, p] * (tab[k, 1] + t * tab[k, 4])
-                     + sd[3, p] * (tab[k, 2] + t * tab[k, 5]))
+    if sd.shape[0] - damped >= 4:          # three fibre directions
+        for b in range(nb):
+            k = kk[b]
+            t = buf[6, b]
+            p = p0 + b
+            buf[5, b] = (sd[1, p] * (tab[k, 0] + t * tab[k, 3]) + sd[2, p] * (tab[k, 1] + t * tab[k, 4])
+                         + sd[3, p] * (tab[k, 2] + t * tab[k, 5]))
+    else:                                   # isotropic: one row, weight sum_d w_d
+        for b in range(nb):
+            k = kk[b]
+            buf[5, b] = sd[1, p0 + b] * (tab[k, 0] + buf[6, b] * tab[k, 3])
     if damped:
+        cd = sd.shape[0] - 1
         for b in range(nb):
             rinv = buf[3, b]
             buf[5, b] = (buf[5, b] * (a1 * (buf[4, b] - 1.0) + a0)
-                         + sd[4, p0 + b] * buf[7, b] * rinv) * rinv
+                         + sd[cd, p0 + b] * buf[7, b] * rinv) * rinv
     else:
         for b in range(nb):
             buf[5, b] = buf[5, b] * (a1 * (buf[4, b] - 1.0) + a0) * buf[3, b]
@@ -482,7 +490,7 @@ def stretch_range(x, ij, sd):
 
 
 @njit(**_OPTS)
-def node_tangent_sums(x, ij, sd, gwin, lam_min, inv_h, last_cell, out):
+def node_tangent_sums(x, ij, sd, gwin, lam_min, inv_h, last_cell, aniso, out):
     """out[a] = sum over the springs of node a of kappa_ij = sum_d (w_d / L0) gwin[cell(lam), d].
 
     *gwin* (n_cells, 3) bounds the tangent per fibre direction over a stretch
@@ -500,7 +508,10 @@ def node_tangent_sums(x, ij, sd, gwin, lam_min, inv_h, last_cell, out):
         lam = np.sqrt(dx * dx + dy * dy + dz * dz) * sd[0, p]
         s = min(max((lam - lam_min) * inv_h, 0.0), last + 1.0)
         k = min(np.int64(s), last_cell)
-        kap = sd[0, p] * (sd[1, p] * gwin[k, 0] + sd[2, p] * gwin[k, 1] + sd[3, p] * gwin[k, 2])
+        if aniso:
+            kap = sd[0, p] * (sd[1, p] * gwin[k, 0] + sd[2, p] * gwin[k, 1] + sd[3, p] * gwin[k, 2])
+        else:
+            kap = sd[0, p] * sd[1, p] * gwin[k, 0]
         if not np.isfinite(lam):
             kap = np.inf
         out[i] += kap

@@ -117,8 +117,9 @@ class FrameRenderer:
         Print the grasper force magnitude (interpolated at the frame time).
     """
 
-    def __init__(self, history: History, video: VideoSpec = VideoSpec(), *, forces: bool = True):
+    def __init__(self, history: History, video: VideoSpec | None = None, *, forces: bool = True):
         pv = _pyvista()
+        video = VideoSpec() if video is None else video
         self.h = history
         self.video = video
         rest = history.points
@@ -259,7 +260,7 @@ class FrameRenderer:
         self.close()
 
 
-def render_video(history, out_path, *, video: VideoSpec = VideoSpec(), fps: float | None = None,
+def render_video(history, out_path, *, video: VideoSpec | None = None, fps: float | None = None,
                  reporter=None) -> dict:
     """Render every frame of *history* into an H.264 video at *out_path*.
 
@@ -278,6 +279,7 @@ def render_video(history, out_path, *, video: VideoSpec = VideoSpec(), fps: floa
     dict with ``frames``, ``seconds`` (wall time), ``render_fps``, ``path``.
     """
     rep = ensure(reporter)
+    video = VideoSpec() if video is None else video
     own = not isinstance(history, History)
     h = History(history) if own else history
     try:

@@ -24,9 +24,9 @@ import numpy as np
 from ..atomicio import atomic_path, write_text
 from ..errors import AssetError, ConfigError, SimulationError
 from ..progress import ensure
+from . import kernels as K
 from .grasper import GraspPlan, plan_grasp
 from .history import HistoryWriter
-from . import kernels as K
 from .integrator import Simulator, build_force_model, mass_scaling, stable_step, warm_up
 from .scene import Scene, load_scene
 
@@ -199,6 +199,7 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
     warned_table = False
     organ_size = float(np.ptp(np.asarray(network.points), axis=0).max())
     done = set()
+    delta = scene.window if adaptive else None
     with HistoryWriter(hist_path, points=network.points, cells=cells, surface=network.surface_faces,
                        fixed=fixed, attrs=attrs) as hw:
         if plan is not None:
@@ -208,7 +209,7 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
             for fr in range(n_frames):
                 t_start = fr * frame_dt
                 # The window widens when a frame had to be redone, and narrows back slowly.
-                delta = max(scene.window, 0.75 * delta) if (adaptive and fr) else (scene.window if adaptive else None)
+                delta = max(scene.window, 0.75 * delta) if delta is not None else None
                 state = sim.snapshot()
                 done_before = set(done)
                 while True:
