@@ -7,11 +7,14 @@ import json
 
 import numpy as np
 import pytest
-
 from esmm.pipeline.errors import ConfigError, MeshingError
 from esmm.pipeline.mesh import cleaning
-from esmm.pipeline.mesh.cleaning import (CleaningOptions, capped_volume, clean_surface,
-                                         orient_consistently)
+from esmm.pipeline.mesh.cleaning import (
+    CleaningOptions,
+    capped_volume,
+    clean_surface,
+    orient_consistently,
+)
 from esmm.pipeline.mesh.surface import Surface
 from esmm.pipeline.mesh.synthetic import invesalius_like_surface
 from esmm.pipeline.progress import ListReporter

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from esmm.pipeline.mesh.quality import QUALITY_FLOORS, QualityReport, tet_measures, tet_quality
 from esmm.pipeline.mesh.volume import VolumeMesh
 

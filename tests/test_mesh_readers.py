@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from esmm.pipeline.errors import InputError
 from esmm.pipeline.mesh.readers import read_surface, surface_from_mask, write_stl
 from esmm.pipeline.mesh.surface import Surface

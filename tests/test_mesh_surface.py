@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from esmm.pipeline.mesh.surface import Surface, cross3, triple
 
 

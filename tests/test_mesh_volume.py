@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from esmm.pipeline.errors import ConfigError, InputError, MeshingError
 from esmm.pipeline.mesh import volume as volmod
 from esmm.pipeline.mesh.gmsh_worker import GmshFailure, GmshTimeout, run_worker
