@@ -1,0 +1,533 @@
+r"""Material effects beyond hyperelasticity, and the data object that carries them.
+
+Three *material* effects extend a hyperelastic base model with nominal stress
+:math:`P_e(\lambda)` (see docs/discover.md for the reasons behind each choice):
+
+``viscoelastic`` — quasi-linear viscoelasticity (Fung, 1981)
+    .. math::
+
+        P(t) = \int_0^t G(t-s)\,\frac{dP_e(s)}{ds}\,ds,
+        \qquad G(t) = g_\infty + \sum_{i=1}^{n} g_i e^{-t/\tau_i},
+        \qquad g_\infty = 1 - \sum_i g_i \ge 0 .
+
+    :math:`G(0) = 1`: the base model's parameters are the **instantaneous**
+    (glassy) response; the long-term (equilibrium) response is
+    :math:`g_\infty P_e`. With :math:`h_i(t) = \int_0^t e^{-(t-s)/\tau_i}\,dP_e`,
+    :math:`P = g_\infty P_e + \sum_i g_i h_i`, and for :math:`P_e` linear between
+    samples :math:`t_k, t_{k+1} = t_k + \Delta`:
+
+    .. math::
+
+        h_i(t_{k+1}) = e^{-\Delta/\tau_i} h_i(t_k)
+        + \frac{\tau_i}{\Delta}\left(1 - e^{-\Delta/\tau_i}\right)
+          \left(P_e(t_{k+1}) - P_e(t_k)\right),
+
+    exact, O(n) per evaluation (:func:`qlv_stress`). The record is assumed to
+    start from rest: :math:`h_i(t_0) = P_e(t_0)` (a step to the first sample).
+
+``mullins`` — Ogden & Roxburgh (1999) pseudo-elasticity
+    .. math::
+
+        P = \eta\,P_e, \qquad
+        \eta = 1 - \frac{1}{r}\,
+        \operatorname{erf}\!\left(\frac{W_{max} - W}{m + \beta W_{max}}\right),
+
+    with :math:`W` the base model's strain energy [Pa] and :math:`W_{max}` its
+    maximum so far in the test. On the primary (virgin) loading path
+    :math:`W = W_{max}` and :math:`\eta = 1`.
+
+``damage`` — irreversible softening past an onset (Weibull)
+    .. math::
+
+        P = (1 - D)\,P_e, \qquad
+        D = 1 - \exp\!\left[-\left(\frac{(\xi_{max} - \lambda_d)_+}{s}\right)^{k}\right],
+
+    with :math:`\xi` the uniaxial-equivalent stretch (the uniaxial stretch
+    :math:`\ge 1` with the same :math:`I_1`; it *is* the stretch in uniaxial
+    tension) and :math:`\xi_{max}` its maximum so far. Unlike Mullins softening,
+    damage also lowers the primary loading curve.
+
+Effects compose as :math:`P = \mathrm{QLV}[(1-D)\,\eta\,P_e]`: damage and
+Mullins softening act on the elastic response, which then relaxes.
+
+:class:`MaterialEffects` is the plain data object that the discovery writes
+(``discover.json``, ``[material.effects.*]`` in ``params.toml``) and that the
+asset writer and the simulator read. The state a simulator must carry per
+spring is listed by :meth:`MaterialEffects.state_variables`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.special import erf
+
+from ..errors import ConfigError
+
+try:  # numba makes the O(n) recursion fast; the pure-numpy fallback is exact too
+    from numba import njit
+except ImportError:  # pragma: no cover
+    njit = None
+
+__all__ = [
+    "MATERIAL_EFFECTS",
+    "ARTEFACTS",
+    "EFFECT_NAMES",
+    "ViscoelasticEffect",
+    "MullinsEffect",
+    "DamageEffect",
+    "MaterialEffects",
+    "qlv_stress",
+    "qlv_step",
+    "mullins_factor",
+    "damage_factor",
+    "equivalent_stretch",
+]
+
+#: Effects that become part of the material.
+MATERIAL_EFFECTS = ("viscoelastic", "mullins", "damage")
+#: Effects that are measurement artefacts (corrected in the data, per test).
+ARTEFACTS = ("slack", "sensor_offset")
+#: Every effect name used in the discovery's JSON.
+EFFECT_NAMES = MATERIAL_EFFECTS + ARTEFACTS
+
+SCHEMA = "esmm.material-effects/1"
+
+
+# --------------------------------------------------------------------------- kernels
+def _qlv_py(t, pe, g, tau, out, state):  # pragma: no cover - used only without numba
+    n, m = t.shape[0], g.shape[0]
+    ginf = 1.0 - g.sum()
+    h = np.full(m, pe[0])
+    out[0] = pe[0]
+    for k in range(1, n):
+        dt = t[k] - t[k - 1]
+        dp = pe[k] - pe[k - 1]
+        acc = ginf * pe[k]
+        for i in range(m):
+            if dt > 0.0:
+                x = dt / tau[i]
+                a = math.exp(-x)
+                b = -math.expm1(-x) / x if x > 1e-12 else 1.0 - 0.5 * x
+                h[i] = a * h[i] + b * dp
+            else:
+                h[i] = h[i] + dp
+            acc += g[i] * h[i]
+        out[k] = acc
+    state[:] = h
+
+
+if njit is not None:
+    _qlv_kernel = njit(cache=True, nogil=True)(_qlv_py)
+else:  # pragma: no cover
+    _qlv_kernel = _qlv_py
+
+
+def qlv_stress(t, pe, g, tau, *, return_state: bool = False):
+    """Quasi-linear viscoelastic stress history (exact for piecewise-linear ``pe``).
+
+    Parameters
+    ----------
+    t : array_like, shape (n,)
+        Time [s], non-decreasing.
+    pe : array_like, shape (n,)
+        Elastic (instantaneous) stress history [Pa].
+    g : array_like, shape (m,)
+        Prony weights, ``g_i >= 0``, ``sum(g) <= 1``.
+    tau : array_like, shape (m,)
+        Relaxation times [s], positive.
+    return_state : bool
+        Also return the internal variables ``h_i`` at the last sample.
+
+    Returns
+    -------
+    P : ndarray, shape (n,)
+        Stress [Pa]; NaN where ``pe`` is NaN (and after it: the history is lost).
+    h : ndarray, shape (m,)
+        Only if *return_state*.
+    """
+    t = np.ascontiguousarray(t, dtype=float)
+    pe = np.ascontiguousarray(pe, dtype=float)
+    g = np.ascontiguousarray(np.atleast_1d(g), dtype=float)
+    tau = np.ascontiguousarray(np.atleast_1d(tau), dtype=float)
+    out = np.empty_like(pe)
+    state = np.empty_like(g)
+    if pe.size == 0:
+        return (out, state) if return_state else out
+    _qlv_kernel(t, pe, g, tau, out, state)
+    return (out, state) if return_state else out
+
+
+def qlv_step(h, pe_old: float, pe_new: float, dt: float, g, tau):
+    """Advance the Prony internal variables by one time step (for simulators).
+
+    Parameters
+    ----------
+    h : ndarray, shape (m,) or (n_springs, m)
+        Internal variables at the start of the step [Pa] (updated copy returned).
+    pe_old, pe_new : float or ndarray, shape (n_springs,)
+        Elastic stress (or force) at the start and end of the step.
+    dt : float
+        Step [s], positive.
+    g, tau : array_like, shape (m,)
+        Prony weights and times.
+
+    Returns
+    -------
+    h_new : ndarray, same shape as *h*
+    p_new : float or ndarray
+        Viscoelastic stress at the end of the step, ``g_inf pe_new + sum g_i h_i``.
+    """
+    g = np.asarray(g, float)
+    tau = np.asarray(tau, float)
+    x = dt / tau
+    a = np.exp(-x)
+    b = np.where(x > 1e-12, -np.expm1(-x) / np.maximum(x, 1e-300), 1.0 - 0.5 * x)
+    dp = np.asarray(pe_new, float) - np.asarray(pe_old, float)
+    h_new = a * np.asarray(h, float) + b * np.expand_dims(dp, -1)
+    p_new = (1.0 - g.sum()) * np.asarray(pe_new, float) + (h_new * g).sum(axis=-1)
+    return h_new, p_new
+
+
+def mullins_factor(W, W_max, r: float, m: float, beta: float = 0.0):
+    """Ogden-Roxburgh softening factor η (1 on the primary loading path).
+
+    Parameters
+    ----------
+    W, W_max : array_like, shape (n,)
+        Strain energy now and its maximum so far [Pa].
+    r : float
+        > 1; the largest softening is 1/r (η ≥ 1 - 1/r).
+    m : float
+        Energy scale of the softening [Pa], > 0.
+    beta : float
+        ≥ 0; makes the scale grow with ``W_max``.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+    """
+    W = np.asarray(W, float)
+    W_max = np.asarray(W_max, float)
+    return 1.0 - (1.0 / r) * erf((W_max - W) / (m + beta * W_max))
+
+
+def damage_factor(xi_max, onset: float, scale: float, shape: float):
+    """Remaining fraction ``1 - D`` of the stress after damage (Weibull in ξ_max).
+
+    Parameters
+    ----------
+    xi_max : array_like, shape (n,)
+        Largest uniaxial-equivalent stretch so far.
+    onset : float
+        λ_d: no damage below it.
+    scale : float
+        s > 0, stretch scale of the damage growth.
+    shape : float
+        k ≥ 1, Weibull shape (k = 1: exponential; large k: abrupt).
+
+    Returns
+    -------
+    ndarray, shape (n,)
+    """
+    x = np.maximum(np.asarray(xi_max, float) - onset, 0.0) / scale
+    return np.exp(-(x**shape))
+
+
+def equivalent_stretch(I1):
+    """The uniaxial stretch λ ≥ 1 with ``λ² + 2/λ = I1`` (the damage driver ξ).
+
+    Exact (trigonometric root of the cubic ``λ³ - I1 λ + 2 = 0``); equals λ in
+    uniaxial tension, and is ``> 1`` in compression and shear as well.
+
+    Parameters
+    ----------
+    I1 : array_like, shape (n,)
+        First invariant, ≥ 3.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+    """
+    I1 = np.maximum(np.asarray(I1, float), 3.0)
+    c = np.clip(-((3.0 / I1) ** 1.5), -1.0, 1.0)
+    return 2.0 * np.sqrt(I1 / 3.0) * np.cos(np.arccos(c) / 3.0)
+
+
+# --------------------------------------------------------------------------- data object
+@dataclass(frozen=True)
+class ViscoelasticEffect:
+    """Prony series of the QLV reduced relaxation function (SI: seconds).
+
+    ``g[i]`` weight and ``tau[i]`` time of term *i*, sorted by ``tau``. The base
+    material parameters are the instantaneous response (G(0) = 1); the
+    long-term response is ``g_inf`` times it.
+    """
+
+    g: tuple[float, ...]
+    tau: tuple[float, ...]
+
+    def __post_init__(self):
+        g = tuple(float(v) for v in self.g)
+        tau = tuple(float(v) for v in self.tau)
+        if len(g) != len(tau) or not g:
+            raise ConfigError("viscoelastic effect: g and tau need the same, non-zero number of terms")
+        if any(not (v >= 0.0 and math.isfinite(v)) for v in g) or sum(g) > 1.0 + 1e-9:
+            raise ConfigError(f"viscoelastic effect: weights g must be >= 0 with sum <= 1, got {list(g)}")
+        if any(not (v > 0.0 and math.isfinite(v)) for v in tau):
+            raise ConfigError(f"viscoelastic effect: relaxation times tau must be positive seconds, got {list(tau)}")
+        order = sorted(range(len(g)), key=lambda i: tau[i])
+        object.__setattr__(self, "g", tuple(g[i] for i in order))
+        object.__setattr__(self, "tau", tuple(tau[i] for i in order))
+
+    @property
+    def g_inf(self) -> float:
+        """Long-term fraction of the instantaneous stress, ``1 - sum(g)``."""
+        return max(0.0, 1.0 - sum(self.g))
+
+    def relaxation(self, t):
+        """Reduced relaxation function G(t) (G(0) = 1), shape of *t*."""
+        t = np.asarray(t, float)
+        return self.g_inf + sum(gi * np.exp(-t / ti) for gi, ti in zip(self.g, self.tau))
+
+    def stress(self, t, pe):
+        """The QLV stress history for the elastic history *pe* (see :func:`qlv_stress`)."""
+        return qlv_stress(t, pe, np.array(self.g), np.array(self.tau))
+
+
+@dataclass(frozen=True)
+class MullinsEffect:
+    """Ogden-Roxburgh softening: ``r`` (> 1), ``m`` [Pa] (> 0), ``beta`` (≥ 0)."""
+
+    r: float
+    m: float
+    beta: float = 0.0
+
+    def __post_init__(self):
+        if not (self.r > 1.0 and math.isfinite(self.r)):
+            raise ConfigError(f"mullins effect: r must be a number > 1, got {self.r!r}")
+        if not (self.m > 0.0 and math.isfinite(self.m)):
+            raise ConfigError(f"mullins effect: m must be a positive stress, got {self.m!r}")
+        if not (self.beta >= 0.0 and math.isfinite(self.beta)):
+            raise ConfigError(f"mullins effect: beta must be >= 0, got {self.beta!r}")
+
+    def factor(self, W, W_max):
+        """η for energies *W* and maxima *W_max* [Pa]."""
+        return mullins_factor(W, W_max, self.r, self.m, self.beta)
+
+
+@dataclass(frozen=True)
+class DamageEffect:
+    """Weibull damage in the largest uniaxial-equivalent stretch so far.
+
+    ``onset`` λ_d (≥ 1), ``scale`` s (> 0, stretch units), ``shape`` k (≥ 1).
+    """
+
+    onset: float
+    scale: float
+    shape: float = 1.0
+
+    def __post_init__(self):
+        if not (self.onset >= 1.0 and math.isfinite(self.onset)):
+            raise ConfigError(f"damage effect: onset must be a stretch >= 1, got {self.onset!r}")
+        if not (self.scale > 0.0 and math.isfinite(self.scale)):
+            raise ConfigError(f"damage effect: scale must be > 0, got {self.scale!r}")
+        if not (self.shape >= 1.0 and math.isfinite(self.shape)):
+            raise ConfigError(f"damage effect: shape must be >= 1, got {self.shape!r}")
+
+    def factor(self, xi_max):
+        """Remaining stress fraction ``1 - D`` for the largest stretches *xi_max*."""
+        return damage_factor(xi_max, self.onset, self.scale, self.shape)
+
+
+@dataclass(frozen=True)
+class MaterialEffects:
+    """The material effects kept by a discovery (each None when absent).
+
+    Attributes
+    ----------
+    viscoelastic : ViscoelasticEffect or None
+    mullins : MullinsEffect or None
+    damage : DamageEffect or None
+    intervals : dict
+        Optional 95 % intervals, ``{"viscoelastic.g[0]": [lo, hi], ...}`` (SI).
+
+    Notes
+    -----
+    Composition: ``P = QLV[(1 - D(ξ_max)) · η(W, W_max) · P_e(λ)]`` (module
+    docstring). :meth:`stress` evaluates it along a recorded history.
+    """
+
+    viscoelastic: ViscoelasticEffect | None = None
+    mullins: MullinsEffect | None = None
+    damage: DamageEffect | None = None
+    intervals: dict[str, list[float]] = field(default_factory=dict)
+
+    @property
+    def names(self) -> list[str]:
+        """Names of the effects present, in :data:`MATERIAL_EFFECTS` order."""
+        return [n for n in MATERIAL_EFFECTS if getattr(self, n) is not None]
+
+    def __bool__(self) -> bool:
+        return bool(self.names)
+
+    def state_variables(self) -> dict[str, str]:
+        """What a simulator must carry per spring (or per material point) for these effects."""
+        out = {}
+        if self.viscoelastic is not None:
+            out["prony_h"] = (f"{len(self.viscoelastic.g)} Prony internal variables h_i [Pa or N] and "
+                              "the previous elastic stress; advance with qlv_step")
+        if self.mullins is not None:
+            out["W_max"] = "largest strain energy density reached so far [Pa] (or the largest stretch)"
+        if self.damage is not None:
+            out["xi_max"] = "largest uniaxial-equivalent stretch reached so far"
+        return out
+
+    def stress(self, t, pe, *, W=None, xi=None, history: bool = True):
+        """Stress along a recorded history with every effect applied.
+
+        Parameters
+        ----------
+        t : array_like, shape (n,) or None
+            Time [s] (needed for viscoelasticity).
+        pe : array_like, shape (n,)
+            Elastic stress of the base material [Pa].
+        W : array_like, shape (n,), optional
+            Base strain energy [Pa] (needed for Mullins).
+        xi : array_like, shape (n,), optional
+            Uniaxial-equivalent stretch (needed for damage).
+        history : bool
+            True: the samples are in loading order (maxima so far are running
+            maxima). False: every sample is on the primary loading path.
+        """
+        p = np.asarray(pe, float).copy()
+        if self.damage is not None:
+            if xi is None:
+                raise ConfigError("damage effect: the equivalent stretch xi is needed")
+            xi = np.asarray(xi, float)
+            p *= self.damage.factor(np.maximum.accumulate(xi) if history else xi)
+        if self.mullins is not None and history:
+            if W is None:
+                raise ConfigError("mullins effect: the strain energy W is needed")
+            W = np.asarray(W, float)
+            p *= self.mullins.factor(W, np.maximum.accumulate(W))
+        if self.viscoelastic is not None:
+            if t is None:
+                raise ConfigError("viscoelastic effect: the time of each sample is needed")
+            p = self.viscoelastic.stress(t, p)
+        return p
+
+    # ---------------------------------------------------------------- I/O
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (schema ``esmm.material-effects/1``, SI units)."""
+        d: dict[str, Any] = {"schema": SCHEMA, "composition": "P = QLV[(1 - D) * eta * P_e]"}
+        if self.viscoelastic is not None:
+            v = self.viscoelastic
+            d["viscoelastic"] = {"g": list(v.g), "tau": list(v.tau), "g_inf": v.g_inf,
+                                 "reference": "instantaneous", "unit_tau": "s"}
+        if self.mullins is not None:
+            d["mullins"] = {"r": self.mullins.r, "m": self.mullins.m, "beta": self.mullins.beta,
+                            "unit_m": "Pa", "energy": "base strain energy density W [Pa]"}
+        if self.damage is not None:
+            d["damage"] = {"onset": self.damage.onset, "scale": self.damage.scale,
+                           "shape": self.damage.shape,
+                           "driver": "largest uniaxial-equivalent stretch so far"}
+        if self.intervals:
+            d["intervals"] = {k: list(map(float, v)) for k, v in self.intervals.items()}
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any] | None, *, where: str = "material effects") -> MaterialEffects:
+        """Inverse of :meth:`to_dict` (unknown effect names are refused)."""
+        if not d:
+            return cls()
+        if not isinstance(d, Mapping):
+            raise ConfigError(f"{where}: expected a table of effects, got {type(d).__name__}")
+        known = set(MATERIAL_EFFECTS) | {"schema", "composition", "intervals"}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ConfigError(
+                f"{where}: unknown effect {unknown[0]!r}; material effects are {', '.join(MATERIAL_EFFECTS)}"
+            )
+        try:
+            v = d.get("viscoelastic")
+            visco = ViscoelasticEffect(tuple(v["g"]), tuple(v["tau"])) if v else None
+            mu = d.get("mullins")
+            mull = MullinsEffect(float(mu["r"]), float(mu["m"]), float(mu.get("beta", 0.0))) if mu else None
+            da = d.get("damage")
+            dam = DamageEffect(float(da["onset"]), float(da["scale"]), float(da.get("shape", 1.0))) if da else None
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(f"{where}: incomplete or malformed effect entry ({exc}); see docs/discover.md") from None
+        intervals = {str(k): [float(a) for a in val] for k, val in (d.get("intervals") or {}).items()}
+        return cls(visco, mull, dam, intervals)
+
+    def to_toml_table(self, *, stress_unit: str = "Pa") -> dict[str, Any]:
+        """The ``[material.effects]`` table: dimensional values as strings with units."""
+        from ..units import from_si
+
+        t: dict[str, Any] = {}
+        if self.viscoelastic is not None:
+            v = self.viscoelastic
+            t["viscoelastic"] = {
+                "reference": "instantaneous",
+                "g": [float(x) for x in v.g],
+                "tau": [f"{x:.6g} s" for x in v.tau],
+            }
+        if self.mullins is not None:
+            m = self.mullins
+            t["mullins"] = {"r": float(m.r), "m": f"{from_si(m.m, stress_unit, 'stress'):.6g} {stress_unit}",
+                            "beta": float(m.beta)}
+        if self.damage is not None:
+            da = self.damage
+            t["damage"] = {"onset": float(da.onset), "scale": float(da.scale), "shape": float(da.shape)}
+        return t
+
+    @classmethod
+    def from_toml_table(cls, t: Mapping[str, Any] | None, *, stress_unit: str | None = None,
+                        where: str = "[material.effects]") -> MaterialEffects:
+        """Read a ``[material.effects]`` table (strings with units, or SI numbers)."""
+        from ..units import parse_quantity, to_si
+
+        if not t:
+            return cls()
+        if not isinstance(t, Mapping):
+            raise ConfigError(f"{where}: must be a table of effect tables")
+
+        def qty(val, kind, key):
+            if isinstance(val, str):
+                try:
+                    return parse_quantity(val, kind, where=f"{where} {key}")
+                except Exception as exc:  # noqa: BLE001 - convert to ConfigError
+                    raise ConfigError(str(exc)) from None
+            if isinstance(val, bool) or not isinstance(val, int | float):
+                raise ConfigError(f"{where} {key}: expected a number or a string with a unit, got {val!r}")
+            if kind == "stress" and stress_unit:
+                return to_si(float(val), stress_unit, "stress")
+            if kind == "stress":
+                raise ConfigError(f"{where} {key}: {val!r} has no unit; write it as \"{val} kPa\"")
+            return float(val)
+
+        d: dict[str, Any] = {}
+        unknown = sorted(set(t) - set(MATERIAL_EFFECTS))
+        if unknown:
+            raise ConfigError(
+                f"{where}: unknown effect {unknown[0]!r}; material effects are {', '.join(MATERIAL_EFFECTS)}"
+            )
+        if "viscoelastic" in t:
+            v = t["viscoelastic"]
+            ref = v.get("reference", "instantaneous")
+            if ref != "instantaneous":
+                raise ConfigError(f"{where}.viscoelastic: reference must be \"instantaneous\", got {ref!r}")
+            d["viscoelastic"] = {"g": [float(x) for x in v.get("g", [])],
+                                 "tau": [qty(x, "time", "viscoelastic.tau") for x in v.get("tau", [])]}
+        if "mullins" in t:
+            m = t["mullins"]
+            d["mullins"] = {"r": m.get("r"), "m": qty(m.get("m"), "stress", "mullins.m"),
+                            "beta": m.get("beta", 0.0)}
+        if "damage" in t:
+            d["damage"] = dict(t["damage"])
+        return cls.from_dict(d, where=where)

@@ -1,0 +1,318 @@
+"""Synthetic raw tensile tests with hidden effects, for testing and demonstrating the discovery.
+
+The generator writes what a testing machine writes — (time, displacement,
+force) CSV files with the specimen geometry in ``# key: value`` comment lines
+or in a TOML sidecar, in the formats of the tensile-data contract
+(/work/shared/specs/tensile-data.md) — for a hyperelastic base material plus
+one or more hidden effects, with realistic noise and quantisation.
+
+Its physics is written independently of the fitting code in
+:mod:`esmm.pipeline.discover.model` where a choice exists: the Prony
+internal variables are integrated with the trapezoidal (Crank-Nicolson) rule
+on a grid at least four times finer than the shortest relaxation time, not
+with the exact exponential recursion the fit uses.
+
+Protocols (stretch histories, :class:`Protocol`): :func:`load_unload`,
+:func:`cycles` (to rising maxima), :func:`ramp_hold`, :func:`monotonic`.
+Effects (:class:`Truth`): ``viscoelastic`` (g, tau), ``mullins`` (r, m, beta),
+``damage`` (onset, scale, shape), ``slack`` (length [m]) and
+``sensor_offset`` (force [N], drift [N/s]).
+
+Example
+-------
+>>> from esmm.pipeline.discover import synthetic as syn
+>>> truth = syn.Truth("arruda-boyce", {"mu": 20e3, "N": 4.0},
+...                   viscoelastic={"g": [0.4], "tau": [2.0]})
+>>> paths = syn.write_set(tmp_path, [syn.load_unload(0.05, 1.6), syn.load_unload(0.5, 1.6)],
+...                       truth, seed=1)                                      # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.special import erf
+
+from ..atomicio import write_text
+from ..errors import ConfigError
+
+__all__ = ["Protocol", "Truth", "load_unload", "cycles", "ramp_hold", "monotonic", "simulate",
+           "write_csv", "write_set"]
+
+
+@dataclass
+class Protocol:
+    """A prescribed stretch history (uniaxial tension).
+
+    Attributes
+    ----------
+    name : str
+        File stem.
+    t : ndarray, shape (n,)
+        Time [s], uniform step.
+    lam : ndarray, shape (n,)
+        Crosshead stretch (1 + displacement / gauge length).
+    notes : str
+    """
+
+    name: str
+    t: np.ndarray
+    lam: np.ndarray
+    notes: str = ""
+
+
+def _path(name: str, knots_t: Sequence[float], knots_lam: Sequence[float], dt: float, notes: str) -> Protocol:
+    t = np.arange(0.0, knots_t[-1] + 0.5 * dt, dt)
+    lam = np.interp(t, knots_t, knots_lam)
+    return Protocol(name, t, lam, notes)
+
+
+def _dt(rate: float, span: float, dt: float | None, n_target: int = 400) -> float:
+    if dt is not None:
+        return float(dt)
+    return max(span / rate / n_target, 1e-3)
+
+
+def load_unload(rate: float, lam_max: float, *, dt: float | None = None, name: str | None = None) -> Protocol:
+    """Load at *rate* [1/s] to *lam_max*, unload at the same rate to 1."""
+    T = (lam_max - 1.0) / rate
+    d = _dt(rate, 2 * (lam_max - 1.0), dt)
+    return _path(name or f"lu_{rate:g}_{lam_max:g}", [0, T, 2 * T], [1, lam_max, 1], d,
+                 f"load-unload at {rate:g} /s to {lam_max:g}")
+
+
+def cycles(rate: float, maxima: Sequence[float], *, dt: float | None = None, name: str | None = None) -> Protocol:
+    """Load-unload cycles to the rising *maxima* at *rate* [1/s], back to stretch 1 each time."""
+    kt, kl, t = [0.0], [1.0], 0.0
+    for mx in maxima:
+        t += (mx - 1.0) / rate
+        kt.append(t)
+        kl.append(mx)
+        t += (mx - 1.0) / rate
+        kt.append(t)
+        kl.append(1.0)
+    span = 2 * sum(mx - 1.0 for mx in maxima)
+    d = _dt(rate, span, dt, 600)
+    return _path(name or f"cycles_{rate:g}", kt, kl, d, f"cycles at {rate:g} /s to {', '.join(f'{m:g}' for m in maxima)}")
+
+
+def ramp_hold(rate: float, lam_hold: float, hold: float, *, dt: float | None = None,
+              name: str | None = None) -> Protocol:
+    """Ramp at *rate* to *lam_hold*, then hold for *hold* seconds."""
+    T = (lam_hold - 1.0) / rate
+    d = dt if dt is not None else max(min(T / 100, hold / 300), 1e-3)
+    return _path(name or f"hold_{lam_hold:g}", [0, T, T + hold], [1, lam_hold, lam_hold], d,
+                 f"ramp at {rate:g} /s to {lam_hold:g}, hold {hold:g} s")
+
+
+def monotonic(rate: float, lam_max: float, *, dt: float | None = None, name: str | None = None) -> Protocol:
+    """One monotonic ramp at *rate* to *lam_max* (e.g. to failure)."""
+    T = (lam_max - 1.0) / rate
+    d = _dt(rate, lam_max - 1.0, dt)
+    return _path(name or f"ramp_{lam_max:g}", [0, T], [1, lam_max], d, f"monotonic ramp at {rate:g} /s to {lam_max:g}")
+
+
+@dataclass
+class Truth:
+    """The hidden material and artefacts.
+
+    Attributes
+    ----------
+    model : str
+        Base model name (``arruda-boyce``, ``esedf``).
+    params : dict
+        Base parameters (SI). With ``viscoelastic`` they are the instantaneous response.
+    viscoelastic : dict, optional
+        ``{"g": [...], "tau": [... s]}``.
+    mullins : dict, optional
+        ``{"r": > 1, "m": Pa, "beta": >= 0}``.
+    damage : dict, optional
+        ``{"onset": stretch, "scale": stretch, "shape": >= 1}``.
+    slack : float, optional
+        Slack length [m]: the specimen becomes taut after this displacement.
+    sensor_offset : dict, optional
+        ``{"force": N, "drift": N/s}``.
+    """
+
+    model: str
+    params: dict[str, float]
+    viscoelastic: dict[str, Any] | None = None
+    mullins: dict[str, float] | None = None
+    damage: dict[str, float] | None = None
+    slack: float | None = None
+    sensor_offset: dict[str, float] | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def effects(self) -> list[str]:
+        return [n for n in ("viscoelastic", "mullins", "damage", "slack", "sensor_offset") if getattr(self, n)]
+
+
+def _prony_trapezoid(t: np.ndarray, p: np.ndarray, g: Sequence[float], tau: Sequence[float]) -> np.ndarray:
+    """QLV by the trapezoidal rule on a grid refined to Δ <= min(tau)/8."""
+    dt = float(np.min(np.diff(t))) if t.size > 1 else 1.0
+    sub = max(1, int(math.ceil(8 * dt / min(tau))))
+    if sub > 1:
+        tf = np.linspace(t[0], t[-1], (t.size - 1) * sub + 1)
+        pf = np.interp(tf, t, p)
+    else:
+        tf, pf = t, p
+    out = (1.0 - sum(g)) * pf
+    for gi, ti in zip(g, tau):
+        h = np.empty_like(pf)
+        h[0] = pf[0]
+        d = np.diff(tf)
+        a = 0.5 * d / ti
+        dp = np.diff(pf)
+        for k in range(pf.size - 1):
+            h[k + 1] = (h[k] * (1.0 - a[k]) + dp[k]) / (1.0 + a[k])
+        out = out + gi * h
+    return out[::sub] if sub > 1 else out
+
+
+def simulate(protocol: Protocol, truth: Truth, *, gauge_length: float = 0.03, area: float = 20e-6,
+             noise: float = 0.003, seed: int = 0) -> dict[str, np.ndarray]:
+    """The machine channels of one test.
+
+    Parameters
+    ----------
+    protocol : Protocol
+    truth : Truth
+    gauge_length : float
+        Nominal gauge length [m] (the clamp distance at zero displacement).
+    area : float
+        Cross-section [m2].
+    noise : float
+        Standard deviation of the force noise as a fraction of the largest
+        true force (white), plus quantisation: displacement 0.1 µm, force 0.1 mN.
+    seed : int
+
+    Returns
+    -------
+    dict with ``time`` [s], ``displacement`` [m], ``force`` [N], ``true_force`` [N]
+    """
+    from ..materials import get_model
+    from ..materials.loading import energy_density, nominal_stress
+
+    m = get_model(truth.model)
+    rng = np.random.default_rng(seed)
+    t = protocol.t
+    u = gauge_length * (protocol.lam - 1.0)
+    # slack: the specimen is longer than the clamp distance by `slack`; taut once u > slack
+    s = float(truth.slack or 0.0)
+    lam = np.maximum((gauge_length + u) / (gauge_length + s), 1.0)
+    p = np.asarray(nominal_stress(m, truth.params, "uniaxial", lam), float)
+    if truth.damage:
+        d = truth.damage
+        xm = np.maximum.accumulate(lam)
+        x = np.maximum(xm - d["onset"], 0.0) / d["scale"]
+        p = p * np.exp(-(x ** d.get("shape", 1.0)))
+    if truth.mullins:
+        mu = truth.mullins
+        W = np.asarray(energy_density(m, truth.params, "uniaxial", lam), float)
+        Wm = np.maximum.accumulate(W)
+        p = p * (1.0 - erf((Wm - W) / (mu["m"] + mu.get("beta", 0.0) * Wm)) / mu["r"])
+    if truth.viscoelastic:
+        p = _prony_trapezoid(t, p, truth.viscoelastic["g"], truth.viscoelastic["tau"])
+    p = np.maximum(p, 0.0)  # a pulled strip buckles instead of carrying compression
+    f_true = p * area
+    f = f_true.copy()
+    if truth.sensor_offset:
+        f = f + truth.sensor_offset.get("force", 0.0) + truth.sensor_offset.get("drift", 0.0) * (t - t[0])
+    f = f + noise * float(np.max(np.abs(f_true))) * rng.standard_normal(f.size)
+    f = np.round(f / 1e-4) * 1e-4
+    u = np.round(u / 1e-7) * 1e-7
+    return {"time": t, "displacement": u, "force": f, "true_force": f_true}
+
+
+def write_csv(path: str | Path, channels: Mapping[str, np.ndarray], *, gauge_length: float, area: float,
+              style: str = "comments", specimen: str = "synthetic", notes: str = "",
+              extra: Mapping[str, str] | None = None) -> Path:
+    """Write one raw test file in a format of the tensile-data contract.
+
+    Parameters
+    ----------
+    path : path
+        The CSV to write (a sidecar ``.toml`` beside it for ``style="sidecar"``).
+    channels : mapping
+        ``time`` [s], ``displacement`` [m], ``force`` [N] arrays.
+    gauge_length, area : float
+        Geometry [m], [m2].
+    style : {"comments", "sidecar", "units_row"}
+        ``comments``: ``# key: value`` lines and bracketed units in the header;
+        ``sidecar``: geometry in ``<stem>.toml``, units in parentheses;
+        ``units_row``: geometry in comments, a units row under the header,
+        ``;`` delimiter with decimal commas.
+    specimen, notes : str
+    extra : mapping, optional
+        More ``key: value`` metadata.
+    """
+    path = Path(path)
+    t = np.asarray(channels["time"], float)
+    u = np.asarray(channels["displacement"], float) * 1e3  # mm
+    f = np.asarray(channels["force"], float)
+    meta = {"specimen": specimen, "gauge_length": f"{gauge_length * 1e3:g} mm",
+            "area": f"{area * 1e6:g} mm2", "tissue": "synthetic", "notes": notes}
+    meta.update(extra or {})
+    if style == "comments":
+        lines = [f"# {k}: {v}" for k, v in meta.items() if v]
+        lines.append("time [s],displacement [mm],force [N]")
+        lines += [f"{a:.4f},{b:.5f},{c:.5f}" for a, b, c in zip(t, u, f)]
+    elif style == "sidecar":
+        import tomli_w
+
+        write_text(path.with_suffix(".toml"), tomli_w.dumps({k: v for k, v in meta.items() if v}))
+        lines = ["Time (s),Extension (mm),Load (N)"]
+        lines += [f"{a:.4f},{b:.5f},{c:.5f}" for a, b, c in zip(t, u, f)]
+    elif style == "units_row":
+        lines = [f"# {k}: {v}" for k, v in meta.items() if v]
+        lines += ["Time;Extension;Load", "(s);(mm);(N)"]
+        lines += [f"{a:.4f};{b:.5f};{c:.5f}".replace(".", ",") for a, b, c in zip(t, u, f)]
+    else:
+        raise ConfigError(f"style must be comments, sidecar or units_row, got {style!r}")
+    return write_text(path, "\n".join(lines) + "\n")
+
+
+def write_set(folder: str | Path, protocols: Sequence[Protocol], truth: Truth, *, seed: int = 0,
+              gauge_length: float = 0.03, area: float = 20e-6, noise: float = 0.003,
+              styles: Sequence[str] = ("comments", "sidecar", "units_row"),
+              vary: Mapping[str, Sequence[float]] | None = None) -> list[Path]:
+    """Simulate and write one file per protocol; returns the CSV paths.
+
+    Parameters
+    ----------
+    folder : path
+    protocols : sequence of Protocol
+    truth : Truth
+    seed : int
+        File *i* uses ``seed + i``.
+    gauge_length, area, noise
+        As :func:`simulate`.
+    styles : sequence of str
+        File formats, cycled over the files.
+    vary : mapping, optional
+        Per-file values of the artefacts, e.g. ``{"slack": [1e-3, 2e-3]}`` or
+        ``{"offset": [0.01, -0.02]}`` (force offsets [N]); cycled over files.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for i, pr in enumerate(protocols):
+        tr = truth
+        if vary:
+            kw = dict(vars(truth))
+            if "slack" in vary:
+                kw["slack"] = vary["slack"][i % len(vary["slack"])]
+            if "offset" in vary:
+                so = dict(truth.sensor_offset or {})
+                so["force"] = vary["offset"][i % len(vary["offset"])]
+                kw["sensor_offset"] = so
+            tr = Truth(**kw)
+        ch = simulate(pr, tr, gauge_length=gauge_length, area=area, noise=noise, seed=seed + i)
+        out.append(write_csv(folder / f"{pr.name}.csv", ch, gauge_length=gauge_length, area=area,
+                             style=styles[i % len(styles)], notes=pr.notes))
+    return out
