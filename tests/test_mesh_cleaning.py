@@ -184,7 +184,7 @@ def test_invesalius_like_input_is_cleaned(tmp_path):
 
     path = tmp_path / "liver.stl"
     invesalius_like_surface(voxel=(2.0, 2.0, 3.0), islands=True, handle=True, open_border=True,
-                            path=path, seed=1)
+                            inward_normals=True, path=path, seed=1)
     raw = read_surface(path)
     assert raw.n_boundary_edges() > 0
     rep = ListReporter()
@@ -194,6 +194,7 @@ def test_invesalius_like_input_is_cleaned(tmp_path):
     assert len(rep.steps) >= len(names)
     assert report.bodies_found == 5 and len(report.bodies_dropped) == 4  # the organ and 4 specks
     assert report.step("close")["holes_filled"] >= 1
+    assert report.step("orient")["faces_flipped"] == report.step("orient")["faces_before"]
     assert out.is_closed() and out.volume() > 0
     assert abs(out.volume() / report.volume_before - 1) <= 0.02
     assert report.volume_before == pytest.approx(

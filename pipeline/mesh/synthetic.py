@@ -12,10 +12,10 @@ defects real exports have:
   where the organ meets the scan border;
 * ``second_body``: a separate, smaller organ-sized body in the same file.
 
-The winding is left as marching cubes gives it after the Y flip, so normals
-point inward, as in several real exports. Tests use it to produce inputs
-nobody hand-tuned; the benchmark uses it with a fine voxel to reach 1 M
-triangles.
+Marching cubes followed by the Y flip gives outward normals (as InVesalius'
+auto-orientation does); ``inward_normals=True`` reverses them, as in the SOFA
+liver. Tests use it to produce inputs nobody hand-tuned; the benchmark uses
+it with a fine voxel to reach 1 M triangles.
 """
 
 from __future__ import annotations
@@ -64,7 +64,8 @@ def _field(x, y, z, ellipsoids, *, scale: float, blend: float) -> np.ndarray:
 
 def invesalius_like_surface(*, shape: str = "liver", voxel: tuple[float, float, float] = (1.0, 1.0, 2.0),
                             scale: float = 1.0, islands: bool = True, handle: bool = True,
-                            open_border: bool = True, second_body: bool = False, seed: int = 0,
+                            open_border: bool = True, second_body: bool = False,
+                            inward_normals: bool = False, seed: int = 0,
                             path: str | os.PathLike | None = None) -> Surface:
     """An InVesalius-style organ surface (marching cubes of a 0/255 mask).
 
@@ -78,6 +79,8 @@ def invesalius_like_surface(*, shape: str = "liver", voxel: tuple[float, float, 
         Multiplies the shape's dimensions (1: an adult liver, ~250 mm across).
     islands, handle, open_border, second_body
         Which InVesalius defects to add (see the module docstring).
+    inward_normals
+        Reverse every triangle (normals pointing into the organ).
     seed
         Seed of the random placement of the islands.
     path
@@ -86,8 +89,7 @@ def invesalius_like_surface(*, shape: str = "liver", voxel: tuple[float, float, 
     Returns
     -------
     Surface
-        Points in metres, faces as marching cubes gave them (inward normals
-        after the Y flip). ``source`` records the options.
+        Points in metres; ``source`` records the options.
     """
     from skimage.measure import marching_cubes
 
@@ -153,9 +155,12 @@ def invesalius_like_surface(*, shape: str = "liver", voxel: tuple[float, float, 
                                           allow_degenerate=False)
     verts = verts + origin
     verts[:, 1] *= -1.0  # InVesalius negates Y
+    faces = faces.astype(np.int64)
+    if inward_normals:
+        faces = faces[:, ::-1]
     src = (f"synthetic InVesalius-like {shape} voxel={voxel} mm islands={islands} handle={handle} "
-           f"open_border={open_border} second_body={second_body} seed={seed}")
-    surf = Surface(verts * 1e-3, faces.astype(np.int64), src)
+           f"open_border={open_border} second_body={second_body} inward_normals={inward_normals} seed={seed}")
+    surf = Surface(verts * 1e-3, faces, src)
     if path is not None:
         from .readers import write_stl
 
