@@ -72,6 +72,7 @@ def test_default_scene_values():
     g = sc.grasper
     assert g.mode == "prescribed" and g.release_time == 2.0 and g.radius == "auto"
     assert sc.step == "adaptive" and sc.window == 0.05 and sc.mass_scaling == 0.001
+    assert sc.start == "equilibrium"
     assert [w.time for w in g.waypoints] == [0.0, 1.0]
     assert g.waypoints[1].distance == pytest.approx(0.015)
     assert sc.fixed is None and sc.n_frames == 90
@@ -85,6 +86,7 @@ def test_default_scene_values():
     ({"scene": {"gravity": [0, 0]}}, "3 numbers"),
     ({"scene": {"gravity_unit": "ft/s2"}}, "gravity_unit"),
     ({"scene": {"law": "hooke"}}, "law"),
+    ({"scene": {"start": "moving"}}, "start"),
     ({"damping": {"dashpot": "-1 ms"}}, "dashpot"),
     ({"damping": {"velocity_decay": 0.2}}, "has no unit"),
     ({"integrator": {"safety": 1.5}}, "safety"),
@@ -399,3 +401,22 @@ def test_cli_end_to_end_on_an_asset(run_cli, tmp_path, slab):
     bad.write_text('[fixed]\nkind = "box"\nlower = ["1 m", "1 m", "1 m"]\nupper = ["2 m", "2 m", "2 m"]\n')
     code, out, err = run_cli("simulate", asset, "--scene", bad, "--out", tmp_path / "run2")
     assert code == 2 and "holds no" in err and "Traceback" not in err
+
+
+def test_start_at_equilibrium_has_no_transient(tmp_path, slab):
+    """Started at the equilibrium under gravity, nothing moves without the grasper."""
+    out = {}
+    for start in ("equilibrium", "rest"):
+        sc = scene_from_dict({"scene": {"duration": "0.2 s", "start": start}, "grasper": {"enabled": False},
+                              "integrator": {"threads": 1}}, source="t")
+        res = simulate_network(slab, stiff_tables(), sc, tmp_path / start)
+        with History(res.history) as h:
+            out[start] = [h.displacement(k) for k in range(h.n_frames)]
+        if start == "equilibrium":
+            assert res.summary["equilibrium"]["converged"]
+    eq, rest = out["equilibrium"], out["rest"]
+    sag = np.abs(eq[0]).max()
+    assert sag > 1e-4 and np.abs(rest[0]).max() == 0.0
+    drift = max(np.abs(u - eq[0]).max() for u in eq)
+    assert drift < 1e-3 * sag                    # already at rest
+    assert max(np.abs(u - rest[0]).max() for u in rest) > 0.3 * sag     # dropping from the rest shape

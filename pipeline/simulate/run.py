@@ -135,8 +135,25 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
 
     plan: GraspPlan | None = None
     extra = None
+    settle = None
+    if scene.start == "equilibrium" and np.any(scene.gravity) and fixed.size:
+        # Start from the static equilibrium under gravity (the organ at rest in the scene).
+        t = time.perf_counter()
+        try:
+            info = sim.relax(rtol=1e-4, max_iter=400_000)
+            settle = {**info, "seconds": time.perf_counter() - t, "converged": True}
+        except SimulationError as exc:
+            if "diverged" in str(exc):
+                raise
+            settle = {"converged": False, "seconds": time.perf_counter() - t}
+            rep.warn(f"the equilibrium under gravity was not reached before t = 0 ({exc}); "
+                     "starting from the closest state found")
+        u = np.linalg.norm(sim.displacement(), axis=1).max()
+        settle["max_displacement_m"] = float(u)
+        rep.step(f"equilibrium under gravity: largest sag {u * 1e3:.3g} mm "
+                 f"({settle.get('iterations', '?')} FIRE iterations, {settle['seconds']:.2g} s)")
     if scene.grasper is not None:
-        plan = plan_grasp(scene.grasper, network.points, network.surface_faces, fixed, scene.gravity,
+        plan = plan_grasp(scene.grasper, sim.x, network.surface_faces, fixed, scene.gravity,
                           springs=network.springs)
         rep.step(plan.describe())
         if scene.grasper.mode == "spring":
@@ -204,7 +221,7 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
                        fixed=fixed, attrs=attrs) as hw:
         if plan is not None:
             hw.set_grasped(plan.nodes)
-        hw.add_frame(0.0, sim.displacement(), tip=None)
+        hw.add_frame(0.0, sim.displacement(), tip=None)      # the rest shape, or the equilibrium
         with rep.task("simulating", total=n_frames) as advance:
             for fr in range(n_frames):
                 t_start = fr * frame_dt
@@ -298,6 +315,7 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
             "gamma_max_1_s": table_bound.gamma_max,
             "dashpot_s": scene.dashpot, "velocity_decay_s": scene.velocity_decay,
             "mass_scaling": {"budget": scene.mass_scaling, **scaling},
+            "start": scene.start, "equilibrium": settle,
             "threads": threads, "thread_trial_s_per_step": thread_timing,
             "build_s": build_s, "warm_up_s": warm, "stepping_wall_s": step_wall,
             "wall_per_step_us": step_wall / total_steps * 1e6,

@@ -5,7 +5,7 @@ Every dimensional value carries its unit, as in every esmm config; the full
 schema with defaults is ``configs/scenes/default.toml`` and docs/simulate.md.
 Tables and keys::
 
-    [scene]       duration, frame_rate, gravity, gravity_unit, law
+    [scene]       duration, frame_rate, gravity, gravity_unit, law, start
     [damping]     dashpot, velocity_decay
     [integrator]  safety, step, window, mass_scaling, threads, precision, max_steps
     [fixed]       kind = "asset" (keep the asset's fixed nodes) or a region
@@ -35,7 +35,7 @@ DEFAULT_SCENE = "default"
 JAW_RADIUS = 0.004
 
 _TABLES = {
-    "scene": {"duration", "frame_rate", "gravity", "gravity_unit", "law"},
+    "scene": {"duration", "frame_rate", "gravity", "gravity_unit", "law", "start"},
     "damping": {"dashpot", "velocity_decay"},
     "integrator": {"safety", "threads", "precision", "max_steps", "step", "window", "mass_scaling"},
     "fixed": None,  # validated by esmm.pipeline.network.regions (plus kind = "asset")
@@ -120,6 +120,9 @@ class Scene:
     gravity : ndarray, shape (3,)
         [m/s2] in the asset's coordinates.
     law : {"asset", "secant", "energy"}
+    start : {"equilibrium", "rest"}
+        Start from the static equilibrium under gravity (found with FIRE before
+        t = 0), or from the asset's rest shape (the organ then drops at t = 0).
     dashpot : float
         Stiffness-proportional dashpot time beta [s] (0: none).
     velocity_decay : float or None
@@ -153,6 +156,7 @@ class Scene:
     frame_rate: float = 30.0
     gravity: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.80665]))
     law: str = "asset"
+    start: str = "equilibrium"
     dashpot: float = 0.0
     velocity_decay: float | None = 0.2
     safety: float = 0.9
@@ -323,6 +327,10 @@ def scene_from_dict(data: dict, *, source: str = "<dict>") -> Scene:
         raise ConfigError(f"[scene] gravity_unit: {unit!r} is not one of {', '.join(_GRAVITY_UNITS)}")
     if "gravity" in sc:
         kw["gravity"] = _vec3(sc["gravity"], "[scene] gravity", lengths=False) * _GRAVITY_UNITS[unit.lower().replace(" ", "")]
+    if "start" in sc:
+        if sc["start"] not in ("equilibrium", "rest"):
+            raise ConfigError(f"[scene] start: {sc['start']!r} is not \"equilibrium\" or \"rest\"")
+        kw["start"] = sc["start"]
     if "law" in sc:
         if sc["law"] not in LAWS:
             raise ConfigError(f"[scene] law: {sc['law']!r} is not one of {', '.join(LAWS)}")
