@@ -258,3 +258,16 @@ def test_invesalius_like_input_end_to_end(tmp_path):
     assert report.bodies_found >= 6  # organ, second body, 4 specks
     mesh = mesh_volume(clean, nodes=1000)
     assert_valid(mesh, clean)
+
+
+@pytest.mark.slow
+def test_two_bodies_are_meshed_separately():
+    a = sphere(0.04, 3)
+    b = Surface(sphere(0.02, 3).points + [0.1, 0.0, 0.0], sphere(0.02, 3).faces)
+    both = Surface(np.vstack([a.points, b.points]), np.vstack([a.faces, b.faces + a.n_points]), "two")
+    mesh = mesh_volume(both, nodes=900)
+    assert_valid(mesh, both)
+    assert any("2 bodies" in line for line in mesh.log)
+    from esmm.pipeline.mesh.cleaning import face_components
+
+    assert face_components(mesh.n_nodes, mesh.boundary_faces)[0] == 2

@@ -50,7 +50,7 @@ _NODES_A, _NODES_B = 0.387, 2.44
 _TETWILD_EDGE_FACTOR = 1.3
 
 #: Relative node-count error that triggers one re-run with a corrected size.
-_NODES_TOLERANCE = 0.2
+_NODES_TOLERANCE = 0.25
 
 
 @dataclass(frozen=True)
@@ -153,7 +153,7 @@ def mesh_volume(surface: Surface, *, size: float | None = None, nodes: int | Non
     nodes
         Target number of nodes instead (ignored if ``size`` is given); the size
         is estimated from the volume and area and corrected once if the result
-        is more than 20 % off. Default: :data:`DEFAULT_NODES`.
+        is more than 25 % off. Default: :data:`DEFAULT_NODES`.
     timeout
         Time limit of each mesher run [s]; a run that exceeds it is killed.
     reporter
@@ -201,35 +201,69 @@ def mesh_volume(surface: Surface, *, size: float | None = None, nodes: int | Non
     if est_nodes > 2_000_000:
         raise ConfigError(f"size: {h * 1e3:.3g} mm would give about {est_nodes:.3g} nodes; give a larger --size")
 
+    from .cleaning import face_components
+
+    n_bodies, lab = face_components(surface.n_points, surface.faces)
+    bodies = [surface] if n_bodies == 1 else [
+        Surface(surface.points, surface.faces[lab == k], f"{where}, body {k}").compact() for k in range(n_bodies)]
     log: list[str] = []
-    attempts = [("gmsh", lambda s: s), ("gmsh-after-repair", _repair_for_gmsh), ("pytetwild", lambda s: s)]
+    if n_bodies > 1:
+        log.append(f"{n_bodies} bodies, meshed one by one at the same size")
+    meshes = [_mesh_one(b, h, timeout, rep, log, where) for b in bodies]
+    total = sum(m.n_nodes for m in meshes)
+    if target_nodes is not None and abs(total / target_nodes - 1.0) > _NODES_TOLERANCE:
+        if any(m.path == "pytetwild" for m in meshes):
+            log.append(f"{total} nodes for a target of {target_nodes}; not remeshed (fTetWild is slow)")
+        else:
+            h2 = h * (total / target_nodes) ** (1.0 / _nodes_exponent(v_surf, surface.area(), h))
+            log.append(f"{total} nodes for a target of {target_nodes}; size {h * 1e3:.3g} -> {h2 * 1e3:.3g} mm")
+            try:
+                meshes = [_mesh_one(b, h2, timeout, rep, log, where, start=m.path) for b, m in zip(bodies, meshes)]
+                h = h2
+            except MeshingError as exc:  # keep the first mesh: it is valid
+                log.append(f"remeshing at {h2 * 1e3:.3g} mm failed ({exc}); the first mesh is kept")
+                rep.warn(f"volume mesh: remeshing for the node target failed; keeping {total} nodes")
+    mesh = _combine(meshes)
+    path = max((m.path for m in meshes), key=_PATHS.index)
+    rep.step(f"volume mesh ({path}): {mesh.n_nodes} nodes, {mesh.n_tets} tetrahedra, size "
+             f"{h * 1e3:.3g} mm, volume {mesh.volume() * 1e6:.1f} mL "
+             f"({(mesh.volume() / v_surf - 1) * 100:+.2f} % of the surface)")
+    return VolumeMesh(mesh.points, mesh.tets, mesh.boundary_faces, path, log)
+
+
+_PATHS = ["gmsh", "gmsh-after-repair", "pytetwild"]
+
+
+def _mesh_one(surface: Surface, h: float, timeout: float, rep, log: list[str], where: str,
+              start: str = "gmsh") -> VolumeMesh:
+    """Mesh one closed body, trying the paths in order from *start*."""
+    v_surf = surface.volume()
+    prepares = {"gmsh": lambda s: s, "gmsh-after-repair": _repair_for_gmsh, "pytetwild": lambda s: s}
     failures: list[str] = []
-    for path, prepare in attempts:
+    for path in _PATHS[_PATHS.index(start):]:
         try:
-            surf = prepare(surface)
+            surf = prepares[path](surface)
         except MeshingError as exc:
             failures.append(f"{path}: {exc}")
             log.append(f"{path}: surface repair failed: {exc}")
             continue
         mesh, msg = _attempt(path, surf, h, v_surf, timeout, log)
-        if mesh is not None and target_nodes is not None and path != "pytetwild":
-            ratio = mesh.n_nodes / target_nodes
-            if abs(ratio - 1.0) > _NODES_TOLERANCE:
-                h2 = h * ratio ** (1.0 / _nodes_exponent(v_surf, surface.area(), h))
-                log.append(f"{path}: {mesh.n_nodes} nodes for a target of {target_nodes}; "
-                           f"size {h * 1e3:.3g} -> {h2 * 1e3:.3g} mm")
-                mesh2, msg2 = _attempt(path, surf, h2, v_surf, timeout, log)
-                if mesh2 is not None:
-                    mesh, msg, h = mesh2, msg2, h2
         if mesh is not None:
-            rep.step(f"volume mesh ({path}): {mesh.n_nodes} nodes, {mesh.n_tets} tetrahedra, size "
-                     f"{h * 1e3:.3g} mm, volume {mesh.volume() * 1e6:.1f} mL "
-                     f"({(mesh.volume() / v_surf - 1) * 100:+.2f} % of the surface)")
-            return VolumeMesh(mesh.points, mesh.tets, mesh.boundary_faces, path, log)
+            return mesh
         failures.append(f"{path}: {msg}")
-        rep.warn(f"volume mesh: {path} failed ({msg}); trying the next mesher")
+        if path != _PATHS[-1]:
+            rep.warn(f"volume mesh: {path} failed ({msg}); trying the next mesher")
     raise MeshingError(f"{where}: every mesher failed ({'; '.join(failures)}); "
                        f"check the surface or give a larger --size")
+
+
+def _combine(meshes: list[VolumeMesh]) -> VolumeMesh:
+    if len(meshes) == 1:
+        return meshes[0]
+    offs = np.cumsum([0] + [m.n_nodes for m in meshes[:-1]])
+    return VolumeMesh(np.vstack([m.points for m in meshes]),
+                      np.vstack([m.tets + o for m, o in zip(meshes, offs)]),
+                      np.vstack([m.boundary_faces + o for m, o in zip(meshes, offs)]), meshes[0].path, [])
 
 
 def _attempt(path: str, surf: Surface, h: float, v_surf: float, timeout: float,
