@@ -185,3 +185,13 @@ def test_shared_nifti_matches_its_stl_export(shared_data):
     # Same surfacing as the README's InVesalius-style export: same volume and extent.
     assert abs(s.volume()) == pytest.approx(abs(stl.volume()), rel=1e-3)
     np.testing.assert_allclose(s.bounds(), stl.bounds(), atol=1e-6)
+
+
+def test_binary_stl_whose_header_starts_with_solid(tmp_path):
+    """Many CAD tools write 'solid' at the start of a binary STL header."""
+    path = write_stl(sphere(), tmp_path / "organ.stl")
+    data = bytearray(path.read_bytes())
+    data[:11] = b"solid organ"
+    (tmp_path / "solid.stl").write_bytes(bytes(data))
+    back = read_surface(tmp_path / "solid.stl")
+    assert back.volume() == pytest.approx(sphere().volume(), rel=1e-5)
