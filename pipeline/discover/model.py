@@ -412,6 +412,35 @@ class Problem:
             z[i] = math.log(max(v, 1e-300)) if s.log else v
         return np.clip(z, self.lower, self.upper)
 
+    def encode(self, base: Mapping[str | None, Mapping[str, float]], effects: MaterialEffects | None = None,
+               ) -> np.ndarray:
+        """Optimiser vector from base parameters (per direction, SI) and material effects.
+
+        Slots of effects absent from *effects* keep their neutral defaults;
+        per-file artefact slots start at zero.
+        """
+        z = self.set_base(self.default_z(), base)
+        vals: dict[tuple[str, str], float] = {}
+        if effects is not None and effects.viscoelastic is not None:
+            rest = 1.0
+            for j, (g, tau) in enumerate(zip(effects.viscoelastic.g, effects.viscoelastic.tau)):
+                u = g / rest if rest > 0 else 0.0
+                rest -= g
+                vals[("viscoelastic", f"u[{j}]")] = u
+                vals[("viscoelastic", f"tau[{j}]")] = math.log(tau)
+        if effects is not None and effects.mullins is not None:
+            vals[("mullins", "s")] = 1.0 / effects.mullins.r
+            vals[("mullins", "m")] = math.log(effects.mullins.m)
+            vals[("mullins", "beta")] = effects.mullins.beta
+        if effects is not None and effects.damage is not None:
+            vals[("damage", "onset")] = effects.damage.onset
+            vals[("damage", "scale")] = math.log(effects.damage.scale)
+            vals[("damage", "shape")] = effects.damage.shape
+        for i, s in enumerate(self.slots):
+            if (s.effect, s.name) in vals:
+                z[i] = vals[(s.effect, s.name)]  # not clipped: a saved value stands as it is
+        return z
+
     def transfer(self, other: Problem, z_other: np.ndarray) -> np.ndarray:
         """Map another problem's vector onto this one (matching slots by key and file name)."""
         z = self.default_z()
@@ -623,7 +652,7 @@ class Problem:
     def solve(self, z_full0: np.ndarray, *, active: Sequence[int] | None = None, max_nfev: int | None = None,
               ftol: float = 1e-5):
         """Least squares from *z_full0* over the *active* slots (default: all); returns z_full."""
-        self.z_full = np.clip(np.asarray(z_full0, float).copy(), self.lower, self.upper)
+        self.z_full = np.asarray(z_full0, float).copy()
         self.active = np.arange(len(self.slots)) if active is None else np.asarray(active, dtype=int)
         if self.active.size == 0:
             return self.z_full.copy(), None
@@ -706,12 +735,19 @@ def runs_test(r: np.ndarray) -> tuple[int, float]:
     return runs, (runs - mu) / math.sqrt(var) if var > 0 else 0.0
 
 
+#: lag-1 autocorrelation is clipped to this for the effective sample size
+RHO_MAX = 0.98
+#: ... and a file counts for at least this many effective samples (or its size)
+NU_MIN = 5.0
+
+
 def n_effective(res: Sequence[np.ndarray]) -> list[float]:
-    """Effective sample sizes n (1-ρ)/(1+ρ) per record (ρ = lag-1 autocorrelation, clipped to [0, 0.99])."""
+    """Effective sample sizes per record: ``n (1-ρ)/(1+ρ)``, ρ = lag-1 autocorrelation in [0, RHO_MAX],
+    at least ``min(n, NU_MIN)``."""
     out = []
     for r in res:
-        rho = min(max(lag1(r), 0.0), 0.99)
-        out.append(max(r.size * (1.0 - rho) / (1.0 + rho), min(r.size, 3.0)))
+        rho = min(max(lag1(r), 0.0), RHO_MAX)
+        out.append(max(r.size * (1.0 - rho) / (1.0 + rho), min(float(r.size), NU_MIN)))
     return out
 
 
@@ -719,7 +755,7 @@ def information(res: Sequence[np.ndarray], n_eff: Sequence[float], k: int) -> di
     """Gaussian log-likelihood with one noise level per file, AICc and BIC on effective sizes.
 
     ``logL = -sum_f nu_f/2 (log(2 pi RSS_f/n_f) + 1)``, ``N = sum_f nu_f``,
-    ``AICc = -2 logL + 2k + 2k(k+1)/(N-k-1)``, ``BIC = -2 logL + k log N``.
+    ``AICc = -2 logL + 2k + 2k(k+1)/max(N-k-1, 1)``, ``BIC = -2 logL + k log N``.
     """
     ll = 0.0
     N = 0.0
@@ -729,7 +765,9 @@ def information(res: Sequence[np.ndarray], n_eff: Sequence[float], k: int) -> di
         rss = float(np.sum(r[np.isfinite(r)] ** 2)) or 1e-300
         ll += -0.5 * nu * (math.log(2 * math.pi * rss / r.size) + 1.0)
         N += nu
-    corr = 2.0 * k * (k + 1) / (N - k - 1) if N - k - 1 > 0 else math.inf
+    # small-sample correction; its denominator is floored at 1 so that the criterion
+    # stays finite (and heavily penalising) when the effective size is tiny
+    corr = 2.0 * k * (k + 1) / max(N - k - 1, 1.0)
     return {"loglik": ll, "aicc": -2 * ll + 2 * k + corr, "bic": -2 * ll + k * math.log(max(N, 1.0)),
             "n_eff": N, "k": k}
 
@@ -859,7 +897,7 @@ def estimates(problem: Problem, z_full: np.ndarray) -> list[Estimate]:
                 add(f"slack.length[{r.name}]", grad * r.gauge, v * r.gauge, positive=False, unit="m")
             add(key, grad, v, positive=False)
             continue
-        add(key, grad, v, positive=s.log or s.kind == "stress")
+        add(key, grad, v, positive=s.log or s.kind == "stress", unit=unit)
     # derived: Prony weights and mullins r
     if st.g is not None:
         idx_u = [i for i, s in enumerate(prob.slots) if s.effect == "viscoelastic" and s.name.startswith("u")]
@@ -893,19 +931,19 @@ def estimates(problem: Problem, z_full: np.ndarray) -> list[Estimate]:
         grad = np.zeros(P)
         grad[len(prob.slots) + c] = 1.0
         v = float(coefs[k][j])
-        # model + offset = data: the load cell read `offset` too much
+        # data = model + offset: the load cell reads `offset` when the true force is zero
         if r.area:
             g2 = grad * r.area
             if j == 0:
-                add(f"sensor_offset.force[{r.name}]", -g2, -v * r.area, positive=False, unit="N")
+                add(f"sensor_offset.force[{r.name}]", g2, v * r.area, positive=False, unit="N")
             else:
-                add(f"sensor_offset.drift[{r.name}]", -g2 / (r.T or 1.0), -v * r.area / (r.T or 1.0),
+                add(f"sensor_offset.drift[{r.name}]", g2 / (r.T or 1.0), v * r.area / (r.T or 1.0),
                     positive=False, unit="N/s")
         else:
             if j == 0:
-                add(f"sensor_offset.stress[{r.name}]", -grad, -v, positive=False, unit="Pa")
+                add(f"sensor_offset.stress[{r.name}]", grad, v, positive=False, unit="Pa")
             else:
-                add(f"sensor_offset.drift[{r.name}]", -grad / (r.T or 1.0), -v / (r.T or 1.0),
+                add(f"sensor_offset.drift[{r.name}]", grad / (r.T or 1.0), v / (r.T or 1.0),
                     positive=False, unit="Pa/s")
     return out
 

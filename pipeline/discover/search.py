@@ -481,6 +481,39 @@ def _best_variant(name, variants, current: Fitted, records, model, fixed, direct
     return best
 
 
+def _try_pairs(singles, current: Fitted, records, model, fixed, directions, bounds, folds, aicc_threshold,
+               min_heldout_gain):
+    """When no single effect passes, try two at once (effects that only show together, e.g. slack
+    hiding a rate effect). Pairs among the three best single candidates by AICc.
+
+    Returns ((a, b), fit, ΔAICc) of the first pair (best AICc first) that passes both tests, or None.
+    """
+    pool = sorted((n for n, (f, inf, ref) in singles.items() if math.isfinite(inf["aicc"] - ref["aicc"])),
+                  key=lambda n: singles[n][1]["aicc"] - singles[n][2]["aicc"])[:3]
+    tried = []
+    for i in range(len(pool)):
+        for j in range(i + 1, len(pool)):
+            a, b = pool[i], pool[j]
+            spec = current.spec.with_(a, getattr(singles[a][0].spec, a)).with_(b, getattr(singles[b][0].spec, b))
+            try:
+                f = _fit_spec(spec, current, records, model, fixed, directions, bounds)
+            except FitError:
+                continue
+            res = f.problem.fit_residuals(f.z)
+            nu = n_effective(res)
+            inf = information(res, nu, f.problem.n_params())
+            ref = information(current.problem.fit_residuals(current.z), nu, current.problem.n_params())
+            d = inf["aicc"] - ref["aicc"]
+            if math.isfinite(d) and d <= aicc_threshold:
+                tried.append(((a, b), f, d))
+    for (a, b), f, d in sorted(tried, key=lambda t: t[2]):
+        f.heldout = heldout(f, folds)
+        gain = 1.0 - f.heldout.nrmse / max(current.heldout.nrmse, 1e-300)
+        if gain >= min_heldout_gain:
+            return (a, b), f, d
+    return None
+
+
 def heldout(fitted: Fitted, folds: Sequence[Fold]) -> Errors:
     """Held-out errors of *fitted*'s model: refit per fold, predict what was left out.
 
@@ -668,15 +701,21 @@ def _discover(tests, *, model, base, fixed, weights, n_starts, seed, max_points,
             break
         order = [x for x in diag.ranking if x in remaining] + [x for x in remaining if x not in diag.ranking]
         trials: list[tuple[str, Fitted, dict, dict]] = []  # (name, fit, info, ref info)
+        singles: dict[str, tuple[Fitted, dict, dict]] = {}  # every candidate fitted this round
         with rep.task(f"round {rnd}: trying {', '.join(order + [u + ' (more terms)' for u in upgradable])}",
                       total=len(order) + len(upgradable)) as adv:
             for n in order:
                 c = cands[n]
                 c.round, c.score = rnd, diag.scores.get(n, 0.0)
                 if c.score < min_share:
-                    c.delta_aicc = c.delta_bic = c.heldout_nrmse = c.heldout_gain = None
-                    c.reason = (f"rejected without a fit: its first-order signature explains {100 * c.score:.2f} % "
-                                f"of the residual (less than {100 * min_share:.1f} %)")
+                    why = (f"its first-order signature explains {100 * c.score:.2f} % of the residual "
+                           f"(less than {100 * min_share:.1f} %)")
+                    if c.delta_aicc is not None or c.reason.startswith("rejected:"):
+                        # keep the verdict of the round in which it was fitted
+                        c.reason = f"{c.reason.split('; in round')[0]}; in round {rnd}, after {', '.join(kept)}, {why}"
+                    else:
+                        c.delta_aicc = c.delta_bic = c.heldout_nrmse = c.heldout_gain = None
+                        c.reason = f"rejected without a fit: {why}"
                     adv(1)
                     continue
                 got = _best_variant(n, VARIANTS[n], current, records, m, fixed_all, directions, bounds,
@@ -686,12 +725,27 @@ def _discover(tests, *, model, base, fixed, weights, n_starts, seed, max_points,
                     c.reason = "the fit with this effect failed"
                     continue
                 f, inf, ref = got
+                if n == "sensor_offset":
+                    bad = _offset_inconsistent(f)
+                    if bad:
+                        c.variant = f.spec.variant_text(n)
+                        c.delta_aicc = inf["aicc"] - ref["aicc"]
+                        c.delta_bic = inf["bic"] - ref["bic"]
+                        c.params = _effect_params(f, n)
+                        c.heldout_nrmse = c.heldout_gain = None
+                        c.reason = ("rejected: " + bad + "; the offset compensates for misfit instead of "
+                                    "correcting the load cell")
+                        continue
                 c.variant = f.spec.variant_text(n)
                 c.delta_aicc = inf["aicc"] - ref["aicc"]
                 c.delta_bic = inf["bic"] - ref["bic"]
                 c.params = _effect_params(f, n)
                 c.heldout_nrmse = c.heldout_gain = None
-                if c.delta_aicc > aicc_threshold:
+                singles[n] = (f, inf, ref)
+                if not math.isfinite(c.delta_aicc):
+                    c.delta_aicc = None
+                    c.reason = "rejected: the information criterion could not be computed for this fit"
+                elif c.delta_aicc > aicc_threshold:
                     c.reason = (f"rejected: AICc {c.delta_aicc:+.1f} (needs {aicc_threshold:+.0f} or less): "
                                 "the improvement does not pay for the extra parameters")
                 else:
@@ -705,7 +759,7 @@ def _discover(tests, *, model, base, fixed, weights, n_starts, seed, max_points,
                 if got is None:
                     continue
                 f, inf, ref = got
-                if inf["aicc"] - ref["aicc"] <= aicc_threshold:
+                if math.isfinite(inf["aicc"] - ref["aicc"]) and inf["aicc"] - ref["aicc"] <= aicc_threshold:
                     trials.append((n, f, inf, ref))
         # held-out check, best AICc first; the first that passes is kept
         trials.sort(key=lambda t: t[2]["aicc"] - t[3]["aicc"])
@@ -735,6 +789,26 @@ def _discover(tests, *, model, base, fixed, weights, n_starts, seed, max_points,
             if n != winner and n not in kept and c.reason.endswith("pending"):
                 c.reason = (f"AICc {inf['aicc'] - ref['aicc']:+.1f}, but {winner} explained more in round {rnd}; "
                             "tried again after it")
+        if winner is None and len(kept) + 2 <= max_effects:
+            pair = _try_pairs(singles, current, records, m, fixed_all, directions, bounds, folds,
+                              aicc_threshold, min_heldout_gain)
+            if pair is not None:
+                (a, b), f, d_aicc = pair
+                for n, other in ((a, b), (b, a)):
+                    c = cands[n]
+                    c.kept = True
+                    c.variant = f.spec.variant_text(n)
+                    c.heldout_nrmse = f.heldout.nrmse
+                    c.heldout_gain = 1.0 - f.heldout.nrmse / max(current.heldout.nrmse, 1e-300)
+                    kind = "corrected in the data" if n in ARTEFACTS else "added to the material"
+                    c.reason = (f"kept ({kind}) in round {rnd} together with {other}: neither alone passed, "
+                                f"together AICc {d_aicc:+.1f} and held-out NRMSE {current.heldout.nrmse:.2%} -> "
+                                f"{f.heldout.nrmse:.2%}")
+                rep.step(f"round {rnd}: kept {a} and {b} together: NRMSE {current.errors.nrmse:.2%} -> "
+                         f"{f.errors.nrmse:.2%}, held-out {current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%}")
+                kept += [a, b]
+                current = f
+                continue
         if winner is None:
             break
         f = next(t[1] for t in trials if t[0] == winner)
@@ -759,6 +833,12 @@ def _discover(tests, *, model, base, fixed, weights, n_starts, seed, max_points,
         for u in upgrades:
             if f": {n} extended" in u:
                 cands[n].reason += f"; {u.split(': ', 1)[1]}"
+    # a confound the data cannot resolve: on a single monotonic ramp, damage and relaxation look alike
+    if "damage" in kept and not cands["viscoelastic"].identifiable and any(r.history for r in records):
+        cands["damage"].reason += (
+            "; caution: with one monotonic ramp at one rate, damage cannot be told from rate-dependent "
+            "relaxation (which is not identifiable here); an unloading-reloading cycle or a second rate "
+            "would tell them apart")
     not_ident = [n for n in EFFECT_NAMES if cands[n].applicable and not cands[n].identifiable]
     warnings = [f"{e.key} is not identifiable from these data: 95 % interval [{e.lower:.4g}, {e.upper:.4g}]"
                 for e in current.estimates if e.wide and e.key.split(".")[0] in MATERIAL_EFFECTS]
@@ -775,6 +855,42 @@ def _discover(tests, *, model, base, fixed, weights, n_starts, seed, max_points,
              f"{current.errors.nrmse:.2%}, held-out {base_f.heldout.nrmse:.2%} -> {current.heldout.nrmse:.2%} "
              f"({result.seconds:.1f} s)")
     return result
+
+
+def _noise_sd(y: np.ndarray) -> float:
+    """Robust standard deviation of white measurement noise (MAD of first differences / sqrt 2)."""
+    d = np.diff(np.asarray(y, float))
+    d = d[np.isfinite(d)]
+    if d.size < 3:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0))
+
+
+def _offset_inconsistent(f: Fitted) -> str:
+    """Why a fitted load-cell offset contradicts the force read before loading ('' if it does not).
+
+    Where a record starts at rest in the reference state, its first sample *is*
+    a reading of the offset (the true force is zero): the fitted offset at the
+    start must agree with it within 5 noise standard deviations (and 1 % of
+    the file's stress scale).
+    """
+    coefs = f.problem.offsets(f.z)
+    for k, r in enumerate(f.problem.records):
+        c = coefs[k]
+        if c is None:
+            continue
+        ref = 0.0 if r.test.mode == "simple_shear" else 1.0
+        span = float(np.ptp(r.x)) or 1.0
+        if abs(float(r.x[0]) - ref) > 1e-3 * span or not r.history:
+            continue
+        sd = _noise_sd(r.y)
+        tol = 5.0 * sd + 0.01 * r.scale
+        if abs(float(c[0]) - float(r.y[0])) > tol:
+            unit, fac = ("N", r.area) if r.area else ("Pa", 1.0)
+            return (f"in {r.name} it needs an offset of {float(c[0]) * fac:+.3g} {unit} at the start, but the "
+                    f"load cell read {float(r.y[0]) * fac:+.3g} {unit} there before loading (noise "
+                    f"{sd * fac:.2g} {unit})")
+    return ""
 
 
 def _effect_params(f: Fitted, name: str) -> dict[str, Any]:
@@ -801,8 +917,8 @@ def _effect_params(f: Fitted, name: str) -> dict[str, Any]:
             c = coefs[k]
             if c is None:
                 continue
-            o = -float(c[0])
-            d = -float(c[1]) / (r.T or 1.0) if len(c) > 1 else 0.0
+            o = float(c[0])  # data = model + offset (what the load cell reads at zero force)
+            d = float(c[1]) / (r.T or 1.0) if len(c) > 1 else 0.0
             out[r.name] = {"stress_Pa": o, "drift_Pa_per_s": d,
                            "force_N": o * r.area if r.area else None,
                            "drift_N_per_s": d * r.area if r.area else None}

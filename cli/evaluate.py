@@ -1,0 +1,73 @@
+"""``esmm evaluate``: predict new tensile files with a saved fit, without refitting the material."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+EPILOG = """\
+examples:
+  esmm evaluate fit/ new_test.csv                          (fit/ from 'esmm calibrate ... --out fit/')
+  esmm evaluate fit/ lu_0d01_*.csv --json eval.json         (after 'esmm calibrate --discover')
+  esmm evaluate fit/params.toml raw.csv --gauge-length "30 mm" --area "22 mm2"
+
+Reports, per file and over all files, the error of the base model alone (before) and of the
+final model with the effects the discovery kept (after): RMSE, NRMSE (RMSE / range of the
+measured stress) and the largest error. Measurement artefacts (slack, load-cell offset and
+drift) are re-estimated on each file; the material is not refitted.
+"""
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "evaluate",
+        help="predict new tensile files with a saved fit and report the errors",
+        description="Predict tensile-test files with the material saved by 'esmm calibrate' "
+        "(or 'esmm calibrate --discover'), without refitting it, and report the errors.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("fit", metavar="FIT_DIR", help="output folder of 'esmm calibrate' (or its discover.json, "
+                   "fit.json or params.toml)")
+    p.add_argument("files", nargs="+", metavar="FILE", help="tensile-test files to predict")
+    p.add_argument("--json", metavar="PATH", help="write the result as JSON (schema esmm.evaluate/1)")
+    g = p.add_argument_group("specimen metadata (overrides the file's comments and sidecar)")
+    g.add_argument("--gauge-length", metavar="LEN", help='initial gauge length, e.g. "30 mm"')
+    g.add_argument("--area", metavar="AREA", help='cross-section area, e.g. "22 mm2"')
+    g.add_argument("--width", metavar="LEN", help="cross-section width")
+    g.add_argument("--thickness", metavar="LEN", help="cross-section thickness")
+    g.add_argument("--mode", help="uniaxial, equibiaxial, pure_shear or simple_shear")
+    g.add_argument("--orientation", help="loading direction in the fibre frame: x, y or z")
+    g.add_argument("--columns", help='quantities by position, e.g. "time,displacement,force"')
+    g.add_argument("--units", help='units by position, e.g. "s,mm,N"')
+    g.add_argument("--encoding", help="text encoding of the files, e.g. gbk")
+    p.set_defaults(func=run)
+
+
+def _overrides(args) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key in ("gauge_length", "area", "width", "thickness", "mode", "orientation", "encoding"):
+        v = getattr(args, key, None)
+        if v is not None:
+            out[key] = v
+    for key in ("columns", "units"):
+        v = getattr(args, key, None)
+        if v is not None:
+            out[key] = [s.strip() for s in v.split(",")]
+    return out
+
+
+def run(args, ui) -> int:
+    from esmm.pipeline.calibrate.evaluate import evaluate, load_fit, summary_lines, write_json
+    from esmm.pipeline.tensile import read
+
+    saved = load_fit(args.fit)
+    overrides = _overrides(args)
+    tests = [read(p, overrides=overrides) for p in args.files]
+    ev = evaluate(saved, tests, reporter=ui)
+    for line in summary_lines(ev):
+        ui.info(line)
+    if args.json:
+        write_json(args.json, ev)
+        ui.info(f"json: {args.json}")
+    return 0

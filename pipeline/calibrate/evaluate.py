@@ -1,0 +1,277 @@
+"""Predict new tensile files with a saved fit, without refitting the material.
+
+``esmm evaluate FIT_DIR FILE...`` reads what ``esmm calibrate`` (``fit.json``
+or ``params.toml``) or ``esmm calibrate --discover`` (``discover.json``) saved
+in ``FIT_DIR``, predicts every file, and reports the error measures of the
+discovery (RMSE, NRMSE = RMSE / range of the measured stress, max error) for
+
+* **before** — the base model alone, as ``esmm calibrate`` fitted it, with
+  no correction of the data; and
+* **after** — the final model: the base model refitted with the kept material
+  effects (viscoelasticity, Mullins softening, damage), and the kept
+  measurement artefacts (slack, load-cell offset and drift) *re-estimated on
+  each new file*, because they belong to a test, not to the material.
+
+Nothing of the material is refitted. The JSON document (schema
+``esmm.evaluate/1``) is described in docs/discover.md.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from .. import __version__
+from ..errors import ConfigError, InputError
+from ..progress import Reporter, ensure
+from ..tensile.data import TensileTest
+
+JSON_SCHEMA = "esmm.evaluate/1"
+
+
+@dataclass
+class SavedFit:
+    """A fit read back from a calibrate or discover output folder.
+
+    Attributes
+    ----------
+    path : Path
+        The file it was read from.
+    kind : str
+        ``"discover"`` (discover.json), ``"calibrate"`` (fit.json) or ``"material"`` (a params.toml).
+    model : str
+    spec : dict
+        Effect variants (``esmm.pipeline.discover.model.Spec.to_dict``); all 0 for a plain fit.
+    base, final : dict
+        ``{"params": {...}, "directions": {...} or absent}`` (SI); ``final`` also has ``"effects"``.
+    fixed : dict
+    directions : list of str or None
+    bounds : dict or None
+    max_points : int
+    """
+
+    path: Path
+    kind: str
+    model: str
+    spec: dict[str, int]
+    base: dict[str, Any]
+    final: dict[str, Any]
+    fixed: dict[str, float] = field(default_factory=dict)
+    directions: list[str] | None = None
+    bounds: dict[str, float] | None = None
+    max_points: int = 400
+
+    @property
+    def effects(self) -> list[str]:
+        return [n for n, v in self.spec.items() if v]
+
+
+def load_fit(path: str | Path) -> SavedFit:
+    """Read a saved fit: a folder (discover.json, else fit.json, else params.toml) or one of those files.
+
+    Raises
+    ------
+    ConfigError
+        Nothing usable there, or a malformed file (one line naming it).
+    """
+    p = Path(path)
+    if p.is_dir():
+        for name in ("discover.json", "fit.json", "params.toml"):
+            if (p / name).is_file():
+                return load_fit(p / name)
+        raise ConfigError(f"{p}: no discover.json, fit.json or params.toml here; give the --out folder of "
+                          "'esmm calibrate' (with or without --discover)")
+    if not p.is_file():
+        raise ConfigError(f"{p}: no such file or folder; give the --out folder of 'esmm calibrate'")
+    if p.suffix == ".toml":
+        return _from_material(p)
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{p}: not a JSON file written by esmm ({exc}); give the --out folder of "
+                          "'esmm calibrate'") from None
+    schema = str(doc.get("schema", ""))
+    if schema.startswith("esmm.discover/"):
+        sm = doc.get("saved_model")
+        if not isinstance(sm, dict):
+            raise ConfigError(f"{p}: has no saved_model section; rerun 'esmm calibrate --discover'")
+        try:
+            return SavedFit(path=p, kind="discover", model=str(sm["model"]), spec=dict(sm["spec"]),
+                            base=dict(sm["base"]), final=dict(sm["final"]), fixed=dict(sm.get("fixed") or {}),
+                            directions=sm.get("directions"), bounds=sm.get("bounds"),
+                            max_points=int(sm.get("max_points", 400)))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(f"{p}: saved_model is incomplete ({exc}); rerun 'esmm calibrate --discover'") from None
+    if schema.startswith("esmm.calibrate/"):
+        mat = doc.get("material") or {}
+        if "params" not in mat:
+            raise ConfigError(f"{p}: has no material section; rerun 'esmm calibrate'")
+        params = {"params": dict(mat["params"])}
+        if mat.get("directions"):
+            params["directions"] = dict(mat["directions"])
+        return SavedFit(path=p, kind="calibrate", model=str(doc["model"]), spec={}, base=params,
+                        final={**params, "effects": {}},
+                        directions=sorted(mat["directions"]) if mat.get("directions") else None)
+    raise ConfigError(f"{p}: unknown schema {schema!r}; expected a discover.json or fit.json written by esmm")
+
+
+def _from_material(p: Path) -> SavedFit:
+    from ..discover.effects import MaterialEffects
+    from ..materials.material import load_material
+
+    mat = load_material(p)
+    eff_table = mat.metadata.get("effects")
+    effects = MaterialEffects.from_toml_table(eff_table, stress_unit=mat.stress_unit,
+                                              where=f"{p}: [material.effects]")
+    params = {"params": dict(mat.params)}
+    dirs = None
+    if mat.directions:
+        full = {d: mat.params_for(d) for d in mat.directions}
+        params["directions"] = full
+        dirs = sorted(full)
+    spec = {"viscoelastic": len(effects.viscoelastic.g) if effects.viscoelastic else 0,
+            "mullins": 3 if effects.mullins else 0, "damage": 3 if effects.damage else 0}
+    return SavedFit(path=p, kind="material", model=mat.model, spec=spec, base=params,
+                    final={**params, "effects": effects.to_dict()}, directions=dirs)
+
+
+@dataclass
+class Evaluation:
+    """Errors of a saved fit on new files."""
+
+    fit: SavedFit
+    files: list[str]
+    before: Any  # esmm.pipeline.discover.model.Errors
+    after: Any
+    artefacts: dict[str, dict[str, Any]]
+    warnings: list[str]
+
+    def to_dict(self) -> dict[str, Any]:
+        def err(e):
+            return {"rmse": e.rmse, "nrmse": e.nrmse, "max_abs": e.max_abs, "unit": "Pa", "per_file": e.per_file}
+
+        return {
+            "schema": JSON_SCHEMA,
+            "esmm_version": __version__,
+            "created": datetime.now(UTC).isoformat(timespec="seconds"),
+            "fit": str(self.fit.path),
+            "fit_kind": self.fit.kind,
+            "model": self.fit.model,
+            "effects": self.fit.effects,
+            "files": list(self.files),
+            "before": err(self.before),
+            "after": err(self.after),
+            "artefacts": self.artefacts,
+            "warnings": list(self.warnings),
+        }
+
+
+def evaluate(fit: SavedFit | str | Path, tests: list[TensileTest], *, reporter: Reporter | None = None) -> Evaluation:
+    """Predict *tests* with a saved fit; re-estimate per-test artefacts only.
+
+    Parameters
+    ----------
+    fit : SavedFit or path
+        From :func:`load_fit`, or a folder/file it accepts.
+    tests : list of TensileTest
+
+    Returns
+    -------
+    Evaluation
+    """
+    from ..discover.effects import MaterialEffects
+    from ..discover.model import Bounds, Problem, Spec, prepare, slack_applicable
+    from ..discover.search import _effect_params, full_errors
+    from ..materials import get_model
+
+    rep = ensure(reporter)
+    saved = fit if isinstance(fit, SavedFit) else load_fit(fit)
+    if not tests:
+        raise InputError("no tensile files to evaluate; give at least one")
+    m = get_model(saved.model)
+    dirs = saved.directions
+    if dirs:
+        bad = [t.name for t in tests if t.orientation not in dirs]
+        if bad:
+            raise InputError(
+                f"{bad[0]}: the fit is anisotropic ({', '.join(dirs)}); tag the file with orientation = "
+                f"{'|'.join(dirs)} (sidecar, '# orientation: x' comment or --orientation)")
+    records = prepare(tests, max_points=saved.max_points)
+    bounds = Bounds.from_dict(saved.bounds) if saved.bounds else Bounds(records, 1.0)
+
+    def per_dir(block):
+        out = {None: dict(block["params"])}
+        for d, p in (block.get("directions") or {}).items():
+            out[d] = {**block["params"], **p}
+        return out
+
+    warnings: list[str] = []
+    spec = Spec.from_dict(saved.spec)
+    effects = MaterialEffects.from_dict(saved.final.get("effects"), where=f"{saved.path}: effects")
+    if spec.viscoelastic:
+        for r in records:
+            if r.t is None:
+                warnings.append(f"{r.name}: no time column, so the viscoelastic effect is not applied to it")
+    if spec.mullins:
+        for r in records:
+            if not r.history:
+                warnings.append(f"{r.name}: no time column (no loading history), so Mullins softening is not applied")
+    if spec.slack and not any(slack_applicable(r) for r in records):
+        warnings.append("slack correction not applicable to these files (no tension test from zero displacement)")
+    fixed = dict(saved.fixed)
+
+    # before: the base model alone, no corrections
+    pb = Problem(m, records, Spec(), fixed=fixed, directions=dirs, bounds=bounds)
+    zb = pb.encode(per_dir(saved.base))
+    before = full_errors(pb, zb)
+    # after: final material + effects; artefacts re-estimated per file
+    pa = Problem(m, records, spec, fixed=fixed, directions=dirs, bounds=bounds)
+    za = pa.encode(per_dir(saved.final), effects)
+    own = [i for i, s in enumerate(pa.slots) if s.file is not None]
+    if own:
+        za, _ = pa.solve(za, active=own)
+    after = full_errors(pa, za)
+    artefacts: dict[str, dict[str, Any]] = {}
+    from ..discover.search import Fitted
+
+    fitted = Fitted(spec, pa, za, {}, after)
+    for n in ("slack", "sensor_offset"):
+        if getattr(spec, n):
+            artefacts[n] = _effect_params(fitted, n)
+    for w in warnings:
+        rep.warn(w)
+    rep.step(f"evaluated {saved.kind} fit of {saved.model} on {len(tests)} file(s): NRMSE "
+             f"{before.nrmse:.2%} (base) -> {after.nrmse:.2%} (with {', '.join(saved.effects) or 'nothing more'})")
+    if not math.isfinite(after.rmse):
+        warnings.append("the model cannot predict some samples (outside its admissible range)")
+    return Evaluation(saved, [str(t.source) for t in tests], before, after, artefacts, warnings)
+
+
+def write_json(path: str | Path, ev: Evaluation) -> Path:
+    """Write the evaluation document (strict JSON), atomically."""
+    from ..discover.report import write_json as _write
+
+    return _write(path, ev.to_dict())
+
+
+def summary_lines(ev: Evaluation) -> list[str]:
+    """Lines for the terminal: per file and overall, before and after."""
+    def pct(v):
+        return "–" if v is None or not math.isfinite(v) else f"{100 * v:.2f} %"
+
+    eff = ", ".join(ev.fit.effects) or "nothing more"
+    lines = [f"fit: {ev.fit.path} ({ev.fit.kind}, {ev.fit.model}; effects: {eff})",
+             f"{'file':<28} {'NRMSE before':>13} {'NRMSE after':>12} {'RMSE after [Pa]':>16} {'max after [Pa]':>15}"]
+    for b, a in zip(ev.before.per_file, ev.after.per_file):
+        lines.append(f"{Path(a['file']).name[:28]:<28} {pct(b['nrmse']):>13} {pct(a['nrmse']):>12} "
+                     f"{a['rmse']:>16.4g} {a['max_abs']:>15.4g}")
+    lines.append(f"{'all files':<28} {pct(ev.before.nrmse):>13} {pct(ev.after.nrmse):>12} "
+                 f"{ev.after.rmse:>16.4g} {ev.after.max_abs:>15.4g}")
+    return lines
+
+
+__all__ = ["Evaluation", "SavedFit", "evaluate", "load_fit", "summary_lines", "write_json"]

@@ -1,0 +1,504 @@
+"""Outputs of a discovery: JSON, Markdown, residual plots, params.toml with effects, corrected data.
+
+Files written by :func:`write_outputs` into the output folder (docs/discover.md):
+
+``discover.json``         the full result (schema ``esmm.discover/1``), also what ``esmm evaluate`` reads
+``discover.md``           the report, with the plain-language paragraph
+``params.toml``           the final material: base parameters refitted with the kept effects, and
+                          ``[material.effects.*]`` (see :class:`~esmm.pipeline.discover.effects.MaterialEffects`)
+``params_base.toml``      the base model alone (as ``esmm calibrate`` would give it)
+``residuals_before.png``  data vs base model, and its residual against time, stretch and segment
+``residuals_after.png``   the same for the final model
+``corrected/<file>.csv``  artefact-corrected raw data (only when an artefact was kept)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import __version__
+from ..atomicio import atomic_path, write_text
+from .effects import ARTEFACTS, MATERIAL_EFFECTS, MaterialEffects
+from .model import Spec
+from .search import DiscoverResult, Fitted
+
+JSON_SCHEMA = "esmm.discover/1"
+MODEL_SCHEMA = "esmm.discover-model/1"
+
+_NICE = {
+    "viscoelastic": "viscoelasticity (rate dependence and relaxation)",
+    "mullins": "Mullins softening (softer below a previous maximum)",
+    "damage": "damage (irreversible softening past a stretch)",
+    "slack": "slack (the specimen was not taut at zero displacement)",
+    "sensor_offset": "a load-cell offset and drift",
+}
+
+
+# --------------------------------------------------------------------------- JSON
+def _params_doc(f: Fitted) -> dict[str, Any]:
+    st = f.state
+    out: dict[str, Any] = {"params": dict(st.base[None])}
+    if f.problem.directions:
+        out["directions"] = {d: dict(st.base[d]) for d in f.problem.directions}
+    return out
+
+
+def _errors_doc(f: Fitted) -> dict[str, Any]:
+    e, h = f.errors, f.heldout
+    d = {"rmse": e.rmse, "nrmse": e.nrmse, "max_abs": e.max_abs, "unit": "Pa", "per_file": e.per_file}
+    if h is not None:
+        d.update({"heldout_rmse": h.rmse, "heldout_nrmse": h.nrmse, "heldout_max_abs": h.max_abs,
+                  "heldout_per_file": h.per_file})
+    else:
+        d.update({"heldout_rmse": None, "heldout_nrmse": None, "heldout_max_abs": None, "heldout_per_file": []})
+    return d
+
+
+def saved_model(res: DiscoverResult) -> dict[str, Any]:
+    """What ``esmm evaluate`` needs to predict new files (schema ``esmm.discover-model/1``)."""
+    fin = res.final
+    return {
+        "schema": MODEL_SCHEMA,
+        "model": res.model,
+        "spec": fin.spec.to_dict(),
+        "fixed": dict(res.settings["fixed"]),
+        "directions": res.settings["directions"],
+        "bounds": res.settings["bounds"],
+        "max_points": res.settings["max_points"],
+        "base": _params_doc(res.base),
+        "final": {**_params_doc(fin), "effects": res.material_effects.to_dict()},
+        "artefacts": {n: getattr(fin.spec, n) for n in ARTEFACTS},
+    }
+
+
+def result_to_dict(res: DiscoverResult) -> dict[str, Any]:
+    """The JSON document of a discovery (schema ``esmm.discover/1``, docs/discover.md)."""
+    fin, base = res.final, res.base
+    d0 = res.diagnoses[0] if res.diagnoses else None
+    dl = res.diagnoses[-1] if res.diagnoses else None
+    return {
+        "schema": JSON_SCHEMA,
+        "esmm_version": __version__,
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
+        "files": [str(r.test.source) for r in res.records],
+        "samples": int(sum(r.test.n for r in res.records)),
+        "fitting_samples": int(sum(r.fit_idx.size for r in res.records)),
+        "base": {"model": res.model, **_errors_doc(base), **_params_doc(base),
+                 "lag1": d0.lag1 if d0 else None, "runs_z": d0.runs_z if d0 else None},
+        "effects": list(res.kept),
+        "final": {
+            "model": res.model, **_errors_doc(fin), **_params_doc(fin),
+            "effects": res.material_effects.to_dict(),
+            "artefacts": {n: res.candidates[n].params for n in res.kept if n in ARTEFACTS},
+            "parameters": {e.key: e.to_dict() for e in fin.estimates},
+            "lag1": dl.lag1 if dl else None, "runs_z": dl.runs_z if dl else None,
+        },
+        "candidates": [c.to_dict() for c in res.candidates.values()],
+        "not_identifiable": list(res.not_identifiable),
+        "heldout": {"scheme": res.scheme, "folds": list(res.folds)},
+        "diagnosis": [d.to_dict() for d in res.diagnoses],
+        "summary": plain_language(res),
+        "warnings": list(res.warnings),
+        "settings": {k: v for k, v in res.settings.items() if k not in ("bounds",)},
+        "saved_model": saved_model(res),
+        "seconds": res.seconds,
+    }
+
+
+def _json_default(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def _finite(obj):
+    """Replace non-finite floats by None (strict JSON)."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, float | np.floating) and not math.isfinite(float(obj)):
+        return None
+    return obj
+
+
+def write_json(path: str | Path, doc: dict[str, Any]) -> Path:
+    """Write *doc* as strict JSON (non-finite numbers become null), atomically."""
+    return write_text(path, json.dumps(_finite(doc), indent=2, default=_json_default) + "\n")
+
+
+# --------------------------------------------------------------------------- words
+def _pct(v: float | None) -> str:
+    return "–" if v is None or not math.isfinite(v) else f"{100 * v:.2f} %"
+
+
+def _effect_sentence(res: DiscoverResult, name: str) -> str:
+    me = res.material_effects
+    p = res.candidates[name].params
+    if name == "viscoelastic" and me.viscoelastic is not None:
+        v = me.viscoelastic
+        taus = ", ".join(f"{t:.3g} s" for t in v.tau)
+        return (f"the material is viscoelastic: its stress relaxes with time constant{'s' if len(v.tau) > 1 else ''} "
+                f"{taus}, and after a long hold {100 * v.g_inf:.0f} % of the instantaneous stress remains")
+    if name == "mullins" and me.mullins is not None:
+        m = me.mullins
+        return (f"it softens after the first loading to a new maximum (Mullins effect): below a previous maximum "
+                f"the stress drops by up to {100 / m.r:.0f} % of the first-loading curve")
+    if name == "damage" and me.damage is not None:
+        d = me.damage
+        xm = max(float(np.max(r.cov.drive)) for r in res.records)
+        lost = 1.0 - float(d.factor(np.array([xm]))[0])
+        return (f"it is damaged irreversibly beyond a stretch of about {d.onset:.3g}: at the largest stretch "
+                f"reached ({xm:.3g}) the stress is {100 * lost:.0f} % below the undamaged curve")
+    if name == "slack":
+        mm = [v["length_m"] * 1e3 for v in p.values() if v.get("length_m") is not None]
+        if mm:
+            return (f"the specimens were slack at the start: they became taut only after "
+                    f"{min(mm):.3g}–{max(mm):.3g} mm of crosshead travel; the stretch has been corrected")
+        dl = [v["delta"] for v in p.values()]
+        return (f"the specimens were slack at the start ({100 * min(dl):.2g}–{100 * max(dl):.2g} % of the gauge "
+                "length); the stretch has been corrected")
+    if name == "sensor_offset":
+        f = [v["force_N"] for v in p.values() if v.get("force_N") is not None]
+        if f:
+            dr = [abs(v["drift_N_per_s"]) for v in p.values() if v.get("drift_N_per_s")]
+            s = f"the load cell was not at zero: offsets of {min(f):+.3g} to {max(f):+.3g} N"
+            if dr:
+                s += f" and drifts up to {max(dr):.3g} N/s"
+            return s + " were removed from the force"
+        o = [v["stress_Pa"] for v in p.values()]
+        return f"the stress reading had offsets of {min(o):+.3g} to {max(o):+.3g} Pa, which were removed"
+    return _NICE.get(name, name)
+
+
+def plain_language(res: DiscoverResult) -> str:
+    """A paragraph a lab technician can read."""
+    b, f = res.base, res.final
+    n_files = len(res.records)
+    words = [
+        f"The {res.model} model fitted on its own to your {n_files} file{'s' if n_files > 1 else ''} leaves an "
+        f"error of {_pct(b.errors.nrmse)} of the measured stress range ({_pct(b.heldout.nrmse if b.heldout else None)} "
+        f"on data held out of the fit: {res.scheme})."
+    ]
+    d0 = res.diagnoses[0] if res.diagnoses else None
+    if d0 is not None:
+        if d0.white:
+            words.append("Its residual looks like measurement noise (no trend, no pattern).")
+        else:
+            words.append(f"Its residual is not random (neighbouring samples correlate at {d0.lag1:.2f}): "
+                         "the model misses something systematic.")
+    if res.kept:
+        parts = [_effect_sentence(res, n) for n in res.kept]
+        words.append("Adding what the data show — " + "; ".join(parts) + " — brings the error to "
+                     f"{_pct(f.errors.nrmse)} ({_pct(f.heldout.nrmse if f.heldout else None)} held out).")
+        arte = [n for n in res.kept if n in ARTEFACTS]
+        mat = [n for n in res.kept if n in MATERIAL_EFFECTS]
+        if arte:
+            words.append("The " + " and ".join(arte).replace("_", " ") + " correction" + ("s are" if len(arte) > 1 else " is")
+                         + " a flaw of the measurement, not of the material: it is removed from the data, "
+                         "and the material is fitted to the corrected data.")
+        if mat:
+            words.append("The " + ", ".join(mat) + (" effects are" if len(mat) > 1 else " effect is")
+                         + " part of the material and travel with it into params.toml"
+                         + (" (the elastic parameters are then the instantaneous response)" if "viscoelastic" in mat
+                            else "") + ".")
+    else:
+        if d0 is not None and d0.white:
+            words.append("Nothing more to add: none of the candidate effects explains what is left, which is noise.")
+        else:
+            words.append("None of the candidate effects explains the remaining misfit well enough to keep it "
+                         "(on the fitted data and on held-out data); what is left is likely a limit of the base "
+                         "model's shape or of the data, not a missing effect from the list.")
+    rejected = [n for n, c in res.candidates.items() if not c.kept and c.applicable and c.identifiable]
+    if rejected:
+        words.append("Tried and not kept: " + ", ".join(rejected).replace("_", " ") + ".")
+    if res.not_identifiable:
+        words.append("Not identifiable from these data: " + ", ".join(res.not_identifiable).replace("_", " ")
+                     + " (see the reasons below; a different test would be needed to tell).")
+    for n in res.kept:
+        if "caution" in res.candidates[n].reason:
+            words.append("Caution: " + res.candidates[n].reason.split("caution: ", 1)[1] + ".")
+    return " ".join(words)
+
+
+def summary_lines(res: DiscoverResult) -> list[str]:
+    """Short lines for the terminal."""
+    b, f = res.base, res.final
+    lines = [
+        f"discover: {len(res.records)} file(s), {sum(r.test.n for r in res.records)} samples, "
+        f"{res.seconds:.1f} s; held-out scheme: {res.scheme}",
+        f"  base {res.model}:  RMSE {b.errors.rmse:.4g} Pa  NRMSE {_pct(b.errors.nrmse)}  "
+        f"max {b.errors.max_abs:.4g} Pa  held-out NRMSE {_pct(b.heldout.nrmse if b.heldout else None)}",
+        f"  final (+{', '.join(res.kept) or 'nothing'}):  RMSE {f.errors.rmse:.4g} Pa  NRMSE {_pct(f.errors.nrmse)}  "
+        f"max {f.errors.max_abs:.4g} Pa  held-out NRMSE {_pct(f.heldout.nrmse if f.heldout else None)}",
+    ]
+    for c in res.candidates.values():
+        da = "" if c.delta_aicc is None else f" ΔAICc {c.delta_aicc:+.1f}"
+        lines.append(f"  {'+' if c.kept else '-'} {c.name:<14}{da}: {c.reason}")
+    return lines
+
+
+def markdown(res: DiscoverResult, *, plots: bool = True) -> str:
+    """The discovery report (Markdown)."""
+    b, f = res.base, res.final
+    L = [f"# What the {res.model} model is missing", "",
+         f"esmm {__version__}; {len(res.records)} file(s), {sum(r.test.n for r in res.records)} samples "
+         f"({sum(r.fit_idx.size for r in res.records)} used for fitting); {res.seconds:.1f} s.", "",
+         "## In plain words", "", plain_language(res), "",
+         "## Error before and after", "",
+         f"Held-out scheme: {res.scheme} ({len(res.folds)} folds: {'; '.join(res.folds)}). NRMSE = RMSE / "
+         "range of the measured stress; every file counts equally; errors on all samples.", "",
+         "| model | RMSE [Pa] | NRMSE | max error [Pa] | held-out RMSE [Pa] | held-out NRMSE | held-out max [Pa] |",
+         "| --- | --- | --- | --- | --- | --- | --- |"]
+    for label, m in ((f"base ({res.model})", b), (f"final (+{', '.join(res.kept) or 'nothing'})", f)):
+        h = m.heldout
+        L.append(f"| {label} | {m.errors.rmse:.4g} | {_pct(m.errors.nrmse)} | {m.errors.max_abs:.4g} | "
+                 f"{h.rmse if h else float('nan'):.4g} | {_pct(h.nrmse if h else None)} | "
+                 f"{h.max_abs if h else float('nan'):.4g} |")
+    L += ["", "Per file (fit data):", "", "| file | NRMSE before | NRMSE after | held-out before | held-out after |",
+          "| --- | --- | --- | --- | --- |"]
+    hb = {e["file"]: e for e in (b.heldout.per_file if b.heldout else [])}
+    hf = {e["file"]: e for e in (f.heldout.per_file if f.heldout else [])}
+    for e0, e1 in zip(b.errors.per_file, f.errors.per_file):
+        n = e0["file"]
+        L.append(f"| {n} | {_pct(e0['nrmse'])} | {_pct(e1['nrmse'])} | {_pct(hb.get(n, {}).get('nrmse'))} | "
+                 f"{_pct(hf.get(n, {}).get('nrmse'))} |")
+    L += ["", "## Effects", "", "| effect | kind | kept | variant | ΔAICc | held-out NRMSE | first-order share | reason |",
+          "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for c in res.candidates.values():
+        da = "–" if c.delta_aicc is None else f"{c.delta_aicc:+.1f}"
+        L.append(f"| {c.name} | {c.kind} | {'yes' if c.kept else 'no'} | {c.variant or '–'} | {da} | "
+                 f"{_pct(c.heldout_nrmse)} | {100 * c.score:.1f} % | {c.reason} |")
+    L += ["", "## Final parameters (95 % confidence intervals)", "", "| parameter | value | 95 % interval | unit |",
+          "| --- | --- | --- | --- |"]
+    for e in f.estimates:
+        flag = " (not identifiable)" if e.wide else ""
+        L.append(f"| {e.key} | {e.value:.6g}{flag} | [{e.lower:.4g}, {e.upper:.4g}] | {e.unit or '–'} |")
+    for k, v in res.settings["fixed"].items():
+        L.append(f"| {k} | {v:.6g} (held) | – | – |")
+    L += ["", "## Residual structure by round", ""]
+    for i, d in enumerate(res.diagnoses, start=1):
+        L.append(f"Round {i}: lag-1 autocorrelation {d.lag1:.2f}, runs-test z {d.runs_z:.1f}"
+                 f"{' (looks like noise)' if d.white else ''}.")
+        for n in d.ranking:
+            L.append(f"- {n}: {d.why.get(n, '')}")
+        L.append("")
+    if res.warnings:
+        L += ["## Warnings", ""] + [f"- {w}" for w in res.warnings] + [""]
+    if plots:
+        L += ["## Plots", "", "![residuals before](residuals_before.png)", "",
+              "![residuals after](residuals_after.png)", ""]
+    return "\n".join(L)
+
+
+# --------------------------------------------------------------------------- TOML
+def params_toml(res: DiscoverResult, *, which: str = "final", stress_unit: str | None = None) -> str:
+    """A material file (``--material``) for the final model, with ``[material.effects.*]``.
+
+    ``which="base"`` gives the base model alone.
+    """
+    from ..calibrate.report import display_stress_unit
+    from ..materials.material import Material
+
+    f = res.final if which == "final" else res.base
+    st = f.state
+    directions = None
+    if f.problem.directions:
+        dirp = [p.name for p in f.problem.model.parameters if p.directional]
+        directions = {d: {k: st.base[d][k] for k in dirp if k in st.base[d]} for d in f.problem.directions}
+    unit = stress_unit or display_stress_unit([abs(v) for v in st.base[None].values()])[0]
+    meta: dict[str, Any] = {}
+    me = res.material_effects if which == "final" else MaterialEffects()
+    if me:
+        meta["effects"] = me.to_toml_table(stress_unit=unit)
+    mat = Material(model=res.model, params=dict(st.base[None]), directions=directions,
+                   name=f"{res.model} {'with ' + ', '.join(me.names) if me else '(base)'} from esmm discover",
+                   source="esmm calibrate --discover " + " ".join(r.name for r in res.records),
+                   metadata=meta, stress_unit=unit)
+    e = f.errors
+    head = [f"# Written by esmm {__version__} calibrate --discover on {datetime.now(UTC).isoformat(timespec='seconds')}",
+            f"# {'final' if which == 'final' else 'base'} model: NRMSE {_pct(e.nrmse)}, held-out NRMSE "
+            f"{_pct(f.heldout.nrmse if f.heldout else None)}"]
+    if which == "final" and me:
+        head.append("# [material.effects.*]: see docs/discover.md; with viscoelastic, the parameters above are the "
+                    "instantaneous response")
+    arte = [n for n in res.kept if n in ARTEFACTS]
+    if which == "final" and arte:
+        head.append(f"# measurement artefacts corrected in the data (not part of the material): {', '.join(arte)}")
+    return "\n".join(head) + "\n" + mat.to_toml()
+
+
+# --------------------------------------------------------------------------- plots
+def plot_residuals(path: str | Path, res: DiscoverResult, *, which: str = "base") -> Path:
+    """Data vs model and the residual against time, stretch and loading segment (one PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..calibrate.report import display_stress_unit
+
+    f = res.base if which == "base" else res.final
+    prob = f.problem
+    coefs = prob.offsets(f.z)
+    unit, fac = display_stress_unit([r.scale for r in res.records])
+    fig, ax = plt.subplots(2, 2, figsize=(13, 8.5), constrained_layout=True)
+    cmap = plt.get_cmap("tab10")
+    seg_res: dict[str, list[np.ndarray]] = {"loading": [], "unloading": [], "hold": [], "toe": [], "high end": []}
+    for k, r in enumerate(res.records):
+        c = cmap(k % 10)
+        p = prob.full_prediction(k, f.z, coefs[k])
+        e = (r.y - p) / fac
+        step = max(1, r.test.n // 3000)
+        sl = slice(None, None, step)
+        label = r.name if len(res.records) <= 12 else None
+        ax[0, 0].plot(r.x[sl], r.y[sl] / fac, ".", ms=1.5, color=c, alpha=0.35, label=label)
+        ax[0, 0].plot(r.x[sl], p[sl] / fac, "-", lw=1.0, color=c)
+        tt = r.cov.elapsed
+        tn = tt / (float(tt[-1]) or 1.0) + k
+        ax[0, 1].plot(tn[sl], e[sl], "-", lw=0.7, color=c)
+        ax[1, 0].plot(r.x[sl], e[sl], ".", ms=1.2, color=c, alpha=0.5)
+        d = r.cov.direction
+        seg_res["loading"].append(e[d > 0])
+        seg_res["unloading"].append(e[d < 0])
+        seg_res["hold"].append(e[d == 0])
+        seg_res["toe"].append(e[r.cov.toe])
+        seg_res["high end"].append(e[r.cov.high])
+    ax[0, 0].set(xlabel="stretch λ (γ for shear)", ylabel=f"nominal stress [{unit}]",
+                 title=f"{'base ' + res.model if which == 'base' else 'final: +' + (', '.join(res.kept) or 'nothing')}: "
+                       f"data (dots) and model (lines)")
+    if len(res.records) <= 12:
+        ax[0, 0].legend(fontsize=6, loc="best")
+    ax[0, 1].axhline(0, color="k", lw=0.5)
+    ax[0, 1].set(xlabel="file index + fraction of its duration", ylabel=f"data − model [{unit}]",
+                 title=f"residual along each test (NRMSE {_pct(f.errors.nrmse)})")
+    ax[1, 0].axhline(0, color="k", lw=0.5)
+    ax[1, 0].set(xlabel="stretch λ (γ for shear)", ylabel=f"data − model [{unit}]", title="residual vs stretch")
+    labels, data = [], []
+    for name, parts in seg_res.items():
+        v = np.concatenate(parts) if parts else np.zeros(0)
+        v = v[np.isfinite(v)]
+        if v.size:
+            labels.append(f"{name}\n(n={v.size})")
+            data.append(v)
+    if data:
+        ax[1, 1].boxplot(data, showfliers=False)
+        ax[1, 1].set_xticks(range(1, len(labels) + 1), labels, fontsize=8)
+    ax[1, 1].axhline(0, color="k", lw=0.5)
+    ax[1, 1].set(ylabel=f"data − model [{unit}]", title="residual by segment")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    plt.close(fig)
+    return Path(path)
+
+
+# --------------------------------------------------------------------------- corrected data
+def write_corrected(folder: str | Path, res: DiscoverResult) -> list[Path]:
+    """Artefact-corrected copies of the raw files (time, displacement, force; or stretch, stress).
+
+    Slack: the displacement is shifted so that zero is where the specimen
+    became taut, and the gauge length is the taut length (``L0 + s``).
+    Offset: the estimated offset and drift are subtracted from the force.
+    """
+    folder = Path(folder)
+    f = res.final
+    if not any(n in ARTEFACTS for n in res.kept):
+        return []
+    st = f.state
+    coefs = f.problem.offsets(f.z)
+    out = []
+    for k, r in enumerate(res.records):
+        t = r.test
+        delta = float(st.slack[k]) if st.slack is not None else 0.0
+        X = f.problem.offset_columns(k, np.arange(t.n))
+        off = X @ coefs[k] if (X is not None and coefs[k] is not None) else np.zeros(t.n)
+        meta = [f"# corrected by esmm calibrate --discover from {t.source.name}"]
+        if t.force is not None and t.displacement is not None and r.gauge and r.area:
+            L0 = float(r.gauge)
+            s = delta * L0
+            force = t.force - off * r.area
+            disp = t.displacement - s
+            meta += [f"# specimen: {t.specimen}", f"# gauge_length: {(L0 + s) * 1e3:.6g} mm",
+                     f"# area: {r.area * 1e6:.6g} mm2", f"# mode: {t.mode}",
+                     f"# notes: slack {s * 1e3:.4g} mm removed; force offset/drift removed"]
+            tt = t.time if t.time is not None else np.arange(t.n, dtype=float)
+            rows = ["time [s],displacement [mm],force [N]"]
+            rows += [f"{a:.6g},{b * 1e3:.6g},{c:.6g}" for a, b, c in zip(tt, disp, force)]
+        else:
+            x = t.stretch / (1.0 + delta) if delta else t.stretch
+            y = t.stress - off
+            meta += [f"# specimen: {t.specimen}", f"# mode: {t.mode}"]
+            head = "shear strain,shear stress [Pa]" if t.mode == "simple_shear" else "stretch,nominal stress [Pa]"
+            if t.time is not None:
+                rows = ["time [s]," + head] + [f"{a:.6g},{b:.8g},{c:.6g}" for a, b, c in zip(t.time, x, y)]
+            else:
+                rows = [head] + [f"{b:.8g},{c:.6g}" for b, c in zip(x, y)]
+        out.append(write_text(folder / f"{t.source.stem}.csv", "\n".join(meta + rows) + "\n"))
+    return out
+
+
+# --------------------------------------------------------------------------- all outputs
+def write_outputs(out_dir: str | Path | None, res: DiscoverResult, *,
+                  json_path: str | Path | None = None) -> dict[str, Path]:
+    """Write every output of a discovery (see the module docstring); returns name -> path."""
+    written: dict[str, Path] = {}
+    doc = result_to_dict(res)
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        written["params"] = write_text(out / "params.toml", params_toml(res, which="final"))
+        written["params_base"] = write_text(out / "params_base.toml", params_toml(res, which="base"))
+        written["plot_before"] = plot_residuals(out / "residuals_before.png", res, which="base")
+        written["plot_after"] = plot_residuals(out / "residuals_after.png", res, which="final")
+        written["report"] = write_text(out / "discover.md", markdown(res))
+        corrected = write_corrected(out / "corrected", res)
+        if corrected:
+            written["corrected"] = out / "corrected"
+        written["json"] = write_json(out / "discover.json", doc)
+    if json_path is not None:
+        written["json_extra"] = write_json(json_path, doc)
+    return written
+
+
+def discover_and_save(tests: Sequence, *, out_dir: str | Path | None = None, json_path: str | Path | None = None,
+                      reporter=None, **options) -> DiscoverResult:
+    """Run :func:`~esmm.pipeline.discover.search.discover` and write its outputs (the CLI's one call).
+
+    Parameters
+    ----------
+    tests : sequence of TensileTest
+    out_dir : path, optional
+        Folder for every output (module docstring).
+    json_path : path, optional
+        Also write ``discover.json`` here.
+    reporter : Reporter, optional
+    **options
+        Passed to :func:`~esmm.pipeline.discover.search.discover` (``model``,
+        ``fixed``, ``weights``, ``n_starts``, ``seed``, ...).
+
+    Returns
+    -------
+    DiscoverResult
+        Its :func:`summary_lines` are what the CLI prints.
+    """
+    from .search import discover
+
+    res = discover(tests, reporter=reporter, **options)
+    write_outputs(out_dir, res, json_path=json_path)
+    return res
+
+
+def spec_of(doc: dict[str, Any]) -> Spec:
+    """The :class:`Spec` of a saved model document."""
+    return Spec.from_dict(doc.get("spec", {}))
