@@ -6,12 +6,22 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-
 from esmm.pipeline.errors import InputError, MeshingError
 from esmm.pipeline.network.springs import (
-    NODE_INTERIOR, NODE_SKELETON, NODE_SURFACE, SpringNetwork, affine_elasticity, boundary_faces,
-    engineering_constants, fibre_frame_matrix, morton_codes, network_from_skeleton, network_from_tets,
-    principal_axes, stiffness_matrix, tet_volumes,
+    NODE_INTERIOR,
+    NODE_SKELETON,
+    NODE_SURFACE,
+    SpringNetwork,
+    affine_elasticity,
+    boundary_faces,
+    engineering_constants,
+    fibre_frame_matrix,
+    morton_codes,
+    network_from_skeleton,
+    network_from_tets,
+    principal_axes,
+    stiffness_matrix,
+    tet_volumes,
 )
 
 RHO = 1060.0

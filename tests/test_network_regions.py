@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from esmm.pipeline.errors import ConfigError
 from esmm.pipeline.network.regions import FixedRegion, region_from_config, select_fixed
 from esmm.pipeline.network.springs import NODE_INTERIOR, NODE_SURFACE
