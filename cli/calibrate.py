@@ -43,6 +43,10 @@ def add_parser(sub) -> None:
                    help="hold a parameter (value with unit for stress-like ones, e.g. mu=\"3e-6 MPa\")")
     p.add_argument("--free", action="append", default=[], metavar="NAME",
                    help="fit a parameter the model holds by default (e.g. the ESEDF's f); repeatable")
+    p.add_argument("--discover", action="store_true",
+                   help="also find what the model misses (rate dependence, Mullins softening, damage, slack, "
+                        "load-cell offset), add what the data support and report the error before and after "
+                        "(docs/discover.md)")
     p.add_argument("--by", choices=["specimen", "folder"], help="batch: fit each group of files on its own")
     p.add_argument("--jobs", type=int, default=None, metavar="N", help="batch worker processes (default: all cores)")
     g = p.add_argument_group("specimen metadata (overrides the file's comments and sidecar)")
@@ -151,6 +155,10 @@ def run(args, ui) -> int:
     fit_kwargs = dict(model=opts["model"], loss=opts["loss"], n_starts=int(opts["n_starts"]),
                       seed=int(opts["seed"]), weights=opts["weights"] or None, fixed=opts["fixed"] or None,
                       free=tuple(args.free))
+    if args.discover:  # --discover: esmm.cli.evaluate.run_discover (docs/discover.md)
+        from esmm.cli.evaluate import run_discover
+
+        return run_discover(args, ui, fit_kwargs=fit_kwargs, overrides=overrides)
 
     if args.by:
         from esmm.pipeline.calibrate.batch import run_batch

@@ -298,3 +298,18 @@ def test_vhb_viscoelasticity_found_and_error_halved(shared_data):
     assert res.final.errors.nrmse <= 0.5 * res.base.errors.nrmse
     assert res.final.heldout.nrmse <= 0.5 * res.base.heldout.nrmse
     assert res.candidates["viscoelastic"].identifiable
+
+
+def test_cli_calibrate_discover(run_cli, tmp_path):
+    truth = syn.Truth("arruda-boyce", BASE, viscoelastic={"g": [0.4], "tau": [3.0]})
+    paths = syn.write_set(tmp_path / "data", [syn.load_unload(0.02, 1.5), syn.load_unload(0.2, 1.5)], truth, seed=3)
+    out, js = tmp_path / "out", tmp_path / "o.json"
+    code, stdout, stderr = run_cli("calibrate", *paths, "--discover", "--model", "arruda-boyce", "--starts", "2",
+                                   "--out", out, "--json", js)
+    assert code == 0, stderr
+    assert "final (+viscoelastic)" in stdout
+    doc = json.loads(js.read_text())
+    assert doc["schema"] == "esmm.discover/1" and doc["effects"] == ["viscoelastic"]
+    assert (out / "params.toml").is_file() and (out / "discover.md").is_file()
+    code, stdout, stderr = run_cli("calibrate", *paths, "--discover", "--by", "specimen")
+    assert code == 2 and "--by" in stderr and stderr.count("\n") == 1

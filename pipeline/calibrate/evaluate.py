@@ -185,7 +185,7 @@ def evaluate(fit: SavedFit | str | Path, tests: list[TensileTest], *, reporter: 
     """
     from ..discover.effects import MaterialEffects
     from ..discover.model import Bounds, Problem, Spec, prepare, slack_applicable
-    from ..discover.search import _effect_params, full_errors
+    from ..discover.search import _effect_params, _initialise, full_errors
     from ..materials import get_model
 
     rep = ensure(reporter)
@@ -233,6 +233,7 @@ def evaluate(fit: SavedFit | str | Path, tests: list[TensileTest], *, reporter: 
     za = pa.encode(per_dir(saved.final), effects)
     own = [i for i, s in enumerate(pa.slots) if s.file is not None]
     if own:
+        za = _initialise(pa, za, "slack")  # a grid first: the slack optimum is not found from zero
         za, _ = pa.solve(za, active=own)
     after = full_errors(pa, za)
     artefacts: dict[str, dict[str, Any]] = {}

@@ -558,6 +558,7 @@ def discover(
     model: str = "esedf",
     base=None,
     fixed: Mapping[str, float] | None = None,
+    free: Sequence[str] = (),
     weights: Mapping[str, float] | Sequence[float] | None = None,
     n_starts: int = 4,
     seed: int = 0,
@@ -581,6 +582,8 @@ def discover(
         A base fit already made (its parameters start the base fit here).
     fixed : mapping, optional
         Base parameters held (SI), as ``--fix``.
+    free : sequence of str
+        Base parameters the model holds by default to fit anyway, as ``--free``.
     weights : mapping or sequence, optional
         Per-file weights, as the calibrate fit.
     n_starts, seed : int
@@ -605,13 +608,13 @@ def discover(
     DiscoverResult
     """
     with single_threaded_blas():
-        return _discover(tests, model=model, base=base, fixed=fixed, weights=weights, n_starts=n_starts,
+        return _discover(tests, model=model, base=base, fixed=fixed, free=free, weights=weights, n_starts=n_starts,
                          seed=seed, max_points=max_points, candidates=candidates,
                          aicc_threshold=aicc_threshold, min_heldout_gain=min_heldout_gain,
                          max_effects=max_effects, min_share=min_share, reporter=reporter)
 
 
-def _discover(tests, *, model, base, fixed, weights, n_starts, seed, max_points, candidates, aicc_threshold,
+def _discover(tests, *, model, base, fixed, free, weights, n_starts, seed, max_points, candidates, aicc_threshold,
               min_heldout_gain, max_effects, min_share, reporter) -> DiscoverResult:
     from ..calibrate.fit import _directions, _weights, fit_material
     from ..materials import MODEL_NAMES, get_model
@@ -643,7 +646,7 @@ def _discover(tests, *, model, base, fixed, weights, n_starts, seed, max_points,
     init = None
     if base is not None:
         init = dict(base.params)
-    base_fit = fit_material(views, model=model, n_starts=n_starts, seed=seed, fixed=fixed,
+    base_fit = fit_material(views, model=model, n_starts=n_starts, seed=seed, fixed=fixed, free=tuple(free),
                             weights=w, initial=init)
     free = {e.name for e in base_fit.estimates}
     fixed_all = {k: v for k, v in base_fit.params.items() if k not in free}
