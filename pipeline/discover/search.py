@@ -18,8 +18,10 @@ Procedure (docs/discover.md):
 4. Report errors before and after, on the fitting data and held out.
 
 Held-out schemes, in order of preference: leave one loading-rate group out
-(several rates), leave one file out (several files), leave one cycle out (one
-file with several cycles), leave one of five consecutive blocks out.
+(several rates), leave one file out (several files of a loading mode), leave
+one cycle out (one file with several cycles), leave one of five consecutive
+blocks of every file out. A file is never held out if it is the only one of
+its loading mode (that would test extrapolation between modes, not effects).
 """
 
 from __future__ import annotations
@@ -208,9 +210,20 @@ def identifiability(records: Sequence[Record]) -> dict[str, tuple[bool, bool, st
 
 # --------------------------------------------------------------------------- held-out folds
 def make_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
-    """The held-out scheme and its folds (see the module docstring)."""
+    """The held-out scheme and its folds (see the module docstring).
+
+    A file (or rate group) is only held out if every loading mode it has is
+    still in the training files: predicting a mode never fitted tests the base
+    model's extrapolation between modes, not the effects.
+    """
     m = len(records)
     folds: list[Fold] = []
+    modes = [r.test.mode for r in records]
+
+    def modes_kept(held: list[int]) -> bool:
+        rest = {modes[k] for k in range(m) if k not in held}
+        return all(modes[k] in rest for k in held)
+
     rates = [r.cov.loading_rate() for r in records]
     finite = [v for v in rates if math.isfinite(v) and v > 0]
     if m >= 2 and len(finite) == m:
@@ -221,33 +234,39 @@ def make_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
                 groups[-1].append(int(k))
             else:
                 groups.append([int(k)])
-        if len(groups) >= 2:
+        if len(groups) >= 2 and all(modes_kept(g) for g in groups):
             for g in groups[:MAX_FOLDS]:
                 name = f"rate {np.median([rates[k] for k in g]):.3g}/s ({len(g)} file{'s' if len(g) > 1 else ''})"
                 folds.append(_file_fold(name, records, g))
             return "leave one loading rate out", folds
-    if m >= 2:
-        names = sorted(range(m), key=lambda k: records[k].name)
-        nf = min(m, MAX_FOLDS)
+    eligible = [k for k in sorted(range(m), key=lambda k: records[k].name) if modes_kept([k])]
+    if len(eligible) >= 2:
+        nf = min(len(eligible), MAX_FOLDS)
         for j in range(nf):
-            g = names[j::nf]
+            g = eligible[j::nf]
             folds.append(_file_fold(", ".join(records[k].name for k in g), records, g))
-        return "leave one file out" if nf == m else f"leave files out ({nf} groups)", folds
-    r = records[0]
-    if r.history and r.cov.n_cycles >= 2:
+        scheme = "leave one file out" if nf == len(eligible) else f"leave files out ({nf} groups)"
+        if len(eligible) < m:
+            scheme += " (files whose loading mode has another file)"
+        return scheme, folds
+    if m == 1 and records[0].history and records[0].cov.n_cycles >= 2:
+        r = records[0]
         nc = r.cov.n_cycles
         groups = [list(range(c, nc, min(nc, MAX_FOLDS))) for c in range(min(nc, MAX_FOLDS))]
         for g in groups:
             mask = np.isin(r.cov.cycle, g)
-            folds.append(_block_fold(f"cycle {', '.join(str(c + 1) for c in g)}", r, mask))
+            folds.append(_block_fold(f"cycle {', '.join(str(c + 1) for c in g)}", records, {0: mask}))
         return "leave one cycle out", folds
-    n = r.test.n
-    edges = np.linspace(0, n, 6).round().astype(int)
     for j in range(5):
-        mask = np.zeros(n, bool)
-        mask[edges[j]:edges[j + 1]] = True
-        folds.append(_block_fold(f"block {j + 1}/5", r, mask))
-    return "leave one of 5 consecutive blocks out", folds
+        masks = {}
+        for k, r in enumerate(records):
+            n = r.test.n
+            edges = np.linspace(0, n, 6).round().astype(int)
+            mask = np.zeros(n, bool)
+            mask[edges[j]:edges[j + 1]] = True
+            masks[k] = mask
+        folds.append(_block_fold(f"block {j + 1}/5", records, masks))
+    return ("leave one of 5 consecutive blocks out" + (" (of every file)" if m > 1 else "")), folds
 
 
 def _file_fold(name: str, records, held: list[int]) -> Fold:
@@ -256,9 +275,18 @@ def _file_fold(name: str, records, held: list[int]) -> Fold:
     return Fold(name, train, test)
 
 
-def _block_fold(name: str, rec: Record, mask: np.ndarray) -> Fold:
-    pos = np.flatnonzero(~mask[rec.fit_idx])
-    return Fold(name, [pos], [mask])
+def _block_fold(name: str, records, masks: dict[int, np.ndarray]) -> Fold:
+    """Hold out the samples in *masks* (record index -> boolean mask over all its samples)."""
+    train, test = [], []
+    for k, r in enumerate(records):
+        mask = masks.get(k)
+        if mask is None:
+            train.append(None)
+            test.append(None)
+        else:
+            train.append(np.flatnonzero(~mask[r.fit_idx]))
+            test.append(mask)
+    return Fold(name, train, test)
 
 
 # --------------------------------------------------------------------------- fitting helpers
