@@ -34,6 +34,12 @@ def visco_fit(tmp_path_factory):
 def test_new_rate_predicted_to_noise_level_without_refitting(visco_fit):
     root, res, new = visco_fit
     assert "viscoelastic" in res.kept
+    me = res.material_effects  # Prony terms sorted by tau, intervals bracket their own term
+    for j, (g, tau) in enumerate(zip(me.viscoelastic.g, me.viscoelastic.tau)):
+        lo, hi = me.intervals[f"viscoelastic.tau[{j}]"]
+        assert lo <= tau <= hi
+        lo, hi = me.intervals[f"viscoelastic.g[{j}]"]
+        assert lo <= g <= hi
     ev = evaluate(root / "fit", [read(p) for p in new])
     assert ev.fit.kind == "discover" and ev.fit.effects == ["viscoelastic"]
     # the rate-independent base model cannot predict another rate or a hold; the final model can

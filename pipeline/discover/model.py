@@ -903,6 +903,7 @@ def estimates(problem: Problem, z_full: np.ndarray) -> list[Estimate]:
         idx_u = [i for i, s in enumerate(prob.slots) if s.effect == "viscoelastic" and s.name.startswith("u")]
         idx_t = [i for i, s in enumerate(prob.slots) if s.effect == "viscoelastic" and s.name.startswith("tau")]
         u = z_full[idx_u]
+        rank = {int(j): r for r, j in enumerate(np.argsort(st.tau))}  # report sorted by tau, as MaterialEffects
         for j in range(len(u)):
             grad = np.zeros(P)
             for q in range(j + 1):
@@ -912,10 +913,10 @@ def estimates(problem: Problem, z_full: np.ndarray) -> list[Estimate]:
                 else:
                     d = -u[j] * np.prod([1 - u[m] for m in range(j) if m != q])
                 grad[idx_u[q]] = d
-            add(f"viscoelastic.g[{j}]", grad, float(st.g[j]), positive=True)
+            add(f"viscoelastic.g[{rank[j]}]", grad, float(st.g[j]), positive=True)
             gt = np.zeros(P)
             gt[idx_t[j]] = st.tau[j]
-            add(f"viscoelastic.tau[{j}]", gt, float(st.tau[j]), positive=True, unit="s")
+            add(f"viscoelastic.tau[{rank[j]}]", gt, float(st.tau[j]), positive=True, unit="s")
         grad = np.zeros(P)
         for q in range(len(u)):
             grad[idx_u[q]] = -np.prod([1 - u[m] for m in range(len(u)) if m != q])
@@ -945,7 +946,11 @@ def estimates(problem: Problem, z_full: np.ndarray) -> list[Estimate]:
             else:
                 add(f"sensor_offset.drift[{r.name}]", grad / (r.T or 1.0), v / (r.T or 1.0),
                     positive=False, unit="Pa/s")
-    return out
+    # Prony terms in order of their relaxation time
+    ve = sorted((e for e in out if e.key.startswith("viscoelastic.") and "[" in e.key),
+                key=lambda e: (int(e.key[e.key.index("[") + 1:-1]), e.key))
+    it = iter(ve)
+    return [next(it) if (e.key.startswith("viscoelastic.") and "[" in e.key) else e for e in out]
 
 
 # --------------------------------------------------------------------------- errors
