@@ -45,29 +45,38 @@ def safe_name(text: str) -> str:
     return s[:120] or "group"
 
 
-def _unique(names: dict[str, list[str]]) -> dict[str, str]:
-    """group key -> unique folder name: the safe name, else more of the path, else a suffix."""
+def group_names(keys: Sequence[str], by: str) -> dict[str, str]:
+    """Group key -> unique, file-system-safe folder name.
+
+    Specimen ids are sanitised (:func:`safe_name`); folders are named by their
+    last component, or, where two share it (``lab1/left``, ``lab2/left``), by
+    as many trailing components as it takes to tell them apart
+    (``lab1_left``, ``lab2_left``). Any remaining clash gets ``-2``, ``-3``...
+    """
     out: dict[str, str] = {}
-    taken: set[str] = set()
-    for key, candidates in names.items():
-        for c in candidates:
-            if c not in taken:
-                break
-        else:
-            base, n = candidates[0], 2
-            while f"{base}-{n}" in taken:
-                n += 1
-            c = f"{base}-{n}"
-        out[key] = c
-        taken.add(c)
-    return out
-
-
-def _candidates(key: str, by: str) -> list[str]:
     if by == "folder":
-        parts = Path(key).parts
-        return [safe_name("_".join(parts[-k:])) for k in range(1, len(parts) + 1)]
-    return [safe_name(key)]
+        by_base: dict[str, list[str]] = {}
+        for k in keys:
+            by_base.setdefault(safe_name(Path(k).name), []).append(k)
+        for base, ks in by_base.items():
+            names = [base]
+            depth, deepest = 1, max(len(Path(k).parts) for k in ks)
+            while len(ks) > 1 and depth < deepest:
+                depth += 1
+                names = [safe_name("_".join(Path(k).parts[-depth:])) for k in ks]
+                if len(set(names)) == len(names):
+                    break
+            out.update(zip(ks, names if len(names) == len(ks) else [base] * len(ks)))
+    else:
+        out = {k: safe_name(k) for k in keys}
+    taken: set[str] = set()
+    for k in keys:  # any clash left: suffixes, in input order
+        name, n = out[k], 2
+        while name in taken:
+            name, n = f"{out[k]}-{n}", n + 1
+        out[k] = name
+        taken.add(name)
+    return out
 
 
 def sidecars(paths: Sequence[str | os.PathLike]) -> list[Path]:
@@ -163,7 +172,7 @@ def calibrate_jobs(files: Sequence[str | os.PathLike], *, by: str = "specimen",
             continue
         key = t.specimen if by == "specimen" else str(Path(p).parent)
         groups.setdefault(key, []).append(p)
-    names = _unique({k: _candidates(k, by) for k in groups})
+    names = group_names(list(groups), by)
     for key, paths in groups.items():
         name = names[key]
         config = {"by": by, "group": key, "read": read_kwargs, "fit": fit_kwargs}

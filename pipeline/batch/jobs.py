@@ -110,6 +110,23 @@ def _package_root() -> Path:
     return Path(__file__).resolve().parent.parent
 
 
+#: Environment variable that pins the code version (see :func:`code_version`).
+CODE_VERSION_ENV = "ESMM_CODE_VERSION"
+
+
+def source_digest(roots: Sequence[str | os.PathLike]) -> str:
+    """SHA-256 over the ``.py`` and ``.toml`` files under *roots* (names and bytes, sorted)."""
+    h = hashlib.sha256()
+    for root in map(Path, roots):
+        for p in sorted(root.rglob("*")):
+            if p.suffix in (".py", ".toml") and p.is_file() and "__pycache__" not in p.parts:
+                h.update(str(p.relative_to(root).as_posix()).encode())
+                h.update(b"\0")
+                h.update(p.read_bytes())
+                h.update(b"\0")
+    return h.hexdigest()
+
+
 @functools.lru_cache(maxsize=1)
 def code_version() -> str:
     """The version of the code that makes results: ``<esmm version>+<digest>``.
@@ -117,25 +134,23 @@ def code_version() -> str:
     The digest covers the source of :mod:`esmm.pipeline` and the bundled
     presets (:mod:`esmm.configs`), and the versions of the numerical
     dependencies, so that an edited checkout or an upgraded dependency never
-    reuses results made by other code.
+    reuses results made by other code. The environment variable
+    ``ESMM_CODE_VERSION`` replaces the digest (``<esmm version>+<value>``):
+    for a deliberate reuse of results across code changes, at your own risk.
     """
     from importlib import metadata
 
-    h = hashlib.sha256()
-    roots = [_package_root()]
+    pinned = os.environ.get(CODE_VERSION_ENV, "").strip()
+    if pinned:
+        return f"{__version__}+{pinned}"
+    roots: list[Path] = [_package_root()]
     try:
         from importlib import resources
 
         roots.append(Path(str(resources.files("esmm.configs"))))
     except (ModuleNotFoundError, TypeError):  # pragma: no cover - configs always installed
         pass
-    for root in roots:
-        for p in sorted(root.rglob("*")):
-            if p.suffix in (".py", ".toml") and p.is_file() and "__pycache__" not in p.parts:
-                h.update(str(p.relative_to(root)).encode())
-                h.update(b"\0")
-                h.update(p.read_bytes())
-                h.update(b"\0")
+    h = hashlib.sha256(source_digest(roots).encode())
     for dist in _DEPENDENCIES:
         try:
             v = metadata.version(dist)

@@ -45,7 +45,7 @@ from ..progress import Reporter, ensure
 from . import cache as _cache
 from .jobs import BatchSummary, Job, JobOutcome, _canonical, cache_key, code_version, input_digests
 from .local import LocalPool, available_cpus
-from .worker import execute, one_line
+from .worker import execute, execute_blob, one_line
 
 #: Name of the CSV table of the last batch in the output folder.
 SUMMARY_NAME = "batch-summary.csv"
@@ -196,7 +196,7 @@ def _run_local(tasks: list[Task], workers: int, on_event: OnEvent) -> None:
         raise
 
 
-def _dask_client(target: Any):
+def _dask_client(target: Any, timeout: float = 15.0):
     """A connected ``distributed.Client`` and whether we own it."""
     if not isinstance(target, str):
         return target, False
@@ -205,7 +205,7 @@ def _dask_client(target: Any):
     except ImportError:  # pragma: no cover - dask is a dependency
         raise ConfigError("--scheduler: dask.distributed is not installed; pip install 'dask[distributed]'") from None
     try:
-        return Client(target, timeout="15s", set_as_default=False), True
+        return Client(target, timeout=f"{float(timeout)}s", set_as_default=False), True
     except (OSError, TimeoutError) as exc:
         raise ConfigError(f"--scheduler {target}: cannot connect to a Dask scheduler ({one_line(str(exc), 160)}); "
                           f"check the address and that 'dask scheduler' is running there") from None
@@ -221,19 +221,24 @@ def _dask_reason(exc: BaseException) -> tuple[str, int]:
     return f"internal error on the Dask worker: {name}: {one_line(str(exc), 300)}", 1
 
 
-def _run_dask(tasks: list[Task], target: Any, on_event: OnEvent, logger: logging.Logger) -> str:
+def _run_dask(tasks: list[Task], target: Any, on_event: OnEvent, logger: logging.Logger,
+              timeout: float = 15.0) -> str:
+    import cloudpickle
     from distributed import as_completed
 
-    client, owned = _dask_client(target)
+    client, owned = _dask_client(target, timeout)
     address = getattr(client.scheduler, "address", str(target))
     logger.info("dask scheduler %s: %d worker(s)", address, len(client.scheduler_info().get("workers", {})))
     futures = {}
     reported: set[int] = set()
     try:
         for i, t in enumerate(tasks):
-            key = f"esmm-{t['kind']}-{re.sub(r'[^A-Za-z0-9_.-]', '_', t['name'])[:60]}-{uuid.uuid4().hex[:10]}"
-            futures[client.submit(execute, t, pure=False, key=key, retries=0)] = i
-        for fut in as_completed(list(futures), with_results=False):
+            # One key prefix for the whole batch: Dask sees one task group (one dashboard bar), and a
+            # big batch is queued on the scheduler instead of being piled onto the first workers.
+            key = f"esmm-batch-{uuid.uuid4().hex}"
+            futures[client.submit(execute_blob, cloudpickle.dumps(t), pure=False, key=key, retries=0)] = i
+            logger.debug("job %s: submitted as %s", t["name"], key)
+        for fut in as_completed(list(futures), with_results=False, loop=client.loop):
             i = futures[fut]
             t = tasks[i]
             reported.add(i)
@@ -269,7 +274,7 @@ def _run_dask(tasks: list[Task], target: Any, on_event: OnEvent, logger: logging
 # ----------------------------------------------------------------------------- run_jobs
 def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any = None,
              workers: int | None = None, force: bool = False, reporter: Reporter | None = None,
-             title: str = "batch") -> BatchSummary:
+             title: str = "batch", connect_timeout: float = 15.0) -> BatchSummary:
     """Run *jobs*, skipping those whose result is cached; never stop for one failure.
 
     Parameters
@@ -290,6 +295,8 @@ def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any 
         warning per failure.
     title : str
         What the progress bar calls the batch (e.g. "calibrating").
+    connect_timeout : float
+        Seconds to wait for a Dask scheduler given by address.
 
     Returns
     -------
@@ -413,7 +420,7 @@ def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any 
                         elif kind == "local":
                             _run_local(tasks, n_workers, on_event)
                         else:
-                            addr = _run_dask(tasks, target, on_event, logger)
+                            addr = _run_dask(tasks, target, on_event, logger, connect_timeout)
                             summary.scheduler = f"dask {addr}"
                     except KeyboardInterrupt:
                         summary.interrupted = True

@@ -82,8 +82,9 @@ def execute(task: dict[str, Any]) -> dict[str, Any]:
     try:
         mine = code_version()
         if task.get("code_version") and task["code_version"] != mine:
-            out.update(reason=f"this worker runs esmm {mine} but the batch was planned with "
-                              f"{task['code_version']}; install the same esmm on every worker", exit_code=2)
+            out.update(reason=f"the esmm code on this worker ({mine}) differs from the code that planned the "
+                              f"batch ({task['code_version']}); install the same esmm everywhere and do not "
+                              f"change it while a batch runs", exit_code=2)
             return out
         out_dir = Path(task["out_dir"])
         if not out_dir.is_dir():
@@ -105,6 +106,9 @@ def execute(task: dict[str, Any]) -> dict[str, Any]:
         out.update(status="done", exit_code=0, outputs=rel, summary=summary)
     except EsmmError as exc:
         out.update(reason=one_line(str(exc)), exit_code=exc.exit_code)
+    except SystemExit as exc:  # meshio and others call sys.exit on some inputs
+        out.update(reason=f"internal error: a library called sys.exit({exc.code!r}) (a bug; the traceback is in the "
+                          f"batch log)", exit_code=1, detail=traceback.format_exc())
     except MemoryError:
         out.update(reason="out of memory; give the workers more memory or use a coarser target", exit_code=1)
     except Exception as exc:  # noqa: BLE001 - one job's bug must not end the batch
@@ -112,3 +116,23 @@ def execute(task: dict[str, Any]) -> dict[str, Any]:
                                    f"batch log)"), exit_code=1, detail=traceback.format_exc())
     out["seconds"] = time.perf_counter() - t0
     return out
+
+
+def execute_blob(blob: bytes) -> dict[str, Any]:
+    """:func:`execute` on a cloudpickled task (what a Dask worker runs).
+
+    The runner pickles the task itself, with cloudpickle, so that job
+    functions pickled *by value* (closures, functions of a script or a test
+    module) arrive intact, and so that a task a worker cannot load fails as
+    that job, with the reason, instead of taking the worker down.
+    """
+    import cloudpickle
+
+    try:
+        task = cloudpickle.loads(blob)
+    except Exception as exc:  # noqa: BLE001
+        return {"name": "?", "status": "failed", "exit_code": 1, "seconds": 0.0, "outputs": [], "summary": {},
+                "worker": worker_id(), "detail": traceback.format_exc(),
+                "reason": one_line(f"this worker cannot load the job ({type(exc).__name__}: {exc}); install the "
+                                   f"same esmm and Python packages on every worker")}
+    return execute(task)
