@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from esmm.pipeline.discover import MaterialEffects, discover, discover_and_save
 from esmm.pipeline.discover import synthetic as syn
 from esmm.pipeline.discover.covariates import covariates, thin

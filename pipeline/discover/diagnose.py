@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from .effects import EFFECT_NAMES
-from .model import Problem, Spec, lag1, offset_applicable, runs_test, slack_applicable
+from .model import Problem, lag1, offset_applicable, runs_test, slack_applicable
 
 #: strength used for the finite-difference signatures (in each effect's own coordinate)
 _EPS = 1e-3

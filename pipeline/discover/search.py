@@ -815,7 +815,7 @@ def _discover(tests, *, model, base, fixed, free, weights, n_starts, seed, max_p
                 continue
             winner = n
             break
-        for n, f, inf, ref in trials:  # candidates never reached by the held-out check this round
+        for n, _f, inf, ref in trials:  # candidates never reached by the held-out check this round
             c = cands[n]
             if n != winner and n not in kept and c.reason.endswith("pending"):
                 c.reason = (f"AICc {inf['aicc'] - ref['aicc']:+.1f}, but {winner} explained more in round {rnd}; "
