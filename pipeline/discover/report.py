@@ -25,6 +25,7 @@ import numpy as np
 
 from .. import __version__
 from ..atomicio import atomic_path, write_text
+from .covariates import thin
 from .effects import ARTEFACTS, MATERIAL_EFFECTS, MaterialEffects
 from .model import Spec
 from .search import DiscoverResult, Fitted
@@ -159,6 +160,10 @@ def _effect_sentence(res: DiscoverResult, name: str) -> str:
         d = me.damage
         xm = max(float(np.max(r.cov.drive)) for r in res.records)
         lost = 1.0 - float(d.factor(np.array([xm]))[0])
+        if d.onset - 1.0 <= 0.05 * max(xm - 1.0, 1e-9):
+            return (f"it softens irreversibly with the largest stretch reached, from the first loading on (a "
+                    f"gradual, stretch-dependent softening rather than tearing at a threshold): at the largest "
+                    f"stretch reached ({xm:.3g}) the stress is {100 * lost:.0f} % below the unsoftened curve")
         return (f"it is damaged irreversibly beyond a stretch of about {d.onset:.3g}: at the largest stretch "
                 f"reached ({xm:.3g}) the stress is {100 * lost:.0f} % below the undamaged curve")
     if name == "slack":
@@ -360,8 +365,7 @@ def plot_residuals(path: str | Path, res: DiscoverResult, *, which: str = "base"
         c = cmap(k % 10)
         p = prob.full_prediction(k, f.z, coefs[k])
         e = (r.y - p) / fac
-        step = max(1, r.test.n // 3000)
-        sl = slice(None, None, step)
+        sl = thin(r.test, 3000, cov=r.cov)  # arc-length thinning: ramps and holds both drawn
         label = r.name if len(res.records) <= 12 else None
         ax[0, 0].plot(r.x[sl], r.y[sl] / fac, ".", ms=1.5, color=c, alpha=0.35, label=label)
         ax[0, 0].plot(r.x[sl], p[sl] / fac, "-", lw=1.0, color=c)
@@ -429,9 +433,16 @@ def write_corrected(folder: str | Path, res: DiscoverResult) -> list[Path]:
             s = delta * L0
             force = t.force - off * r.area
             disp = t.displacement - s
+            done = []
+            if "slack" in res.kept:
+                done.append(f"slack {s * 1e3:.4g} mm removed (gauge length is the taut length)")
+            if "sensor_offset" in res.kept:
+                done.append(f"load-cell offset {off[0] * r.area:+.4g} N"
+                            + (f" and drift {(off[-1] - off[0]) * r.area:+.4g} N over the test" if
+                               f.problem.n_offset[k] == 2 else "") + " removed")
             meta += [f"# specimen: {t.specimen}", f"# gauge_length: {(L0 + s) * 1e3:.6g} mm",
                      f"# area: {r.area * 1e6:.6g} mm2", f"# mode: {t.mode}",
-                     f"# notes: slack {s * 1e3:.4g} mm removed; force offset/drift removed"]
+                     f"# notes: {'; '.join(done) or 'nothing to correct in this file'}"]
             tt = t.time if t.time is not None else np.arange(t.n, dtype=float)
             rows = ["time [s],displacement [mm],force [N]"]
             rows += [f"{a:.6g},{b * 1e3:.6g},{c:.6g}" for a, b, c in zip(tt, disp, force)]
@@ -448,6 +459,25 @@ def write_corrected(folder: str | Path, res: DiscoverResult) -> list[Path]:
     return out
 
 
+def _remove_stale_corrected(folder: Path, res: DiscoverResult) -> None:
+    """Delete corrected files an earlier discovery wrote here that this one does not rewrite."""
+    if not folder.is_dir():
+        return
+    keep = {f"{r.test.source.stem}.csv" for r in res.records} if any(n in ARTEFACTS for n in res.kept) else set()
+    for p in folder.glob("*.csv"):
+        if p.name in keep:
+            continue
+        try:
+            with open(p, encoding="utf-8") as fh:
+                first = fh.readline()
+        except (OSError, UnicodeDecodeError):
+            continue
+        if first.startswith("# corrected by esmm calibrate --discover"):
+            p.unlink(missing_ok=True)
+    if not any(folder.iterdir()):
+        folder.rmdir()
+
+
 # --------------------------------------------------------------------------- all outputs
 def write_outputs(out_dir: str | Path | None, res: DiscoverResult, *,
                   json_path: str | Path | None = None) -> dict[str, Path]:
@@ -462,6 +492,7 @@ def write_outputs(out_dir: str | Path | None, res: DiscoverResult, *,
         written["plot_before"] = plot_residuals(out / "residuals_before.png", res, which="base")
         written["plot_after"] = plot_residuals(out / "residuals_after.png", res, which="final")
         written["report"] = write_text(out / "discover.md", markdown(res))
+        _remove_stale_corrected(out / "corrected", res)
         corrected = write_corrected(out / "corrected", res)
         if corrected:
             written["corrected"] = out / "corrected"
