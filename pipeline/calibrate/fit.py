@@ -323,6 +323,17 @@ def fit_material(
     -------
     FitResult
     """
+    from ..blas import single_threaded_blas
+
+    # Small dense problems: BLAS threads cost more than they save (docs/calibrate.md).
+    with single_threaded_blas():
+        return _fit_material(tests, model=model, loss=loss, f_scale=f_scale, n_starts=n_starts,
+                             weights=weights, fixed=fixed, initial=initial, free=free, seed=seed,
+                             reporter=reporter)
+
+
+def _fit_material(tests, *, model, loss, f_scale, n_starts, weights, fixed, initial, free, seed,
+                  reporter) -> FitResult:
     from ..materials import MODEL_NAMES, get_model
 
     rep = ensure(reporter)

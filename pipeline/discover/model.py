@@ -44,7 +44,7 @@ from scipy import optimize, stats
 
 from ..errors import FitError
 from ..tensile.data import TensileTest
-from ._blas import single_threaded_blas
+from ..blas import single_threaded_blas
 from .covariates import Covariates, covariates, thin
 from .effects import (
     ARTEFACTS,

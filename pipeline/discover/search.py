@@ -38,7 +38,7 @@ from scipy import optimize
 from ..errors import ConfigError, FitError
 from ..progress import Reporter, ensure
 from ..tensile.data import TensileTest
-from ._blas import single_threaded_blas
+from ..blas import single_threaded_blas
 from .diagnose import Diagnosis, diagnose
 from .effects import ARTEFACTS, EFFECT_NAMES, MATERIAL_EFFECTS, MaterialEffects, qlv_stress
 from .model import (
