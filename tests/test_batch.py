@@ -71,6 +71,12 @@ def job_sys_exit():
     sys.exit(3)
 
 
+def job_hang_while_writing(out_dir):
+    with atomic_path(Path(out_dir) / "hung.txt") as tmp:
+        tmp.write_text("started")
+        time.sleep(120)
+
+
 def job_ctrl_c_while_writing(out_dir):
     with atomic_path(Path(out_dir) / "half.txt") as tmp:
         tmp.write_text("half")
@@ -221,6 +227,20 @@ def test_one_bad_job_never_costs_the_others(tmp_path):
     assert "Segmentation fault" in log and "ZeroDivisionError" in log and "batch end: exit code 5" in log
 
 
+def test_a_hanging_job_times_out_alone_and_leaves_no_temp_file(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    jobs = [Job(name="hang", kind="test", fn=job_hang_while_writing, args=(str(out),))] + write_jobs(out, ["a", "b"])
+    t0 = time.perf_counter()
+    s = run_jobs(jobs, out_dir=out, workers=2, job_timeout=2)
+    assert time.perf_counter() - t0 < 30
+    assert [o.status for o in s.outcomes] == ["failed", "done", "done"]
+    assert s.outcomes[0].reason == "timed out after 2 s (the worker was killed)"
+    assert not list(out.rglob(".hung.txt.tmp-*")) and not (out / "hung.txt").exists()
+    with pytest.raises(ConfigError, match="job_timeout"):
+        run_jobs(jobs, out_dir=out, job_timeout=0)
+
+
 def test_serial_ctrl_c_is_returned_with_a_summary_and_no_temp_file(tmp_path):
     out = tmp_path / "out"
     jobs = write_jobs(out, ["first"]) + [Job(name="stopped", kind="test", fn=job_ctrl_c_while_writing,
@@ -334,7 +354,7 @@ def test_calibrate_batch_equals_direct_fits_and_reruns_from_cache(tmp_path):
     strip = [lambda t: [r.rsplit(",", 2)[0] for r in t.splitlines()]]  # seconds column differs
     assert strip[0](after) == [line.replace(",done,", ",skipped (cached),") for line in strip[0](table_before)]
     # A changed option recomputes.
-    s3 = calibrate_batch(_brain("cortex"), out_dir=out, fit_kwargs={**fit, "n_starts": 2}, workers=1)
+    s3 = calibrate_batch(_brain("cortex"), out_dir=out, fit_kwargs={**fit, "n_starts": 3}, workers=1)
     assert [o.status for o in s3.outcomes] == ["done"]
 
 

@@ -232,7 +232,8 @@ class LocalPool:
         with open(err_path, "wb") as err:
             proc = subprocess.Popen([sys.executable, "-P", "-c", code], stdin=subprocess.DEVNULL, stdout=err,
                                     stderr=subprocess.STDOUT, env=self._env,
-                                    pass_fds=(child_sock.fileno(), death_r), close_fds=True)
+                                    pass_fds=(child_sock.fileno(), death_r), close_fds=True,
+                                    start_new_session=True)
         child_sock.close()
         os.close(death_r)
         conn = Connection(parent_sock.detach())
@@ -294,8 +295,16 @@ class LocalPool:
         self._retire(w)
         return tid, "died", (reason, tail)
 
-    def events(self) -> Iterator[tuple[int, str, Any]]:
-        """Run every submitted task; yield each one's event as it ends."""
+    def events(self, *, timeout: float | None = None) -> Iterator[tuple[int, str, Any]]:
+        """Run every submitted task; yield each one's event as it ends.
+
+        Parameters
+        ----------
+        timeout : float, optional
+            Wall-time limit of one task [s]: a task running longer has its
+            worker killed (SIGKILL) and ends as ``"died"`` with the reason
+            ``"timed out after ... s (the worker was killed)"``.
+        """
         from multiprocessing.connection import wait
 
         while True:
@@ -303,12 +312,32 @@ class LocalPool:
             running = [w for w in self._workers if w.task is not None]
             if not running:
                 return
-            ready = set(wait([w.conn for w in running]))
+            wait_for = None
+            if timeout is not None:
+                wait_for = max(0.0, min(w.started for w in running) + timeout - time.monotonic())
+            ready = set(wait([w.conn for w in running], timeout=wait_for))
             for w in running:
-                if w.conn not in ready:
-                    continue
-                ev = self._receive(w)
-                yield ev if ev is not None else self._death(w)
+                if w.conn in ready:
+                    ev = self._receive(w)
+                    yield ev if ev is not None else self._death(w)
+                elif timeout is not None and time.monotonic() - w.started >= timeout:
+                    yield self._kill_overdue(w, timeout)
+
+    def _kill_overdue(self, w: _Worker, timeout: float) -> tuple[int, str, Any]:
+        tid = w.task
+        # SIGTERM first: the job stops like on Ctrl-C (temporary files removed, gmsh children killed).
+        with contextlib.suppress(OSError):
+            w.proc.send_signal(signal.SIGTERM)
+        try:
+            w.proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(OSError):
+                os.killpg(w.proc.pid, signal.SIGKILL)  # the worker and what it started in its group
+            with contextlib.suppress(Exception):
+                w.proc.wait(timeout=10)
+        tail = w.stderr_tail()
+        self._retire(w)
+        return tid, "died", (f"timed out after {timeout:g} s (the worker was killed)", tail)
 
     def interrupt(self, *, grace: float = 15.0) -> list[tuple[int, str, Any]]:
         """Stop now: drop queued tasks, SIGTERM the running ones, wait *grace* s, then SIGKILL.

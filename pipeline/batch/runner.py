@@ -154,14 +154,14 @@ def _run_serial(tasks: list[Task], on_event: OnEvent) -> None:
         on_event(t, res)
 
 
-def _run_local(tasks: list[Task], workers: int, on_event: OnEvent) -> None:
+def _run_local(tasks: list[Task], workers: int, on_event: OnEvent, timeout: float | None = None) -> None:
     by_id = dict(enumerate(tasks))
     pool = LocalPool(min(workers, len(tasks)))
     reported: set[int] = set()
     try:
         for i, t in by_id.items():
             pool.submit(i, execute, t)
-        for tid, kind, value in pool.events():
+        for tid, kind, value in pool.events(timeout=timeout):
             reported.add(tid)
             t = by_id[tid]
             if kind == "result":
@@ -274,7 +274,8 @@ def _run_dask(tasks: list[Task], target: Any, on_event: OnEvent, logger: logging
 # ----------------------------------------------------------------------------- run_jobs
 def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any = None,
              workers: int | None = None, force: bool = False, reporter: Reporter | None = None,
-             title: str = "batch", connect_timeout: float = 15.0) -> BatchSummary:
+             title: str = "batch", connect_timeout: float = 15.0,
+             job_timeout: float | None = None) -> BatchSummary:
     """Run *jobs*, skipping those whose result is cached; never stop for one failure.
 
     Parameters
@@ -297,6 +298,10 @@ def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any 
         What the progress bar calls the batch (e.g. "calibrating").
     connect_timeout : float
         Seconds to wait for a Dask scheduler given by address.
+    job_timeout : float, optional
+        Wall-time limit of one job on the local pool [s]: a job still running
+        then is stopped (SIGTERM, then SIGKILL) and fails with "timed out".
+        Not applied by the serial and Dask schedulers.
 
     Returns
     -------
@@ -315,6 +320,8 @@ def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any 
     rep = ensure(reporter)
     kind, target = parse_scheduler(scheduler)
     workers = _check_workers(workers)
+    if job_timeout is not None and not (isinstance(job_timeout, (int, float)) and job_timeout > 0):
+        raise ConfigError(f"job_timeout: expected a positive number of seconds, got {job_timeout!r}")
     names = [j.name for j in jobs]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
@@ -418,7 +425,7 @@ def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any 
                         if kind == "serial":
                             _run_serial(tasks, on_event)
                         elif kind == "local":
-                            _run_local(tasks, n_workers, on_event)
+                            _run_local(tasks, n_workers, on_event, job_timeout)
                         else:
                             addr = _run_dask(tasks, target, on_event, logger, connect_timeout)
                             summary.scheduler = f"dask {addr}"
