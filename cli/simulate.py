@@ -15,8 +15,13 @@ outputs (in --out DIR, default ASSET-sim/ beside the asset):
   summary.json               time step, stability bound, timings, real-time factor
   --video OUT.mp4            off-screen rendering (no display or GPU needed)
 
-scenes: 'default' (bundled; pull the free edge 15 mm, hold, release) or a TOML file;
-see docs/simulate.md for the schema.
+scenes: 'default' (bundled: the organ rests on its bed, the lowest 15 % held; a grasper
+lifts the free edge 20 mm in 1 s, holds, releases at 2 s) or a TOML file; see
+docs/simulate.md for the schema.
+
+material effects: an asset made from a discovery's params.toml carries its kept effects
+(viscoelastic, Mullins, damage; 'esmm info' lists them); they are applied per spring
+unless --effects none (or [scene] effects = "none").
 
 examples:
   esmm simulate liver.h5
@@ -65,6 +70,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="'auto' (measure and pick) or a number of threads; overrides the scene")
     p.add_argument("--law", choices=("asset", "secant", "energy"), default=None,
                    help="force law: the asset's default, secant (paper Eq. 9) or energy-consistent")
+    p.add_argument("--effects", choices=("asset", "none"), default=None,
+                   help="apply the asset's material effects (default, when it has any) or none "
+                        "(instantaneous elastic response only); overrides the scene")
     p.add_argument("--out", metavar="DIR", default=None, help="output folder (default: ASSET-sim/)")
     p.set_defaults(func=run)
     return p
@@ -76,11 +84,15 @@ def run(args, ui) -> int:
     if args.duration is not None and not args.duration > 0:
         raise ConfigError(f"--duration: must be positive, got {args.duration}")
     res = simulate(args.asset, scene=args.scene, out_dir=args.out, video_path=args.video,
-                   duration=args.duration, threads=args.threads, law=args.law, reporter=ui)
+                   duration=args.duration, threads=args.threads, law=args.law, effects=args.effects,
+                   reporter=ui)
     s = res.summary
     ui.info(f"simulated {s['simulated_s']:g} s: {s['springs']} springs, {s['steps']} steps of "
             f"{s['dt_min_s'] * 1e6:.4g}..{s['dt_max_s'] * 1e6:.4g} us, real-time factor "
             f"{s['real_time_factor']:.3g} ({s['threads']} thread(s))")
+    fx = s.get("effects")
+    if fx:
+        ui.info("material effects: " + ", ".join(fx.get("final_state", {}).get("effects", [])))
     ui.info(f"history: {res.xdmf}")
     if res.force_plot is not None:
         g = s.get("grasper") or {}

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import json
+from dataclasses import replace
 from types import SimpleNamespace
 
 import h5py
@@ -74,8 +75,22 @@ def test_default_scene_values():
     assert sc.step == "adaptive" and sc.window == 0.05 and sc.mass_scaling == 0.001
     assert sc.start == "equilibrium"
     assert [w.time for w in g.waypoints] == [0.0, 1.0]
-    assert g.waypoints[1].distance == pytest.approx(0.015)
-    assert sc.fixed is None and sc.n_frames == 90
+    # The grasper lifts the free edge 20 mm against gravity.
+    assert g.direction == "up" and g.waypoints[1].distance == pytest.approx(0.020)
+    # The organ rests on its bed: a band across the vertical, the lowest 15 % of its height.
+    f = sc.fixed
+    assert f.kind == "band" and f.end == "min" and f.width is None and f.width_fraction == pytest.approx(0.15)
+    np.testing.assert_allclose(f.axis, -sc.gravity / np.linalg.norm(sc.gravity))
+    assert sc.effects == "asset" and sc.n_frames == 90
+
+
+def test_band_axis_up_follows_gravity():
+    sc = scene_from_dict({"scene": {"gravity": [0, -2, 0]}, "fixed": {"kind": "band", "axis": "up"}})
+    np.testing.assert_allclose(sc.fixed.axis, [0, 1, 0])
+    sc = scene_from_dict({"scene": {"gravity": [3, 0, 0]}, "fixed": {"kind": "band", "axis": "down"}})
+    np.testing.assert_allclose(sc.fixed.axis, [1, 0, 0])
+    with pytest.raises(ConfigError, match="needs gravity"):
+        scene_from_dict({"scene": {"gravity": [0, 0, 0]}, "fixed": {"kind": "band", "axis": "up"}})
 
 
 @pytest.mark.parametrize("data, match", [
@@ -142,9 +157,24 @@ def test_unknown_bundled_scene_lists_choices():
 # grasper planning
 # ---------------------------------------------------------------------------
 
+def test_default_scene_on_a_slab_lifts_the_top_off_its_bed(slab):
+    from esmm.pipeline.network.regions import select_fixed
+
+    sc = load_scene()
+    fixed = select_fixed(slab.points, sc.fixed)
+    # The bed: the lowest 15 % of the 15 mm height is the z = 0 layer of this 2-layer slab.
+    np.testing.assert_array_equal(fixed, np.flatnonzero(slab.points[:, 2] < 1e-9))
+    plan = plan_grasp(sc.grasper, slab.points, slab.surface_faces, fixed, sc.gravity)
+    assert slab.points[plan.target, 2] == pytest.approx(0.015)          # the top: farthest from the bed
+    np.testing.assert_allclose(plan.direction, [0, 0, 1])               # "up", against gravity
+    np.testing.assert_allclose(plan.offsets[-1], [0, 0, 0.020])
+    assert plan.normal @ (slab.points[plan.target] - slab.points.mean(axis=0)) > 0      # outward
+
+
 def test_grasp_plan_auto_target_is_farthest_from_fixed(slab):
     sc = load_scene()
-    plan = plan_grasp(sc.grasper, slab.points, slab.surface_faces, slab.fixed, sc.gravity)
+    spec = replace(sc.grasper, direction="away")
+    plan = plan_grasp(spec, slab.points, slab.surface_faces, slab.fixed, sc.gravity)
     assert slab.points[plan.target, 0] == pytest.approx(0.06)          # the free end
     assert plan.target in plan.nodes and not np.isin(plan.nodes, slab.fixed).any()
     d = np.linalg.norm(slab.points[plan.nodes] - slab.points[plan.target], axis=1)
@@ -153,7 +183,7 @@ def test_grasp_plan_auto_target_is_farthest_from_fixed(slab):
     ref = slab.points[slab.fixed].mean(axis=0)
     exp = (slab.points[plan.target] - ref) / np.linalg.norm(slab.points[plan.target] - ref)
     np.testing.assert_allclose(plan.direction, exp)
-    np.testing.assert_allclose(plan.offsets[-1], 0.015 * exp)
+    np.testing.assert_allclose(plan.offsets[-1], 0.020 * exp)
     assert plan.normal @ (slab.points[plan.target] - slab.points.mean(axis=0)) > 0      # outward
 
 

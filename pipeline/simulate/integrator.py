@@ -52,6 +52,7 @@ import numpy as np
 
 from ..errors import ConfigError, InputError, SimulationError
 from . import kernels as K
+from .effects import EffectModel, EffectState, build_effect_model
 
 PRECISIONS = ("float64", "float32")
 LAW_CODES = {"secant": K.LAW_SECANT, "energy": K.LAW_ENERGY}
@@ -89,6 +90,10 @@ class ForceModel:
         Axial tangent stiffness at rest [N/m].
     dashpot : float
         Stiffness-proportional dashpot time beta [s]; ``c_ij = beta * rest_tangent``.
+    effects : EffectModel or None
+        Material effects (QLV, Mullins, damage; :mod:`.effects`): the springs then
+        carry state and the effects kernels are used. ``kappa`` and
+        ``cell_bound`` include their added tangent bounds.
     """
 
     n_nodes: int
@@ -104,6 +109,7 @@ class ForceModel:
     dashpot: float = 0.0
     lam_max: float = math.inf
     cell_bound: np.ndarray | None = None
+    effects: EffectModel | None = None
     _layouts: dict = field(default_factory=dict, repr=False)
     _windows: dict = field(default_factory=dict, repr=False)
 
@@ -139,8 +145,16 @@ class ForceModel:
 
     # -- evaluation ------------------------------------------------------
     def forces(self, x: np.ndarray, v: np.ndarray | None = None, *, fext: np.ndarray | None = None,
-               damped: bool | None = None) -> np.ndarray:
-        """Nodal forces (n, 3) [N] at positions *x* (and velocities *v* for the dashpots)."""
+               damped: bool | None = None, state: EffectState | None = None, mode: int = K.FX_PEEK,
+               dt: float = 0.0) -> np.ndarray:
+        """Nodal forces (n, 3) [N] at positions *x* (and velocities *v* for the dashpots).
+
+        With material effects, *state* is the springs' state (default: the
+        virgin state, so the force is the instantaneous response from rest) and
+        *mode* one of ``kernels.FX_PEEK`` (the force a step of *dt* from the
+        state would give; state unchanged), ``FX_STEP`` (the same, committing
+        the state), ``FX_RELAXED`` (long-term force) or ``FX_SETTLE``.
+        """
         x = np.ascontiguousarray(x, dtype=np.float64)
         if x.shape != (self.n_nodes, 3):
             raise InputError(f"x: expected shape ({self.n_nodes}, 3), got {x.shape}")
@@ -148,9 +162,21 @@ class ForceModel:
         v = np.zeros_like(x) if v is None else np.ascontiguousarray(v, dtype=np.float64)
         fe = np.zeros_like(x) if fext is None else np.ascontiguousarray(fext, dtype=np.float64)
         f = np.empty_like(x)
-        K.forces_serial(x, v, f, fe, self.ij, self.sd, self.tab, self.lam_min, self.inv_h,
-                        self.last_cell, self.law_code, use_damp)
+        if self.effects is None:
+            K.forces_serial(x, v, f, fe, self.ij, self.sd, self.tab, self.lam_min, self.inv_h,
+                            self.last_cell, self.law_code, use_damp)
+            return f
+        st = self.effects.new_state(self.n_springs) if state is None else state
+        K.forces_serial_fx(x, v, f, fe, self.ij, self.sd, self.tab, self.lam_min, self.inv_h,
+                           self.last_cell, self.law_code, use_damp, *self.effects.kernel_args(),
+                           self.effects.ab(dt), *st.arrays(), int(mode))
         return f
+
+    def stretches(self, x: np.ndarray) -> np.ndarray:
+        """Stretch of every spring at positions *x*, shape (s,) (model spring order)."""
+        x = np.asarray(x, dtype=np.float64)
+        d = x[self.ij[1]] - x[self.ij[0]]
+        return np.sqrt(np.einsum("ij,ij->i", d, d)) * self.sd[0].astype(np.float64)
 
     def stretch_range(self, x: np.ndarray) -> tuple[float, float]:
         """(min, max) stretch over the springs at positions *x*."""
@@ -231,7 +257,8 @@ def windowed_bound(cell_bound: np.ndarray, cells: int) -> np.ndarray:
 
 
 def build_force_model(network, tables, *, law: str | None = None, dashpot: float = 0.0,
-                      precision: str = "float64", isotropic_fast: bool = True) -> ForceModel:
+                      precision: str = "float64", isotropic_fast: bool = True,
+                      effects=None) -> ForceModel:
     """Build the :class:`ForceModel` of *network* with *tables*.
 
     Parameters
@@ -250,6 +277,9 @@ def build_force_model(network, tables, *, law: str | None = None, dashpot: float
     isotropic_fast : bool
         When the three table rows are equal, store one weight per spring and do
         one lookup (the same forces up to rounding; False keeps three).
+    effects : MaterialEffects, optional
+        Material effects to apply (viscoelastic, Mullins, damage; see
+        :mod:`.effects`); None or empty: the plain elastic kernels.
     """
     from ..network.tables import spring_factors
 
@@ -293,10 +323,18 @@ def build_force_model(network, tables, *, law: str | None = None, dashpot: float
         sd[-1] = dashpot * rest_tangent
     vals = _tables_arrays(tables, law)
     tab = np.ascontiguousarray(np.concatenate([vals[:, :-1].T, np.diff(vals, axis=1).T], axis=1))
+    cell_bound = cell_tangent_bound(tables, law)
+    fx = build_effect_model(effects, tables, law)
+    if fx is not None:
+        extra = fx.history_table.copy()
+        if fx.mullins_cell is not None:
+            cell_bound = np.ascontiguousarray(cell_bound + fx.mullins_cell)
+            extra += fx.mullins_cell.max(axis=0)
+        kappa = kappa + a @ extra
     return ForceModel(n_nodes=n, ij=ij, order=order, sd=np.ascontiguousarray(sd), tab=tab,
                       lam_min=float(tables.lam_min), inv_h=1.0 / float(tables.dlam), law=law,
                       kappa=kappa, rest_tangent=rest_tangent, dashpot=float(dashpot),
-                      lam_max=float(tables.lam_max), cell_bound=cell_tangent_bound(tables, law))
+                      lam_max=float(tables.lam_max), cell_bound=cell_bound, effects=fx)
 
 
 def thread_layout(ij: np.ndarray, n_nodes: int, chunks: int) -> tuple:
@@ -560,6 +598,9 @@ class Simulator:
         self.grasp: Grasp | None = None
         self.step_count = 0
         self.t0 = 0.0
+        #: Per-spring state of the material effects (None without effects).
+        self.fx_state: EffectState | None = (None if model.effects is None
+                                             else model.effects.new_state(model.n_springs))
         self._free = np.ones(n, bool)
         self._free[self.fixed] = False
         self._update_inv_mass()
@@ -619,14 +660,17 @@ class Simulator:
         self.dt = float(dt)
 
     def snapshot(self) -> tuple:
-        """The state, for :meth:`restore` (positions, velocities, time, step, grasp)."""
-        return (self.x.copy(), self.v.copy(), self.t0, self.step_count, self.dt, self.grasp)
+        """The state, for :meth:`restore` (positions, velocities, time, step, grasp, effects' state)."""
+        fx = None if self.fx_state is None else self.fx_state.copy()
+        return (self.x.copy(), self.v.copy(), self.t0, self.step_count, self.dt, self.grasp, fx)
 
     def restore(self, state: tuple) -> None:
-        x, v, t0, steps, dt, grasp = state
+        x, v, t0, steps, dt, grasp, fx = state
         self.x[:] = x
         self.v[:] = v
         self.t0, self.step_count, self.dt = t0, steps, dt
+        if fx is not None and self.fx_state is not None:
+            self.fx_state.assign(fx)
         if grasp is not self.grasp:
             self.grasp = grasp
             self._update_inv_mass()
@@ -695,22 +739,90 @@ class Simulator:
         else:
             g_mode = K.GRASP_PRESCRIBED if g.mode == "prescribed" else K.GRASP_SPRING
             g_nodes, g_off, g_k, wp_t, wp_x = g.nodes, g.offsets, g.stiffness, g.wp_t, g.wp_x
-        common = (nsteps, self.dt, self.t0, self.step_count, self.x, self.v, self.f, self.fext,
-                  self.inv_mass, vfac) + self.model.kernel_args() + (
-                  g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec)
-        if self.threads == 1:
-            K.run_serial(*common)
-        else:
+        if self.threads > 1:
             import numba
 
             numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
-            K.run_parallel(*common, *self.model.layout(self.threads))
+        fx = self.fx_state
+        if fx is None:
+            common = (nsteps, self.dt, self.t0, self.step_count, self.x, self.v, self.f, self.fext,
+                      self.inv_mass, vfac) + self.model.kernel_args() + (
+                      g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec)
+            if self.threads == 1:
+                K.run_serial(*common)
+            else:
+                K.run_parallel(*common, *self.model.layout(self.threads))
+        else:
+            # The first step advances the springs' state from the time it was last committed.
+            dt_first = max(0.0, self.t - fx.t)
+            common = (nsteps, self.dt, dt_first, self.t0, self.step_count, self.x, self.v, self.f, self.fext,
+                      self.inv_mass, vfac) + self.model.kernel_args() + self.model.effects.kernel_args() + (
+                      *fx.arrays(), g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec)
+            if self.threads == 1:
+                K.run_serial_fx(*common)
+            else:
+                K.run_parallel_fx(*common, *self.model.layout(self.threads))
+            fx.t = self.t0 + (self.step_count + nsteps - 1) * self.dt
         self.step_count += nsteps
         return rec
 
+    # -- material effects ----------------------------------------------------------
+    def settle_effects(self) -> None:
+        """Take the current configuration as long held: maxima updated, history relaxed (h = 0).
+
+        Called after a static equilibrium (:meth:`relax`): the organ has rested in
+        it long enough for every Prony term to relax. No-op without effects.
+        """
+        if self.fx_state is None:
+            return
+        self.model.forces(self.x, state=self.fx_state, mode=K.FX_SETTLE)
+        self.fx_state.t = self.t
+
+    def history_stiffness(self, delta: float) -> np.ndarray | None:
+        """Per-node Gershgorin row added by the viscoelastic history forces [N/m], or None.
+
+        For :func:`stable_step`'s ``extra_stiffness``; see
+        :meth:`EffectModel.history_stiffness` (valid while no stretch moves by more
+        than *delta*).
+        """
+        fx = self.model.effects
+        if fx is None or fx.n_terms == 0:
+            return None
+        lam = self.model.stretches(self.x)
+        k = fx.history_stiffness(self.fx_state, lam, 1.0 / self.model.sd[0].astype(np.float64), float(delta))
+        n = self.model.n_nodes
+        return 2.0 * (np.bincount(self.model.ij[0], weights=k, minlength=n)
+                      + np.bincount(self.model.ij[1], weights=k, minlength=n))
+
+    def effects_report(self) -> dict | None:
+        """Extremes of the effects' state (JSON-ready), or None without effects."""
+        fx, st = self.model.effects, self.fx_state
+        if fx is None:
+            return None
+        out: dict = {"effects": fx.names}
+        if fx.n_terms:
+            q = np.abs(st.h).T @ fx.g
+            out["max_history_force_N"] = float(q.max()) if q.size else 0.0
+            out["max_elastic_force_N"] = float(np.abs(st.pold).max()) if st.pold.size else 0.0
+        if fx.effects.mullins is not None:
+            out["max_energy_density_Pa"] = float(st.wmax.max()) if st.wmax.size else 0.0
+        if fx.effects.damage is not None:
+            xi = float(st.ximax.max()) if st.ximax.size else 1.0
+            out["max_equivalent_stretch"] = xi
+            out["min_remaining_fraction"] = float(fx.effects.damage.factor(np.array([xi]))[0])
+            out["damaged_springs"] = int(np.count_nonzero(st.ximax > fx.effects.damage.onset))
+        return out
+
     def forces(self) -> np.ndarray:
-        """Total nodal forces (springs, dashpots, gravity) at the current state, shape (n, 3) [N]."""
-        return self.model.forces(self.x, self.v, fext=self.fext)
+        """Total nodal forces (springs, dashpots, gravity) at the current state, shape (n, 3) [N].
+
+        With material effects: the force the next step would use (the state
+        advanced to the current time, not committed).
+        """
+        if self.fx_state is None:
+            return self.model.forces(self.x, self.v, fext=self.fext)
+        return self.model.forces(self.x, self.v, fext=self.fext, state=self.fx_state, mode=K.FX_PEEK,
+                                 dt=max(0.0, self.t - self.fx_state.t))
 
     def grasper_force(self) -> np.ndarray:
         """Force of the tissue on the grasper at the current state, shape (3,) [N] (zeros if open)."""
@@ -740,6 +852,10 @@ class Simulator:
     def relax(self, *, ftol: float | None = None, rtol: float = 1e-8, max_iter: int = 200_000) -> dict:
         """Move to static equilibrium under gravity (and a held grasp, at its current tip) with FIRE.
 
+        With material effects this is the *long-term* equilibrium (forces
+        ``g_inf (1 - D) eta F_e`` with the maxima so far); afterwards the history
+        is taken as relaxed there (:meth:`settle_effects`).
+
         Parameters
         ----------
         ftol : float, optional
@@ -765,10 +881,17 @@ class Simulator:
             gargs = (K.GRASP_SPRING, g.nodes, g.offsets, g.stiffness, g.tip(self.t))
         else:
             gargs = (K.GRASP_NONE, np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(3))
+        fxm, st = self.model.effects, self.fx_state
+        if fxm is None:
+            fxa = (False, np.zeros((1, 6)), np.zeros(K.FXP_HEAD), np.zeros((2, 0)), np.zeros((0, 0)),
+                   np.zeros(0), np.zeros(0), np.zeros(0))
+        else:
+            fxa = (True, *fxm.kernel_args(), fxm.ab(0.0), *st.arrays())
         it, res = K.fire_relax(self.x, self.v, self.f, self.fext, self.inv_mass, free,
                                *self.model.kernel_args()[:-1], *gargs, dt0, 0.9 * self.bound.dt_critical,
-                               float(ftol), int(max_iter))
+                               float(ftol), int(max_iter), *fxa)
         self.v[:] = 0.0
+        self.settle_effects()
         if it < 0 or not np.isfinite(res):
             raise SimulationError("quasi-static relaxation diverged (non-finite forces); check the asset")
         if res >= ftol:
@@ -787,6 +910,8 @@ def warm_up(model: ForceModel, *, threads: int = 1) -> float:
                      lam_min=model.lam_min, inv_h=model.inv_h, law=model.law, kappa=np.zeros(1),
                      rest_tangent=np.zeros(1), dashpot=model.dashpot)
     sub.sd[0, 0] = 1.0
+    if model.effects is not None:
+        sub.effects = model.effects
     sim = Simulator(sub, x, np.ones(2), fixed=[0], dt=1e-3, threads=threads)
     sim.advance(1)
     sim.attach(Grasp(nodes=np.array([1]), offsets=np.zeros((1, 3)), wp_t=np.array([0.0, 1.0]),

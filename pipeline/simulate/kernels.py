@@ -55,6 +55,8 @@ no atomics and no reduction buffers.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit, prange
 
@@ -252,6 +254,224 @@ def forces_parallel(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, 
 
 
 # ---------------------------------------------------------------------------
+# material effects (viscoelastic QLV, Mullins, damage): a separate kernel family
+# ---------------------------------------------------------------------------
+#
+# The plain kernels above stay exactly as they are (no branch, no state) so that an
+# elastic run pays nothing for the effects. With effects, each spring carries state
+# (model order, structure of arrays):
+#
+#   h     (nt, s)  Prony internal variables h_i [N]
+#   pold  (s,)     the spring's softened elastic force P at the last committed evaluation [N]
+#   wmax  (s,)     largest energy density W reached so far [Pa]            (Mullins)
+#   ximax (s,)     largest uniaxial-equivalent stretch reached so far      (damage)
+#
+# and its force is (docs/simulate.md, "Material effects")
+#
+#   F_e = sum_d w_d f_d(lam)                      the elastic (instantaneous) force
+#   P   = (1 - D(ximax)) * eta(W, wmax) * F_e     damage and Mullins softening
+#   h_i <- a_i h_i + b_i (P - pold),  a_i = exp(-dt/tau_i), b_i = tau_i/dt (1 - a_i)
+#   F   = g_inf P + sum_i g_i h_i                 QLV, G(0) = 1
+#
+# Parameters ``fxp`` (float64): [g_inf, nt, mullins_on, 1/r, m, beta, damage_on, onset,
+# scale, shape, g_1..g_nt, tau_1..tau_nt]; ``ab`` (2, nt): a_i and b_i of the current
+# step (from :func:`prony_ab`). Modes:
+
+FX_STEP = 0       #: advance the state by the step in ``ab`` and commit it
+FX_PEEK = 1       #: the force the step in ``ab`` would give, state unchanged
+FX_RELAXED = 2    #: long-term force g_inf * P (maxima including the current stretch), state unchanged
+FX_SETTLE = 3     #: commit the maxima and a fully relaxed history at the current stretch (h = 0)
+
+#: Number of leading scalars in ``fxp`` before the Prony weights.
+FXP_HEAD = 10
+
+
+@njit(**_OPTS)
+def prony_ab(fxp, dd, ab):
+    """a_i = exp(-dd/tau_i), b_i = tau_i/dd (1 - a_i) (1 at dd = 0) into ab (2, nt)."""
+    nt = int(fxp[1])
+    for q in range(nt):
+        x = dd / fxp[FXP_HEAD + nt + q]
+        ab[0, q] = np.exp(-x)
+        ab[1, q] = -np.expm1(-x) / x if x > 1e-12 else 1.0 - 0.5 * x
+
+
+@njit(inline="always", **_OPTS)
+def _equivalent_stretch(lam):
+    """Uniaxial-equivalent stretch xi >= 1 of a spring at stretch lam (lam itself in tension)."""
+    if lam >= 1.0:
+        return lam
+    if lam <= 1e-6:
+        return np.inf
+    i1 = lam * lam + 2.0 / lam
+    c = -((3.0 / i1) ** 1.5)
+    c = min(max(c, -1.0), 1.0)
+    return 2.0 * np.sqrt(i1 / 3.0) * np.cos(np.arccos(c) / 3.0)
+
+
+@njit(inline="always", **_OPTS)
+def _block_fx(p0, nb, x, v, ij, sd, tab, etab, lam_min, inv_h, last_cell, law, damped, buf, kk,
+              fxp, ab, h, pold, wmax, ximax, mode):
+    """:func:`_block` with the material effects and their per-spring state (see above)."""
+    last = float(last_cell)
+    secant = law == LAW_SECANT
+    t_lo = 0.0 if secant else -np.inf
+    t_hi = 1.0 if secant else np.inf
+    a1 = 1.0 if secant else 0.0
+    a0 = 0.0 if secant else 1.0
+    for b in range(nb):
+        i = ij[0, p0 + b]
+        j = ij[1, p0 + b]
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        buf[0, b] = dx
+        buf[1, b] = dy
+        buf[2, b] = dz
+        if damped:
+            buf[7, b] = (v[j, 0] - v[i, 0]) * dx + (v[j, 1] - v[i, 1]) * dy + (v[j, 2] - v[i, 2]) * dz
+    for b in range(nb):
+        L = np.sqrt(buf[0, b] * buf[0, b] + buf[1, b] * buf[1, b] + buf[2, b] * buf[2, b])
+        buf[3, b] = 1.0 / L if L > 0.0 else 0.0
+        lam = L * sd[0, p0 + b]
+        buf[4, b] = lam
+        s = (lam - lam_min) * inv_h
+        sc = min(max(s, 0.0), last + 1.0)
+        k = min(np.int64(sc), last_cell)
+        kk[b] = k
+        buf[8, b] = s - k                      # unclipped: the energy continues linearly off the grid
+        buf[6, b] = min(max(s - k, t_lo), t_hi)
+    aniso = sd.shape[0] - damped >= 4
+    for b in range(nb):
+        k = kk[b]
+        t = buf[6, b]
+        p = p0 + b
+        if aniso:
+            fe = (sd[1, p] * (tab[k, 0] + t * tab[k, 3]) + sd[2, p] * (tab[k, 1] + t * tab[k, 4])
+                  + sd[3, p] * (tab[k, 2] + t * tab[k, 5]))
+        else:
+            fe = sd[1, p] * (tab[k, 0] + t * tab[k, 3])
+        buf[5, b] = fe * (a1 * (buf[4, b] - 1.0) + a0)
+    g_inf = fxp[0]
+    nt = int(fxp[1])
+    mullins = fxp[2] != 0.0
+    inv_r = fxp[3]
+    m_w = fxp[4]
+    beta = fxp[5]
+    damage = fxp[6] != 0.0
+    onset = fxp[7]
+    dscale = fxp[8]
+    dshape = fxp[9]
+    commit_max = mode == FX_STEP or mode == FX_SETTLE
+    for b in range(nb):
+        p = p0 + b
+        fac = 1.0
+        if damage:
+            xi = max(ximax[p], _equivalent_stretch(buf[4, b]))
+            if commit_max:
+                ximax[p] = xi
+            e = max(xi - onset, 0.0) / dscale
+            if e > 0.0:
+                fac = np.exp(-(e ** dshape))
+        if mullins:
+            k = kk[b]
+            tr = buf[8, b]
+            if aniso:
+                ws = sd[1, p] + sd[2, p] + sd[3, p]
+                w = (sd[1, p] * (etab[k, 0] + tr * etab[k, 3]) + sd[2, p] * (etab[k, 1] + tr * etab[k, 4])
+                     + sd[3, p] * (etab[k, 2] + tr * etab[k, 5]))
+                w = w / ws if ws > 0.0 else 0.0
+            else:
+                w = etab[k, 0] + tr * etab[k, 3]
+            wm = max(wmax[p], w)
+            if commit_max:
+                wmax[p] = wm
+            fac *= 1.0 - inv_r * math.erf((wm - w) / (m_w + beta * wm))
+        pe = fac * buf[5, b]
+        if mode == FX_RELAXED:
+            f_tot = g_inf * pe
+        elif mode == FX_SETTLE:
+            f_tot = g_inf * pe
+            pold[p] = pe
+            for q in range(nt):
+                h[q, p] = 0.0
+        else:
+            dp = pe - pold[p]
+            f_tot = g_inf * pe
+            for q in range(nt):
+                hq = ab[0, q] * h[q, p] + ab[1, q] * dp
+                f_tot += fxp[FXP_HEAD + q] * hq
+                if mode == FX_STEP:
+                    h[q, p] = hq
+            if mode == FX_STEP:
+                pold[p] = pe
+        buf[5, b] = f_tot
+    if damped:
+        cd = sd.shape[0] - 1
+        for b in range(nb):
+            rinv = buf[3, b]
+            buf[5, b] = (buf[5, b] + sd[cd, p0 + b] * buf[7, b] * rinv) * rinv
+    else:
+        for b in range(nb):
+            buf[5, b] = buf[5, b] * buf[3, b]
+
+
+@njit(inline="always", **_OPTS)
+def _range_forces_fx(p0, p1, hi, h0, x, v, f, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+                     hbuf, owned, etab, fxp, ab, h, pold, wmax, ximax, mode):
+    buf = np.empty((9, BLOCK))
+    kk = np.empty(BLOCK, np.int64)
+    hh = h0
+    for q in range(p0, p1, BLOCK):
+        nb = min(BLOCK, p1 - q)
+        _block_fx(q, nb, x, v, ij, sd, tab, etab, lam_min, inv_h, last_cell, law, damped, buf, kk,
+                  fxp, ab, h, pold, wmax, ximax, mode)
+        if owned:
+            hh = _scatter_owned(nb, q, hi, hh, ij, f, buf, hbuf)
+        else:
+            _scatter_all(nb, q, ij, f, buf)
+
+
+@njit(**_OPTS)
+def forces_serial_fx(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+                     etab, fxp, ab, h, pold, wmax, ximax, mode):
+    """:func:`forces_serial` with the material effects (state updated according to *mode*)."""
+    n = x.shape[0]
+    for a in range(n):
+        f[a, 0] = fext[a, 0]
+        f[a, 1] = fext[a, 1]
+        f[a, 2] = fext[a, 2]
+    hbuf = np.empty((0, 3))
+    _range_forces_fx(0, ij.shape[1], n, 0, x, v, f, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+                     hbuf, False, etab, fxp, ab, h, pold, wmax, ximax, mode)
+
+
+@njit(**_OPTS)
+def _chunk_forces_fx(c, x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+                     node_start, spring_start, halo_start, hbuf, etab, fxp, ab, h, pold, wmax, ximax, mode):
+    # A spring's state is written only by the chunk that owns the spring: race-free.
+    lo = node_start[c]
+    hi = node_start[c + 1]
+    for a in range(lo, hi):
+        f[a, 0] = fext[a, 0]
+        f[a, 1] = fext[a, 1]
+        f[a, 2] = fext[a, 2]
+    _range_forces_fx(spring_start[c], spring_start[c + 1], hi, halo_start[c], x, v, f, ij, sd, tab, lam_min,
+                     inv_h, last_cell, law, damped, hbuf, True, etab, fxp, ab, h, pold, wmax, ximax, mode)
+
+
+@njit(**_OPTS)
+def forces_any(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+               fx_on, etab, fxp, ab, h, pold, wmax, ximax, mode):
+    """The plain force pass, or the effects pass when *fx_on* (used by FIRE)."""
+    if fx_on:
+        forces_serial_fx(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+                         etab, fxp, ab, h, pold, wmax, ximax, mode)
+    else:
+        forces_serial(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped)
+
+
+# ---------------------------------------------------------------------------
 # grasper path
 # ---------------------------------------------------------------------------
 
@@ -386,20 +606,94 @@ def run_parallel(nsteps, dt, t0, step0, x, v, f, fext, inv_mass, vfac,
             _place_grasped(x, v, g_nodes, g_off, tip, tip_v)
 
 
+@njit(**_OPTS)
+def run_serial_fx(nsteps, dt, dt_first, t0, step0, x, v, f, fext, inv_mass, vfac,
+                  ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+                  etab, fxp, h, pold, wmax, ximax,
+                  g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec):
+    """:func:`run_serial` with the material effects: every step advances each spring's state.
+
+    The state is advanced by *dt_first* at the first step (the time since the
+    state was last committed) and by *dt* afterwards.
+    """
+    n = x.shape[0]
+    out = np.zeros(3)
+    nt = int(fxp[1])
+    ab = np.empty((2, nt))
+    prony_ab(fxp, dt_first, ab)
+    for k in range(nsteps):
+        t = t0 + (step0 + k) * dt
+        if k == 1:
+            prony_ab(fxp, dt, ab)
+        forces_serial_fx(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+                         etab, fxp, ab, h, pold, wmax, ximax, FX_STEP)
+        if g_mode != GRASP_NONE:
+            tip, tip_v = tip_state(t, wp_t, wp_x)
+            _grasp_forces(f, x, g_nodes, g_off, g_k, tip, g_mode, out)
+            rec[k, 0] = out[0]
+            rec[k, 1] = out[1]
+            rec[k, 2] = out[2]
+        _integrate_range(0, n, dt, x, v, f, inv_mass, vfac)
+        if g_mode == GRASP_PRESCRIBED:
+            tip, tip_v = tip_state(t0 + (step0 + k + 1) * dt, wp_t, wp_x)
+            _place_grasped(x, v, g_nodes, g_off, tip, tip_v)
+
+
+@njit(parallel=True, **_OPTS)
+def run_parallel_fx(nsteps, dt, dt_first, t0, step0, x, v, f, fext, inv_mass, vfac,
+                    ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+                    etab, fxp, h, pold, wmax, ximax,
+                    g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec,
+                    node_start, spring_start, halo_start, hbuf, own_start, own_slot, own_node):
+    """:func:`run_parallel` with the material effects (same arithmetic as :func:`run_serial_fx`)."""
+    nchunk = node_start.shape[0] - 1
+    out = np.zeros(3)
+    nt = int(fxp[1])
+    ab = np.empty((2, nt))
+    prony_ab(fxp, dt_first, ab)
+    for k in range(nsteps):
+        t = t0 + (step0 + k) * dt
+        if k == 1:
+            prony_ab(fxp, dt, ab)
+        for c in prange(nchunk):
+            _chunk_forces_fx(c, x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
+                             node_start, spring_start, halo_start, hbuf, etab, fxp, ab, h, pold, wmax, ximax,
+                             FX_STEP)
+        if g_mode != GRASP_NONE:
+            for c in prange(nchunk):
+                _apply_halo(c, f, own_start, own_slot, own_node, hbuf)
+            tip, tip_v = tip_state(t, wp_t, wp_x)
+            _grasp_forces(f, x, g_nodes, g_off, g_k, tip, g_mode, out)
+            rec[k, 0] = out[0]
+            rec[k, 1] = out[1]
+            rec[k, 2] = out[2]
+            for c in prange(nchunk):
+                _integrate_range(node_start[c], node_start[c + 1], dt, x, v, f, inv_mass, vfac)
+        else:
+            for c in prange(nchunk):
+                _apply_halo(c, f, own_start, own_slot, own_node, hbuf)
+                _integrate_range(node_start[c], node_start[c + 1], dt, x, v, f, inv_mass, vfac)
+        if g_mode == GRASP_PRESCRIBED:
+            tip, tip_v = tip_state(t0 + (step0 + k + 1) * dt, wp_t, wp_x)
+            _place_grasped(x, v, g_nodes, g_off, tip, tip_v)
+
+
 # ---------------------------------------------------------------------------
 # quasi-static relaxation (FIRE)
 # ---------------------------------------------------------------------------
 
 @njit(**_OPTS)
 def fire_relax(x, v, f, fext, inv_mass, free, ij, sd, tab, lam_min, inv_h, last_cell, law,
-               g_mode, g_nodes, g_off, g_k, tip, dt0, dt_max, ftol, max_iter):
+               g_mode, g_nodes, g_off, g_k, tip, dt0, dt_max, ftol, max_iter,
+               fx_on, etab, fxp, ab, h, pold, wmax, ximax):
     """FIRE minimisation (Bitzek et al. 2006) of the network energy under fext.
 
     Uses the dynamics' force pass (without dashpots) and a mass-weighted
     semi-implicit Euler MD step; grasper coupling springs (mode SPRING) pull
     the held nodes to ``tip + g_off``. Converged when the largest residual force
     on a free node is below *ftol* [N]. Returns (iterations, final max residual);
-    iterations = -1 when the forces became non-finite.
+    iterations = -1 when the forces became non-finite. With *fx_on* the material
+    effects' long-term force (mode :data:`FX_RELAXED`, state unchanged) is used.
     """
     n = x.shape[0]
     n_min = 5
@@ -416,7 +710,8 @@ def fire_relax(x, v, f, fext, inv_mass, free, ij, sd, tab, lam_min, inv_h, last_
     resid = np.inf
     out = np.zeros(3)
     for it in range(max_iter):
-        forces_serial(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, False)
+        forces_any(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, False,
+                   fx_on, etab, fxp, ab, h, pold, wmax, ximax, FX_RELAXED)
         if g_mode == GRASP_SPRING:
             _grasp_forces(f, x, g_nodes, g_off, g_k, tip, g_mode, out)
         resid = 0.0

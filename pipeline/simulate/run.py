@@ -61,7 +61,7 @@ def choose_threads(sim: Simulator, requested, *, trial_steps: int = 30) -> tuple
         return max(1, min(int(requested), avail)), {}
     if avail == 1 or sim.model.n_springs < AUTO_PARALLEL_MIN_SPRINGS:
         return 1, {}
-    x, v, step = sim.x.copy(), sim.v.copy(), sim.step_count
+    state = sim.snapshot()
     timing = {}
     for th in (1, avail):
         sim.threads = th
@@ -69,9 +69,7 @@ def choose_threads(sim: Simulator, requested, *, trial_steps: int = 30) -> tuple
         t = time.perf_counter()
         sim.advance(trial_steps)
         timing[th] = (time.perf_counter() - t) / trial_steps
-        sim.x[:] = x
-        sim.v[:] = v
-        sim.step_count = step
+        sim.restore(state)
     best = min(timing, key=timing.get)
     return best, {str(k): v for k, v in timing.items()}
 
@@ -86,7 +84,7 @@ def _fixed_nodes(network, scene: Scene) -> np.ndarray:
 
 
 def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None, reporter=None,
-                     asset_label: str = "") -> SimulationResult:
+                     asset_label: str = "", effects=None) -> SimulationResult:
     """Run *scene* on a network with its tables and write the outputs into *out_dir*.
 
     Parameters
@@ -98,6 +96,9 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
     video_path : path-like, optional
         Also render the video there.
     reporter : Reporter, optional
+    effects : MaterialEffects, optional
+        The material's effects (viscoelastic, Mullins, damage), applied per
+        spring unless the scene says ``effects = "none"``.
 
     Returns
     -------
@@ -118,9 +119,15 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
     if fixed.size == 0 and np.any(scene.gravity) and (scene.grasper is None):
         rep.warn("no node is fixed and gravity is on: the organ will fall freely")
 
+    use_fx = effects if (scene.effects == "asset" and effects) else None
+    if effects and use_fx is None:
+        rep.step(f"material effects {', '.join(effects.names)} switched off by the scene (effects = \"none\")")
     t_build = time.perf_counter()
-    model = build_force_model(network, tables, law=law, dashpot=scene.dashpot, precision=scene.precision)
+    model = build_force_model(network, tables, law=law, dashpot=scene.dashpot, precision=scene.precision,
+                              effects=use_fx)
     build_s = time.perf_counter() - t_build
+    if model.effects is not None:
+        rep.step(f"material effects: {_describe_effects(model.effects)}")
     warm = warm_up(model, threads=1)
     if _threads_available() > 1 and model.n_springs >= AUTO_PARALLEL_MIN_SPRINGS:
         warm += warm_up(model, threads=_threads_available())
@@ -151,7 +158,9 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
         u = np.linalg.norm(sim.displacement(), axis=1).max()
         settle["max_displacement_m"] = float(u)
         rep.step(f"equilibrium under gravity: largest sag {u * 1e3:.3g} mm "
-                 f"({settle.get('iterations', '?')} FIRE iterations, {settle['seconds']:.2g} s)")
+                 f"({settle.get('iterations', '?')} FIRE iterations, {settle['seconds']:.2g} s)"
+                 + ("; long-term (relaxed) response, history relaxed" if model.effects is not None
+                    and model.effects.n_terms else ""))
     if scene.grasper is not None:
         plan = plan_grasp(scene.grasper, sim.x, network.surface_faces, fixed, scene.gravity,
                           springs=network.springs)
@@ -169,7 +178,9 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
     def frame_bound(delta):
         if not adaptive or delta is None:
             return table_bound
-        b = stable_step(model, sim.mass, free=sim.free, extra_stiffness=extra, safety=scene.safety,
+        more = sim.history_stiffness(delta)       # viscoelastic history forces (None without)
+        ex = extra if more is None else (more if extra is None else extra + more)
+        b = stable_step(model, sim.mass, free=sim.free, extra_stiffness=ex, safety=scene.safety,
                         x=sim.x, window=delta)
         return b if b.dt_critical >= table_bound.dt_critical else table_bound
 
@@ -205,6 +216,8 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
     if plan is not None:
         attrs["grasper_normal"] = plan.normal.tolist()
         attrs["grasper_target"] = plan.target
+    if model.effects is not None:
+        attrs["effects"] = json.dumps(model.effects.describe(), default=_json_default)
     cells = network.tets if getattr(network, "tets", None) is not None and len(network.tets) else network.surface_faces
     lam_lo, lam_hi = math.inf, -math.inf
     step_wall = 0.0
@@ -213,7 +226,8 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
     dts = []
     fmax = np.zeros(3)
     fmax_norm = 0.0
-    warned_table = False
+    range_check = _RangeCheck(model, rep)
+    range_check(sim, "at the start")
     organ_size = float(np.ptp(np.asarray(network.points), axis=0).max())
     done = set()
     delta = scene.window if adaptive else None
@@ -288,13 +302,8 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
                     raise SimulationError(
                         f"the simulation became unstable at t = {sim.t:.4g} s (displacements beyond 10 organ "
                         f"sizes or non-finite); lower [integrator] safety or check the asset's masses and tables")
-                lo, hi = model.stretch_range(sim.x)
+                lo, hi = range_check(sim, f"at t = {sim.t:.3g} s")
                 lam_lo, lam_hi = min(lam_lo, lo), max(lam_hi, hi)
-                if not warned_table and (lo < model.lam_min or hi > model.lam_max):
-                    warned_table = True
-                    rep.warn(f"at t = {sim.t:.3g} s springs left the table's stretch range "
-                             f"[{model.lam_min:.4g}, {model.lam_max:.4g}] (now {lo:.4g}..{hi:.4g}); "
-                             "there the tables' extrapolation applies (see docs/simulate.md)")
                 tip = sim.grasp.tip(sim.t) if sim.grasp is not None else None
                 hw.add_frame(sim.t, disp, tip=tip)
                 advance(1)
@@ -322,6 +331,10 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
             "ns_per_spring_step": step_wall / total_steps / model.n_springs * 1e9,
             "simulated_s": sim_time, "real_time_factor": sim_time / step_wall if step_wall > 0 else math.inf,
             "stretch_min": lam_lo, "stretch_max": lam_hi, "table_range": [model.lam_min, model.lam_max],
+            "outside_table": range_check.summary(),
+            "effects": None if model.effects is None else {**model.effects.describe(),
+                                                           "final_state": sim.effects_report()},
+            "effects_available": None if not effects else list(effects.names),
             "final_max_displacement_m": umax,
             "grasper": None if plan is None else {
                 "target_node": plan.target, "held_nodes": int(plan.nodes.size), "mode": plan.spec.mode,
@@ -348,6 +361,58 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
     write_text(summary_path, json.dumps(summary, indent=2, default=_json_default) + "\n")
     return SimulationResult(out_dir=out, history=hist_path, xdmf=hist_path.with_suffix(".xdmf"),
                             force_plot=force_png, summary_path=summary_path, video=video, summary=summary)
+
+
+def _describe_effects(fx) -> str:
+    e = fx.effects
+    parts = []
+    if e.viscoelastic is not None:
+        v = e.viscoelastic
+        parts.append("viscoelastic (QLV, " + ", ".join(f"g {g:.3g} tau {t:.3g} s" for g, t in zip(v.g, v.tau))
+                     + f"; long-term {v.g_inf:.3g} of the instantaneous response)")
+    if e.mullins is not None:
+        parts.append(f"Mullins (r {e.mullins.r:.3g}, m {e.mullins.m:.3g} Pa, beta {e.mullins.beta:.3g})")
+    if e.damage is not None:
+        parts.append(f"damage (onset {e.damage.onset:.3g}, scale {e.damage.scale:.3g}, shape {e.damage.shape:.3g})")
+    return "; ".join(parts) + " per spring"
+
+
+class _RangeCheck:
+    """Warn once per run when springs leave the tables' stretch grid; count where it happened."""
+
+    def __init__(self, model, rep):
+        self.model = model
+        self.rep = rep
+        self.first = None
+        self.checks = 0
+        self.outside = 0
+        self.lo = math.inf
+        self.hi = -math.inf
+
+    def __call__(self, sim, when: str) -> tuple[float, float]:
+        m = self.model
+        lo, hi = m.stretch_range(sim.x)
+        self.checks += 1
+        if lo < m.lam_min or hi > m.lam_max:
+            self.outside += 1
+            self.lo, self.hi = min(self.lo, lo), max(self.hi, hi)
+            if self.first is None:
+                self.first = when
+                lam = m.stretches(sim.x)
+                n_out = int(np.count_nonzero((lam < m.lam_min) | (lam > m.lam_max)))
+                self.rep.warn(
+                    f"{when}, {n_out} of {m.n_springs} springs are outside the tables' stretch range "
+                    f"[{m.lam_min:.4g}, {m.lam_max:.4g}] (stretches {lo:.4g}..{hi:.4g}): there the force is "
+                    "the tables' extrapolation, not the material (docs/simulate.md). The organ deforms more "
+                    "than its material can describe: a gentler scene, or a stiffer network (volumetric "
+                    "compensation: 'esmm tables ASSET --compensate'). Warned once per run; the summary "
+                    "counts the frames")
+        return lo, hi
+
+    def summary(self) -> dict:
+        return {"frames": self.outside, "of_frames": self.checks, "first": self.first,
+                "stretch_min": None if self.first is None else self.lo,
+                "stretch_max": None if self.first is None else self.hi}
 
 
 def _json_default(o):
@@ -394,8 +459,8 @@ def plot_forces(history_path, png_path, *, plan: GraspPlan | None = None) -> Pat
     return Path(png_path)
 
 
-def read_asset_for_simulation(path):
-    """(network, tables, label) of an asset file."""
+def read_asset_for_simulation(path, *, with_effects: bool = False):
+    """(network, tables, label) of an asset file (and its MaterialEffects or None, *with_effects*)."""
     p = Path(path)
     if not p.is_file():
         raise AssetError(f"{p}: no such asset file; build one with 'esmm prepare'")
@@ -409,11 +474,13 @@ def read_asset_for_simulation(path):
     if network is None or tables is None:
         raise AssetError(f"{p}: the asset has no spring network or no stiffness tables; rebuild it with "
                          "'esmm prepare'")
+    if with_effects:
+        return network, tables, str(p), getattr(asset, "effects", None)
     return network, tables, str(p)
 
 
 def simulate(asset_path, *, scene=None, out_dir=None, video_path=None, duration=None, threads=None,
-             law=None, reporter=None) -> SimulationResult:
+             law=None, effects=None, reporter=None) -> SimulationResult:
     """Run a scene on an asset file (the ``esmm simulate`` command).
 
     Parameters
@@ -429,13 +496,15 @@ def simulate(asset_path, *, scene=None, out_dir=None, video_path=None, duration=
         Override of the scene's duration [s].
     threads : "auto" or int, optional
     law : {"asset", "secant", "energy"}, optional
+    effects : {"asset", "none"}, optional
+        Override of the scene's use of the asset's material effects.
     """
     sc = scene if isinstance(scene, Scene) else load_scene(scene)
-    sc = sc.with_overrides(duration=duration, threads=threads, law=law)
-    network, tables, label = read_asset_for_simulation(asset_path)
+    sc = sc.with_overrides(duration=duration, threads=threads, law=law, effects=effects)
+    network, tables, label, effects = read_asset_for_simulation(asset_path, with_effects=True)
     if out_dir is None:
         out_dir = Path(asset_path).with_name(Path(asset_path).stem + "-sim")
     if video_path is not None and Path(video_path).suffix.lower() not in (".mp4", ".mkv", ".mov", ".avi"):
         raise ConfigError(f"--video: {video_path} should end in .mp4 (or .mkv, .mov, .avi)")
     return simulate_network(network, tables, sc, out_dir, video_path=video_path, reporter=reporter,
-                            asset_label=label)
+                            asset_label=label, effects=effects)

@@ -5,11 +5,12 @@ Every dimensional value carries its unit, as in every esmm config; the full
 schema with defaults is ``configs/scenes/default.toml`` and docs/simulate.md.
 Tables and keys::
 
-    [scene]       duration, frame_rate, gravity, gravity_unit, law, start
+    [scene]       duration, frame_rate, gravity, gravity_unit, law, start, effects
     [damping]     dashpot, velocity_decay
     [integrator]  safety, step, window, mass_scaling, threads, precision, max_steps
     [fixed]       kind = "asset" (keep the asset's fixed nodes) or a region
-                  table as in prepare configs (band / box / nearest / none)
+                  table as in prepare configs (band / box / nearest / none);
+                  a band's axis may be "up" (against gravity)
     [grasper]     enabled, target, radius, mode, stiffness, direction,
                   grasp_time, release_time, waypoints
     [video]       width, height, colormap, view, zoom, show_fixed, show_edges
@@ -35,7 +36,7 @@ DEFAULT_SCENE = "default"
 JAW_RADIUS = 0.004
 
 _TABLES = {
-    "scene": {"duration", "frame_rate", "gravity", "gravity_unit", "law", "start"},
+    "scene": {"duration", "frame_rate", "gravity", "gravity_unit", "law", "start", "effects"},
     "damping": {"dashpot", "velocity_decay"},
     "integrator": {"safety", "threads", "precision", "max_steps", "step", "window", "mass_scaling"},
     "fixed": None,  # validated by esmm.pipeline.network.regions (plus kind = "asset")
@@ -47,6 +48,7 @@ _GRAVITY_UNITS = {"m/s2": 1.0, "m/s^2": 1.0, "mm/s2": 1e-3, "mm/s^2": 1e-3, "g":
 _STIFFNESS_UNITS = {"n/m": 1.0, "n/mm": 1e3, "kn/m": 1e3}
 VIEWS = ("auto", "xy", "xz", "yz", "iso")
 LAWS = ("asset", "secant", "energy")
+EFFECTS = ("asset", "none")
 GRASP_MODES = ("prescribed", "spring")
 
 
@@ -123,6 +125,9 @@ class Scene:
     start : {"equilibrium", "rest"}
         Start from the static equilibrium under gravity (found with FIRE before
         t = 0), or from the asset's rest shape (the organ then drops at t = 0).
+    effects : {"asset", "none"}
+        Apply the material effects stored in the asset (viscoelastic, Mullins,
+        damage), or simulate the instantaneous elastic response alone.
     dashpot : float
         Stiffness-proportional dashpot time beta [s] (0: none).
     velocity_decay : float or None
@@ -157,6 +162,7 @@ class Scene:
     gravity: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.80665]))
     law: str = "asset"
     start: str = "equilibrium"
+    effects: str = "asset"
     dashpot: float = 0.0
     velocity_decay: float | None = 0.2
     safety: float = 0.9
@@ -181,9 +187,14 @@ class Scene:
         """Frames after the initial one."""
         return max(1, int(math.ceil(self.duration * self.frame_rate - 1e-9)))
 
-    def with_overrides(self, *, duration: float | None = None, threads=None, law: str | None = None) -> Scene:
+    def with_overrides(self, *, duration: float | None = None, threads=None, law: str | None = None,
+                       effects: str | None = None) -> Scene:
         """A copy with command-line overrides applied (validated)."""
         out = self
+        if effects is not None:
+            if effects not in EFFECTS:
+                raise ConfigError(f"--effects: {effects!r} is not one of {', '.join(EFFECTS)}")
+            out = replace(out, effects=effects)
         if duration is not None:
             out = replace(out, duration=_positive(duration, "--duration", "s"))
         if threads is not None:
@@ -203,7 +214,8 @@ class Scene:
             + ("never" if g.release_time is None else f"{g.release_time:g} s"))
         return (f"{self.duration:g} s at {self.frame_rate:g} frames/s, gravity "
                 f"{np.round(self.gravity, 3).tolist()} m/s2, law {self.law}, dashpot {self.dashpot * 1e3:g} ms, "
-                f"velocity decay {'none' if self.velocity_decay is None else f'{self.velocity_decay:g} s'}, {grasp}")
+                f"velocity decay {'none' if self.velocity_decay is None else f'{self.velocity_decay:g} s'}, {grasp}, "
+                f"material effects {'from the asset' if self.effects == 'asset' else 'off'}")
 
 
 # ---------------------------------------------------------------------------
@@ -335,6 +347,11 @@ def scene_from_dict(data: dict, *, source: str = "<dict>") -> Scene:
         if sc["law"] not in LAWS:
             raise ConfigError(f"[scene] law: {sc['law']!r} is not one of {', '.join(LAWS)}")
         kw["law"] = sc["law"]
+    if "effects" in sc:
+        if sc["effects"] not in EFFECTS:
+            raise ConfigError(f"[scene] effects: {sc['effects']!r} is not \"asset\" (the asset's material "
+                              f"effects) or \"none\" (elastic only)")
+        kw["effects"] = sc["effects"]
 
     dm = data.get("damping", {})
     _check_keys(dm, "damping")
@@ -383,6 +400,13 @@ def scene_from_dict(data: dict, *, source: str = "<dict>") -> Scene:
         else:
             from ..network.regions import region_from_config
 
+            if fx.get("axis") in ("up", "down"):
+                # A band across the vertical: its normal is the gravity direction of this scene.
+                g = np.asarray(kw.get("gravity", Scene.__dataclass_fields__["gravity"].default_factory()))
+                if not np.any(g):
+                    raise ConfigError(f"[fixed] axis: {fx['axis']!r} needs gravity; give a vector such as [0, 0, 1]")
+                up = -g / np.linalg.norm(g)
+                fx = {**fx, "axis": (up if fx["axis"] == "up" else -up).tolist()}
             kw["fixed"] = region_from_config(fx, where="[fixed]")
 
     gr = data.get("grasper", {})
