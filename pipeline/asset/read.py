@@ -18,7 +18,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from ..errors import AssetError
+from ..errors import AssetError, EsmmError
 from ..network.springs import SpringNetwork
 from . import _h5
 from .provenance import Provenance
@@ -41,6 +41,9 @@ class Asset:
     material_toml : str
         The material as stored ("" when the asset has none).
     tables : StiffnessTables or None
+    effects : MaterialEffects or None
+        The material effects kept by a discovery (``/material/effects``; for an
+        asset without that group, the ``[material.effects]`` of its material).
     quality, cleaning : dict or None
         The reports as stored (JSON objects).
     quality_passes : bool or None
@@ -57,6 +60,7 @@ class Asset:
     material: Any = None
     material_toml: str = ""
     tables: Any = None
+    effects: Any = None
     quality: dict | None = None
     quality_passes: bool | None = None
     cleaning: dict | None = None
@@ -78,6 +82,7 @@ class Asset:
             "bounds_mm": (np.vstack([net.points.min(0), net.points.max(0)]) * 1e3).round(3).tolist(),
             "bandwidth": net.bandwidth(),
             "material": _material_name(self.material_toml),
+            "effects": None if not self.effects else _effects_summary(self.effects),
             "tables": None if self.tables is None else {
                 "lam_min": self.tables.lam_min, "lam_max": self.tables.lam_max, "n": self.tables.n,
                 "volume_factor": getattr(self.tables, "volume_factor", 1.0),
@@ -92,6 +97,15 @@ class Asset:
             out["quality"] = {k: q[k] for k in ("min_dihedral_deg", "sicn", "gamma", "radius_ratio")
                               if k in q}
         return out
+
+
+def _effects_summary(fx) -> dict[str, Any]:
+    """Names and SI parameters of the material effects (for ``esmm info``)."""
+    d = fx.to_dict()
+    out: dict[str, Any] = {"names": list(fx.names)}
+    for k in fx.names:
+        out[k] = {key: val for key, val in d[k].items() if not key.startswith("unit_")}
+    return out
 
 
 def _stats(a: np.ndarray) -> dict[str, float]:
@@ -320,6 +334,52 @@ def _tables(f: h5py.File):
     return StiffnessTables.from_hdf5(f["/tables"])
 
 
+def _effects(f: h5py.File):
+    """MaterialEffects from ``/material/effects`` (None when the group is absent)."""
+    if "/material/effects" not in f:
+        return None
+    from ..discover.effects import MaterialEffects
+
+    g = f["/material/effects"]
+    d: dict[str, Any] = {}
+    if "viscoelastic" in g:
+        d["viscoelastic"] = {"g": np.atleast_1d(g["viscoelastic/g"][()]).astype(float).tolist(),
+                             "tau": np.atleast_1d(g["viscoelastic/tau"][()]).astype(float).tolist()}
+    if "mullins" in g:
+        d["mullins"] = {k: float(g[f"mullins/{k}"][()]) for k in ("r", "m", "beta")}
+    if "damage" in g:
+        d["damage"] = {k: float(g[f"damage/{k}"][()]) for k in ("onset", "scale", "shape")}
+    try:
+        d["intervals"] = json.loads(_h5.attr_str(g.attrs.get("intervals", "{}")) or "{}")
+    except json.JSONDecodeError:
+        d["intervals"] = {}
+    try:
+        return MaterialEffects.from_dict(d, where="/material/effects")
+    except EsmmError as exc:
+        raise AssetError(str(exc)) from None
+
+
+def _effects_of_toml(material) -> Any:
+    from .write import material_effects
+
+    return material_effects(material)
+
+
+def _effects_disagree(a, b) -> str:
+    """Why two MaterialEffects differ beyond the 6 significant digits of TOML text ('' if they agree)."""
+    if a.names != b.names:
+        return f"effects {a.names} vs {b.names}"
+    da, db = a.to_dict(), b.to_dict()
+    for name in a.names:
+        for key, va in da[name].items():
+            vb = db[name].get(key)
+            if isinstance(va, (int, float, list)):
+                x, y = np.atleast_1d(np.asarray(va, float)), np.atleast_1d(np.asarray(vb, float))
+                if x.shape != y.shape or not np.allclose(x, y, rtol=1e-5, atol=0.0):
+                    return f"{name}.{key} {va} vs {vb}"
+    return ""
+
+
 def _material(text: str):
     """Parse the stored material TOML with the materials module (None if it is not installed)."""
     if not text:
@@ -402,7 +462,7 @@ def read_asset(path: str | os.PathLike, *, verify: bool = True) -> Asset:
             quality = _json(f, "/quality/report")
             passes = f["/quality"].attrs.get("passes") if "/quality" in f else None
             asset = Asset(
-                path=p, network=net, material=None, material_toml=text, tables=_tables(f),
+                path=p, network=net, material=None, material_toml=text, tables=_tables(f), effects=_effects(f),
                 quality=quality, quality_passes=None if passes is None else bool(passes),
                 cleaning=_json(f, "/cleaning/report"), provenance=_provenance(f),
                 fixed_region=_h5.attr_str(f["/nodes"].attrs.get("fixed_region", "")),
@@ -415,7 +475,34 @@ def read_asset(path: str | os.PathLike, *, verify: bool = True) -> Asset:
         asset.material = _material(text)
     except Exception as exc:  # noqa: BLE001 - the stored text is kept; say why it could not be parsed
         raise AssetError(f"{p}: /material/toml cannot be read as a material ({exc}); {ADVICE}") from None
+    if asset.effects is None and asset.material is not None:
+        try:
+            asset.effects = _effects_of_toml(asset.material)
+        except EsmmError as exc:
+            raise AssetError(f"{p}: /material/toml has unreadable [material.effects] ({exc}); {ADVICE}") from None
     return asset
+
+
+def _effects_problems(f: h5py.File) -> list[str]:
+    """/material/effects readable, in range, and the same as the material TOML's [material.effects]."""
+    if "/material/effects" not in f:
+        return []
+    try:
+        fx = _effects(f)
+    except EsmmError as exc:
+        return [f"/material/effects: {exc}"]
+    if not fx:
+        return ["/material/effects: the group holds no effect"]
+    if "/material/toml" not in f:
+        return []
+    try:
+        text_fx = _effects_of_toml(_material(_h5.get_text(f["/material/toml"])))
+    except Exception as exc:  # noqa: BLE001 - any parse failure of the stored text is a problem to report
+        return [f"/material/toml: cannot be read with its effects ({exc})"]
+    if text_fx is None:
+        return ["/material/effects: the material TOML has no [material.effects] table"]
+    why = _effects_disagree(fx, text_fx)
+    return [f"/material/effects disagrees with /material/toml ({why})"] if why else []
 
 
 def validate_asset(path: str | os.PathLike) -> list[str]:
@@ -460,6 +547,7 @@ def validate_asset(path: str | os.PathLike) -> list[str]:
                     _provenance(f)
                 except AssetError as exc:
                     problems.append(str(exc))
+            problems += _effects_problems(f)
         except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:
             problems.append(f"damaged asset ({type(exc).__name__}: {exc})")
     from .xdmf import check_sidecar, sidecar_path

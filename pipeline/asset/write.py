@@ -75,6 +75,7 @@ def _write_material(f: h5py.File, material) -> None:
     for k, v in attrs.items():
         g.attrs[k] = str(v)
     _h5.put_text(g, "toml", text, description="the Material as TOML text (esmm material format)")
+    _write_effects(g, material)
     params = getattr(material, "params", None)
     if not isinstance(params, dict) or not params:
         return
@@ -96,6 +97,62 @@ def _write_material(f: h5py.File, material) -> None:
                 continue
             _h5.put(pg, name, val, units.get(name, "1"), dtype=np.float64,
                     description="SI value (stress-like parameters in Pa)")
+
+
+def material_effects(material):
+    """The material effects of a ``Material`` (``metadata["effects"]``, the ``[material.effects]``
+    table of a discovery's params.toml) as a ``MaterialEffects``, or None when it has none.
+
+    Raises
+    ------
+    ConfigError
+        The table is malformed (one line naming the effect and key).
+    """
+    table = (getattr(material, "metadata", None) or {}).get("effects") if material is not None else None
+    if not table:
+        return None
+    from ..discover.effects import MaterialEffects
+
+    fx = MaterialEffects.from_toml_table(table, stress_unit=getattr(material, "stress_unit", None),
+                                         where=f"{getattr(material, 'name', '') or 'material'}: [material.effects]")
+    return fx if fx else None
+
+
+def _write_effects(g: h5py.Group, material) -> None:
+    """``/material/effects``: the kept material effects in SI (docs/asset-format.md)."""
+    fx = material_effects(material)
+    if fx is None:
+        return
+    d = fx.to_dict()
+    eg = _h5.typed_group(g, "effects", *GROUPS["/material/effects"][:2])
+    eg.attrs["schema"] = d["schema"]
+    eg.attrs["composition"] = d["composition"]
+    eg.attrs["names"] = json.dumps(fx.names)
+    eg.attrs["intervals"] = json.dumps(d.get("intervals", {}), sort_keys=True)
+    if fx.viscoelastic is not None:
+        v = fx.viscoelastic
+        sg = _h5.typed_group(eg, "viscoelastic", *GROUPS["/material/effects/viscoelastic"][:2])
+        sg.attrs["model"] = "QLV: F = g_inf P + sum_i g_i h_i, G(t) = g_inf + sum_i g_i exp(-t/tau_i)"
+        sg.attrs["reference"] = "instantaneous"
+        sg.attrs["g_inf"] = float(v.g_inf)
+        _h5.put(sg, "g", np.asarray(v.g, float), "1", dtype=np.float64,
+                description="Prony weights, sorted by tau; g_inf = 1 - sum(g)")
+        _h5.put(sg, "tau", np.asarray(v.tau, float), "s", dtype=np.float64, description="relaxation times")
+    if fx.mullins is not None:
+        m = fx.mullins
+        sg = _h5.typed_group(eg, "mullins", *GROUPS["/material/effects/mullins"][:2])
+        sg.attrs["model"] = "Ogden-Roxburgh: eta = 1 - (1/r) erf((W_max - W) / (m + beta W_max))"
+        _h5.put(sg, "r", float(m.r), "1", dtype=np.float64, description="largest softening is 1/r")
+        _h5.put(sg, "m", float(m.m), "Pa", dtype=np.float64, description="energy scale of the softening")
+        _h5.put(sg, "beta", float(m.beta), "1", dtype=np.float64, description="growth of the scale with W_max")
+    if fx.damage is not None:
+        da = fx.damage
+        sg = _h5.typed_group(eg, "damage", *GROUPS["/material/effects/damage"][:2])
+        sg.attrs["model"] = "Weibull: 1 - D = exp(-(((xi_max - onset)_+) / scale)^shape)"
+        _h5.put(sg, "onset", float(da.onset), "1", dtype=np.float64,
+                description="uniaxial-equivalent stretch where damage starts")
+        _h5.put(sg, "scale", float(da.scale), "1", dtype=np.float64, description="stretch scale")
+        _h5.put(sg, "shape", float(da.shape), "1", dtype=np.float64, description="Weibull shape")
 
 
 def _report_group(f: h5py.File, name: str, report, summary_keys=(), floors: dict | None = None) -> None:
