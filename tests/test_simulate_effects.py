@@ -354,6 +354,7 @@ def test_state_survives_snapshot_and_restore():
     assert sim.fx_state.t == st1.t
 
 
+@pytest.mark.slow        # the threaded kernel under libgomp on a shared machine: seconds
 def test_threaded_trajectory_with_effects_matches_serial():
     import numba
 
@@ -420,3 +421,120 @@ def test_effects_from_a_material_table():
     assert fx.viscoelastic.tau == (0.05,) and fx.mullins.m == pytest.approx(1500.0)
     assert effects_of_material(SimpleNamespace(metadata={})) is None
     assert math.isclose(build_force_model(one_spring(), make_tables(), effects=fx).effects.g_inf, 0.8)
+
+
+# ---------------------------------------------------------------------------
+# the effects travel: params.toml -> asset -> simulator
+# ---------------------------------------------------------------------------
+
+EFFECTS_TOML = """
+[material.effects.viscoelastic]
+reference = "instantaneous"
+g = [0.3, 0.25]
+tau = ["30 ms", "0.3 s"]
+[material.effects.mullins]
+r = 2.0
+m = "1.5 kPa"
+beta = 0.1
+[material.effects.damage]
+onset = 1.4
+scale = 0.2
+shape = 2.0
+"""
+
+
+@pytest.fixture()
+def fit_material(tmp_path):
+    from esmm.pipeline.materials.material import load_material
+
+    p = tmp_path / "params.toml"
+    p.write_text(load_material("porcine_liver_paper").to_toml() + EFFECTS_TOML, encoding="utf-8")
+    return load_material(str(p))
+
+
+def _asset(tmp_path, material):
+    from esmm.pipeline.asset import write_asset
+    from esmm.pipeline.network.tables import build_tables
+
+    net = network_from_tets(box_tets(3, 2, 2, (0.03, 0.02, 0.02)))
+    net = net.with_fixed(np.flatnonzero(net.points[:, 0] < 1e-9))
+    return write_asset(tmp_path / "a.h5", net, material=material, tables=build_tables(material))
+
+
+def test_asset_carries_the_effects(tmp_path, fit_material):
+    import h5py
+    from esmm.pipeline.asset import read_asset, validate_asset
+
+    path = _asset(tmp_path, fit_material)
+    assert validate_asset(path) == []
+    a = read_asset(path)
+    assert a.effects.names == ["viscoelastic", "mullins", "damage"]
+    assert a.effects.viscoelastic.tau == (0.03, 0.3) and a.effects.mullins.m == pytest.approx(1500.0)
+    assert a.summary()["effects"]["damage"]["onset"] == 1.4
+    with h5py.File(path) as f:
+        g = f["/material/effects"]
+        assert g.attrs["esmm_type"] == "material_effects" and g.attrs["esmm_version"] == 1
+        assert g["viscoelastic/tau"].attrs["units"] == "s" and g["mullins/m"].attrs["units"] == "Pa"
+        np.testing.assert_array_equal(g["viscoelastic/g"][()], [0.3, 0.25])
+    # the simulator reads them
+    from esmm.pipeline.simulate.run import read_asset_for_simulation
+
+    *_, fx = read_asset_for_simulation(path, with_effects=True)
+    assert fx.names == ["viscoelastic", "mullins", "damage"]
+
+
+def test_asset_without_effects_has_none(tmp_path):
+    from esmm.pipeline.asset import read_asset
+    from esmm.pipeline.materials.material import load_material
+
+    path = _asset(tmp_path, load_material("porcine_liver_paper"))
+    a = read_asset(path)
+    assert a.effects is None and a.summary()["effects"] is None
+
+
+def test_edited_effects_are_reported(tmp_path, fit_material):
+    import h5py
+    from esmm.pipeline.asset import validate_asset
+    from esmm.pipeline.asset._h5 import seal
+
+    path = _asset(tmp_path, fit_material)
+    with h5py.File(path, "r+") as f:                  # a consistent re-seal: only the content check can see it
+        ds = f["/material/effects/viscoelastic/tau"]
+        ds[...] = [0.03, 3.0]
+        seal(f)
+    problems = validate_asset(path)
+    assert any("disagrees with /material/toml" in p and "tau" in p for p in problems), problems
+    with h5py.File(path, "r+") as f:
+        f["/material/effects/viscoelastic/g"][...] = [0.9, 0.5]          # sum > 1
+        seal(f)
+    assert any("weights g must be >= 0 with sum <= 1" in p for p in validate_asset(path))
+
+
+@pytest.mark.slow
+def test_end_to_end_discover_prepare_info_simulate(run_cli, tmp_path):
+    """A synthetic viscoelastic tensile set -> discover -> prepare a liver -> info -> simulate."""
+    from esmm.pipeline.discover import synthetic as syn
+
+    truth = syn.Truth("arruda-boyce", {"mu": 20e3, "N": 4.0}, viscoelastic={"g": [0.4, 0.2], "tau": [1.0, 20.0]})
+    files = syn.write_set(tmp_path / "data", [syn.load_unload(0.01, 1.5), syn.load_unload(0.1, 1.5)], truth, seed=1)
+    code, out, err = run_cli("calibrate", *files, "--discover", "--model", "arruda-boyce", "--starts", "2",
+                             "--out", tmp_path / "fit")
+    assert code == 0, err
+    assert "[material.effects.viscoelastic]" in (tmp_path / "fit" / "params.toml").read_text()
+    stl = __import__("pathlib").Path(__file__).resolve().parents[1] / "data" / "meshes" / "ts_liver_3mm_closed.stl"
+    code, out, err = run_cli("prepare", stl, "--config", "coarse", "--material", tmp_path / "fit" / "params.toml",
+                             "-o", tmp_path / "liver.h5")
+    assert code == 0, err
+    code, out, err = run_cli("info", tmp_path / "liver.h5", "--json")
+    assert code == 0, err
+    info = json.loads(out)
+    assert info["valid"] and info["summary"]["effects"]["names"] == ["viscoelastic"]
+    g = info["summary"]["effects"]["viscoelastic"]["g"]
+    assert len(g) == 2 and abs(sum(g) - 0.6) < 0.05          # the hidden truth: g = 0.4 + 0.2
+    code, out, err = run_cli("simulate", tmp_path / "liver.h5", "--duration", "0.2 s", "--threads", "1",
+                             "--out", tmp_path / "sim")
+    assert code == 0, err
+    assert "material effects: viscoelastic" in out
+    s = json.loads((tmp_path / "sim" / "summary.json").read_text())
+    assert s["effects"]["final_state"]["effects"] == ["viscoelastic"]
+    assert s["effects"]["viscoelastic"]["tau"] == info["summary"]["effects"]["viscoelastic"]["tau"]
