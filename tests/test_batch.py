@@ -16,7 +16,7 @@ import cloudpickle
 import numpy as np
 import pytest
 from esmm.pipeline.atomicio import atomic_path, write_text
-from esmm.pipeline.batch import Job, JobOutput, cache_key, run_jobs
+from esmm.pipeline.batch import Job, cache_key, run_jobs
 from esmm.pipeline.batch import cache as bcache
 from esmm.pipeline.batch import jobs as bjobs
 from esmm.pipeline.batch.local import describe_exit

@@ -146,7 +146,7 @@ def sweep_temp(folder: str | os.PathLike) -> list[Path]:
     root = Path(folder)
     if not root.is_dir():
         return removed
-    for dirpath, dirnames, filenames in os.walk(root):
+    for dirpath, _dirnames, filenames in os.walk(root):
         for fn in filenames:
             if is_temp_name(fn):
                 p = Path(dirpath) / fn

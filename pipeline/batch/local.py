@@ -176,6 +176,8 @@ class LocalPool:
     stderr_dir : path, optional
         Where each worker's stdout/stderr go (``worker-<pid>.txt``; removed when
         the worker ends normally). Default: a private temporary folder.
+    kill_grace : float
+        Seconds a timed-out task gets between SIGTERM and SIGKILL.
 
     Events from :meth:`events` are ``(task_id, kind, value)`` with kind
     ``"result"`` (value: the callable's return value), ``"error"`` (value: a
@@ -184,7 +186,7 @@ class LocalPool:
     """
 
     def __init__(self, workers: int, *, env: dict[str, str] | None = None,
-                 stderr_dir: str | os.PathLike | None = None):
+                 stderr_dir: str | os.PathLike | None = None, kill_grace: float = 5.0):
         if isinstance(workers, bool) or int(workers) < 1:
             raise ValueError("workers must be >= 1")
         self.n = int(workers)
@@ -197,6 +199,7 @@ class LocalPool:
         self._workers: list[_Worker] = []
         self._queue: deque[tuple[int, bytes]] = deque()
         self._closed = False
+        self.kill_grace = float(kill_grace)
 
     # -- submission
     def submit(self, task_id: int, fn: Callable[..., Any], *args: Any) -> None:
@@ -329,7 +332,7 @@ class LocalPool:
         with contextlib.suppress(OSError):
             w.proc.send_signal(signal.SIGTERM)
         try:
-            w.proc.wait(timeout=5)
+            w.proc.wait(timeout=self.kill_grace)
         except subprocess.TimeoutExpired:
             with contextlib.suppress(OSError):
                 os.killpg(w.proc.pid, signal.SIGKILL)  # the worker and what it started in its group
@@ -407,3 +410,38 @@ class LocalPool:
         with contextlib.suppress(Exception):
             if not self._closed:
                 self.close(kill=True)
+
+
+class Sandbox:
+    """One worker process that runs callables one at a time and survives their crashes.
+
+    For work that may take its process down (a segfault in a compiled reader
+    on a damaged file, a hang): ``call`` returns ``("result", value)``,
+    ``("error", traceback text)`` or ``("died", (reason, stderr tail))``; after
+    a death the next call starts a fresh worker.
+
+    Examples
+    --------
+    >>> with Sandbox() as sb:                                  # doctest: +SKIP
+    ...     kind, value = sb.call(validate_asset, "liver.h5", timeout=60)
+    """
+
+    def __init__(self, *, env: dict[str, str] | None = None, kill_grace: float = 2.0):
+        self._pool = LocalPool(1, env=env, kill_grace=kill_grace)
+        self._n = 0
+
+    def call(self, fn: Callable[..., Any], *args: Any, timeout: float | None = None) -> tuple[str, Any]:
+        self._n += 1
+        self._pool.submit(self._n, fn, *args)
+        for _tid, kind, value in self._pool.events(timeout=timeout):
+            return kind, value
+        return "died", ("no result", "")  # pragma: no cover - events always yields one
+
+    def close(self) -> None:
+        self._pool.close()
+
+    def __enter__(self) -> Sandbox:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -91,7 +91,7 @@ def execute(task: dict[str, Any]) -> dict[str, Any]:
             out.update(reason=f"the output folder {out_dir} is not visible on worker {socket.gethostname()}; "
                               f"put it on a file system every worker shares", exit_code=2)
             return out
-        for path, (name, digest) in zip(task["key_inputs"], task["digests"]):
+        for path, (_name, digest) in zip(task["key_inputs"], task["digests"]):
             if sha256_file(path) != digest:
                 out.update(reason=f"{path}: the file changed while the batch ran; run the batch again",
                            exit_code=2)
