@@ -46,6 +46,9 @@ def add_parser(sub) -> None:
     p.add_argument("--material", metavar="FILE_OR_NAME",
                    help="material preset name or TOML file (default porcine_liver_paper)")
     p.add_argument("--density", metavar="KG_M3", help="tissue density in kg/m3 (default 1060)")
+    p.add_argument("--no-compensate", dest="compensate", action="store_false", default=None,
+                   help="skip the volumetric compensation (one virtual tensile test of the mesh, "
+                        "a few tens of seconds); the raw network is then ~6x too soft")
     p.add_argument("--force", action="store_true", help="write the asset even if the mesh is below the quality floors")
     p.set_defaults(func=run)
 
@@ -85,7 +88,7 @@ def run(args, ui) -> int:
         label=_number(args.label, "--label", integer=True, positive=False),
         keep_all=args.keep_all, body=_number(args.body, "--body", integer=True, positive=False),
         material=args.material, density=_number(args.density, "--density (kg/m3)"),
-        force=args.force, reporter=ui, argv=["esmm", *getattr(args, "_argv", [])],
+        force=args.force, compensate=args.compensate, reporter=ui, argv=["esmm", *getattr(args, "_argv", [])],
     )
     for line in result.summary_lines():
         ui.info(line)

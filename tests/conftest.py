@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -9,6 +11,12 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 BUNDLED = REPO / "data"
 SHARED = REPO.parent / "shared" / "data"
+
+
+def pytest_configure(config):
+    # Calibrated compensations are cached (pipeline/prepare.py); tests use a fresh cache
+    # of their own, never the user's ~/.cache/esmm.
+    os.environ["ESMM_CACHE_DIR"] = tempfile.mkdtemp(prefix="esmm-test-cache-")
 
 
 @pytest.fixture(scope="session")
