@@ -13,6 +13,9 @@ Memory-bandwidth bound: bytes streamed per spring per step (spring indices and
 data, plus the node arrays divided by the springs per node) over a STREAM-like
 copy bandwidth measured with numpy (large arrays: DRAM; 8 MB arrays: cache).
 
+Material effects: the 50k network without effects, with 3 Prony terms per
+spring, and with viscoelasticity + Mullins + damage (``bench_effects``).
+
 Demo: the paper-sized liver asset (``esmm prepare`` of data/meshes/sofa_liver.stl,
 preset "paper") in the default scene for 1 s of simulated time, adaptive and
 whole-table step; then the off-screen rendering rate at 960 x 720.
@@ -130,6 +133,39 @@ def bench_sizes(tables, threads_all: int) -> dict:
     return out
 
 
+def bench_effects(tables, n: int = SIZES["50k"], steps: int = 60, repeats: int = 7) -> dict:
+    """ns per spring per step, one thread, without and with material effects (same network).
+
+    The plain run uses the elastic kernels (what a material without effects gets);
+    "visco3" carries 3 Prony terms per spring; "all" adds Mullins and damage.
+    """
+    from esmm.pipeline.discover.effects import (
+        DamageEffect,
+        MaterialEffects,
+        MullinsEffect,
+        ViscoelasticEffect,
+    )
+    from esmm.pipeline.network.springs import network_from_tets
+    from esmm.pipeline.simulate.integrator import Simulator, build_force_model, warm_up
+
+    net = network_from_tets(box_tets(n))
+    fixed = np.flatnonzero(net.points[:, 2] < 1e-9)
+    visco = ViscoelasticEffect((0.3, 0.2, 0.1), (0.05, 0.5, 5.0))
+    variants = {"plain": None, "visco3": MaterialEffects(visco),
+                "all": MaterialEffects(visco, MullinsEffect(2.0, 500.0, 0.1), DamageEffect(1.3, 0.2, 2.0))}
+    out: dict = {}
+    for name, fx in variants.items():
+        model = build_force_model(net, tables, effects=fx)
+        out[f"{name}_warm_up_s"] = warm_up(model)
+        sim = Simulator(model, net.points, net.mass, fixed=fixed, gravity=(0, 0, -9.81), mass_damping=5.0)
+        w, c = _time_steps(sim, steps, repeats)
+        s = model.n_springs
+        out[name] = {"springs": s, "wall_ns_per_spring_step": w / s * 1e9, "cpu_ns_per_spring_step": c / s * 1e9}
+    for name in ("visco3", "all"):
+        out[name]["cpu_ratio_to_plain"] = out[name]["cpu_ns_per_spring_step"] / out["plain"]["cpu_ns_per_spring_step"]
+    return out
+
+
 def bytes_touched(model, net) -> float:
     """Bytes moved per spring per step: spring stream + node arrays (x r/w, v r/w, f r/w, fext r, 1/m r)."""
     node_bytes = 8 * (3 * 2 + 3 * 2 + 3 * 2 + 3 + 1)
@@ -187,6 +223,7 @@ def run() -> dict:
         row["bandwidth_bound_ns_dram"] = b / bw_dram
         row["bandwidth_bound_ns_cache"] = b / bw_cache
         row["fraction_of_dram_bound"] = row["bandwidth_bound_ns_dram"] / row["t1_ns_per_spring_step"]
+    res["effects_50k"] = bench_effects(tables)
     res["paper_ns_per_element_step"] = PAPER_NS_PER_ELEMENT
     s5 = res["sizes"]["5k"]
     res["speedup_vs_paper_5k"] = PAPER_NS_PER_ELEMENT / s5["t1_ns_per_spring_step"]

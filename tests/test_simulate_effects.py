@@ -137,7 +137,7 @@ def test_one_spring_history_matches_reference(law):
         pold = p
         assert f[1, 0] == pytest.approx(-F, rel=1e-6, abs=1e-12), lam   # tension pulls node 1 back
         np.testing.assert_allclose(st.h[:, 0], h, rtol=1e-6, atol=1e-12)
-        assert st.wmax[0] == pytest.approx(wmax, rel=1e-6) and st.ximax[0] == pytest.approx(ximax, rel=1e-12)
+        assert st.wmax[0] == pytest.approx(wmax, rel=1e-6) and st.ximax[0] == pytest.approx(ximax, rel=1e-5)
     assert st.ximax[0] > 1.25 and st.wmax[0] > 0               # damage and Mullins were both active
 
 
@@ -169,12 +169,12 @@ def test_equivalent_stretch_in_the_kernel_matches_reference():
     net = one_spring()
     fx = MaterialEffects(damage=DamageEffect(1.0, 0.5, 1.0))
     model = build_force_model(net, tables, effects=fx)
-    for lam in (0.6, 0.8, 0.95, 1.0, 1.3):
+    for lam in (0.45, 0.6, 0.8123, 0.95, 1.0, 1.3):      # below the grid, on and between nodes
         st = model.effects.new_state(1)
         x = net.points.copy()
         x[1, 0] = 0.01 * lam
         model.forces(x, state=st, mode=K.FX_STEP, dt=1e-3)
-        assert st.ximax[0] == pytest.approx(float(equivalent_stretch(lam**2 + 2 / lam)), rel=1e-12)
+        assert st.ximax[0] == pytest.approx(float(equivalent_stretch(lam**2 + 2 / lam)), rel=1e-5)
 
 
 # ---------------------------------------------------------------------------

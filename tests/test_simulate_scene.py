@@ -450,3 +450,60 @@ def test_start_at_equilibrium_has_no_transient(tmp_path, slab):
     drift = max(np.abs(u - eq[0]).max() for u in eq)
     assert drift < 1e-3 * sag                    # already at rest
     assert max(np.abs(u - rest[0]).max() for u in rest) > 0.3 * sag     # dropping from the rest shape
+
+
+# ---------------------------------------------------------------------------
+# the video camera (no OpenGL needed: vtkCamera's matrices)
+# ---------------------------------------------------------------------------
+
+def _box_cloud(lengths, yaw_deg, seed=0):
+    rng = np.random.default_rng(seed)
+    p = (rng.random((4000, 3)) - 0.5) * np.asarray(lengths)
+    c, s = np.cos(np.deg2rad(yaw_deg)), np.sin(np.deg2rad(yaw_deg))
+    return p @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]]) + [0.1, -0.2, 0.05]
+
+
+def test_auto_view_is_horizontal_with_up_against_gravity():
+    from esmm.pipeline.simulate.render import auto_view
+
+    p = _box_cloud((0.20, 0.06, 0.10), 30.0)         # widest along x rotated by 30 deg, thinnest horizontally y'
+    g = np.array([0, 0, -9.81])
+    thin = np.array([-np.sin(np.deg2rad(30)), np.cos(np.deg2rad(30)), 0])
+    look, up = auto_view(p, np.array([0, 0, 0.02]), g, toward=p.mean(axis=0) - 0.05 * thin)
+    np.testing.assert_allclose(up, [0, 0, 1])
+    assert abs(look @ up) < 1e-12                       # horizontal line of sight
+    assert look @ thin == pytest.approx(-1, abs=0.02)   # along the thinnest horizontal axis, grasper side
+    look2, _ = auto_view(p, np.zeros(3), g, toward=p.mean(axis=0) + 0.05 * thin)
+    assert look2 @ thin == pytest.approx(1, abs=0.02)
+    # a motion seen end-on along that axis: look along the widest horizontal axis instead
+    look3, _ = auto_view(p, 0.03 * thin, g)
+    assert abs(look3 @ thin) < 0.05 and abs(look3 @ up) < 1e-12
+    # gravity along -y: up is +y whatever the organ's shape
+    _, up4 = auto_view(p, np.zeros(3), np.array([0, -2.0, 0]))
+    np.testing.assert_allclose(up4, [0, 1, 0])
+
+
+def test_fit_camera_keeps_every_frame_inside_the_box():
+    import vtk
+    from esmm.pipeline.simulate.render import FIT_BOX, auto_view, fit_camera
+
+    rest = _box_cloud((0.20, 0.06, 0.10), 10.0)
+    frames = [rest + [0, 0, 0.03 * k / 5] * (rest[:, [0]] > 0.15) for k in range(6)]   # a lifted end
+    look, up = auto_view(rest, np.array([0, 0, 0.03]), np.array([0, 0, -9.81]))
+    aspect = 960 / 720
+    pos, focal = fit_camera(look, up, frames, view_angle_deg=30.0, aspect=aspect)
+    cam = vtk.vtkCamera()
+    cam.SetPosition(*pos)
+    cam.SetFocalPoint(*focal)
+    cam.SetViewUp(*up)
+    cam.SetViewAngle(30.0)
+    cam.SetClippingRange(1e-4, 100.0)
+    m = cam.GetCompositeProjectionTransformMatrix(aspect, -1, 1)
+    M = np.array([[m.GetElement(i, j) for j in range(4)] for i in range(4)])
+    q = np.c_[np.concatenate(frames), np.ones(sum(len(f) for f in frames))] @ M.T
+    x, y = (q[:, 0] / q[:, 3] + 1) / 2, (q[:, 1] / q[:, 3] + 1) / 2          # picture fractions
+    x0, x1, y0, y1 = FIT_BOX
+    assert x.min() >= x0 - 0.01 and x.max() <= x1 + 0.01 and y.min() >= y0 - 0.01 and y.max() <= y1 + 0.01
+    # tight: the organ fills the box along one of its sides
+    assert max((x.max() - x.min()) / (x1 - x0), (y.max() - y.min()) / (y1 - y0)) > 0.9
+    np.testing.assert_allclose(np.asarray(cam.GetViewUp()), up, atol=1e-12)   # exactly against gravity

@@ -54,6 +54,13 @@ import numpy as np
 from ..errors import ConfigError
 from . import kernels as K
 
+
+def equivalent_stretch(I1):
+    """The uniaxial-equivalent stretch (``esmm.pipeline.discover.effects.equivalent_stretch``)."""
+    from ..discover.effects import equivalent_stretch as _xi
+
+    return _xi(I1)
+
 __all__ = ["EffectModel", "EffectState", "build_effect_model", "effects_of_material"]
 
 
@@ -125,9 +132,11 @@ class EffectModel:
     effects : MaterialEffects
     fxp : ndarray, shape (10 + 2 nt,)
         Kernel parameters (layout in :mod:`.kernels`).
-    etab : ndarray, shape (n_cells, 6)
-        Material uniaxial energy density per cell and direction ``[W_x, W_y, W_z,
-        dW_x, dW_y, dW_z]`` [Pa] (Mullins).
+    etab : ndarray, shape (n_cells, 8)
+        Per cell: the material's uniaxial energy density per direction ``[W_x, W_y,
+        W_z, dW_x, dW_y, dW_z]`` [Pa] (Mullins) and the uniaxial-equivalent stretch
+        ``[xi, dxi]`` at the cell's left node with its increment (damage; linear
+        in the cell, exact at the nodes, for lam >= 1 and below the grid).
     g, tau : ndarray, shape (nt,)
         Prony weights and times [s] (empty without viscoelasticity).
     mullins_cell : ndarray, shape (n_cells, 3) or None
@@ -248,7 +257,10 @@ def build_effect_model(effects, tables, law: str) -> EffectModel | None:
     assert len(head) == K.FXP_HEAD
     fxp = np.ascontiguousarray(np.concatenate([head, g, tau]), dtype=np.float64)
     W = _material_energy(tables)
-    etab = np.ascontiguousarray(np.concatenate([W[:, :-1].T, np.diff(W, axis=1).T], axis=1))
+    lam = np.linspace(tables.lam_min, tables.lam_max, tables.n)
+    xi = np.where(lam >= 1.0, lam, equivalent_stretch(lam**2 + 2.0 / lam))
+    etab = np.ascontiguousarray(np.concatenate([W[:, :-1].T, np.diff(W, axis=1).T, xi[:-1, None],
+                                                np.diff(xi)[:, None]], axis=1))
     f = _law_rows(tables, law)
     mull = None
     if mu is not None:

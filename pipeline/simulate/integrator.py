@@ -883,7 +883,7 @@ class Simulator:
             gargs = (K.GRASP_NONE, np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(3))
         fxm, st = self.model.effects, self.fx_state
         if fxm is None:
-            fxa = (False, np.zeros((1, 6)), np.zeros(K.FXP_HEAD), np.zeros((2, 0)), np.zeros((0, 0)),
+            fxa = (False, np.zeros((1, 8)), np.zeros(K.FXP_HEAD), np.zeros((2, 0)), np.zeros((0, 0)),
                    np.zeros(0), np.zeros(0), np.zeros(0))
         else:
             fxa = (True, *fxm.kernel_args(), fxm.ab(0.0), *st.arrays())

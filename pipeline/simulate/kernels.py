@@ -273,6 +273,9 @@ def forces_parallel(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, 
 #   h_i <- a_i h_i + b_i (P - pold),  a_i = exp(-dt/tau_i), b_i = tau_i/dt (1 - a_i)
 #   F   = g_inf P + sum_i g_i h_i                 QLV, G(0) = 1
 #
+# ``etab`` (n_cells, 8): per cell ``[W_x, W_y, W_z, dW_x, dW_y, dW_z, xi, dxi]``: the material's
+# uniaxial energy density [Pa] and the uniaxial-equivalent stretch of a spring at the cell's left
+# node, with their increments (xi is exact for lam >= 1 and below the grid).
 # Parameters ``fxp`` (float64): [g_inf, nt, mullins_on, 1/r, m, beta, damage_on, onset,
 # scale, shape, g_1..g_nt, tau_1..tau_nt]; ``ab`` (2, nt): a_i and b_i of the current
 # step (from :func:`prony_ab`). Modes:
@@ -367,7 +370,14 @@ def _block_fx(p0, nb, x, v, ij, sd, tab, etab, lam_min, inv_h, last_cell, law, d
         p = p0 + b
         fac = 1.0
         if damage:
-            xi = max(ximax[p], _equivalent_stretch(buf[4, b]))
+            lam = buf[4, b]
+            if lam >= 1.0:
+                xi = lam
+            elif lam >= lam_min:              # tabulated on the grid (exact at its nodes)
+                xi = etab[kk[b], 6] + buf[8, b] * etab[kk[b], 7]
+            else:
+                xi = _equivalent_stretch(lam)
+            xi = max(ximax[p], xi)
             if commit_max:
                 ximax[p] = xi
             e = max(xi - onset, 0.0) / dscale
@@ -386,7 +396,9 @@ def _block_fx(p0, nb, x, v, ij, sd, tab, etab, lam_min, inv_h, last_cell, law, d
             wm = max(wmax[p], w)
             if commit_max:
                 wmax[p] = wm
-            fac *= 1.0 - inv_r * math.erf((wm - w) / (m_w + beta * wm))
+            z = (wm - w) / (m_w + beta * wm)
+            if z > 0.0:                           # erf(0) = 0 on the primary path; erf(z > 6) = 1 - 2e-17
+                fac *= 1.0 - inv_r * (math.erf(z) if z < 6.0 else 1.0)
         pe = fac * buf[5, b]
         if mode == FX_RELAXED:
             f_tot = g_inf * pe

@@ -1,11 +1,13 @@
 """Off-screen video of a simulation history (pyvista/VTK, no display, no GPU).
 
-The organ's surface is drawn coloured by the displacement magnitude [mm]
-(fixed colour range: 0 to the largest displacement of the run, with a scalar
-bar), the fixed nodes as dark points, the grasper as a sphere at its tip with
-a shaft along the outward surface normal of the grasped point, and the
-simulated time (and the grasper force) as text. The camera is fitted once to
-the bounding box of every frame, so the organ never leaves the picture. One
+The organ's surface is drawn coloured by its motion since the first frame
+[mm] (the scene's start; fixed colour range: 0 to the largest over the run,
+with a scalar bar), the fixed nodes as dark points, the grasper as a sphere at its tip with
+a shaft (between the outward surface normal and the pull direction), and the
+simulated time (and the grasper force) as text. View "auto" looks
+horizontally with the view-up against gravity (:func:`auto_view`), and the
+camera is fitted once to every frame (:func:`fit_camera`), so the organ never
+leaves the picture. One
 video frame per history frame, played at the scene's frame rate: the video
 runs in simulated real time.
 
@@ -54,29 +56,73 @@ def _pyvista():
     return pv
 
 
-def auto_view(points: np.ndarray, motion: np.ndarray, gravity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Camera direction (from the focal point to the camera) and up vector for view "auto".
+def auto_view(points: np.ndarray, motion: np.ndarray, gravity: np.ndarray, *,
+              toward: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Camera direction (from the focal point to the camera) and view-up for view "auto".
 
-    Look across the dominant motion (so it shows in the picture plane), as close
-    as possible to the organ's thinnest principal axis (so the organ looks
-    large), tilted 25 degrees towards "up" (against gravity) for depth; "up" is
-    against gravity when that is not along the line of sight.
+    With gravity: the view-up is exactly against gravity (the organ is seen as it
+    lies, a lift goes up on the screen) and the camera looks horizontally, along
+    the organ's *thinnest horizontal* principal axis (second axis of the
+    footprint on the horizontal plane), so its widest horizontal extent spans
+    the picture. If the dominant motion's horizontal part points mostly along
+    that line of sight (it would be seen end-on), the camera looks along the
+    widest horizontal axis instead. Of the two sides, the camera is on the side
+    of *toward* (the grasped point), so the instrument faces it.
+
+    Without gravity: across the dominant motion, as close as possible to the
+    organ's thinnest principal axis, tilted 25 degrees towards the motion.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    motion : ndarray, shape (3,)
+        The run's dominant displacement (may be zero).
+    gravity : ndarray, shape (3,)
+    toward : ndarray, shape (3,), optional
+        A point the camera should face (the grasped point).
+
+    Returns
+    -------
+    (look, up) : unit ndarrays, shape (3,), orthogonal.
     """
     p = np.asarray(points, dtype=np.float64)
-    p = p - p.mean(axis=0)
-    _, _, vt = np.linalg.svd(p[:: max(1, p.shape[0] // 20000)], full_matrices=False)
+    c = p.mean(axis=0)
+    p = p - c
+    sample = p[:: max(1, p.shape[0] // 20000)]
     m = np.asarray(motion, dtype=np.float64)
     mn = float(np.linalg.norm(m))
+    g = np.asarray(gravity, dtype=np.float64)
+    gn = float(np.linalg.norm(g))
+    if gn > 0:
+        up = -g / gn
+        # an orthonormal basis of the horizontal plane, then the footprint's principal axes
+        a = np.eye(3)[int(np.argmin(np.abs(up)))]
+        h1 = a - up * (a @ up)
+        h1 /= np.linalg.norm(h1)
+        h2 = np.cross(up, h1)
+        xy = sample @ np.stack([h1, h2], axis=1)                  # (k, 2) horizontal coordinates
+        _, _, vt = np.linalg.svd(xy - xy.mean(axis=0), full_matrices=False)
+        wide = vt[0, 0] * h1 + vt[0, 1] * h2
+        thin = vt[1, 0] * h1 + vt[1, 1] * h2
+        look = thin
+        if mn > 0:
+            mh = m - up * (m @ up)
+            if np.linalg.norm(mh) > 0.5 * mn and abs(mh @ thin) > 0.7 * np.linalg.norm(mh):
+                look = wide
+        side = 0.0 if toward is None else float((np.asarray(toward, dtype=np.float64) - c) @ look)
+        if side < 0 or (side == 0 and look @ np.ones(3) < 0):
+            look = -look
+        return look / np.linalg.norm(look), up
+    _, _, vt = np.linalg.svd(sample, full_matrices=False)
     look = vt[2].copy()
     if mn > 0:
-        m = m / mn
+        mu = m / mn
         for cand in (vt[2], vt[1], vt[0]):
-            q = cand - m * (cand @ m)
+            q = cand - mu * (cand @ mu)
             if np.linalg.norm(q) > 0.3:
                 look = q / np.linalg.norm(q)
                 break
-    g = np.asarray(gravity, dtype=np.float64)
-    up = -g if np.linalg.norm(g) > 0 else (m if mn > 0 else vt[1])
+    up = m / mn if mn > 0 else vt[1]
     up = up - look * (up @ look)
     if np.linalg.norm(up) < 1e-6:
         up = vt[1] - look * (vt[1] @ look)
@@ -85,6 +131,75 @@ def auto_view(points: np.ndarray, motion: np.ndarray, gravity: np.ndarray) -> tu
     look2 = np.cos(tilt) * look + np.sin(tilt) * up
     up2 = -np.sin(tilt) * look + np.cos(tilt) * up
     return look2 / np.linalg.norm(look2), up2 / np.linalg.norm(up2)
+
+
+#: Part of the picture the organ is fitted into (fractions of width and height from the
+#: lower left): the scalar bar sits on the right, the time and force labels at the top left.
+FIT_BOX = (0.03, 0.83, 0.04, 0.86)
+#: The colour field: motion since the first frame [mm].
+SCALARS = "moved [mm]"
+
+
+def fit_camera(look: np.ndarray, up: np.ndarray, frames_points, *, view_angle_deg: float = 30.0,
+               aspect: float = 4 / 3, box=FIT_BOX) -> tuple[np.ndarray, np.ndarray]:
+    """Perspective camera (position, focal point) along *look* that keeps every frame in *box*.
+
+    The points of every frame are expressed in the camera's basis (right,
+    up, toward the camera); the camera distance is the smallest for which the
+    nearest extreme points stay inside the box's angular extent, and the camera
+    is shifted sideways so that the box's centre is the points' centre.
+
+    Parameters
+    ----------
+    look, up : ndarray, shape (3,)
+        Unit direction from the focal point to the camera, and view-up (orthogonal).
+    frames_points : iterable of ndarray, shape (n, 3)
+        The positions to keep in view (each frame, the grasper tip path).
+    view_angle_deg : float
+        Vertical view angle (VTK's default 30).
+    aspect : float
+        Width / height of the picture.
+    box : (x0, x1, y0, y1)
+        Fractions of the picture.
+
+    Returns
+    -------
+    (position, focal_point) : ndarray, shape (3,)
+    """
+    look = np.asarray(look, dtype=np.float64)
+    up = np.asarray(up, dtype=np.float64)
+    right = np.cross(up, look)            # VTK: right = direction_of_projection x up = -look x up
+    basis = np.stack([right, up, look], axis=1)
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for pts in frames_points:
+        q = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+        if q.size == 0:
+            continue
+        q = q[np.all(np.isfinite(q), axis=1)] @ basis
+        if q.size:
+            lo = np.minimum(lo, q.min(axis=0))
+            hi = np.maximum(hi, q.max(axis=0))
+    if not np.all(np.isfinite(lo)):
+        lo, hi = -np.ones(3), np.ones(3)
+    size = max(float((hi - lo).max()), 1e-9)
+    hi = np.maximum(hi, lo + 1e-6 * size)
+    tv = np.tan(np.deg2rad(view_angle_deg) / 2)
+    th = tv * aspect
+    x0, x1, y0, y1 = box
+    # normalised screen coordinates of the box: [-1, 1] spans the picture
+    bx0, bx1, by0, by1 = 2 * x0 - 1, 2 * x1 - 1, 2 * y0 - 1, 2 * y1 - 1
+    cx, cy = 0.5 * (lo[:2] + hi[:2])
+    half_r, half_u = 0.5 * (hi[:2] - lo[:2])
+    mid = 0.5 * (lo[2] + hi[2])
+    # the points nearest to the camera constrain most: distance from the camera at depth D is D - depth
+    dist = hi[2] + max(half_r / (0.5 * (bx1 - bx0) * th), half_u / (0.5 * (by1 - by0) * tv))
+    # sideways shift: the points' centre lands on the box's centre (exact at the middle depth)
+    camx = cx - 0.5 * (bx0 + bx1) * th * (dist - mid)
+    camy = cy - 0.5 * (by0 + by1) * tv * (dist - mid)
+    position = basis @ np.array([camx, camy, dist])
+    focal = basis @ np.array([camx, camy, mid])
+    return position, focal
 
 
 def _attr_vector(attrs, key, default) -> np.ndarray:
@@ -133,8 +248,11 @@ class FrameRenderer:
         tri = remap[faces]
         cells = np.hstack([np.full((tri.shape[0], 1), 3), tri]).ravel()
         self.mesh = pv.PolyData(rest[used].copy(), cells)
-        self.mesh.point_data["|u| [mm]"] = np.zeros(used.size)
-        self.umax_mm = max(history.max_displacement() * 1e3, 1e-6)
+        # Colour: the motion since the first frame (the scene's start, e.g. the equilibrium under
+        # gravity), so that the grasper's action is not drowned by the initial sag.
+        self.u0 = history.displacement(0) if history.n_frames else np.zeros_like(rest)
+        self.mesh.point_data[SCALARS] = np.zeros(used.size)
+        self.umax_mm = max(self._max_motion() * 1e3, 1e-6)
         size = float(np.linalg.norm(np.ptp(rest, axis=0)))
         self.size = size
         try:
@@ -149,9 +267,9 @@ class FrameRenderer:
             pass
         pl.set_background("white")
         fs = max(6, int(round(video.height / 48)))
-        pl.add_mesh(self.mesh, scalars="|u| [mm]", cmap=video.colormap, clim=(0.0, self.umax_mm),
+        pl.add_mesh(self.mesh, scalars=SCALARS, cmap=video.colormap, clim=(0.0, self.umax_mm),
                     show_edges=video.show_edges, edge_color="gray", smooth_shading=True,
-                    scalar_bar_args=dict(title="|u| [mm]", vertical=True, position_x=0.87,
+                    scalar_bar_args=dict(title=SCALARS, vertical=True, position_x=0.87,
                                          position_y=0.25, height=0.55, width=0.05, color="black",
                                          fmt="%.1f", title_font_size=fs, label_font_size=fs))
         self.fixed_cloud = None
@@ -161,9 +279,15 @@ class FrameRenderer:
             self.fixed_cloud = pv.PolyData(rest[fixed_vis].copy())
             pl.add_mesh(self.fixed_cloud, color="#303030", point_size=max(2.0, video.height / 240),
                         render_points_as_spheres=False)
-        # The grasper: a sphere at the tip and a shaft along the outward normal.
+        # The grasper: a sphere at the tip and a shaft, the instrument's axis: halfway between the
+        # outward normal of the grasped point and the pull direction (an instrument pulling along
+        # its axis, never through the organ); the normal alone when the two are opposite.
         normal = _attr_vector(history.attrs, "grasper_normal", (0.0, 0.0, 1.0))
-        self.normal = normal / (np.linalg.norm(normal) or 1.0)
+        normal = normal / (np.linalg.norm(normal) or 1.0)
+        pull = _attr_vector(history.attrs, "grasper_direction", (0.0, 0.0, 0.0))
+        pull = pull / (np.linalg.norm(pull) or 1.0)
+        axis = normal + pull
+        self.normal = axis / np.linalg.norm(axis) if np.linalg.norm(axis) > 0.2 else normal
         r = 0.02 * size
         self.tip_actor = pl.add_mesh(pv.Sphere(radius=r, center=(0, 0, 0)), color="#c0c0c0",
                                      smooth_shading=True)
@@ -176,6 +300,12 @@ class FrameRenderer:
         self._ft, self._ff = history.forces() if forces else (np.zeros(0), np.zeros((0, 3)))
         self._fit_camera()
 
+    def _max_motion(self) -> float:
+        """Largest displacement from the first frame over all frames [m]."""
+        h = self.h
+        return max((float(np.linalg.norm(h.displacement(k) - self.u0, axis=1).max())
+                    for k in range(h.n_frames)), default=0.0)
+
     # -- scene pieces ------------------------------------------------------
     def _set_grasper(self, tip) -> None:
         visible = tip is not None and np.all(np.isfinite(tip))
@@ -186,42 +316,43 @@ class FrameRenderer:
 
     def _fit_camera(self) -> None:
         h = self.h
-        lo = h.points.min(axis=0)
-        hi = h.points.max(axis=0)
-        for k in range(h.n_frames):
-            p = h.points + h.displacement(k)
-            lo = np.minimum(lo, p.min(axis=0))
-            hi = np.maximum(hi, p.max(axis=0))
         # The dominant motion: displacement of the node that moves most, at its largest.
         motion = np.zeros(3)
+        frames = []
         for k in range(h.n_frames):
             u = h.displacement(k)
             a = int(np.argmax(np.einsum("ij,ij->i", u, u)))
             if u[a] @ u[a] > motion @ motion:
                 motion = u[a].copy()
+            frames.append(h.points[self._used] + u[self._used])
         tips = h.tips[np.all(np.isfinite(h.tips), axis=1)]
         if tips.size:
-            lo = np.minimum(lo, tips.min(axis=0))
-            hi = np.maximum(hi, tips.max(axis=0))
-        bounds = (lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])
+            frames.append(tips)
         pl = self.pl
         view = self.video.view
-        if view == "xy":
-            pl.view_xy()
-        elif view == "xz":
-            pl.view_xz()
-        elif view == "yz":
-            pl.view_yz()
-        elif view == "iso":
-            pl.view_isometric()
+        if view in ("xy", "xz", "yz", "iso"):
+            frames = frames or [h.points]
+            lo = np.min([f.min(axis=0) for f in frames], axis=0)
+            hi = np.max([f.max(axis=0) for f in frames], axis=0)
+            {"xy": pl.view_xy, "xz": pl.view_xz, "yz": pl.view_yz, "iso": pl.view_isometric}[view]()
+            pl.reset_camera(bounds=(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]))
         else:
-            look, up = auto_view(h.points, motion, _attr_vector(h.attrs, "gravity", (0.0, 0.0, -1.0)))
-            c = 0.5 * (lo + hi)
+            target = h.attrs.get("grasper_target", None)
+            toward = None
+            if target is not None and 0 <= int(target) < h.points.shape[0]:
+                toward = h.points[int(target)]
+            elif tips.size:
+                toward = tips[0]
+            look, up = auto_view(h.points, motion, _attr_vector(h.attrs, "gravity", (0.0, 0.0, -1.0)),
+                                 toward=toward)
             cam = pl.camera
-            cam.focal_point = tuple(c)
-            cam.position = tuple(c + look * 3.0 * self.size)
+            angle = float(cam.view_angle)
+            pos, focal = fit_camera(look, up, frames, view_angle_deg=angle,
+                                    aspect=self.video.width / self.video.height)
+            cam.focal_point = tuple(focal)
+            cam.position = tuple(pos)
             cam.up = tuple(up)
-        pl.reset_camera(bounds=bounds)
+            pl.renderer.ResetCameraClippingRange()
         if self.video.zoom != 1.0:
             pl.camera.zoom(self.video.zoom)
 
@@ -232,7 +363,7 @@ class FrameRenderer:
         u = h.displacement(k)
         p = h.points + u
         self.mesh.points[:] = p[self._used]
-        self.mesh.point_data["|u| [mm]"][:] = np.linalg.norm(u[self._used], axis=1) * 1e3
+        self.mesh.point_data[SCALARS][:] = np.linalg.norm((u - self.u0)[self._used], axis=1) * 1e3
         self.mesh.Modified()
         if self.fixed_cloud is not None:
             self.fixed_cloud.points[:] = p[self._fixed_idx]

@@ -157,6 +157,13 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
                      "starting from the closest state found")
         u = np.linalg.norm(sim.displacement(), axis=1).max()
         settle["max_displacement_m"] = float(u)
+        gdir = scene.gravity / np.linalg.norm(scene.gravity)
+        height = float(np.ptp(np.asarray(network.points) @ gdir))
+        if u > height:
+            rep.warn(f"under its own weight the organ sags {u * 1e3:.3g} mm, more than its height along gravity "
+                     f"({height * 1e3:.3g} mm): the network is too soft to carry itself in this scene (no contact "
+                     "holds it, only the fixed nodes). Stiffen it (volumetric compensation: 'esmm tables ASSET "
+                     "--compensate') or hold it elsewhere ([fixed])")
         rep.step(f"equilibrium under gravity: largest sag {u * 1e3:.3g} mm "
                  f"({settle.get('iterations', '?')} FIRE iterations, {settle['seconds']:.2g} s)"
                  + ("; long-term (relaxed) response, history relaxed" if model.effects is not None
@@ -215,6 +222,7 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
     }
     if plan is not None:
         attrs["grasper_normal"] = plan.normal.tolist()
+        attrs["grasper_direction"] = plan.direction.tolist()
         attrs["grasper_target"] = plan.target
     if model.effects is not None:
         attrs["effects"] = json.dumps(model.effects.describe(), default=_json_default)
