@@ -592,6 +592,13 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
     rep.step(f"config: {source}; structure {s.structure}; material {s.material}")
     if mat is None:
         warn("the materials module is not available: the asset has no /material or /tables")
+    else:
+        from .asset.write import material_effects
+
+        fx = material_effects(mat)       # ConfigError before any meshing if [material.effects] is malformed
+        if fx is not None:
+            rep.step(f"material effects {', '.join(fx.names)}: written to /material/effects, applied by "
+                     "'esmm simulate' (the material's parameters are the instantaneous response)")
 
     # read
     from .mesh.cleaning import CleaningOptions, clean_surface

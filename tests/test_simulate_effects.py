@@ -522,9 +522,11 @@ def test_end_to_end_discover_prepare_info_simulate(run_cli, tmp_path):
     assert code == 0, err
     assert "[material.effects.viscoelastic]" in (tmp_path / "fit" / "params.toml").read_text()
     stl = __import__("pathlib").Path(__file__).resolve().parents[1] / "data" / "meshes" / "ts_liver_3mm_closed.stl"
+    # (--no-compensate: the compensation's virtual tensile test is orthogonal to the effects and slow)
     code, out, err = run_cli("prepare", stl, "--config", "coarse", "--material", tmp_path / "fit" / "params.toml",
-                             "-o", tmp_path / "liver.h5")
+                             "--no-compensate", "-o", tmp_path / "liver.h5")
     assert code == 0, err
+    assert "material effects viscoelastic: written to /material/effects" in out + err
     code, out, err = run_cli("info", tmp_path / "liver.h5", "--json")
     assert code == 0, err
     info = json.loads(out)
@@ -538,3 +540,29 @@ def test_end_to_end_discover_prepare_info_simulate(run_cli, tmp_path):
     s = json.loads((tmp_path / "sim" / "summary.json").read_text())
     assert s["effects"]["final_state"]["effects"] == ["viscoelastic"]
     assert s["effects"]["viscoelastic"]["tau"] == info["summary"]["effects"]["viscoelastic"]["tau"]
+
+
+def test_tables_with_a_fit_material_carry_its_effects(tmp_path, fit_material):
+    """esmm tables ASSET --material params.toml: the rewritten asset has the new material's effects."""
+    from esmm.pipeline.asset import read_asset, validate_asset
+    from esmm.pipeline.materials.material import load_material
+    from esmm.pipeline.network.tables import build_tables, update_asset_tables
+
+    path = _asset(tmp_path, load_material("porcine_liver_paper"))
+    assert read_asset(path).effects is None
+    update_asset_tables(path, build_tables(fit_material), material=fit_material)
+    assert validate_asset(path) == []
+    assert read_asset(path).effects.names == ["viscoelastic", "mullins", "damage"]
+
+
+def test_prepare_refuses_malformed_effects_before_meshing(run_cli, tmp_path):
+    from esmm.pipeline.materials.material import load_material
+
+    p = tmp_path / "bad.toml"
+    p.write_text(load_material("porcine_liver_paper").to_toml()
+                 + '[material.effects.viscoelastic]\ng = [0.7, 0.6]\ntau = ["1 s", "2 s"]\n', encoding="utf-8")
+    stl = __import__("pathlib").Path(__file__).resolve().parents[1] / "data" / "meshes" / "ts_liver_3mm_closed.stl"
+    code, out, err = run_cli("prepare", stl, "--config", "coarse", "--material", p, "--no-compensate",
+                             "-o", tmp_path / "x.h5")
+    assert code == 2 and "sum <= 1" in err and "Traceback" not in err
+    assert not (tmp_path / "x.h5").exists()
