@@ -215,15 +215,32 @@ def mode_value(e: Entry) -> str:
     raise e.error(f"{e.where}: unknown mode {e.value!r}; use one of {', '.join(MODES)}")
 
 
+_ENCODING_ADVICE = "use a text encoding such as utf-8, gbk, cp1252, latin-1, shift_jis"
+
+
 def encoding_value(e: Entry) -> str:
-    """A Python codec name, checked."""
+    """A Python codec name, checked to be a usable *text* encoding.
+
+    Refused: unknown names, names Python cannot look up at all (an embedded
+    NUL), binary-to-binary or text-to-text codecs (``hex``, ``zlib``, ``bz2``,
+    ``uu``, ``quopri``, ``base64``, ``rot13``: ``_is_text_encoding`` is false)
+    and text codecs that cannot decode anything (``undefined``).
+    """
     name = str(e.value).strip()
+    shown = name if len(name) <= 40 else name[:40] + "..."
     try:
-        codecs.lookup(name)
-    except LookupError:
+        info = codecs.lookup(name)
+    except (LookupError, ValueError, TypeError):  # ValueError: an embedded NUL character
+        raise e.error(f"{e.where}: unknown text encoding {shown!r}; {_ENCODING_ADVICE}") from None
+    if not getattr(info, "_is_text_encoding", True):
         raise e.error(
-            f"{e.where}: unknown text encoding {name!r}; use a name such as utf-8, gbk, cp1252, latin-1, shift_jis"
-        ) from None
+            f"{e.where}: {shown!r} is not a text encoding (Python's codec of that name transforms data, it "
+            f"does not decode bytes into text); {_ENCODING_ADVICE}"
+        )
+    try:
+        codecs.decode(b"", name)
+    except (UnicodeError, LookupError, ValueError, TypeError):
+        raise e.error(f"{e.where}: the {info.name!r} codec cannot decode text; {_ENCODING_ADVICE}") from None
     return name
 
 

@@ -171,6 +171,13 @@ def _decode(raw: bytes, label: str, enc_entry: M.Entry | None) -> tuple[str, str
                 f"{label}: does not decode as {name} (stated by {src}): byte 0x{raw[exc.start]:02x} "
                 f"on line {line}; state the file's real encoding"
             ) from None
+        except (UnicodeError, LookupError, ValueError) as exc:
+            # Codecs that fail without a position (punycode, idna: "codec failed", label errors).
+            why = " ".join(str(exc).split())[:120]
+            raise InputError(
+                f"{label}: does not decode as {name} (stated by {src}: {why}); state the file's real "
+                f"encoding, e.g. utf-8 or gbk"
+            ) from None
     else:
         try:
             text = raw.decode("utf-8")
