@@ -347,12 +347,14 @@ def test_calibrate_batch_equals_direct_fits_and_reruns_from_cache(tmp_path):
             assert (out / f"budday2017-{spec}" / f).is_file()
     assert rows["mean"]["status"] == "2 group(s)"
 
-    table_before = (out / "summary.csv").read_text()
+    assert rows[str(bad)]["status"] == "unreadable" and rows["budday2017-cortex"]["cached"] == ""
     s2 = calibrate_batch(files, out_dir=out, fit_kwargs=fit, workers=2)
     assert [o.status for o in s2.outcomes] == ["failed", "cached", "cached"]
-    after = (out / "summary.csv").read_text()
-    strip = [lambda t: [r.rsplit(",", 2)[0] for r in t.splitlines()]]  # seconds column differs
-    assert strip[0](after) == [line.replace(",done,", ",skipped (cached),") for line in strip[0](table_before)]
+    rows2 = {r["group"]: r for r in read_csv(out / "summary.csv")}
+    assert rows2["budday2017-cortex"]["cached"] == "yes"
+    for g in rows:  # the same numbers from the cache
+        assert {k: v for k, v in rows2[g].items() if k not in ("seconds", "cached")} == \
+            {k: v for k, v in rows[g].items() if k not in ("seconds", "cached")}
     # A changed option recomputes.
     s3 = calibrate_batch(_brain("cortex"), out_dir=out, fit_kwargs={**fit, "n_starts": 3}, workers=1)
     assert [o.status for o in s3.outcomes] == ["done"]
@@ -416,7 +418,7 @@ def test_prepare_jobs_key_covers_config_and_material_files(tmp_path, monkeypatch
     assert cache_key(prepare_jobs([stl], out_dir="out", options={"config": "p.toml"})[0]) != k0
     k1 = cache_key(prepare_jobs([stl], out_dir="out", options={"config": "p.toml"})[0])
     assert cache_key(prepare_jobs([stl], out_dir="out", options={"config": "p.toml", "force": True})[0]) != k1
-    with pytest.raises(ConfigError, match="unknown option"):
+    with pytest.raises(ConfigError, match="unknown option.*colour.*known: config, size"):
         prepare_jobs([stl], out_dir="out", options={"colour": "red"})
     with pytest.raises(ConfigError):
         prepare_jobs([stl], out_dir="out", options={"config": "missing.toml"})
@@ -447,9 +449,10 @@ def test_dask_local_cluster_runs_the_batch_and_survives_a_dead_worker(tmp_path):
     jobs = calibrate_jobs(_brain("cortex", "corpus_callosum"), out_dir=out, fit_kwargs=fit)
     jobs.append(Job(name="killer", kind="test", fn=job_kill))
     jobs += write_jobs(out, ["w1", "w2", "w3"])  # > 2 x threads: Dask queues the group on the scheduler
-    # allowed-failures=0: the scheduler gives up on the killer at once (default: 3 retries);
-    # worker-saturation=1: a worker holds only the task it runs, so only the killer dies with it.
-    with dask.config.set({"distributed.scheduler.allowed-failures": 0,
+    # allowed-failures=1: the scheduler gives up on the killer after its second victim (default: 3
+    # retries) and still retries a job that was unlucky enough to be on a killed worker once;
+    # worker-saturation=1: a worker holds only the task it runs.
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1,
                           "distributed.scheduler.worker-saturation": 1.0}), \
             distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                                      dashboard_address=None, silence_logs=50) as cluster:

@@ -167,7 +167,8 @@ def calibrate_jobs(files: Sequence[str | os.PathLike], *, by: str = "specimen",
         except ConfigError:
             raise
         except EsmmError as exc:
-            jobs.append(Job.failed(str(f), KIND, str(exc), exit_code=exc.exit_code))
+            jobs.append(Job.failed(str(f), KIND, str(exc), exit_code=exc.exit_code,
+                                   summary={"unreadable": True, "files": [p]}))
             rep.warn(f"skipped: {exc}")
             continue
         key = t.specimen if by == "specimen" else str(Path(p).parent)
@@ -183,7 +184,12 @@ def calibrate_jobs(files: Sequence[str | os.PathLike], *, by: str = "specimen",
 
 
 def params_table(summary: BatchSummary) -> str:
-    """CSV: one row per group (status, parameters [SI], errors, reason) plus mean and std rows."""
+    """CSV: one row per group (status, parameters [SI], errors, reason) plus mean and std rows.
+
+    ``status`` is ``ok`` (fitted now or earlier: ``cached`` says which), ``failed``,
+    ``unreadable`` (a file that could not be read; its row is named by the path)
+    or ``interrupted``.
+    """
     keys: list[str] = []
     for o in summary.outcomes:
         for e in o.summary.get("estimates", []) if o.status in ("done", "cached") else []:
@@ -192,11 +198,14 @@ def params_table(summary: BatchSummary) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["group", "status", "files", *[f"{k} [SI]" for k in keys], "rmse [Pa]", "nrmse", "r2", "seconds",
-                "reason"])
+                "cached", "reason"])
     cols: dict[str, list[float]] = {k: [] for k in [*keys, "rmse", "nrmse", "r2"]}
     for o in summary.outcomes:
         s = o.summary
-        status = "skipped (cached)" if o.status == "cached" else o.status
+        status = {"done": "ok", "cached": "ok"}.get(o.status, o.status)
+        if o.status == "failed" and s.get("unreadable"):
+            status = "unreadable"
+        cached = "yes" if o.status == "cached" else ""
         if o.status in ("done", "cached") and "estimates" in s:
             vals = {e["key"]: float(e["value"]) for e in s["estimates"]}
             for k in keys:
@@ -205,9 +214,10 @@ def params_table(summary: BatchSummary) -> str:
                 cols[k].append(float(s.get(k, math.nan)))
             w.writerow([o.name, status, len(s.get("files", [])), *[f"{vals.get(k, math.nan):.8g}" for k in keys],
                         f"{float(s.get('rmse', math.nan)):.6g}", f"{float(s.get('nrmse', math.nan)):.6g}",
-                        f"{float(s.get('r2', math.nan)):.6g}", f"{o.seconds:.2f}", ""])
+                        f"{float(s.get('r2', math.nan)):.6g}", f"{o.seconds:.2f}", cached, ""])
         else:
-            w.writerow([o.name, status, "", *[""] * len(keys), "", "", "", f"{o.seconds:.2f}", o.reason])
+            w.writerow([o.name, status, len(s.get("files", [])) or "", *[""] * len(keys), "", "", "",
+                        f"{o.seconds:.2f}", "", o.reason])
     n_ok = len(cols["rmse"])
     if n_ok:
         def mean(v):
@@ -220,7 +230,7 @@ def params_table(summary: BatchSummary) -> str:
 
         for label, fn in (("mean", mean), ("std", std)):
             w.writerow([label, f"{n_ok} group(s)", "", *[f"{fn(cols[k]):.8g}" for k in keys],
-                        *[f"{fn(cols[k]):.6g}" for k in ("rmse", "nrmse", "r2")], "", ""])
+                        *[f"{fn(cols[k]):.6g}" for k in ("rmse", "nrmse", "r2")], "", "", ""])
     return buf.getvalue()
 
 

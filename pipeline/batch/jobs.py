@@ -198,11 +198,14 @@ class Job:
     config: Mapping[str, Any] = field(default_factory=dict)
     error: str | None = None
     error_exit_code: int = 2
+    error_summary: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
-    def failed(cls, name: str, kind: str, reason: str, *, exit_code: int = 2) -> Job:
-        """A job that failed before it could run (reported, never executed)."""
-        return cls(name=name, kind=kind, error=" ".join(str(reason).split()), error_exit_code=exit_code)
+    def failed(cls, name: str, kind: str, reason: str, *, exit_code: int = 2,
+               summary: dict[str, Any] | None = None) -> Job:
+        """A job that failed before it could run (reported, never executed; *summary* goes to its outcome)."""
+        return cls(name=name, kind=kind, error=" ".join(str(reason).split()), error_exit_code=exit_code,
+                   error_summary=dict(summary or {}))
 
 
 @dataclass

@@ -28,9 +28,18 @@ from .runner import run_jobs
 
 KIND = "prepare"
 
-#: Keyword options of prepare() a batch passes through (``argv`` is provenance only).
-OPTIONS = ("config", "size", "nodes", "elements", "structure", "unit", "label", "keep_all", "body",
-           "material", "density", "force")
+#: Keyword options of prepare() that are not result options (the batch sets them itself).
+_NOT_OPTIONS = ("input_path", "output", "reporter", "argv")
+
+
+def prepare_options() -> tuple[str, ...]:
+    """The keyword options of :func:`esmm.pipeline.prepare.prepare` a batch passes through."""
+    import inspect
+
+    from ..prepare import prepare
+
+    return tuple(n for n, prm in inspect.signature(prepare).parameters.items()
+                 if prm.kind is inspect.Parameter.KEYWORD_ONLY and n not in _NOT_OPTIONS)
 
 
 def asset_names(inputs: Sequence[str | os.PathLike]) -> dict[str, str]:
@@ -111,7 +120,8 @@ def prepare_jobs(inputs: Sequence[str | os.PathLike], *, out_dir: str | os.PathL
         The batch folder; assets are named by :func:`asset_names`.
     options : mapping, optional
         Keyword options of :func:`esmm.pipeline.prepare.prepare` (see
-        :data:`OPTIONS`); ``size`` in metres.
+        :func:`prepare_options`); ``size`` in metres. ``None`` values are
+        dropped (prepare's defaults apply).
     argv : sequence of str, optional
         The command line, recorded in each asset's provenance.
 
@@ -124,10 +134,11 @@ def prepare_jobs(inputs: Sequence[str | os.PathLike], *, out_dir: str | os.PathL
     from ..prepare import load_prepare_config
 
     opts = dict(options or {})
-    unknown = sorted(set(opts) - set(OPTIONS))
+    known = prepare_options()
+    unknown = sorted(set(opts) - set(known))
     if unknown:
-        raise ConfigError(f"prepare batch: unknown option(s) {', '.join(unknown)}; known: {', '.join(OPTIONS)}")
-    opts = {k: v for k, v in opts.items() if v is not None and v is not False}
+        raise ConfigError(f"prepare batch: unknown option(s) {', '.join(unknown)}; known: {', '.join(known)}")
+    opts = {k: v for k, v in opts.items() if v is not None}
     # Files named by options: absolute (workers may run elsewhere) and part of the key.
     extra: list[Path] = []
     for k in ("config", "material"):

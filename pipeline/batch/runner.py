@@ -238,17 +238,29 @@ def _run_dask(tasks: list[Task], target: Any, on_event: OnEvent, logger: logging
             key = f"esmm-batch-{uuid.uuid4().hex}"
             futures[client.submit(execute_blob, cloudpickle.dumps(t), pure=False, key=key, retries=0)] = i
             logger.debug("job %s: submitted as %s", t["name"], key)
-        for fut in as_completed(list(futures), with_results=False, loop=client.loop):
+        regather: dict[int, int] = {}
+        ac = as_completed(list(futures), with_results=False, loop=client.loop)
+        for fut in ac:
             i = futures[fut]
             t = tasks[i]
-            reported.add(i)
             if fut.status == "finished":
                 try:
-                    on_event(t, fut.result())
-                except Exception as exc:  # noqa: BLE001 - result lost in transit
+                    res = fut.result()
+                except Exception as exc:  # noqa: BLE001 - the worker holding the result died
+                    if fut.status != "error" and regather.get(i, 0) < 3:
+                        # Dask reschedules a lost result; wait for it again.
+                        regather[i] = regather.get(i, 0) + 1
+                        logger.info("job %s: result lost with its worker, waiting for the rerun", t["name"])
+                        ac.add(fut)
+                        continue
+                    reported.add(i)
                     reason, code = _dask_reason(exc)
                     on_event(t, _failed(t, reason, code))
+                    continue
+                reported.add(i)
+                on_event(t, res)
             else:
+                reported.add(i)
                 try:
                     exc = fut.exception()
                 except BaseException as e:  # noqa: BLE001 - cancelled futures raise here
@@ -363,7 +375,8 @@ def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any 
                 if job.error is not None or job.fn is None:
                     reason = job.error or "the job has no function to run"
                     outcomes[job.name] = JobOutcome(job.name, job.kind, "failed", reason=reason,
-                                                    exit_code=job.error_exit_code)
+                                                    exit_code=job.error_exit_code,
+                                                    summary=dict(job.error_summary))
                     logger.warning("job %s: failed before running (exit %d): %s", job.name,
                                    job.error_exit_code, reason)
                     continue
