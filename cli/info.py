@@ -55,6 +55,10 @@ def _text(s: dict) -> list[str]:
               f"(density {s['density_kg_m3']:g} kg/m3)",
               "  extent       " + " x ".join(f"{b - a:.1f}" for a, b in zip(lo, hi)) + " mm",
               f"  material     {s['material'] or '(none)'}"]
+    effects = s.get("effects")
+    if effects:
+        names = effects.get("names", []) if isinstance(effects, dict) else list(effects)
+        lines.append("  effects      " + (", ".join(names) or "(none)"))
     t = s.get("tables")
     lines.append("  tables       " + ("(none)" if not t else
                                       f"{t['n']} points, stretch {t['lam_min']:.3g}..{t['lam_max']:.3g}, "
