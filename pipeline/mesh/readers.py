@@ -11,8 +11,14 @@ Formats
 * STL, binary and ASCII: parsed here with numpy (a truncated binary file is
   detected from its triangle count); duplicate corners are merged by exact
   coordinates, as every STL writer duplicates them.
-* OBJ, PLY, VTP, legacy VTK (polydata or unstructured grid): VTK readers via
-  pyvista, with VTK's error output captured; a volume mesh gives its boundary.
+* PLY (ASCII, binary little and big endian): parsed here with numpy, header
+  and indices checked before anything is built (VTK's PLY reader crashes the
+  process on face indices beyond the declared vertices); polygons are
+  triangulated as fans, faces with fewer than 3 vertices are dropped.
+* OBJ, VTP, legacy VTK (polydata or unstructured grid): VTK readers via
+  pyvista, with VTK's error output captured; a volume mesh gives its boundary;
+  only the triangles of the triangulated polygons are kept (lines and
+  vertices are dropped).
 * gmsh ``.msh`` (any version, including MSH 1 that meshio cannot read; meshio
   calls ``sys.exit`` on it): read by gmsh itself in a subprocess; a volume mesh
   gives its boundary surface.
@@ -99,7 +105,9 @@ def read_surface(path: str | os.PathLike, *, unit: str = "mm", label: int | None
         pts, faces, scale, what = _read_nifti(p, label=label, scale=scale)
     elif suf == ".msh":
         pts, faces, what = _read_msh(p)
-    elif suf in (".obj", ".ply", ".vtk", ".vtp", ".vtu"):
+    elif suf == ".ply":
+        pts, faces, what = _read_ply(p)
+    elif suf in (".obj", ".vtk", ".vtp", ".vtu"):
         pts, faces, what = _read_vtk_family(p)
     else:
         raise InputError(
@@ -306,8 +314,326 @@ def _read_vtk_family(p: Path) -> tuple[np.ndarray, np.ndarray, str]:
     if len(poly.faces) == 0:
         raise InputError(f"{p}: has no polygons (only points or lines); export the organ as a surface")
     tri = poly.triangulate()
-    faces = np.asarray(tri.faces, np.int64).reshape(-1, 4)[:, 1:]
-    return np.asarray(tri.points, np.float64), faces, what
+    return np.asarray(tri.points, np.float64), _triangles_of(tri), what
+
+
+def _triangles_of(poly) -> np.ndarray:
+    """The 3-vertex cells of a triangulated PolyData's polygons, (m, 3) int64.
+
+    ``triangulate()`` leaves degenerate polygons (1 or 2 vertices, which some
+    writers emit for lines) as they are, so the cell array is walked by its
+    offsets instead of being reshaped as if every cell were a triangle.
+    """
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    polys = poly.GetPolys()
+    if polys is None or polys.GetNumberOfCells() == 0:
+        return np.empty((0, 3), np.int64)
+    offsets = vtk_to_numpy(polys.GetOffsetsArray()).astype(np.int64)
+    conn = vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64)
+    start = offsets[:-1][np.diff(offsets) == 3]
+    return conn[start[:, None] + np.arange(3)]
+
+
+# ---------------------------------------------------------------------- PLY
+#: PLY scalar types (both spellings of the 1.0 spec) -> numpy type characters.
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+_PLY_FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
+_PLY_MAX_HEADER = 1 << 20
+_PLY_FACE_PROPS = ("vertex_indices", "vertex_index")
+
+
+class _PlyProp:
+    __slots__ = ("name", "type", "count")
+
+    def __init__(self, name: str, typ: str, count: str | None = None):
+        self.name, self.type, self.count = name, typ, count  # count: type of a list's length, None if scalar
+
+
+class _PlyElement:
+    __slots__ = ("name", "n", "props")
+
+    def __init__(self, name: str, n: int):
+        self.name, self.n, self.props = name, n, []
+
+
+def _ply_header(p: Path, data: bytes) -> tuple[str | None, list[_PlyElement], int]:
+    """Parse the header: (byte order or None for ASCII, elements, offset of the body)."""
+    if not data.startswith(b"ply") or data[3:4] not in (b"\n", b"\r"):
+        raise InputError(f"{p}: not a PLY file (it does not start with a 'ply' line); export the surface again")
+    m = re.search(rb"(?:^|[\r\n])end_header[ \t]*(\r\n|\n|\r)", data[:_PLY_MAX_HEADER])
+    if m is None:
+        raise InputError(f"{p}: the PLY header has no 'end_header' line; the file is truncated or corrupt")
+    try:
+        header = data[: m.start()].decode("ascii")
+    except UnicodeDecodeError:
+        raise InputError(f"{p}: the PLY header is not ASCII text; the file is corrupt") from None
+    fmt: str | None = None
+    order: str | None = None
+    elements: list[_PlyElement] = []
+    for no, raw_line in enumerate(header.splitlines()[1:], start=2):
+        words = raw_line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        bad = f"{p}: PLY header line {no} ({_short(raw_line)!r})"
+        if words[0] == "format":
+            if len(words) < 2 or words[1] not in _PLY_FORMATS:
+                raise InputError(f"{bad}: unknown format; expected ascii, binary_little_endian or "
+                                 f"binary_big_endian")
+            fmt, order = words[1], _PLY_FORMATS[words[1]]
+        elif words[0] == "element":
+            if len(words) != 3 or not words[2].isdigit():
+                raise InputError(f"{bad}: expected 'element NAME COUNT' with a count >= 0; the file is corrupt")
+            elements.append(_PlyElement(words[1], int(words[2])))
+        elif words[0] == "property":
+            if not elements:
+                raise InputError(f"{bad}: a property before any element; the file is corrupt")
+            if len(words) == 5 and words[1] == "list" and words[2] in _PLY_TYPES and words[3] in _PLY_TYPES:
+                if _PLY_TYPES[words[2]][0] == "f":
+                    raise InputError(f"{bad}: a list length of floating type; the file is corrupt")
+                elements[-1].props.append(_PlyProp(words[4], _PLY_TYPES[words[3]], _PLY_TYPES[words[2]]))
+            elif len(words) == 3 and words[1] in _PLY_TYPES:
+                elements[-1].props.append(_PlyProp(words[2], _PLY_TYPES[words[1]]))
+            else:
+                raise InputError(f"{bad}: expected 'property TYPE NAME' or 'property list TYPE TYPE NAME' with "
+                                 f"types among {', '.join(sorted(set(_PLY_TYPES)))}")
+        else:
+            raise InputError(f"{bad}: unknown header keyword {words[0][:20]!r}; the file is corrupt")
+    if fmt is None:
+        raise InputError(f"{p}: the PLY header has no 'format' line; the file is corrupt")
+    return order, elements, m.end()
+
+
+def _ply_lists_fast(el: _PlyElement, first: list[int]) -> list[tuple[str, str, int]]:
+    """Record layout assuming every list has the length it has in the first record."""
+    return [(pr.name, pr.type, 1) if pr.count is None else (pr.name, pr.type, k)
+            for pr, k in zip(el.props, first)]
+
+
+def _ply_read_ascii(p: Path, elements: list[_PlyElement], body: bytes) -> dict[str, dict]:
+    tokens = body.split()
+    try:
+        vals = np.array(tokens, dtype=np.float64) if tokens else np.empty(0)
+    except ValueError:
+        bad = next(t for t in tokens if not _is_float(t))
+        raise InputError(f"{p}: PLY data has a non-numeric value {_short(bad.decode('latin-1'))!r}; "
+                         f"the file is corrupt, export it again") from None
+    pos = 0
+    out: dict[str, dict] = {}
+    for el in elements:
+        if not any(pr.count is not None for pr in el.props):
+            width = len(el.props)
+            need = el.n * width
+            if pos + need > vals.size:
+                raise _ply_truncated(p, el)
+            block = vals[pos: pos + need].reshape(el.n, width)
+            out[el.name] = {pr.name: block[:, i] for i, pr in enumerate(el.props)}
+            pos += need
+            continue
+        # Fast path: every list as long as in the first record.
+        first, q = [], pos
+        for pr in el.props:
+            k = int(vals[q]) if pr.count is not None and q < vals.size and _whole(vals[q]) else 0
+            first.append(k)
+            q += 1 + k if pr.count is not None else 1
+        width = sum(1 + k if pr.count is not None else 1 for pr, k in zip(el.props, first))
+        if el.n and pos + el.n * width <= vals.size:
+            block = vals[pos: pos + el.n * width].reshape(el.n, width)
+            cols, c, ok = {}, 0, True
+            for pr, k in zip(el.props, first):
+                if pr.count is None:
+                    cols[pr.name] = block[:, c]
+                    c += 1
+                else:
+                    ok = ok and bool(np.all(block[:, c] == k))
+                    cols[pr.name] = block[:, c + 1: c + 1 + k]
+                    c += 1 + k
+            if ok:
+                out[el.name] = cols
+                pos += el.n * width
+                continue
+        # General path: one record at a time.
+        cols = {pr.name: [] for pr in el.props}
+        for _ in range(el.n):
+            for pr in el.props:
+                if pos >= vals.size:
+                    raise _ply_truncated(p, el)
+                if pr.count is None:
+                    cols[pr.name].append(vals[pos])
+                    pos += 1
+                    continue
+                k = vals[pos]
+                if not _whole(k) or k < 0:
+                    raise InputError(f"{p}: PLY {el.name} list length {k:g} is not a count; the file is corrupt")
+                k = int(k)
+                if pos + 1 + k > vals.size:
+                    raise _ply_truncated(p, el)
+                cols[pr.name].append(vals[pos + 1: pos + 1 + k])
+                pos += 1 + k
+        out[el.name] = {name: (np.asarray(v) if el.props[i].count is None else v)
+                        for i, (name, v) in enumerate(cols.items())}
+    return out
+
+
+def _whole(x) -> bool:
+    return bool(np.isfinite(x)) and float(x) == int(x)
+
+
+def _ply_truncated(p: Path, el: _PlyElement) -> InputError:
+    return InputError(f"{p}: the PLY data ends inside the {el.n} declared '{el.name}' records; the file is "
+                      f"truncated, export it again")
+
+
+def _ply_read_binary(p: Path, elements: list[_PlyElement], body: bytes, order: str) -> dict[str, dict]:
+    pos = 0
+    out: dict[str, dict] = {}
+    for el in elements:
+        if not any(pr.count is not None for pr in el.props):
+            dt = np.dtype([(f"f{i}", order + pr.type) for i, pr in enumerate(el.props)])
+            if pos + el.n * dt.itemsize > len(body):
+                raise _ply_truncated(p, el)
+            arr = np.frombuffer(body, dt, count=el.n, offset=pos)
+            out[el.name] = {pr.name: arr[f"f{i}"] for i, pr in enumerate(el.props)}
+            pos += el.n * dt.itemsize
+            continue
+        # Fast path: every list as long as in the first record.
+        first, q, ok = [], pos, True
+        for pr in el.props:
+            if pr.count is None:
+                first.append(0)
+                q += np.dtype(pr.type).itemsize
+                continue
+            cs = np.dtype(pr.count).itemsize
+            if q + cs > len(body):
+                ok = False
+                break
+            k = int(np.frombuffer(body, order + pr.count, count=1, offset=q)[0])
+            first.append(max(k, 0))
+            q += cs + max(k, 0) * np.dtype(pr.type).itemsize
+        if ok and el.n:
+            fields = []
+            for i, (pr, k) in enumerate(zip(el.props, first)):
+                if pr.count is None:
+                    fields.append((f"f{i}", order + pr.type))
+                else:
+                    fields += [(f"n{i}", order + pr.count), (f"f{i}", order + pr.type, (k,))]
+            dt = np.dtype(fields)
+            if pos + el.n * dt.itemsize <= len(body):
+                arr = np.frombuffer(body, dt, count=el.n, offset=pos)
+                if all(bool(np.all(arr[f"n{i}"] == k)) for i, (pr, k) in enumerate(zip(el.props, first))
+                       if pr.count is not None):
+                    out[el.name] = {pr.name: arr[f"f{i}"].reshape(el.n, -1) if pr.count is not None
+                                    else arr[f"f{i}"] for i, pr in enumerate(el.props)}
+                    pos += el.n * dt.itemsize
+                    continue
+        # General path: one record at a time.
+        cols = {pr.name: [] for pr in el.props}
+        for _ in range(el.n):
+            for pr in el.props:
+                if pr.count is None:
+                    size = np.dtype(pr.type).itemsize
+                    if pos + size > len(body):
+                        raise _ply_truncated(p, el)
+                    cols[pr.name].append(np.frombuffer(body, order + pr.type, count=1, offset=pos)[0])
+                    pos += size
+                    continue
+                cs = np.dtype(pr.count).itemsize
+                if pos + cs > len(body):
+                    raise _ply_truncated(p, el)
+                k = int(np.frombuffer(body, order + pr.count, count=1, offset=pos)[0])
+                if k < 0:
+                    raise InputError(f"{p}: PLY {el.name} list length {k} is negative; the file is corrupt")
+                size = k * np.dtype(pr.type).itemsize
+                if pos + cs + size > len(body):
+                    raise _ply_truncated(p, el)
+                cols[pr.name].append(np.frombuffer(body, order + pr.type, count=k, offset=pos + cs))
+                pos += cs + size
+        out[el.name] = {name: (np.asarray(v) if el.props[i].count is None else v)
+                        for i, (name, v) in enumerate(cols.items())}
+    return out
+
+
+def _fan(lists, n_vertices: int, p: Path) -> tuple[np.ndarray, int]:
+    """Triangles (m, 3) of polygons given as an (f, k) array or a list of 1-D arrays; dropped count.
+
+    Polygons are split into fans from their first vertex; faces with fewer
+    than 3 vertices (lines, points) are dropped and counted. Every index must
+    be a whole number in 0..n_vertices-1.
+    """
+    if isinstance(lists, np.ndarray):
+        groups = {lists.shape[1]: (np.arange(lists.shape[0]), lists)} if lists.shape[0] else {}
+    else:
+        lens = np.fromiter((len(a) for a in lists), np.int64, count=len(lists))
+        groups = {}
+        for k in np.unique(lens):
+            rows = np.flatnonzero(lens == k)
+            groups[int(k)] = (rows, np.array([lists[i] for i in rows]).reshape(rows.size, int(k)))
+    rows_out, tris, dropped = [], [], 0
+    for k, (rows, idx) in sorted(groups.items()):
+        if k < 3:
+            dropped += rows.size
+            continue
+        with np.errstate(invalid="ignore"):
+            bad = (idx < 0) | (idx >= n_vertices)
+            if idx.dtype.kind == "f":
+                bad |= ~np.isfinite(idx) | (idx != np.floor(idx))
+        if bad.any():
+            r, c = np.argwhere(bad)[0]
+            x = idx[r, c]
+            shown = str(int(x)) if np.isfinite(x) and x == np.floor(x) else repr(float(x))
+            raise InputError(
+                f"{p}: PLY face {int(rows[r])} has vertex index {shown}, not one of the {n_vertices} declared "
+                f"vertices (0..{n_vertices - 1}); the file is corrupt, export it again"
+            )
+        idx = idx.astype(np.int64)
+        j = np.arange(1, k - 1)
+        fan = np.stack([np.repeat(idx[:, :1], k - 2, axis=1), idx[:, j], idx[:, j + 1]], axis=2)
+        tris.append(fan.reshape(-1, 3))
+        rows_out.append(np.repeat(rows, k - 2))
+    if not tris:
+        return np.empty((0, 3), np.int64), dropped
+    # Keep the file's face order (the groups were processed by polygon size).
+    order = np.argsort(np.concatenate(rows_out), kind="stable")
+    return np.concatenate(tris)[order], dropped
+
+
+def _read_ply(p: Path) -> tuple[np.ndarray, np.ndarray, str]:
+    """Points (n, 3) and triangles (m, 3) of a PLY file (ASCII or binary), validated."""
+    data = p.read_bytes()
+    order, elements, start = _ply_header(p, data)
+    by_name = {el.name: el for el in elements}
+    vert = by_name.get("vertex")
+    if vert is None or not {"x", "y", "z"} <= {pr.name for pr in vert.props if pr.count is None}:
+        raise InputError(f"{p}: the PLY file has no 'vertex' element with x, y, z properties; the file is corrupt")
+    face = by_name.get("face")
+    if face is None:
+        raise InputError(f"{p}: the PLY file has no 'face' element (only points); export the organ as a surface")
+    lists = [pr for pr in face.props if pr.count is not None]
+    prop = next((pr for pr in lists if pr.name in _PLY_FACE_PROPS), lists[0] if len(lists) == 1 else None)
+    if prop is None:
+        raise InputError(f"{p}: the PLY 'face' element has no 'vertex_indices' list; the file is corrupt")
+    if prop.type[0] == "f":
+        raise InputError(f"{p}: PLY face indices are declared as floating point; the file is corrupt")
+    if vert.n == 0 or face.n == 0:
+        raise InputError(f"{p}: the PLY file declares {vert.n} vertices and {face.n} faces; the file is empty "
+                         f"or corrupt, export the surface again")
+    body = data[start:]
+    if order is None:
+        what = "PLY"
+        values = _ply_read_ascii(p, elements, body)
+    else:
+        what = "PLY binary"
+        values = _ply_read_binary(p, elements, body, order)
+    v = values["vertex"]
+    pts = np.column_stack([np.asarray(v[c], np.float64) for c in "xyz"])
+    faces, dropped = _fan(values["face"][prop.name], vert.n, p)
+    if dropped:
+        what += f", {dropped} faces with fewer than 3 vertices dropped"
+    return pts, faces, what
 
 
 def _short(x) -> str:
