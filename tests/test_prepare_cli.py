@@ -177,9 +177,12 @@ def test_info_on_a_good_asset(run_cli, small_asset):
 
 
 def test_info_on_bad_assets(run_cli, small_asset, tmp_path):
+    from esmm.pipeline.asset._h5 import seal
+
     with h5py.File(small_asset, "r+") as f:
         f["/nodes/mass"][0] = 0.0
         f["/springs/rest_length"].attrs["units"] = "mm"
+        seal(f)  # consistent checksums and file hash: the content checks list each problem
     rc, out, err = run_cli("info", small_asset)
     lines = err.strip().splitlines()
     assert rc == 2 and len(lines) >= 3

@@ -129,13 +129,49 @@ def _material_name(text: str) -> str:
 
 # -- opening --------------------------------------------------------------------------------
 
+#: What h5py raises on a damaged or unexpected file. RuntimeError and AttributeError count only
+#: when raised inside h5py (see :func:`_is_damage`): from esmm's own code they are bugs.
+_DAMAGE = (OSError, KeyError, ValueError, TypeError, OverflowError, RuntimeError, AttributeError)
+
+
+def _is_damage(exc: BaseException) -> bool:
+    """Whether *exc* (one of :data:`_DAMAGE`) reports a damaged file rather than a bug in esmm."""
+    if not isinstance(exc, (RuntimeError, AttributeError)):
+        return True
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return tb is not None and "h5py" in Path(tb.tb_frame.f_code.co_filename).parts
+
+
+def _damaged(p: Path, exc: BaseException) -> AssetError:
+    what = " ".join(f"{type(exc).__name__}: {exc}".split())[:200]
+    return AssetError(f"{p}: damaged asset ({what}); {ADVICE}")
+
+
+def _check_bytes(path: Path) -> None:
+    """The file header check (docs/asset-format.md), before libhdf5 sees the file."""
+    try:
+        _sealed, problem = _h5.check_file(path)
+    except OSError as exc:
+        raise AssetError(f"{path}: cannot be read ({exc.strerror or exc}); check the file's permissions") from None
+    if problem:
+        advice = "" if problem.endswith("upgrade esmm") else f"; {ADVICE}"
+        raise AssetError(f"{path}: {problem}{advice}")
+
+
 def _open(path: Path) -> h5py.File:
     if not path.exists():
         raise AssetError(f"{path}: no such file; give the .h5 written by 'esmm prepare'")
     if path.is_dir():
         raise AssetError(f"{path}: is a folder; give the .h5 file written by 'esmm prepare'")
+    _check_bytes(path)
     try:
         return h5py.File(path, "r")
+    except (RuntimeError, AttributeError) as exc:
+        if not _is_damage(exc):
+            raise
+        raise _damaged(path, exc) from None
     except OSError as exc:
         reason = str(exc).split("(")[-1].rstrip(")") if "(" in str(exc) else str(exc)
         if "truncated" in str(exc).lower():
@@ -442,8 +478,9 @@ def read_asset(path: str | os.PathLike, *, verify: bool = True) -> Asset:
         tampered with or inconsistent; the message names the first problem.
     """
     p = Path(path)
-    with _open(p) as f:
-        try:
+    f = _open(p)
+    try:
+        with f:
             probs = _root_problems(f)
             if not probs:
                 probs = _schema_problems(f)[0]
@@ -469,8 +506,10 @@ def read_asset(path: str | os.PathLike, *, verify: bool = True) -> Asset:
                 schema_version=_h5.attr_int(f.attrs.get("esmm_version")),
                 attrs={k: (v.item() if isinstance(v, np.generic) else v) for k, v in f.attrs.items()},
             )
-        except (OSError, KeyError, ValueError, TypeError) as exc:
-            raise AssetError(f"{p}: damaged asset ({type(exc).__name__}: {exc}); {ADVICE}") from None
+    except _DAMAGE as exc:
+        if not _is_damage(exc):
+            raise
+        raise _damaged(p, exc) from None
     try:
         asset.material = _material(text)
     except Exception as exc:  # noqa: BLE001 - the stored text is kept; say why it could not be parsed
@@ -520,8 +559,8 @@ def validate_asset(path: str | os.PathLike) -> list[str]:
     except AssetError as exc:
         return [str(exc)]
     problems: list[str] = []
-    with f:
-        try:
+    try:
+        with f:
             problems += _root_problems(f)
             if problems:
                 return problems
@@ -548,8 +587,11 @@ def validate_asset(path: str | os.PathLike) -> list[str]:
                 except AssetError as exc:
                     problems.append(str(exc))
             problems += _effects_problems(f)
-        except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:
-            problems.append(f"damaged asset ({type(exc).__name__}: {exc})")
+    except _DAMAGE as exc:
+        if not _is_damage(exc):
+            raise
+        problems.append(" ".join(f"damaged asset ({type(exc).__name__}: {exc})".split())[:300])
+        return problems
     from .xdmf import check_sidecar, sidecar_path
 
     side = sidecar_path(p)

@@ -292,7 +292,9 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
     prov = provenance if provenance is not None else collect_provenance()
     try:
         with atomic_path(path) as tmp:
-            with h5py.File(tmp, "w") as f:
+            # The user block carries the file header (hash of every later byte), written by
+            # seal() when the file is closed, before the rename (docs/asset-format.md).
+            with _h5.create(tmp) as f:
                 _write_core(f, network, fixed_region)
                 if material is not None:
                     _write_material(f, material)
