@@ -77,9 +77,11 @@ def test_default_scene_values():
     assert [w.time for w in g.waypoints] == [0.0, 1.0]
     # The grasper lifts the free edge 20 mm against gravity.
     assert g.direction == "up" and g.waypoints[1].distance == pytest.approx(0.020)
-    # The organ rests on its bed: a band across the vertical, the lowest 15 % of its height.
+    # The organ lies on a rigid floor touching it from below, with sticking friction ...
+    assert sc.floor is not None and sc.floor.height == "auto" and sc.floor.friction == "stick"
+    # ... anchored by a thin band across the vertical, the lowest 5 % of its height.
     f = sc.fixed
-    assert f.kind == "band" and f.end == "min" and f.width is None and f.width_fraction == pytest.approx(0.15)
+    assert f.kind == "band" and f.end == "min" and f.width is None and f.width_fraction == pytest.approx(0.05)
     np.testing.assert_allclose(f.axis, -sc.gravity / np.linalg.norm(sc.gravity))
     assert sc.effects == "asset" and sc.n_frames == 90
 
@@ -123,6 +125,12 @@ def test_band_axis_up_follows_gravity():
     ({"scene": {"duration": "1 s"}, "grasper": {"grasp_time": "2 s", "waypoints": [{"time": "2 s", "distance": "0 mm"}], "release_time": "3 s"}},
      "before the end"),
     ({"video": {"width": 10}}, "width"),
+    ({"floor": {"enabled": "yes"}}, "enabled"),
+    ({"floor": {"height": -0.02}}, "no unit"),
+    ({"floor": {"height": "2 kg"}}, "height"),
+    ({"floor": {"friction": "glue"}}, "friction"),
+    ({"floor": {"level": "auto"}}, "unknown key"),
+    ({"scene": {"gravity": [0, 0, 0]}, "floor": {"enabled": True}}, "needs gravity"),
     ({"video": {"colormap": "nonesuch"}}, "colormap"),
 ])
 def test_scene_errors_are_one_line_config_errors(data, match):
@@ -162,7 +170,7 @@ def test_default_scene_on_a_slab_lifts_the_top_off_its_bed(slab):
 
     sc = load_scene()
     fixed = select_fixed(slab.points, sc.fixed)
-    # The bed: the lowest 15 % of the 15 mm height is the z = 0 layer of this 2-layer slab.
+    # The anchor: the lowest 5 % of the 15 mm height is the z = 0 layer of this 2-layer slab.
     np.testing.assert_array_equal(fixed, np.flatnonzero(slab.points[:, 2] < 1e-9))
     plan = plan_grasp(sc.grasper, slab.points, slab.surface_faces, fixed, sc.gravity)
     assert slab.points[plan.target, 2] == pytest.approx(0.015)          # the top: farthest from the bed
@@ -507,3 +515,196 @@ def test_fit_camera_keeps_every_frame_inside_the_box():
     # tight: the organ fills the box along one of its sides
     assert max((x.max() - x.min()) / (x1 - x0), (y.max() - y.min()) / (y1 - y0)) > 0.9
     np.testing.assert_allclose(np.asarray(cam.GetViewUp()), up, atol=1e-12)   # exactly against gravity
+
+
+# ---------------------------------------------------------------------------
+# the floor (rigid half-space contact)
+# ---------------------------------------------------------------------------
+
+def test_floor_scene_keys():
+    assert scene_from_dict({}).floor is None
+    assert scene_from_dict({"floor": {"enabled": False, "height": "3 mm"}}).floor is None
+    sc = scene_from_dict({"floor": {"height": "-20 mm", "friction": "slip"}})
+    assert sc.floor.height == pytest.approx(-0.020) and sc.floor.friction == "slip"
+    assert "floor at -20 mm (slip)" in sc.describe()
+
+
+def _cube(n=3, size=0.02):
+    return network_from_tets(box_tets(n, n, n, (size, size, size)))
+
+
+def _sim(net, *, floor=None, gravity=(0, 0, -9.81), fixed=(), decay=0.02, **kw):
+    from esmm.pipeline.simulate.integrator import Simulator, build_force_model
+
+    m = build_force_model(net, stiff_tables(), dashpot=kw.pop("dashpot", 1e-4))
+    return Simulator(m, net.points, net.mass, fixed=fixed, gravity=gravity,
+                     mass_damping=0.0 if decay is None else 1.0 / decay, floor=floor, threads=kw.pop("threads", 1))
+
+
+def test_floor_geometry():
+    from esmm.pipeline.simulate.integrator import Floor
+
+    pts = np.array([[0.0, 0, 0.01], [0.0, 0.02, -0.003], [0.01, 0, 0.05]])
+    fl = Floor.under(pts, [0, 0, -2.0])
+    np.testing.assert_allclose(fl.normal, [0, 0, 1])
+    assert fl.height == pytest.approx(-0.003) and fl.friction == "stick"
+    fl = Floor.under(pts, [0, 9.81, 0], height=0.01, friction="slip")     # gravity along +y: "up" is -y
+    np.testing.assert_allclose(fl.normal, [0, -1, 0])
+    np.testing.assert_allclose(fl.distance(pts), [-0.01, -0.03, -0.01])
+    with pytest.raises(ConfigError, match="gravity"):
+        Floor.under(pts, [0, 0, 0])
+    with pytest.raises(ConfigError, match="friction"):
+        Floor.under(pts, [0, 0, -1], friction="glue")
+
+
+@pytest.mark.parametrize("friction", ["stick", "slip"])
+def test_block_dropped_onto_the_floor_comes_to_rest_on_it(friction):
+    from esmm.pipeline.simulate.integrator import Floor
+
+    net = _cube(2, 0.01)
+    fl = Floor(normal=[0, 0, 1], height=-0.005, friction=friction)       # 5 mm below the block
+    sim = _sim(net, floor=fl, decay=0.01)
+    lowest = np.inf
+    for _ in range(60):                                                  # 0.3 s: the fall takes 32 ms
+        sim.advance(int(round(0.005 / sim.dt)))
+        lowest = min(lowest, float(fl.distance(sim.x).min()))
+    assert lowest >= -1e-9                                               # never below the plane
+    bottom = net.points[:, 2] < 1e-9
+    np.testing.assert_allclose(fl.distance(sim.x)[bottom], 0.0, atol=1e-9)   # lies on it ...
+    top = net.points[:, 2] > 0.01 - 1e-9
+    assert np.all(fl.distance(sim.x)[top] > 0.009)                       # ... not flattened
+    assert np.abs(sim.v).max() < 1e-4                                    # at rest (it hit at 0.31 m/s)
+    assert sim.n_contact == bottom.sum()
+
+
+def test_cube_resting_on_the_floor_stays_on_it_and_matches_a_clamped_base():
+    """Equilibrium (FIRE) on a sticking floor = the same cube with its base clamped; dynamics agree."""
+    from esmm.pipeline.simulate.integrator import Floor
+
+    net = _cube(3, 0.02)
+    bottom = np.flatnonzero(net.points[:, 2] < 1e-9)
+    soft = lambda: StiffnessTables(lam_min=0.5, lam_max=2.0, n=301, values=np.full((3, 301), 3e5),  # noqa: E731
+                                   stress=np.zeros((3, 301)), energy=np.zeros((3, 301)))
+    from esmm.pipeline.simulate.integrator import Simulator, build_force_model
+
+    m = build_force_model(net, soft())
+    fl = Floor.under(net.points, [0, 0, -9.81])
+    assert fl.height == 0.0
+    on_floor = Simulator(m, net.points, net.mass, gravity=(0, 0, -9.81), floor=fl)
+    clamped = Simulator(m, net.points, net.mass, gravity=(0, 0, -9.81), fixed=bottom)
+    on_floor.relax(rtol=1e-9)
+    clamped.relax(rtol=1e-9)
+    sag = np.abs(clamped.displacement()).max()
+    assert sag > 1e-6                                                    # a visible compression
+    assert fl.distance(on_floor.x).min() >= -1e-12
+    np.testing.assert_allclose(on_floor.x[bottom], net.points[bottom], atol=1e-12)
+    assert np.abs(on_floor.x - clamped.x).max() < 1e-4 * sag
+    assert on_floor.n_contact == bottom.size
+    # Without the floor the same relaxation has no equilibrium: the cube falls.
+    free_fall = Simulator(m, net.points, net.mass, gravity=(0, 0, -9.81))
+    with pytest.raises(SimulationError):
+        free_fall.relax(max_iter=2000)
+    # Dynamics from the rest shape: the base never goes below the plane, the cube settles
+    # at the same equilibrium.
+    dyn = Simulator(m, net.points, net.mass, gravity=(0, 0, -9.81), floor=fl, mass_damping=1 / 0.01)
+    for _ in range(30):
+        dyn.advance(int(round(0.01 / dyn.dt)))
+        assert fl.distance(dyn.x).min() >= -1e-9
+    # Friction makes the end state path-dependent (base nodes may lift and re-land during the
+    # bounce), so the dynamic rest state is close to, not equal to, the clamped equilibrium.
+    assert np.abs(dyn.v).max() < 1e-6
+    np.testing.assert_allclose(fl.distance(dyn.x)[bottom], 0.0, atol=1e-9)
+    assert np.abs(dyn.x - clamped.x).max() < 0.3 * sag
+
+
+@pytest.mark.parametrize("friction", ["stick", "slip"])
+def test_sticking_floor_holds_a_sideways_push(friction):
+    from esmm.pipeline.simulate.integrator import Floor
+
+    net = _cube(2, 0.01)
+    bottom = net.points[:, 2] < 1e-9
+    fl = Floor(normal=[0, 0, 1], height=0.0, friction=friction)
+    # Gravity tilted 20 degrees: pressed onto the floor and pushed along +x.
+    sim = _sim(net, floor=fl, gravity=(9.81 * np.sin(0.35), 0, -9.81 * np.cos(0.35)), decay=0.05)
+    always = bottom.copy()                       # in contact at every step
+    for _ in range(int(round(0.1 / sim.dt))):
+        sim.advance(1)
+        always &= sim.contact > 0
+    slide = sim.x[:, :2] - net.points[:, :2]
+    np.testing.assert_allclose(fl.distance(sim.x)[bottom], 0.0, atol=1e-9)
+    if friction == "stick":
+        # The push rocks the cube: its trailing edge may lift off; what stayed down did not move.
+        assert always.sum() >= 6
+        assert np.abs(slide[always]).max() == 0.0                        # not a nanometre
+        assert np.abs(slide[~bottom]).max() > 1e-7                       # while the cube leans
+    else:
+        assert slide[bottom, 0].min() > 1e-3                             # frictionless: it slides away
+
+
+def test_fire_respects_a_slip_floor_and_leaves_tangential_balance_to_the_springs():
+    """A cube on a frictionless floor, anchored by one edge node: it settles with its base on the plane."""
+    from esmm.pipeline.simulate.integrator import Floor
+
+    net = _cube(2, 0.01)
+    bottom = np.flatnonzero(net.points[:, 2] < 1e-9)
+    fl = Floor(normal=[0, 0, 1], height=0.0, friction="slip")
+    sim = _sim(net, floor=fl, fixed=[0], gravity=(3.0, 0, -9.81))
+    info = sim.relax(rtol=1e-8)
+    assert info["residual"] < info["ftol"]
+    np.testing.assert_allclose(fl.distance(sim.x)[bottom], 0.0, atol=1e-12)
+    assert fl.distance(sim.x).min() >= -1e-12
+    # The residual is the force the floor cannot take: tangential forces on the base are balanced.
+    f = sim.forces()
+    free = sim.free
+    assert np.abs(f[free][:, :2]).max() < 1e-6 * np.abs(sim.fext).max()
+    assert np.all(f[bottom[1:], 2] <= 1e-9)                             # the floor pushes up, never pulls
+
+
+def test_no_floor_path_is_bit_identical_and_an_untouched_floor_changes_nothing():
+    from esmm.pipeline.simulate.integrator import Floor, Grasp
+
+    net = _cube(2, 0.01)
+    fixed = np.flatnonzero(net.points[:, 0] < 1e-9)
+    runs = []
+    for floor in (None, Floor(normal=[0, 0, 1], height=-1.0, friction="stick")):
+        sim = _sim(net, floor=floor, fixed=fixed, decay=0.2)
+        sim.advance(150)
+        tgt = int(np.argmax(net.points @ [1, 0, 1]))
+        sim.attach(Grasp(nodes=np.array([tgt]), offsets=np.zeros((1, 3)), wp_t=np.array([sim.t, sim.t + 0.01]),
+                         wp_x=np.array([sim.x[tgt], sim.x[tgt] + [0, 0, 0.002]])))
+        r = sim.advance(200)
+        sim.release()
+        sim.advance(50)
+        runs.append((sim.x.copy(), sim.v.copy(), r))
+    for a, b in zip(*runs):
+        np.testing.assert_array_equal(a, b)
+    assert np.abs(runs[0][0] - net.points).max() > 1e-4                 # something happened
+
+
+def test_grasped_nodes_are_exempt_from_the_floor():
+    from esmm.pipeline.simulate.integrator import Floor, Grasp
+
+    net = _cube(2, 0.01)
+    fl = Floor(normal=[0, 0, 1], height=0.0, friction="stick")
+    sim = _sim(net, floor=fl, fixed=np.flatnonzero(net.points[:, 0] > 0.01 - 1e-9))
+    tgt = int(np.flatnonzero((net.points[:, 0] < 1e-9) & (net.points[:, 2] < 1e-9))[0])
+    sim.attach(Grasp(nodes=np.array([tgt]), offsets=np.zeros((1, 3)), wp_t=np.array([0.0, 0.01]),
+                     wp_x=np.array([net.points[tgt], net.points[tgt] - [0, 0, 0.002]])))
+    sim.advance(int(round(0.02 / sim.dt)))
+    assert fl.distance(sim.x)[tgt] == pytest.approx(-0.002, abs=1e-12)  # the tip goes where it is told
+    others = np.ones(net.n_nodes, bool)
+    others[tgt] = False
+    assert fl.distance(sim.x)[others].min() >= -1e-9
+
+
+def test_simulate_network_with_a_floor_counts_contacts(tmp_path, slab):
+    sc = scene_from_dict({"scene": {"duration": "0.1 s"}, "floor": {"enabled": True},
+                          "fixed": {"kind": "none"}, "grasper": {"enabled": False},
+                          "integrator": {"threads": 1}}, source="t")
+    res = simulate_network(slab, stiff_tables(), sc, tmp_path)
+    s = res.summary
+    bottom = int(np.count_nonzero(slab.points[:, 2] < 1e-9))
+    assert s["equilibrium"]["converged"] and s["equilibrium"]["contact_nodes"] == bottom
+    assert s["floor"]["friction"] == "stick" and s["floor"]["height_m"] == 0.0
+    assert s["floor"]["contact_nodes_max"] == bottom and s["floor"]["min_distance_m"] >= -1e-9
+    assert json.loads((tmp_path / "summary.json").read_text())["floor"]["height_spec"] == "auto"

@@ -542,6 +542,70 @@ class Grasp:
         return pos
 
 
+@dataclass
+class Floor:
+    """A rigid floor: the half-space ``normal . x >= height`` is free, the rest is solid.
+
+    Attributes
+    ----------
+    normal : ndarray, shape (3,)
+        Unit normal pointing out of the floor (against gravity) .
+    height : float
+        Offset of the plane along *normal* [m]: the plane is ``normal . x = height``.
+    friction : {"stick", "slip"}
+        "stick": a node in contact keeps its tangential position (sticking
+        friction); "slip": frictionless, only the normal motion is stopped.
+    """
+
+    normal: np.ndarray
+    height: float
+    friction: str = "stick"
+
+    def __post_init__(self):
+        n = np.asarray(self.normal, dtype=np.float64).reshape(3)
+        norm = float(np.linalg.norm(n))
+        if not (np.all(np.isfinite(n)) and norm > 0):
+            raise ConfigError("floor normal: must be a non-zero finite vector (the floor needs gravity)")
+        self.normal = np.ascontiguousarray(n / norm)
+        if not np.isfinite(self.height):
+            raise ConfigError(f"[floor] height: must be finite, got {self.height}")
+        self.height = float(self.height)
+        if self.friction not in ("stick", "slip"):
+            raise ConfigError(f"[floor] friction: {self.friction!r} is not \"stick\" or \"slip\"")
+
+    @classmethod
+    def under(cls, points: np.ndarray, gravity, *, height: float | str = "auto",
+              friction: str = "stick") -> Floor:
+        """The floor perpendicular to *gravity*; ``height="auto"``: touching *points* from below.
+
+        Parameters
+        ----------
+        points : ndarray, shape (n, 3)
+            The organ's nodes [m] (for "auto": its lowest point along gravity).
+        gravity : array-like, shape (3,)
+            [m/s2]; the floor's normal is ``-gravity / |gravity|``.
+        height : "auto" or float
+            Plane offset along the normal [m].
+        friction : {"stick", "slip"}
+        """
+        g = np.asarray(gravity, dtype=np.float64).reshape(3)
+        if not (np.all(np.isfinite(g)) and np.any(g)):
+            raise ConfigError("[floor]: needs a non-zero gravity (the floor is perpendicular to it); "
+                              "set [scene] gravity or disable the floor")
+        n = -g / np.linalg.norm(g)
+        if isinstance(height, str):
+            if height != "auto":
+                raise ConfigError(f"[floor] height: {height!r}; use \"auto\" or a length such as \"-20 mm\"")
+            h = float(np.min(np.asarray(points, dtype=np.float64).reshape(-1, 3) @ n))
+        else:
+            h = float(height)
+        return cls(normal=n, height=h, friction=friction)
+
+    def distance(self, x: np.ndarray) -> np.ndarray:
+        """Signed distance of points *x* (shape (n, 3)) above the plane [m], shape (n,)."""
+        return np.asarray(x, dtype=np.float64).reshape(-1, 3) @ self.normal - self.height
+
+
 class Simulator:
     """State and time stepping of a spring network.
 
@@ -567,11 +631,15 @@ class Simulator:
     threads : int
         1: the serial kernel; more: the owner/halo parallel kernel with that
         many chunks (``numba.set_num_threads``).
+    floor : Floor, optional
+        Rigid floor acting on the free nodes (not the fixed or grasped ones)
+        after every position update, in the dynamics and in :meth:`relax`.
     """
 
     def __init__(self, model: ForceModel, points: np.ndarray, mass: np.ndarray, *, fixed=(),
                  gravity=(0.0, 0.0, 0.0), mass_damping: float = 0.0, dt: float | None = None,
-                 safety: float = DEFAULT_SAFETY, threads: int = 1, gravity_mass: np.ndarray | None = None):
+                 safety: float = DEFAULT_SAFETY, threads: int = 1, gravity_mass: np.ndarray | None = None,
+                 floor: Floor | None = None):
         n = model.n_nodes
         self.model = model
         self.rest = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(n, 3)).copy()
@@ -603,6 +671,11 @@ class Simulator:
                                              else model.effects.new_state(model.n_springs))
         self._free = np.ones(n, bool)
         self._free[self.fixed] = False
+        if floor is not None and not isinstance(floor, Floor):
+            raise ConfigError("floor: expected a Floor or None")
+        self.floor = floor
+        #: 1 for the nodes the floor put back at the last step (or relaxation iteration), shape (n,).
+        self.contact = np.zeros(n, np.uint8)
         self._update_inv_mass()
         self.bound = self._bound()
         if dt is None:
@@ -635,6 +708,23 @@ class Simulator:
         if self.grasp is not None and self.grasp.mode == "prescribed":
             inv[self.grasp.nodes] = 0.0
         self.inv_mass = np.ascontiguousarray(inv)
+        # Nodes under the floor's rule: free, not grasped (in either mode).
+        mask = inv > 0
+        if self.grasp is not None:
+            mask[self.grasp.nodes] = False
+        self._fl_mask = np.ascontiguousarray(mask.astype(np.uint8))
+        self.contact[~mask] = 0
+
+    def _floor_args(self) -> tuple:
+        fl = self.floor
+        if fl is None:
+            return (False, np.zeros(3), 0.0, False, self._fl_mask, self.contact)
+        return (True, fl.normal, fl.height, fl.friction == "stick", self._fl_mask, self.contact)
+
+    @property
+    def n_contact(self) -> int:
+        """Nodes the floor held at the last step."""
+        return int(np.count_nonzero(self.contact))
 
     def _bound(self) -> StepBound:
         extra = None
@@ -747,7 +837,7 @@ class Simulator:
         if fx is None:
             common = (nsteps, self.dt, self.t0, self.step_count, self.x, self.v, self.f, self.fext,
                       self.inv_mass, vfac) + self.model.kernel_args() + (
-                      g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec)
+                      g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec) + self._floor_args()
             if self.threads == 1:
                 K.run_serial(*common)
             else:
@@ -757,7 +847,7 @@ class Simulator:
             dt_first = max(0.0, self.t - fx.t)
             common = (nsteps, self.dt, dt_first, self.t0, self.step_count, self.x, self.v, self.f, self.fext,
                       self.inv_mass, vfac) + self.model.kernel_args() + self.model.effects.kernel_args() + (
-                      *fx.arrays(), g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec)
+                      *fx.arrays(), g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec) + self._floor_args()
             if self.threads == 1:
                 K.run_serial_fx(*common)
             else:
@@ -887,9 +977,12 @@ class Simulator:
                    np.zeros(0), np.zeros(0), np.zeros(0))
         else:
             fxa = (True, *fxm.kernel_args(), fxm.ab(0.0), *st.arrays())
+        if self.floor is not None:
+            on = (self.floor.distance(self.x) <= 0.0) & (self._fl_mask > 0)
+            self.contact[:] = on
         it, res = K.fire_relax(self.x, self.v, self.f, self.fext, self.inv_mass, free,
                                *self.model.kernel_args()[:-1], *gargs, dt0, 0.9 * self.bound.dt_critical,
-                               float(ftol), int(max_iter), *fxa)
+                               float(ftol), int(max_iter), *fxa, *self._floor_args())
         self.v[:] = 0.0
         self.settle_effects()
         if it < 0 or not np.isfinite(res):

@@ -551,6 +551,76 @@ def _integrate_range(lo, hi, dt, x, v, f, inv_mass, vfac):
         x[a, 2] += dt * v[a, 2]
 
 
+@njit(inline="always", **_OPTS)
+def _integrate_range_floor(lo, hi, dt, x, v, f, inv_mass, vfac, fl_n, fl_h, fl_stick, fl_mask, contact):
+    """:func:`_integrate_range`, then the rigid floor ``n.x >= h`` (unit normal *fl_n*, offset *fl_h*).
+
+    A node with ``fl_mask`` set that ends the step below the plane is put back
+    on it: "slip" (``fl_stick`` False) projects it along the normal and removes
+    the normal velocity if it points into the floor; "stick" puts it where its
+    path of this step crossed the plane (its tangential position where it
+    touched; at its old place if it was already on the plane) and zeroes its
+    velocity. ``contact[a]`` is 1 for the nodes on or below the plane after
+    the position update of this step (then put back on it), else 0.
+    """
+    n0 = fl_n[0]
+    n1 = fl_n[1]
+    n2 = fl_n[2]
+    for a in range(lo, hi):
+        s = dt * inv_mass[a]
+        x0 = x[a, 0]
+        x1 = x[a, 1]
+        x2 = x[a, 2]
+        v[a, 0] = (v[a, 0] + s * f[a, 0]) * vfac
+        v[a, 1] = (v[a, 1] + s * f[a, 1]) * vfac
+        v[a, 2] = (v[a, 2] + s * f[a, 2]) * vfac
+        x[a, 0] = x0 + dt * v[a, 0]
+        x[a, 1] = x1 + dt * v[a, 1]
+        x[a, 2] = x2 + dt * v[a, 2]
+        if not fl_mask[a]:
+            continue
+        dn = n0 * x[a, 0] + n1 * x[a, 1] + n2 * x[a, 2] - fl_h
+        if dn > 0.0:
+            contact[a] = 0
+            continue
+        contact[a] = 1
+        if fl_stick:
+            d0 = n0 * x0 + n1 * x1 + n2 * x2 - fl_h
+            if d0 > 0.0:
+                r = d0 / (d0 - dn)
+                y0 = x0 + r * (x[a, 0] - x0)
+                y1 = x1 + r * (x[a, 1] - x1)
+                y2 = x2 + r * (x[a, 2] - x2)
+            else:
+                y0 = x0
+                y1 = x1
+                y2 = x2
+            e = n0 * y0 + n1 * y1 + n2 * y2 - fl_h
+            x[a, 0] = y0 - e * n0
+            x[a, 1] = y1 - e * n1
+            x[a, 2] = y2 - e * n2
+            v[a, 0] = 0.0
+            v[a, 1] = 0.0
+            v[a, 2] = 0.0
+        else:
+            x[a, 0] -= dn * n0
+            x[a, 1] -= dn * n1
+            x[a, 2] -= dn * n2
+            vn = n0 * v[a, 0] + n1 * v[a, 1] + n2 * v[a, 2]
+            if vn < 0.0:
+                v[a, 0] -= vn * n0
+                v[a, 1] -= vn * n1
+                v[a, 2] -= vn * n2
+
+
+@njit(inline="always", **_OPTS)
+def _integrate_any(lo, hi, dt, x, v, f, inv_mass, vfac, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact):
+    if fl_on:
+        _integrate_range_floor(lo, hi, dt, x, v, f, inv_mass, vfac, fl_n, fl_h, fl_stick, fl_mask, contact)
+    else:
+        _integrate_range(lo, hi, dt, x, v, f, inv_mass, vfac)
+
+
 # ---------------------------------------------------------------------------
 # time stepping (symplectic Euler)
 # ---------------------------------------------------------------------------
@@ -558,7 +628,8 @@ def _integrate_range(lo, hi, dt, x, v, f, inv_mass, vfac):
 @njit(**_OPTS)
 def run_serial(nsteps, dt, t0, step0, x, v, f, fext, inv_mass, vfac,
                ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-               g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec):
+               g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec,
+               fl_on, fl_n, fl_h, fl_stick, fl_mask, contact):
     """Advance *nsteps* semi-implicit Euler steps on one thread.
 
     Step k (time ``t = t0 + (step0 + k) * dt``): forces at (x, v); the force on
@@ -578,7 +649,7 @@ def run_serial(nsteps, dt, t0, step0, x, v, f, fext, inv_mass, vfac,
             rec[k, 0] = out[0]
             rec[k, 1] = out[1]
             rec[k, 2] = out[2]
-        _integrate_range(0, n, dt, x, v, f, inv_mass, vfac)
+        _integrate_any(0, n, dt, x, v, f, inv_mass, vfac, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
         if g_mode == GRASP_PRESCRIBED:
             tip, tip_v = tip_state(t0 + (step0 + k + 1) * dt, wp_t, wp_x)
             _place_grasped(x, v, g_nodes, g_off, tip, tip_v)
@@ -588,6 +659,7 @@ def run_serial(nsteps, dt, t0, step0, x, v, f, fext, inv_mass, vfac,
 def run_parallel(nsteps, dt, t0, step0, x, v, f, fext, inv_mass, vfac,
                  ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
                  g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec,
+                 fl_on, fl_n, fl_h, fl_stick, fl_mask, contact,
                  node_start, spring_start, halo_start, hbuf, own_start, own_slot, own_node):
     """:func:`run_serial` with the race-free owner/halo threading (same arithmetic)."""
     nchunk = node_start.shape[0] - 1
@@ -608,11 +680,13 @@ def run_parallel(nsteps, dt, t0, step0, x, v, f, fext, inv_mass, vfac,
             rec[k, 1] = out[1]
             rec[k, 2] = out[2]
             for c in prange(nchunk):
-                _integrate_range(node_start[c], node_start[c + 1], dt, x, v, f, inv_mass, vfac)
+                _integrate_any(node_start[c], node_start[c + 1], dt, x, v, f, inv_mass, vfac,
+                               fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
         else:
             for c in prange(nchunk):
                 _apply_halo(c, f, own_start, own_slot, own_node, hbuf)
-                _integrate_range(node_start[c], node_start[c + 1], dt, x, v, f, inv_mass, vfac)
+                _integrate_any(node_start[c], node_start[c + 1], dt, x, v, f, inv_mass, vfac,
+                               fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
         if g_mode == GRASP_PRESCRIBED:
             tip, tip_v = tip_state(t0 + (step0 + k + 1) * dt, wp_t, wp_x)
             _place_grasped(x, v, g_nodes, g_off, tip, tip_v)
@@ -622,7 +696,8 @@ def run_parallel(nsteps, dt, t0, step0, x, v, f, fext, inv_mass, vfac,
 def run_serial_fx(nsteps, dt, dt_first, t0, step0, x, v, f, fext, inv_mass, vfac,
                   ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
                   etab, fxp, h, pold, wmax, ximax,
-                  g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec):
+                  g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec,
+               fl_on, fl_n, fl_h, fl_stick, fl_mask, contact):
     """:func:`run_serial` with the material effects: every step advances each spring's state.
 
     The state is advanced by *dt_first* at the first step (the time since the
@@ -645,7 +720,7 @@ def run_serial_fx(nsteps, dt, dt_first, t0, step0, x, v, f, fext, inv_mass, vfac
             rec[k, 0] = out[0]
             rec[k, 1] = out[1]
             rec[k, 2] = out[2]
-        _integrate_range(0, n, dt, x, v, f, inv_mass, vfac)
+        _integrate_any(0, n, dt, x, v, f, inv_mass, vfac, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
         if g_mode == GRASP_PRESCRIBED:
             tip, tip_v = tip_state(t0 + (step0 + k + 1) * dt, wp_t, wp_x)
             _place_grasped(x, v, g_nodes, g_off, tip, tip_v)
@@ -656,6 +731,7 @@ def run_parallel_fx(nsteps, dt, dt_first, t0, step0, x, v, f, fext, inv_mass, vf
                     ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
                     etab, fxp, h, pold, wmax, ximax,
                     g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec,
+                    fl_on, fl_n, fl_h, fl_stick, fl_mask, contact,
                     node_start, spring_start, halo_start, hbuf, own_start, own_slot, own_node):
     """:func:`run_parallel` with the material effects (same arithmetic as :func:`run_serial_fx`)."""
     nchunk = node_start.shape[0] - 1
@@ -680,11 +756,13 @@ def run_parallel_fx(nsteps, dt, dt_first, t0, step0, x, v, f, fext, inv_mass, vf
             rec[k, 1] = out[1]
             rec[k, 2] = out[2]
             for c in prange(nchunk):
-                _integrate_range(node_start[c], node_start[c + 1], dt, x, v, f, inv_mass, vfac)
+                _integrate_any(node_start[c], node_start[c + 1], dt, x, v, f, inv_mass, vfac,
+                               fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
         else:
             for c in prange(nchunk):
                 _apply_halo(c, f, own_start, own_slot, own_node, hbuf)
-                _integrate_range(node_start[c], node_start[c + 1], dt, x, v, f, inv_mass, vfac)
+                _integrate_any(node_start[c], node_start[c + 1], dt, x, v, f, inv_mass, vfac,
+                               fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
         if g_mode == GRASP_PRESCRIBED:
             tip, tip_v = tip_state(t0 + (step0 + k + 1) * dt, wp_t, wp_x)
             _place_grasped(x, v, g_nodes, g_off, tip, tip_v)
@@ -697,7 +775,8 @@ def run_parallel_fx(nsteps, dt, dt_first, t0, step0, x, v, f, fext, inv_mass, vf
 @njit(**_OPTS)
 def fire_relax(x, v, f, fext, inv_mass, free, ij, sd, tab, lam_min, inv_h, last_cell, law,
                g_mode, g_nodes, g_off, g_k, tip, dt0, dt_max, ftol, max_iter,
-               fx_on, etab, fxp, ab, h, pold, wmax, ximax):
+               fx_on, etab, fxp, ab, h, pold, wmax, ximax,
+               fl_on, fl_n, fl_h, fl_stick, fl_mask, contact):
     """FIRE minimisation (Bitzek et al. 2006) of the network energy under fext.
 
     Uses the dynamics' force pass (without dashpots) and a mass-weighted
@@ -706,6 +785,14 @@ def fire_relax(x, v, f, fext, inv_mass, free, ij, sd, tab, lam_min, inv_h, last_
     on a free node is below *ftol* [N]. Returns (iterations, final max residual);
     iterations = -1 when the forces became non-finite. With *fx_on* the material
     effects' long-term force (mode :data:`FX_RELAXED`, state unchanged) is used.
+
+    With *fl_on* the rigid floor of :func:`_integrate_range_floor` constrains
+    the nodes with ``fl_mask``: each MD update puts the nodes that end below
+    the plane back on it (same rule as the dynamics, "stick" or "slip"), and
+    for a node in contact (``contact[a]``, set by the last update) whose force
+    presses into the floor the floor's reaction is taken off the force used
+    by FIRE and by the convergence test (the normal part with "slip", all of it
+    with "stick": sticking friction carries any tangential load).
     """
     n = x.shape[0]
     n_min = 5
@@ -726,6 +813,18 @@ def fire_relax(x, v, f, fext, inv_mass, free, ij, sd, tab, lam_min, inv_h, last_
                    fx_on, etab, fxp, ab, h, pold, wmax, ximax, FX_RELAXED)
         if g_mode == GRASP_SPRING:
             _grasp_forces(f, x, g_nodes, g_off, g_k, tip, g_mode, out)
+        if fl_on:
+            for a in range(n):
+                if free[a] and fl_mask[a] and contact[a]:
+                    fn = f[a, 0] * fl_n[0] + f[a, 1] * fl_n[1] + f[a, 2] * fl_n[2]
+                    if fn < 0.0:
+                        if fl_stick:
+                            f[a, 0] = 0.0
+                            f[a, 1] = 0.0
+                            f[a, 2] = 0.0
+                        else:
+                            for d in range(3):
+                                f[a, d] -= fn * fl_n[d]
         resid = 0.0
         P = 0.0
         vn2 = 0.0
@@ -762,13 +861,31 @@ def fire_relax(x, v, f, fext, inv_mass, free, ij, sd, tab, lam_min, inv_h, last_
             for a in range(n):
                 for d in range(3):
                     v[a, d] = 0.0
-        for a in range(n):
-            if free[a]:
-                s = dt * inv_mass[a]
-                for d in range(3):
-                    v[a, d] += s * f[a, d]
-                    x[a, d] += dt * v[a, d]
+        if fl_on:
+            for a in range(n):
+                if free[a] and not fl_mask[a]:
+                    s = dt * inv_mass[a]
+                    for d in range(3):
+                        v[a, d] += s * f[a, d]
+                        x[a, d] += dt * v[a, d]
+            # the floor's nodes: same update, then the contact rule (vfac = 1)
+            _integrate_masked_floor(n, dt, x, v, f, inv_mass, free, fl_n, fl_h, fl_stick, fl_mask, contact)
+        else:
+            for a in range(n):
+                if free[a]:
+                    s = dt * inv_mass[a]
+                    for d in range(3):
+                        v[a, d] += s * f[a, d]
+                        x[a, d] += dt * v[a, d]
     return max_iter, resid
+
+
+@njit(**_OPTS)
+def _integrate_masked_floor(n, dt, x, v, f, inv_mass, free, fl_n, fl_h, fl_stick, fl_mask, contact):
+    """FIRE's MD update of the free nodes under the floor (``fl_mask``), with the contact rule."""
+    for a in range(n):
+        if free[a] and fl_mask[a]:
+            _integrate_range_floor(a, a + 1, dt, x, v, f, inv_mass, 1.0, fl_n, fl_h, fl_stick, fl_mask, contact)
 
 
 # ---------------------------------------------------------------------------

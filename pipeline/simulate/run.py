@@ -27,7 +27,7 @@ from ..progress import ensure
 from . import kernels as K
 from .grasper import GraspPlan, plan_grasp
 from .history import HistoryWriter
-from .integrator import Simulator, build_force_model, mass_scaling, stable_step, warm_up
+from .integrator import Floor, Simulator, build_force_model, mass_scaling, stable_step, warm_up
 from .scene import Scene, load_scene
 
 #: Below this many springs one thread is used ("auto"): the parallel pass's
@@ -116,7 +116,7 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
     out.mkdir(parents=True, exist_ok=True)
     law = tables.check_law(None if scene.law == "asset" else scene.law)
     fixed = _fixed_nodes(network, scene)
-    if fixed.size == 0 and np.any(scene.gravity) and (scene.grasper is None):
+    if fixed.size == 0 and np.any(scene.gravity) and scene.grasper is None and scene.floor is None:
         rep.warn("no node is fixed and gravity is on: the organ will fall freely")
 
     use_fx = effects if (scene.effects == "asset" and effects) else None
@@ -137,13 +137,19 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
     if scaling["nodes"]:
         rep.step(f"mass scaling: +{scaling['added_fraction'] * 100:.3g} % of the mass on {scaling['nodes']} "
                  f"light nodes (inertia only) raises the stable step {scaling['gain']:.3g}x")
+    floor = None if scene.floor is None else Floor.under(network.points, scene.gravity, height=scene.floor.height,
+                                                         friction=scene.floor.friction)
     sim = Simulator(model, network.points, inertia, fixed=fixed, gravity=scene.gravity,
-                    mass_damping=scene.mass_damping, safety=scene.safety, gravity_mass=network.mass)
+                    mass_damping=scene.mass_damping, safety=scene.safety, gravity_mass=network.mass, floor=floor)
+    if floor is not None:
+        below = int(np.count_nonzero(floor.distance(network.points)[sim.free] < 0))
+        rep.step(f"floor: {floor.friction}, plane {floor.height * 1e3:.4g} mm along up"
+                 + (f"; {below} free nodes start below it and are put on it at the first step" if below else ""))
 
     plan: GraspPlan | None = None
     extra = None
     settle = None
-    if scene.start == "equilibrium" and np.any(scene.gravity) and fixed.size:
+    if scene.start == "equilibrium" and np.any(scene.gravity) and (fixed.size or floor is not None):
         # Start from the static equilibrium under gravity (the organ at rest in the scene).
         t = time.perf_counter()
         try:
@@ -159,10 +165,13 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
         settle["max_displacement_m"] = float(u)
         gdir = scene.gravity / np.linalg.norm(scene.gravity)
         height = float(np.ptp(np.asarray(network.points) @ gdir))
+        if floor is not None:
+            settle["contact_nodes"] = sim.n_contact
         if u > height:
             rep.warn(f"under its own weight the organ sags {u * 1e3:.3g} mm, more than its height along gravity "
-                     f"({height * 1e3:.3g} mm): the network is too soft to carry itself in this scene (no contact "
-                     "holds it, only the fixed nodes). Stiffen it (volumetric compensation: 'esmm tables ASSET "
+                     f"({height * 1e3:.3g} mm): the network is too soft to carry itself in this scene ("
+                     + ("the floor holds only what lies on it, " if floor is not None else "no contact holds it, ")
+                     + "only the fixed nodes hold the rest). Stiffen it (volumetric compensation: 'esmm tables ASSET "
                      "--compensate') or hold it elsewhere ([fixed])")
         rep.step(f"equilibrium under gravity: largest sag {u * 1e3:.3g} mm "
                  f"({settle.get('iterations', '?')} FIRE iterations, {settle['seconds']:.2g} s)"
@@ -234,6 +243,7 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
     dts = []
     fmax = np.zeros(3)
     fmax_norm = 0.0
+    contact_max = sim.n_contact
     range_check = _RangeCheck(model, rep)
     range_check(sim, "at the start")
     organ_size = float(np.ptp(np.asarray(network.points), axis=0).max())
@@ -312,6 +322,7 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
                         f"sizes or non-finite); lower [integrator] safety or check the asset's masses and tables")
                 lo, hi = range_check(sim, f"at t = {sim.t:.3g} s")
                 lam_lo, lam_hi = min(lam_lo, lo), max(lam_hi, hi)
+                contact_max = max(contact_max, sim.n_contact)
                 tip = sim.grasp.tip(sim.t) if sim.grasp is not None else None
                 hw.add_frame(sim.t, disp, tip=tip)
                 advance(1)
@@ -344,6 +355,11 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video_path=None,
                                                            "final_state": sim.effects_report()},
             "effects_available": None if not effects else list(effects.names),
             "final_max_displacement_m": umax,
+            "floor": None if floor is None else {
+                "friction": floor.friction, "normal": floor.normal.tolist(), "height_m": floor.height,
+                "height_spec": scene.floor.height, "contact_nodes_final": sim.n_contact,
+                "contact_nodes_max": contact_max,
+                "min_distance_m": float(floor.distance(sim.x)[sim.free].min()) if sim.free.any() else None},
             "grasper": None if plan is None else {
                 "target_node": plan.target, "held_nodes": int(plan.nodes.size), "mode": plan.spec.mode,
                 "direction": plan.direction.tolist(), "max_force_N": fmax_norm, "force_at_max_N": fmax.tolist()},

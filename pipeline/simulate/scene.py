@@ -11,6 +11,8 @@ Tables and keys::
     [fixed]       kind = "asset" (keep the asset's fixed nodes) or a region
                   table as in prepare configs (band / box / nearest / none);
                   a band's axis may be "up" (against gravity)
+    [floor]       enabled, height ("auto" or a length along "up"), friction
+                  ("stick" / "slip"); absent: no floor
     [grasper]     enabled, target, radius, mode, stiffness, direction,
                   grasp_time, release_time, waypoints
     [video]       width, height, colormap, view, zoom, show_fixed, show_edges
@@ -43,6 +45,7 @@ _TABLES = {
     "grasper": {"enabled", "target", "radius", "mode", "stiffness", "direction", "grasp_time",
                 "release_time", "waypoints"},
     "video": {"width", "height", "colormap", "view", "zoom", "show_fixed", "show_edges"},
+    "floor": {"enabled", "height", "friction"},
 }
 _GRAVITY_UNITS = {"m/s2": 1.0, "m/s^2": 1.0, "mm/s2": 1e-3, "mm/s^2": 1e-3, "g": 9.80665}
 _STIFFNESS_UNITS = {"n/m": 1.0, "n/mm": 1e3, "kn/m": 1e3}
@@ -50,6 +53,22 @@ VIEWS = ("auto", "xy", "xz", "yz", "iso")
 LAWS = ("asset", "secant", "energy")
 EFFECTS = ("asset", "none")
 GRASP_MODES = ("prescribed", "spring")
+
+
+@dataclass(frozen=True)
+class FloorSpec:
+    """A rigid floor perpendicular to gravity (docs/simulate.md §4).
+
+    Attributes
+    ----------
+    height : "auto" or float
+        "auto": the plane touching the organ's rest shape from below; else the
+        plane's offset along "up" (against gravity) in the asset's frame [m].
+    friction : {"stick", "slip"}
+    """
+
+    height: Any = "auto"
+    friction: str = "stick"
 
 
 @dataclass(frozen=True)
@@ -151,6 +170,8 @@ class Scene:
         Refuse a run that needs more steps than this (a bad asset or scene).
     fixed : FixedRegion or None
         None: the asset's fixed nodes.
+    floor : FloorSpec or None
+        A rigid floor under the organ (None: no floor).
     grasper : GrasperSpec or None
     video : VideoSpec
     source : str
@@ -173,6 +194,7 @@ class Scene:
     precision: str = "float64"
     max_steps: int = 50_000_000
     fixed: Any = None
+    floor: FloorSpec | None = None
     grasper: GrasperSpec | None = field(default_factory=GrasperSpec)
     video: VideoSpec = field(default_factory=VideoSpec)
     source: str = "built-in defaults"
@@ -215,7 +237,10 @@ class Scene:
         return (f"{self.duration:g} s at {self.frame_rate:g} frames/s, gravity "
                 f"{np.round(self.gravity, 3).tolist()} m/s2, law {self.law}, dashpot {self.dashpot * 1e3:g} ms, "
                 f"velocity decay {'none' if self.velocity_decay is None else f'{self.velocity_decay:g} s'}, {grasp}, "
-                f"material effects {'from the asset' if self.effects == 'asset' else 'off'}")
+                f"material effects {'from the asset' if self.effects == 'asset' else 'off'}, "
+                + ("no floor" if self.floor is None else
+                   f"floor at {self.floor.height if isinstance(self.floor.height, str) else f'{self.floor.height * 1e3:g} mm'}"
+                   f" ({self.floor.friction})"))
 
 
 # ---------------------------------------------------------------------------
@@ -408,6 +433,28 @@ def scene_from_dict(data: dict, *, source: str = "<dict>") -> Scene:
                 up = -g / np.linalg.norm(g)
                 fx = {**fx, "axis": (up if fx["axis"] == "up" else -up).tolist()}
             kw["fixed"] = region_from_config(fx, where="[fixed]")
+
+    fl = data.get("floor", {})
+    _check_keys(fl, "floor")
+    if "enabled" in fl:
+        _bool(fl["enabled"], "[floor] enabled")
+    if fl.get("enabled", bool(fl)) is True:
+        h = fl.get("height", "auto")
+        if h != "auto":
+            if not isinstance(h, str):
+                _bad_unit("[floor] height", h, "-20 mm")
+            h = _quantity(h, "length", "[floor] height")
+            if not math.isfinite(h):
+                raise ConfigError(f"[floor] height: must be finite, got {fl['height']!r}")
+        fr = fl.get("friction", "stick")
+        if fr not in ("stick", "slip"):
+            raise ConfigError(f"[floor] friction: {fr!r} is not \"stick\" (sticking friction) or \"slip\" "
+                              f"(frictionless)")
+        g = np.asarray(kw.get("gravity", Scene.__dataclass_fields__["gravity"].default_factory()))
+        if not np.any(g):
+            raise ConfigError("[floor]: needs gravity (the floor is perpendicular to it); set [scene] gravity "
+                              "or enabled = false")
+        kw["floor"] = FloorSpec(height=h, friction=fr)
 
     gr = data.get("grasper", {})
     _check_keys(gr, "grasper")
