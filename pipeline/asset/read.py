@@ -1,5 +1,8 @@
 """Reading and validating assets.
 
+Both functions first check the file header (SHA-256 and length of the bytes after
+the HDF5 user block; :func:`~esmm.pipeline.asset._h5.check_file`) so that libhdf5,
+which can crash or hang on damaged metadata, never parses a damaged esmm file.
 :func:`read_asset` dispatches on each group's ``esmm_type``/``esmm_version``,
 verifies every dataset's SHA-256 and the root checksum, and raises a one-line
 :class:`~esmm.pipeline.errors.AssetError` for anything it cannot trust
@@ -469,7 +472,8 @@ def read_asset(path: str | os.PathLike, *, verify: bool = True) -> Asset:
         The ``.h5`` file.
     verify : bool
         Check every dataset's SHA-256 and the root checksum (default; costs
-        one pass over the data).
+        one pass over the data). The file header's hash (docs/asset-format.md)
+        is checked either way: it keeps libhdf5 away from damaged bytes.
 
     Raises
     ------

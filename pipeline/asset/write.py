@@ -248,8 +248,10 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
 
     The file is written to a temporary name and renamed when complete; the
     XDMF sidecar ``<name>.xdmf`` likewise. Every dataset gets a ``units`` and a
-    ``sha256`` attribute and the root a checksum over all attributes, so that
-    :func:`~esmm.pipeline.asset.read.read_asset` detects any later change.
+    ``sha256`` attribute and the root a checksum over all attributes, and the
+    file starts with a 512-byte user block holding the SHA-256 and length of
+    every later byte, so that :func:`~esmm.pipeline.asset.read.read_asset`
+    detects any later change (the file hash before libhdf5 parses anything).
 
     Parameters
     ----------
