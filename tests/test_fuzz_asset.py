@@ -44,19 +44,8 @@ def fuzz(default: int):
                                            HealthCheck.filter_too_much])
 
 
-#: Known crashes, reported to the asset module's owner (xfail regression tests below).
-KNOWN = [
-    ("libhdf5 segfaults on a damaged object header (h5py attribute access in read._schema_problems)",
-     lambda c: c["type"] == "died" and "SIGSEGV" in c["message"]),
-    ("libhdf5 loops forever on some damaged metadata (attribute access in read._integrity_problems)",
-     lambda c: c["type"] == "died" and c["message"].startswith("timed out")),
-    ("h5py raises RuntimeError or AttributeError on damaged metadata; read_asset/validate_asset catch only "
-     "OSError, KeyError, ValueError and TypeError",
-     lambda c: c["type"] in ("RuntimeError", "AttributeError") and c.get("fn") in ("read_asset", "validate_asset",
-                                                                                  "esmm info")),
-    ("an infinite esmm_version attribute: _h5.attr_int lets OverflowError through",
-     lambda c: c["type"] == "OverflowError" and "infinity" in c["message"]),
-]
+#: Known crashes, reported to the asset module's owner (each had an xfail regression test below).
+KNOWN: list = []  # fixed: segfault, hang, RuntimeError/AttributeError, OverflowError (tests below)
 
 #: A probe takes well under a second; a damaged file that takes longer is a hang.
 PROBE_TIMEOUT = 10.0
@@ -328,7 +317,6 @@ def test_foreign_hdf5_files(sandbox, workdir, layout, root_type, version):
 
 
 # ----------------------------------------------------------------------------- known crashes (regressions)
-@pytest.mark.xfail(strict=True, reason="reported: _h5.attr_int catches TypeError/ValueError, not OverflowError")
 def test_known_crash_infinite_version(tmp_path, base_asset):
     from esmm.pipeline.asset import read_asset, validate_asset
     from esmm.pipeline.errors import AssetError
@@ -341,8 +329,6 @@ def test_known_crash_infinite_version(tmp_path, base_asset):
         read_asset(p)
 
 
-@pytest.mark.xfail(strict=True, reason="reported: libhdf5 segfaults on some one-byte corruptions of object "
-                                       "headers; read_asset must check the file before h5py parses it")
 def test_known_crash_segfault_on_damaged_header(tmp_path, base_asset):
     """One byte of /springs/cos2's object header (an attribute's datatype message) set to 203."""
     p = Path(shutil.copy(base_asset, tmp_path / "organ.h5"))
@@ -356,8 +342,6 @@ def test_known_crash_segfault_on_damaged_header(tmp_path, base_asset):
     assert kind == "result", value[0] if kind == "died" else value
 
 
-@pytest.mark.xfail(strict=True, reason="reported: libhdf5 never returns on this damaged file; read_asset must "
-                                       "check the file before h5py parses it")
 def test_known_hang_on_zeroed_bytes(tmp_path, base_asset):
     """35 zero bytes 2807 bytes after /provenance/packages' object header."""
     p = Path(shutil.copy(base_asset, tmp_path / "organ.h5"))
@@ -371,7 +355,6 @@ def test_known_hang_on_zeroed_bytes(tmp_path, base_asset):
     assert kind == "result", value[0] if kind == "died" else value
 
 
-@pytest.mark.xfail(strict=True, reason="reported: read_asset lets h5py's AttributeError through on a damaged file")
 def test_known_crash_attribute_error(tmp_path, base_asset):
     """104 zero bytes inserted in the middle of the file."""
     from esmm.pipeline.asset import read_asset

@@ -43,15 +43,8 @@ def fuzz(default: int):
                                            HealthCheck.filter_too_much])
 
 
-#: Known crashes, reported to the readers' owner (xfail regression tests below).
-KNOWN = [
-    ("VTK's PLY reader crashes the process (SIGSEGV, SIGABRT) on face indices beyond the vertices declared",
-     lambda c: c["type"] == "died" and ("SIGSEGV" in c["message"] or "SIGABRT" in c["message"])
-     and c["file"].endswith(".ply")),
-    ("a polygon with fewer than 3 vertices (a line) next to triangles: faces reshaped as if all were triangles",
-     lambda c: c["type"] == "ValueError" and "cannot reshape array" in c["message"]
-     and c["where"].startswith("readers.py")),
-]
+#: Known crashes, reported to the readers' owner (each had an xfail regression test below).
+KNOWN: list = []  # fixed: VTK's PLY reader crashes; line cells reshaped as triangles (tests below)
 
 STATS: Counter = Counter()
 CRASHES: list[dict] = []
@@ -371,8 +364,6 @@ PLY_ZERO_VERTICES = (b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x
                      b"3 0 1 2\n")
 
 
-@pytest.mark.xfail(strict=True, reason="reported: VTK's PLY reader segfaults (pyvista.read in readers."
-                                       "_read_vtk_family); validate PLY headers or read in a subprocess")
 def test_known_crash_ply_without_vertices(tmp_path):
     p = tmp_path / "organ.ply"
     p.write_bytes(PLY_ZERO_VERTICES)
@@ -386,8 +377,6 @@ PLY_LINE_AND_TRIANGLE = (b"ply\nformat ascii 1.0\nelement vertex 3\nproperty flo
                          b"0 0 0\n50 0 0\n0 50 0\n2 0 1\n3 0 1 2\n")
 
 
-@pytest.mark.xfail(strict=True, reason="reported: readers._read_vtk_family reshapes triangulate()'s faces "
-                                       "to (-1, 4) although line cells (2 vertices) survive triangulation")
 def test_known_crash_polygon_with_two_vertices(tmp_path):
     from esmm.pipeline.errors import EsmmError
     from esmm.pipeline.mesh.readers import read_surface

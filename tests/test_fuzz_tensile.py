@@ -17,7 +17,6 @@ import contextlib
 import io
 import json
 import os
-import re
 import sys
 import traceback
 from collections import Counter
@@ -42,13 +41,9 @@ def fuzz(default: int):
                                            HealthCheck.filter_too_much])
 
 
-#: Known crashes, reported to the reader's owner; each has an xfail regression test below.
+#: Known crashes, reported to the reader's owner (each had an xfail regression test below).
 #: (name, predicate on the crash record). Any other crash fails the property tests.
-KNOWN = [
-    ("encoding statement naming a non-text codec (hex, zlib, bz2, uu, quopri, punycode, undefined, NUL)",
-     lambda c: c["type"] in ("LookupError", "UnicodeError", "ValueError")
-     and re.search(r"not a text encoding|codec failed|embedded null character", c["message"]) is not None),
-]
+KNOWN: list = []  # fixed: non-text codecs named by an encoding statement (regression test below)
 
 STATS: Counter = Counter()
 CRASHES: list[dict] = []
@@ -329,8 +324,6 @@ def test_command_line_metadata(sandbox, workdir, over, enc):
 
 # ----------------------------------------------------------------------------- known crashes (regressions)
 @pytest.mark.parametrize("codec", ["hex", "zlib", "bz2", "uu", "quopri", "punycode", "undefined"])
-@pytest.mark.xfail(strict=True, reason="reported: metadata.encoding_value accepts non-text codecs and "
-                                       "reader._decode catches only UnicodeDecodeError")
 def test_known_crash_non_text_codec(tmp_path, codec):
     from esmm.pipeline.errors import EsmmError
     from esmm.pipeline.tensile import read
