@@ -38,6 +38,14 @@ def kuhn_cube(n=2, side=0.04):
 
 
 @pytest.fixture(scope="module")
+def sandbox():
+    from esmm.pipeline.batch.local import Sandbox
+
+    with Sandbox() as sb:
+        yield sb
+
+
+@pytest.fixture(scope="module")
 def written(tmp_path_factory):
     from esmm.pipeline.network.springs import network_from_tets
 
@@ -178,18 +186,15 @@ def test_headerless_infinite_version_is_refused(asset, tmp_path):
         read_asset(old)
 
 
-def test_headerless_damage_seen_by_h5py_is_an_asset_error(asset, tmp_path):
+def test_headerless_damage_seen_by_h5py_is_an_asset_error(asset, tmp_path, sandbox):
     """libhdf5's RuntimeError on damaged metadata (in a sandbox: such files can also crash it)."""
-    from esmm.pipeline.batch.local import Sandbox
-
     old = headerless(asset, tmp_path / "old.h5")
     b = bytearray(old.read_bytes())
     for n in (6, 35, 63):
         i = len(b) // 2
         b[i:i] = bytes(n)
     old.write_bytes(bytes(b))
-    with Sandbox() as sb:
-        kind, value = sb.call(_read_and_validate, str(old), timeout=60)
+    kind, value = sandbox.call(_read_and_validate, str(old), timeout=60)
     assert kind == "result", value
     read_outcome, problems = value
     assert read_outcome.startswith("AssetError:") and problems and all("\n" not in p for p in problems)
@@ -256,3 +261,40 @@ def test_rewritten_tables_are_sealed(asset):
     assert _h5.check_file(asset) == (True, "")
     a = read_asset(asset)
     assert a.tables.n == 12 and validate_asset(asset) == []
+
+
+@pytest.fixture(scope="module")
+def full_asset(tmp_path_factory):
+    """The fuzzer's base asset (material, tables, reports): the byte offsets below refer to its layout."""
+    from esmm.pipeline.materials.material import load_material
+    from esmm.pipeline.network.springs import network_from_tets
+    from esmm.pipeline.network.tables import build_tables
+
+    net = network_from_tets(kuhn_cube(), density=1060.0)
+    net = net.with_fixed(np.flatnonzero(net.points[:, 2] < 1e-9))
+    mat = load_material("porcine_liver_paper")
+    p = tmp_path_factory.mktemp("full") / "organ.h5"
+    write_asset(p, net, material=mat, tables=build_tables(mat, n=16), quality={"min_dihedral_deg": 35.0},
+                cleaning={"steps": []}, provenance=collect_provenance(None, config_toml="[mesh]\n", argv=["esmm"]),
+                xdmf=False)
+    return p
+
+
+@pytest.mark.parametrize("obj,offset,n,value", [
+    ("/springs/cos2", 169, 1, 203),          # an attribute's datatype message: libhdf5 segfaults
+    ("/provenance/packages", 2807, 35, 0),   # zeroed metadata: libhdf5 never returns
+])
+def test_bytes_that_crash_libhdf5_are_refused_before_parsing(full_asset, tmp_path, sandbox, obj, offset, n,
+                                                             value):
+    """The fuzzer's reproducers at the same place in the HDF5 structure (addresses are relative to
+    the end of the user block), read in a sandbox so that a regression cannot end the session."""
+    p = Path(shutil.copy(full_asset, tmp_path / "organ.h5"))
+    with h5py.File(p, "r") as f:
+        at = h5py.h5o.get_info(f[obj].id).addr + f.userblock_size + offset
+    b = bytearray(p.read_bytes())
+    b[at:at + n] = bytes([value]) * n
+    p.write_bytes(bytes(b))
+    kind, value = sandbox.call(_read_and_validate, str(p), timeout=30)
+    assert kind == "result", value
+    outcome, problems = value
+    assert "file hash mismatch" in outcome and problems == [outcome.removeprefix("AssetError: ")]
