@@ -25,7 +25,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from esmm.pipeline.atomicio import atomic_path, write_text  # noqa: E402
-from esmm.pipeline.errors import EsmmError  # noqa: E402
+from esmm.pipeline.errors import EsmmError, SimulationError  # noqa: E402
 from esmm.pipeline.materials.material import load_material  # noqa: E402
 from esmm.pipeline.network.compensation import calibrate_compensation  # noqa: E402
 from esmm.pipeline.network.tables import LAWS, build_tables  # noqa: E402
@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     calibrated: dict = {}
     check_t = np.round(np.arange(1.01, 1.301, 0.01), 4)
     check_c = np.round(np.arange(0.99, 0.899, -0.01), 4)
-    beyond_c = np.array([0.88, 0.85, 0.82, 0.8])
+    beyond_c = np.array([0.88, 0.85])
     for size in args.sizes:
         t0 = time.perf_counter()
         spec = cylinder_specimen(radius=args.radius * 1e-3, length=args.length * 1e-3, size=size * 1e-3)
@@ -71,13 +71,17 @@ def main(argv: list[str] | None = None) -> int:
             # independent check at every hundredth of stretch, both sides
             vt = virtual_tensile_test(spec, comp, stretch=check_t, law=law, material=mat)
             vc = virtual_tensile_test(spec, comp, stretch=check_c, law=law, material=mat)
-            vb = virtual_tensile_test(spec, comp, stretch=beyond_c, law=law, material=mat)
+            try:
+                vb = virtual_tensile_test(spec, comp, stretch=beyond_c, law=law, material=mat, max_iter=25)
+                beyond = {str(k): float(v) for k, v in zip(beyond_c, vb.rel_error)}
+            except SimulationError as exc:  # the compensated network can lose stability there
+                beyond = {"failed": str(exc)}
             entry["laws"][law] = {
                 "volume_factor": res.factor, "iterations": res.iterations, "converged": res.converged,
                 "calibration_time_s": cal_time,
                 "before": _errs(res.before), "scalar": _errs(res.scalar), "after": _errs(res.after),
                 "check_tension": _errs(vt), "check_compression": _errs(vc),
-                "beyond_compression": {str(k): float(v) for k, v in zip(beyond_c, vb.rel_error)},
+                "beyond_compression": beyond,
                 "knots": res.knots.tolist(), "g": res.g.tolist(),
                 "curve": {"stretch": res.after.stretch.tolist(), "reference": res.after.reference.tolist(),
                           "before": res.before.stress.tolist(), "scalar": res.scalar.stress.tolist(),
@@ -89,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
             calibrated[(size, law)] = comp
         entry["time_s"] = time.perf_counter() - t0
         study["sizes"].append(entry)
+        write_text(f"{args.out}/virtual_tensile_study.json", json.dumps(study, indent=1) + "\n")
         print(f"size {size} mm: {entry['nodes']} nodes, {entry['time_s']:.0f} s", file=sys.stderr)
     # transfer: the coarsest mesh's compensation applied to the others
     coarse = args.sizes[0]

@@ -21,7 +21,8 @@ is matched worse the further it is stretched (docs/model-tables.md).
    found by the fixed-point iteration
    :math:`g_{m+1}(\lambda_k) = g_m(\lambda_k)\,P_{cont}(\lambda_k)/P_{net,m}(\lambda_k)`
    at the test stretches (tension up to ``tension``, compression down to
-   ``compression``), linear between them and held constant beyond them. It
+   ``compression``), smooth between them (monotone cubic in log g) and held
+   constant beyond them. It
    converges because the axial force at specimen stretch :math:`\lambda` comes
    mostly from springs near the axis, whose stretch is :math:`\lambda`.
 
@@ -38,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, SimulationError
 from ..progress import ensure
 from .tables import LAWS, StiffnessTables
 from .tensile_test import (
@@ -112,11 +113,27 @@ class CompensationResult:
 
 
 def correction_on_grid(tables: StiffnessTables, knots, g) -> np.ndarray:
-    """:math:`g` on the tables' grid: linear between *knots*, constant beyond, shape (n,)."""
+    """:math:`g` on the tables' grid, shape (n,): smooth (C1) through *knots*, constant beyond.
+
+    ``log g`` is interpolated by a monotone cubic (PCHIP) through the knots and
+    one extra knot beyond each end (one knot spacing further, with the end
+    value), so that g levels off smoothly at the ends of the calibrated range
+    and stays constant beyond. A piecewise-linear g would put a jump of the
+    spring tangent stiffness at every knot, which makes Newton's method cycle
+    on fine networks.
+    """
+    from scipy.interpolate import PchipInterpolator
+
     knots = np.asarray(knots, dtype=np.float64)
     g = np.asarray(g, dtype=np.float64)
     order = np.argsort(knots)
-    return np.interp(tables.lam, knots[order], g[order])
+    k, lg = knots[order], np.log(g[order])
+    if k.size < 2:
+        return np.full(tables.n, float(g[0]) if g.size else 1.0)
+    k = np.concatenate([[k[0] - (k[1] - k[0])], k, [k[-1] + (k[-1] - k[-2])]])
+    lg = np.concatenate([[lg[0]], lg, [lg[-1]]])
+    lam = np.clip(tables.lam, k[0], k[-1])
+    return np.exp(PchipInterpolator(k, lg)(lam))
 
 
 def _stretches(end: float | None, spacing: float, *, tension: bool, tables: StiffnessTables) -> np.ndarray:
@@ -207,7 +224,17 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
     with rep.task(f"compensation ({law} law)", total=max_iter) as advance:
         for it in range(1, max_iter + 1):
             cur = base.with_compensation(c, correction={law: correction_on_grid(base, knots, g)})
-            res = _both_sides(specimen, cur, lam_t, lam_c, law, reference, guesses, rtol)
+            try:
+                res = _both_sides(specimen, cur, lam_t, lam_c, law, reference, guesses, rtol)
+            except SimulationError as exc:
+                if best is None:
+                    raise SimulationError(
+                        f"compensation ({law}): the virtual tensile test failed before any "
+                        f"correction ({exc}); narrow the calibration range") from None
+                rep.warn(f"compensation ({law}): iteration {it} found no equilibrium (the corrected "
+                         "network loses stability); keeping the best correction so far. A smaller "
+                         "compression range avoids this")
+                break
             if first is None:
                 first = res
             err = res.max_abs_rel_error

@@ -456,7 +456,7 @@ class StiffnessTables:
         return tables
 
 
-_DATASETS = ("lam", "mu_e", "stress", "energy", "correction")
+_DATASETS = ("lam", "mu_e", "stress", "energy", "correction", "k_per_spring")  # replaced on rewrite
 FORCE_LAW = (
     "F = volume_factor * V_ij / L0 * sum_d cos2_d * f_d(lam), lam = L/L0, positive = tension; "
     "secant (paper Eq. 9): f = mu_e(lam) * (lam - 1), i.e. F = k (L - L0) with "
