@@ -132,3 +132,24 @@ def test_compensation_brings_the_coarse_network_within_5_percent(liver, tables, 
                                  material=liver)
     assert check.max_abs_rel_error < 0.05
     assert any("scalar factor" in s for s in rep.steps)
+
+
+def test_correction_on_grid_is_smooth_monotone_and_flat_beyond(tables):
+    from esmm.pipeline.network.compensation import correction_on_grid
+
+    knots = [0.9, 0.95, 1.0, 1.1, 1.2, 1.3]
+    g = [3.0, 1.6, 1.0, 1.9, 2.3, 2.25]
+    out = correction_on_grid(tables, knots, g)
+    lam = tables.lam
+    np.testing.assert_allclose(np.interp(knots, lam, out), g, rtol=2e-3)
+    assert np.all(out[lam <= 0.9 - 0.05] == out[0]) and np.all(out[lam >= 1.3 + 0.1] == out[-1])
+    assert out[0] == pytest.approx(3.0) and out[-1] == pytest.approx(2.25)
+    # monotone between monotone knots, no overshoot
+    seg = (lam > 0.9) & (lam < 1.0)
+    assert np.all(np.diff(out[seg]) <= 0)
+    assert out.max() <= 3.0 + 1e-12 and out[(lam > 1.2) & (lam < 1.3)].max() <= 2.3 + 1e-12
+    # C1: no jump of the slope anywhere (a piecewise-linear g would jump at the knots)
+    slope = np.diff(out) / tables.dlam
+    lin_slopes = np.diff(g) / np.diff(knots)
+    lin_jump = np.abs(np.diff(lin_slopes)).max()          # what a piecewise-linear g would have
+    assert np.abs(np.diff(slope)).max() < 0.2 * lin_jump
