@@ -90,6 +90,7 @@ def test_crlf_header(tmp_path):
     ("3 0 1 2 0\n", 2, "ends inside the 2 declared 'face' records; the file is truncated"),
     ("3 0 1 x 0\n", 1, "non-numeric value 'x'"),
     ("3.5 0 1 2 0\n", 1, "list length 3.5 is not a count"),
+    ("-1 0 0\n", 3, "list length -1 is not a count"),
 ])
 def test_bad_ascii_faces_are_refused(tmp_path, faces, nf, match):
     p = tmp_path / "bad.ply"

@@ -289,7 +289,9 @@ def _read_vtk_family(p: Path) -> tuple[np.ndarray, np.ndarray, str]:
     try:
         with pv.VtkErrorCatcher(raise_errors=False, send_to_logging=False) as catcher:
             try:
-                mesh = pv.read(str(p))
+                # The reader itself, not pv.read: pv.read's own error observer logs VTK's errors
+                # (printed by the root logger) and warns, where the catcher above keeps them.
+                mesh = pv.get_reader(str(p)).read()
             except (Exception, SystemExit) as exc:  # meshio (behind pyvista) may call sys.exit
                 raise InputError(f"{p}: cannot read it as {what} ({_short(exc)}); export the surface again") from None
     finally:
@@ -438,6 +440,7 @@ def _ply_read_ascii(p: Path, elements: list[_PlyElement], body: bytes) -> dict[s
         first, q = [], pos
         for pr in el.props:
             k = int(vals[q]) if pr.count is not None and q < vals.size and _whole(vals[q]) else 0
+            k = max(k, 0)  # a negative length fails the check below and is refused record by record
             first.append(k)
             q += 1 + k if pr.count is not None else 1
         width = sum(1 + k if pr.count is not None else 1 for pr, k in zip(el.props, first))
@@ -514,7 +517,7 @@ def _ply_read_binary(p: Path, elements: list[_PlyElement], body: bytes, order: s
             k = int(np.frombuffer(body, order + pr.count, count=1, offset=q)[0])
             first.append(max(k, 0))
             q += cs + max(k, 0) * np.dtype(pr.type).itemsize
-        if ok and el.n:
+        if ok and el.n and q <= len(body):  # the first record fits
             fields = []
             for i, (pr, k) in enumerate(zip(el.props, first)):
                 if pr.count is None:
