@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import os
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -287,7 +288,10 @@ def _read_vtk_family(p: Path) -> tuple[np.ndarray, np.ndarray, str]:
     prev = logger.GetCurrentVerbosityCutoff()
     logger.SetStderrVerbosity(logger.VERBOSITY_OFF)  # the library never prints; errors are caught below
     try:
-        with pv.VtkErrorCatcher(raise_errors=False, send_to_logging=False) as catcher:
+        with pv.VtkErrorCatcher(raise_errors=False, send_to_logging=False) as catcher, \
+                warnings.catch_warnings():
+            # VTK's warnings come back as Python warnings from pyvista; the data is checked below.
+            warnings.simplefilter("ignore", pv.VTKExecutionWarning)
             try:
                 # The reader itself, not pv.read: pv.read's own error observer logs VTK's errors
                 # (printed by the root logger) and warns, where the catcher above keeps them.
