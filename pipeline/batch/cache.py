@@ -4,6 +4,7 @@ Layout (inside the batch's output folder ``<out>``)::
 
     <out>/.esmm-cache/<key>.json   one manifest per completed job
     <out>/.esmm-cache/lock         held (flock) by the batch writing to <out>
+    <out>/.esmm-cache/workers/     the local workers' stdout/stderr while they run
 
 A job's outputs live where the user expects them (``<out>/<group>/params.toml``,
 ``<out>/liver.h5``); each is written atomically by the job. The manifest is
@@ -153,6 +154,23 @@ def sweep_temp(folder: str | os.PathLike) -> list[Path]:
                 with contextlib.suppress(FileNotFoundError):
                     p.unlink()
                     removed.append(p)
+    return removed
+
+
+def workers_dir(out_dir: str | os.PathLike) -> Path:
+    """Where local workers' stdout/stderr go while they run (``.esmm-cache/workers``)."""
+    return cache_dir(out_dir) / "workers"
+
+
+def sweep_workers(out_dir: str | os.PathLike) -> list[Path]:
+    """Remove the output files of workers of a batch that was killed (call under the lock)."""
+    removed = []
+    d = workers_dir(out_dir)
+    if d.is_dir():
+        for p in d.iterdir():
+            with contextlib.suppress(OSError):
+                p.unlink()
+                removed.append(p)
     return removed
 
 

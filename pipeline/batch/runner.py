@@ -154,9 +154,10 @@ def _run_serial(tasks: list[Task], on_event: OnEvent) -> None:
         on_event(t, res)
 
 
-def _run_local(tasks: list[Task], workers: int, on_event: OnEvent, timeout: float | None = None) -> None:
+def _run_local(tasks: list[Task], workers: int, on_event: OnEvent, timeout: float | None = None,
+               stderr_dir: Path | None = None) -> None:
     by_id = dict(enumerate(tasks))
-    pool = LocalPool(min(workers, len(tasks)))
+    pool = LocalPool(min(workers, len(tasks)), stderr_dir=stderr_dir)
     reported: set[int] = set()
     try:
         for i, t in by_id.items():
@@ -351,7 +352,7 @@ def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any 
     desc = ""
 
     with _cache.locked(out):
-        swept = _cache.sweep_temp(out)
+        swept = _cache.sweep_temp(out) + _cache.sweep_workers(out)
         logger, handler, log_path = _open_log(out)
         summary.log_path = log_path
         try:
@@ -438,7 +439,7 @@ def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any 
                         if kind == "serial":
                             _run_serial(tasks, on_event)
                         elif kind == "local":
-                            _run_local(tasks, n_workers, on_event, job_timeout)
+                            _run_local(tasks, n_workers, on_event, job_timeout, _cache.workers_dir(out))
                         else:
                             addr = _run_dask(tasks, target, on_event, logger, connect_timeout)
                             summary.scheduler = f"dask {addr}"
