@@ -357,9 +357,17 @@ def _compensation_key(tables, lo: float, hi: float) -> str:
     import json
 
     from . import __version__
+    from .network import compensation, tensile_test
+    from .network import tables as tables_mod
     from .network.compensation import DEFAULT_RADIUS_ELEMENTS
 
+    # The code that computes it is part of the address: an edited calibration
+    # never serves a stale cached result.
+    code = hashlib.sha256()
+    for mod in (compensation, tensile_test, tables_mod):
+        code.update(Path(mod.__file__).read_bytes())
     blob = json.dumps({
+        "code": code.hexdigest(),
         "material": tables.material_toml, "law": tables.default_law, "n": tables.n,
         "lam": [repr(float(tables.lam_min)), repr(float(tables.lam_max))],
         "range": [repr(float(lo)), repr(float(hi))], "radius_elements": DEFAULT_RADIUS_ELEMENTS,
