@@ -29,7 +29,7 @@ def run() -> dict:
     read_s = time.perf_counter() - t0
     out = {"raw_file": raw.name, "samples": test.n, "read_s": round(read_s, 4)}
     for model in ("esedf", "arruda-boyce"):
-        med, times = _median_time(lambda: fit_material([test], model=model))
+        med, times = _median_time(lambda m=model: fit_material([test], model=m))
         out[f"fit_{model}_s_median"] = round(med, 3)
         out[f"fit_{model}_s_all"] = [round(t, 3) for t in times]
     out["goal_fit_s"] = 2.0
@@ -50,7 +50,7 @@ def run() -> dict:
             text = dst.read_text(encoding="utf-8")
             dst.write_text(text.replace("# specimen:", f"# specimen: b{i}-"), encoding="utf-8")
             copies.append(dst)
-        med, _ = _median_time(lambda: run_batch(copies, by="specimen", fit_kwargs={"model": "esedf"}, jobs=2), 1)
+        med, _ = _median_time(lambda c=copies: run_batch(c, by="specimen", fit_kwargs={"model": "esedf"}, jobs=2), 1)
         scaling[str(k)] = round(med, 3)
         shutil.rmtree(tmp, ignore_errors=True)
     out["batch_seconds_by_files_2_workers"] = scaling

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from esmm.pipeline.calibrate.fit import fit_material, predict
 from esmm.pipeline.errors import ConfigError
 from esmm.pipeline.materials import get_model

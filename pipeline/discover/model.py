@@ -42,9 +42,9 @@ from typing import Any
 import numpy as np
 from scipy import optimize, stats
 
+from ..blas import single_threaded_blas
 from ..errors import FitError
 from ..tensile.data import TensileTest
-from ..blas import single_threaded_blas
 from .covariates import Covariates, covariates, thin
 from .effects import (
     ARTEFACTS,

@@ -35,10 +35,10 @@ from typing import Any
 import numpy as np
 from scipy import optimize
 
+from ..blas import single_threaded_blas
 from ..errors import ConfigError, FitError
 from ..progress import Reporter, ensure
 from ..tensile.data import TensileTest
-from ..blas import single_threaded_blas
 from .diagnose import Diagnosis, diagnose
 from .effects import ARTEFACTS, EFFECT_NAMES, MATERIAL_EFFECTS, MaterialEffects, qlv_stress
 from .model import (
