@@ -310,6 +310,22 @@ def test_leftover_temp_files_are_swept_and_the_folder_is_locked(tmp_path):
     assert run_jobs(write_jobs(out, ["a"]), out_dir=out, scheduler="serial").exit_code == 0  # lock released
 
 
+def test_a_file_system_without_locks_runs_unlocked_and_sweeps_nothing(tmp_path, monkeypatch):
+    import errno
+    import fcntl
+
+    def no_locks(fd, op):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / ".a.txt.tmp-x.txt").write_text("someone else's?")
+    s = run_jobs(write_jobs(out, ["a"]), out_dir=out, scheduler="serial")
+    assert s.exit_code == 0 and (out / ".a.txt.tmp-x.txt").exists()
+    assert "cannot lock" in s.log_path.read_text()
+
+
 def test_output_folder_that_cannot_be_made(tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(ConfigError, match="cannot create the output folder"):

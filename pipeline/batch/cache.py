@@ -184,6 +184,8 @@ class FolderLock:
     def __init__(self, out_dir: str | os.PathLike):
         self.path = cache_dir(out_dir) / "lock"
         self._fh = None
+        #: True when the file system cannot lock (some NFS setups): the batch runs unlocked.
+        self.unsupported = False
 
     def acquire(self) -> None:
         import fcntl
@@ -193,6 +195,10 @@ class FolderLock:
         try:
             fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
+            if exc.errno in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
+                fh.close()
+                self.unsupported = True
+                return
             fh.seek(0)
             holder = fh.read().strip() or "another process"
             fh.close()

@@ -351,9 +351,13 @@ def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any 
     summary = BatchSummary([], out)
     desc = ""
 
-    with _cache.locked(out):
-        swept = _cache.sweep_temp(out) + _cache.sweep_workers(out)
+    with _cache.locked(out) as lock:
+        # Temporary files can be swept only while no one else writes here (the lock says so).
+        swept = [] if lock.unsupported else _cache.sweep_temp(out) + _cache.sweep_workers(out)
         logger, handler, log_path = _open_log(out)
+        if lock.unsupported:
+            logger.warning("the file system cannot lock %s: make sure no other batch writes there; "
+                           "leftover temporary files are not removed", out)
         summary.log_path = log_path
         try:
             version = code_version()
@@ -446,7 +450,7 @@ def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any 
                     except KeyboardInterrupt:
                         summary.interrupted = True
                         logger.warning("batch interrupted (Ctrl-C or SIGTERM): queued jobs not started")
-                        if kind != "dask":
+                        if kind != "dask" and not lock.unsupported:
                             late = _cache.sweep_temp(out)
                             if late:
                                 logger.info("removed %d temporary file(s) of stopped jobs", len(late))
