@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 from typing import Any
 
 from esmm.pipeline.errors import ConfigError
@@ -13,6 +12,7 @@ examples:
   esmm calibrate uniaxial.csv --model arruda-boyce --json out.json
   esmm calibrate test_x.csv test_y.csv test_z.csv --out fit/        (orientation-tagged: anisotropic)
   esmm calibrate --by specimen data/*.csv --out batch/               (one fit per specimen, in parallel)
+  esmm calibrate --by specimen data/*.csv --out batch/ --scheduler tcp://10.0.0.5:8786   (on a Dask cluster)
   esmm calibrate raw.csv --gauge-length "30 mm" --area "22 mm2" --out fit/
 
 Outputs in --out: params.toml (a material config, readable back with --material),
@@ -48,7 +48,14 @@ def add_parser(sub) -> None:
                         "load-cell offset), add what the data support and report the error before and after "
                         "(docs/discover.md)")
     p.add_argument("--by", choices=["specimen", "folder"], help="batch: fit each group of files on its own")
-    p.add_argument("--jobs", type=int, default=None, metavar="N", help="batch worker processes (default: all cores)")
+    p.add_argument("--jobs", type=int, default=None, metavar="N",
+                   help="batch: local worker processes (default: all cores)")
+    p.add_argument("--scheduler", metavar="ADDR", default=None,
+                   help="batch: 'local' (default: a pool of --jobs processes), 'serial', or the address of a "
+                        "running Dask scheduler, e.g. tcp://10.0.0.5:8786")
+    p.add_argument("--force", "--redo", dest="redo", action="store_true",
+                   help="batch: recompute groups whose results are already in --out (by default a group whose "
+                        "files, options and esmm version are unchanged is skipped)")
     g = p.add_argument_group("specimen metadata (overrides the file's comments and sidecar)")
     g.add_argument("--gauge-length", metavar="LEN", help='initial gauge length, e.g. "30 mm"')
     g.add_argument("--area", metavar="AREA", help='cross-section area, e.g. "22 mm2"')
@@ -161,23 +168,19 @@ def run(args, ui) -> int:
         return run_discover(args, ui, fit_kwargs=fit_kwargs, overrides=overrides)
 
     if args.by:
-        from esmm.pipeline.calibrate.batch import run_batch
+        from esmm.pipeline.batch.calibrate import batch_document, calibrate_batch
 
-        batch = run_batch(args.files, by=args.by, read=lambda p: read(p, overrides=overrides),
-                          fit_kwargs=fit_kwargs, out_dir=args.out, jobs=args.jobs, reporter=ui)
-        ui.info(batch.summary_csv.rstrip())
+        if not args.out:
+            raise ConfigError("--by: give --out DIR; each group's outputs, the cache and the batch log go there")
+        summary = calibrate_batch(args.files, out_dir=args.out, by=args.by, read_kwargs={"overrides": overrides},
+                                  fit_kwargs=fit_kwargs, scheduler=args.scheduler, workers=args.jobs,
+                                  force=args.redo, reporter=ui)
+        ui.info(summary.table())
         if args.json:
-            doc = {"schema": "esmm.calibrate-batch/1", "by": args.by,
-                   "groups": [{"group": g.group, "ok": g.ok, "reason": g.reason, "files": g.files,
-                               "result": result_to_dict(g.result, []) if g.ok else None}
-                              for g in batch.groups],
-                   "unreadable": [{"path": p, "reason": r} for p, r in batch.unreadable]}
-            write_json(args.json, doc)
-        if args.out:
-            ui.info(f"outputs: {Path(args.out) / 'summary.csv'} and one folder per group in {args.out}")
-        n_ok = sum(g.ok for g in batch.groups)
-        ui.info(f"{n_ok} group(s) fitted, {batch.n_failed} failed or unreadable")
-        return 0 if batch.n_failed == 0 else 5
+            write_json(args.json, batch_document(summary, by=args.by))
+        ui.info(f"outputs in {summary.out_dir}: one folder per group, summary.csv (parameters), "
+                f"batch-summary.csv, {summary.log_path.name if summary.log_path else 'the batch log'}")
+        return summary.exit_code
 
     tests = [read(p, overrides=overrides, reporter=ui) for p in args.files]
     result = fit_material(tests, **fit_kwargs, reporter=ui)

@@ -13,11 +13,12 @@ examples:
   esmm prepare liver.stl -o assets/liver.h5 --size 6
   esmm prepare liver.stl --config coarse --structure skeleton
   esmm prepare seg.nii.gz --label 5 --nodes 2000 --material my_fit/params.toml
+  esmm prepare p01/liver.stl p02/liver.stl --out assets/ --config coarse   (a batch: assets/p01/liver.h5, ...)
 
 Presets (--config): coarse (~1 500 tets), paper (~5 000 tets, default), fine (~30 000 tets),
 or a TOML file (docs/prepare-config.md). Options given here override the config.
 Exit codes: 0 written, 2 bad input/options, 3 meshing failed, 4 mesh below the quality
-floors (--force writes it anyway).
+floors (--force writes it anyway); a batch: 5 if any organ failed, 130 interrupted.
 """
 
 
@@ -31,9 +32,18 @@ def add_parser(sub) -> None:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("input", metavar="INPUT", help="organ surface or label mask")
+    p.add_argument("inputs", nargs="+", metavar="INPUT",
+                   help="organ surface or label mask; several make a batch (with --out)")
     p.add_argument("-o", "--output", metavar="ASSET.h5",
                    help="asset file (default: <input stem>.h5 in the current folder)")
+    b = p.add_argument_group("batch (several inputs, or --out)")
+    b.add_argument("--out", metavar="DIR",
+                   help="folder for the assets (<stem>.h5 each), the batch log, the summary and the cache")
+    b.add_argument("--jobs", type=int, default=None, metavar="N", help="local worker processes (default: all cores)")
+    b.add_argument("--scheduler", metavar="ADDR", default=None,
+                   help="'local' (default), 'serial', or a Dask scheduler address, e.g. tcp://10.0.0.5:8786")
+    b.add_argument("--redo", action="store_true",
+                   help="recompute organs whose assets are already in --out (cached); --force is the quality override")
     p.add_argument("--config", metavar="C", help="prepare preset (coarse, paper, fine) or TOML file; default paper")
     p.add_argument("--size", metavar="MM", help="target tet size in mm (instead of the preset's target)")
     p.add_argument("--nodes", metavar="N", help="target number of mesh nodes")
@@ -79,17 +89,33 @@ def run(args, ui) -> int:
     if args.structure is not None and args.structure not in ("tetra", "skeleton"):
         raise ConfigError(f"--structure: {args.structure!r} is not tetra or skeleton")
     size_mm = _number(args.size, "--size (mm)")
-    result = prepare(
-        args.input, output=args.output, config=args.config,
-        size=None if size_mm is None else size_mm * 1e-3,
+    options = dict(
+        config=args.config, size=None if size_mm is None else size_mm * 1e-3,
         nodes=_number(args.nodes, "--nodes", integer=True),
         elements=_number(args.elements, "--elements", integer=True),
         structure=args.structure, unit=args.unit,
         label=_number(args.label, "--label", integer=True, positive=False),
         keep_all=args.keep_all, body=_number(args.body, "--body", integer=True, positive=False),
         material=args.material, density=_number(args.density, "--density (kg/m3)"),
-        force=args.force, compensate=args.compensate, reporter=ui, argv=["esmm", *getattr(args, "_argv", [])],
+        force=args.force, compensate=args.compensate,
     )
+    argv = ["esmm", *getattr(args, "_argv", [])]
+    if len(args.inputs) > 1 or args.out:
+        if args.output:
+            raise ConfigError("-o names one asset; for several inputs give --out DIR")
+        if not args.out:
+            raise ConfigError(f"{len(args.inputs)} inputs: give --out DIR for their assets")
+        from esmm.pipeline.batch.prepare import prepare_batch
+
+        summary = prepare_batch(args.inputs, out_dir=args.out, options=options, argv=argv,
+                                scheduler=args.scheduler, workers=args.jobs, force=args.redo, reporter=ui)
+        ui.info(summary.table())
+        ui.info(f"assets in {summary.out_dir}; batch-summary.csv and "
+                f"{summary.log_path.name if summary.log_path else 'the batch log'} there too")
+        return summary.exit_code
+    if args.redo or args.scheduler or args.jobs:
+        raise ConfigError("--redo, --scheduler and --jobs apply to a batch: give --out DIR")
+    result = prepare(args.inputs[0], output=args.output, reporter=ui, argv=argv, **options)
     for line in result.summary_lines():
         ui.info(line)
     return 0

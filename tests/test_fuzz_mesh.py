@@ -44,11 +44,7 @@ def fuzz(default: int):
 
 
 #: Known crashes, reported to the readers' owner (each had an xfail regression test below).
-KNOWN: list = [  # fixed earlier: VTK's PLY reader crashes; line cells reshaped as triangles (tests below)
-    ("a NIfTI header whose xyzt_units byte is not a known code: nibabel's get_xyzt_units raises KeyError "
-     "outside readers._read_nifti's try",
-     lambda c: c["type"] == "KeyError" and c["where"].startswith("nifti1.py")),
-]
+KNOWN: list = []  # fixed: VTK PLY reader crashes, line cells reshaped as triangles, unknown xyzt_units
 
 STATS: Counter = Counter()
 CRASHES: list[dict] = []
@@ -392,8 +388,6 @@ def test_known_crash_polygon_with_two_vertices(tmp_path):
         pass  # refusing the file is fine; so is reading its one triangle
 
 
-@pytest.mark.xfail(strict=True, reason="reported: readers._read_nifti calls img.header.get_xyzt_units() outside its "
-                                       "try; an unknown xyzt_units code raises KeyError")
 def test_known_crash_unknown_xyzt_units(tmp_path):
     import nibabel as nib
     from esmm.pipeline.errors import EsmmError

@@ -720,7 +720,10 @@ def _read_nifti(p: Path, *, label: int | None, scale: float) -> tuple[np.ndarray
             raise InputError(f"{p}: a {data.ndim}-D image of shape {data.shape}; give a 3-D mask")
     if data.ndim != 3:
         raise InputError(f"{p}: a {data.ndim}-D image; give a 3-D mask")
-    spatial_unit = img.header.get_xyzt_units()[0]
+    try:
+        spatial_unit = img.header.get_xyzt_units()[0]
+    except (KeyError, ValueError):  # an unknown xyzt_units code in a damaged header
+        spatial_unit = "unknown"
     unit_scale = {"meter": 1.0, "mm": 1e-3, "micron": 1e-6}.get(spatial_unit, scale)
     spacing = np.sqrt((np.asarray(img.affine)[:3, :3] ** 2).sum(axis=0))
     if not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
