@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from esmm.cli.tensile_options import add_metadata_options, metadata_overrides
 from esmm.pipeline.errors import ConfigError
 
 EPILOG = """\
@@ -56,31 +57,8 @@ def add_parser(sub) -> None:
     p.add_argument("--force", "--redo", dest="redo", action="store_true",
                    help="batch: recompute groups whose results are already in --out (by default a group whose "
                         "files, options and esmm version are unchanged is skipped)")
-    g = p.add_argument_group("specimen metadata (overrides the file's comments and sidecar)")
-    g.add_argument("--gauge-length", metavar="LEN", help='initial gauge length, e.g. "30 mm"')
-    g.add_argument("--area", metavar="AREA", help='cross-section area, e.g. "22 mm2"')
-    g.add_argument("--width", metavar="LEN", help="cross-section width")
-    g.add_argument("--thickness", metavar="LEN", help="cross-section thickness")
-    g.add_argument("--mode", help="uniaxial, equibiaxial, pure_shear or simple_shear")
-    g.add_argument("--orientation", help="loading direction in the fibre frame: x, y or z")
-    g.add_argument("--specimen", help="specimen id")
-    g.add_argument("--columns", help='quantities by position, e.g. "time,displacement,force"')
-    g.add_argument("--units", help='units by position, e.g. "s,mm,N"')
-    g.add_argument("--encoding", help="text encoding of the files, e.g. gbk")
+    add_metadata_options(p)
     p.set_defaults(func=run)
-
-
-def _overrides(args) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key in ("gauge_length", "area", "width", "thickness", "mode", "orientation", "specimen", "encoding"):
-        v = getattr(args, key, None)
-        if v is not None:
-            out[key] = v
-    for key in ("columns", "units"):
-        v = getattr(args, key, None)
-        if v is not None:
-            out[key] = [s.strip() for s in v.split(",")]
-    return out
 
 
 def _pairs(items, option: str) -> dict[str, str]:
@@ -157,7 +135,7 @@ def run(args, ui) -> int:
     )
     from esmm.pipeline.tensile import read
 
-    overrides = _overrides(args)
+    overrides = metadata_overrides(args)
     opts = _fit_options(args)
     fit_kwargs = dict(model=opts["model"], loss=opts["loss"], n_starts=int(opts["n_starts"]),
                       seed=int(opts["seed"]), weights=opts["weights"] or None, fixed=opts["fixed"] or None,

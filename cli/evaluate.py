@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from esmm.cli.tensile_options import add_metadata_options, metadata_overrides
+
 EPILOG = """\
 examples:
   esmm evaluate fit/ new_test.csv                          (fit/ from 'esmm calibrate ... --out fit/')
@@ -31,30 +33,8 @@ def add_parser(sub) -> None:
                    "fit.json or params.toml)")
     p.add_argument("files", nargs="+", metavar="FILE", help="tensile-test files to predict")
     p.add_argument("--json", metavar="PATH", help="write the result as JSON (schema esmm.evaluate/1)")
-    g = p.add_argument_group("specimen metadata (overrides the file's comments and sidecar)")
-    g.add_argument("--gauge-length", metavar="LEN", help='initial gauge length, e.g. "30 mm"')
-    g.add_argument("--area", metavar="AREA", help='cross-section area, e.g. "22 mm2"')
-    g.add_argument("--width", metavar="LEN", help="cross-section width")
-    g.add_argument("--thickness", metavar="LEN", help="cross-section thickness")
-    g.add_argument("--mode", help="uniaxial, equibiaxial, pure_shear or simple_shear")
-    g.add_argument("--orientation", help="loading direction in the fibre frame: x, y or z")
-    g.add_argument("--columns", help='quantities by position, e.g. "time,displacement,force"')
-    g.add_argument("--units", help='units by position, e.g. "s,mm,N"')
-    g.add_argument("--encoding", help="text encoding of the files, e.g. gbk")
+    add_metadata_options(p, specimen=False)
     p.set_defaults(func=run)
-
-
-def _overrides(args) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key in ("gauge_length", "area", "width", "thickness", "mode", "orientation", "encoding"):
-        v = getattr(args, key, None)
-        if v is not None:
-            out[key] = v
-    for key in ("columns", "units"):
-        v = getattr(args, key, None)
-        if v is not None:
-            out[key] = [s.strip() for s in v.split(",")]
-    return out
 
 
 def run(args, ui) -> int:
@@ -62,7 +42,7 @@ def run(args, ui) -> int:
     from esmm.pipeline.tensile import read
 
     saved = load_fit(args.fit)
-    overrides = _overrides(args)
+    overrides = metadata_overrides(args)
     tests = [read(p, overrides=overrides) for p in args.files]
     ev = evaluate(saved, tests, reporter=ui)
     for line in summary_lines(ev):
