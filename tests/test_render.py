@@ -11,10 +11,8 @@ and look at the new PNGs before committing them (tests/data/render/README.md).
 
 from __future__ import annotations
 
-import itertools
 import os
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -34,22 +32,7 @@ RMS_TOL = 0.02
 pytestmark = pytest.mark.slow       # opens an OpenGL context, encodes video
 
 
-def box_tets(nx, ny, nz, size):
-    xs = [np.linspace(0.0, size[k], n + 1) for k, n in enumerate((nx, ny, nz))]
-    X, Y, Z = np.meshgrid(*xs, indexing="ij")
-    pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
-    idx = np.arange(pts.shape[0]).reshape(nx + 1, ny + 1, nz + 1)
-    cells = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), -1).reshape(-1, 3)
-    tets = []
-    for perm in itertools.permutations(range(3)):
-        corners = [cells.copy()]
-        c = cells.copy()
-        for ax in perm:
-            c = c.copy()
-            c[:, ax] += 1
-            corners.append(c)
-        tets.append(np.stack([idx[q[:, 0], q[:, 1], q[:, 2]] for q in corners], axis=1))
-    return SimpleNamespace(points=pts, tets=np.concatenate(tets))
+from esmm.pipeline.mesh.synthetic import box_tets  # noqa: E402  (shared structured box)
 
 
 @pytest.fixture(scope="module")

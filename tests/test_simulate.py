@@ -8,12 +8,14 @@ of the simulator.
 
 from __future__ import annotations
 
-import itertools
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 from esmm.pipeline.errors import SimulationError
+
+# ---------------------------------------------------------------------------
+# fixtures
+# ---------------------------------------------------------------------------
+from esmm.pipeline.mesh.synthetic import box_tets  # noqa: E402  (shared structured box)
 from esmm.pipeline.network.forcelaw import spring_energy, spring_forces
 from esmm.pipeline.network.springs import SpringNetwork, network_from_tets, stiffness_matrix
 from esmm.pipeline.network.tables import StiffnessTables
@@ -27,29 +29,6 @@ from esmm.pipeline.simulate.integrator import (
     tangent_bound,
     windowed_bound,
 )
-
-# ---------------------------------------------------------------------------
-# fixtures
-# ---------------------------------------------------------------------------
-
-
-def box_tets(nx, ny, nz, size):
-    """Structured box split into 6 Kuhn tetrahedra per cell (conforming)."""
-    xs = [np.linspace(0.0, size[k], n + 1) for k, n in enumerate((nx, ny, nz))]
-    X, Y, Z = np.meshgrid(*xs, indexing="ij")
-    pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
-    idx = np.arange(pts.shape[0]).reshape(nx + 1, ny + 1, nz + 1)
-    cells = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), -1).reshape(-1, 3)
-    tets = []
-    for perm in itertools.permutations(range(3)):
-        corners = [cells.copy()]
-        c = cells.copy()
-        for ax in perm:
-            c = c.copy()
-            c[:, ax] += 1
-            corners.append(c)
-        tets.append(np.stack([idx[q[:, 0], q[:, 1], q[:, 2]] for q in corners], axis=1))
-    return SimpleNamespace(points=pts, tets=np.concatenate(tets))
 
 
 def make_tables(kind="nonlinear", lo=0.5, hi=2.0, n=301, mu0=2.0e4):

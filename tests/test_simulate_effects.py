@@ -8,7 +8,6 @@ response, static sag of a linear network) or from independent quadrature.
 
 from __future__ import annotations
 
-import itertools
 import json
 import math
 from types import SimpleNamespace
@@ -36,23 +35,7 @@ from esmm.pipeline.simulate.scene import scene_from_dict
 VISCO = ViscoelasticEffect((0.3, 0.25), (0.03, 0.3))
 
 
-def box_tets(nx, ny, nz, size):
-    """Structured box split into 6 Kuhn tetrahedra per cell (conforming)."""
-    xs = [np.linspace(0.0, size[k], n + 1) for k, n in enumerate((nx, ny, nz))]
-    X, Y, Z = np.meshgrid(*xs, indexing="ij")
-    pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
-    idx = np.arange(pts.shape[0]).reshape(nx + 1, ny + 1, nz + 1)
-    cells = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), -1).reshape(-1, 3)
-    tets = []
-    for perm in itertools.permutations(range(3)):
-        corners = [cells.copy()]
-        c = cells.copy()
-        for ax in perm:
-            c = c.copy()
-            c[:, ax] += 1
-            corners.append(c)
-        tets.append(np.stack([idx[q[:, 0], q[:, 1], q[:, 2]] for q in corners], axis=1))
-    return SimpleNamespace(points=pts, tets=np.concatenate(tets))
+from esmm.pipeline.mesh.synthetic import box_tets  # noqa: E402  (shared structured box)
 
 
 def make_tables(kind="nonlinear", mu0=2.0e4, lo=0.5, hi=2.0, n=301):

@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import itertools
 import json
 from dataclasses import replace
-from types import SimpleNamespace
 
 import h5py
 import numpy as np
 import pytest
 from esmm.pipeline.config import bundled_names
 from esmm.pipeline.errors import ConfigError, SimulationError
+from esmm.pipeline.mesh.synthetic import box_tets  # noqa: E402  (shared structured box)
 from esmm.pipeline.network.springs import network_from_tets
 from esmm.pipeline.network.tables import StiffnessTables
 from esmm.pipeline.progress import ListReporter
@@ -19,24 +18,6 @@ from esmm.pipeline.simulate.grasper import plan_grasp, vertex_normals
 from esmm.pipeline.simulate.history import History, HistoryWriter
 from esmm.pipeline.simulate.run import simulate_network
 from esmm.pipeline.simulate.scene import Scene, load_scene, scene_from_dict
-
-
-def box_tets(nx, ny, nz, size):
-    xs = [np.linspace(0.0, size[k], n + 1) for k, n in enumerate((nx, ny, nz))]
-    X, Y, Z = np.meshgrid(*xs, indexing="ij")
-    pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
-    idx = np.arange(pts.shape[0]).reshape(nx + 1, ny + 1, nz + 1)
-    cells = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), -1).reshape(-1, 3)
-    tets = []
-    for perm in itertools.permutations(range(3)):
-        corners = [cells.copy()]
-        c = cells.copy()
-        for ax in perm:
-            c = c.copy()
-            c[:, ax] += 1
-            corners.append(c)
-        tets.append(np.stack([idx[q[:, 0], q[:, 1], q[:, 2]] for q in corners], axis=1))
-    return SimpleNamespace(points=pts, tets=np.concatenate(tets))
 
 
 def stiff_tables(mu0=2.0e5):

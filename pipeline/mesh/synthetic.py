@@ -20,7 +20,9 @@ it with a fine voxel to reach 1 M triangles.
 
 from __future__ import annotations
 
+import itertools
 import os
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -166,3 +168,35 @@ def invesalius_like_surface(*, shape: str = "liver", voxel: tuple[float, float, 
 
         write_stl(surf, path, unit="mm")
     return surf
+
+
+def box_tets(nx: int, ny: int, nz: int, size) -> SimpleNamespace:
+    """A structured box split into 6 Kuhn tetrahedra per cell (conforming).
+
+    Parameters
+    ----------
+    nx, ny, nz : int
+        Cells along x, y, z.
+    size : sequence of 3 floats
+        Box edge lengths [m].
+
+    Returns
+    -------
+    SimpleNamespace
+        ``points`` (n, 3) and ``tets`` (6·nx·ny·nz, 4), positively oriented.
+    """
+    xs = [np.linspace(0.0, size[k], n + 1) for k, n in enumerate((nx, ny, nz))]
+    X, Y, Z = np.meshgrid(*xs, indexing="ij")
+    pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+    idx = np.arange(pts.shape[0]).reshape(nx + 1, ny + 1, nz + 1)
+    cells = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), -1).reshape(-1, 3)
+    tets = []
+    for perm in itertools.permutations(range(3)):
+        corners = [cells.copy()]
+        c = cells.copy()
+        for ax in perm:
+            c = c.copy()
+            c[:, ax] += 1
+            corners.append(c)
+        tets.append(np.stack([idx[q[:, 0], q[:, 1], q[:, 2]] for q in corners], axis=1))
+    return SimpleNamespace(points=pts, tets=np.concatenate(tets))
