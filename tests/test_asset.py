@@ -6,7 +6,6 @@ import json
 import os
 import re
 from pathlib import Path
-from types import SimpleNamespace
 
 import h5py
 import numpy as np
@@ -21,25 +20,13 @@ from esmm.pipeline.asset import (
 )
 from esmm.pipeline.asset.xdmf import check_sidecar, referenced_datasets, sidecar_path
 from esmm.pipeline.errors import AssetError, InputError
+from esmm.pipeline.mesh.synthetic import box_tets  # noqa: E402
 from esmm.pipeline.network.springs import network_from_skeleton, network_from_tets
 
 
 def kuhn_cube(n=4, side=0.04):
-    """A structured tet mesh of a cube: n^3 cells, 6 tets each (Kuhn/Freudenthal)."""
-    g = np.linspace(0, side, n + 1)
-    x, y, z = np.meshgrid(g, g, g, indexing="ij")
-    pts = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
-    idx = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)
-    cells = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
-    tets = []
-    for path in [(0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)]:
-        c = cells.copy()
-        verts = [idx[c[:, 0], c[:, 1], c[:, 2]]]
-        for axis in path:  # walk from the cell's low corner to its high corner, one axis at a time
-            c[:, axis] += 1
-            verts.append(idx[c[:, 0], c[:, 1], c[:, 2]])
-        tets.append(np.stack(verts, axis=1))
-    return SimpleNamespace(points=pts, tets=np.concatenate(tets))
+    """A structured tet mesh of a cube: n^3 cells, 6 Kuhn tets each."""
+    return box_tets(n, n, n, (side, side, side))
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,6 @@ import re
 import shutil
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import cloudpickle
 import h5py
@@ -20,21 +19,12 @@ from esmm.pipeline.errors import AssetError
 cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the sandbox runs this module's probe
 
 
+from esmm.pipeline.mesh.synthetic import box_tets  # noqa: E402
+
+
 def kuhn_cube(n=2, side=0.04):
-    g = np.linspace(0, side, n + 1)
-    x, y, z = np.meshgrid(g, g, g, indexing="ij")
-    pts = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
-    idx = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)
-    cells = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
-    tets = []
-    for path in [(0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)]:
-        c = cells.copy()
-        verts = [idx[c[:, 0], c[:, 1], c[:, 2]]]
-        for axis in path:
-            c[:, axis] += 1
-            verts.append(idx[c[:, 0], c[:, 1], c[:, 2]])
-        tets.append(np.stack(verts, axis=1))
-    return SimpleNamespace(points=pts, tets=np.concatenate(tets))
+    """A structured tet mesh of a cube: n^3 cells, 6 Kuhn tets each."""
+    return box_tets(n, n, n, (side, side, side))
 
 
 @pytest.fixture(scope="module")
