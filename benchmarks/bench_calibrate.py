@@ -19,7 +19,7 @@ def _median_time(fn, repeats=3):
 
 
 def run() -> dict:
-    from esmm.pipeline.calibrate.batch import run_batch
+    from esmm.pipeline.batch.calibrate import calibrate_batch
     from esmm.pipeline.calibrate.fit import fit_material
     from esmm.pipeline.tensile import read
 
@@ -50,7 +50,8 @@ def run() -> dict:
             text = dst.read_text(encoding="utf-8")
             dst.write_text(text.replace("# specimen:", f"# specimen: b{i}-"), encoding="utf-8")
             copies.append(dst)
-        med, _ = _median_time(lambda c=copies: run_batch(c, by="specimen", fit_kwargs={"model": "esedf"}, jobs=2), 1)
+        med, _ = _median_time(lambda c=copies, d=tmp: calibrate_batch(
+            c, out_dir=d / "out", by="specimen", fit_kwargs={"model": "esedf"}, workers=2, force=True), 1)
         scaling[str(k)] = round(med, 3)
         shutil.rmtree(tmp, ignore_errors=True)
     out["batch_seconds_by_files_2_workers"] = scaling
