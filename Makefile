@@ -6,9 +6,13 @@ BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.esmm-installed
 DEMO_OUT ?= demo-output
 BENCH_OUT ?= benchmarks/results.json
+# The tested versions of every dependency (pip constraints). `make install LOCK=` installs
+# the newest releases pyproject.toml allows instead; `make lock` refreshes the file.
+LOCK    ?= requirements.lock
+PIN     := $(if $(LOCK),-c $(LOCK),)
 
 .DEFAULT_GOAL := help
-.PHONY: help install check-system test test-fast demo bench lint clean
+.PHONY: help install check-system test test-fast demo bench lint lock clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  make %-13s %s\n", $$1, $$2}'
@@ -17,8 +21,8 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
-$(STAMP): pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+$(STAMP): pyproject.toml $(LOCK) | $(BIN)/python
+	$(BIN)/python -m pip install --quiet $(PIN) -e '.[dev]'
 	$(BIN)/python scripts/check_system.py
 	@touch $@
 
@@ -38,6 +42,9 @@ demo: install ## run the whole pipeline on the bundled real data (outputs in dem
 
 bench: install ## run the benchmarks, write JSON to benchmarks/results.json
 	$(BIN)/python benchmarks/run.py --out "$(BENCH_OUT)"
+
+lock: ## refresh requirements.lock: the newest releases pyproject.toml allows, installed and frozen
+	bash scripts/lock.sh "$(PYTHON)" requirements.lock
 
 lint: install ## ruff
 	$(BIN)/ruff check cli pipeline tests benchmarks scripts

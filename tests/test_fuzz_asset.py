@@ -46,8 +46,9 @@ def fuzz(default: int):
 #: Known crashes, reported to the asset module's owner (each had an xfail regression test below).
 KNOWN: list = []  # fixed: segfault, hang, RuntimeError/AttributeError, OverflowError (tests below)
 
-#: A probe takes well under a second; a damaged file that takes longer is a hang.
-PROBE_TIMEOUT = 10.0
+#: A probe takes well under a second; one still running after this long is a hang. Generous on
+#: purpose: a hang guard, not a speed requirement, so a loaded machine passes too.
+PROBE_TIMEOUT = 60.0
 
 STATS: Counter = Counter()
 CRASHES: list[dict] = []
@@ -347,7 +348,7 @@ def test_known_hang_on_zeroed_bytes(tmp_path, base_asset):
     b[at:at + 35] = bytes(35)
     p.write_bytes(bytes(b))
     with Sandbox() as sb:
-        kind, value = sb.call(probe, str(p), timeout=5)
+        kind, value = sb.call(probe, str(p), timeout=PROBE_TIMEOUT)
     assert kind == "result", value[0] if kind == "died" else value
 
 

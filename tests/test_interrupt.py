@@ -49,15 +49,15 @@ def env_for(token: str) -> dict[str, str]:
 
 
 def run(argv: list[str], cwd: Path, *, token: str, kill: tuple[int, float] | None = None,
-        timeout: float = 120.0, python: bool = False) -> tuple[int | None, str, float]:
+        timeout: float = 120.0, python: bool = False) -> tuple[int | None, str]:
     """Run the command; optionally send *kill* = (signal, seconds after start).
 
-    Returns (exit code, or None after *timeout* s, when the process is killed; stderr; seconds).
+    Returns (exit code, or None if it had not ended *timeout* s later and was killed; stderr).
+    *timeout* only guards against a command that never ends: no duration is asserted.
     """
     cmd = [sys.executable, "-P", "-c", argv[0], *argv[1:]] if python else [ESMM, *argv]
     err_path = cwd / f"stderr-{uuid.uuid4().hex[:8]}.txt"
     with open(err_path, "wb") as err:
-        t0 = time.monotonic()
         proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.DEVNULL, stderr=err, env=env_for(token))
         try:
             if kill is not None:
@@ -76,7 +76,7 @@ def run(argv: list[str], cwd: Path, *, token: str, kill: tuple[int, float] | Non
                 proc.wait()
     text = err_path.read_text(errors="replace")
     err_path.unlink()
-    return code, text, time.monotonic() - t0
+    return code, text
 
 
 def leftover_processes(token: str, wait: float = 15.0) -> list[str]:
@@ -170,10 +170,6 @@ def check_no_partial_output(out: Path, *, allow_temp: bool) -> dict:
     return counts
 
 
-def cli_has_batch_cache(out: Path) -> bool:
-    return (out / ".esmm-cache").is_dir()
-
-
 # ----------------------------------------------------------------------------- calibrate
 def calibrate_files() -> list[str]:
     return [str(p) for p in sorted(BRAIN.glob("*.csv"))] + [str(p) for p in sorted(TRELOAR.glob("*.csv"))]
@@ -188,27 +184,26 @@ def test_calibrate_batch_killed_at_random_moments(tmp_path):
     token = uuid.uuid4().hex
     # SIGINT: a clean stop, exit 130 (or 0/5 if it had finished), no temporary file, no worker left.
     t_int = rng.uniform(0.5, 6.0)
-    code, err, took = run(argv, tmp_path, token=token, kill=(signal.SIGINT, t_int), timeout=60)
+    code, err = run(argv, tmp_path, token=token, kill=(signal.SIGINT, t_int), timeout=60)
     assert "Traceback" not in err, err[-2000:]
     assert code in (130, 0, 5), (code, err[-800:])
     assert not leftover_processes(token), "workers left after SIGINT"
     before = check_no_partial_output(out, allow_temp=False)
     # SIGKILL: the parent dies at once; its workers must notice and stop; at most temp files remain.
     t_kill = rng.uniform(0.5, 6.0)
-    code, err, _ = run(argv, tmp_path, token=token, kill=(signal.SIGKILL, t_kill), timeout=60)
+    code, err = run(argv, tmp_path, token=token, kill=(signal.SIGKILL, t_kill), timeout=60)
     assert not leftover_processes(token), ("workers outlived a SIGKILLed batch (a ProcessPoolExecutor's do: "
                                            "is the CLI batch the esmm.pipeline.batch runner?)")
     killed = check_no_partial_output(out, allow_temp=True)
     # The rerun completes and, with the batch cache, redoes only what is missing.
-    code, err, _ = run(argv, tmp_path, token=token, timeout=180)
+    code, err = run(argv, tmp_path, token=token, timeout=180)
     assert code == 0, err[-2000:]
     final = check_no_partial_output(out, allow_temp=False)
     groups = {r["group"]: r for r in csv.DictReader(io.StringIO((out / "summary.csv").read_text()))}
     assert sum(r["status"] == "ok" for r in groups.values()) == 5
-    if cli_has_batch_cache(out):
-        assert final["manifests"] >= 5
-        cached = sum(r.get("cached") == "yes" for r in groups.values())
-        assert cached == min(killed["manifests"], 5), (cached, killed, before)
+    assert final["manifests"] >= 5
+    cached = sum(r.get("cached") == "yes" for r in groups.values())
+    assert cached == min(killed["manifests"], 5), (cached, killed, before)
 
 
 def test_calibrate_library_batch_sigint_and_sigkill(tmp_path):
@@ -223,16 +218,15 @@ def test_calibrate_library_batch_sigint_and_sigkill(tmp_path):
     token = uuid.uuid4().hex
     for sig in (signal.SIGINT, signal.SIGKILL):
         t = rng.uniform(0.5, 6.0)
-        code, err, took = run(argv, tmp_path, token=token, kill=(sig, t), python=True, timeout=60)
+        code, err = run(argv, tmp_path, token=token, kill=(sig, t), python=True, timeout=60)
         assert not leftover_processes(token), f"workers left after {sig.name}"
         if sig == signal.SIGINT:
-            assert code in (130, 0), (code, err[-800:])
-            assert took < t + 25, f"SIGINT took {took - t:.1f} s to stop the batch"
+            assert code in (130, 0), (code, err[-800:])  # None: it did not stop at all
         counts = check_no_partial_output(out, allow_temp=sig == signal.SIGKILL)
         if sig == signal.SIGINT and code == 130:
             log = sorted(out.glob("esmm-batch-*.log"))[-1].read_text()
             assert "INTERRUPTED" in log and "batch end: exit code 130" in log
-    code, err, _ = run(argv, tmp_path, token=token, python=True, timeout=180)
+    code, err = run(argv, tmp_path, token=token, python=True, timeout=180)
     assert code == 0, err[-2000:]
     status = [r["status"] for r in csv.DictReader(io.StringIO((out / "batch-summary.csv").read_text()))]
     assert set(status) <= {"done", "skipped (cached)"} and len(status) == 5
@@ -246,14 +240,12 @@ def test_prepare_killed_at_random_moments(tmp_path):
     rng = random.Random(SEED + 2)
     out = tmp_path / "assets"
     out.mkdir()
-    argv = ["prepare", str(LIVER), "-o", str(out / "liver.h5"), "--size", "20"]
-    helptext = subprocess.run([ESMM, "prepare", "--help"], capture_output=True, text=True, env=env_for("help")).stdout
-    if "--no-compensate" in helptext:  # the compensation's virtual tensile test takes minutes on a cold cache
-        argv.append("--no-compensate")
+    # --no-compensate: the compensation's virtual tensile test takes minutes on a cold cache.
+    argv = ["prepare", str(LIVER), "-o", str(out / "liver.h5"), "--size", "20", "--no-compensate"]
     token = uuid.uuid4().hex
     for sig in (signal.SIGINT, signal.SIGKILL):
         t = rng.uniform(0.3, 4.5)
-        code, err, took = run(argv, tmp_path, token=token, kill=(sig, t), timeout=120)
+        code, err = run(argv, tmp_path, token=token, kill=(sig, t), timeout=120)
         assert "Traceback" not in err, err[-2000:]
         if sig == signal.SIGINT:
             assert code in (130, 0), (code, err[-800:])
@@ -261,9 +253,7 @@ def test_prepare_killed_at_random_moments(tmp_path):
                 assert err.rstrip().splitlines()[-1].startswith("esmm: error: interrupted")
         assert not leftover_processes(token), f"processes left after {sig.name}"
         check_no_partial_output(out, allow_temp=sig == signal.SIGKILL)
-    code, err, _ = run(argv, tmp_path, token=token, timeout=180)
-    if code in (1, 3):
-        pytest.skip(f"prepare itself fails on this tree (exit {code}): {err.strip().splitlines()[-1][:200]}")
+    code, err = run(argv, tmp_path, token=token, timeout=180)
     assert code == 0, err[-2000:]
     check_no_partial_output(out, allow_temp=True)  # a SIGKILL's temp file may remain: it is ignored
     assert (out / "liver.h5").is_file() and (out / "liver.xdmf").is_file()

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import pytest
 from esmm.pipeline.errors import ConfigError, InputError, MeshingError
+from esmm.pipeline.mesh import gmsh_worker
 from esmm.pipeline.mesh import volume as volmod
 from esmm.pipeline.mesh.gmsh_worker import GmshFailure, GmshTimeout, run_worker
 from esmm.pipeline.mesh.quality import tet_quality
@@ -70,22 +73,47 @@ def test_bad_options(kw, match):
         mesh_volume(sphere(nsub=2), **kw)
 
 
-def test_worker_time_limit_kills_the_process():
+def _child_that_cannot_finish(monkeypatch, pid_file=None):
+    """Put a child in the mesher's place that never finishes (a shell waiting on a sleep).
+
+    The time limit is then tested by what it does, whatever the speed of the
+    machine or of today's gmsh. The shell writes its background sleep's pid to
+    *pid_file*, so the test can check that the whole process group was killed.
+    """
+    import shutil
+
+    sh = shutil.which("sh")
+    record = f"echo $! > '{pid_file}'; " if pid_file else ""
+    monkeypatch.setattr(gmsh_worker, "child_argv", lambda folder: [sh, "-c", f"sleep 1000 & {record}wait"])
+
+
+def test_worker_time_limit_kills_the_process_group(monkeypatch, tmp_path):
     import psutil
 
-    s = sphere(nsub=3)
-    with pytest.raises(GmshTimeout) as ei:
-        run_worker("mesh", {"size": 2.0}, arrays={"points": s.points * 1e3, "faces": s.faces}, timeout=0.3)
-    pid = ei.value.pid
-    assert pid is not None
-    assert not psutil.pid_exists(pid) or psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    pid_file = tmp_path / "grandchild.pid"
+    _child_that_cannot_finish(monkeypatch, pid_file)
+    s = sphere(nsub=2)
+    with pytest.raises(GmshTimeout, match="no result after 2 s; the process was killed") as ei:
+        run_worker("mesh", {"size": 2.0}, arrays={"points": s.points * 1e3, "faces": s.faces}, timeout=2.0)
+    def alive(pid):
+        try:
+            return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+        except psutil.NoSuchProcess:
+            return False
+
+    assert ei.value.pid is not None and not alive(ei.value.pid)
+    grandchild = int(pid_file.read_text())  # started by the child: killed with its group
+    with contextlib.suppress(psutil.NoSuchProcess, psutil.TimeoutExpired):
+        psutil.Process(grandchild).wait(timeout=10)  # SIGKILL is sent; give the kernel time to act
+    assert not alive(grandchild)
 
 
-def test_time_limit_gives_a_clear_error():
+def test_time_limit_gives_a_clear_error(monkeypatch):
+    _child_that_cannot_finish(monkeypatch)
     with pytest.raises(MeshingError, match=r"no result within 0.3 s, killed") as ei:
         mesh_volume(sphere(nsub=3), nodes=500, timeout=0.3)
     msg = str(ei.value)
-    assert "\n" not in msg and "gmsh:" in msg and "pytetwild:" in msg
+    assert "\n" not in msg and "gmsh:" in msg and "gmsh-after-repair:" in msg and "pytetwild:" in msg
 
 
 def test_all_paths_failing_lists_them(monkeypatch):

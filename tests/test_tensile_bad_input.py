@@ -131,9 +131,6 @@ def test_unknown_column_names(tmp_path):
     assert "unknown column names 'Kraft2', 'Weg2' (header line 1)" in msg and "columns = [...]" in msg
 
 
-def test_refused_true_stress(tmp_path):
-    msg = refuse(tmp_path, "stretch,true stress [kPa]\n1,0\n")
-    assert "Cauchy" in msg and "nominal stress" in msg
 
 
 def test_duplicate_columns(tmp_path):

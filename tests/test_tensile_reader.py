@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from esmm.pipeline.errors import InputError
 from esmm.pipeline.progress import ListReporter
 from esmm.pipeline.tensile import MODES, TensileTest, read
 
@@ -48,15 +49,76 @@ def _tensile_dirs(shared_data, bundled_data):
     return [shared_data / "tensile", bundled_data / "tensile"]
 
 
+def _is_measurements_table(path: Path) -> bool:
+    """foam_cyclic/*-measurements.csv: the specimens' widths, thicknesses and gauge lengths, not a test."""
+    return path.stem.endswith("-measurements")
+
+
 def test_every_shared_and_bundled_file_reads(shared_data, bundled_data):
     for root in _tensile_dirs(shared_data, bundled_data):
-        files = sorted(root.rglob("*.csv"))
-        assert len(files) >= 22, root   # 8 brain + 3 Treloar + 11 VHB at the time of writing
+        files = sorted(f for f in root.rglob("*.csv") if not _is_measurements_table(f))
+        # 8 brain + 3 Treloar + 11 VHB + 6 tendon + 8 foam at the time of writing
+        assert len(files) >= 36, root
         for f in files:
             t = read(f)
             assert isinstance(t, TensileTest) and t.mode in MODES
             assert t.n >= 13 and np.all(np.isfinite(t.stretch)) and np.all(np.isfinite(t.stress))
             assert t.metadata["n_rows"] == t.n
+
+
+def test_a_table_of_specimen_measurements_is_refused_in_one_line(shared_data):
+    tables = sorted((shared_data / "tensile").rglob("*-measurements.csv"))
+    assert tables
+    for f in tables:
+        with pytest.raises(InputError, match=r"unknown column names 'W', .*'G'.* needs a stretch or strain") as ei:
+            read(f)
+        assert "\n" not in str(ei.value)
+
+
+def test_instron_bluehill_export_reads_as_written(shared_data):
+    """Geometry from the file's own header lines, the raw channels chosen among eight columns,
+    and the machine's derived stress and strain columns used as a cross-check."""
+    f = shared_data / "tensile" / "tendon_instron" / "relax_incubated_1.csv"
+    t = read(f)
+    md = t.metadata
+    d, length = 0.376e-3, 12.02e-3   # 'Specimen properties : Diameter,"0.37600",mm' and Length
+    assert md["diameter"] == pytest.approx(d) and md["gauge_length"] == pytest.approx(length)
+    assert md["area"] == pytest.approx(math.pi * d * d / 4) and md["area_from"] == "diameter"
+    assert md["sources"]["diameter"] == "comment" and md["specimen"] is None  # its label is empty
+    assert md["extra"]["Test : Duration"] == "180.00000 s"
+    assert md["raw"] and md["stretch_from"] == "displacement / gauge_length" and md["stress_from"] == "force / area"
+    assert md["used_columns"]["displacement"]["header"] == "Extension"
+    assert md["used_columns"]["force"]["header"] == "Load"
+    assert any("'Tensile extension' not used" in n for n in md["column_notes"])
+    # The machine's own 'Tensile stress' (MPa) agrees with force / (pi d^2 / 4) to its 5 printed digits.
+    assert md["cross_checks"]["stress"]["header"] == "Tensile stress"
+    assert md["cross_checks"]["stress"]["max_difference"] < 1e-4
+    assert md["cross_checks"]["stretch"]["max_difference"] < 1e-3
+    assert not md["warnings"]
+    ref = file_numbers(f, "utf-8", skip=8)  # 6 header lines, the header, the units row (blank lines skipped)
+    np.testing.assert_allclose(t.stress, ref[:, 1] / (math.pi * d * d / 4), rtol=1e-12)
+    np.testing.assert_allclose(t.stretch, 1 + ref[:, 0] * 1e-3 / length, rtol=1e-12)
+    assert t.time[-1] == pytest.approx(ref[-1, 3] - ref[0, 3])
+
+
+def test_a_derived_column_that_disagrees_with_the_raw_channels_is_warned_about(tmp_path):
+    text = ("Specimen properties : Width,\"2\",mm\nSpecimen properties : Thickness,\"1\",mm\n"
+            "Specimen properties : Length,\"10\",mm\n\nTime,Extension,Load,Tensile stress\n"
+            "(s),(mm),(N),(MPa)\n" + "".join(f"{i},{0.1 * i},{0.2 * i},{0.1 * i * 1.05}\n" for i in range(20)))
+    rep = ListReporter()
+    t = read(write(tmp_path, "x.csv", text), reporter=rep)
+    assert t.metadata["area_from"] == "width x thickness" and t.metadata["raw"]
+    assert t.metadata["cross_checks"]["stress"]["max_difference"] == pytest.approx(0.05 / 1.05)
+    assert any("differs from this column by up to 4.8 %" in w for w in rep.warnings)
+
+
+def test_true_stress_is_converted_to_nominal_stress(tmp_path):
+    lam = np.linspace(1.0, 1.5, 11)
+    p_nominal = 1e3 * (lam - lam ** -2)
+    rows = "".join(f"{a:.17g},{b:.17g}\n" for a, b in zip(lam, p_nominal * lam / 1e3))
+    t = read(write(tmp_path, "x.csv", "stretch,true stress [kPa]\n" + rows))
+    np.testing.assert_allclose(t.stress, p_nominal, rtol=1e-12)
+    assert t.metadata["stress_from"].startswith("true stress column (nominal stress = true stress / stretch")
 
 
 def test_treloar_uniaxial_values(shared_data):
@@ -162,7 +224,7 @@ def test_vhb_relaxation_holds(shared_data):
 
 
 def test_bundled_copies_read_the_same(shared_data, bundled_data):
-    for f in sorted((shared_data / "tensile").rglob("*.csv"))[:: 3]:
+    for f in sorted(f for f in (shared_data / "tensile").rglob("*.csv") if not _is_measurements_table(f))[:: 3]:
         rel = f.relative_to(shared_data)
         a, b = read(f), read(bundled_data / rel)
         np.testing.assert_array_equal(a.stretch, b.stretch)

@@ -48,6 +48,8 @@ THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"
                     "VECLIB_MAXIMUM_THREADS")
 
 _ID = struct.Struct("<q")
+#: What :meth:`LocalPool._receive` returns for a worker's start notice (a bare task id).
+_STARTED = ("started",)
 _TAIL_BYTES = 4000
 
 
@@ -123,6 +125,7 @@ def _child_main(sock_fd: int, death_fd: int) -> None:  # pragma: no cover - runs
         (tid,) = _ID.unpack_from(data)
         try:
             fn, args = cloudpickle.loads(data[_ID.size:])
+            conn.send_bytes(_ID.pack(tid))  # started: the job's own time begins now
             reply = ("result", fn(*args))
         except KeyboardInterrupt:
             with contextlib.suppress(Exception):
@@ -275,6 +278,7 @@ class LocalPool:
             self._workers.remove(w)
 
     def _receive(self, w: _Worker) -> tuple[int, str, Any] | None:
+        """The worker's reply; ``_STARTED`` for its start notice; None if it died."""
         import cloudpickle
 
         try:
@@ -282,6 +286,9 @@ class LocalPool:
         except (EOFError, OSError):
             return None
         (tid,) = _ID.unpack_from(data)
+        if len(data) == _ID.size:  # the job has been loaded and starts running
+            w.started = time.monotonic()
+            return _STARTED
         try:
             kind, value = cloudpickle.loads(data[_ID.size:])
         except Exception:  # noqa: BLE001
@@ -304,8 +311,10 @@ class LocalPool:
         Parameters
         ----------
         timeout : float, optional
-            Wall-time limit of one task [s]: a task running longer has its
-            worker killed (SIGKILL) and ends as ``"died"`` with the reason
+            Wall-time limit of one task [s], counted from the moment its
+            worker has loaded it (a fresh worker's start-up is not the job's
+            time; it is bounded by the same limit): a task running longer has
+            its worker killed (SIGKILL) and ends as ``"died"`` with the reason
             ``"timed out after ... s (the worker was killed)"``.
         """
         from multiprocessing.connection import wait
@@ -322,7 +331,8 @@ class LocalPool:
             for w in running:
                 if w.conn in ready:
                     ev = self._receive(w)
-                    yield ev if ev is not None else self._death(w)
+                    if ev is not _STARTED:
+                        yield ev if ev is not None else self._death(w)
                 elif timeout is not None and time.monotonic() - w.started >= timeout:
                     yield self._kill_overdue(w, timeout)
 
@@ -364,6 +374,8 @@ class LocalPool:
                 for w in list(busy):
                     if w.conn in ready:
                         ev = self._receive(w)
+                        if ev is _STARTED:
+                            continue
                         if ev is not None and ev[1] != "interrupted":
                             events.append(ev)
                         busy.remove(w)

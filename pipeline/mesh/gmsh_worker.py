@@ -89,7 +89,7 @@ def run_worker(command: str, options: dict, *, arrays: dict[str, np.ndarray] | N
         env.setdefault("OMP_NUM_THREADS", str(options.get("threads", 1)))
         with open(d / "stdout.txt", "wb") as out:
             proc = subprocess.Popen(
-                [sys.executable, "-m", "esmm.pipeline.mesh.gmsh_worker", str(d)],
+                child_argv(d),
                 stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                 start_new_session=True, env=env,
             )
@@ -117,6 +117,16 @@ def run_worker(command: str, options: dict, *, arrays: dict[str, np.ndarray] | N
         result["info"] = info.get("info", {})
         result["log"] = info.get("log", []) or log
         return result
+
+
+def child_argv(folder: Path) -> list[str]:
+    """The command line of the child that works in *folder*.
+
+    One function so that a test can put a child in its place that cannot
+    finish (the time limit and the kill of its process group are then tested
+    by what they do, not by how fast this machine meshes).
+    """
+    return [sys.executable, "-m", "esmm.pipeline.mesh.gmsh_worker", str(folder)]
 
 
 def _kill_group(proc: subprocess.Popen) -> None:

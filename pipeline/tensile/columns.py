@@ -25,6 +25,7 @@ QUANTITIES: dict[str, str] = {
     "strain": "dimensionless",
     "true_strain": "dimensionless",
     "stress": "stress",
+    "true_stress": "stress",
     "shear_strain": "dimensionless",
     "shear_stress": "stress",
 }
@@ -32,13 +33,9 @@ QUANTITIES: dict[str, str] = {
 #: The quantity name that marks a column to be skipped (sidecar ``columns``).
 IGNORE = "ignore"
 
-#: Quantities that are recognised in order to be refused with a message.
-REFUSED: dict[str, str] = {
-    "true_stress": (
-        "true (Cauchy) stress is not accepted: convert it to nominal stress "
-        "(P = sigma / lambda in an incompressible uniaxial test) and name the column 'nominal stress'"
-    ),
-}
+#: Quantities that are recognised in order to be refused with a message (none at present:
+#: true stress is converted, see esmm.pipeline.tensile.reader).
+REFUSED: dict[str, str] = {}
 
 # Normalised header names (see normalise_name) -> quantity. English names come
 # from the contract (specs/tensile-data.md) and from the exports of common
@@ -73,6 +70,17 @@ _add("stress", "stress", "nominal stress", "engineering stress", "tensile stress
 _add("true_stress", "true stress", "cauchy stress", "true tensile stress", "真应力", "真实应力")
 _add("shear_strain", "shear strain", "gamma", "γ", "amount of shear", "scherung", "剪切应变", "剪应变")
 _add("shear_stress", "shear stress", "tau", "τ", "schubspannung", "剪切应力", "剪应力")
+
+#: Names of channels that testing software derives from another column of the same quantity
+#: (Bluehill's "Tensile extension" is "Extension" re-zeroed at the start of the test). When a
+#: file has both, the raw channel is used and the derived one is only reported.
+DERIVED = frozenset({"tensile extension", "crosshead extension", "tensile load", "tensile force"})
+
+#: Channels of machine exports that esmm knows and does not use (not warned about as unknown).
+KNOWN_UNUSED: dict[str, str] = {
+    "tenacity": "force per linear density (N/tex)",
+    "pip count": "a counter channel of Instron Bluehill",
+}
 
 #: Names whose values are absolute positions: stretch uses the change from the first sample.
 ABSOLUTE_POSITION = frozenset(

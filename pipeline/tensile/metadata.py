@@ -2,7 +2,9 @@
 
 Metadata come, in rising precedence, from
 
-1. ``# key: value`` comment lines at the top of the data file,
+1. ``# key: value`` comment lines at the top of the data file, and the
+   testing software's own header lines (Instron Bluehill's
+   ``Specimen properties : Diameter,"0.39900",mm``),
 2. a TOML sidecar with the data file's stem (``test1.csv`` -> ``test1.toml``),
 3. the command line (the ``overrides`` mapping of :func:`esmm.pipeline.tensile.read`).
 
@@ -31,10 +33,10 @@ from .data import MODES
 
 #: The keys of the contract (specs/tensile-data.md) plus ``delimiter`` and ``decimal``.
 KEYS = (
-    "specimen", "gauge_length", "width", "thickness", "area", "columns", "units", "encoding",
+    "specimen", "gauge_length", "width", "thickness", "diameter", "area", "columns", "units", "encoding",
     "mode", "orientation", "tissue", "temperature", "notes", "delimiter", "decimal",
 )
-LENGTH_KEYS = ("gauge_length", "width", "thickness")
+LENGTH_KEYS = ("gauge_length", "width", "thickness", "diameter")
 TEXT_KEYS = ("specimen", "tissue", "temperature", "notes")
 
 # Spellings of keys met in exports (after normalise_key) -> key.
@@ -44,7 +46,8 @@ _KEY_ALIASES = {
     "cross section": "area", "cross section area": "area", "cross sectional area": "area",
     "section area": "area", "initial area": "area", "a0": "area",
     "sample": "specimen", "sample id": "specimen", "specimen id": "specimen",
-    "sample name": "specimen", "specimen name": "specimen",
+    "sample name": "specimen", "specimen name": "specimen", "specimen label": "specimen",
+    "sample label": "specimen", "dia": "diameter", "specimen diameter": "diameter",
     "temp": "temperature", "note": "notes", "comment": "notes", "comments": "notes",
     "material": "tissue", "test mode": "mode", "loading mode": "mode", "test type": "mode",
     "direction": "orientation", "loading direction": "orientation",
@@ -155,6 +158,49 @@ def from_comments(lines: list[tuple[int, str]], *, label: str) -> Metadata:
             md.entries[key] = Entry(value, f"{label} line {lineno}: {key}", COMMENT)
         else:
             md.extra[m.group(1).strip()] = m.group(2).strip()
+    return md
+
+
+# A testing program's own header line: "<section> : <name>,<value>[,<unit>]" (Instron Bluehill),
+# e.g. 'Specimen properties : Diameter,"0.39900",mm' or 'Test : Rate 1,"5.00000",mm/min'.
+_MACHINE_LINE = re.compile(r"^\s*(?P<section>[^:,\"]{1,60}?)\s*:\s*(?P<name>[^,]{1,60}?)\s*$")
+_SPECIMEN_SECTIONS = frozenset({"specimen properties", "specimen", "sample", "sample properties",
+                                "specimen data", "specimen parameters"})
+# Names that mean a metadata key only inside a specimen section ("Length" of a test is not the gauge length).
+_SPECIMEN_NAMES = {"length": "gauge_length", "label": "specimen", "name": "specimen", "id": "specimen"}
+
+
+def from_machine_header(lines: list[tuple[int, list[str]]], *, label: str) -> Metadata:
+    """Metadata from a testing program's header lines above the column header.
+
+    *lines* are (line number, cells split at the file's delimiter). A line
+    ``Specimen properties : Diameter,"0.39900",mm`` states ``diameter = "0.39900 mm"``
+    (the unit cell joins the value); ``Specimen properties : Length,...`` is the gauge
+    length. Lines of other sections (``Test : Rate 1,"5.00000",mm/min``) and names that
+    are not keys go to ``extra``; empty values are skipped. Level: :data:`COMMENT`
+    (the file's own statements).
+    """
+    md = Metadata()
+    for lineno, cells in lines:
+        if len(cells) < 2:
+            continue
+        m = _MACHINE_LINE.match(cells[0])
+        if not m:
+            continue
+        value = cells[1].strip().strip('"').strip()
+        unit = cells[2].strip().strip('"').strip() if len(cells) > 2 else ""
+        if not value:
+            continue
+        section, name = m.group("section").strip(), m.group("name").strip()
+        key = normalise_key(name)
+        specimen = re.sub(r"\s+", " ", section.lower()) in _SPECIMEN_SECTIONS
+        if specimen and key not in KEYS:
+            key = _SPECIMEN_NAMES.get(name.strip().lower(), key)
+        text = f"{value} {unit}".strip()
+        if key in KEYS and (specimen or key not in LENGTH_KEYS + ("area",)):
+            md.entries[key] = Entry(text, f"{label} line {lineno}: {section} : {name}", COMMENT)
+        else:
+            md.extra[f"{section} : {name}"] = text
     return md
 
 
@@ -321,31 +367,38 @@ class Geometry:
     area: float | None
     width: float | None
     thickness: float | None
-    area_from: str | None   # "area" or "width x thickness"
+    area_from: str | None   # "area", "width x thickness" or "diameter"
+    diameter: float | None = None
 
 
 def geometry(md: Metadata, *, label: str) -> Geometry:
     """Gauge length and cross-section from the merged metadata.
 
-    ``area`` and ``width`` x ``thickness`` may both be stated; they must then
+    The cross-section is ``area``, or ``width`` x ``thickness``, or a circle of
+    ``diameter`` (area = pi d^2 / 4). Two of them may both be stated; they must then
     agree within 1 %, otherwise the input is refused (the two cannot both be right).
     """
     vals = {k: (length_value(md.entries[k]) if k in md.entries else None) for k in LENGTH_KEYS}
-    area = length_value(md.entries["area"], "area") if "area" in md.entries else None
-    w, t = vals["width"], vals["thickness"]
-    area_from = "area" if area is not None else None
-    if (w is None) != (t is None) and area is None:
+    w, t, d = vals["width"], vals["thickness"], vals["diameter"]
+    if (w is None) != (t is None) and "area" not in md.entries and d is None:
         have, miss = ("width", "thickness") if w is not None else ("thickness", "width")
         raise InputError(
             f"{label}: {have} is given but not {miss}; give both, or give area (e.g. area = \"22 mm2\")"
         )
+    stated = []  # (area, how, where) in order of preference
+    if "area" in md.entries:
+        stated.append((length_value(md.entries["area"], "area"), "area", md.entries["area"].where))
     if w is not None and t is not None:
-        wt = w * t
-        if area is None:
-            area, area_from = wt, "width x thickness"
-        elif abs(wt - area) > 0.01 * area:
-            raise InputError(
-                f"{label}: area {md.entries['area'].value!r} ({md.entries['area'].where}) disagrees with "
-                f"width x thickness = {wt * 1e6:.6g} mm2; remove one of them or correct it"
-            )
-    return Geometry(vals["gauge_length"], area, w, t, area_from)
+        stated.append((w * t, "width x thickness", md.entries["width"].where))
+    if d is not None:
+        stated.append((math.pi * d * d / 4.0, "diameter", md.entries["diameter"].where))
+    area = area_from = None
+    if stated:
+        area, area_from, where = stated[0]
+        for other, how, other_where in stated[1:]:
+            if abs(other - area) > 0.01 * area:
+                raise InputError(
+                    f"{label}: {area_from} ({where}) gives {area * 1e6:.6g} mm2, which disagrees with {how} = "
+                    f"{other * 1e6:.6g} mm2 ({other_where}); remove one of them or correct it"
+                )
+    return Geometry(vals["gauge_length"], area, w, t, area_from, d)

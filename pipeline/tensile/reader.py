@@ -115,7 +115,8 @@ def read(
 
     delim_entry = pre.get("delimiter")
     layout = _layout(lines, label, M.delimiter_value(delim_entry) if delim_entry else None)
-    md = M.from_comments(layout.top_comments, label=label).merged(side).merged(over)
+    md = (M.from_comments(layout.top_comments, label=label)
+          .merged(M.from_machine_header(layout.preamble_cells, label=label)).merged(side).merged(over))
     if md.get("delimiter") and not delim_entry:  # stated only in a comment line
         d = M.delimiter_value(md.get("delimiter"))
         if d != layout.delimiter:
@@ -266,7 +267,8 @@ class _Layout:
     data_lines: list[str]
     data_linenos: list[int]
     n_fields: int                              # fields of the first data row
-    preamble: list[str]                        # text lines above the header (not read)
+    preamble: list[str]                        # text lines above the header
+    preamble_cells: list[tuple[int, list[str]]]  # the same as (line number, cells): machine header lines
 
 
 def _split(line: str, delim: str) -> list[str]:
@@ -401,6 +403,7 @@ def _layout(lines: list[str], label: str, delimiter: str | None) -> _Layout:
         data_linenos=linenos,
         n_fields=len(_split(data_lines[0], delim)),
         preamble=[ln.strip() for _, ln in head[: max(j, 0)]],
+        preamble_cells=[(i, _split(ln, delim)) for i, ln in head[: max(j, 0)]],
     )
 
 
@@ -605,44 +608,74 @@ def _decimal(layout: _Layout, cols: list[_Column], md: M.Metadata, label: str) -
 # assembly
 
 
-def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
-              warnings: list[str], rep: Reporter) -> TensileTest:
-    cols = _columns(label, layout, md, warnings)
-    by_q: dict[str, _Column] = {}
+@dataclass
+class _Plan:
+    """Which columns make the test: the processed ones, or the raw channels and the geometry."""
+
+    mode: str
+    mode_from: str
+    x_q: str | None            # processed x quantity used ("stretch", "strain", ...) or None (raw)
+    x_col: _Column | None
+    s_q: str | None            # processed stress quantity used ("stress", "true_stress", ...) or None (raw)
+    s_col: _Column | None
+    d_col: _Column | None
+    f_col: _Column | None
+    t_col: _Column | None
+    checks: dict[str, _Column]  # derived columns kept to cross-check the raw path: "x", "s"
+
+    @property
+    def x_name(self) -> str:
+        return "shear strain" if self.mode == "simple_shear" else "stretch"
+
+
+def _by_quantity(cols: list[_Column], label: str) -> tuple[dict[str, _Column], list[str]]:
+    """One column per quantity; a derived duplicate (:data:`columns.DERIVED`) gives way to the raw channel."""
+    groups: dict[str, list[_Column]] = {}
     for c in cols:
-        if c.quantity in (None, C.IGNORE):
+        if c.quantity not in (None, C.IGNORE):
+            groups.setdefault(c.quantity, []).append(c)
+    by_q: dict[str, _Column] = {}
+    notes: list[str] = []
+    for q, group in groups.items():
+        raw = [c for c in group if not (c.header and C.normalise_name(c.header) in C.DERIVED)]
+        if len(group) == 1 or len(raw) == 1:
+            by_q[q] = group[0] if len(group) == 1 else raw[0]
+            for c in group:
+                if c is not by_q[q]:
+                    notes.append(f"column {c.index + 1} '{c.header}' not used: the raw channel column "
+                                 f"{by_q[q].index + 1} '{by_q[q].header}' is")
             continue
-        if c.quantity in by_q:
-            o = by_q[c.quantity]
-            raise InputError(
-                f"{label}: two {c.quantity.replace('_', ' ')} columns, {o.index + 1} '{o.header}' and "
-                f"{c.index + 1} '{c.header}'; keep one, or give columns = [...] with 'ignore' for the other"
-            )
-        by_q[c.quantity] = c
-    unknown = [c for c in cols if c.quantity is None]
-
-    # Mode.
-    mode_e = md.get("mode")
-    shear_cols = [q for q in ("shear_strain", "shear_stress") if q in by_q]
-    axial_cols = [q for q in ("stretch", "strain", "true_strain", "stress") if q in by_q]
-    if mode_e is not None:
-        mode, mode_from = M.mode_value(mode_e), mode_e.where
-    elif shear_cols and not axial_cols:
-        mode, mode_from = "simple_shear", "columns"
-    else:
-        mode, mode_from = "uniaxial", "default"
-    geo = M.geometry(md, label=label)
-
-    hdr_line = f" (header line {layout.header[0]})" if layout.header else ""
-    side = M.sidecar_path(Path(label)).name
-
-    def missing_geometry(key: str, why: str) -> InputError:
-        example = '"30 mm"' if key == "gauge_length" else '"22 mm2" (or width and thickness)'
-        return InputError(
-            f"{label}: missing geometry: {why} needs {key}; give {key} = {example} in the sidecar {side}, "
-            f"a '# {key}: ...' line at the top of the file, or --{key.replace('_', '-')} on the command line"
+        o, c = (raw or group)[:2]
+        raise InputError(
+            f"{label}: two {q.replace('_', ' ')} columns, {o.index + 1} '{o.header}' and "
+            f"{c.index + 1} '{c.header}'; keep one, or give columns = [...] with 'ignore' for the other"
         )
+    return by_q, notes
 
+
+def _mode(md: M.Metadata, by_q: dict[str, _Column]) -> tuple[str, str]:
+    mode_e = md.get("mode")
+    shear = any(q in by_q for q in ("shear_strain", "shear_stress"))
+    axial = any(q in by_q for q in ("stretch", "strain", "true_strain", "stress", "true_stress"))
+    if mode_e is not None:
+        return M.mode_value(mode_e), mode_e.where
+    if shear and not axial:
+        return "simple_shear", "columns"
+    return "uniaxial", "default"
+
+
+def _has_unit(col: _Column | None) -> bool:
+    return col is not None and (col.unit not in (None, "", "-"))
+
+
+def _plan(label: str, layout: _Layout, md: M.Metadata, cols: list[_Column], by_q: dict[str, _Column],
+          geo: M.Geometry) -> _Plan:
+    """Decide the columns: the raw channels when the file has them with units and the geometry is
+    known (the machine's own measurement; derived columns are then cross-checked), else the
+    processed stretch/strain and stress columns."""
+    mode, mode_from = _mode(md, by_q)
+    shear_cols = [q for q in ("shear_strain", "shear_stress") if q in by_q]
+    hdr_line = f" (header line {layout.header[0]})" if layout.header else ""
     if mode == "simple_shear":
         bad = [q for q in ("stretch", "strain", "true_strain", "stress") if q in by_q and not shear_cols]
         if bad:
@@ -658,109 +691,137 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
                 f"mode is {mode} ({mode_from}); state mode = \"simple_shear\""
             )
         x_q = next((q for q in ("stretch", "strain", "true_strain") if q in by_q), None)
-        s_q = "stress" if "stress" in by_q else None
-        if s_q is None and "true_stress" in by_q and "force" not in by_q:
-            raise InputError(f"{by_q['true_stress'].where(label)}: {C.REFUSED['true_stress']}")
+        s_q = next((q for q in ("stress", "true_stress") if q in by_q), None)
+    d_col, f_col, t_col = by_q.get("displacement"), by_q.get("force"), by_q.get("time")
     x_col = by_q.get(x_q) if x_q else None
     s_col = by_q.get(s_q) if s_q else None
-    d_col, f_col, t_col = by_q.get("displacement"), by_q.get("force"), by_q.get("time")
-    x_name = "shear strain" if mode == "simple_shear" else "stretch"
-    x_from = s_from = None
-    x_missing = x_col is None and d_col is None
-    s_missing = s_col is None and f_col is None
-    if x_missing or s_missing:
-        x_need = ("a 'shear strain' (gamma) column or a displacement column" if mode == "simple_shear"
-                  else "a stretch or strain column, or a displacement column")
-        s_need = ("a 'shear stress' column or a force column" if mode == "simple_shear"
-                  else "a stress column or a force column")
-        found = ", ".join(f"'{c.header}'" for c in cols if c.header) or "none named"
-        if unknown:
-            names = ", ".join(f"'{c.header}'" for c in unknown if c.header)
-            raise InputError(
-                f"{label}: unknown column names {names}{hdr_line}; the test needs "
-                f"{x_need if x_missing else s_need}: rename the columns (time, displacement, force, stretch, "
-                f"strain, stress, shear strain, shear stress, or a synonym in docs/tensile-input.md) or give "
-                f"columns = [...] in the sidecar {side}"
-            )
-        if x_missing:
-            have = "stress" if not s_missing else "neither stretch nor stress"
-            raise InputError(
-                f"{label}: the file has {have} but no {x_name}: it needs {x_need} (columns found{hdr_line}: "
-                f"{found}); add the column or name it in the header"
-            )
-        raise InputError(
-            f"{label}: the file has {x_name} but no stress: it needs {s_need} (columns found{hdr_line}: "
-            f"{found}); add the column or name it in the header"
+    _require_columns(label, mode, cols, x_col, s_col, d_col, f_col, hdr_line)
+    area_ok = geo.area is not None and (mode != "simple_shear" or "area" in md.entries)
+    raw = _has_unit(d_col) and _has_unit(f_col) and geo.gauge_length is not None and area_ok
+    checks: dict[str, _Column] = {}
+    if raw and (x_col is not None or s_col is not None):
+        checks = {k: c for k, c in (("x", x_col), ("s", s_col))
+                  if c is not None and (_has_unit(c) or C.QUANTITIES.get(c.quantity) == "dimensionless")}
+        x_col = s_col = None
+        x_q = s_q = None
+    plan = _Plan(mode, mode_from, x_q if x_col else None, x_col, s_q if s_col else None, s_col,
+                 d_col, f_col, t_col, checks)
+    side = M.sidecar_path(Path(label)).name
+
+    def missing_geometry(key: str, why: str) -> InputError:
+        example = '"30 mm"' if key == "gauge_length" else '"22 mm2" (or width and thickness, or diameter)'
+        return InputError(
+            f"{label}: missing geometry: {why} needs {key}; give {key} = {example} in the sidecar {side}, "
+            f"a '# {key}: ...' line at the top of the file, or --{key.replace('_', '-')} on the command line"
         )
-    if x_col is None:
-        if geo.gauge_length is None:
-            raise missing_geometry("gauge_length", f"{x_name} from displacement")
-        x_from = "displacement / gauge_length"
+
+    if x_col is None and geo.gauge_length is None:
+        raise missing_geometry("gauge_length", f"{plan.x_name} from displacement")
     if s_col is None:
         if mode == "simple_shear" and "area" not in md.entries:
             raise missing_geometry("area", "shear stress from force (area = the sheared face)")
         if geo.area is None:
             raise missing_geometry("area", "stress from force")
-        s_from = "force / area"
+    return plan
 
-    # Columns to read: the ones used, plus time, and raw channels that have units.
+
+def _require_columns(label: str, mode: str, cols: list[_Column], x_col, s_col, d_col, f_col,
+                     hdr_line: str) -> None:
+    """Refuse a file that has neither the processed nor the raw column of x or of stress."""
+    x_missing = x_col is None and d_col is None
+    s_missing = s_col is None and f_col is None
+    if not (x_missing or s_missing):
+        return
+    x_name = "shear strain" if mode == "simple_shear" else "stretch"
+    x_need = ("a 'shear strain' (gamma) column or a displacement column" if mode == "simple_shear"
+              else "a stretch or strain column, or a displacement column")
+    s_need = ("a 'shear stress' column or a force column" if mode == "simple_shear"
+              else "a stress column or a force column")
+    found = ", ".join(f"'{c.header}'" for c in cols if c.header) or "none named"
+    unknown = [c for c in cols if c.quantity is None]
+    side = M.sidecar_path(Path(label)).name
+    if unknown:
+        names = ", ".join(f"'{c.header}'" for c in unknown if c.header)
+        raise InputError(
+            f"{label}: unknown column names {names}{hdr_line}; the test needs "
+            f"{x_need if x_missing else s_need}: rename the columns (time, displacement, force, stretch, "
+            f"strain, stress, shear strain, shear stress, or a synonym in docs/tensile-input.md) or give "
+            f"columns = [...] in the sidecar {side}"
+        )
+    if x_missing:
+        have = "stress" if not s_missing else "neither stretch nor stress"
+        raise InputError(
+            f"{label}: the file has {have} but no {x_name}: it needs {x_need} (columns found{hdr_line}: "
+            f"{found}); add the column or name it in the header"
+        )
+    raise InputError(
+        f"{label}: the file has {x_name} but no stress: it needs {s_need} (columns found{hdr_line}: "
+        f"{found}); add the column or name it in the header"
+    )
+
+
+def _used(plan: _Plan) -> dict[str, _Column]:
+    """The columns to parse: those used, time, raw channels that have units, and cross-checks."""
     used: dict[str, _Column] = {}
-    if x_col is not None:
-        used["x"] = x_col
-    if s_col is not None:
-        used["s"] = s_col
-    if t_col is not None:
-        used["time"] = t_col
-    for key, col, needed in (("displacement", d_col, x_from is not None), ("force", f_col, s_from is not None)):
-        if col is None:
-            continue
-        if needed or (col.unit not in (None, "", "-")):
+    for key, col in (("x", plan.x_col), ("s", plan.s_col), ("time", plan.t_col)):
+        if col is not None:
             used[key] = col
-    factors = {k: _need_unit(c, label, md) for k, c in used.items()}
-    order = list(used)
-    decimal = _decimal(layout, [used[k] for k in order], md, label)
-    arr = _parse(layout, [used[k] for k in order], decimal, label)
-    col_of = {k: arr[:, i] * factors[k] for i, k in enumerate(order)}
-    linenos = layout.data_linenos
-    meta_extra: dict[str, Any] = {}
+    for key, col, needed in (("displacement", plan.d_col, plan.x_col is None),
+                             ("force", plan.f_col, plan.s_col is None)):
+        if col is not None and (needed or col.unit not in (None, "", "-")):
+            used[key] = col
+    for key, col in plan.checks.items():
+        used[f"check_{key}"] = col
+    return used
 
-    time = None
-    if "time" in col_of:
-        t = col_of["time"]
-        back = np.flatnonzero(np.diff(t) < 0)
-        if back.size:
-            i = back[0] + 1
-            f, u = factors["time"], t_col.unit
-            raise InputError(
-                f"{t_col.where(label)}, line {linenos[i]}: time goes backwards ({t[i] / f:g} {u} after "
-                f"{t[i - 1] / f:g} {u} on line {linenos[i - 1]}); a file must hold one test in time order - "
-                f"split joined records into separate files"
-            )
-        meta_extra["time_start"] = float(t[0])
-        time = t - t[0]
-    disp = col_of.get("displacement")
-    if disp is not None and d_col.absolute:
-        meta_extra["displacement_start"] = float(disp[0])
-        disp = disp - disp[0]
-    force = col_of.get("force")
 
-    if x_col is not None:
-        v = col_of["x"]
-        if x_q == "strain":
-            x, x_from = 1.0 + v, "strain column (stretch = 1 + strain)"
-        elif x_q == "true_strain":
-            with np.errstate(over="ignore"):
-                x = np.exp(v)
-            x_from = "true strain column (stretch = exp(strain))"
-        else:
-            x, x_from = v, f"{x_q.replace('_', ' ')} column"
-        xc = x_col
+def _time(t_col: _Column, t: np.ndarray | None, factor: float, linenos: list[int], label: str):
+    """Time from the first sample; refuse time that goes backwards."""
+    if t is None:
+        return None
+    back = np.flatnonzero(np.diff(t) < 0)
+    if back.size:
+        i = back[0] + 1
+        u = t_col.unit
+        raise InputError(
+            f"{t_col.where(label)}, line {linenos[i]}: time goes backwards ({t[i] / factor:g} {u} after "
+            f"{t[i - 1] / factor:g} {u} on line {linenos[i - 1]}); a file must hold one test in time order - "
+            f"split joined records into separate files"
+        )
+    return t - t[0]
+
+
+def _x_of(q: str, v: np.ndarray) -> tuple[np.ndarray, str]:
+    """Stretch (or gamma) from a processed column of quantity *q*."""
+    if q == "strain":
+        return 1.0 + v, "strain column (stretch = 1 + strain)"
+    if q == "true_strain":
+        with np.errstate(over="ignore"):
+            return np.exp(v), "true strain column (stretch = exp(strain))"
+    return v, f"{q.replace('_', ' ')} column"
+
+
+def _stress_of(q: str, v: np.ndarray, x: np.ndarray, mode: str) -> tuple[np.ndarray, str]:
+    """Nominal stress from a processed column; true (Cauchy) stress is divided by the stretch."""
+    if q == "true_stress":
+        # Incompressible, deformation diagonal in the loading frame (uniaxial, equibiaxial, pure
+        # shear): P = sigma F^-T gives P = sigma / lambda along the loading direction.
+        return v / x, "true stress column (nominal stress = true stress / stretch, incompressible)"
+    return v, f"{q.replace('_', ' ')} column"
+
+
+def _stretch_and_stress(plan: _Plan, col_of: dict[str, np.ndarray], disp, force, geo: M.Geometry,
+                        linenos: list[int], label: str):
+    """x (stretch or gamma), nominal stress, and where each came from."""
+    if plan.x_col is not None:
+        x, x_from = _x_of(plan.x_q, col_of["x"])
+        xc = plan.x_col
     else:
         x = disp / geo.gauge_length
-        if mode != "simple_shear":
+        if plan.mode != "simple_shear":
             x = 1.0 + x
-        xc = d_col
-    if mode != "simple_shear":
+        x_from, xc = "displacement / gauge_length", plan.d_col
+    if plan.mode != "simple_shear":
         bad = np.flatnonzero(x <= 0)
         if bad.size:
             i = bad[0]
@@ -768,22 +829,101 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
                 f"{xc.where(label)}, line {linenos[i]}: gives stretch {x[i]:.4g} <= 0; check the column's unit, "
                 f"the gauge length and that strain is engineering strain"
             )
-    if s_col is not None:
-        stress, s_from = col_of["s"], f"{s_q.replace('_', ' ')} column"
+    if plan.s_col is not None:
+        stress, s_from = _stress_of(plan.s_q, col_of["s"], x, plan.mode)
     else:
-        stress = force / geo.area
-    for arr, col, what in ((x, xc, x_name), (stress, s_col or f_col, "stress")):
+        stress, s_from = force / geo.area, "force / area"
+    for arr, col, what in ((x, xc, plan.x_name), (stress, plan.s_col or plan.f_col, "stress")):
         bad = np.flatnonzero(~np.isfinite(arr))
         if bad.size:  # e.g. exp() of an absurd true strain
             raise InputError(
                 f"{col.where(label)}, line {linenos[bad[0]]}: gives a {what} that is not finite; check the value"
             )
+    return x, x_from, stress, s_from
 
+
+#: Largest relative disagreement (of the column's range) between the stress (or strain) computed
+#: from the raw channels and a derived column of the same file before a warning is given.
+CROSS_CHECK_TOLERANCE = 0.01
+
+
+def _cross_check(plan: _Plan, col_of: dict[str, np.ndarray], x: np.ndarray, stress: np.ndarray,
+                 label: str, warnings: list[str]) -> dict[str, dict[str, Any]]:
+    """Compare the raw-channel stretch and stress with the file's derived columns."""
+    out: dict[str, dict[str, Any]] = {}
+    for key, ours, what in (("x", x, plan.x_name), ("s", stress, "stress")):
+        col = plan.checks.get(key)
+        if col is None:
+            continue
+        v = col_of[f"check_{key}"]
+        theirs, _ = _x_of(col.quantity, v) if key == "x" else _stress_of(col.quantity, v, x, plan.mode)
+        scale = float(np.ptp(theirs)) or 1.0
+        rel = float(np.max(np.abs(ours - theirs)) / scale)
+        out[what] = {"column": col.index + 1, "header": col.header, "max_difference": rel}
+        if rel > CROSS_CHECK_TOLERANCE:
+            warnings.append(
+                f"{col.where(label)}: the {what} computed from the raw channels and the geometry differs from "
+                f"this column by up to {rel * 100:.1f} % of its range; check the specimen geometry"
+            )
+    return out
+
+
+def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
+              warnings: list[str], rep: Reporter) -> TensileTest:
+    cols = _columns(label, layout, md, warnings)
+    by_q, notes = _by_quantity(cols, label)
+    geo = M.geometry(md, label=label)
+    plan = _plan(label, layout, md, cols, by_q, geo)
+    used = _used(plan)
+    factors = {k: _need_unit(c, label, md) for k, c in used.items()}
+    order = list(used)
+    decimal = _decimal(layout, [used[k] for k in order], md, label)
+    arr = _parse(layout, [used[k] for k in order], decimal, label)
+    col_of = {k: arr[:, i] * factors[k] for i, k in enumerate(order)}
+    linenos = layout.data_linenos
+    meta_extra: dict[str, Any] = {}
+    time = _time(plan.t_col, col_of.get("time"), factors.get("time", 1.0), linenos, label)
+    if time is not None:
+        meta_extra["time_start"] = float(col_of["time"][0])
+    disp = col_of.get("displacement")
+    if disp is not None and plan.d_col.absolute:
+        meta_extra["displacement_start"] = float(disp[0])
+        disp = disp - disp[0]
+    force = col_of.get("force")
+    x, x_from, stress, s_from = _stretch_and_stress(plan, col_of, disp, force, geo, linenos, label)
+    checks = _cross_check(plan, col_of, x, stress, label, warnings)
     for c in cols:
         if c.quantity is None and c.header:
-            warnings.append(f"{c.where(label)}: unknown column name, ignored")
+            known = C.KNOWN_UNUSED.get(C.normalise_name(c.header))
+            if known:
+                notes.append(f"column {c.index + 1} '{c.header}' not used: {known}")
+            else:
+                warnings.append(f"{c.where(label)}: unknown column name, ignored")
     for w in warnings:
         rep.warn(w)
+    metadata = _metadata(md, geo, plan, layout, cols, used, factors, enc, decimal, linenos, warnings)
+    metadata.update(stretch_from=x_from, stress_from=s_from, raw=plan.x_col is None or plan.s_col is None,
+                    n_rows=int(len(x)), cross_checks=checks, column_notes=notes, **meta_extra)
+    rep.step(
+        f"read {label}: {len(x)} rows, {plan.mode}, {plan.x_name} {np.min(x):.4g}..{np.max(x):.4g}, "
+        f"stress {np.min(stress):.4g}..{np.max(stress):.4g} Pa"
+    )
+    return TensileTest(
+        source=p,
+        mode=plan.mode,
+        stretch=np.ascontiguousarray(x, dtype=np.float64),
+        stress=np.ascontiguousarray(stress, dtype=np.float64),
+        time=time,
+        displacement=disp,
+        force=force,
+        metadata=metadata,
+    )
+
+
+def _metadata(md: M.Metadata, geo: M.Geometry, plan: _Plan, layout: _Layout, cols: list[_Column],
+              used: dict[str, _Column], factors: dict[str, float], enc: str, decimal: str,
+              linenos: list[int], warnings: list[str]) -> dict[str, Any]:
+    """The metadata record of docs/tensile-input.md (without the figures of the numbers)."""
 
     def text(key):
         e = md.get(key)
@@ -792,20 +932,21 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
     orient = orient_rad = None
     if md.get("orientation") is not None:
         orient, orient_rad = M.orientation_value(md.get("orientation"))
-    metadata: dict[str, Any] = {
+    return {
         "specimen": text("specimen"),
         "gauge_length": geo.gauge_length,
         "area": geo.area,
         "width": geo.width,
         "thickness": geo.thickness,
+        "diameter": geo.diameter,
         "area_from": geo.area_from,
         "orientation": orient,
         "orientation_rad": orient_rad,
         "tissue": text("tissue"),
         "temperature": text("temperature"),
         "notes": text("notes"),
-        "mode": mode,
-        "mode_from": mode_from,
+        "mode": plan.mode,
+        "mode_from": plan.mode_from,
         "encoding": enc,
         "delimiter": layout.delimiter,
         "decimal": decimal,
@@ -814,12 +955,8 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
         "headers": [c.header for c in cols],
         "used_columns": {
             c.quantity: {"index": c.index + 1, "header": c.header, "unit": c.unit or "", "factor": factors[k]}
-            for k, c in used.items()
+            for k, c in used.items() if not k.startswith("check_")
         },
-        "stretch_from": x_from,
-        "stress_from": s_from,
-        "raw": bool(x_col is None or s_col is None),
-        "n_rows": int(len(x)),
         "header_row": layout.header[0] if layout.header else None,
         "units_row": layout.units_row[0] if layout.units_row else None,
         "first_data_row": linenos[0],
@@ -829,19 +966,4 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
         "extra": dict(md.extra),
         "preamble": layout.preamble,
         "warnings": list(warnings),
-        **meta_extra,
     }
-    rep.step(
-        f"read {label}: {len(x)} rows, {mode}, {x_name} {np.min(x):.4g}..{np.max(x):.4g}, "
-        f"stress {np.min(stress):.4g}..{np.max(stress):.4g} Pa"
-    )
-    return TensileTest(
-        source=p,
-        mode=mode,
-        stretch=np.ascontiguousarray(x, dtype=np.float64),
-        stress=np.ascontiguousarray(stress, dtype=np.float64),
-        time=time,
-        displacement=disp,
-        force=force,
-        metadata=metadata,
-    )
