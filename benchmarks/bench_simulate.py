@@ -139,7 +139,7 @@ def bench_effects(tables, n: int = SIZES["50k"], steps: int = 60, repeats: int =
     The plain run uses the elastic kernels (what a material without effects gets);
     "visco3" carries 3 Prony terms per spring; "all" adds Mullins and damage.
     """
-    from esmm.pipeline.discover.effects import (
+    from esmm.pipeline.materials.effects import (
         DamageEffect,
         MaterialEffects,
         MullinsEffect,

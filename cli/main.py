@@ -75,7 +75,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args, ui) or 0)
     except EsmmError as exc:
-        ui.error(str(exc))
+        ui.error(flag_message(exc, parser, args.command))
         return exc.exit_code
     except KeyboardInterrupt:
         ui.error("interrupted; no partial output was left behind")
@@ -83,6 +83,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     except MemoryError:
         ui.error("out of memory; try a coarser target (--size / --nodes) or fewer files at once")
         return 1
+
+
+def flag_message(exc: EsmmError, parser: argparse.ArgumentParser, command: str) -> str:
+    """The error's message, its leading library parameter name replaced by the command's flag.
+
+    ``nodes: expected a whole number >= 10`` becomes ``--nodes: ...`` when the
+    command has a ``--nodes`` option (an argparse ``dest`` equal to the parameter).
+    """
+    msg = str(exc)
+    param = getattr(exc, "parameter", None)
+    if not param or not msg.startswith(f"{param}:"):
+        return msg
+    sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+    cmd = sub.choices.get(command) if sub is not None else None
+    if cmd is None:
+        return msg
+    for action in cmd._actions:
+        if action.dest == param and action.option_strings:
+            flag = max(action.option_strings, key=len)
+            return flag + msg[len(param):]
+    return msg
 
 
 def run() -> None:  # console-script entry point

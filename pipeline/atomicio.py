@@ -9,10 +9,13 @@ An exception, Ctrl-C or a kill leaves at most a ``.<name>.tmp-*`` file, which
 from __future__ import annotations
 
 import contextlib
+import json
+import math
 import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 
 @contextlib.contextmanager
@@ -65,3 +68,31 @@ def write_bytes(target: str | os.PathLike, data: bytes) -> Path:
     with atomic_path(target) as tmp:
         tmp.write_bytes(data)
     return Path(target)
+
+
+def jsonable(obj: Any) -> Any:
+    """*obj* with numpy scalars and arrays, paths and non-finite floats made strict JSON.
+
+    NaN and infinities become ``null`` (JSON has no spelling for them).
+    """
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if hasattr(obj, "tolist") and callable(obj.tolist):  # numpy arrays and scalars
+        return jsonable(obj.tolist())
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def json_text(document: Any) -> str:
+    """*document* as indented strict JSON text (see :func:`jsonable`), ending in a newline."""
+    return json.dumps(jsonable(document), indent=2, allow_nan=False) + "\n"
+
+
+def write_json(target: str | os.PathLike, document: Any) -> Path:
+    """Write *document* as strict JSON to *target* atomically and return the target path."""
+    return write_text(target, json_text(document))

@@ -13,9 +13,12 @@ class EsmmError(Exception):
 
     exit_code = 1
 
-    def __init__(self, message: str):
+    def __init__(self, message: str, *, parameter: str | None = None):
         # Keep messages on one line whatever the caller passed.
         super().__init__(" ".join(str(message).split()))
+        #: The library parameter the message is about (it starts the message), or None.
+        #: The CLI replaces it by the command-line flag that sets it, where there is one.
+        self.parameter = parameter
 
 
 class InputError(EsmmError):

@@ -13,7 +13,7 @@ import pytest
 from esmm.pipeline.discover import MaterialEffects, discover, discover_and_save
 from esmm.pipeline.discover import synthetic as syn
 from esmm.pipeline.discover.covariates import covariates, thin
-from esmm.pipeline.discover.effects import (
+from esmm.pipeline.materials.effects import (
     DamageEffect,
     MullinsEffect,
     ViscoelasticEffect,

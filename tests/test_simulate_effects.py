@@ -1,7 +1,7 @@
 """Material effects in the simulator (QLV viscoelasticity, Mullins softening, damage).
 
 Expected values come from the discovery's own reference functions
-(``esmm.pipeline.discover.effects``: ``qlv_step``, ``mullins_factor``,
+(``esmm.pipeline.materials.effects``: ``qlv_step``, ``mullins_factor``,
 ``damage_factor``, ``equivalent_stretch``), from closed forms (QLV ramp-and-hold
 response, static sag of a linear network) or from independent quadrature.
 """
@@ -14,7 +14,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from esmm.pipeline.discover.effects import (
+from esmm.pipeline.materials.effects import (
     DamageEffect,
     MaterialEffects,
     MullinsEffect,

@@ -377,7 +377,7 @@ def _effects(f: h5py.File):
     """MaterialEffects from ``/material/effects`` (None when the group is absent)."""
     if "/material/effects" not in f:
         return None
-    from ..discover.effects import MaterialEffects
+    from ..materials.effects import MaterialEffects
 
     g = f["/material/effects"]
     d: dict[str, Any] = {}

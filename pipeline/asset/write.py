@@ -111,7 +111,7 @@ def material_effects(material):
     table = (getattr(material, "metadata", None) or {}).get("effects") if material is not None else None
     if not table:
         return None
-    from ..discover.effects import MaterialEffects
+    from ..materials.effects import MaterialEffects
 
     fx = MaterialEffects.from_toml_table(table, stress_unit=getattr(material, "stress_unit", None),
                                          where=f"{getattr(material, 'name', '') or 'material'}: [material.effects]")

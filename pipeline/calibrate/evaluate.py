@@ -120,7 +120,7 @@ def load_fit(path: str | Path) -> SavedFit:
 
 
 def _from_material(p: Path) -> SavedFit:
-    from ..discover.effects import MaterialEffects
+    from ..materials.effects import MaterialEffects
     from ..materials.material import load_material
 
     mat = load_material(p)
@@ -183,7 +183,7 @@ def evaluate(fit: SavedFit | str | Path, tests: list[TensileTest], *, reporter: 
     -------
     Evaluation
     """
-    from ..discover.effects import MaterialEffects
+    from ..materials.effects import MaterialEffects
     from ..discover.model import Bounds, Problem, Spec, prepare, slack_applicable
     from ..discover.search import _effect_params, _initialise, full_errors
     from ..materials import get_model

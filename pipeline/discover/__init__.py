@@ -16,7 +16,7 @@ Public API
 :mod:`.synthetic`           a generator of raw test files with hidden effects
 """
 
-from .effects import (
+from ..materials.effects import (
     ARTEFACTS,
     EFFECT_NAMES,
     MATERIAL_EFFECTS,

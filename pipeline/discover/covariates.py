@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..tensile.data import TensileTest
-from .effects import equivalent_stretch
+from ..materials.effects import equivalent_stretch
 
 #: |rate| below this fraction of the largest (smoothed) |rate| of the test is a hold
 HOLD_FRACTION = 0.03

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from .effects import EFFECT_NAMES
+from ..materials.effects import EFFECT_NAMES
 from .model import Problem, lag1, offset_applicable, runs_test, slack_applicable
 
 #: strength used for the finite-difference signatures (in each effect's own coordinate)

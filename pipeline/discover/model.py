@@ -46,7 +46,7 @@ from ..blas import single_threaded_blas
 from ..errors import FitError
 from ..tensile.data import TensileTest
 from .covariates import Covariates, covariates, thin
-from .effects import (
+from ..materials.effects import (
     ARTEFACTS,
     MATERIAL_EFFECTS,
     DamageEffect,

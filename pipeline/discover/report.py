@@ -5,7 +5,7 @@ Files written by :func:`write_outputs` into the output folder (docs/discover.md)
 ``discover.json``         the full result (schema ``esmm.discover/1``), also what ``esmm evaluate`` reads
 ``discover.md``           the report, with the plain-language paragraph
 ``params.toml``           the final material: base parameters refitted with the kept effects, and
-                          ``[material.effects.*]`` (see :class:`~esmm.pipeline.discover.effects.MaterialEffects`)
+                          ``[material.effects.*]`` (see :class:`~esmm.pipeline.materials.effects.MaterialEffects`)
 ``params_base.toml``      the base model alone (as ``esmm calibrate`` would give it)
 ``residuals_before.png``  data vs base model, and its residual against time, stretch and segment
 ``residuals_after.png``   the same for the final model
@@ -26,7 +26,7 @@ import numpy as np
 from .. import __version__
 from ..atomicio import atomic_path, write_text
 from .covariates import thin
-from .effects import ARTEFACTS, MATERIAL_EFFECTS, MaterialEffects
+from ..materials.effects import ARTEFACTS, MATERIAL_EFFECTS, MaterialEffects
 from .model import Spec
 from .search import DiscoverResult, Fitted
 

@@ -40,7 +40,7 @@ from ..errors import ConfigError, FitError
 from ..progress import Reporter, ensure
 from ..tensile.data import TensileTest
 from .diagnose import Diagnosis, diagnose
-from .effects import ARTEFACTS, EFFECT_NAMES, MATERIAL_EFFECTS, MaterialEffects, qlv_stress
+from ..materials.effects import ARTEFACTS, EFFECT_NAMES, MATERIAL_EFFECTS, MaterialEffects, qlv_stress
 from .model import (
     VARIANTS,
     Bounds,
@@ -619,7 +619,7 @@ def discover(
     max_points : int
         Fitting samples per file (thinned; errors use all samples).
     candidates : sequence of str
-        Effects to consider (names of :data:`~esmm.pipeline.discover.effects.EFFECT_NAMES`).
+        Effects to consider (names of :data:`~esmm.pipeline.materials.effects.EFFECT_NAMES`).
     aicc_threshold : float
         An effect must lower the AICc by at least this much (negative number).
     min_heldout_gain : float

@@ -16,6 +16,9 @@ Modules
 ``loading``       homogeneous incompressible deformations, nominal stress, μ_e
 ``stability``     Drucker stability check
 ``material``      Material (model + parameters + directions), TOML in/out
+``effects``       history effects beyond hyperelasticity (viscoelastic, Mullins, damage):
+                  their equations, kernels and the MaterialEffects record the asset and the
+                  simulator read
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 r"""Material effects in the simulator: QLV viscoelasticity, Mullins softening, damage.
 
 The material effects kept by ``esmm calibrate --discover``
-(:class:`~esmm.pipeline.discover.effects.MaterialEffects`, stored in the asset's
+(:class:`~esmm.pipeline.materials.effects.MaterialEffects`, stored in the asset's
 ``/material/effects``) act on each spring's elastic force
 :math:`F_e = \sum_d w_d f_d(\lambda)` exactly as they act on the nominal stress
 of the tensile test they were fitted to (docs/discover.md, composition
@@ -56,8 +56,8 @@ from . import kernels as K
 
 
 def equivalent_stretch(I1):
-    """The uniaxial-equivalent stretch (``esmm.pipeline.discover.effects.equivalent_stretch``)."""
-    from ..discover.effects import equivalent_stretch as _xi
+    """The uniaxial-equivalent stretch (``esmm.pipeline.materials.effects.equivalent_stretch``)."""
+    from ..materials.effects import equivalent_stretch as _xi
 
     return _xi(I1)
 
@@ -77,7 +77,7 @@ def effects_of_material(material) -> Any:
     table = (getattr(material, "metadata", None) or {}).get("effects")
     if not table:
         return None
-    from ..discover.effects import MaterialEffects
+    from ..materials.effects import MaterialEffects
 
     fx = MaterialEffects.from_toml_table(table, stress_unit=getattr(material, "stress_unit", None),
                                          where=f"{getattr(material, 'name', '') or 'material'} [material.effects]")
