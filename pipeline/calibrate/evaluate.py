@@ -183,10 +183,10 @@ def evaluate(fit: SavedFit | str | Path, tests: list[TensileTest], *, reporter: 
     -------
     Evaluation
     """
-    from ..materials.effects import MaterialEffects
     from ..discover.model import Bounds, Problem, Spec, prepare, slack_applicable
     from ..discover.search import _effect_params, _initialise, full_errors
     from ..materials import get_model
+    from ..materials.effects import MaterialEffects
 
     rep = ensure(reporter)
     saved = fit if isinstance(fit, SavedFit) else load_fit(fit)

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..tensile.data import TensileTest
 from ..materials.effects import equivalent_stretch
+from ..tensile.data import TensileTest
 
 #: |rate| below this fraction of the largest (smoothed) |rate| of the test is a hold
 HOLD_FRACTION = 0.03

@@ -44,8 +44,6 @@ from scipy import optimize, stats
 
 from ..blas import single_threaded_blas
 from ..errors import FitError
-from ..tensile.data import TensileTest
-from .covariates import Covariates, covariates, thin
 from ..materials.effects import (
     ARTEFACTS,
     MATERIAL_EFFECTS,
@@ -58,6 +56,8 @@ from ..materials.effects import (
     mullins_factor,
     qlv_stress,
 )
+from ..tensile.data import TensileTest
+from .covariates import Covariates, covariates, thin
 
 #: variants of each effect: name -> allowed variant numbers (0 = off)
 VARIANTS = {

@@ -25,8 +25,8 @@ import numpy as np
 
 from .. import __version__
 from ..atomicio import atomic_path, write_text
-from .covariates import thin
 from ..materials.effects import ARTEFACTS, MATERIAL_EFFECTS, MaterialEffects
+from .covariates import thin
 from .model import Spec
 from .search import DiscoverResult, Fitted
 

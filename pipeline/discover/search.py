@@ -37,10 +37,16 @@ from scipy import optimize
 
 from ..blas import single_threaded_blas
 from ..errors import ConfigError, FitError
+from ..materials.effects import (
+    ARTEFACTS,
+    EFFECT_NAMES,
+    MATERIAL_EFFECTS,
+    MaterialEffects,
+    qlv_stress,
+)
 from ..progress import Reporter, ensure
 from ..tensile.data import TensileTest
 from .diagnose import Diagnosis, diagnose
-from ..materials.effects import ARTEFACTS, EFFECT_NAMES, MATERIAL_EFFECTS, MaterialEffects, qlv_stress
 from .model import (
     VARIANTS,
     Bounds,
