@@ -16,12 +16,8 @@ from __future__ import annotations
 
 import contextlib
 import io
-import json
-import os
 import shutil
 import sys
-import traceback
-from collections import Counter
 from pathlib import Path
 
 import cloudpickle
@@ -29,37 +25,20 @@ import h5py
 import numpy as np
 import pytest
 from esmm.pipeline.batch.local import Sandbox
-from hypothesis import HealthCheck, given, note, settings
+from esmm.pipeline.mesh.synthetic import box_tets
+from fuzzkit import Campaign, crash_of, fuzz
+from hypothesis import given, note
 from hypothesis import strategies as st
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
-EXAMPLES = int(os.environ.get("ESMM_FUZZ_EXAMPLES", "0") or 0)
-
-
-def fuzz(default: int):
-    return settings(max_examples=EXAMPLES or default, deadline=None, database=None,
-                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
-                                           HealthCheck.filter_too_much])
-
-
 #: Known crashes, reported to the asset module's owner (each had an xfail regression test below).
-KNOWN: list = []  # fixed: segfault, hang, RuntimeError/AttributeError, OverflowError (tests below)
+#: fixed: segfault, hang, RuntimeError/AttributeError, OverflowError (tests below)
+CAMPAIGN = Campaign("asset", known=[])
 
 #: A probe takes well under a second; one still running after this long is a hang. Generous on
 #: purpose: a hang guard, not a speed requirement, so a loaded machine passes too.
 PROBE_TIMEOUT = 60.0
-
-STATS: Counter = Counter()
-CRASHES: list[dict] = []
-
-
-from esmm.pipeline.mesh.synthetic import box_tets  # noqa: E402
-
-
-def kuhn_cube(n=2, side=0.04):
-    """A structured tet mesh of a cube: n^3 cells, 6 Kuhn tets each."""
-    return box_tets(n, n, n, (side, side, side))
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +49,7 @@ def base_asset(tmp_path_factory):
     from esmm.pipeline.network.springs import network_from_tets
     from esmm.pipeline.network.tables import build_tables
 
-    net = network_from_tets(kuhn_cube(), density=1060.0)
+    net = network_from_tets(box_tets(2, 2, 2, (0.04, 0.04, 0.04)), density=1060.0)
     net = net.with_fixed(np.flatnonzero(net.points[:, 2] < 1e-9))
     mat = load_material("porcine_liver_paper")
     p = tmp_path_factory.mktemp("asset-base") / "organ.h5"
@@ -91,12 +70,7 @@ def objects(base_asset):
 
 @pytest.fixture(scope="module")
 def sandbox():
-    with Sandbox() as sb:
-        yield sb
-    report = os.environ.get("ESMM_FUZZ_REPORT")
-    if report:
-        with open(report, "a", encoding="utf-8") as fh:
-            fh.write(json.dumps({"reader": "asset", **STATS, "crash_samples": CRASHES[:20]}) + "\n")
+    yield from CAMPAIGN.sandbox()
 
 
 @pytest.fixture(scope="module")
@@ -111,11 +85,6 @@ def probe(path: str) -> dict:
     from esmm.pipeline.asset import read_asset, validate_asset
     from esmm.pipeline.errors import EsmmError
 
-    def crash(exc, fn):
-        frame = traceback.extract_tb(exc.__traceback__)[-1]
-        return {"outcome": "crash", "fn": fn, "type": type(exc).__name__, "message": str(exc)[:300],
-                "where": f"{Path(frame.filename).name}:{frame.lineno}"}
-
     res: dict = {}
     try:
         read_asset(path)
@@ -123,79 +92,59 @@ def probe(path: str) -> dict:
     except EsmmError as exc:
         res.update(read="refused", read_type=type(exc).__name__, read_message=str(exc))
     except Exception as exc:  # noqa: BLE001
-        return crash(exc, "read_asset")
+        return crash_of(exc, fn="read_asset")
     try:
         problems = validate_asset(path)
     except Exception as exc:  # noqa: BLE001 - validate_asset must never raise
-        return crash(exc, "validate_asset")
+        return crash_of(exc, fn="validate_asset")
     res["problems"] = problems
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         try:
             code = main(["info", path])
         except BaseException as exc:  # noqa: BLE001
-            return crash(exc, "esmm info")
+            return crash_of(exc, fn="esmm info")
     res.update(outcome="ok", cli_code=code, cli_stderr=err.getvalue())
     return res
 
 
 def check(sandbox, path: Path, *, label: str = "") -> dict:
-    STATS["tried"] += 1
     case = {"input": label, "file": path.name, "size": path.stat().st_size}
-    kind, value = sandbox.call(probe, str(path), timeout=PROBE_TIMEOUT)
-    if kind != "result" or value["outcome"] == "crash":
-        if kind == "died":
-            c = {**case, "type": "died", "message": value[0], "where": value[1][-400:]}
-        elif kind == "error":
-            c = {**case, "type": "error", "message": value.strip().splitlines()[-1], "where": ""}
-        else:
-            c = {**case, "fn": value["fn"], "type": value["type"], "message": value["message"],
-                 "where": value["where"]}
-        known = next((name for name, pred in KNOWN if pred(c)), None)
-        STATS["crashes_known" if known else "crashes_new"] += 1
-        CRASHES.append({**c, "known": known})
-        note(f"crash record: {c}")
-        if known:
-            return {"outcome": "known-crash"}
-        pytest.fail(f"asset reader crash: {c.get('fn')}: {c['type']}: {c['message']} at {c['where']} ({label})")
+    value = CAMPAIGN.run(sandbox, probe, str(path), case=case, timeout=PROBE_TIMEOUT)
+    if value is None:
+        return {"outcome": "known-crash"}
     problems = value["problems"]
     assert all(isinstance(p, str) and p and "\n" not in p for p in problems), problems
     if value["read"] == "refused":
-        STATS["refused"] += 1
         msg = value["read_message"]
-        assert value["read_type"] == "AssetError" and "\n" not in msg and len(msg) <= 1000, value
+        CAMPAIGN.refused(msg, exit_code=2, max_len=1000)
+        assert value["read_type"] == "AssetError", value
         assert problems, f"read_asset refused ({msg}) but validate_asset found nothing"
     else:
-        STATS["accepted"] += 1
+        CAMPAIGN.stats["accepted"] += 1
         if problems:  # readable yet invalid: recorded for the owner, not a crash
-            STATS["accepted_with_problems"] += 1
-            CRASHES.append({**case, "type": "accepted-with-problems", "message": problems[0][:200], "where": "",
-                            "known": "finding"})
+            CAMPAIGN.stats["accepted_with_problems"] += 1
+            CAMPAIGN.crashes.append({**case, "type": "accepted-with-problems", "message": problems[0][:200],
+                                     "where": "", "known": "finding"})
     lines = [ln for ln in value["cli_stderr"].splitlines() if ln.strip()]
     assert "Traceback" not in value["cli_stderr"]
     if problems:
         assert value["cli_code"] == 2 and lines and all(ln.startswith("esmm: error: ") for ln in lines), lines
     else:
         assert value["cli_code"] == 0, value
-    STATS["cli_checked"] += 1
+    CAMPAIGN.stats["cli_checked"] += 1
     return value
 
 
-_counter = iter(range(10**9))
-
-
 def copy_to(workdir: Path, base: Path) -> Path:
-    d = workdir / f"a{next(_counter)}"
-    d.mkdir()
-    return Path(shutil.copy(base, d / "organ.h5"))
+    return Path(shutil.copy(base, CAMPAIGN.folder(workdir, "a") / "organ.h5"))
 
 
 # ----------------------------------------------------------------------------- properties
 @fuzz(60)
 @given(data=st.binary(max_size=2048), hdf5_signature=st.booleans())
 def test_arbitrary_bytes(sandbox, workdir, data, hdf5_signature):
-    d = workdir / f"a{next(_counter)}"
-    d.mkdir()
+    d = CAMPAIGN.folder(workdir, "a")
     p = d / "organ.h5"
     p.write_bytes((b"\x89HDF\r\n\x1a\n" if hdf5_signature else b"") + data)
     check(sandbox, p, label=f"bytes {data[:40]!r}")
@@ -294,8 +243,7 @@ def _edit(f, objects, pick, op, tag, shape, dtype, value) -> None:
                                  st.booleans()), max_size=4),
        root_type=st.sampled_from([None, "esmm_asset", "other"]), version=st.sampled_from([None, 1, 2, 99, -1]))
 def test_foreign_hdf5_files(sandbox, workdir, layout, root_type, version):
-    d = workdir / f"a{next(_counter)}"
-    d.mkdir()
+    d = CAMPAIGN.folder(workdir, "a")
     p = d / "organ.h5"
     with h5py.File(p, "w") as f:
         if root_type is not None:

@@ -12,52 +12,33 @@ Budget: ESMM_FUZZ_EXAMPLES=<n>; ESMM_FUZZ_REPORT=<file.jsonl> appends the counts
 
 from __future__ import annotations
 
-import contextlib
 import io
-import json
-import os
 import struct
 import sys
-import traceback
-from collections import Counter
 from pathlib import Path
 
 import cloudpickle
 import numpy as np
 import pytest
 from esmm.pipeline.batch.local import Sandbox
-from hypothesis import HealthCheck, given, note, settings
+from fuzzkit import Campaign, crash_of, fuzz
+from hypothesis import given, note
 from hypothesis import strategies as st
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
-EXAMPLES = int(os.environ.get("ESMM_FUZZ_EXAMPLES", "0") or 0)
 REPO = Path(__file__).resolve().parent.parent
 SOFA = (REPO / "data" / "meshes" / "sofa_liver.stl").read_bytes()
 SHARED_NII = REPO.parent / "shared" / "data" / "meshes" / "ts_example_seg.nii.gz"
 
-
-def fuzz(default: int):
-    return settings(max_examples=EXAMPLES or default, deadline=None, database=None,
-                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
-                                           HealthCheck.filter_too_much])
-
-
 #: Known crashes, reported to the readers' owner (each had an xfail regression test below).
-KNOWN: list = []  # fixed: VTK PLY reader crashes, line cells reshaped as triangles, unknown xyzt_units
-
-STATS: Counter = Counter()
-CRASHES: list[dict] = []
+#: fixed: VTK PLY reader crashes, line cells reshaped as triangles, unknown xyzt_units
+CAMPAIGN = Campaign("mesh", known=[])
 
 
 @pytest.fixture(scope="module")
 def sandbox():
-    with Sandbox() as sb:
-        yield sb
-    report = os.environ.get("ESMM_FUZZ_REPORT")
-    if report:
-        with open(report, "a", encoding="utf-8") as fh:
-            fh.write(json.dumps({"reader": "mesh", **STATS, "crash_samples": CRASHES[:20]}) + "\n")
+    yield from CAMPAIGN.sandbox()
 
 
 @pytest.fixture(scope="module")
@@ -75,9 +56,7 @@ def probe_read(path: str, kwargs: dict) -> dict:
     except EsmmError as exc:
         return {"outcome": "refused", "type": type(exc).__name__, "message": str(exc), "exit": exc.exit_code}
     except BaseException as exc:  # noqa: BLE001 - SystemExit from meshio counts as a crash too
-        frame = traceback.extract_tb(exc.__traceback__)[-1] if exc.__traceback__ else None
-        return {"outcome": "crash", "type": type(exc).__name__, "message": str(exc)[:300],
-                "where": f"{Path(frame.filename).name}:{frame.lineno}" if frame else ""}
+        return crash_of(exc)
     pts, faces = np.asarray(s.points), np.asarray(s.faces)
     ok = (pts.ndim == 2 and pts.shape[1] == 3 and bool(np.all(np.isfinite(pts))) and faces.ndim == 2
           and faces.shape[1] == 3 and faces.shape[0] > 0 and int(faces.min()) >= 0
@@ -86,74 +65,34 @@ def probe_read(path: str, kwargs: dict) -> dict:
     return {"outcome": "accepted", "valid": ok, "extent_mm": ext * 1e3}
 
 
-def probe_cli(argv: list[str]) -> dict:
-    from esmm.cli.main import main
-
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main(argv)
-        except BaseException as exc:  # noqa: BLE001
-            return {"code": None, "stderr": err.getvalue(), "raised": f"{type(exc).__name__}: {exc}"}
-    return {"code": code, "stderr": err.getvalue()}
-
-
 def check(sandbox, path: Path, kwargs: dict | None = None, *, label: str = "", cli: bool = True) -> str:
     kwargs = kwargs or {}
-    STATS["tried"] += 1
     case = {"input": label, "file": path.name, "size": path.stat().st_size}
-    kind, value = sandbox.call(probe_read, str(path), kwargs, timeout=120)
-    if kind != "result" or value["outcome"] == "crash":
-        if kind == "died":
-            c = {**case, "type": "died", "message": value[0], "where": value[1][-400:]}
-        elif kind == "error":
-            c = {**case, "type": "error", "message": value.strip().splitlines()[-1], "where": ""}
-        else:
-            c = {**case, "type": value["type"], "message": value["message"], "where": value["where"]}
-        known = next((name for name, pred in KNOWN if pred(c)), None)
-        STATS["crashes_known" if known else "crashes_new"] += 1
-        CRASHES.append({**c, "known": known})
-        note(f"crash record: {c}")
-        if known:
-            return "known-crash"
-        pytest.fail(f"reader crash: {c['type']}: {c['message']} at {c['where']} (input {label})")
+    value = CAMPAIGN.run(sandbox, probe_read, str(path), kwargs, case=case, timeout=120)
+    if value is None:
+        return "known-crash"
     if value["outcome"] == "accepted":
-        STATS["accepted"] += 1
+        CAMPAIGN.stats["accepted"] += 1
         assert value["valid"], f"accepted an invalid surface: {value}"
         assert 10.0 <= value["extent_mm"] <= 400.0 + 1e-6, value  # the documented plausibility window
         return "accepted"
-    STATS["refused"] += 1
-    msg = value["message"]
-    assert msg and "\n" not in msg and "\r" not in msg, repr(msg)
-    assert len(msg) <= 800 and value["exit"] == 2
+    CAMPAIGN.refused(value["message"], exit_code=value["exit"])
     if cli:
         argv = ["prepare", str(path), "-o", str(path.parent / "out.h5")]
         if "unit" in kwargs:
             argv += ["--unit", str(kwargs["unit"])]
         if kwargs.get("label") is not None:
             argv += ["--label", str(kwargs["label"])]
-        res = sandbox.call(probe_cli, argv, timeout=120)
-        assert res[0] == "result", f"CLI crashed: {res}"
-        r = res[1]
-        assert r.get("raised") is None, f"CLI raised {r['raised']}"
-        assert r["code"] not in (0, 1, None) and "Traceback" not in r["stderr"], r
-        lines = [ln for ln in r["stderr"].splitlines() if ln.strip()]
-        assert lines and lines[-1].startswith("esmm: error: "), lines[-3:]
+        lines = CAMPAIGN.cli_fails_cleanly(sandbox, argv, codes=(2, 3, 4, 5))
         assert not (path.parent / "out.h5").exists()
         # Nothing but esmm's own steps and warnings before the error (VTK/pyvista chatter was fixed).
         noise = [ln for ln in lines[:-1] if not ln.startswith(("  ", "warning:"))]
-        STATS["cli_checked"] += 1
         assert not noise, f"stray output on stderr before the error: {noise[:2]}"
     return "refused"
 
 
-_counter = iter(range(10**9))
-
-
 def write(workdir: Path, data: bytes, suffix: str) -> Path:
-    d = workdir / f"m{next(_counter)}"
-    d.mkdir()
-    p = d / f"organ{suffix}"
+    p = CAMPAIGN.folder(workdir, "m") / f"organ{suffix}"
     p.write_bytes(data)
     return p
 

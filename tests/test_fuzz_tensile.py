@@ -13,50 +13,29 @@ CI-sized number); ESMM_FUZZ_REPORT=<file.jsonl> appends the counts.
 from __future__ import annotations
 
 import codecs
-import contextlib
-import io
 import json
-import os
 import sys
-import traceback
-from collections import Counter
 from pathlib import Path
 
 import cloudpickle
 import pytest
-from esmm.pipeline.batch.local import Sandbox
-from hypothesis import HealthCheck, given, note, settings
+from fuzzkit import Campaign, crash_of, fuzz
+from hypothesis import given, note
 from hypothesis import strategies as st
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
-EXAMPLES = int(os.environ.get("ESMM_FUZZ_EXAMPLES", "0") or 0)
 DATA = Path(__file__).resolve().parent.parent / "data" / "tensile"
 REAL = sorted(p for p in DATA.glob("*/*.csv") if p.stat().st_size < 40_000)
 
-
-def fuzz(default: int):
-    return settings(max_examples=EXAMPLES or default, deadline=None, database=None,
-                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
-                                           HealthCheck.filter_too_much])
-
-
 #: Known crashes, reported to the reader's owner (each had an xfail regression test below).
-#: (name, predicate on the crash record). Any other crash fails the property tests.
-KNOWN: list = []  # fixed: non-text codecs named by an encoding statement (regression test below)
-
-STATS: Counter = Counter()
-CRASHES: list[dict] = []
+#: fixed: non-text codecs named by an encoding statement (regression test below)
+CAMPAIGN = Campaign("tensile", known=[])
 
 
 @pytest.fixture(scope="module")
 def sandbox():
-    with Sandbox() as sb:
-        yield sb
-    report = os.environ.get("ESMM_FUZZ_REPORT")
-    if report:
-        with open(report, "a", encoding="utf-8") as fh:
-            fh.write(json.dumps({"reader": "tensile", **STATS, "crash_samples": CRASHES[:20]}) + "\n")
+    yield from CAMPAIGN.sandbox()
 
 
 @pytest.fixture(scope="module")
@@ -75,80 +54,32 @@ def probe_read(path: str, kwargs: dict) -> dict:
     except EsmmError as exc:
         return {"outcome": "refused", "type": type(exc).__name__, "message": str(exc), "exit": exc.exit_code}
     except Exception as exc:  # noqa: BLE001 - that is what we are looking for
-        frame = traceback.extract_tb(exc.__traceback__)[-1]
-        return {"outcome": "crash", "type": type(exc).__name__, "message": str(exc)[:300],
-                "where": f"{Path(frame.filename).name}:{frame.lineno}"}
-    arrays = [t.stretch, t.stress] + [a for a in (t.time, getattr(t, "force", None),
-                                                  getattr(t, "displacement", None)) if a is not None]
+        return crash_of(exc)
+    arrays = [t.stretch, t.stress] + [a for a in (t.time, t.force, t.displacement) if a is not None]
     return {"outcome": "accepted", "n": int(t.n), "finite": all(bool(np.all(np.isfinite(a))) for a in arrays),
             "mode": t.mode}
-
-
-def probe_cli(argv: list[str]) -> dict:
-    from esmm.cli.main import main
-
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main(argv)
-        except BaseException as exc:  # noqa: BLE001
-            return {"code": None, "stderr": err.getvalue(), "raised": f"{type(exc).__name__}: {exc}"}
-    return {"code": code, "stderr": err.getvalue()}
-
-
-def _crash(case: dict, kind: str, value) -> dict:
-    if kind == "died":
-        return {**case, "type": "died", "message": value[0], "where": value[1][-300:]}
-    if kind == "error":
-        return {**case, "type": "error", "message": value.strip().splitlines()[-1], "where": ""}
-    return {**case, **{k: value.get(k, "") for k in ("type", "message", "where")}}
 
 
 def check(sandbox, path: Path, kwargs: dict | None = None, *, cli_extra: list[str] | None = None,
           label: str = "") -> str:
     """Read *path* in the sandbox, apply the property, return the outcome."""
     kwargs = kwargs or {}
-    STATS["tried"] += 1
     case = {"input": label, "file": path.name, "size": path.stat().st_size if path.exists() else -1}
-    kind, value = sandbox.call(probe_read, str(path), kwargs, timeout=120)
-    if kind != "result" or value["outcome"] == "crash":
-        c = _crash(case, kind, value)
-        known = next((name for name, pred in KNOWN if pred(c)), None)
-        STATS["crashes_known" if known else "crashes_new"] += 1
-        CRASHES.append({**c, "known": known})
-        note(f"crash record: {c}")
-        if known:
-            return "known-crash"
-        pytest.fail(f"reader crash: {c['type']}: {c['message']} at {c['where']} (input {label})")
+    value = CAMPAIGN.run(sandbox, probe_read, str(path), kwargs, case=case, timeout=120)
+    if value is None:
+        return "known-crash"
     if value["outcome"] == "accepted":
-        STATS["accepted"] += 1
+        CAMPAIGN.stats["accepted"] += 1
         assert value["n"] >= 1 and value["finite"], f"accepted with non-finite or no samples: {value}"
         return "accepted"
-    STATS["refused"] += 1
-    msg = value["message"]
-    assert msg and "\n" not in msg and "\r" not in msg, repr(msg)
-    assert len(msg) <= 800, f"message of {len(msg)} characters"
-    assert value["exit"] == 2
+    CAMPAIGN.refused(value["message"], exit_code=value["exit"])
     # The CLI: non-zero, the same one line, no traceback.
-    res = sandbox.call(probe_cli, ["calibrate", str(path), *(cli_extra or [])], timeout=120)
-    assert res[0] == "result", f"CLI crashed: {res}"
-    cli = res[1]
-    assert cli.get("raised") is None, f"CLI raised {cli['raised']}"
-    assert cli["code"] == 2, cli
-    assert "Traceback" not in cli["stderr"]
-    last = [ln for ln in cli["stderr"].splitlines() if ln.strip()][-1]
-    assert last.startswith("esmm: error: "), last
-    STATS["cli_checked"] += 1
+    CAMPAIGN.cli_fails_cleanly(sandbox, ["calibrate", str(path), *(cli_extra or [])])
     return "refused"
 
 
-_counter = iter(range(10**9))
-
-
 def write(workdir: Path, data: bytes, suffix: str = ".csv") -> Path:
-    d = workdir / f"c{next(_counter)}"
-    d.mkdir()
-    p = d / f"test{suffix}"
+    p = CAMPAIGN.folder(workdir, "c") / f"test{suffix}"
     p.write_bytes(data)
     return p
 
@@ -311,15 +242,15 @@ OVERRIDE_VALUES = st.one_of(st.sampled_from(META_VALUES), st.text(max_size=8), s
 def test_command_line_metadata(sandbox, workdir, over, enc):
     p = write(workdir, b"time [s],displacement [mm],force [N]\n0,0,0\n1,0.5,0.2\n2,1.0,0.5\n")
     note(f"overrides {over!r} encoding {enc!r}")
-    kind, value = sandbox.call(probe_read, str(p), {"overrides": over, "encoding": enc}, timeout=60)
-    STATS["tried"] += 1
-    assert kind == "result" and value["outcome"] != "crash", f"crash: {kind} {value}"
+    value = CAMPAIGN.run(sandbox, probe_read, str(p), {"overrides": over, "encoding": enc},
+                         case={"input": f"overrides {over!r}"}, timeout=60)
+    assert value is not None, "a known crash with command-line metadata"
     if value["outcome"] == "accepted":
-        STATS["accepted"] += 1
+        CAMPAIGN.stats["accepted"] += 1
         assert value["finite"]
     else:
-        STATS["refused"] += 1
-        assert "\n" not in value["message"] and value["type"] in ("ConfigError", "InputError")
+        CAMPAIGN.refused(value["message"], exit_code=value["exit"])
+        assert value["type"] in ("ConfigError", "InputError")
 
 
 # ----------------------------------------------------------------------------- known crashes (regressions)
