@@ -70,20 +70,21 @@ def write_bytes(target: str | os.PathLike, data: bytes) -> Path:
     return Path(target)
 
 
-def jsonable(obj: Any) -> Any:
-    """*obj* with numpy scalars and arrays, paths and non-finite floats made strict JSON.
+def jsonable(obj: Any, *, strict: bool = True) -> Any:
+    """*obj* as plain JSON types: numpy scalars and arrays become numbers and lists, paths text.
 
-    NaN and infinities become ``null`` (JSON has no spelling for them).
+    With *strict*, NaN and infinities become ``None`` (JSON has no spelling for them);
+    otherwise they stay floats (for values kept in Python, e.g. a batch job's summary).
     """
     if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v, strict=strict) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
+        return [jsonable(v, strict=strict) for v in obj]
     if hasattr(obj, "tolist") and callable(obj.tolist):  # numpy arrays and scalars
-        return jsonable(obj.tolist())
+        return jsonable(obj.tolist(), strict=strict)
     if isinstance(obj, os.PathLike):
         return os.fspath(obj)
-    if isinstance(obj, float) and not math.isfinite(obj):
+    if strict and isinstance(obj, float) and not math.isfinite(obj):
         return None
     return obj
 

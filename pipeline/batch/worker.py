@@ -16,6 +16,7 @@ import traceback
 from pathlib import Path
 from typing import Any
 
+from ..atomicio import jsonable
 from ..errors import EsmmError
 from .cache import write_manifest
 from .jobs import JobOutput, code_version, sha256_file
@@ -33,19 +34,6 @@ def worker_id() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
-def _json_default(obj):
-    if hasattr(obj, "item") and callable(obj.item):
-        try:
-            return obj.item()
-        except (TypeError, ValueError):
-            pass
-    if hasattr(obj, "tolist") and callable(obj.tolist):
-        return obj.tolist()
-    if isinstance(obj, os.PathLike):
-        return os.fspath(obj)
-    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
-
-
 def _normalise(result: Any) -> tuple[list[str], dict[str, Any]]:
     if result is None:
         return [], {}
@@ -55,7 +43,8 @@ def _normalise(result: Any) -> tuple[list[str], dict[str, Any]]:
         outputs, summary = result.get("outputs", []), result.get("summary", {})
     else:
         raise TypeError(f"a job function must return a JobOutput or a dict, not {type(result).__name__}")
-    summary = json.loads(json.dumps(summary or {}, default=_json_default, allow_nan=True))
+    summary = jsonable(summary or {}, strict=False)
+    json.dumps(summary, allow_nan=True)  # a TypeError for what JSON cannot hold
     return [os.fspath(p) for p in outputs], summary
 
 
