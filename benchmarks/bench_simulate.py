@@ -193,7 +193,7 @@ def bench_demo(tables_unused=None) -> dict:
             sc = replace(base, step=mode)
             res = simulate_network(asset.network, asset.tables, sc, Path(d) / mode)
             s = res.summary
-            out[mode] = {k: s[k] for k in ("springs", "nodes", "threads", "steps", "dt_min_s", "dt_max_s",
+            out[mode] = {k: getattr(s, k) for k in ("springs", "nodes", "threads", "steps", "dt_min_s", "dt_max_s",
                                            "dt_mean_s", "dt_table_bound_s", "frames_redone", "stepping_wall_s",
                                            "wall_per_step_us", "ns_per_spring_step", "real_time_factor",
                                            "warm_up_s")}

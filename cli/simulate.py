@@ -83,20 +83,18 @@ def run(args, ui) -> int:
 
     if args.duration is not None and not args.duration > 0:
         raise ConfigError(f"--duration: must be positive, got {args.duration}")
-    res = simulate(args.asset, scene=args.scene, out_dir=args.out, video_path=args.video,
+    res = simulate(args.asset, scene=args.scene, out_dir=args.out, video=args.video,
                    duration=args.duration, threads=args.threads, law=args.law, effects=args.effects,
                    reporter=ui)
     s = res.summary
-    ui.info(f"simulated {s['simulated_s']:g} s: {s['springs']} springs, {s['steps']} steps of "
-            f"{s['dt_min_s'] * 1e6:.4g}..{s['dt_max_s'] * 1e6:.4g} us, real-time factor "
-            f"{s['real_time_factor']:.3g} ({s['threads']} thread(s))")
-    fx = s.get("effects")
-    if fx:
-        ui.info("material effects: " + ", ".join(fx.get("final_state", {}).get("effects", [])))
+    ui.info(f"simulated {s.simulated_s:g} s: {s.springs} springs, {s.steps} steps of "
+            f"{s.dt_min_s * 1e6:.4g}..{s.dt_max_s * 1e6:.4g} us, real-time factor "
+            f"{s.real_time_factor:.3g} ({s.threads} thread(s))")
+    if s.effects:
+        ui.info("material effects: " + ", ".join(s.effect_names))
     ui.info(f"history: {res.xdmf}")
     if res.force_plot is not None:
-        g = s.get("grasper") or {}
-        ui.info(f"grasper force: {res.force_plot} (max {g.get('max_force_N', 0.0):.3g} N)")
+        ui.info(f"grasper force: {res.force_plot} (max {s.grasper.max_force_N if s.grasper else 0.0:.3g} N)")
     if res.video is not None:
         ui.info(f"video: {res.video}")
     ui.info(f"summary: {res.summary_path}")

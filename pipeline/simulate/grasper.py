@@ -16,7 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import ConfigError
-from .integrator import Grasp
+from .model import Grasp
 from .scene import JAW_RADIUS, GrasperSpec
 
 
@@ -53,7 +53,7 @@ class GraspPlan:
     radius: float = 0.0
 
     def make_grasp(self, x: np.ndarray, mass: np.ndarray) -> Grasp:
-        """The :class:`~.integrator.Grasp` that closes on the current positions *x*."""
+        """The :class:`~.model.Grasp` that closes on the current positions *x*."""
         tip0 = np.asarray(x[self.target], dtype=np.float64).copy()
         offsets = x[self.nodes] - tip0
         stiffness = None
@@ -62,6 +62,14 @@ class GraspPlan:
             stiffness = self.spec.stiffness * m / m.sum()
         return Grasp(nodes=self.nodes.copy(), offsets=offsets, wp_t=self.times.copy(),
                      wp_x=tip0[None, :] + self.offsets, mode=self.spec.mode, stiffness=stiffness)
+
+    def coupling_rows(self, x: np.ndarray, mass: np.ndarray) -> np.ndarray | None:
+        """Per node, the coupling stiffness this grasper will add [N/m] (None unless mode "spring")."""
+        if self.spec.mode != "spring":
+            return None
+        out = np.zeros(np.asarray(x).shape[0])
+        out[self.nodes] = self.make_grasp(x, mass).stiffness
+        return out
 
     def describe(self) -> str:
         far = np.linalg.norm(self.offsets, axis=1).max() * 1e3
