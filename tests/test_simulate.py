@@ -21,7 +21,12 @@ from esmm.pipeline.network.springs import SpringNetwork, network_from_tets, stif
 from esmm.pipeline.network.tables import StiffnessTables
 from esmm.pipeline.simulate.model import Grasp
 from esmm.pipeline.simulate.simulator import Simulator
-from esmm.pipeline.simulate.springterm import build_spring_term, cell_tangent_bound, tangent_bound, windowed_bound
+from esmm.pipeline.simulate.springterm import (
+    build_spring_term,
+    cell_tangent_bound,
+    tangent_bound,
+    windowed_bound,
+)
 from esmm.pipeline.simulate.stepper import mass_scaling, stable_step
 
 

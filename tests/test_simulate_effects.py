@@ -29,11 +29,11 @@ from esmm.pipeline.network.tables import StiffnessTables
 from esmm.pipeline.simulate import kernels as K
 from esmm.pipeline.simulate.history import History
 from esmm.pipeline.simulate.model import Grasp
+from esmm.pipeline.simulate.run import simulate_network
+from esmm.pipeline.simulate.scene import scene_from_dict
 from esmm.pipeline.simulate.simulator import Simulator
 from esmm.pipeline.simulate.springterm import build_spring_term
 from esmm.pipeline.simulate.stepper import stable_step
-from esmm.pipeline.simulate.run import simulate_network
-from esmm.pipeline.simulate.scene import scene_from_dict
 
 VISCO = ViscoelasticEffect((0.3, 0.25), (0.03, 0.3))
 
