@@ -2,10 +2,9 @@
 
 Modules, bottom up (each imports only those above it in this list):
 
-* :mod:`.kernels`: compiled force pass of the spring term (with the material
-  effects as a compile-time option) and its threading layout;
-* :mod:`.stepkernels`: the compiled step loop (written once, compiled serial
-  and parallel), the grasper, the floor and FIRE;
+* :mod:`.kernels`: everything compiled: the spring term's force pass (the
+  material effects a compile-time option), the step loop (written once,
+  compiled serial and parallel), the grasper, the floor, FIRE;
 * :mod:`.effects`: material effects' parameters and per-spring state;
 * :mod:`.springterm`: :class:`~.springterm.SpringTerm`, the spring force term
   and the bounds of its tangent;

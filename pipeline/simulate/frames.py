@@ -1,7 +1,8 @@
 """The frame loop of a run: steps per frame, grasper events, the window check and redo, recording.
 
-Each frame (1 / frame_rate of simulated time) gets its step from the
-:class:`~.stepper.StepSchedule`; it is advanced in segments cut at the
+Each frame (1 / frame_rate of simulated time) gets its step from the run's
+:class:`~.stepper.FrameSchedule` (the explicit stepper's
+:class:`~.stepper.StepSchedule`); it is advanced in segments cut at the
 grasper's events (grasp, release) and, with an adaptive step, at 8 checks of
 the stretch window. A frame whose stretches left the window is redone from a
 snapshot with a wider window (docs/simulate.md §2). After each frame the
@@ -21,7 +22,7 @@ from ..errors import SimulationError
 from .grasper import GraspPlan
 from .history import HistoryWriter
 from .simulator import Simulator
-from .stepper import StepSchedule
+from .stepper import FrameSchedule
 
 
 @dataclass
@@ -89,7 +90,7 @@ class FrameSpec:
     organ_size: float          #: largest extent of the rest shape [m] (the blow-up guard)
 
 
-def run_frames(sim: Simulator, schedule: StepSchedule, spec: FrameSpec, plan: GraspPlan | None,
+def run_frames(sim: Simulator, schedule: FrameSchedule, spec: FrameSpec, plan: GraspPlan | None,
                writer: HistoryWriter, range_check: RangeCheck, reporter) -> FrameLog:
     """Advance *sim* frame by frame, writing each frame (and the held steps' forces) to *writer*.
 
@@ -126,7 +127,7 @@ def run_frames(sim: Simulator, schedule: StepSchedule, spec: FrameSpec, plan: Gr
     return log
 
 
-def _frame(sim: Simulator, schedule: StepSchedule, spec: FrameSpec, plan: GraspPlan | None, done: set,
+def _frame(sim: Simulator, schedule: FrameSchedule, spec: FrameSpec, plan: GraspPlan | None, done: set,
            t_start: float, delta: float | None, log: FrameLog):
     """One frame from *t_start*, redone wider while a stretch leaves the window; (rec, held, dt, spf, delta)."""
     springs = sim.model.springs

@@ -1,7 +1,8 @@
-r"""Compiled (numba) force pass of the spring term, with the material effects.
+r"""Compiled (numba) kernels of the simulator: the force pass, the step loop, FIRE.
 
-Everything here works on plain arrays in SI units, grouped in a few tuples that
-:class:`~.springterm.SpringTerm` and :mod:`.effects` build:
+Everything here works on plain arrays in SI units, grouped in a few tuples
+that :class:`~.springterm.SpringTerm`, :mod:`.effects`, :class:`~.model.Control`
+and the steppers build:
 
 * :class:`SpringKernel` ``(ij, sd, tab, lam_min, inv_h, last_cell, law, damped)``:
   the springs and their table (constant during a run);
@@ -9,7 +10,26 @@ Everything here works on plain arrays in SI units, grouped in a few tuples that
   material effects' parameters and tables, the Prony factors of the step, the
   per-spring state and what to do with it; **None** for an elastic run;
 * :class:`Layout` ``(node_start, spring_start, halo_start, hbuf, own_start,
-  own_slot, own_node)``: the race-free threading layout (one chunk: serial).
+  own_slot, own_node)``: the race-free threading layout (one chunk: serial);
+* :class:`Clock` ``(n, dt, t0, step0, dt_first, vfac)``: how many steps, the
+  step, the time origin and the step count from it (step ``k`` is at
+  ``t0 + (step0 + k) dt``), the time the effects' state must first advance
+  by, and the implicit mass-damping factor ``1 / (1 + alpha dt)``;
+* :class:`Nodes` ``(x, v, f, fext, inv_mass)``;
+* :class:`GraspKernel` ``(mode, nodes, offsets, stiffness, wp_t, wp_x)``;
+* :class:`FloorKernel` ``(on, normal, height, stick, mask, contact)``.
+
+The entry points take these tuples; they unpack them once and hand plain arrays
+to the inlined helpers of the loops (an array taken out of a tuple is
+reference-counted: an atomic increment and decrement each time, measurable
+when done per block of springs). Every kernel lives in this one file on
+purpose: numba's on-disk cache of a function is invalidated only when *its*
+file changes, not when a function it calls from another file does.
+
+Symplectic Euler with implicit mass damping (docs/simulate.md §2)::
+
+    f_n = f(x_n, v_n) + f_ext
+    v_{n+1} = (v_n + dt f_n / m) / (1 + alpha dt),   x_{n+1} = x_n + dt v_{n+1}
 
 Spring force (the tables module's convention, paper Eq. 8-9)::
 
@@ -48,15 +68,18 @@ coefficient ``F/L`` (vectorised, the division included), (6) scatter. This is
 ~20 % faster than the one-loop form on AVX-512 hardware and gives bitwise the
 same numbers.
 
-One pass, two compiled variants
--------------------------------
+Written once, compiled as needed
+--------------------------------
 The effects are one optional argument: ``fx is None`` is decided when numba
 compiles (dead-branch pruning on the argument's type), so the elastic variant
 contains no effect code and no branch for it, and the effects variant shares
-every other line. A force term that joins later (a per-tetrahedron volume term)
-joins the same way: its own tuple, its own chunk function adding its forces to
-the owned nodes and halo slots of a chunk, called next to
-:func:`chunk_forces` when its tuple is not None.
+every other line. The force pass (:func:`_forces`) and the step loop
+(:func:`_steps`) are written once with ``prange`` and compiled twice, on one
+thread (``prange`` is ``range``; one chunk) and on numba's threads
+(:func:`twin`). A force term that joins later (a per-tetrahedron volume term)
+joins the same way: its own tuple (None when absent), its own chunk function
+adding its forces to the owned nodes and halo slots of a chunk, called next to
+:func:`chunk_forces`.
 
 Race-free threading
 -------------------
@@ -117,7 +140,7 @@ FX_SETTLE = 3     #: commit the maxima and a fully relaxed history at the curren
 #: Number of leading scalars in ``fxp`` before the Prony weights.
 FXP_HEAD = 10
 
-#: Springs per block (buffers of 9 x BLOCK doubles stay in L1).
+#: Springs per block (buffers of 8 x BLOCK doubles stay in L1).
 BLOCK = 64
 
 #: Options of every compiled function: cached on disk, numpy semantics for division (inf, NaN).
@@ -183,12 +206,11 @@ def twin(fn, name: str):
 # ---------------------------------------------------------------------------
 
 @njit(inline="always", **JIT_OPTIONS)
-def _block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, fx, buf, kk):
-    """Force coefficients of springs p0..p0+nb-1 into buf[5] (F/L + dashpot), d into buf[0:3].
+def _elastic_block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, buf, kk):
+    """Elastic forces F_e of springs p0..p0+nb-1 into buf[5], d into buf[0:3], 1/L into buf[3].
 
-    buf rows: 0-2 dx dy dz, 3 1/L, 4 lam, 5 coefficient, 6 t, 7 d.dv, 8 unclipped t
-    (effects only). The law
-    is applied without branches: secant clips t to [0, 1] and multiplies by
+    buf rows: 0-2 dx dy dz, 3 1/L, 4 lam, 5 force, 6 t, 7 d.dv; kk the table cells.
+    The law is applied without branches: secant clips t to [0, 1] and multiplies by
     (lam - 1); energy leaves t unclipped and multiplies by 1. The damping
     branch is outside the loops, so that both versions vectorise.
     """
@@ -196,8 +218,6 @@ def _block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, fx
     secant = law == LAW_SECANT
     t_lo = 0.0 if secant else -np.inf
     t_hi = 1.0 if secant else np.inf
-    a1 = 1.0 if secant else 0.0          # factor = a1 * (lam - 1) + a0
-    a0 = 0.0 if secant else 1.0
     if damped:
         for b in range(nb):
             i = ij[0, p0 + b]
@@ -228,8 +248,6 @@ def _block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, fx
         k = min(np.int64(sc), last_cell)
         kk[b] = k
         buf[6, b] = min(max(s - k, t_lo), t_hi)
-        if fx is not None:
-            buf[8, b] = s - k                  # unclipped: the effects' energy continues off the grid
     if sd.shape[0] - damped >= 4:          # three fibre directions
         for b in range(nb):
             k = kk[b]
@@ -241,12 +259,11 @@ def _block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, fx
         for b in range(nb):
             k = kk[b]
             buf[5, b] = sd[1, p0 + b] * (tab[k, 0] + buf[6, b] * tab[k, 3])
-    if fx is not None:
-        for b in range(nb):
-            buf[5, b] = buf[5, b] * (a1 * (buf[4, b] - 1.0) + a0)
-        _effects_block(p0, nb, sd, lam_min, damped, fx, buf, kk)
-        a1 = 0.0
-        a0 = 1.0
+
+
+@njit(inline="always", **JIT_OPTIONS)
+def _coefficients(p0, nb, sd, damped, a1, a0, buf):
+    """buf[5] <- buf[5] (a1 (lam - 1) + a0) / L (+ the dashpot's c (d.dv) / L^2): the factor of d on node i."""
     if damped:
         cd = sd.shape[0] - 1
         for b in range(nb):
@@ -271,16 +288,14 @@ def _equivalent_stretch(lam):
 
 
 @njit(inline="always", **JIT_OPTIONS)
-def _effects_block(p0, nb, sd, lam_min, damped, fx, buf, kk):
-    """Replace the elastic forces F_e in buf[5] by the effects' forces F, updating the state per ``fx.mode``."""
-    etab = fx.etab
-    fxp = fx.fxp
-    ab = fx.ab
-    h = fx.h
-    pold = fx.pold
-    wmax = fx.wmax
-    ximax = fx.ximax
-    mode = fx.mode
+def _effects_block(p0, nb, sd, lam_min, inv_h, damped, a1, a0, etab, fxp, ab, h, pold, wmax, ximax, mode, buf,
+                   kk):
+    """Replace the elastic forces F_e in buf[5] by the effects' forces F, updating the state per *mode*.
+
+    buf[5] holds the table's weighted f_d before the law's factor ``a1 (lam - 1) + a0``.
+    """
+    for b in range(nb):
+        buf[5, b] = buf[5, b] * (a1 * (buf[4, b] - 1.0) + a0)
     aniso = sd.shape[0] - damped >= 4
     g_inf = fxp[0]
     nt = int(fxp[1])
@@ -295,15 +310,14 @@ def _effects_block(p0, nb, sd, lam_min, damped, fx, buf, kk):
     commit_max = mode == FX_STEP or mode == FX_SETTLE
     for b in range(nb):
         p = p0 + b
-        lam = buf[4, b]
-        k = kk[b]
-        tr = buf[8, b]
         fac = 1.0
         if damage:
+            lam = buf[4, b]
             if lam >= 1.0:
                 xi = lam
             elif lam >= lam_min:           # tabulated on the grid (exact at its nodes)
-                xi = etab[k, 6] + tr * etab[k, 7]
+                k = kk[b]
+                xi = etab[k, 6] + ((lam - lam_min) * inv_h - k) * etab[k, 7]
             else:
                 xi = _equivalent_stretch(lam)
             xi = max(ximax[p], xi)
@@ -313,6 +327,8 @@ def _effects_block(p0, nb, sd, lam_min, damped, fx, buf, kk):
             if e > 0.0:
                 fac = np.exp(-(e ** dshape))
         if mullins:
+            k = kk[b]
+            tr = (buf[4, b] - lam_min) * inv_h - k     # unclipped: the energy continues linearly off the grid
             if aniso:
                 ws = sd[1, p] + sd[2, p] + sd[3, p]
                 w = (sd[1, p] * (etab[k, 0] + tr * etab[k, 3]) + sd[2, p] * (etab[k, 1] + tr * etab[k, 4])
@@ -327,23 +343,22 @@ def _effects_block(p0, nb, sd, lam_min, damped, fx, buf, kk):
             if z > 0.0:                           # erf(0) = 0 on the primary path; erf(z > 6) = 1 - 2e-17
                 fac *= 1.0 - inv_r * (math.erf(z) if z < 6.0 else 1.0)
         pe = fac * buf[5, b]
-        if mode == FX_RELAXED:
-            f_tot = g_inf * pe
-        elif mode == FX_SETTLE:
-            f_tot = g_inf * pe
-            pold[p] = pe
-            for q in range(nt):
-                h[q, p] = 0.0
-        else:
+        f_tot = g_inf * pe
+        if mode == FX_STEP:                       # (the mode decided once per spring, outside the Prony loop)
             dp = pe - pold[p]
-            f_tot = g_inf * pe
             for q in range(nt):
                 hq = ab[0, q] * h[q, p] + ab[1, q] * dp
                 f_tot += fxp[FXP_HEAD + q] * hq
-                if mode == FX_STEP:
-                    h[q, p] = hq
-            if mode == FX_STEP:
-                pold[p] = pe
+                h[q, p] = hq
+            pold[p] = pe
+        elif mode == FX_PEEK:
+            dp = pe - pold[p]
+            for q in range(nt):
+                f_tot += fxp[FXP_HEAD + q] * (ab[0, q] * h[q, p] + ab[1, q] * dp)
+        elif mode == FX_SETTLE:
+            pold[p] = pe
+            for q in range(nt):
+                h[q, p] = 0.0
         buf[5, b] = f_tot
 
 
@@ -404,14 +419,26 @@ def _scatter_owned(nb, p0, hi, h, ij, f, buf, hbuf):
 
 @njit(inline="always", **JIT_OPTIONS)
 def _range_forces(p0, p1, hi, h, x, v, f, sp, fx, hbuf, owned):
-    # The tuple is unpacked once here: the inlined block then sees plain arrays and
-    # scalars (reading them from the tuple inside the loops costs ~10 %).
+    # The tuples are unpacked once, here, and the inlined block functions get plain
+    # arrays: an array taken out of a tuple is reference-counted (an atomic increment
+    # and decrement), which done per block of springs costs ~10 % of the pass.
     ij, sd, tab, lam_min, inv_h, last_cell, law, damped = sp
-    buf = np.empty((9, BLOCK))
+    if fx is not None:
+        etab, fxp, ab, hp, pold, wmax, ximax, mode = fx
+    buf = np.empty((8, BLOCK))
     kk = np.empty(BLOCK, np.int64)
+    secant = law == LAW_SECANT
+    a1 = 1.0 if secant else 0.0          # the law's factor a1 (lam - 1) + a0
+    a0 = 0.0 if secant else 1.0
     for q in range(p0, p1, BLOCK):
         nb = min(BLOCK, p1 - q)
-        _block(q, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, fx, buf, kk)
+        _elastic_block(q, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, buf, kk)
+        if fx is not None:
+            _effects_block(q, nb, sd, lam_min, inv_h, damped, a1, a0, etab, fxp, ab, hp, pold, wmax, ximax, mode,
+                           buf, kk)
+            _coefficients(q, nb, sd, damped, 0.0, 1.0, buf)      # the factor is in the effects' force
+        else:
+            _coefficients(q, nb, sd, damped, a1, a0, buf)
         if owned:
             h = _scatter_owned(nb, q, hi, h, ij, f, buf, hbuf)
         else:
@@ -481,6 +508,385 @@ def _forces(x, v, f, fext, sp, fx, lay):
 forces_serial = njit(**JIT_OPTIONS)(twin(_forces, "forces_serial"))
 #: The same pass with the chunks on numba's threads.
 forces_parallel = njit(parallel=True, **JIT_OPTIONS)(twin(_forces, "forces_parallel"))
+
+
+# ---------------------------------------------------------------------------
+# time stepping
+# ---------------------------------------------------------------------------
+
+GRASP_NONE = 0
+GRASP_PRESCRIBED = 1
+GRASP_SPRING = 2
+
+
+class Clock(NamedTuple):
+    """Steps to take and where they sit in time."""
+
+    n: int
+    dt: float
+    t0: float
+    step0: int
+    dt_first: float     #: the effects' state advances by this at the first step (then by dt)
+    vfac: float         #: 1 / (1 + alpha dt)
+
+
+class Nodes(NamedTuple):
+    """Node arrays: positions, velocities (updated), force buffer, external force, 1/m (0: not integrated)."""
+
+    x: np.ndarray
+    v: np.ndarray
+    f: np.ndarray
+    fext: np.ndarray
+    inv_mass: np.ndarray
+
+
+class GraspKernel(NamedTuple):
+    """The grasper: mode, held nodes, their offsets from the tip, coupling stiffness, tip path."""
+
+    mode: int
+    nodes: np.ndarray       #: (g,) int64
+    offsets: np.ndarray     #: (g, 3)
+    stiffness: np.ndarray   #: (g,) [N/m] (mode SPRING)
+    wp_t: np.ndarray        #: (p,) path times [s]
+    wp_x: np.ndarray        #: (p, 3) tip positions [m]
+
+
+class FloorKernel(NamedTuple):
+    """The rigid floor ``normal . x >= height`` acting on the nodes with ``mask``; ``contact`` is written."""
+
+    on: bool
+    normal: np.ndarray
+    height: float
+    stick: bool
+    mask: np.ndarray        #: (n,) uint8
+    contact: np.ndarray     #: (n,) uint8
+
+
+# ---------------------------------------------------------------------------
+# grasper
+# ---------------------------------------------------------------------------
+
+@njit(**JIT_OPTIONS)
+def tip_state(t, wp_t, wp_x):
+    """Position (3,) and velocity (3,) of a piecewise-linear path at time t (held at the ends)."""
+    pos = np.empty(3)
+    vel = np.zeros(3)
+    m = wp_t.shape[0]
+    if m == 1 or t <= wp_t[0]:
+        for d in range(3):
+            pos[d] = wp_x[0, d]
+        return pos, vel
+    if t >= wp_t[m - 1]:
+        for d in range(3):
+            pos[d] = wp_x[m - 1, d]
+        return pos, vel
+    k = 0
+    while wp_t[k + 1] < t:
+        k += 1
+    span = wp_t[k + 1] - wp_t[k]
+    r = (t - wp_t[k]) / span
+    for d in range(3):
+        pos[d] = wp_x[k, d] + r * (wp_x[k + 1, d] - wp_x[k, d])
+        vel[d] = (wp_x[k + 1, d] - wp_x[k, d]) / span
+    return pos, vel
+
+
+@njit(inline="always", **JIT_OPTIONS)
+def _grasp_forces(f, x, g_mode, g_nodes, g_off, g_k, tip, out):
+    """Add the coupling springs (mode SPRING); put the force on the grasper in *out*."""
+    out[0] = 0.0
+    out[1] = 0.0
+    out[2] = 0.0
+    for q in range(g_nodes.shape[0]):
+        a = g_nodes[q]
+        if g_mode == GRASP_SPRING:
+            for d in range(3):
+                fs = g_k[q] * (tip[d] + g_off[q, d] - x[a, d])
+                f[a, d] += fs
+                out[d] -= fs
+        else:  # prescribed: the pull of the tissue (springs + weight) on the held nodes
+            for d in range(3):
+                out[d] += f[a, d]
+
+
+@njit(inline="always", **JIT_OPTIONS)
+def _place_grasped(x, v, g_nodes, g_off, tip, tip_v):
+    for q in range(g_nodes.shape[0]):
+        a = g_nodes[q]
+        for d in range(3):
+            x[a, d] = tip[d] + g_off[q, d]
+            v[a, d] = tip_v[d]
+
+
+# ---------------------------------------------------------------------------
+# integration of a node range (and the floor)
+# ---------------------------------------------------------------------------
+# The helpers take plain arrays: the tuples are unpacked once by the compiled entry
+# points (reading their fields inside the loops is measurably slower).
+
+@njit(inline="always", **JIT_OPTIONS)
+def _integrate_range(lo, hi, dt, x, v, f, inv_mass, vfac):
+    for a in range(lo, hi):
+        s = dt * inv_mass[a]
+        v[a, 0] = (v[a, 0] + s * f[a, 0]) * vfac
+        v[a, 1] = (v[a, 1] + s * f[a, 1]) * vfac
+        v[a, 2] = (v[a, 2] + s * f[a, 2]) * vfac
+        x[a, 0] += dt * v[a, 0]
+        x[a, 1] += dt * v[a, 1]
+        x[a, 2] += dt * v[a, 2]
+
+
+@njit(inline="always", **JIT_OPTIONS)
+def _integrate_range_floor(lo, hi, dt, x, v, f, inv_mass, vfac, fl_n, fl_h, fl_stick, fl_mask, contact):
+    """:func:`_integrate_range`, then the rigid floor ``n.x >= h`` (unit normal *fl_n*, offset *fl_h*).
+
+    A node with ``fl_mask`` set that ends the step below the plane is put back
+    on it: "slip" (``fl_stick`` False) projects it along the normal and removes
+    the normal velocity if it points into the floor; "stick" puts it where its
+    path of this step crossed the plane (its tangential position where it
+    touched; at its old place if it was already on the plane) and zeroes its
+    velocity. ``contact[a]`` is 1 for the nodes on or below the plane after
+    the position update of this step (then put back on it), else 0.
+    """
+    n0 = fl_n[0]
+    n1 = fl_n[1]
+    n2 = fl_n[2]
+    for a in range(lo, hi):
+        s = dt * inv_mass[a]
+        x0 = x[a, 0]
+        x1 = x[a, 1]
+        x2 = x[a, 2]
+        v[a, 0] = (v[a, 0] + s * f[a, 0]) * vfac
+        v[a, 1] = (v[a, 1] + s * f[a, 1]) * vfac
+        v[a, 2] = (v[a, 2] + s * f[a, 2]) * vfac
+        x[a, 0] = x0 + dt * v[a, 0]
+        x[a, 1] = x1 + dt * v[a, 1]
+        x[a, 2] = x2 + dt * v[a, 2]
+        if not fl_mask[a]:
+            continue
+        dn = n0 * x[a, 0] + n1 * x[a, 1] + n2 * x[a, 2] - fl_h
+        if dn > 0.0:
+            contact[a] = 0
+            continue
+        contact[a] = 1
+        if fl_stick:
+            d0 = n0 * x0 + n1 * x1 + n2 * x2 - fl_h
+            if d0 > 0.0:
+                r = d0 / (d0 - dn)
+                y0 = x0 + r * (x[a, 0] - x0)
+                y1 = x1 + r * (x[a, 1] - x1)
+                y2 = x2 + r * (x[a, 2] - x2)
+            else:
+                y0 = x0
+                y1 = x1
+                y2 = x2
+            e = n0 * y0 + n1 * y1 + n2 * y2 - fl_h
+            x[a, 0] = y0 - e * n0
+            x[a, 1] = y1 - e * n1
+            x[a, 2] = y2 - e * n2
+            v[a, 0] = 0.0
+            v[a, 1] = 0.0
+            v[a, 2] = 0.0
+        else:
+            x[a, 0] -= dn * n0
+            x[a, 1] -= dn * n1
+            x[a, 2] -= dn * n2
+            vn = n0 * v[a, 0] + n1 * v[a, 1] + n2 * v[a, 2]
+            if vn < 0.0:
+                v[a, 0] -= vn * n0
+                v[a, 1] -= vn * n1
+                v[a, 2] -= vn * n2
+
+
+@njit(inline="always", **JIT_OPTIONS)
+def _integrate_nodes(lo, hi, dt, x, v, f, inv_mass, vfac, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact):
+    if fl_on:
+        _integrate_range_floor(lo, hi, dt, x, v, f, inv_mass, vfac, fl_n, fl_h, fl_stick, fl_mask, contact)
+    else:
+        _integrate_range(lo, hi, dt, x, v, f, inv_mass, vfac)
+
+
+@njit(**JIT_OPTIONS)
+def _integrate(c, lay, dt, x, v, f, inv_mass, vfac, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact):
+    """Integrate the nodes of chunk *c* (one chunk: all nodes, from literal bounds)."""
+    if lay.node_start.shape[0] == 2:
+        _integrate_nodes(0, x.shape[0], dt, x, v, f, inv_mass, vfac, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
+    else:
+        _integrate_nodes(lay.node_start[c], lay.node_start[c + 1], dt, x, v, f, inv_mass, vfac,
+                         fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
+
+
+# ---------------------------------------------------------------------------
+# the step loop (symplectic Euler), written once
+# ---------------------------------------------------------------------------
+
+def _steps(clock, nodes, sp, fx, grasp, floor, lay, rec):
+    """Advance ``clock.n`` semi-implicit Euler steps.
+
+    Step k (time ``t = t0 + (step0 + k) dt``): forces at (x, v); the force on
+    the grasper goes to ``rec[k]``; ``v <- (v + dt f / m) * vfac``, ``x <- x +
+    dt v``. Nodes with ``inv_mass = 0`` keep ``v = 0`` (fixed) unless grasped in
+    prescribed mode: those are put on the path at ``t + dt``. With effects, the
+    springs' state advances by ``dt_first`` at the first step, then by dt.
+    """
+    nsteps, dt, t0, step0, dt_first, vfac = clock
+    x, v, f, fext, inv_mass = nodes
+    g_mode, g_nodes, g_off, g_k, wp_t, wp_x = grasp
+    fl_on, fl_n, fl_h, fl_stick, fl_mask, contact = floor
+    node_start = lay.node_start
+    nchunk = node_start.shape[0] - 1
+    out = np.zeros(3)
+    if fx is not None:
+        prony_ab(fx.fxp, dt_first, fx.ab)
+    for k in range(nsteps):
+        t = t0 + (step0 + k) * dt
+        if fx is not None:
+            if k == 1:
+                prony_ab(fx.fxp, dt, fx.ab)
+        for c in prange(nchunk):
+            chunk_forces(c, x, v, f, fext, sp, fx, lay)
+        if g_mode != GRASP_NONE:
+            # The grasped nodes' halo contributions must be in before the force on the
+            # grasper is read: apply all halos, read, then integrate.
+            for c in prange(nchunk):
+                apply_halo(c, f, lay)
+            tip, tip_v = tip_state(t, wp_t, wp_x)
+            _grasp_forces(f, x, g_mode, g_nodes, g_off, g_k, tip, out)
+            rec[k, 0] = out[0]
+            rec[k, 1] = out[1]
+            rec[k, 2] = out[2]
+            for c in prange(nchunk):
+                _integrate(c, lay, dt, x, v, f, inv_mass, vfac,
+                           fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
+        else:
+            for c in prange(nchunk):
+                apply_halo(c, f, lay)
+                _integrate(c, lay, dt, x, v, f, inv_mass, vfac,
+                           fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
+        if g_mode == GRASP_PRESCRIBED:
+            tip, tip_v = tip_state(t0 + (step0 + k + 1) * dt, wp_t, wp_x)
+            _place_grasped(x, v, g_nodes, g_off, tip, tip_v)
+
+
+#: The step loop on one thread (a one-chunk layout).
+steps_serial = njit(**JIT_OPTIONS)(twin(_steps, "steps_serial"))
+#: The step loop on numba's threads (same arithmetic; the owner/halo layout above).
+steps_parallel = njit(parallel=True, **JIT_OPTIONS)(twin(_steps, "steps_parallel"))
+
+
+# ---------------------------------------------------------------------------
+# quasi-static relaxation (FIRE)
+# ---------------------------------------------------------------------------
+
+@njit(**JIT_OPTIONS)
+def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, max_iter):
+    """FIRE minimisation (Bitzek et al. 2006) of the network energy under fext.
+
+    Uses the dynamics' force pass (*sp* without dashpots; one-chunk *lay*) and a
+    mass-weighted semi-implicit Euler MD step; grasper coupling springs (mode
+    SPRING) pull the held nodes to ``tip + offsets``. Converged when the
+    largest residual force on a free node is below *ftol* [N]. Returns
+    (iterations, final max residual); iterations = -1 when the forces became
+    non-finite. With effects (*fx* not None) their long-term force (mode
+    ``FX_RELAXED``, state unchanged) is used.
+
+    With ``floor.on`` the rigid floor of :func:`_integrate_range_floor` constrains
+    the nodes with ``floor.mask``: each MD update puts the nodes that end below
+    the plane back on it (same rule as the dynamics, "stick" or "slip"), and
+    for a node in contact (``floor.contact[a]``, set by the last update) whose force
+    presses into the floor the floor's reaction is taken off the force used
+    by FIRE and by the convergence test (the normal part with "slip", all of it
+    with "stick": sticking friction carries any tangential load).
+    """
+    x, v, f, fext, inv_mass = nodes
+    g_mode, g_nodes, g_off, g_k, wp_t, wp_x = grasp
+    fl_on, fl_n, fl_h, fl_stick, fl_mask, contact = floor
+    n = x.shape[0]
+    n_min = 5
+    f_inc = 1.1
+    f_dec = 0.5
+    alpha_start = 0.1
+    f_alpha = 0.99
+    alpha = alpha_start
+    dt = dt0
+    since_neg = 0
+    for a in range(n):
+        for d in range(3):
+            v[a, d] = 0.0
+    resid = np.inf
+    out = np.zeros(3)
+    for it in range(max_iter):
+        forces_serial(x, v, f, fext, sp, fx, lay)
+        if g_mode == GRASP_SPRING:
+            _grasp_forces(f, x, g_mode, g_nodes, g_off, g_k, tip, out)
+        if fl_on:
+            for a in range(n):
+                if free[a] and fl_mask[a] and contact[a]:
+                    fn = f[a, 0] * fl_n[0] + f[a, 1] * fl_n[1] + f[a, 2] * fl_n[2]
+                    if fn < 0.0:
+                        if fl_stick:
+                            f[a, 0] = 0.0
+                            f[a, 1] = 0.0
+                            f[a, 2] = 0.0
+                        else:
+                            for d in range(3):
+                                f[a, d] -= fn * fl_n[d]
+        resid = 0.0
+        P = 0.0
+        vn2 = 0.0
+        fn2 = 0.0
+        for a in range(n):
+            if free[a]:
+                fa2 = f[a, 0] ** 2 + f[a, 1] ** 2 + f[a, 2] ** 2
+                if fa2 > resid:
+                    resid = fa2
+                P += f[a, 0] * v[a, 0] + f[a, 1] * v[a, 1] + f[a, 2] * v[a, 2]
+                vn2 += v[a, 0] ** 2 + v[a, 1] ** 2 + v[a, 2] ** 2
+                fn2 += fa2
+        resid = np.sqrt(resid)
+        if not np.isfinite(resid):
+            return -1, resid
+        if resid < ftol:
+            return it, resid
+        if P > 0.0:
+            vn = np.sqrt(vn2)
+            fn = np.sqrt(fn2)
+            if fn > 0.0:
+                for a in range(n):
+                    if free[a]:
+                        for d in range(3):
+                            v[a, d] = (1.0 - alpha) * v[a, d] + alpha * vn * f[a, d] / fn
+            since_neg += 1
+            if since_neg > n_min:
+                dt = min(dt * f_inc, dt_max)
+                alpha *= f_alpha
+        else:
+            since_neg = 0
+            dt *= f_dec
+            alpha = alpha_start
+            for a in range(n):
+                for d in range(3):
+                    v[a, d] = 0.0
+        if fl_on:
+            for a in range(n):
+                if free[a] and not fl_mask[a]:
+                    s = dt * inv_mass[a]
+                    for d in range(3):
+                        v[a, d] += s * f[a, d]
+                        x[a, d] += dt * v[a, d]
+            # the floor's nodes: same update, then the contact rule (vfac = 1)
+            for a in range(n):
+                if free[a] and fl_mask[a]:
+                    _integrate_range_floor(a, a + 1, dt, x, v, f, inv_mass, 1.0, fl_n, fl_h, fl_stick, fl_mask,
+                                           contact)
+        else:
+            for a in range(n):
+                if free[a]:
+                    s = dt * inv_mass[a]
+                    for d in range(3):
+                        v[a, d] += s * f[a, d]
+                        x[a, d] += dt * v[a, d]
+    return max_iter, resid
 
 
 # ---------------------------------------------------------------------------

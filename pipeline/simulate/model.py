@@ -24,15 +24,8 @@ import numpy as np
 
 from ..errors import ConfigError, InputError
 from .effects import EffectState
+from .kernels import GRASP_NONE, GRASP_PRESCRIBED, GRASP_SPRING, FloorKernel, GraspKernel, tip_state
 from .springterm import SpringTerm
-from .stepkernels import (
-    GRASP_NONE,
-    GRASP_PRESCRIBED,
-    GRASP_SPRING,
-    FloorKernel,
-    GraspKernel,
-    tip_state,
-)
 
 
 class ForceTerm(Protocol):

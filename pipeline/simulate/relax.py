@@ -3,7 +3,7 @@
 :func:`relax` moves a :class:`~.model.State` to the static equilibrium of its
 :class:`~.model.Model` under gravity (and a held grasp, at its current tip)
 with FIRE (Bitzek et al., PRL 97, 170201, 2006) on the same force pass as the
-dynamics (:func:`~.stepkernels.fire_relax`). With material effects this is the
+dynamics (:func:`~.kernels.fire_relax`). With material effects this is the
 *long-term* equilibrium (forces ``g_inf (1 - D) eta F_e`` with the maxima so
 far), after which the history is taken as relaxed there (:func:`settle_effects`).
 """
@@ -14,8 +14,8 @@ import numpy as np
 
 from ..errors import SimulationError
 from . import kernels as K
+from .kernels import Nodes, fire_relax
 from .model import Control, Model, State
-from .stepkernels import Nodes, fire_relax
 
 
 def settle_effects(model: Model, state: State) -> None:

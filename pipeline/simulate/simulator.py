@@ -18,7 +18,7 @@ from . import kernels as K
 from .model import Control, Floor, Grasp, Model, State
 from .relax import relax, settle_effects
 from .springterm import SpringTerm
-from .stepper import DEFAULT_SAFETY, StepBound, SymplecticEuler
+from .stepper import DEFAULT_SAFETY, StepBound, Stepper, SymplecticEuler
 
 
 class Simulator:
@@ -48,13 +48,16 @@ class Simulator:
     floor : Floor, optional
         Rigid floor acting on the free nodes (not the fixed or grasped ones)
         after every position update, in the dynamics and in :meth:`relax`.
+    stepper : Stepper, optional
+        What advances the state (default: :class:`~.stepper.SymplecticEuler`
+        with *safety* and *threads*).
 
     Attributes
     ----------
     model : Model
     state : State
     control : Control
-    stepper : SymplecticEuler
+    stepper : Stepper
     bound : StepBound
         The whole-table stability bound with the current control.
     """
@@ -62,11 +65,12 @@ class Simulator:
     def __init__(self, springs: SpringTerm, points: np.ndarray, mass: np.ndarray, *, fixed=(),
                  gravity=(0.0, 0.0, 0.0), mass_damping: float = 0.0, dt: float | None = None,
                  safety: float = DEFAULT_SAFETY, threads: int = 1, gravity_mass: np.ndarray | None = None,
-                 floor: Floor | None = None):
+                 floor: Floor | None = None, stepper: Stepper | None = None):
         self.model = Model.build(springs, points, mass, fixed=fixed, gravity=gravity, gravity_mass=gravity_mass,
                                  mass_damping=mass_damping, floor=floor)
         self.state = State.at_rest(self.model)
-        self.stepper = SymplecticEuler(safety=float(safety), threads=max(1, int(threads)))
+        self.stepper = SymplecticEuler(safety=float(safety), threads=max(1, int(threads))) if stepper is None \
+            else stepper
         self._set_control(Control.of(self.model))
         if dt is None:
             self.state.dt = self.bound.dt

@@ -53,8 +53,8 @@ import numpy as np
 
 from ..errors import ConfigError
 from . import kernels as K
+from .kernels import Clock, Nodes, steps_parallel, steps_serial
 from .model import Control, Model, State
-from .stepkernels import Clock, Nodes, steps_parallel, steps_serial
 
 DEFAULT_SAFETY = 0.9
 
@@ -202,7 +202,7 @@ class Stepper(Protocol):
 
 @dataclass(eq=False)
 class SymplecticEuler:
-    """The explicit stepper (module doc): one force pass per step, compiled (:mod:`.stepkernels`).
+    """The explicit stepper (module doc): one force pass per step, compiled (:mod:`.kernels`).
 
     Parameters
     ----------
@@ -251,6 +251,28 @@ class SymplecticEuler:
             fxs.t = state.t0 + (state.steps + nsteps - 1) * state.dt
         state.steps += nsteps
         return rec
+
+
+class FrameSchedule(Protocol):
+    """How a run chooses the step of each frame (:func:`~.frames.run_frames` asks it).
+
+    :class:`StepSchedule` is the explicit stepper's; an implicit stepper's
+    schedule would return its fixed step (e.g. 1 ms for a 1 kHz grasper
+    force) and no window.
+    """
+
+    @property
+    def first_window(self) -> float | None:
+        """The stretch window of the first frame (None: no window check)."""
+
+    def narrowed(self, delta: float | None) -> float | None:
+        """The window of the next frame, from the last one's."""
+
+    def bound(self, model: Model, state: State, control: Control, delta: float | None) -> StepBound:
+        """The largest step for a frame starting at *state* with window *delta*."""
+
+    def steps_per_frame(self, frame_dt: float, bound: StepBound) -> int:
+        """Steps of a frame of *frame_dt* under *bound*."""
 
 
 @dataclass(eq=False)
