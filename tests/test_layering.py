@@ -10,7 +10,7 @@ them, the batch runner and the command line on top::
     calibrate           asset
     materials   <-      network
     tensile             mesh
-    ground: errors, progress, atomicio, blas, units, config, validate
+    ground: errors, progress, atomicio, blas, interrupts, units, config, validate
 
 Checked from the source text (no import is run):
 
@@ -39,7 +39,7 @@ REPO = Path(__file__).resolve().parent.parent
 TOPS = {"cli": "esmm.cli", "pipeline": "esmm.pipeline"}
 
 #: The ground: small modules every package may use. Among themselves they import downwards only.
-GROUND = {"pipeline": set(), "errors": set(), "progress": set(), "atomicio": set(), "blas": set(),
+GROUND = {"pipeline": set(), "errors": set(), "progress": set(), "atomicio": set(), "blas": set(), "interrupts": set(),
           "units": {"errors"}, "config": {"errors"}, "validate": {"errors", "units"}}
 
 #: package -> the packages (above the ground) it may import.
