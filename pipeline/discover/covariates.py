@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..materials.effects import equivalent_stretch
+from ..materials.loading import invariants
 from ..tensile.data import TensileTest
 
 #: |rate| below this fraction of the largest (smoothed) |rate| of the test is a hold
@@ -122,8 +123,6 @@ def _runs(a: np.ndarray) -> list[tuple[int, int, int]]:
 
 def drive_of(test: TensileTest, x: np.ndarray | None = None) -> np.ndarray:
     """Uniaxial-equivalent stretch ξ of the test's samples (or of *x* in its mode)."""
-    from ..materials.loading import invariants
-
     x = test.stretch if x is None else x
     i1, _ = invariants(test.mode, np.asarray(x, float))
     return equivalent_stretch(i1)
