@@ -13,7 +13,7 @@ import pytest
 from esmm.pipeline.discover import MaterialEffects, discover, discover_and_save
 from esmm.pipeline.discover import synthetic as syn
 from esmm.pipeline.discover.covariates import covariates, thin
-from esmm.pipeline.discover.model import information, lag1, runs_test
+from esmm.pipeline.discover.statistics import information, lag1, runs_test
 from esmm.pipeline.errors import ConfigError
 from esmm.pipeline.materials import get_model
 from esmm.pipeline.materials.effects import (

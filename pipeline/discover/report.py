@@ -14,7 +14,6 @@ Files written by :func:`write_outputs` into the output folder (docs/discover.md)
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from datetime import UTC, datetime
@@ -24,11 +23,13 @@ from typing import Any
 import numpy as np
 
 from .. import __version__
-from ..atomicio import atomic_path, write_text
+from ..atomicio import atomic_path, write_json, write_text
+from ..calibrate.report import display_stress_unit
 from ..materials.effects import ARTEFACTS, MATERIAL_EFFECTS, MaterialEffects
+from ..materials.material import Material
 from .covariates import thin
-from .model import Spec
-from .search import DiscoverResult, Fitted
+from .fitted import Fitted
+from .search import DiscoverResult, discover
 
 JSON_SCHEMA = "esmm.discover/1"
 MODEL_SCHEMA = "esmm.discover-model/1"
@@ -52,8 +53,8 @@ def _params_doc(f: Fitted) -> dict[str, Any]:
 
 
 def _errors_doc(f: Fitted) -> dict[str, Any]:
-    e, h = f.errors, f.heldout
-    d = {"rmse": e.rmse, "nrmse": e.nrmse, "max_abs": e.max_abs, "unit": "Pa", "per_file": e.per_file}
+    h = f.heldout
+    d = f.errors.to_dict()
     if h is not None:
         d.update({"heldout_rmse": h.rmse, "heldout_nrmse": h.nrmse, "heldout_max_abs": h.max_abs,
                   "heldout_per_file": h.per_file})
@@ -111,32 +112,6 @@ def result_to_dict(res: DiscoverResult) -> dict[str, Any]:
         "saved_model": saved_model(res),
         "seconds": res.seconds,
     }
-
-
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
-
-
-def _finite(obj):
-    """Replace non-finite floats by None (strict JSON)."""
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, float | np.floating) and not math.isfinite(float(obj)):
-        return None
-    return obj
-
-
-def write_json(path: str | Path, doc: dict[str, Any]) -> Path:
-    """Write *doc* as strict JSON (non-finite numbers become null), atomically."""
-    return write_text(path, json.dumps(_finite(doc), indent=2, default=_json_default) + "\n")
 
 
 # --------------------------------------------------------------------------- words
@@ -313,9 +288,6 @@ def params_toml(res: DiscoverResult, *, which: str = "final", stress_unit: str |
 
     ``which="base"`` gives the base model alone.
     """
-    from ..calibrate.report import display_stress_unit
-    from ..materials.material import Material
-
     f = res.final if which == "final" else res.base
     st = f.state
     directions = None
@@ -351,8 +323,6 @@ def plot_residuals(path: str | Path, res: DiscoverResult, *, which: str = "base"
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from ..calibrate.report import display_stress_unit
 
     f = res.base if which == "base" else res.final
     prob = f.problem
@@ -523,13 +493,7 @@ def discover_and_save(tests: Sequence, *, out_dir: str | Path | None = None, jso
     DiscoverResult
         Its :func:`summary_lines` are what the CLI prints.
     """
-    from .search import discover
-
     res = discover(tests, reporter=reporter, **options)
     write_outputs(out_dir, res, json_path=json_path)
     return res
 
-
-def spec_of(doc: dict[str, Any]) -> Spec:
-    """The :class:`Spec` of a saved model document."""
-    return Spec.from_dict(doc.get("spec", {}))
