@@ -100,6 +100,38 @@ def _init_prony(prob: Problem, z: np.ndarray) -> np.ndarray:
     b = prob.bounds
     n_terms = prob.spec.viscoelastic
     taus = np.geomspace(b.tau_min * 2, b.tau_max / 5, 14)
+    system = _relaxation_system(prob, z, taus)
+    if system is None:
+        return z
+    A, yv = system
+    try:
+        g, _ = optimize.nnls(A, yv, maxiter=50 * A.shape[1])
+    except RuntimeError:
+        g = np.zeros(len(taus))
+    chosen = [j for j in np.argsort(-g) if g[j] > 0][:n_terms]
+    gs = [float(g[j]) for j in chosen]
+    ts = [float(taus[j]) for j in chosen]
+    spread = np.geomspace(b.tau_min * 10, b.tau_max / 20, n_terms + 2)[1:-1]
+    while len(ts) < n_terms:
+        cand = [t for t in spread if all(abs(math.log(t / u)) > 0.5 for u in ts)] or list(spread)
+        ts.append(float(cand[0]))
+        gs.append(0.05)
+    tot = sum(gs)
+    if tot > 0.95:
+        gs = [v * 0.95 / tot for v in gs]
+    vals = {}
+    for j, u in enumerate(_stick_breaking(gs)):
+        vals[f"u[{j}]"] = u
+        vals[f"tau[{j}]"] = math.log(min(max(ts[j], b.tau_min * 1.01), b.tau_max * 0.99))
+    return _set(prob, z, "viscoelastic", vals)
+
+
+def _relaxation_system(prob: Problem, z: np.ndarray, taus: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The weighted linear system (atoms, target) of one Prony term per relaxation time in *taus*.
+
+    Each atom is the relaxation of the softened elastic stress with one unit term;
+    the offset columns are projected out. None where no training record has time.
+    """
     st = prob.state(z)
     cols, target = [], []
     for k, r in enumerate(prob.records):
@@ -107,8 +139,7 @@ def _init_prony(prob: Problem, z: np.ndarray) -> np.ndarray:
             continue
         idx = r.fit_idx
         pd = np.nan_to_num(prob.softened(k, st, idx))
-        tt = r.t[idx]
-        atoms = np.stack([qlv_stress(tt, pd, [1.0], [tau]) - pd for tau in taus], axis=1)
+        atoms = np.stack([qlv_stress(r.t[idx], pd, [1.0], [tau]) - pd for tau in taus], axis=1)
         y = r.y[idx] - pd
         pos = prob.train[k]
         if pos is not None:
@@ -123,37 +154,17 @@ def _init_prony(prob: Problem, z: np.ndarray) -> np.ndarray:
         w = prob.factor[k] / r.scale
         cols.append(atoms * w)
         target.append(y * w)
-    if not cols:
-        return z
-    A = np.concatenate(cols)
-    yv = np.concatenate(target)
-    try:
-        g, _ = optimize.nnls(A, yv, maxiter=50 * A.shape[1])
-    except RuntimeError:
-        g = np.zeros(len(taus))
-    order = np.argsort(-g)
-    chosen = [j for j in order if g[j] > 0][:n_terms]
-    gs = [float(g[j]) for j in chosen]
-    ts = [float(taus[j]) for j in chosen]
-    spread = np.geomspace(b.tau_min * 10, b.tau_max / 20, n_terms + 2)[1:-1]
-    while len(ts) < n_terms:
-        cand = [t for t in spread if all(abs(math.log(t / u)) > 0.5 for u in ts)] or list(spread)
-        ts.append(float(cand[0]))
-        gs.append(0.05)
-    tot = sum(gs)
-    if tot > 0.95:
-        gs = [v * 0.95 / tot for v in gs]
-    # stick-breaking fractions
+    return (np.concatenate(cols), np.concatenate(target)) if cols else None
+
+
+def _stick_breaking(gs: list[float]) -> list[float]:
+    """Prony weights as stick-broken fractions u_j in [1e-3, 0.99] (g_j = u_j prod_{i<j} (1 - u_i))."""
     us, rest = [], 1.0
     for v in gs:
         u = min(max(v / rest, 1e-3), 0.99) if rest > 0 else 0.5
         us.append(u)
         rest *= 1 - u
-    vals = {}
-    for j in range(n_terms):
-        vals[f"u[{j}]"] = us[j]
-        vals[f"tau[{j}]"] = math.log(min(max(ts[j], b.tau_min * 1.01), b.tau_max * 0.99))
-    return _set(prob, z, "viscoelastic", vals)
+    return us
 
 
 def extend_variant(prob: Problem, z: np.ndarray, extra: list[int]) -> np.ndarray:

@@ -325,30 +325,9 @@ def plot_residuals(path: str | Path, res: DiscoverResult, *, which: str = "base"
     import matplotlib.pyplot as plt
 
     f = res.base if which == "base" else res.final
-    prob = f.problem
-    coefs = prob.offsets(f.z)
     unit, fac = display_stress_unit([r.scale for r in res.records])
     fig, ax = plt.subplots(2, 2, figsize=(13, 8.5), constrained_layout=True)
-    cmap = plt.get_cmap("tab10")
-    seg_res: dict[str, list[np.ndarray]] = {"loading": [], "unloading": [], "hold": [], "toe": [], "high end": []}
-    for k, r in enumerate(res.records):
-        c = cmap(k % 10)
-        p = prob.full_prediction(k, f.z, coefs[k])
-        e = (r.y - p) / fac
-        sl = thin(r.test, 3000, cov=r.cov)  # arc-length thinning: ramps and holds both drawn
-        label = r.name if len(res.records) <= 12 else None
-        ax[0, 0].plot(r.x[sl], r.y[sl] / fac, ".", ms=1.5, color=c, alpha=0.35, label=label)
-        ax[0, 0].plot(r.x[sl], p[sl] / fac, "-", lw=1.0, color=c)
-        tt = r.cov.elapsed
-        tn = tt / (float(tt[-1]) or 1.0) + k
-        ax[0, 1].plot(tn[sl], e[sl], "-", lw=0.7, color=c)
-        ax[1, 0].plot(r.x[sl], e[sl], ".", ms=1.2, color=c, alpha=0.5)
-        d = r.cov.direction
-        seg_res["loading"].append(e[d > 0])
-        seg_res["unloading"].append(e[d < 0])
-        seg_res["hold"].append(e[d == 0])
-        seg_res["toe"].append(e[r.cov.toe])
-        seg_res["high end"].append(e[r.cov.high])
+    seg_res = _draw_records(ax, res, f, fac, plt.get_cmap("tab10"))
     ax[0, 0].set(xlabel="stretch λ (γ for shear)", ylabel=f"nominal stress [{unit}]",
                  title=f"{'base ' + res.model if which == 'base' else 'final: +' + (', '.join(res.kept) or 'nothing')}: "
                        f"data (dots) and model (lines)")
@@ -375,6 +354,32 @@ def plot_residuals(path: str | Path, res: DiscoverResult, *, which: str = "base"
         fig.savefig(tmp, dpi=100, format="png")
     plt.close(fig)
     return Path(path)
+
+
+def _draw_records(ax, res: DiscoverResult, f: Fitted, fac: float, cmap) -> dict[str, list[np.ndarray]]:
+    """Draw every record's data, model and residual; return the residuals by loading segment."""
+    prob = f.problem
+    coefs = prob.offsets(f.z)
+    seg_res: dict[str, list[np.ndarray]] = {"loading": [], "unloading": [], "hold": [], "toe": [], "high end": []}
+    for k, r in enumerate(res.records):
+        c = cmap(k % 10)
+        p = prob.full_prediction(k, f.z, coefs[k])
+        e = (r.y - p) / fac
+        sl = thin(r.test, 3000, cov=r.cov)  # arc-length thinning: ramps and holds both drawn
+        label = r.name if len(res.records) <= 12 else None
+        ax[0, 0].plot(r.x[sl], r.y[sl] / fac, ".", ms=1.5, color=c, alpha=0.35, label=label)
+        ax[0, 0].plot(r.x[sl], p[sl] / fac, "-", lw=1.0, color=c)
+        tt = r.cov.elapsed
+        tn = tt / (float(tt[-1]) or 1.0) + k
+        ax[0, 1].plot(tn[sl], e[sl], "-", lw=0.7, color=c)
+        ax[1, 0].plot(r.x[sl], e[sl], ".", ms=1.2, color=c, alpha=0.5)
+        d = r.cov.direction
+        seg_res["loading"].append(e[d > 0])
+        seg_res["unloading"].append(e[d < 0])
+        seg_res["hold"].append(e[d == 0])
+        seg_res["toe"].append(e[r.cov.toe])
+        seg_res["high end"].append(e[r.cov.high])
+    return seg_res
 
 
 # --------------------------------------------------------------------------- corrected data

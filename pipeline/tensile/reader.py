@@ -144,41 +144,12 @@ def _decode(raw: bytes, label: str, enc_entry: M.Entry | None) -> tuple[str, str
     """Decode the file's bytes: stated encoding, else a BOM, else a ``# encoding:`` line, else UTF-8."""
     if _CONTENT.search(raw) is None:
         raise InputError(f"{label}: empty file; export the test again (one header line and one row per sample)")
-    name = M.encoding_value(enc_entry) if enc_entry else None
-    bom = _bom(raw)
-    if name is not None and bom is not None and not _codec(name).startswith(bom.split("-sig")[0]):
-        raise InputError(
-            f"{label}: starts with a {bom} byte-order mark but {enc_entry.described} says {name}; "
-            f"remove the encoding statement (the mark is definitive)"
-        )
-    src = enc_entry.described if enc_entry else "its byte-order mark"
-    if name is None:
-        name = bom
-    if name is None:
-        m = _ENCODING_COMMENT.search(raw[:8192])
-        if m:
-            line = raw.count(b"\n", 0, m.start(1)) + 1
-            src = f"{label} line {line}: encoding"
-            name = M.encoding_value(M.Entry(m.group(1).decode("ascii"), src, M.COMMENT))
+    name, src = _stated_encoding(raw, label, enc_entry)
     wide = name is not None and _codec(name).startswith(("utf-16", "utf-32"))
     if not wide:
         _check_text(raw, label)
     if name is not None:
-        try:
-            text = raw.decode(name)
-        except UnicodeDecodeError as exc:
-            line = raw.count(b"\n", 0, exc.start) + 1
-            raise InputError(
-                f"{label}: does not decode as {name} (stated by {src}): byte 0x{raw[exc.start]:02x} "
-                f"on line {line}; state the file's real encoding"
-            ) from None
-        except (UnicodeError, LookupError, ValueError) as exc:
-            # Codecs that fail without a position (punycode, idna: "codec failed", label errors).
-            why = " ".join(str(exc).split())[:120]
-            raise InputError(
-                f"{label}: does not decode as {name} (stated by {src}: {why}); state the file's real "
-                f"encoding, e.g. utf-8 or gbk"
-            ) from None
+        text = _decode_as(raw, label, name, src)
     else:
         try:
             text = raw.decode("utf-8")
@@ -198,6 +169,46 @@ def _decode(raw: bytes, label: str, enc_entry: M.Entry | None) -> tuple[str, str
         if "\r" in text:
             text = text.replace("\r", "\n")
     return text, _codec(name)
+
+
+def _stated_encoding(raw: bytes, label: str, enc_entry: M.Entry | None) -> tuple[str | None, str]:
+    """The encoding stated (metadata, else a byte-order mark, else a ``# encoding:`` line), and by whom."""
+    name = M.encoding_value(enc_entry) if enc_entry else None
+    bom = _bom(raw)
+    if name is not None and bom is not None and not _codec(name).startswith(bom.split("-sig")[0]):
+        raise InputError(
+            f"{label}: starts with a {bom} byte-order mark but {enc_entry.described} says {name}; "
+            f"remove the encoding statement (the mark is definitive)"
+        )
+    src = enc_entry.described if enc_entry else "its byte-order mark"
+    if name is None:
+        name = bom
+    if name is None:
+        m = _ENCODING_COMMENT.search(raw[:8192])
+        if m:
+            line = raw.count(b"\n", 0, m.start(1)) + 1
+            src = f"{label} line {line}: encoding"
+            name = M.encoding_value(M.Entry(m.group(1).decode("ascii"), src, M.COMMENT))
+    return name, src
+
+
+def _decode_as(raw: bytes, label: str, name: str, src: str) -> str:
+    """The bytes decoded with the stated encoding *name* (one-line InputError where they do not decode)."""
+    try:
+        return raw.decode(name)
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise InputError(
+            f"{label}: does not decode as {name} (stated by {src}): byte 0x{raw[exc.start]:02x} "
+            f"on line {line}; state the file's real encoding"
+        ) from None
+    except (UnicodeError, LookupError, ValueError) as exc:
+        # Codecs that fail without a position (punycode, idna: "codec failed", label errors).
+        why = " ".join(str(exc).split())[:120]
+        raise InputError(
+            f"{label}: does not decode as {name} (stated by {src}: {why}); state the file's real "
+            f"encoding, e.g. utf-8 or gbk"
+        ) from None
 
 
 def _bom(raw: bytes) -> str | None:
