@@ -186,7 +186,10 @@ def _fixed_values(model, given: tuple[Mapping[str, Any], float | None], name: st
         try:
             if model.parameter(k).kind != "stress":
                 out[k] = float(number_text(v, where))
-            elif stress_factor is not None and isinstance(v, int | float) and not isinstance(v, bool):
+            elif isinstance(v, int | float) and not isinstance(v, bool) and name != "fixed":
+                if stress_factor is None:
+                    raise ConfigError(f"{where}: {v!r} is a bare number but the table has no stress_unit; add "
+                                      f"stress_unit = \"kPa\" (or MPa, Pa) or write {k} = \"{v} kPa\"")
                 out[k] = float(number(v, where)) * stress_factor
             else:
                 out[k] = parse_quantity(str(v), "stress", where=where)

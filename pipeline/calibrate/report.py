@@ -73,7 +73,7 @@ def result_to_dict(result: FitResult, tests: Sequence[TensileTest]) -> dict[str,
 
 
 def params_toml(result: FitResult, tests: Sequence[TensileTest], *, name: str | None = None) -> str:
-    """The fitted material as a config TOML that ``--material``/``--config`` read back."""
+    """The fitted material as a material file (:func:`~esmm.pipeline.materials.material.load_material` reads it)."""
     mat = result.material(
         name=name or f"fit of {', '.join(sorted({t.specimen for t in tests}))}",
         source="esmm calibrate " + " ".join(t.source.name for t in tests),

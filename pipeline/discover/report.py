@@ -284,7 +284,8 @@ def markdown(res: DiscoverResult, *, plots: bool = True) -> str:
 
 # --------------------------------------------------------------------------- TOML
 def params_toml(res: DiscoverResult, *, which: str = "final", stress_unit: str | None = None) -> str:
-    """A material file (``--material``) for the final model, with ``[material.effects.*]``.
+    """A material file (:func:`~esmm.pipeline.materials.material.load_material`) for the final model,
+    with ``[material.effects.*]``.
 
     ``which="base"`` gives the base model alone.
     """

@@ -256,9 +256,9 @@ def discover(
     base : FitResult, optional
         A base fit already made (its parameters start the base fit here).
     fixed : mapping, optional
-        Base parameters held (SI), as ``--fix``.
+        Base parameters held (SI), as :func:`~esmm.pipeline.calibrate.fit.fit_material`'s ``fixed``.
     free : sequence of str
-        Base parameters the model holds by default to fit anyway, as ``--free``.
+        Base parameters the model holds by default to fit anyway (``fit_material``'s ``free``).
     weights : mapping or sequence, optional
         Per-file weights, as the calibrate fit.
     n_starts, seed : int
@@ -295,6 +295,7 @@ def _discover(tests, *, model, base, fixed, free, weights, n_starts, seed, max_p
     t_start = time.perf_counter()
     _check(tests, model=model, candidates=candidates, criteria=criteria, max_points=max_points)
     w = file_weights(tests, weights)
+    directions = fibre_directions(tests)
     records = prepare(tests, max_points=max_points, weights=w)
     rep.step(f"discover: {len(tests)} file(s), {sum(t.n for t in tests)} samples, "
              f"{sum(r.fit_idx.size for r in records)} used for fitting")
@@ -302,7 +303,7 @@ def _discover(tests, *, model, base, fixed, free, weights, n_starts, seed, max_p
     base_fit = fit_material([view_test(r) for r in records], model=model, n_starts=n_starts, seed=seed,
                             fixed=fixed, free=tuple(free), weights=w,
                             initial=dict(base.params) if base is not None else None)
-    start = _base_model(records, base_fit, fixed, fibre_directions(tests))
+    start = _base_model(records, base_fit, fixed, directions)
     scheme, folds = make_folds(records)
     with rep.task("held-out check of the base model", total=1) as adv:
         start.heldout = heldout(start, folds)

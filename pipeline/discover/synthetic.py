@@ -156,7 +156,32 @@ class Truth:
 
 
 def prony_trapezoid(t: np.ndarray, p: np.ndarray, g: Sequence[float], tau: Sequence[float]) -> np.ndarray:
-    """QLV by the trapezoidal rule on a grid refined to Δ <= min(tau)/8."""
+    r"""Quasi-linear viscoelastic stress by the trapezoidal rule (the generator's own integration).
+
+    .. math::
+
+        P(t) = g_\infty P_e(t) + \sum_i g_i h_i(t), \qquad
+        \dot h_i = \dot P_e - h_i / \tau_i, \quad h_i(0) = P_e(0),
+
+    with :math:`g_\infty = 1 - \sum_i g_i`, integrated by Crank-Nicolson on a grid
+    refined to Δt <= min(τ)/8 (P_e linear between samples). Independent of the
+    fit's exact recursion (:func:`esmm.pipeline.materials.effects.qlv_stress`), so
+    the test that compares them checks both.
+
+    Parameters
+    ----------
+    t : ndarray, shape (n,)
+        Sample times [s], increasing.
+    p : ndarray, shape (n,)
+        Elastic (instantaneous) stress P_e [Pa].
+    g, tau : sequence of float, shape (m,)
+        Prony weights and relaxation times [s].
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        P [Pa] at the sample times.
+    """
     dt = float(np.min(np.diff(t))) if t.size > 1 else 1.0
     sub = max(1, int(math.ceil(8 * dt / min(tau))))
     if sub > 1:
