@@ -419,7 +419,7 @@ def test_calibrate_jobs_grouping_and_key_inputs(tmp_path):
     jobs = calibrate_jobs(files, by="folder", out_dir=tmp_path / "o")
     assert sorted(j.name for j in jobs) == ["lab1_left", "lab2_left"]
     assert safe_name("../a b/c") == "a_b_c" and safe_name("...") == "group"
-    with pytest.raises(ConfigError, match="--by"):
+    with pytest.raises(ConfigError, match="^by: 'colour' is not one of specimen, folder"):
         calibrate_jobs(files, by="colour", out_dir=tmp_path)
     with pytest.raises(ConfigError):
         calibrate_jobs(files, out_dir=tmp_path, read_kwargs={"overrides": {"mode": "sideways"}})
