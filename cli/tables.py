@@ -83,9 +83,9 @@ def _points(text) -> int | None:
 
 
 def run(args, ui) -> int:
-    from esmm.pipeline.asset import read_asset
+    from esmm.pipeline.asset import read_asset, update_asset_tables
     from esmm.pipeline.materials.material import load_material
-    from esmm.pipeline.network.tables import LAWS, build_tables, update_asset_tables
+    from esmm.pipeline.network.tables import LAWS, build_tables
 
     asset = read_asset(args.asset)
     old = asset.tables

@@ -601,7 +601,7 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
     if mat is None:
         warn("the materials module is not available: the asset has no /material or /tables")
     else:
-        from .asset.write import material_effects
+        from .asset.material import material_effects
 
         fx = material_effects(mat)       # ConfigError before any meshing if [material.effects] is malformed
         if fx is not None:

@@ -177,7 +177,7 @@ def test_info_on_a_good_asset(run_cli, small_asset):
 
 
 def test_info_on_bad_assets(run_cli, small_asset, tmp_path):
-    from esmm.pipeline.asset._h5 import seal
+    from esmm.pipeline.asset.hdf5 import seal
 
     with h5py.File(small_asset, "r+") as f:
         f["/nodes/mass"][0] = 0.0
