@@ -27,6 +27,7 @@ import numpy as np
 
 from . import config as _config
 from .errors import ConfigError, InputError, QualityError
+from .network import compensation
 from .progress import ensure
 from .units import parse_quantity
 
@@ -330,95 +331,6 @@ def _build_tables(material, opts: dict):
     return build_tables(material, **{k: v for k, v in opts.items() if k != "compensate"})
 
 
-#: Stretch range of the default volumetric-compensation calibration (docs/model.md).
-COMPENSATION_RANGE = (0.9, 1.3)
-
-
-def compensation_cache_dir() -> Path:
-    """Where calibrated compensations are kept: ``$ESMM_CACHE_DIR``, else
-    ``$XDG_CACHE_HOME/esmm``, else ``~/.cache/esmm`` (subfolder ``compensation``)."""
-    root = os.environ.get("ESMM_CACHE_DIR")
-    if not root:
-        xdg = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-        root = os.path.join(xdg, "esmm")
-    return Path(root) / "compensation"
-
-
-def _compensation_key(tables, lo: float, hi: float) -> str:
-    """Content address of a compensation: everything it depends on.
-
-    The calibration specimen is meshed with the organ's median spring length as
-    element size and a radius of a fixed number of elements, so it is
-    geometrically similar for every organ, and the spring network's stress
-    response is scale-free (forces ~ V/L0, areas ~ L0^2): the result depends on
-    the material, the law, the grid, the range and the code, not on the organ.
-    """
-    import hashlib
-    import json
-
-    from . import __version__
-    from .network import compensation, tensile_test
-    from .network import tables as tables_mod
-    from .network.compensation import DEFAULT_RADIUS_ELEMENTS
-
-    # The code that computes it is part of the address: an edited calibration
-    # never serves a stale cached result.
-    code = hashlib.sha256()
-    for mod in (compensation, tensile_test, tables_mod):
-        code.update(Path(mod.__file__).read_bytes())
-    blob = json.dumps({
-        "code": code.hexdigest(),
-        "material": tables.material_toml, "law": tables.default_law, "n": tables.n,
-        "lam": [repr(float(tables.lam_min)), repr(float(tables.lam_max))],
-        "range": [repr(float(lo)), repr(float(hi))], "radius_elements": DEFAULT_RADIUS_ELEMENTS,
-        "esmm": __version__,
-    }, sort_keys=True)
-    return hashlib.sha256(blob.encode()).hexdigest()[:32]
-
-
-def _compensate(tables, network, material, reporter):
-    """Calibrate the volumetric compensation of *tables* on a virtual tensile test
-    of a specimen meshed like *network* (one numerical test per mesh), or reuse
-    a calibration with the same content address from the cache.
-
-    Returns ``(tables, summary)`` with summary a one-line description.
-    """
-    import json
-
-    from .atomicio import write_text
-    from .network.compensation import (
-        calibrate_compensation,
-        correction_on_grid,
-        specimen_for,
-    )
-
-    law = tables.default_law
-    lo = max(COMPENSATION_RANGE[0], tables.lam_min + 2 * tables.dlam)
-    hi = min(COMPENSATION_RANGE[1], tables.lam_max - 2 * tables.dlam)
-    key = _compensation_key(tables, lo, hi)
-    path = compensation_cache_dir() / f"{key}.json"
-    try:
-        cached = json.loads(path.read_text(encoding="utf-8"))
-        record = dict(cached["record"], cache={"key": key, "hit": True})
-        out = tables.with_compensation(
-            cached["factor"], correction={law: correction_on_grid(tables, cached["knots"], cached["g"])},
-            record={"laws": {law: record}, "volume_factor": cached["factor"]})
-        err = record["errors_after"]["max_abs_rel_error"]
-        return out, f"{100 * err:.2f} % (calibration reused from {path})"
-    except (OSError, ValueError, KeyError, TypeError):
-        pass
-    specimen = specimen_for(network, reporter=reporter)
-    out, calib = calibrate_compensation(tables, specimen, law=law, material=material,
-                                        tension=hi, compression=lo, reporter=reporter)
-    try:
-        write_text(path, json.dumps({"factor": calib.factor, "knots": calib.knots.tolist(),
-                                     "g": calib.g.tolist(), "record": calib.record()}))
-    except OSError:
-        pass  # a read-only cache only costs time
-    return out, (f"{100 * calib.before.max_abs_rel_error:.1f} % raw -> "
-                 f"{100 * calib.after.max_abs_rel_error:.2f} %")
-
-
 def size_for_elements(volume: float, elements: int) -> float:
     """Mesh size [m] that gives about *elements* tets in *volume* [m3].
 
@@ -665,9 +577,10 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
                  f"({clock.timings['tables']:.2f} s)")
         do_comp = s.tables.get("compensate", True) if compensate is None else compensate
         if do_comp:
-            tables, summary = clock.run("compensation", _compensate, tables, net, mat, rep)
+            comp = clock.run("compensation", compensation.compensate, tables, net, material=mat, reporter=rep)
+            tables = comp.tables
             rep.step(f"compensation: volume factor c = {tables.volume_factor:.3f} and a stretch "
-                     f"correction; virtual tensile test error {summary} "
+                     f"correction; virtual tensile test error {comp.summary()} "
                      f"({clock.timings['compensation']:.1f} s)")
         else:
             warnings.append("no volumetric compensation: the raw network is several times softer "
