@@ -55,6 +55,7 @@ a material whose uniaxial stress does not increase over the grid.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
@@ -64,6 +65,7 @@ import numpy as np
 from ..errors import ConfigError, InputError
 from ..materials.loading import nominal_stress
 from ..materials.material import DIRECTIONS
+from ..validate import choice, number
 
 #: Names of the force laws, in the order of preference.
 LAWS = ("secant", "energy")
@@ -433,6 +435,40 @@ def material_toml_text(material) -> str:
     return ""
 
 
+@dataclass(frozen=True)
+class GridOptions:
+    """The options of :func:`build_tables` that do not depend on the material (checked by
+    :func:`grid_options`): grid points, default law, grid ends (None: from the material)."""
+
+    n: int = DEFAULT_N
+    law: str = "secant"
+    lam_min: float | None = None
+    lam_max: float | None = None
+
+
+def grid_options(*, n=DEFAULT_N, law="secant", lam_min=None, lam_max=None,
+                 names: Mapping[str, str] | None = None) -> GridOptions:
+    """Checked :class:`GridOptions`: ``n >= 3`` points, a law of :data:`LAWS`,
+    ``0 < lam_min < 1 < lam_max`` (finite).
+
+    *names* maps an option to the parameter name used in messages (default:
+    the option's name; e.g. ``[tables] n`` for a config key).
+
+    Raises
+    ------
+    ConfigError
+        Naming the option.
+    """
+    def name(key: str) -> str:
+        return (names or {}).get(key, key)
+
+    return GridOptions(
+        n=number(n, name("n"), lo=3, integer=True), law=choice(law, LAWS, name("law")),
+        lam_min=None if lam_min is None else number(lam_min, name("lam_min"), lo=0.0, hi=1.0, lo_open=True,
+                                                    hi_open=True),
+        lam_max=None if lam_max is None else number(lam_max, name("lam_max"), lo=1.0, lo_open=True))
+
+
 def build_tables(material, *, n: int = DEFAULT_N, lam_min: float | None = None,
                  lam_max: float | None = None, law: str = "secant") -> StiffnessTables:
     """Tabulate :math:`\\mu_e`, :math:`W_T'` and :math:`W_T` of *material*.
@@ -463,17 +499,11 @@ def build_tables(material, *, n: int = DEFAULT_N, lam_min: float | None = None,
         stress does not increase with stretch there (the network would be
         unstable); narrow the grid.
     """
-    if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 3:
-        raise ConfigError(f"n: number of grid points must be an integer >= 3, got {n!r}")
-    if law not in LAWS:
-        raise ConfigError(f"law: unknown force law {law!r}; use one of {', '.join(LAWS)}")
+    grid = grid_options(n=n, law=law, lam_min=lam_min, lam_max=lam_max)
+    n, law = grid.n, grid.law
     d_lo, d_hi = default_grid(material)
-    lo = d_lo if lam_min is None else float(lam_min)
-    hi = d_hi if lam_max is None else float(lam_max)
-    if not (0.0 < lo < 1.0):
-        raise ConfigError(f"lam_min: must lie in (0, 1), got {lo}")
-    if not (1.0 < hi < math.inf):
-        raise ConfigError(f"lam_max: must be a finite stretch > 1, got {hi}")
+    lo = d_lo if grid.lam_min is None else grid.lam_min
+    hi = d_hi if grid.lam_max is None else grid.lam_max
     name = getattr(material, "name", None) or getattr(material, "model", "material")
     dirs = _material_directions(material)
     for d in sorted(set(dirs), key=str):
