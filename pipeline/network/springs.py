@@ -409,7 +409,7 @@ def check_reorder(reorder, name: str = "reorder") -> str | None:
     """
     if reorder in (None, "none"):
         return None
-    if reorder not in ("rcm", "morton"):
+    if reorder not in REORDER_METHODS:
         raise InputError(f"{name}: unknown method {reorder!r}; use \"rcm\", \"morton\" or none", parameter=name)
     return reorder
 

@@ -376,10 +376,6 @@ class StiffnessTables:
         meta = {k: v for k, v in self.metadata.items() if k != "compensation"}
         return self._with_rows(np.ones((len(LAWS), self.n)), volume_factor=1.0, metadata=meta)
 
-    def with_law(self, law: str) -> StiffnessTables:
-        """A copy whose default force law is *law*."""
-        return replace(self, default_law=self.check_law(law))
-
 
 
 # ---------------------------------------------------------------------------
