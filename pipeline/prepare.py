@@ -24,7 +24,6 @@ import time
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -389,7 +388,7 @@ def _network_part(cfg: dict, name) -> dict[str, Any]:
             fibre_frame_matrix(frame, where=name("fibres", "frame"))
         frame = tuple(tuple(float(x) for x in row) for row in frame)
     return {"fibre_frame": frame, "fixed": region_from_config(cfg["fixed"], where="[fixed]"),
-            "floors": MappingProxyType(check_floors(cfg["quality"], "[quality]"))}
+            "floors": check_floors(cfg["quality"], "[quality]")}
 
 
 def _tables_part(cfg: dict, name) -> dict[str, Any]:
