@@ -13,7 +13,7 @@ import cloudpickle
 import h5py
 import numpy as np
 import pytest
-from esmm.pipeline.asset import hdf5, collect_provenance, read_asset, validate_asset, write_asset
+from esmm.pipeline.asset import collect_provenance, hdf5, read_asset, validate_asset, write_asset
 from esmm.pipeline.errors import AssetError
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the sandbox runs this module's probe
@@ -243,8 +243,8 @@ def test_foreign_user_block_is_left_alone(tmp_path):
 
 
 def test_rewritten_tables_are_sealed(asset):
-    from esmm.pipeline.materials.material import load_material
     from esmm.pipeline.asset import update_asset_tables
+    from esmm.pipeline.materials.material import load_material
     from esmm.pipeline.network.tables import build_tables
 
     mat = load_material("porcine_liver_paper")
