@@ -3,19 +3,41 @@
 from __future__ import annotations
 
 import datetime as _dt
+import functools
 import hashlib
 import os
 import platform
+import re
 import socket
 import sys
 from dataclasses import dataclass, field
-from importlib.metadata import PackageNotFoundError, version
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-#: Distributions whose versions are recorded (those that shape an asset).
-PACKAGES = ("esmm", "numpy", "scipy", "h5py", "gmsh", "vtk", "pyvista", "meshio", "pymeshfix",
-            "fast-simplification", "pytetwild", "nibabel", "scikit-image", "numba", "tomli-w")
+#: A requirement's distribution name (``"dask[distributed]>=2024.1"`` -> ``dask``).
+_REQUIREMENT_NAME = re.compile(r"\s*([A-Za-z0-9][A-Za-z0-9._-]*)")
+
+
+@functools.lru_cache(maxsize=1)
+def distributions() -> tuple[str, ...]:
+    """esmm and the distributions it requires, from its installed metadata (extras left out).
+
+    The one list of the software that makes esmm's results: its versions are
+    recorded in every asset (:func:`package_versions`) and enter the batch
+    cache key (:func:`esmm.pipeline.batch.jobs.code_version`).
+    """
+    names = ["esmm"]
+    try:
+        requires = metadata.requires("esmm") or []
+    except metadata.PackageNotFoundError:  # pragma: no cover - running from a bare source tree
+        requires = []
+    for req in requires:
+        requirement, _, marker = req.partition(";")
+        m = _REQUIREMENT_NAME.match(requirement)
+        if m and "extra" not in marker and m.group(1) not in names:
+            names.append(m.group(1))
+    return tuple(names)
 
 
 @dataclass
@@ -70,13 +92,13 @@ def sha256_file(path: str | os.PathLike, *, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-def package_versions(names=PACKAGES) -> dict[str, str]:
-    """Installed versions of *names* (``"absent"`` for those not installed)."""
+def package_versions(names=None) -> dict[str, str]:
+    """Installed versions of *names* (default :func:`distributions`; ``"absent"`` for those not installed)."""
     out = {}
-    for name in names:
+    for name in distributions() if names is None else names:
         try:
-            out[name] = version(name)
-        except PackageNotFoundError:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
             out[name] = "absent"
     return out
 

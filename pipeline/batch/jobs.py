@@ -21,8 +21,10 @@ import io
 import json
 import math
 import os
+import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -37,10 +39,6 @@ STATUSES = ("done", "cached", "failed", "interrupted")
 
 #: Exit codes of a batch (see esmm.cli.main): any failure -> 5, Ctrl-C -> 130.
 EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED = 0, 5, 130
-
-#: Third-party packages whose version enters the code version (they change numbers).
-_DEPENDENCIES = ("numpy", "scipy", "h5py", "gmsh", "meshio", "pyvista", "vtk", "pytetwild", "pymeshfix",
-                 "fast-simplification", "numba", "scikit-image", "nibabel")
 
 _CHUNK = 1 << 20
 
@@ -132,14 +130,13 @@ def code_version() -> str:
     """The version of the code that makes results: ``<esmm version>+<digest>``.
 
     The digest covers the source of :mod:`esmm.pipeline` and the bundled
-    presets (:mod:`esmm.configs`), and the versions of the numerical
-    dependencies, so that an edited checkout or an upgraded dependency never
+    presets (:mod:`esmm.configs`), and the versions of esmm's dependencies
+    (pyproject's ``dependencies`` as installed, the list recorded in every
+    asset), so that an edited checkout or an upgraded dependency never
     reuses results made by other code. The environment variable
     ``ESMM_CODE_VERSION`` replaces the digest (``<esmm version>+<value>``):
     for a deliberate reuse of results across code changes, at your own risk.
     """
-    from importlib import metadata
-
     pinned = os.environ.get(CODE_VERSION_ENV, "").strip()
     if pinned:
         return f"{__version__}+{pinned}"
@@ -151,13 +148,28 @@ def code_version() -> str:
     except (ModuleNotFoundError, TypeError):  # pragma: no cover - configs always installed
         pass
     h = hashlib.sha256(source_digest(roots).encode())
-    for dist in _DEPENDENCIES:
+    for dist in _dependencies():
         try:
             v = metadata.version(dist)
         except metadata.PackageNotFoundError:
             v = "-"
         h.update(f"{dist}={v}\n".encode())
     return f"{__version__}+{h.hexdigest()[:16]}"
+
+
+def _dependencies() -> list[str]:
+    """The distributions esmm requires, from its installed metadata (extras left out).
+
+    The same list as :func:`esmm.pipeline.asset.provenance.distributions` (both read
+    pyproject's ``dependencies`` as installed), read here without importing the asset
+    stack, which would slow the start of every batch worker.
+    """
+    names = []
+    for req in metadata.requires("esmm") or []:
+        requirement, _, marker = req.partition(";")
+        if "extra" not in marker:
+            names.append(re.match(r"\s*([A-Za-z0-9][A-Za-z0-9._-]*)", requirement).group(1))
+    return names
 
 
 @dataclass

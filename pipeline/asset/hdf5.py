@@ -1,12 +1,20 @@
-"""Small HDF5 helpers shared by the asset writer, reader and validator."""
+"""HDF5 helpers of the asset: typed groups, text datasets, content hashes and the sealed file header.
+
+Shared by the asset writer, reader, validator and rewriter; :func:`seal` is what every
+writer that creates or edits an asset calls last (tests use it to make consistent edits).
+"""
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import json
 import math
+import os
 import re
+import shutil
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -194,10 +202,6 @@ def _header(digest: str, length: int) -> bytes:
 
 def _prepend_userblock(path: Path) -> None:
     """Give an HDF5 file without a user block one of USERBLOCK_SIZE zero bytes (as h5jam does)."""
-    import os
-    import shutil
-    import tempfile
-
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.ub-", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as out, open(path, "rb") as src:
@@ -289,8 +293,6 @@ def check_file(path) -> tuple[bool, str]:
 
 def to_json(obj) -> str:
     """JSON text of a report (dataclass, dict, numpy values), keys sorted."""
-    import dataclasses
-
     def conv(o):
         if dataclasses.is_dataclass(o) and not isinstance(o, type):
             return {f.name: conv(getattr(o, f.name)) for f in dataclasses.fields(o)}
