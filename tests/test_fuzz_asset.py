@@ -190,7 +190,7 @@ def weird_value(tag):
                       min_size=1, max_size=3),
        reseal=st.booleans())
 def test_edited_with_h5py(sandbox, workdir, base_asset, objects, edits, reseal):
-    from esmm.pipeline.asset import _h5
+    from esmm.pipeline.asset import hdf5
 
     p = copy_to(workdir, base_asset)
     with h5py.File(p, "r+") as f:
@@ -198,7 +198,7 @@ def test_edited_with_h5py(sandbox, workdir, base_asset, objects, edits, reseal):
             with contextlib.suppress(Exception):  # an edit h5py itself cannot make is skipped
                 _edit(f, objects, pick, op, tag, shape, dtype, value)
         if reseal:
-            _h5.seal(f)
+            hdf5.seal(f)
     note(f"edits {edits} reseal {reseal}")
     check(sandbox, p, label=f"h5py edits {edits} reseal={reseal}")
 

@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import datetime as _dt
-import functools
 import hashlib
 import os
 import platform
-import re
 import socket
 import sys
 from dataclasses import dataclass, field
@@ -15,29 +13,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-#: A requirement's distribution name (``"dask[distributed]>=2024.1"`` -> ``dask``).
-_REQUIREMENT_NAME = re.compile(r"\s*([A-Za-z0-9][A-Za-z0-9._-]*)")
-
-
-@functools.lru_cache(maxsize=1)
-def distributions() -> tuple[str, ...]:
-    """esmm and the distributions it requires, from its installed metadata (extras left out).
-
-    The one list of the software that makes esmm's results: its versions are
-    recorded in every asset (:func:`package_versions`) and enter the batch
-    cache key (:func:`esmm.pipeline.batch.jobs.code_version`).
-    """
-    names = ["esmm"]
-    try:
-        requires = metadata.requires("esmm") or []
-    except metadata.PackageNotFoundError:  # pragma: no cover - running from a bare source tree
-        requires = []
-    for req in requires:
-        requirement, _, marker = req.partition(";")
-        m = _REQUIREMENT_NAME.match(requirement)
-        if m and "extra" not in marker and m.group(1) not in names:
-            names.append(m.group(1))
-    return tuple(names)
+from .. import distributions
 
 
 @dataclass

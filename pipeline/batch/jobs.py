@@ -21,14 +21,13 @@ import io
 import json
 import math
 import os
-import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from .. import __version__
+from .. import __version__, distributions
 from ..errors import ConfigError, InputError
 
 #: Version of the key recipe; bump when :func:`cache_key` changes meaning.
@@ -148,28 +147,13 @@ def code_version() -> str:
     except (ModuleNotFoundError, TypeError):  # pragma: no cover - configs always installed
         pass
     h = hashlib.sha256(source_digest(roots).encode())
-    for dist in _dependencies():
+    for dist in distributions()[1:]:  # esmm itself is the source digest above
         try:
             v = metadata.version(dist)
         except metadata.PackageNotFoundError:
             v = "-"
         h.update(f"{dist}={v}\n".encode())
     return f"{__version__}+{h.hexdigest()[:16]}"
-
-
-def _dependencies() -> list[str]:
-    """The distributions esmm requires, from its installed metadata (extras left out).
-
-    The same list as :func:`esmm.pipeline.asset.provenance.distributions` (both read
-    pyproject's ``dependencies`` as installed), read here without importing the asset
-    stack, which would slow the start of every batch worker.
-    """
-    names = []
-    for req in metadata.requires("esmm") or []:
-        requirement, _, marker = req.partition(";")
-        if "extra" not in marker:
-            names.append(re.match(r"\s*([A-Za-z0-9][A-Za-z0-9._-]*)", requirement).group(1))
-    return names
 
 
 @dataclass
