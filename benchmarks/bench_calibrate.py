@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import shutil
 import statistics
+import tempfile
 import time
 from pathlib import Path
 
@@ -40,9 +42,6 @@ def run() -> dict:
     for k in (2, 4, 8):
         sel = (files * 4)[:k]
         copies = []
-        import shutil
-        import tempfile
-
         tmp = Path(tempfile.mkdtemp(prefix="esmm-bench-"))
         for i, f in enumerate(sel):
             dst = tmp / f"{i:02d}_{f.name}"

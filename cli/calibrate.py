@@ -32,15 +32,17 @@ def add_parser(sub) -> None:
     )
     p.add_argument("files", nargs="+", metavar="FILE", help="tensile-test files (CSV-like text)")
     p.add_argument("--model", default=None, help="material model: esedf (default) or arruda-boyce")
-    p.add_argument("--config", metavar="C", help="calibrate config (TOML with a [calibrate] table)")
+    p.add_argument("--config", metavar="C", help="calibrate config (TOML with a [calibrate] table; "
+                   "docs/calibrate.md); the options below override it")
     p.add_argument("--out", metavar="DIR", help="folder for params.toml, fit.png, report.md, fit.json")
     p.add_argument("--json", metavar="PATH", help="also write the JSON result here")
     p.add_argument("--loss", default=None, help="robust loss: linear (default), soft_l1, huber, cauchy, arctan")
-    p.add_argument("--starts", type=int, default=None, metavar="N", help="number of starting points (default 8)")
+    p.add_argument("--starts", dest="n_starts", type=int, default=None, metavar="N",
+                   help="number of starting points (default 8)")
     p.add_argument("--seed", type=int, default=None, help="seed of the starting points (default 0)")
-    p.add_argument("--weight", action="append", default=[], metavar="FILE=W",
+    p.add_argument("--weight", dest="weights", action="append", default=[], metavar="FILE=W",
                    help="weight of one file (by name or stem); repeatable")
-    p.add_argument("--fix", action="append", default=[], metavar="NAME=VALUE",
+    p.add_argument("--fix", dest="fixed", action="append", default=[], metavar="NAME=VALUE",
                    help="hold a parameter (value with unit for stress-like ones, e.g. mu=\"3e-6 MPa\")")
     p.add_argument("--free", action="append", default=[], metavar="NAME",
                    help="fit a parameter the model holds by default (e.g. the ESEDF's f); repeatable")
@@ -71,94 +73,31 @@ def _pairs(items, option: str) -> dict[str, str]:
     return out
 
 
-def _fit_options(args) -> dict[str, Any]:
-    """Merge the --config file and the command line (the command line wins)."""
-    from esmm.pipeline import config as cfg
-    from esmm.pipeline.units import parse_quantity
+def _config(args):
+    """The calibrate options: the --config file's [calibrate] table, then the flags (the flags win)."""
+    from esmm.pipeline.calibrate.config import load_calibrate_config
 
-    opts: dict[str, Any] = {"model": "esedf", "loss": "linear", "n_starts": 8, "seed": 0,
-                            "weights": {}, "fixed": {}}
-    if args.config:
-        data, src = cfg.load_toml(args.config), args.config
-        c = data.get("calibrate", data)
-        unknown = set(c) - {"model", "loss", "starts", "seed", "weights", "fix", "stress_unit"}
-        if unknown:
-            raise ConfigError(f"{src}: unknown key(s) {', '.join(sorted(unknown))} in [calibrate]")
-        for key, dest in (("model", "model"), ("loss", "loss"), ("starts", "n_starts"), ("seed", "seed")):
-            if key in c:
-                opts[dest] = c[key]
-        opts["weights"].update({str(k): float(v) for k, v in c.get("weights", {}).items()})
-        for k, v in c.get("fix", {}).items():
-            opts["fixed"][k] = v
-    if args.model:
-        opts["model"] = args.model
-    if args.loss:
-        opts["loss"] = args.loss
-    if args.starts is not None:
-        opts["n_starts"] = args.starts
-    if args.seed is not None:
-        opts["seed"] = args.seed
-    for k, v in _pairs(args.weight, "--weight").items():
-        try:
-            opts["weights"][k] = float(v)
-        except ValueError:
-            raise ConfigError(f"--weight {k}: {v!r} is not a number") from None
-    opts["fixed"].update(_pairs(args.fix, "--fix"))
-    # Fixed values: stress-like ones need a unit.
-    from esmm.pipeline.materials import MODEL_NAMES, get_model
-
-    if opts["model"] not in MODEL_NAMES:
-        raise ConfigError(f"--model: unknown model {opts['model']!r}; choose one of {', '.join(MODEL_NAMES)}")
-    kinds = {p.name: p.kind for p in get_model(opts["model"]).parameters}
-    fixed = {}
-    for k, v in opts["fixed"].items():
-        if k not in kinds:
-            raise ConfigError(f"--fix: {opts['model']} has no parameter {k!r}; it has {', '.join(kinds)}")
-        if kinds[k] == "stress":
-            fixed[k] = parse_quantity(str(v), "stress", where=f"--fix {k}")
-        else:
-            try:
-                fixed[k] = float(v)
-            except ValueError:
-                raise ConfigError(f"--fix {k}: {v!r} is not a number") from None
-    opts["fixed"] = fixed
-    return opts
+    return load_calibrate_config(args.config, model=args.model, loss=args.loss, n_starts=args.n_starts,
+                                 seed=args.seed, weights=_pairs(args.weights, "--weight"),
+                                 fixed=_pairs(args.fixed, "--fix"), free=args.free)
 
 
 def run(args, ui) -> int:
-    from esmm.pipeline.calibrate.fit import fit_material
-    from esmm.pipeline.calibrate.report import (
-        display_stress_unit,
-        result_to_dict,
-        write_json,
-        write_outputs,
-    )
-    from esmm.pipeline.tensile import read
-
     overrides = metadata_overrides(args)
-    opts = _fit_options(args)
-    fit_kwargs = dict(model=opts["model"], loss=opts["loss"], n_starts=int(opts["n_starts"]),
-                      seed=int(opts["seed"]), weights=opts["weights"] or None, fixed=opts["fixed"] or None,
-                      free=tuple(args.free))
-    if args.discover:  # --discover: esmm.cli.evaluate.run_discover (docs/discover.md)
-        from esmm.cli.evaluate import run_discover
-
+    fit_kwargs = _config(args).fit_kwargs()
+    if args.discover:
         return run_discover(args, ui, fit_kwargs=fit_kwargs, overrides=overrides)
-
     if args.by:
-        from esmm.pipeline.batch.calibrate import batch_document, calibrate_batch
+        return run_batch(args, ui, fit_kwargs=fit_kwargs, overrides=overrides)
+    return run_fit(args, ui, fit_kwargs=fit_kwargs, overrides=overrides)
 
-        if not args.out:
-            raise ConfigError("--by: give --out DIR; each group's outputs, the cache and the batch log go there")
-        summary = calibrate_batch(args.files, out_dir=args.out, by=args.by, read_kwargs={"overrides": overrides},
-                                  fit_kwargs=fit_kwargs, scheduler=args.scheduler, workers=args.jobs,
-                                  force=args.redo, reporter=ui)
-        ui.info(summary.table())
-        if args.json:
-            write_json(args.json, batch_document(summary, by=args.by))
-        ui.info(f"outputs in {summary.out_dir}: one folder per group, summary.csv (parameters), "
-                f"batch-summary.csv, {summary.log_path.name if summary.log_path else 'the batch log'}")
-        return summary.exit_code
+
+def run_fit(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) -> int:
+    """One joint fit of every file: print the parameters, write --out and --json."""
+    from esmm.pipeline.atomicio import write_json
+    from esmm.pipeline.calibrate.fit import fit_material
+    from esmm.pipeline.calibrate.report import display_stress_unit, result_to_dict, write_outputs
+    from esmm.pipeline.tensile import read
 
     tests = [read(p, overrides=overrides, reporter=ui) for p in args.files]
     result = fit_material(tests, **fit_kwargs, reporter=ui)
@@ -175,6 +114,55 @@ def run(args, ui) -> int:
         ui.info("outputs: " + ", ".join(str(p) for k, p in written.items() if k != "json_extra"))
     elif args.json:
         write_json(args.json, result_to_dict(result, tests))
+    if args.json:
+        ui.info(f"json: {args.json}")
+    return 0
+
+
+def run_batch(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) -> int:
+    """``--by``: one fit per group of files, in parallel, cached (docs/batch.md)."""
+    from esmm.pipeline.atomicio import write_json
+    from esmm.pipeline.batch.calibrate import batch_document, calibrate_batch
+
+    if not args.out:
+        raise ConfigError("--by: give --out DIR; each group's outputs, the cache and the batch log go there")
+    summary = calibrate_batch(args.files, out_dir=args.out, by=args.by, read_kwargs={"overrides": overrides},
+                              fit_kwargs=fit_kwargs, scheduler=args.scheduler, workers=args.jobs,
+                              force=args.redo, reporter=ui)
+    ui.info(summary.table())
+    if args.json:
+        write_json(args.json, batch_document(summary, by=args.by))
+    ui.info(f"outputs in {summary.out_dir}: one folder per group, summary.csv (parameters), "
+            f"batch-summary.csv, {summary.log_path.name if summary.log_path else 'the batch log'}")
+    return summary.exit_code
+
+
+def run_discover(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) -> int:
+    """``--discover``: find what the model misses, report before and after (docs/discover.md).
+
+    Reads the files, runs :func:`esmm.pipeline.discover.discover_and_save` with the calibrate
+    options (model, starts, seed, weights, --fix, --free), writes the outputs to ``--out`` and
+    ``--json``, and prints the before/after summary.
+    """
+    from esmm.pipeline.discover import discover_and_save, summary_lines
+    from esmm.pipeline.tensile import read
+
+    if args.by:
+        raise ConfigError("--discover analyses one group of files at a time and cannot be combined with --by; "
+                          "run it once per specimen")
+    kw = dict(fit_kwargs)
+    loss = kw.pop("loss", "linear")
+    if loss not in (None, "linear"):
+        ui.warn(f"--discover compares models by likelihood and held-out error with the linear loss; "
+                f"--loss {loss} is ignored")
+    tests = [read(p, overrides=overrides, reporter=ui) for p in args.files]
+    res = discover_and_save(tests, out_dir=args.out, json_path=args.json, reporter=ui, **kw)
+    for line in summary_lines(res):
+        ui.info(line)
+    if args.out:
+        ui.info(f"outputs in {args.out}: params.toml (with the kept effects), params_base.toml, discover.json, "
+                "discover.md, residuals_before.png, residuals_after.png"
+                + (", corrected/" if any(n in ("slack", "sensor_offset") for n in res.kept) else ""))
     if args.json:
         ui.info(f"json: {args.json}")
     return 0

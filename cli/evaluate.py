@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from typing import Any
 
 from esmm.cli.tensile_options import add_metadata_options, metadata_overrides
 
@@ -38,7 +37,8 @@ def add_parser(sub) -> None:
 
 
 def run(args, ui) -> int:
-    from esmm.pipeline.calibrate.evaluate import evaluate, load_fit, summary_lines, write_json
+    from esmm.pipeline.atomicio import write_json
+    from esmm.pipeline.discover.evaluate import evaluate, load_fit, summary_lines
     from esmm.pipeline.tensile import read
 
     saved = load_fit(args.fit)
@@ -48,38 +48,6 @@ def run(args, ui) -> int:
     for line in summary_lines(ev):
         ui.info(line)
     if args.json:
-        write_json(args.json, ev)
-        ui.info(f"json: {args.json}")
-    return 0
-
-
-def run_discover(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) -> int:
-    """``esmm calibrate --discover``: called by :func:`esmm.cli.calibrate.run` (docs/discover.md).
-
-    Reads the files, runs :func:`esmm.pipeline.discover.discover_and_save` with the calibrate
-    options (model, starts, seed, weights, --fix, --free), writes the outputs to ``--out`` and
-    ``--json``, and prints the before/after summary.
-    """
-    from esmm.pipeline.discover import discover_and_save, summary_lines
-    from esmm.pipeline.errors import ConfigError
-    from esmm.pipeline.tensile import read
-
-    if getattr(args, "by", None):
-        raise ConfigError("--discover analyses one group of files at a time and cannot be combined with --by; "
-                          "run it once per specimen")
-    kw = dict(fit_kwargs)
-    loss = kw.pop("loss", "linear")
-    if loss not in (None, "linear"):
-        ui.warn(f"--discover compares models by likelihood and held-out error with the linear loss; "
-                f"--loss {loss} is ignored")
-    tests = [read(p, overrides=overrides, reporter=ui) for p in args.files]
-    res = discover_and_save(tests, out_dir=args.out, json_path=args.json, reporter=ui, **kw)
-    for line in summary_lines(res):
-        ui.info(line)
-    if args.out:
-        ui.info(f"outputs in {args.out}: params.toml (with the kept effects), params_base.toml, discover.json, "
-                "discover.md, residuals_before.png, residuals_after.png"
-                + (", corrected/" if any(n in ("slack", "sensor_offset") for n in res.kept) else ""))
-    if args.json:
+        write_json(args.json, ev.to_dict())
         ui.info(f"json: {args.json}")
     return 0

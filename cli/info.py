@@ -78,6 +78,7 @@ def _text(s: dict) -> list[str]:
 
 def run(args, ui) -> int:
     from esmm.pipeline.asset import validate_asset
+    from esmm.pipeline.atomicio import jsonable
 
     worst = 0
     for name in args.assets:
@@ -85,8 +86,8 @@ def run(args, ui) -> int:
         problems = validate_asset(path)
         summary = _summary(path)
         if args.json:
-            text = json.dumps({"path": str(path), "valid": not problems, "problems": problems,
-                               "summary": summary}, default=str)
+            text = json.dumps(jsonable({"path": path, "valid": not problems, "problems": problems,
+                                        "summary": summary}), allow_nan=False)
             ui.out.print(text, markup=False, highlight=False, soft_wrap=True)
         else:
             if summary is not None:

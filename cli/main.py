@@ -15,10 +15,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 from collections.abc import Sequence
 
-from esmm.pipeline import __version__
+from esmm.pipeline import __version__, interrupts
 from esmm.pipeline.errors import EsmmError
 
 #: subcommand -> module in esmm.cli implementing ``add_parser(sub)`` and ``run(args, ui)``.
@@ -62,6 +63,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run esmm with *argv* (default: ``sys.argv[1:]``) and return the exit code."""
     from esmm.cli.ui import UI
 
+    interrupts.install()  # a Ctrl-C during a lazy import of VTK would crash the process
     parser = build_parser()
     try:
         args = parser.parse_args(list(argv) if argv is not None else None)
@@ -107,7 +109,14 @@ def flag_message(exc: EsmmError, parser: argparse.ArgumentParser, command: str) 
 
 
 def run() -> None:  # console-script entry point
-    sys.exit(main())
+    try:
+        code = main()
+    except KeyboardInterrupt:  # between the command's end and here
+        code = 130
+    # The work is done and written: a Ctrl-C during the interpreter's shutdown must not turn
+    # the exit status into "killed by SIGINT".
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sys.exit(code)
 
 
 if __name__ == "__main__":  # pragma: no cover

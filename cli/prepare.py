@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import math
 
-from esmm.pipeline.errors import ConfigError
+from esmm.pipeline.errors import ConfigError, QualityError
 
 EPILOG = """\
 examples:
@@ -63,42 +62,60 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _number(text, option: str, *, integer: bool = False, positive: bool = True):
-    if text is None:
-        return None
-    try:
-        value = int(text) if integer else float(text)
-    except ValueError:
-        kind = "a whole number" if integer else "a number"
-        raise ConfigError(f"{option}: expected {kind}, got {text!r}") from None
-    if not math.isfinite(value) or (positive and value <= 0) or value < 0:
-        sign = "positive" if positive else "non-negative"
-        raise ConfigError(f"{option}: expected a {sign} {'whole ' if integer else ''}number, got {text!r}")
-    return value
+def _summary_lines(result) -> list[str]:
+    """What ``esmm prepare`` prints about a :class:`~esmm.pipeline.prepare.PrepareResult`."""
+    net = result.network
+    lines = [
+        f"structure   {net.structure} ({result.mesher})",
+        f"nodes       {net.n_nodes}",
+        f"springs     {net.n_springs}",
+    ]
+    if net.tets is not None:
+        lines.append(f"tets        {net.n_tets}")
+    lines += [
+        f"volume      {net.total_volume() * 1e6:.2f} mL, mass {net.total_mass() * 1e3:.1f} g",
+        f"rest length {net.rest_length.min() * 1e3:.2f} .. {net.rest_length.max() * 1e3:.2f} mm "
+        f"(mean {net.rest_length.mean() * 1e3:.2f})",
+        f"fixed       {net.fixed.size} nodes",
+    ]
+    if result.quality is not None:
+        verdict = "passes the floors" if result.quality_passed else "BELOW the floors (--force)"
+        lines.append(f"quality     min dihedral {result.quality.min_dihedral_deg:.1f} deg, {verdict}")
+    t = result.tables
+    lines.append(f"tables      {t.n} points, stretch {t.lam_min:.3g}..{t.lam_max:.3g}")
+    lines.append("time        " + ", ".join(f"{k} {v:.1f} s" for k, v in result.timings.items())
+                 + f" (total {sum(result.timings.values()):.1f} s)")
+    lines.append(f"wrote       {result.asset}")
+    lines.append(f"            {result.xdmf} (open in ParaView)")
+    return lines
+
+
+def _options(args) -> dict:
+    """The keyword options of :func:`~esmm.pipeline.prepare.prepare` from the command line.
+
+    Text becomes numbers here (``--size`` is in mm); the library checks the values
+    and names the option it refuses.
+    """
+    from esmm.pipeline.validate import number_text
+
+    def whole(text, name):
+        return None if text is None else number_text(text, name, integer=True)
+
+    size_mm = None if args.size is None else number_text(args.size, "size", lo=0.0, lo_open=True)
+    return dict(
+        config=args.config, size=None if size_mm is None else size_mm * 1e-3,
+        nodes=whole(args.nodes, "nodes"), elements=whole(args.elements, "elements"),
+        structure=args.structure, unit=args.unit, label=whole(args.label, "label"),
+        keep_all=args.keep_all, body=whole(args.body, "body"), material=args.material,
+        density=None if args.density is None else number_text(args.density, "density"),
+        force=args.force, compensate=args.compensate,
+    )
 
 
 def run(args, ui) -> int:
     from esmm.pipeline.prepare import prepare
 
-    given = [o for o, v in (("--size", args.size), ("--nodes", args.nodes), ("--elements", args.elements))
-             if v is not None]
-    if len(given) > 1:
-        raise ConfigError(f"give one of {', '.join(given)}, not several")
-    if args.keep_all and args.body is not None:
-        raise ConfigError("give either --keep-all or --body, not both")
-    if args.structure is not None and args.structure not in ("tetra", "skeleton"):
-        raise ConfigError(f"--structure: {args.structure!r} is not tetra or skeleton")
-    size_mm = _number(args.size, "--size (mm)")
-    options = dict(
-        config=args.config, size=None if size_mm is None else size_mm * 1e-3,
-        nodes=_number(args.nodes, "--nodes", integer=True),
-        elements=_number(args.elements, "--elements", integer=True),
-        structure=args.structure, unit=args.unit,
-        label=_number(args.label, "--label", integer=True, positive=False),
-        keep_all=args.keep_all, body=_number(args.body, "--body", integer=True, positive=False),
-        material=args.material, density=_number(args.density, "--density (kg/m3)"),
-        force=args.force, compensate=args.compensate,
-    )
+    options = _options(args)
     argv = ["esmm", *getattr(args, "_argv", [])]
     if len(args.inputs) > 1 or args.out:
         if args.output:
@@ -115,7 +132,10 @@ def run(args, ui) -> int:
         return summary.exit_code
     if args.redo or args.scheduler or args.jobs:
         raise ConfigError("--redo, --scheduler and --jobs apply to a batch: give --out DIR")
-    result = prepare(args.inputs[0], output=args.output, reporter=ui, argv=argv, **options)
-    for line in result.summary_lines():
+    try:
+        result = prepare(args.inputs[0], output=args.output, reporter=ui, argv=argv, **options)
+    except QualityError as exc:
+        raise QualityError(f"{exc} (--force)") from None
+    for line in _summary_lines(result):
         ui.info(line)
     return 0

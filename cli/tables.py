@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 from datetime import UTC, datetime
 
 from esmm.pipeline.errors import ConfigError
+from esmm.pipeline.network.compensation_policy import (
+    DEFAULT_RADIUS_ELEMENTS,
+    DEFAULT_RANGE,
+    RADIUS_ELEMENTS_RANGE,
+)
 
 EPILOG = """\
 examples:
@@ -50,100 +54,75 @@ def add_parser(sub) -> None:
                    help="calibrate the volumetric compensation for the default law on a virtual "
                         "tensile test (scalar factor + stretch correction)")
     p.add_argument("--calibration-range", nargs=2, metavar=("LO", "HI"), default=None,
-                   help="compression and tension ends of the calibration (default 0.9 1.3, "
-                        "clipped to the grid)")
-    p.add_argument("--specimen-elements", metavar="R", default=None,
-                   help="radius of the calibration cylinder in element sizes (default 4; the "
-                        "element size is the asset's median spring length; larger = slower, "
-                        "closer to the bulk)")
+                   help=f"compression and tension ends of the calibration (default {DEFAULT_RANGE[0]:g} "
+                        f"{DEFAULT_RANGE[1]:g}, clipped to the grid)")
+    p.add_argument("--specimen-elements", dest="radius_elements", metavar="R", default=None,
+                   help=f"radius of the calibration cylinder in element sizes (default "
+                        f"{DEFAULT_RADIUS_ELEMENTS:g}, {RADIUS_ELEMENTS_RANGE[0]:g} to "
+                        f"{RADIUS_ELEMENTS_RANGE[1]:g}; the element size is the asset's median spring "
+                        "length; larger = slower, closer to the bulk)")
     p.add_argument("--json", action="store_true", help="print a JSON summary instead of text")
     p.set_defaults(func=run)
 
 
-def _float(text: str, option: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise ConfigError(f"{option}: expected a number, got {text!r}") from None
-    if not math.isfinite(v):
-        raise ConfigError(f"{option}: expected a finite number, got {text!r}")
-    return v
-
-
-def _points(text) -> int | None:
-    if text is None:
-        return None
-    try:
-        n = int(text)
-    except ValueError:
-        raise ConfigError(f"--points: expected a whole number, got {text!r}") from None
-    if n < 3 or n > 1_000_000:
-        raise ConfigError(f"--points: expected 3 to 1000000 grid points, got {n}")
-    return n
-
-
-def run(args, ui) -> int:
-    from esmm.pipeline.asset import read_asset
+def _material(args, asset):
     from esmm.pipeline.materials.material import load_material
-    from esmm.pipeline.network.tables import LAWS, build_tables, update_asset_tables
 
-    asset = read_asset(args.asset)
-    old = asset.tables
     if args.material is not None:
-        material = load_material(args.material)
-    elif asset.material is not None:
-        material = asset.material
-    else:
-        raise ConfigError(f"{args.asset}: the asset stores no material; give one with --material")
-    law = args.law or (old.default_law if old is not None else "secant")
-    n = _points(args.points) or (old.n if old is not None else None)
+        return load_material(args.material)
+    if asset.material is not None:
+        return asset.material
+    raise ConfigError(f"{args.asset}: the asset stores no material; give one with --material")
+
+
+def _grid(args, old) -> dict:
+    """The grid options of build_tables: the command line's, else the asset's (same material)."""
+    from esmm.pipeline.validate import number_text
+
+    n = None if args.points is None else number_text(args.points, "points", lo=3, hi=1_000_000, integer=True)
+    n = n or (old.n if old is not None else None)
     lo = hi = None
     if args.stretch_range is not None:
-        lo, hi = (_float(v, "--stretch-range") for v in args.stretch_range)
+        lo, hi = (number_text(v, "stretch_range") for v in args.stretch_range)
     elif old is not None and args.material is None:
         lo, hi = old.lam_min, old.lam_max
-    kw = {} if n is None else {"n": n}
-    tables = build_tables(material, lam_min=lo, lam_max=hi, law=law, **kw)
+    return {"lam_min": lo, "lam_max": hi, **({} if n is None else {"n": n})}
 
-    carried = False
-    if old is not None and (old.volume_factor != 1.0 or any(old.is_corrected(lw) for lw in LAWS)):
-        same = (old.material_toml == tables.material_toml and old.n == tables.n
-                and math.isclose(old.lam_min, tables.lam_min, rel_tol=1e-12)
-                and math.isclose(old.lam_max, tables.lam_max, rel_tol=1e-12))
-        if same:
-            tables = tables.with_compensation(
-                old.volume_factor, correction={lw: old.correction[i] for i, lw in enumerate(LAWS)},
-                record=old.metadata.get("compensation"))
-            carried = True
-        elif not args.compensate:
-            ui.warn("the asset's compensation was dropped (the material or the grid changed); "
-                    "run again with --compensate")
 
-    calib = None
-    if args.compensate:
-        from esmm.pipeline.network.compensation import calibrate_compensation, specimen_for
+def _carry(tables, old, args, ui):
+    """*tables* with the asset's compensation when the material and grid are unchanged: (tables, kept)."""
+    from esmm.pipeline.network.tables import LAWS
 
-        c_lo, c_hi = 0.9, 1.3
-        if args.calibration_range is not None:
-            c_lo, c_hi = (_float(v, "--calibration-range") for v in args.calibration_range)
-            if not c_lo < 1.0 < c_hi:
-                raise ConfigError(f"--calibration-range: need LO < 1 < HI, got {c_lo:g} {c_hi:g}")
-        c_lo = max(c_lo, tables.lam_min + 2 * tables.dlam)
-        c_hi = min(c_hi, tables.lam_max - 2 * tables.dlam)
-        r_el = 4.0 if args.specimen_elements is None else _float(args.specimen_elements, "--specimen-elements")
-        if not 1.5 <= r_el <= 20:
-            raise ConfigError(f"--specimen-elements: expected 1.5 to 20 element sizes, got {r_el:g}")
-        specimen = specimen_for(asset.network, radius_elements=r_el, reporter=ui)
-        tables, calib = calibrate_compensation(tables, specimen, law=law, material=material,
-                                               tension=c_hi, compression=c_lo, reporter=ui)
-        carried = False
+    if old is None or (old.volume_factor == 1.0 and not any(old.is_corrected(lw) for lw in LAWS)):
+        return tables, False
+    same = (old.material_toml == tables.material_toml and old.n == tables.n
+            and math.isclose(old.lam_min, tables.lam_min, rel_tol=1e-12)
+            and math.isclose(old.lam_max, tables.lam_max, rel_tol=1e-12))
+    if same:
+        return tables.with_compensation(
+            old.volume_factor, correction={lw: old.correction[i] for i, lw in enumerate(LAWS)},
+            record=old.metadata.get("compensation")), True
+    if not args.compensate:
+        ui.warn("the asset's compensation was dropped (the material or the grid changed); "
+                "run again with --compensate")
+    return tables, False
 
-    meta = dict(tables.metadata)
-    meta["written_by"] = {"command": ["esmm", *getattr(args, "_argv", [])],
-                          "utc": datetime.now(UTC).isoformat(timespec="seconds")}
-    tables = dataclasses.replace(tables, metadata=meta)
-    update_asset_tables(args.asset, tables, material=material if args.material is not None else None,
-                        per_spring=args.per_spring, reporter=ui)
+
+def _compensate(tables, asset, material, args, ui):
+    """The compensation of ``esmm prepare`` (same policy and cache), with the command line's overrides."""
+    from esmm.pipeline.network.compensation import compensate
+    from esmm.pipeline.validate import number_text
+
+    c_range = None
+    if args.calibration_range is not None:
+        c_range = tuple(number_text(v, "calibration_range") for v in args.calibration_range)
+    r_el = None if args.radius_elements is None else number_text(args.radius_elements, "radius_elements")
+    return compensate(tables, asset.network, material=material, calibration_range=c_range,
+                      radius_elements=r_el, reporter=ui)
+
+
+def _summary(args, material, tables, carried: bool, comp) -> dict:
+    from esmm.pipeline.network.tables import LAWS
 
     mu = tables.mu_e([1.0, 1.1, 1.3 if tables.lam_max >= 1.3 else tables.lam_max])[2]
     summary = {
@@ -154,33 +133,68 @@ def run(args, ui) -> int:
         "compensation_kept": carried, "per_spring": bool(args.per_spring),
         "mu_e_MPa": {"1.0": mu[0] / 1e6, "1.1": mu[1] / 1e6},
     }
-    if calib is not None:
+    if comp is not None:
+        rec = comp.record
         summary["compensation"] = {
-            "law": calib.law, "volume_factor": calib.factor, "iterations": calib.iterations,
-            "converged": calib.converged, "specimen": calib.specimen,
-            "max_error_before": calib.before.max_abs_rel_error,
-            "max_error_scalar_only": calib.scalar.max_abs_rel_error,
-            "max_error_after": calib.after.max_abs_rel_error,
-            "stretch_range": [float(calib.after.stretch.min()), float(calib.after.stretch.max())],
+            "law": rec["law"], "volume_factor": rec["volume_factor"], "iterations": rec["iterations"],
+            "converged": rec["converged"], "specimen": rec["specimen"],
+            "max_error_before": rec["errors_before"]["max_abs_rel_error"],
+            "max_error_scalar_only": rec["errors_scalar"]["max_abs_rel_error"],
+            "max_error_after": rec["errors_after"]["max_abs_rel_error"],
+            "stretch_range": rec["stretch_range"],
+            "reused_from": None if comp.reused is None else str(comp.reused),
         }
+    return summary
+
+
+def _text(summary: dict, tables, n_springs: int) -> list[str]:
+    mu = summary["mu_e_MPa"]
+    comp_text = ("none" if tables.volume_factor == 1.0 and not summary["corrected_laws"] else
+                 f"c = {tables.volume_factor:.4g}, stretch correction for "
+                 f"{', '.join(summary['corrected_laws']) or 'no law'}"
+                 + (" (kept)" if summary["compensation_kept"] else ""))
+    lines = [f"{summary['asset']}: tables rewritten",
+             f"  material     {summary['material']}",
+             f"  grid         stretch {tables.lam_min:.4g} .. {tables.lam_max:.4g}, {tables.n} points",
+             f"  mu_e         {mu['1.0']:.5g} MPa at 1 (small-strain E), {mu['1.1']:.5g} MPa at 1.1",
+             f"  law          {tables.default_law} (default)",
+             f"  compensation {comp_text}"]
+    c = summary.get("compensation")
+    if c is not None:
+        lines.append(f"  virtual test {c['specimen']['nodes']} nodes, stretch {c['stretch_range'][0]:.3g} .. "
+                     f"{c['stretch_range'][1]:.3g}: max |stress error| {100 * c['max_error_before']:.1f} % "
+                     f"uncompensated, {100 * c['max_error_scalar_only']:.1f} % with c only, "
+                     f"{100 * c['max_error_after']:.2f} % compensated"
+                     + (f" (calibration reused from {c['reused_from']})" if c["reused_from"] else ""))
+    if summary["per_spring"]:
+        lines.append(f"  per-spring   /tables/k_per_spring ({n_springs} x {tables.n})")
+    return lines
+
+
+def run(args, ui) -> int:
+    from esmm.pipeline.asset import read_asset, update_asset_tables
+    from esmm.pipeline.atomicio import json_text
+    from esmm.pipeline.network.tables import build_tables
+
+    asset = read_asset(args.asset)
+    material = _material(args, asset)
+    law = args.law or (asset.tables.default_law if asset.tables is not None else "secant")
+    tables = build_tables(material, law=law, **_grid(args, asset.tables))
+    tables, carried = _carry(tables, asset.tables, args, ui)
+    comp = None
+    if args.compensate:
+        comp = _compensate(tables, asset, material, args, ui)
+        tables, carried = comp.tables, False
+    meta = dict(tables.metadata)
+    meta["written_by"] = {"command": ["esmm", *getattr(args, "_argv", [])],
+                          "utc": datetime.now(UTC).isoformat(timespec="seconds")}
+    tables = dataclasses.replace(tables, metadata=meta)
+    update_asset_tables(args.asset, tables, material=material if args.material is not None else None,
+                        per_spring=args.per_spring, reporter=ui)
+    summary = _summary(args, material, tables, carried, comp)
     if args.json:
-        ui.info(json.dumps(summary, indent=2))
+        ui.info(json_text(summary).rstrip("\n"))
         return 0
-    ui.info(f"{args.asset}: tables rewritten")
-    ui.info(f"  material     {summary['material']}")
-    ui.info(f"  grid         stretch {tables.lam_min:.4g} .. {tables.lam_max:.4g}, {tables.n} points")
-    ui.info(f"  mu_e         {mu[0] / 1e6:.5g} MPa at 1 (small-strain E), {mu[1] / 1e6:.5g} MPa at 1.1")
-    ui.info(f"  law          {tables.default_law} (default)")
-    comp = ("none" if tables.volume_factor == 1.0 and not summary["corrected_laws"] else
-            f"c = {tables.volume_factor:.4g}, stretch correction for "
-            f"{', '.join(summary['corrected_laws']) or 'no law'}" + (" (kept)" if carried else ""))
-    ui.info(f"  compensation {comp}")
-    if calib is not None:
-        c = summary["compensation"]
-        ui.info(f"  virtual test {c['specimen']['nodes']} nodes, stretch {c['stretch_range'][0]:.3g} .. "
-                f"{c['stretch_range'][1]:.3g}: max |stress error| {100 * c['max_error_before']:.1f} % "
-                f"uncompensated, {100 * c['max_error_scalar_only']:.1f} % with c only, "
-                f"{100 * c['max_error_after']:.2f} % compensated")
-    if args.per_spring:
-        ui.info(f"  per-spring   /tables/k_per_spring ({asset.network.n_springs} x {tables.n})")
+    for line in _text(summary, tables, asset.network.n_springs):
+        ui.info(line)
     return 0

@@ -3,22 +3,25 @@
 Stages (each reported with its figures and time through ``reporter``)::
 
     read -> clean -> mesh (tetra) or skeleton -> quality gate -> network
-         -> stiffness tables -> fixed region -> asset (.h5 + .xdmf)
+         -> stiffness tables -> compensation -> fixed region -> asset (.h5 + .xdmf)
 
 Settings come from, in increasing precedence: the built-in defaults
 (:data:`DEFAULTS`), the prepare config (a bundled preset name such as
 ``"paper"`` or a TOML path; default ``"paper"``), and the keyword arguments.
-The resolved configuration is stored in the asset's provenance, so an asset
-can be remade from it. The config schema is documented in
-docs/prepare-config.md.
+They are parsed and checked once, before any work, into a frozen
+:class:`PrepareConfig` (:func:`prepare_config`); a message names the config key
+(``[mesh] nodes``) or the keyword (``nodes``) the bad value came from. The
+resolved configuration is stored in the asset's provenance, so an asset can be
+remade from it. The config schema is documented in docs/prepare-config.md.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
-import math
 import os
 import time
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,9 +29,35 @@ from typing import Any
 import numpy as np
 
 from . import config as _config
+from .asset.material import material_effects
+from .asset.provenance import collect_provenance
+from .asset.write import write_asset
+from .asset.xdmf import sidecar_path
 from .errors import ConfigError, InputError, QualityError
+from .materials.material import Material, load_material
+from .mesh.cleaning import CleaningOptions, CleaningReport, clean_surface
+from .mesh.quality import QUALITY_FLOORS, QualityReport, check_floors, tet_quality
+from .mesh.readers import read_surface
+from .mesh.skeleton import check_n_surface, skeleton_structure
+from .mesh.targets import MeshTarget, mesh_target
+from .mesh.volume import mesh_volume
+from .network import compensation
+from .network.regions import FixedRegion, region_from_config, select_fixed
+from .network.springs import (
+    NODE_SKELETON,
+    NODE_SURFACE,
+    STRUCTURES,
+    SpringNetwork,
+    check_density,
+    check_reorder,
+    fibre_frame_matrix,
+    network_from_skeleton,
+    network_from_tets,
+)
+from .network.tables import GridOptions, StiffnessTables, build_tables, grid_options
 from .progress import ensure
-from .units import parse_quantity
+from .units import factor
+from .validate import boolean, choice, number, quantity
 
 #: The default prepare preset.
 DEFAULT_PRESET = "paper"
@@ -50,12 +79,74 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     "tables": {"n": 1024, "law": "secant", "lam_min": None, "lam_max": None, "compensate": True},
 }
 
-#: Ratio of the mesher's mean tet volume to that of a regular tet whose edge is the
-#: requested size. Measured 1.39-1.42 on gmsh cubes, 0.92 on the bundled InVesalius
-#: liver and 0.73 on the SOFA liver (surface detail adds tets); 1 is the middle.
-MESHER_VOLUME_RATIO = 1.0
-#: Relative miss of the tet count beyond which an ``elements`` target is remeshed once.
-ELEMENTS_TOLERANCE = 0.2
+#: Keyword option of :func:`prepare` -> the (section, key) of the config it sets.
+KEYWORDS: dict[str, tuple[str, str]] = {
+    "size": ("mesh", "size"), "nodes": ("mesh", "nodes"), "elements": ("mesh", "elements"),
+    "structure": ("prepare", "structure"), "material": ("prepare", "material"),
+    "density": ("prepare", "density"), "unit": ("input", "unit"), "label": ("input", "label"),
+    "keep_all": ("cleaning", "keep"), "body": ("cleaning", "body"), "compensate": ("tables", "compensate"),
+}
+
+
+@dataclass(frozen=True)
+class PrepareConfig:
+    """The settings of one prepare run, parsed and checked (:func:`prepare_config`).
+
+    Attributes
+    ----------
+    structure : {"tetra", "skeleton"}
+    material : str
+        Material preset name or TOML path.
+    density : float
+        Tissue density [kg/m3].
+    reorder : {"rcm", "morton"} or None
+        Node numbering.
+    unit : str
+        Length unit of the input file.
+    label : int or None
+        Label to extract from a mask input.
+    cleaning : CleaningOptions
+    target : MeshTarget
+        Size [m], node or tetrahedron count of the tet mesh.
+    timeout : float
+        Time limit of each meshing attempt [s].
+    n_surface : int or None
+        Surface vertices of the skeleton structure.
+    weight_exponent : float
+        Volume-sharing exponent of the skeleton structure.
+    fibre_frame : str or tuple
+        ``"identity"``, ``"principal"`` or three rows.
+    fixed : FixedRegion
+    floors : mapping
+        Quality floors set by the config (over :data:`~esmm.pipeline.mesh.quality.QUALITY_FLOORS`).
+    grid : GridOptions
+        The stiffness tables' grid and default law.
+    compensate : bool
+        Calibrate the volumetric compensation.
+    source : str
+        Where the config came from.
+    toml : str
+        The resolved configuration as TOML text (stored in the asset's provenance).
+    """
+
+    structure: str
+    material: str
+    density: float
+    reorder: str | None
+    unit: str
+    label: int | None
+    cleaning: CleaningOptions
+    target: MeshTarget
+    timeout: float
+    n_surface: int | None
+    weight_exponent: float
+    fibre_frame: Any
+    fixed: FixedRegion
+    floors: Mapping[str, float]
+    grid: GridOptions
+    compensate: bool
+    source: str
+    toml: str
 
 
 @dataclass
@@ -73,60 +164,29 @@ class PrepareResult:
         None for the skeleton structure.
     quality_passed : bool
     cleaning : CleaningReport
-    tables : StiffnessTables or None
-        None when the tables module is not available.
-    material : Material or None
+    tables : StiffnessTables
+    material : Material
     timings : dict
         Stage -> seconds.
     mesher : str
         The meshing path taken (e.g. ``"gmsh"``), or ``"skeleton"``.
-    config : dict
+    config : PrepareConfig
         The resolved configuration.
     warnings : list of str
     """
 
     asset: Path
     xdmf: Path
-    network: Any
-    quality: Any
+    network: SpringNetwork
+    quality: QualityReport | None
     quality_passed: bool
-    cleaning: Any
-    tables: Any
-    material: Any
+    cleaning: CleaningReport
+    tables: StiffnessTables
+    material: Material
     timings: dict[str, float]
     mesher: str
-    config: dict[str, Any]
+    config: PrepareConfig
     warnings: list[str] = field(default_factory=list)
-
-    def summary_lines(self) -> list[str]:
-        """The summary printed by ``esmm prepare``."""
-        net = self.network
-        lines = [
-            f"structure   {net.structure} ({self.mesher})",
-            f"nodes       {net.n_nodes}",
-            f"springs     {net.n_springs}",
-        ]
-        if net.tets is not None:
-            lines.append(f"tets        {net.n_tets}")
-        lines += [
-            f"volume      {net.total_volume() * 1e6:.2f} mL, mass {net.total_mass() * 1e3:.1f} g",
-            f"rest length {net.rest_length.min() * 1e3:.2f} .. {net.rest_length.max() * 1e3:.2f} mm "
-            f"(mean {net.rest_length.mean() * 1e3:.2f})",
-            f"fixed       {net.fixed.size} nodes",
-        ]
-        if self.quality is not None:
-            q = self.quality
-            verdict = "passes the floors" if self.quality_passed else "BELOW the floors (--force)"
-            lines.append(f"quality     min dihedral {getattr(q, 'min_dihedral_deg', float('nan')):.1f} deg, "
-                         f"{verdict}")
-        if self.tables is not None:
-            lines.append(f"tables      {self.tables.n} points, stretch {self.tables.lam_min:.3g}.."
-                         f"{self.tables.lam_max:.3g}")
-        lines.append("time        " + ", ".join(f"{k} {v:.1f} s" for k, v in self.timings.items())
-                     + f" (total {sum(self.timings.values()):.1f} s)")
-        lines.append(f"wrote       {self.asset}")
-        lines.append(f"            {self.xdmf} (open in ParaView)")
-        return lines
 
 
 # -- configuration ------------------------------------------------------------------------
@@ -139,7 +199,7 @@ def _merge(base: dict, over: dict, *, source: str) -> dict:
                               f"{', '.join('[' + s + ']' for s in DEFAULTS)}")
         if not isinstance(table, dict):
             raise ConfigError(f"{source}: [{section}] must be a table")
-        if section in ("fixed",):
+        if section == "fixed":
             out[section] = copy.deepcopy(table)  # replaced as a whole (its keys depend on kind)
             continue
         if section != "quality":
@@ -165,123 +225,29 @@ def load_prepare_config(config: str | os.PathLike | dict | None) -> tuple[dict, 
     return _merge(DEFAULTS, data, source=source), source
 
 
-def _int(v, where: str, *, minimum: int = 0) -> int:
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < minimum:
-        raise ConfigError(f"{where}: expected a whole number >= {minimum}, got {v!r}")
-    return int(v)
+def _keyword_table(kw: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """The keyword options given (not None) as a config layer, their values in config form.
 
-
-def _float(v, where: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise ConfigError(f"{where}: expected a number, got {v!r}")
-    return float(v)
-
-
-def _quantity(v, kind: str, where: str) -> float:
-    try:
-        return parse_quantity(v, kind, where=where)
-    except InputError as exc:
-        raise ConfigError(str(exc)) from None
-
-
-@dataclass
-class _Settings:
-    structure: str
-    material: str
-    density: float
-    reorder: str | None
-    unit: str
-    label: int | None
-    cleaning: dict
-    size: float | None
-    nodes: int | None
-    elements: int | None
-    timeout: float
-    n_surface: int | None
-    weight_exponent: float
-    frame: Any
-    fixed: Any
-    floors: dict
-    tables: dict
-
-
-def _settings(cfg: dict, source: str) -> _Settings:
-    """Check every value of a resolved config (one-line ConfigError naming the key)."""
-    p, m, c = cfg["prepare"], cfg["mesh"], cfg["cleaning"]
-    structure = p["structure"]
-    if structure not in ("tetra", "skeleton"):
-        raise ConfigError(f"[prepare] structure: {structure!r} is not \"tetra\" or \"skeleton\"")
-    if not isinstance(p["material"], str) or not p["material"]:
-        raise ConfigError(f"[prepare] material: expected a preset name or a .toml path, got {p['material']!r}")
-    density = p["density"]
-    if isinstance(density, str):
-        density = _quantity(density, "density", "[prepare] density")
-    else:
-        density = _float(density, "[prepare] density (kg/m3)")
-    if not 100 <= density <= 20000:
-        raise ConfigError(f"[prepare] density: {density:g} kg/m3 is not plausible for tissue (about 1000-1100)")
-    reorder = p["reorder"]
-    if reorder not in ("rcm", "morton", "none", None):
-        raise ConfigError(f"[prepare] reorder: {reorder!r} is not \"rcm\", \"morton\" or \"none\"")
-    unit = cfg["input"]["unit"]
-    from .units import UNITS, normalise_unit
-
-    if not isinstance(unit, str) or normalise_unit(unit) not in UNITS["length"]:
-        raise ConfigError(f"[input] unit: {unit!r} is not a length unit (mm, cm, m)")
-    label = cfg["input"]["label"]
-    if label is not None:
-        label = _int(label, "[input] label", minimum=0)
-    keep = c["keep"]
-    if keep not in ("largest", "all"):
-        raise ConfigError(f"[cleaning] keep: {keep!r} is not \"largest\" or \"all\"")
-    cleaning = {"keep": keep, "smooth_iterations": _int(c["smooth_iterations"], "[cleaning] smooth_iterations"),
-                "smooth_passband": _float(c["smooth_passband"], "[cleaning] smooth_passband"),
-                "body": None if c["body"] is None else _int(c["body"], "[cleaning] body"),
-                "target_faces": None if c["target_faces"] is None else _int(c["target_faces"], "[cleaning] target_faces", minimum=4),
-                "target_edge": None if c["target_edge"] is None else _quantity(c["target_edge"], "length", "[cleaning] target_edge")}
-    if not 0 < cleaning["smooth_passband"] <= 2:
-        raise ConfigError(f"[cleaning] smooth_passband: expected a number in (0, 2], got {c['smooth_passband']!r}")
-    given = [k for k in ("size", "nodes", "elements") if m[k] is not None]
-    if len(given) > 1:
-        raise ConfigError(f"[mesh]: give one of size, nodes or elements, not {' and '.join(given)}")
-    size = None if m["size"] is None else _quantity(m["size"], "length", "[mesh] size")
-    if size is not None and size <= 0:
-        raise ConfigError(f"[mesh] size: must be positive, got {m['size']!r}")
-    nodes = None if m["nodes"] is None else _int(m["nodes"], "[mesh] nodes", minimum=4)
-    elements = None if m["elements"] is None else _int(m["elements"], "[mesh] elements", minimum=1)
-    timeout = _quantity(m["timeout"], "time", "[mesh] timeout") if isinstance(m["timeout"], str) else \
-        _float(m["timeout"], "[mesh] timeout (s)")
-    if timeout <= 0:
-        raise ConfigError(f"[mesh] timeout: must be positive, got {m['timeout']!r}")
-    sk = cfg["skeleton"]
-    n_surface = None if sk["n_surface"] is None else _int(sk["n_surface"], "[skeleton] n_surface", minimum=4)
-    weight_exponent = _float(sk["weight_exponent"], "[skeleton] weight_exponent")
-    from .network.regions import region_from_config
-    from .network.springs import fibre_frame_matrix
-
-    frame = cfg["fibres"]["frame"]
-    if not (isinstance(frame, str) and frame in ("identity", "principal")):
-        try:
-            fibre_frame_matrix(frame, where="[fibres] frame")
-        except InputError as exc:
-            raise ConfigError(str(exc)) from None
-    fixed = region_from_config(cfg["fixed"], where="[fixed]")
-    floors = {}
-    for k, v in cfg["quality"].items():
-        floors[k] = _float(v, f"[quality] {k}")
-    t = cfg["tables"]
-    tables = {"n": _int(t["n"], "[tables] n", minimum=3), "law": t["law"]}
-    for k in ("lam_min", "lam_max"):
-        if t[k] is not None:
-            tables[k] = _float(t[k], f"[tables] {k}")
-    if t["law"] not in ("secant", "energy"):
-        raise ConfigError(f"[tables] law: {t['law']!r} is not \"secant\" or \"energy\"")
-    if not isinstance(t["compensate"], bool):
-        raise ConfigError(f"[tables] compensate: expected true or false, got {t['compensate']!r}")
-    tables["compensate"] = t["compensate"]
-    return _Settings(structure, p["material"], density, None if reorder in ("none", None) else reorder, unit,
-                     label, cleaning, size, nodes, elements, timeout, n_surface, weight_exponent, frame,
-                     fixed, floors, tables)
+    Lengths and densities become quantities with their unit (``size`` is in metres,
+    ``density`` in kg/m3), so the resolved config reads as a TOML file would.
+    """
+    mesh_target(size=kw.get("size"), nodes=kw.get("nodes"), elements=kw.get("elements"))  # one of them
+    if kw.get("keep_all") and kw.get("body") is not None:
+        raise ConfigError("keep_all: keep every body or one body, not both (keep_all and body)", parameter="keep_all")
+    layer: dict[str, dict[str, Any]] = {}
+    for name, value in kw.items():
+        if value is None or (name == "keep_all" and not value):
+            continue
+        if name == "size":  # checked by mesh_target above
+            value = f"{value * 1e3:.12g} mm"
+        elif name == "density":
+            value = f"{number(value, 'density'):.12g} kg/m3"
+        section, key = KEYWORDS[name]
+        if name == "keep_all":
+            layer.setdefault("cleaning", {}).update(keep="all", body=None)
+            continue
+        layer.setdefault(section, {})[key] = value
+    return layer
 
 
 def _toml_clean(d):
@@ -298,180 +264,172 @@ def config_toml(cfg: dict) -> str:
     return tomli_w.dumps(_toml_clean(cfg))
 
 
+def prepare_config(config: str | os.PathLike | dict | None = None, **keywords: Any) -> PrepareConfig:
+    """Load, merge and check a prepare configuration.
+
+    Parameters
+    ----------
+    config
+        Prepare preset name (``coarse``, ``paper``, ``fine``), a TOML path, or
+        a dict; default ``"paper"``.
+    **keywords
+        The keyword options of :func:`prepare` that override it (see
+        :data:`KEYWORDS`); None means "not given".
+
+    Raises
+    ------
+    ConfigError
+        An unknown section, key or keyword, or a bad value (one line naming the
+        config key, or the keyword it came from).
+    """
+    unknown = sorted(set(keywords) - set(KEYWORDS))
+    if unknown:
+        raise ConfigError(f"{unknown[0]}: not an option of prepare; known: {', '.join(KEYWORDS)}",
+                          parameter=unknown[0])
+    layer = _keyword_table(keywords)
+    cfg, source = load_prepare_config(config)
+    cfg = _merge(cfg, layer, source="options")
+    from_keywords = {KEYWORDS[k]: k for k, v in keywords.items() if v is not None and v is not False}
+    if cfg["prepare"]["structure"] == "skeleton":
+        given = [k for k in ("size", "nodes", "elements") if keywords.get(k) is not None]
+        if given:
+            raise ConfigError(f"{given[0]}: sets the tet mesh; for the skeleton structure set "
+                              f"[skeleton] n_surface in the config", parameter=given[0])
+    return parse_prepare_config(cfg, source, names=from_keywords)
+
+
+@contextlib.contextmanager
+def _as_config_error(parameter: str | None = None) -> Iterator[None]:
+    """A value of the config refused by a stage's own rule (an InputError) is a ConfigError."""
+    try:
+        yield
+    except InputError as exc:
+        raise ConfigError(str(exc), parameter=exc.parameter or parameter) from None
+
+
+def parse_prepare_config(cfg: dict, source: str, *, names: Mapping[tuple[str, str], str] | None = None
+                         ) -> PrepareConfig:
+    """Check every value of a resolved config (:func:`load_prepare_config`) into a :class:`PrepareConfig`.
+
+    Each value is checked by the rule of the stage that uses it. *names* maps a
+    ``(section, key)`` to the parameter name for messages (the keyword option it
+    came from); other values are named ``[section] key``.
+
+    Raises
+    ------
+    ConfigError
+        One line naming the key.
+    """
+    def name(section: str, key: str) -> str:
+        return (names or {}).get((section, key)) or f"[{section}] {key}"
+
+    fields: dict[str, Any] = {"source": source, "toml": config_toml(cfg)}
+    for part in (_prepare_part, _input_part, _cleaning_part, _mesh_part, _skeleton_part, _network_part,
+                 _tables_part):
+        fields.update(part(cfg, name))
+    return PrepareConfig(**fields)
+
+
+def _prepare_part(cfg: dict, name) -> dict[str, Any]:
+    p = cfg["prepare"]
+    material = p["material"]
+    if not isinstance(material, str) or not material:
+        raise ConfigError(f"{name('prepare', 'material')}: expected a preset name or a .toml path, "
+                          f"got {material!r}", parameter=name("prepare", "material"))
+    density = p["density"]
+    where = name("prepare", "density")
+    density = quantity(density, "density", where) if isinstance(density, str) else number(density, where)
+    with _as_config_error():
+        return {"structure": choice(p["structure"], STRUCTURES, name("prepare", "structure")),
+                "material": material, "density": check_density(density, where),
+                "reorder": check_reorder(p["reorder"], name("prepare", "reorder"))}
+
+
+def _input_part(cfg: dict, name) -> dict[str, Any]:
+    unit, label = cfg["input"]["unit"], cfg["input"]["label"]
+    where = name("input", "unit")
+    if not isinstance(unit, str):
+        raise ConfigError(f"{where}: {unit!r} is not a length unit (mm, cm, m)", parameter=where)
+    with _as_config_error(where):
+        factor(unit, "length", where=where)
+    return {"unit": unit,
+            "label": None if label is None else number(label, name("input", "label"), lo=0, integer=True)}
+
+
+def _cleaning_part(cfg: dict, name) -> dict[str, Any]:
+    c = dict(cfg["cleaning"])
+    if c["target_edge"] is not None:
+        c["target_edge"] = quantity(c["target_edge"], "length", name("cleaning", "target_edge"))
+    options = CleaningOptions(**c)
+    options.validate(names={k: name("cleaning", k) for k in c})
+    return {"cleaning": options}
+
+
+def _mesh_part(cfg: dict, name) -> dict[str, Any]:
+    m = cfg["mesh"]
+    size = None if m["size"] is None else quantity(m["size"], "length", name("mesh", "size"))
+    target = mesh_target(size=size, nodes=m["nodes"], elements=m["elements"], where="[mesh]",
+                         names={k: name("mesh", k) for k in ("size", "nodes", "elements")})
+    where = name("mesh", "timeout")
+    timeout = quantity(m["timeout"], "time", where) if isinstance(m["timeout"], str) else m["timeout"]
+    return {"target": target, "timeout": number(timeout, where, lo=0.0, lo_open=True)}
+
+
+def _skeleton_part(cfg: dict, name) -> dict[str, Any]:
+    sk = cfg["skeleton"]
+    return {"n_surface": check_n_surface(sk["n_surface"], name("skeleton", "n_surface")),
+            "weight_exponent": number(sk["weight_exponent"], name("skeleton", "weight_exponent"))}
+
+
+def _network_part(cfg: dict, name) -> dict[str, Any]:
+    frame = cfg["fibres"]["frame"]
+    if not (isinstance(frame, str) and frame in ("identity", "principal")):
+        with _as_config_error(name("fibres", "frame")):
+            fibre_frame_matrix(frame, where=name("fibres", "frame"))
+        frame = tuple(tuple(float(x) for x in row) for row in frame)
+    return {"fibre_frame": frame, "fixed": region_from_config(cfg["fixed"], where="[fixed]"),
+            "floors": check_floors(cfg["quality"], "[quality]")}
+
+
+def _tables_part(cfg: dict, name) -> dict[str, Any]:
+    t = cfg["tables"]
+    grid = grid_options(n=t["n"], law=t["law"], lam_min=t["lam_min"], lam_max=t["lam_max"],
+                        names={k: name("tables", k) for k in ("n", "law", "lam_min", "lam_max")})
+    return {"grid": grid, "compensate": boolean(t["compensate"], name("tables", "compensate"))}
+
+
 # -- stages -------------------------------------------------------------------------------
 
-class _Clock:
-    def __init__(self) -> None:
-        self.timings: dict[str, float] = {}
-        self.started = time.perf_counter()
+class _Run:
+    """The timings, warnings and reporter of one prepare run."""
 
-    def run(self, name: str, fn, *args, **kwargs):
-        t0 = self.started = time.perf_counter()
+    def __init__(self, reporter) -> None:
+        self.rep = ensure(reporter)
+        self.timings: dict[str, float] = {}
+        self.warnings: list[str] = []
+
+    def stage(self, name: str, fn, *args, **kwargs):
+        """Run ``fn(*args, **kwargs)`` and record its time under *name*."""
+        t0 = time.perf_counter()
         out = fn(*args, **kwargs)
         self.timings[name] = time.perf_counter() - t0
         return out
 
-
-def _load_material(name: str):
-    try:
-        from .materials.material import load_material
-    except ImportError:
-        return None
-    return load_material(name)
+    def warn(self, msg: str) -> None:
+        self.warnings.append(msg)
+        self.rep.warn(msg)
 
 
-def _build_tables(material, opts: dict):
-    if material is None:
-        return None
-    try:
-        from .network.tables import build_tables
-    except ImportError:
-        return None
-    return build_tables(material, **{k: v for k, v in opts.items() if k != "compensate"})
+@dataclass(frozen=True)
+class _Structure:
+    """The spring network and what its meshing left to record."""
 
-
-#: Stretch range of the default volumetric-compensation calibration (docs/model.md).
-COMPENSATION_RANGE = (0.9, 1.3)
-
-
-def compensation_cache_dir() -> Path:
-    """Where calibrated compensations are kept: ``$ESMM_CACHE_DIR``, else
-    ``$XDG_CACHE_HOME/esmm``, else ``~/.cache/esmm`` (subfolder ``compensation``)."""
-    root = os.environ.get("ESMM_CACHE_DIR")
-    if not root:
-        xdg = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-        root = os.path.join(xdg, "esmm")
-    return Path(root) / "compensation"
-
-
-def _compensation_key(tables, lo: float, hi: float) -> str:
-    """Content address of a compensation: everything it depends on.
-
-    The calibration specimen is meshed with the organ's median spring length as
-    element size and a radius of a fixed number of elements, so it is
-    geometrically similar for every organ, and the spring network's stress
-    response is scale-free (forces ~ V/L0, areas ~ L0^2): the result depends on
-    the material, the law, the grid, the range and the code, not on the organ.
-    """
-    import hashlib
-    import json
-
-    from . import __version__
-    from .network import compensation, tensile_test
-    from .network import tables as tables_mod
-    from .network.compensation import DEFAULT_RADIUS_ELEMENTS
-
-    # The code that computes it is part of the address: an edited calibration
-    # never serves a stale cached result.
-    code = hashlib.sha256()
-    for mod in (compensation, tensile_test, tables_mod):
-        code.update(Path(mod.__file__).read_bytes())
-    blob = json.dumps({
-        "code": code.hexdigest(),
-        "material": tables.material_toml, "law": tables.default_law, "n": tables.n,
-        "lam": [repr(float(tables.lam_min)), repr(float(tables.lam_max))],
-        "range": [repr(float(lo)), repr(float(hi))], "radius_elements": DEFAULT_RADIUS_ELEMENTS,
-        "esmm": __version__,
-    }, sort_keys=True)
-    return hashlib.sha256(blob.encode()).hexdigest()[:32]
-
-
-def _compensate(tables, network, material, reporter):
-    """Calibrate the volumetric compensation of *tables* on a virtual tensile test
-    of a specimen meshed like *network* (one numerical test per mesh), or reuse
-    a calibration with the same content address from the cache.
-
-    Returns ``(tables, summary)`` with summary a one-line description.
-    """
-    import json
-
-    from .atomicio import write_text
-    from .network.compensation import (
-        calibrate_compensation,
-        correction_on_grid,
-        specimen_for,
-    )
-
-    law = tables.default_law
-    lo = max(COMPENSATION_RANGE[0], tables.lam_min + 2 * tables.dlam)
-    hi = min(COMPENSATION_RANGE[1], tables.lam_max - 2 * tables.dlam)
-    key = _compensation_key(tables, lo, hi)
-    path = compensation_cache_dir() / f"{key}.json"
-    try:
-        cached = json.loads(path.read_text(encoding="utf-8"))
-        record = dict(cached["record"], cache={"key": key, "hit": True})
-        out = tables.with_compensation(
-            cached["factor"], correction={law: correction_on_grid(tables, cached["knots"], cached["g"])},
-            record={"laws": {law: record}, "volume_factor": cached["factor"]})
-        err = record["errors_after"]["max_abs_rel_error"]
-        return out, f"{100 * err:.2f} % (calibration reused from {path})"
-    except (OSError, ValueError, KeyError, TypeError):
-        pass
-    specimen = specimen_for(network, reporter=reporter)
-    out, calib = calibrate_compensation(tables, specimen, law=law, material=material,
-                                        tension=hi, compression=lo, reporter=reporter)
-    try:
-        write_text(path, json.dumps({"factor": calib.factor, "knots": calib.knots.tolist(),
-                                     "g": calib.g.tolist(), "record": calib.record()}))
-    except OSError:
-        pass  # a read-only cache only costs time
-    return out, (f"{100 * calib.before.max_abs_rel_error:.1f} % raw -> "
-                 f"{100 * calib.after.max_abs_rel_error:.2f} %")
-
-
-def size_for_elements(volume: float, elements: int) -> float:
-    """Mesh size [m] that gives about *elements* tets in *volume* [m3].
-
-    A regular tet of edge ``h`` has volume ``h**3 / (6 sqrt 2)``; the mesher's
-    tets average :data:`MESHER_VOLUME_RATIO` times that.
-    """
-    return (6.0 * math.sqrt(2.0) * volume / (MESHER_VOLUME_RATIO * elements)) ** (1.0 / 3.0)
-
-
-def _mesh(surface, s: _Settings, rep, clock: _Clock):
-    from .errors import MeshingError
-    from .mesh.volume import mesh_volume
-
-    if s.elements is None:
-        return clock.run("mesh", mesh_volume, surface, size=s.size, nodes=s.nodes, timeout=s.timeout,
-                         reporter=rep)
-    vol = abs(float(surface.volume()))
-    size = size_for_elements(vol, s.elements)
-    mesh = clock.run("mesh", mesh_volume, surface, size=size, timeout=s.timeout, reporter=rep)
-    got = mesh.tets.shape[0]
-    if abs(got / s.elements - 1.0) <= ELEMENTS_TOLERANCE:
-        return mesh
-    # One correction, N ~ h^-3. It is an improvement, not a requirement: its time is
-    # bounded and, if the mesher fails at the new size, the first mesh is kept.
-    size2 = size * (got / s.elements) ** (1.0 / 3.0)
-    first = clock.timings["mesh"]
-    rep.step(f"mesh: {got} tets for a target of {s.elements}; remeshing at {size2 * 1e3:.2f} mm "
-             f"instead of {size * 1e3:.2f} mm")
-    try:
-        mesh2 = clock.run("mesh", mesh_volume, surface, size=size2,
-                          timeout=min(s.timeout, max(30.0, 4.0 * first)), reporter=rep)
-    except MeshingError as exc:
-        clock.timings["mesh"] = first + time.perf_counter() - clock.started
-        rep.warn(f"mesh: remeshing at {size2 * 1e3:.2f} mm failed ({exc}); keeping the first mesh "
-                 f"({got} tets at {size * 1e3:.2f} mm)")
-        return mesh
-    clock.timings["mesh"] += first
-    return mesh2
-
-
-def _check_floor_names(floors: dict) -> None:
-    """Refuse [quality] keys that are not quality figures, before any meshing."""
-    from types import SimpleNamespace
-
-    from .mesh.quality import QUALITY_FLOORS, tet_quality
-
-    probe = SimpleNamespace(points=np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]),
-                            tets=np.array([[0, 1, 2, 3]]))
-    report = tet_quality(probe)
-    known = set(report.values()) if hasattr(report, "values") else set(QUALITY_FLOORS)
-    unknown = sorted(set(floors) - known)
-    if unknown:
-        raise ConfigError(f"[quality]: unknown figure(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+    network: SpringNetwork
+    mesher: str
+    log: list[str]
+    quality: QualityReport | None = None
+    passed: bool = True
+    floors: dict[str, float] | None = None
 
 
 def input_stem(path: str | os.PathLike) -> str:
@@ -481,6 +439,119 @@ def input_stem(path: str | os.PathLike) -> str:
         if name.lower().endswith(compound):
             return name[: -len(compound)]
     return Path(name).stem
+
+
+def asset_paths(input_path: str | os.PathLike, output: str | os.PathLike | None) -> tuple[Path, Path]:
+    """The input file and the asset to write (default ``<input stem>.h5`` in the current folder).
+
+    Raises
+    ------
+    InputError
+        The input is missing or a folder.
+    ConfigError
+        The output does not end in ``.h5`` or is the input (parameter ``output``).
+    """
+    inp = Path(input_path)
+    if not inp.exists():
+        raise InputError(f"{inp}: no such file")
+    if inp.is_dir():
+        raise InputError(f"{inp}: is a folder; give the organ surface file (STL, OBJ, PLY, VTK, NIfTI)")
+    out = Path(output) if output is not None else Path.cwd() / (input_stem(inp) + ".h5")
+    if out.suffix.lower() not in (".h5", ".hdf5"):
+        raise ConfigError(f"output: {out}: the asset file name must end in .h5", parameter="output")
+    if out.resolve() == inp.resolve():
+        raise ConfigError(f"output: {out}: would overwrite the input; choose another name", parameter="output")
+    return inp, out
+
+
+def _material(cfg: PrepareConfig, run: _Run) -> Material:
+    """The material, loaded before any meshing (a bad material or effects table fails fast)."""
+    mat = run.stage("material", load_material, cfg.material)
+    run.rep.step(f"config: {cfg.source}; structure {cfg.structure}; material {cfg.material}")
+    fx = material_effects(mat)
+    if fx is not None:
+        run.rep.step(f"material effects {', '.join(fx.names)}: written to /material/effects, applied by "
+                     "'esmm simulate' (the material's parameters are the instantaneous response)")
+    return mat
+
+
+def _surface(inp: Path, cfg: PrepareConfig, run: _Run):
+    """Read and clean the organ surface: (surface, CleaningReport)."""
+    surface = run.stage("read", read_surface, inp, unit=cfg.unit, label=cfg.label, reporter=run.rep)
+    run.rep.step(f"read: {surface.summary()} ({run.timings['read']:.1f} s)")
+    clean, cleaning = run.stage("clean", clean_surface, surface, options=cfg.cleaning, reporter=run.rep)
+    run.rep.step(f"clean: {clean.summary()} ({run.timings['clean']:.1f} s)")
+    return clean, cleaning
+
+
+def _tetra(clean, cfg: PrepareConfig, run: _Run, *, force: bool, name: str) -> _Structure:
+    """Tet mesh, quality gate, network on the tet edges."""
+    t = cfg.target
+    mesh = run.stage("mesh", mesh_volume, clean, size=t.size, nodes=t.nodes, elements=t.elements,
+                     timeout=cfg.timeout, reporter=run.rep)
+    run.rep.step(f"mesh: {mesh.n_nodes} nodes, {mesh.n_tets} tets via {mesh.path} ({run.timings['mesh']:.1f} s)")
+    floors = {**QUALITY_FLOORS, **cfg.floors}
+    quality = run.stage("quality", tet_quality, mesh)
+    passed, problems = quality.passes(floors)
+    if passed:
+        run.rep.step(f"quality: min dihedral {quality.min_dihedral_deg:.1f} deg, passes the floors")
+    elif force:
+        for pr in problems:
+            run.warn(f"quality below floor (written anyway, forced): {pr}")
+    else:
+        raise QualityError(f"{name}: mesh quality below the floors: {'; '.join(problems)}; "
+                           "try another mesh size or node count, or force the write")
+    net = run.stage("network", network_from_tets, mesh, density=cfg.density, fibre_frame=cfg.fibre_frame,
+                    reorder=cfg.reorder, reporter=run.rep)
+    return _Structure(net, mesh.path, list(mesh.log), quality, passed, floors)
+
+
+def _skeleton(clean, cfg: PrepareConfig, run: _Run) -> _Structure:
+    """Surface + skeleton structure, the organ volume shared over its springs."""
+    sk = run.stage("mesh", skeleton_structure, clean, n_surface=cfg.n_surface, reporter=run.rep)
+    kind = np.where(np.asarray(sk.kind) == 0, NODE_SURFACE, NODE_SKELETON).astype(np.uint8)
+    net = run.stage("network", network_from_skeleton, sk.points, sk.edges, volume=abs(clean.volume()),
+                    surface_faces=sk.surface_faces, node_kind=kind, density=cfg.density,
+                    fibre_frame=cfg.fibre_frame, reorder=cfg.reorder, weight_exponent=cfg.weight_exponent)
+    return _Structure(net, "skeleton", list(sk.log))
+
+
+def _tables(mat: Material, net: SpringNetwork, cfg: PrepareConfig, run: _Run) -> StiffnessTables:
+    """Stiffness tables of the material, compensated for the network unless disabled."""
+    g = cfg.grid
+    tables = run.stage("tables", build_tables, mat, n=g.n, law=g.law, lam_min=g.lam_min, lam_max=g.lam_max)
+    run.rep.step(f"tables: {tables.n} points on stretch {tables.lam_min:.3g}..{tables.lam_max:.3g} "
+                 f"({run.timings['tables']:.2f} s)")
+    if not cfg.compensate:
+        run.warn("no volumetric compensation: the raw network is several times softer than the tissue "
+                 "(docs/model.md); compensate the asset later with 'esmm tables'")
+        return tables
+    comp = run.stage("compensation", compensation.compensate, tables, net, material=mat, reporter=run.rep)
+    run.rep.step(f"compensation: volume factor c = {comp.tables.volume_factor:.3f} and a stretch "
+                 f"correction; virtual tensile test error {comp.summary()} "
+                 f"({run.timings['compensation']:.1f} s)")
+    return comp.tables
+
+
+def _fix(net: SpringNetwork, cfg: PrepareConfig, run: _Run) -> SpringNetwork:
+    """The network with its fixed nodes (the config's region)."""
+    fixed = select_fixed(net.points, cfg.fixed, node_kind=net.node_kind)
+    run.rep.step(f"fixed: {fixed.size} nodes ({cfg.fixed.describe()})")
+    return net.with_fixed(fixed)
+
+
+def _write(out: Path, inp: Path, net: SpringNetwork, mat: Material, tables: StiffnessTables,
+           structure: _Structure, cleaning: CleaningReport, cfg: PrepareConfig, run: _Run,
+           argv: list[str] | None) -> None:
+    """The asset and its sidecar, with the provenance of this run."""
+    prov = collect_provenance(inp, config_toml=cfg.toml, argv=argv,
+                              extra={"config_source": cfg.source, "timings_s": dict(run.timings),
+                                     "mesher": structure.mesher, "warnings": run.warnings,
+                                     "mesh_log": [str(x) for x in structure.log[-50:]]})
+    run.stage("write", write_asset, out, net, material=mat, tables=tables, quality=structure.quality,
+              cleaning=cleaning, provenance=prov, quality_floors=structure.floors,
+              fixed_region=cfg.fixed.describe())
+    run.rep.step(f"write: {out} ({run.timings['write']:.2f} s)")
 
 
 def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None = None,
@@ -524,6 +595,8 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
         Tissue density [kg/m3].
     force : bool
         Write the asset even when the mesh is below the quality floors.
+    compensate : bool, optional
+        Calibrate the volumetric compensation (default: the config's, true).
     reporter
         Progress reporter (:mod:`esmm.pipeline.progress`).
     argv : list of str, optional
@@ -540,157 +613,20 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
     QualityError
         The tet mesh is below the quality floors and *force* is False.
     """
-    rep = ensure(reporter)
-    warnings: list[str] = []
-
-    def warn(msg: str) -> None:
-        warnings.append(msg)
-        rep.warn(msg)
-
-    inp = Path(input_path)
-    if not inp.exists():
-        raise InputError(f"{inp}: no such file")
-    if inp.is_dir():
-        raise InputError(f"{inp}: is a folder; give the organ surface file (STL, OBJ, PLY, VTK, NIfTI)")
-    out = Path(output) if output is not None else Path.cwd() / (input_stem(inp) + ".h5")
-    if out.suffix.lower() not in (".h5", ".hdf5"):
-        raise ConfigError(f"-o {out}: the asset file name must end in .h5")
-    if out.resolve() == inp.resolve():
-        raise ConfigError(f"-o {out}: would overwrite the input; choose another name")
-
-    cfg, source = load_prepare_config(config)
-    # Keyword options override the config.
-    over = [(size, "mesh", "size"), (nodes, "mesh", "nodes"), (elements, "mesh", "elements")]
-    given = [k for v, _, k in over if v is not None]
-    if len(given) > 1:
-        raise ConfigError(f"give one of size, nodes or elements, not {' and '.join(given)}")
-    if given:
-        cfg["mesh"].update(size=None, nodes=None, elements=None)
-        if size is not None:
-            if isinstance(size, bool) or not isinstance(size, (int, float)) or not size > 0 or not math.isfinite(size):
-                raise ConfigError(f"size: must be a positive length in metres, got {size!r}")
-            cfg["mesh"]["size"] = f"{size * 1e3:.12g} mm"
-        elif nodes is not None:
-            cfg["mesh"]["nodes"] = nodes
-        else:
-            cfg["mesh"]["elements"] = elements
-    if keep_all and body is not None:
-        raise ConfigError("give either keep_all (--keep-all) or body (--body), not both")
-    if keep_all:
-        cfg["cleaning"].update(keep="all", body=None)
-    if body is not None:
-        cfg["cleaning"].update(keep="largest", body=body)
-    for value, section, key in ((structure, "prepare", "structure"), (unit, "input", "unit"),
-                                (label, "input", "label"), (material, "prepare", "material")):
-        if value is not None:
-            cfg[section][key] = value
-    if density is not None:
-        if isinstance(density, bool) or not isinstance(density, (int, float)):
-            raise ConfigError(f"density: expected a number of kg/m3, got {density!r}")
-        cfg["prepare"]["density"] = f"{float(density):.12g} kg/m3"
-    s = _settings(cfg, source)
-    if s.structure == "skeleton" and given:
-        raise ConfigError(f"{given[0]} sets the tet mesh; for the skeleton structure set "
-                          f"[skeleton] n_surface in the config")
-    if s.structure == "tetra" and s.floors:
-        _check_floor_names(s.floors)
-    clock = _Clock()
-    # Fail fast on the material before any meshing.
-    mat = clock.run("material", _load_material, s.material)
-    rep.step(f"config: {source}; structure {s.structure}; material {s.material}")
-    if mat is None:
-        warn("the materials module is not available: the asset has no /material or /tables")
-    else:
-        from .asset.write import material_effects
-
-        fx = material_effects(mat)       # ConfigError before any meshing if [material.effects] is malformed
-        if fx is not None:
-            rep.step(f"material effects {', '.join(fx.names)}: written to /material/effects, applied by "
-                     "'esmm simulate' (the material's parameters are the instantaneous response)")
-
-    # read
-    from .mesh.cleaning import CleaningOptions, clean_surface
-    from .mesh.readers import read_surface
-
-    surface = clock.run("read", read_surface, inp, unit=s.unit, label=s.label, reporter=rep)
-    rep.step(f"read: {surface.summary()} ({clock.timings['read']:.1f} s)")
-
-    opts = CleaningOptions(keep=s.cleaning["keep"], body=s.cleaning["body"],
-                           smooth_iterations=s.cleaning["smooth_iterations"],
-                           smooth_passband=s.cleaning["smooth_passband"],
-                           target_faces=s.cleaning["target_faces"], target_edge=s.cleaning["target_edge"])
-    clean, cleaning = clock.run("clean", clean_surface, surface, options=opts, reporter=rep)
-    rep.step(f"clean: {clean.summary()} ({clock.timings['clean']:.1f} s)")
-
-    from .network.springs import network_from_skeleton, network_from_tets
-
-    quality, passed, mesher, mesh_log, floors = None, True, "skeleton", [], None
-    if s.structure == "tetra":
-        mesh = _mesh(clean, s, rep, clock)
-        mesher = getattr(mesh, "path", "gmsh")
-        mesh_log = list(getattr(mesh, "log", []) or [])
-        rep.step(f"mesh: {mesh.points.shape[0]} nodes, {mesh.tets.shape[0]} tets via {mesher} "
-                 f"({clock.timings['mesh']:.1f} s)")
-        from .mesh.quality import QUALITY_FLOORS, tet_quality
-
-        floors = {**QUALITY_FLOORS, **s.floors}
-        quality = clock.run("quality", tet_quality, mesh)
-        passed, problems = quality.passes(floors)
-        if passed:
-            rep.step(f"quality: min dihedral {quality.min_dihedral_deg:.1f} deg, passes the floors")
-        elif force:
-            for pr in problems:
-                warn(f"quality below floor (written anyway, --force): {pr}")
-        else:
-            raise QualityError(f"{inp.name}: mesh quality below the floors: {'; '.join(problems)}; "
-                               f"try another --size/--nodes, or --force to write it anyway")
-        net = clock.run("network", network_from_tets, mesh, density=s.density, fibre_frame=s.frame,
-                        reorder=s.reorder, reporter=rep)
-    else:
-        from .mesh.skeleton import skeleton_structure
-
-        sk = clock.run("mesh", skeleton_structure, clean, n_surface=s.n_surface, reporter=rep)
-        mesh_log = list(getattr(sk, "log", []) or [])
-        from .network.springs import NODE_SKELETON, NODE_SURFACE
-
-        kind = np.where(np.asarray(sk.kind) == 0, NODE_SURFACE, NODE_SKELETON).astype(np.uint8)
-        net = clock.run("network", network_from_skeleton, sk.points, sk.edges, volume=abs(clean.volume()),
-                        surface_faces=sk.surface_faces, node_kind=kind, density=s.density,
-                        fibre_frame=s.frame, reorder=s.reorder, weight_exponent=s.weight_exponent)
-    rep.step(f"network: {net.summary()}, bandwidth {net.bandwidth()} ({clock.timings['network']:.2f} s)")
-
-    tables = clock.run("tables", _build_tables, mat, s.tables)
-    if tables is not None:
-        rep.step(f"tables: {tables.n} points on stretch {tables.lam_min:.3g}..{tables.lam_max:.3g} "
-                 f"({clock.timings['tables']:.2f} s)")
-        do_comp = s.tables.get("compensate", True) if compensate is None else compensate
-        if do_comp:
-            tables, summary = clock.run("compensation", _compensate, tables, net, mat, rep)
-            rep.step(f"compensation: volume factor c = {tables.volume_factor:.3f} and a stretch "
-                     f"correction; virtual tensile test error {summary} "
-                     f"({clock.timings['compensation']:.1f} s)")
-        else:
-            warnings.append("no volumetric compensation: the raw network is several times softer "
-                            "than the tissue (docs/model.md); run 'esmm tables ASSET --compensate'")
-            rep.warn(warnings[-1])
-
-    from .network.regions import select_fixed
-
-    fixed = select_fixed(net.points, s.fixed, node_kind=net.node_kind)
-    net = net.with_fixed(fixed)
-    rep.step(f"fixed: {fixed.size} nodes ({s.fixed.describe()})")
-
-    from .asset.provenance import collect_provenance
-    from .asset.write import write_asset
-    from .asset.xdmf import sidecar_path
-
-    prov = collect_provenance(inp, config_toml=config_toml(cfg), argv=argv,
-                              extra={"config_source": source, "timings_s": dict(clock.timings),
-                                     "mesher": mesher, "warnings": warnings,
-                                     "mesh_log": [str(x) for x in mesh_log[-50:]]})
-    clock.run("write", write_asset, out, net, material=mat, tables=tables, quality=quality,
-              cleaning=cleaning, provenance=prov, quality_floors=floors, fixed_region=s.fixed.describe())
-    rep.step(f"write: {out} ({clock.timings['write']:.2f} s)")
-    return PrepareResult(asset=out, xdmf=sidecar_path(out), network=net, quality=quality, quality_passed=passed,
-                         cleaning=cleaning, tables=tables, material=mat, timings=clock.timings,
-                         mesher=mesher, config=cfg, warnings=warnings)
+    inp, out = asset_paths(input_path, output)
+    cfg = prepare_config(config, size=size, nodes=nodes, elements=elements, structure=structure, unit=unit,
+                         label=label, keep_all=keep_all, body=body, material=material, density=density,
+                         compensate=compensate)
+    run = _Run(reporter)
+    mat = _material(cfg, run)
+    clean, cleaning = _surface(inp, cfg, run)
+    shape = _tetra(clean, cfg, run, force=force, name=inp.name) if cfg.structure == "tetra" else \
+        _skeleton(clean, cfg, run)
+    net = shape.network
+    run.rep.step(f"network: {net.summary()}, bandwidth {net.bandwidth()} ({run.timings['network']:.2f} s)")
+    tables = _tables(mat, net, cfg, run)
+    net = _fix(net, cfg, run)
+    _write(out, inp, net, mat, tables, shape, cleaning, cfg, run, argv)
+    return PrepareResult(asset=out, xdmf=sidecar_path(out), network=net, quality=shape.quality,
+                         quality_passed=shape.passed, cleaning=cleaning, tables=tables, material=mat,
+                         timings=run.timings, mesher=shape.mesher, config=cfg, warnings=run.warnings)

@@ -40,6 +40,15 @@ def _in_range(v: float, lo, hi, lo_open: bool, hi_open: bool) -> bool:
     return not (hi is not None and (v > hi or (hi_open and v == hi)))
 
 
+def _wanted(integer: bool, lo, hi, lo_open: bool, hi_open: bool) -> str:
+    """``a number >= 3``, ``a whole number in [1, 6]``, ``a positive number`` (> 0 alone)."""
+    kind = "whole number" if integer else "number"
+    if lo == 0 and lo_open and hi is None:
+        return f"a positive {kind}"
+    bound = f" {_range_text(lo, hi, lo_open, hi_open)}" if (lo is not None or hi is not None) else ""
+    return f"a {kind}{bound}"
+
+
 def number(value: Any, name: str, *, lo: float | None = None, hi: float | None = None,
            lo_open: bool = False, hi_open: bool = False, integer: bool = False) -> float | int:
     """A finite number (an ``int`` if *integer*) within the given bounds.
@@ -50,14 +59,12 @@ def number(value: Any, name: str, *, lo: float | None = None, hi: float | None =
     """
     ok_types = (int, np.integer) if integer else (int, float, np.integer, np.floating)
     if isinstance(value, bool) or not isinstance(value, ok_types):
-        kind = "a whole number" if integer else "a number"
-        bound = f" {_range_text(lo, hi, lo_open, hi_open)}" if (lo is not None or hi is not None) else ""
-        raise ConfigError(f"{name}: expected {kind}{bound}, got {value!r}", parameter=name)
+        raise ConfigError(f"{name}: expected {_wanted(integer, lo, hi, lo_open, hi_open)}, got {value!r}",
+                          parameter=name)
     v = int(value) if integer else float(value)
     if not math.isfinite(v) or not _in_range(v, lo, hi, lo_open, hi_open):
-        kind = "a whole number" if integer else "a number"
-        bound = f" {_range_text(lo, hi, lo_open, hi_open)}" if (lo is not None or hi is not None) else ""
-        raise ConfigError(f"{name}: expected {kind}{bound}, got {value!r}", parameter=name)
+        raise ConfigError(f"{name}: expected {_wanted(integer, lo, hi, lo_open, hi_open)}, got {value!r}",
+                          parameter=name)
     return v
 
 

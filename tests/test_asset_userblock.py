@@ -13,7 +13,7 @@ import cloudpickle
 import h5py
 import numpy as np
 import pytest
-from esmm.pipeline.asset import _h5, collect_provenance, read_asset, validate_asset, write_asset
+from esmm.pipeline.asset import collect_provenance, hdf5, read_asset, validate_asset, write_asset
 from esmm.pipeline.errors import AssetError
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the sandbox runs this module's probe
@@ -61,7 +61,7 @@ def headerless(src: Path, dst: Path) -> Path:
             d.attrs[k] = v
         for k in s:
             s.copy(s[k], d, name=k)
-        _h5.seal_content(d)
+        hdf5.seal_content(d)
     return dst
 
 
@@ -69,10 +69,10 @@ def test_header_states_hash_and_length_of_the_hdf5_bytes(asset):
     data = asset.read_bytes()
     m = re.match(rb"ESMM-ASSET 1 sha256=([0-9a-f]{64}) length=(\d+)\n", data)
     assert m is not None
-    rest = data[_h5.USERBLOCK_SIZE:]
-    assert rest.startswith(_h5.HDF5_SIGNATURE)  # the superblock right after the user block
+    rest = data[hdf5.USERBLOCK_SIZE:]
+    assert rest.startswith(hdf5.HDF5_SIGNATURE)  # the superblock right after the user block
     assert int(m.group(2)) == len(rest) and m.group(1).decode() == hashlib.sha256(rest).hexdigest()
-    assert _h5.check_file(asset) == (True, "")
+    assert hdf5.check_file(asset) == (True, "")
     with h5py.File(asset, "r") as f:
         assert f.userblock_size == 512 and f.attrs["esmm_type"] == "esmm_asset"
     assert validate_asset(asset) == []  # the XDMF sidecar included
@@ -127,16 +127,16 @@ def test_padding_after_the_header_line_is_not_checked(asset):
 def test_seal_rewrites_the_header_when_the_file_is_closed(asset):
     with h5py.File(asset, "r+") as f:
         f["/nodes/mass"][0] = -1.0
-        _h5.seal(f)
-    assert _h5.check_file(asset) == (True, "")
+        hdf5.seal(f)
+    assert hdf5.check_file(asset) == (True, "")
     problems = validate_asset(asset)
     assert problems and all("hash" not in p for p in problems) and any("mass" in p for p in problems)
     # an explicit close() (no with-block) seals too
     f = h5py.File(asset, "r+")
     f["/nodes/mass"][0] = f["/nodes/mass"][1]
-    _h5.seal(f)
+    hdf5.seal(f)
     f.close()
-    assert _h5.check_file(asset) == (True, "") and validate_asset(asset) == []
+    assert hdf5.check_file(asset) == (True, "") and validate_asset(asset) == []
 
 
 def test_esmm_info_on_a_modified_file(asset, capsys):
@@ -153,7 +153,7 @@ def test_esmm_info_on_a_modified_file(asset, capsys):
 
 def test_headerless_file_gets_the_content_checks(asset, tmp_path):
     old = headerless(asset, tmp_path / "old.h5")
-    assert _h5.check_file(old) == (False, "") and validate_asset(old) == []
+    assert hdf5.check_file(old) == (False, "") and validate_asset(old) == []
     with h5py.File(old, "r+") as f:
         f["/springs/rest_length"][5] *= 1.001
     with pytest.raises(AssetError, match="rest_length: content does not match its sha256"):
@@ -176,7 +176,7 @@ def test_headerless_infinite_version_is_refused(asset, tmp_path):
         read_asset(old)
 
 
-def test_headerless_damage_seen_by_h5py_is_an_asset_error(asset, tmp_path, sandbox):
+def test_headerless_damage_seen_byhdf5py_is_an_asset_error(asset, tmp_path, sandbox):
     """libhdf5's RuntimeError on damaged metadata (in a sandbox: such files can also crash it)."""
     old = headerless(asset, tmp_path / "old.h5")
     b = bytearray(old.read_bytes())
@@ -218,8 +218,8 @@ def test_seal_file_gives_a_headerless_file_its_header(asset, tmp_path):
     old = headerless(asset, tmp_path / "old.h5")
     with h5py.File(old, "r") as f:
         before = {k: f[k][()] for k in ("/mesh/points", "/springs/pairs")}
-    assert _h5.seal_file(old) is True
-    assert _h5.check_file(old) == (True, "") and validate_asset(old) == []
+    assert hdf5.seal_file(old) is True
+    assert hdf5.check_file(old) == (True, "") and validate_asset(old) == []
     with h5py.File(old, "r") as f:
         assert f.userblock_size == 512
         for k, v in before.items():
@@ -236,19 +236,20 @@ def test_foreign_user_block_is_left_alone(tmp_path):
         f.create_dataset("x", data=[1, 2])
     with open(p, "r+b") as fh:
         fh.write(b"somebody else's user block")
-    assert _h5.seal_file(p) is False
-    assert _h5.check_file(p) == (False, "")
+    assert hdf5.seal_file(p) is False
+    assert hdf5.check_file(p) == (False, "")
     with pytest.raises(AssetError, match="not an esmm asset"):
         read_asset(p)
 
 
 def test_rewritten_tables_are_sealed(asset):
+    from esmm.pipeline.asset import update_asset_tables
     from esmm.pipeline.materials.material import load_material
-    from esmm.pipeline.network.tables import build_tables, update_asset_tables
+    from esmm.pipeline.network.tables import build_tables
 
     mat = load_material("porcine_liver_paper")
     update_asset_tables(asset, build_tables(mat, n=12), material=mat)
-    assert _h5.check_file(asset) == (True, "")
+    assert hdf5.check_file(asset) == (True, "")
     a = read_asset(asset)
     assert a.tables.n == 12 and validate_asset(asset) == []
 

@@ -166,3 +166,27 @@ def test_batch_by_specimen_skips_bad_file(run_cli, bundled_data, tmp_path):
     assert any(r[1] == "unreadable" for r in rows)
     assert any(r[0] == "mean" for r in rows) and any(r[0] == "std" for r in rows)
     assert len([p for p in out.iterdir() if p.is_dir() and not p.name.startswith(".")]) == 3
+
+
+def test_calibrate_config_file_and_overrides(tmp_path):
+    """The [calibrate] table is read and checked by the library; the caller's options win."""
+    from esmm.pipeline.calibrate.config import load_calibrate_config
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[calibrate]\nmodel = "arruda-boyce"\nstarts = 3\nseed = 2\nstress_unit = "kPa"\n'
+                   'weights = { a = 2.0 }\nfix = { mu = 270 }\n')
+    c = load_calibrate_config(cfg)
+    assert (c.model, c.n_starts, c.seed, c.weights, c.fixed) == ("arruda-boyce", 3, 2, {"a": 2.0}, {"mu": 270e3})
+    c = load_calibrate_config(cfg, n_starts="5", weights={"b": "0.5"}, fixed={"N": "20", "mu": "0.3 MPa"},
+                              free=["N"])
+    assert c.fit_kwargs() == dict(model="arruda-boyce", loss="linear", n_starts=5, seed=2,
+                                  weights={"a": 2.0, "b": 0.5}, fixed={"mu": 0.3e6, "N": 20.0}, free=("N",))
+    assert load_calibrate_config().fit_kwargs()["weights"] is None
+    cfg.write_text('[calibrate]\nstarts = "x"\n')
+    with pytest.raises(ConfigError, match=r"c.toml: \[calibrate\] starts"):
+        load_calibrate_config(cfg)
+    with pytest.raises(ConfigError, match="^fixed: unknown parameter 'zz'") as info:
+        load_calibrate_config(None, model="arruda-boyce", fixed={"zz": "1"})
+    assert info.value.parameter == "fixed"
+    with pytest.raises(ConfigError, match="^fixed: mu: '3' has no unit"):
+        load_calibrate_config(None, model="arruda-boyce", fixed={"mu": "3"})

@@ -13,7 +13,7 @@ import pytest
 from esmm.pipeline.discover import MaterialEffects, discover, discover_and_save
 from esmm.pipeline.discover import synthetic as syn
 from esmm.pipeline.discover.covariates import covariates, thin
-from esmm.pipeline.discover.model import information, lag1, runs_test
+from esmm.pipeline.discover.statistics import information, lag1, runs_test
 from esmm.pipeline.errors import ConfigError
 from esmm.pipeline.materials import get_model
 from esmm.pipeline.materials.effects import (
@@ -68,7 +68,7 @@ def test_synthetic_trapezoid_agrees_with_exact_recursion():
     """The generator's independent Crank-Nicolson integration converges to the fit's exact recursion."""
     pr = syn.load_unload(0.1, 1.5)
     pe = 1e4 * (pr.lam - 1.0)
-    a = syn._prony_trapezoid(pr.t, pe, [0.4, 0.2], [0.5, 5.0])
+    a = syn.prony_trapezoid(pr.t, pe, [0.4, 0.2], [0.5, 5.0])
     b = qlv_stress(pr.t, pe, [0.4, 0.2], [0.5, 5.0])
     assert np.max(np.abs(a - b)) < 1e-3 * np.max(np.abs(b))
 

@@ -7,9 +7,9 @@ import json
 
 import numpy as np
 import pytest
-from esmm.pipeline.calibrate.evaluate import evaluate, load_fit
 from esmm.pipeline.discover import discover_and_save
 from esmm.pipeline.discover import synthetic as syn
+from esmm.pipeline.discover.evaluate import evaluate, load_fit
 from esmm.pipeline.errors import ConfigError, InputError
 from esmm.pipeline.tensile import read
 

@@ -190,7 +190,7 @@ def weird_value(tag):
                       min_size=1, max_size=3),
        reseal=st.booleans())
 def test_edited_with_h5py(sandbox, workdir, base_asset, objects, edits, reseal):
-    from esmm.pipeline.asset import _h5
+    from esmm.pipeline.asset import hdf5
 
     p = copy_to(workdir, base_asset)
     with h5py.File(p, "r+") as f:
@@ -198,7 +198,7 @@ def test_edited_with_h5py(sandbox, workdir, base_asset, objects, edits, reseal):
             with contextlib.suppress(Exception):  # an edit h5py itself cannot make is skipped
                 _edit(f, objects, pick, op, tag, shape, dtype, value)
         if reseal:
-            _h5.seal(f)
+            hdf5.seal(f)
     note(f"edits {edits} reseal {reseal}")
     check(sandbox, p, label=f"h5py edits {edits} reseal={reseal}")
 
@@ -298,6 +298,21 @@ def test_known_hang_on_zeroed_bytes(tmp_path, base_asset):
     with Sandbox() as sb:
         kind, value = sb.call(probe, str(p), timeout=PROBE_TIMEOUT)
     assert kind == "result", value[0] if kind == "died" else value
+
+
+def test_known_hang_on_a_header_with_its_start_zeroed(tmp_path, base_asset):
+    """14 zero bytes over 'ESMM-ASSET 1 s' and 62 in the HDF5 metadata: the header was taken for absent,
+    the hash check skipped, and libhdf5 looped on the damaged metadata (found by test_damaged_bytes)."""
+    p = Path(shutil.copy(base_asset, tmp_path / "organ.h5"))
+    b = bytearray(p.read_bytes())
+    b[0:14] = bytes(14)
+    at = int(0.6636144167119001 * len(b))
+    b[at:at + 62] = bytes(62)
+    p.write_bytes(bytes(b))
+    with Sandbox() as sb:
+        kind, value = sb.call(probe, str(p), timeout=PROBE_TIMEOUT)
+    assert kind == "result" and value["read"] == "refused", value
+    assert "header is unreadable" in value["read_message"]
 
 
 def test_known_crash_attribute_error(tmp_path, base_asset):

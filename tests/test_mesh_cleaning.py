@@ -205,10 +205,10 @@ def test_invesalius_like_input_is_cleaned(tmp_path):
 
 
 def _largest(s: Surface):
-    from esmm.pipeline.mesh.cleaning import _keep_largest, _orient_outward
+    from esmm.pipeline.mesh.cleaning import keep_largest, orient_outward
 
-    p, f, _ = _keep_largest(s.points, s.faces)
-    f, *_ = _orient_outward(p, f)
+    p, f, _ = keep_largest(s.points, s.faces)
+    f, *_ = orient_outward(p, f)
     return p, f
 
 

@@ -262,7 +262,7 @@ def test_shared_organ_gives_a_valid_mesh(shared_data, name, kw):
 
 @pytest.mark.parametrize("name,kw,match", [
     ("sofa_liver_broken.vtk", {}, "corrupt or truncated"),
-    ("sofa_liver_smooth_ascii.stl", {}, "--unit cm"),
+    ("sofa_liver_smooth_ascii.stl", {}, "unit cm"),
 ])
 def test_shared_bad_inputs_fail_clearly(shared_data, name, kw, match):
     from esmm.pipeline.mesh.readers import read_surface

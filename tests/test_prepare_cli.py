@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from esmm.pipeline.config import bundled_names
 from esmm.pipeline.errors import ConfigError
-from esmm.pipeline.prepare import DEFAULTS, _settings, load_prepare_config, size_for_elements
+from esmm.pipeline.mesh.targets import size_for_elements
+from esmm.pipeline.prepare import DEFAULTS, load_prepare_config, parse_prepare_config
 
 
 def icosphere(radius=0.03, levels=3):
@@ -64,8 +65,8 @@ def test_bundled_presets_are_complete_and_valid():
     targets = {}
     for name in names:
         cfg, source = load_prepare_config(name)
-        s = _settings(cfg, source)
-        targets[name] = s.elements
+        s = parse_prepare_config(cfg, source)
+        targets[name] = s.target.elements
     assert targets["coarse"] < targets["paper"] == 5000 < targets["fine"]
 
 
@@ -88,11 +89,9 @@ def test_bundled_presets_are_complete_and_valid():
     ({"quality": {"sicn_p1": "high"}}, "expected a number"),
 ])
 def test_bad_config_values_are_one_line_errors(config, match):
-    from esmm.pipeline.prepare import _check_floor_names
-
     with pytest.raises(ConfigError, match=match) as info:
         cfg, src = load_prepare_config(config)
-        _check_floor_names(_settings(cfg, src).floors)
+        parse_prepare_config(cfg, src)
     assert "\n" not in str(info.value)
 
 
@@ -100,8 +99,8 @@ def test_config_file_overrides_and_keeps_defaults(tmp_path):
     p = tmp_path / "my.toml"
     p.write_text('[mesh]\nsize = "6 mm"\n[fixed]\nkind = "none"\n')
     cfg, src = load_prepare_config(p)
-    s = _settings(cfg, src)
-    assert s.size == pytest.approx(0.006) and s.elements is None and s.nodes is None
+    s = parse_prepare_config(cfg, src)
+    assert s.target.size == pytest.approx(0.006) and s.target.elements is None and s.target.nodes is None
     assert s.fixed.kind == "none"
     assert s.density == 1060.0 and s.structure == "tetra"
     assert set(cfg) == set(DEFAULTS)
@@ -109,7 +108,7 @@ def test_config_file_overrides_and_keeps_defaults(tmp_path):
 
 def test_size_for_elements_matches_its_definition():
     # a regular tet of edge h has volume h^3/(6 sqrt 2); the mesher's average r times that
-    from esmm.pipeline.prepare import MESHER_VOLUME_RATIO as r
+    from esmm.pipeline.mesh.targets import MESHER_VOLUME_RATIO as r
 
     h = size_for_elements(1e-3, 5000)
     assert 5000 * r * h**3 / (6 * 2**0.5) == pytest.approx(1e-3, rel=1e-12)
@@ -177,7 +176,7 @@ def test_info_on_a_good_asset(run_cli, small_asset):
 
 
 def test_info_on_bad_assets(run_cli, small_asset, tmp_path):
-    from esmm.pipeline.asset._h5 import seal
+    from esmm.pipeline.asset.hdf5 import seal
 
     with h5py.File(small_asset, "r+") as f:
         f["/nodes/mass"][0] = 0.0

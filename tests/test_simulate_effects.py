@@ -481,7 +481,7 @@ def test_asset_without_effects_has_none(tmp_path):
 def test_edited_effects_are_reported(tmp_path, fit_material):
     import h5py
     from esmm.pipeline.asset import validate_asset
-    from esmm.pipeline.asset._h5 import seal
+    from esmm.pipeline.asset.hdf5 import seal
 
     path = _asset(tmp_path, fit_material)
     with h5py.File(path, "r+") as f:                  # a consistent re-seal: only the content check can see it
@@ -530,9 +530,9 @@ def test_end_to_end_discover_prepare_info_simulate(run_cli, tmp_path):
 
 def test_tables_with_a_fit_material_carry_its_effects(tmp_path, fit_material):
     """esmm tables ASSET --material params.toml: the rewritten asset has the new material's effects."""
-    from esmm.pipeline.asset import read_asset, validate_asset
+    from esmm.pipeline.asset import read_asset, update_asset_tables, validate_asset
     from esmm.pipeline.materials.material import load_material
-    from esmm.pipeline.network.tables import build_tables, update_asset_tables
+    from esmm.pipeline.network.tables import build_tables
 
     path = _asset(tmp_path, load_material("porcine_liver_paper"))
     assert read_asset(path).effects is None

@@ -5,16 +5,15 @@ from __future__ import annotations
 import h5py
 import numpy as np
 import pytest
+from esmm.pipeline.asset.tables import read_tables, write_per_spring, write_tables
 from esmm.pipeline.errors import AssetError, ConfigError, InputError
 from esmm.pipeline.materials.loading import nominal_stress
 from esmm.pipeline.materials.material import Material, load_material
 from esmm.pipeline.network.tables import (
     LAWS,
-    StiffnessTables,
     build_tables,
     per_spring_table,
     spring_factors,
-    write_per_spring,
 )
 
 
@@ -197,13 +196,13 @@ def test_hdf5_round_trip(tmp_path, tables):
     t = tables.with_compensation(5.5, correction={"energy": g}, record={"law": "energy", "x": [1, 2]})
     path = tmp_path / "t.h5"
     with h5py.File(path, "w") as f:
-        t.to_hdf5(f.create_group("tables"))
+        write_tables(f.create_group("tables"), t)
     with h5py.File(path, "r") as f:
         grp = f["tables"]
         assert grp.attrs["esmm_type"] == "stiffness_tables" and grp.attrs["esmm_version"] == 1
         assert grp["mu_e"].attrs["units"] == "Pa" and grp["lam"].shape == (tables.n,)
         assert "porcine liver" in grp.attrs["material_toml"]
-        back = StiffnessTables.from_hdf5(grp)
+        back = read_tables(grp)
     for name in ("values", "stress", "energy", "correction"):
         np.testing.assert_array_equal(getattr(back, name), getattr(t, name))
     assert back.volume_factor == 5.5 and back.metadata["compensation"]["x"] == [1, 2]
@@ -212,25 +211,25 @@ def test_hdf5_round_trip(tmp_path, tables):
     np.testing.assert_allclose(back.material_stress, tables.stress, rtol=1e-13)
     # rewriting over an existing group works
     with h5py.File(path, "a") as f:
-        tables.to_hdf5(f["tables"])
-        assert StiffnessTables.from_hdf5(f["tables"]).volume_factor == 1.0
+        write_tables(f["tables"], tables)
+        assert read_tables(f["tables"]).volume_factor == 1.0
 
 
 def test_hdf5_errors(tmp_path, tables):
     path = tmp_path / "bad.h5"
     with h5py.File(path, "w") as f:
-        tables.to_hdf5(f.create_group("a"))
+        write_tables(f.create_group("a"), tables)
         f["a"].attrs["esmm_version"] = 99
-        tables.to_hdf5(f.create_group("b"))
+        write_tables(f.create_group("b"), tables)
         del f["b"]["stress"]
         f.create_group("c").attrs["esmm_type"] = "network"
     with h5py.File(path, "r") as f:
         with pytest.raises(AssetError, match="version 99"):
-            StiffnessTables.from_hdf5(f["a"])
+            read_tables(f["a"])
         with pytest.raises(AssetError, match="damaged"):
-            StiffnessTables.from_hdf5(f["b"])
+            read_tables(f["b"])
         with pytest.raises(AssetError, match="not a stiffness-table group"):
-            StiffnessTables.from_hdf5(f["c"])
+            read_tables(f["c"])
 
 
 class _Net:

@@ -29,7 +29,8 @@ def refuse(tmp_path: Path, content, *, sidecar: str | None = None, error=InputEr
     assert type(info.value) is error
     msg = str(info.value)
     assert "\n" not in msg and len(msg) < 600
-    assert name in msg or p.with_suffix(".toml").name in msg or "command line" in msg
+    # the file, its sidecar, or the override (the message starts with its key, which the CLI shows as its flag)
+    assert name in msg or p.with_suffix(".toml").name in msg or msg.startswith(f"{info.value.parameter}:")
     assert sorted(os.listdir(tmp_path)) == before          # nothing written
     return msg
 
@@ -67,22 +68,26 @@ def test_missing_units(tmp_path):
     assert "column 2 'displacement' has no unit" in msg
 
 
-def test_missing_geometry(tmp_path):
+def test_missing_geometry(tmp_path, run_cli):
     msg = refuse(tmp_path, RAW, overrides={"area": "1 mm2"})
-    assert "missing geometry" in msg and "gauge_length" in msg and "--gauge-length" in msg
+    assert "missing geometry" in msg and "gauge_length" in msg and msg.startswith("gauge_length:")
+    code, _, err = run_cli("calibrate", tmp_path / "bad.csv", "--area", "1 mm2")
+    assert code == 2 and "--gauge-length" in err
     msg = refuse(tmp_path, RAW, overrides={"gauge_length": "10 mm"})
     assert "missing geometry" in msg and "area" in msg and "width and thickness" in msg
     msg = refuse(tmp_path, RAW, overrides={"gauge_length": "10 mm", "width": "2 mm"})
     assert "width is given but not thickness" in msg
 
 
-def test_bare_number_for_a_dimensional_key(tmp_path):
+def test_bare_number_for_a_dimensional_key(tmp_path, run_cli):
     msg = refuse(tmp_path, "# gauge_length: 30\n" + RAW, overrides={"area": "1 mm2"})
     assert "line 1: gauge_length" in msg and "no unit" in msg and '"30 mm"' in msg
     msg = refuse(tmp_path, RAW, sidecar='gauge_length = 30\narea = "1 mm2"\n')
     assert "bad.toml: gauge_length" in msg and "no unit" in msg
     msg = refuse(tmp_path, RAW, overrides={"gauge_length": "30", "area": "1 mm2"}, error=ConfigError)
-    assert "--gauge-length" in msg
+    assert msg.startswith("gauge_length:")
+    code, _, err = run_cli("calibrate", tmp_path / "bad.csv", "--gauge-length", "30", "--area", "1 mm2")
+    assert code == 2 and "--gauge-length" in err and "no unit" in err
     # refused even where the value would not be used (a processed file)
     assert "no unit" in refuse(tmp_path, "# area: 22\nstretch,stress [kPa]\n1,0\n")
 
@@ -159,11 +164,13 @@ def test_mismatched_sidecar_columns_and_units(tmp_path):
     assert "unknown column quantity 'strech'" in msg
 
 
-def test_unknown_mode(tmp_path):
+def test_unknown_mode(tmp_path, run_cli):
     msg = refuse(tmp_path, "# mode: biaxial\nstretch,stress [kPa]\n1,0\n")
     assert "line 1: mode" in msg and "unknown mode 'biaxial'" in msg and "equibiaxial" in msg
     msg = refuse(tmp_path, "stretch,stress [kPa]\n1,0\n", overrides={"mode": "torsion"}, error=ConfigError)
-    assert "--mode" in msg
+    assert msg.startswith("mode:")
+    code, _, err = run_cli("calibrate", tmp_path / "bad.csv", "--mode", "torsion")
+    assert code == 2 and "--mode" in err
 
 
 def test_mode_and_columns_disagree(tmp_path):

@@ -3,11 +3,19 @@
 See docs/asset-format.md for the schema. ``write_asset`` writes it (and an
 XDMF sidecar for ParaView) atomically; ``read_asset`` reads it back and
 refuses anything truncated, tampered with or of an unknown/newer schema;
-``validate_asset`` lists every problem.
+``validate_asset`` lists every problem; ``update_asset_tables`` rewrites the
+stiffness tables (and material) of an existing asset.
+
+Modules: :mod:`.schema` (types, versions, units), :mod:`.hdf5` (typed groups,
+text, content hashes, the sealed file header), :mod:`.material` (``/material``),
+:mod:`.tables` (``/tables``), :mod:`.provenance`, :mod:`.xdmf` (the ParaView
+sidecar), :mod:`.write`, :mod:`.read` and :mod:`.rewrite`.
 """
 
 from .provenance import Provenance, collect_provenance
 from .read import Asset, read_asset, validate_asset
+from .rewrite import update_asset_tables
 from .write import write_asset
 
-__all__ = ["Asset", "Provenance", "collect_provenance", "read_asset", "validate_asset", "write_asset"]
+__all__ = ["Asset", "Provenance", "collect_provenance", "read_asset", "update_asset_tables", "validate_asset",
+           "write_asset"]

@@ -9,13 +9,11 @@ import platform
 import socket
 import sys
 from dataclasses import dataclass, field
-from importlib.metadata import PackageNotFoundError, version
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-#: Distributions whose versions are recorded (those that shape an asset).
-PACKAGES = ("esmm", "numpy", "scipy", "h5py", "gmsh", "vtk", "pyvista", "meshio", "pymeshfix",
-            "fast-simplification", "pytetwild", "nibabel", "scikit-image", "numba", "tomli-w")
+from .. import distributions
 
 
 @dataclass
@@ -70,13 +68,13 @@ def sha256_file(path: str | os.PathLike, *, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-def package_versions(names=PACKAGES) -> dict[str, str]:
-    """Installed versions of *names* (``"absent"`` for those not installed)."""
+def package_versions(names=None) -> dict[str, str]:
+    """Installed versions of *names* (default :func:`distributions`; ``"absent"`` for those not installed)."""
     out = {}
-    for name in names:
+    for name in distributions() if names is None else names:
         try:
-            out[name] = version(name)
-        except PackageNotFoundError:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
             out[name] = "absent"
     return out
 

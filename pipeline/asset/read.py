@@ -1,7 +1,7 @@
 """Reading and validating assets.
 
 Both functions first check the file header (SHA-256 and length of the bytes after
-the HDF5 user block; :func:`~esmm.pipeline.asset._h5.check_file`) so that libhdf5,
+the HDF5 user block; :func:`~esmm.pipeline.asset.hdf5.check_file`) so that libhdf5,
 which can crash or hang on damaged metadata, never parses a damaged esmm file.
 :func:`read_asset` dispatches on each group's ``esmm_type``/``esmm_version``,
 verifies every dataset's SHA-256 and the root checksum, and raises a one-line
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,13 +23,17 @@ import h5py
 import numpy as np
 
 from ..errors import AssetError, EsmmError
+from ..materials.effects import MaterialEffects
 from ..network.springs import SpringNetwork
-from . import _h5
+from ..network.tables import StiffnessTables
+from . import hdf5
+from .material import material_effects, material_from_toml, read_effects
 from .provenance import Provenance
 from .schema import ASSET_TYPE, ASSET_VERSION, CHECKSUM_ATTR, DATASETS, GROUPS, KNOWN_UNITS
+from .tables import read_tables
+from .xdmf import check_sidecar, sidecar_path
 
 ADVICE = "re-create it with 'esmm prepare'"
-
 
 
 @dataclass
@@ -62,8 +67,8 @@ class Asset:
     network: SpringNetwork
     material: Any = None
     material_toml: str = ""
-    tables: Any = None
-    effects: Any = None
+    tables: StiffnessTables | None = None
+    effects: MaterialEffects | None = None
     quality: dict | None = None
     quality_passes: bool | None = None
     cleaning: dict | None = None
@@ -91,7 +96,7 @@ class Asset:
                 "volume_factor": getattr(self.tables, "volume_factor", 1.0),
                 "default_law": getattr(self.tables, "default_law", "")},
             "quality_passes": self.quality_passes,
-            "created_utc": _h5.attr_str(self.attrs.get("created_utc", "")),
+            "created_utc": hdf5.attr_str(self.attrs.get("created_utc", "")),
             "input": self.provenance.input_path, "input_sha256": self.provenance.input_sha256,
             "esmm_version": self.provenance.packages.get("esmm", ""),
         }
@@ -120,8 +125,6 @@ def _stats(a: np.ndarray) -> dict[str, float]:
 def _material_name(text: str) -> str:
     if not text:
         return ""
-    import tomllib
-
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError:
@@ -155,7 +158,7 @@ def _damaged(p: Path, exc: BaseException) -> AssetError:
 def _check_bytes(path: Path) -> None:
     """The file header check (docs/asset-format.md), before libhdf5 sees the file."""
     try:
-        _sealed, problem = _h5.check_file(path)
+        _sealed, problem = hdf5.check_file(path)
     except OSError as exc:
         raise AssetError(f"{path}: cannot be read ({exc.strerror or exc}); check the file's permissions") from None
     if problem:
@@ -194,10 +197,10 @@ def _looks_hdf5(path: Path) -> bool:
 
 
 def _root_problems(f: h5py.File) -> list[str]:
-    kind = _h5.attr_str(f.attrs.get("esmm_type"))
+    kind = hdf5.attr_str(f.attrs.get("esmm_type"))
     if kind != ASSET_TYPE:
         return [f"not an esmm asset (root esmm_type is {kind or 'missing'!r}, expected {ASSET_TYPE!r})"]
-    version = _h5.attr_int(f.attrs.get("esmm_version"))
+    version = hdf5.attr_int(f.attrs.get("esmm_version"))
     if version < 1:
         return [f"root esmm_version {f.attrs.get('esmm_version')!r} is not a schema version"]
     if version > ASSET_VERSION:
@@ -211,12 +214,12 @@ def _integrity_problems(f: h5py.File) -> list[str]:
 
     def visit(name: str, obj) -> None:
         if isinstance(obj, h5py.Dataset):
-            stored = _h5.attr_str(obj.attrs.get("sha256"))
+            stored = hdf5.attr_str(obj.attrs.get("sha256"))
             if not stored:
                 out.append(f"/{name}: no sha256 attribute")
                 return
             try:
-                digest = _h5.dataset_digest(obj)
+                digest = hdf5.dataset_digest(obj)
             except (OSError, ValueError, TypeError) as exc:
                 out.append(f"/{name}: cannot be read ({exc})")
                 return
@@ -228,12 +231,12 @@ def _integrity_problems(f: h5py.File) -> list[str]:
     except (OSError, RuntimeError, ValueError) as exc:
         out.append(f"the file structure cannot be read ({exc})")
         return out
-    stored = _h5.attr_str(f.attrs.get(CHECKSUM_ATTR))
+    stored = hdf5.attr_str(f.attrs.get(CHECKSUM_ATTR))
     if not stored:
         out.append(f"root attribute {CHECKSUM_ATTR} is missing")
     else:
         try:
-            if _h5.manifest(f) != stored:
+            if hdf5.manifest(f) != stored:
                 out.append("attributes do not match the root checksum (an attribute was modified)")
         except (OSError, RuntimeError, ValueError) as exc:
             out.append(f"attributes cannot be read ({exc})")
@@ -255,8 +258,8 @@ def _schema_problems(f: h5py.File) -> tuple[list[str], bool]:
             out.append(f"{gpath}: expected a group")
             fatal = True
             continue
-        t = _h5.attr_str(g.attrs.get("esmm_type"))
-        v = _h5.attr_int(g.attrs.get("esmm_version"))
+        t = hdf5.attr_str(g.attrs.get("esmm_type"))
+        v = hdf5.attr_int(g.attrs.get("esmm_version"))
         if t != gtype:
             out.append(f"{gpath}: esmm_type is {t or 'missing'!r}, expected {gtype!r}")
             fatal = True
@@ -279,7 +282,7 @@ def _schema_problems(f: h5py.File) -> tuple[list[str], bool]:
             out.append(f"{dpath}: expected a dataset")
             fatal = True
             continue
-        u = _h5.attr_str(ds.attrs.get("units"))
+        u = hdf5.attr_str(ds.attrs.get("units"))
         if u != units:
             out.append(f"{dpath}: units are {u or 'missing'!r}, expected {units!r}")
         if ds.dtype.kind not in kinds:
@@ -288,7 +291,7 @@ def _schema_problems(f: h5py.File) -> tuple[list[str], bool]:
 
     def visit(name: str, obj) -> None:
         if isinstance(obj, h5py.Dataset):
-            u = _h5.attr_str(obj.attrs.get("units"))
+            u = hdf5.attr_str(obj.attrs.get("units"))
             if not u:
                 out.append(f"/{name}: no units attribute")
             elif u not in KNOWN_UNITS:
@@ -326,7 +329,7 @@ def _shape_problems(f: h5py.File) -> list[str]:
             out.append(f"{path}: shape {f[path].shape}, expected (k, {width})")
     if f["/nodes/fixed"].ndim != 1:
         out.append(f"/nodes/fixed: shape {f['/nodes/fixed'].shape}, expected (f,)")
-    structure = _h5.attr_str(f["/mesh"].attrs.get("structure"))
+    structure = hdf5.attr_str(f["/mesh"].attrs.get("structure"))
     if structure == "tetra" and "/mesh/tets" not in f:
         out.append("/mesh/tets: missing for a tetra structure")
     if out:
@@ -357,51 +360,14 @@ def _network(f: h5py.File) -> SpringNetwork:
         fixed=_arr(f, "/nodes/fixed", np.int64),
         tets=_arr(f, "/mesh/tets", np.int64) if "/mesh/tets" in f else None,
         node_kind=_arr(f, "/mesh/node_kind", np.uint8),
-        structure=_h5.attr_str(f["/mesh"].attrs.get("structure", "tetra")),
+        structure=hdf5.attr_str(f["/mesh"].attrs.get("structure", "tetra")),
         fibre_frame=_arr(f, "/springs/fibre_frame", np.float64),
         density=float(f["/nodes"].attrs.get("density_kg_m3", 0.0)),
     )
 
 
-def _tables(f: h5py.File):
-    if "/tables" not in f:
-        return None
-    try:
-        from ..network.tables import StiffnessTables
-    except ImportError:
-        return None
-    return StiffnessTables.from_hdf5(f["/tables"])
-
-
-def _effects(f: h5py.File):
-    """MaterialEffects from ``/material/effects`` (None when the group is absent)."""
-    if "/material/effects" not in f:
-        return None
-    from ..materials.effects import MaterialEffects
-
-    g = f["/material/effects"]
-    d: dict[str, Any] = {}
-    if "viscoelastic" in g:
-        d["viscoelastic"] = {"g": np.atleast_1d(g["viscoelastic/g"][()]).astype(float).tolist(),
-                             "tau": np.atleast_1d(g["viscoelastic/tau"][()]).astype(float).tolist()}
-    if "mullins" in g:
-        d["mullins"] = {k: float(g[f"mullins/{k}"][()]) for k in ("r", "m", "beta")}
-    if "damage" in g:
-        d["damage"] = {k: float(g[f"damage/{k}"][()]) for k in ("onset", "scale", "shape")}
-    try:
-        d["intervals"] = json.loads(_h5.attr_str(g.attrs.get("intervals", "{}")) or "{}")
-    except json.JSONDecodeError:
-        d["intervals"] = {}
-    try:
-        return MaterialEffects.from_dict(d, where="/material/effects")
-    except EsmmError as exc:
-        raise AssetError(str(exc)) from None
-
-
-def _effects_of_toml(material) -> Any:
-    from .write import material_effects
-
-    return material_effects(material)
+def _tables(f: h5py.File) -> StiffnessTables | None:
+    return read_tables(f["/tables"]) if "/tables" in f else None
 
 
 def _effects_disagree(a, b) -> str:
@@ -419,27 +385,11 @@ def _effects_disagree(a, b) -> str:
     return ""
 
 
-def _material(text: str):
-    """Parse the stored material TOML with the materials module (None if it is not installed)."""
-    if not text:
-        return None
-    try:
-        from ..materials.material import load_material
-    except ImportError:
-        return None
-    import tempfile
-
-    with tempfile.TemporaryDirectory(prefix="esmm-material-") as tmp:
-        path = Path(tmp) / "material.toml"
-        path.write_text(text, encoding="utf-8")
-        return load_material(path)
-
-
 def _json(f: h5py.File, path: str) -> dict | None:
     if path not in f:
         return None
     try:
-        return json.loads(_h5.get_text(f[path]))
+        return json.loads(hdf5.get_text(f[path]))
     except json.JSONDecodeError:
         return None
 
@@ -448,16 +398,16 @@ def _provenance(f: h5py.File) -> Provenance:
     g = f["/provenance"]
     a = g.attrs
     try:
-        argv = json.loads(_h5.get_text(g["command_line"]))
-        packages = json.loads(_h5.get_text(g["packages"]))
-        extra = json.loads(_h5.attr_str(a.get("extra", "{}")) or "{}")
+        argv = json.loads(hdf5.get_text(g["command_line"]))
+        packages = json.loads(hdf5.get_text(g["packages"]))
+        extra = json.loads(hdf5.attr_str(a.get("extra", "{}")) or "{}")
     except json.JSONDecodeError as exc:
         raise AssetError(f"/provenance: damaged JSON ({exc})") from None
     return Provenance(
-        input_path=_h5.attr_str(a.get("input_path")), input_sha256=_h5.attr_str(a.get("input_sha256")),
-        config_toml=_h5.get_text(g["config_toml"]), command_line=list(argv), utc_time=_h5.attr_str(a.get("utc_time")),
-        host=_h5.attr_str(a.get("host")), packages=dict(packages), python=_h5.attr_str(a.get("python")),
-        platform=_h5.attr_str(a.get("platform")), extra=extra,
+        input_path=hdf5.attr_str(a.get("input_path")), input_sha256=hdf5.attr_str(a.get("input_sha256")),
+        config_toml=hdf5.get_text(g["config_toml"]), command_line=list(argv), utc_time=hdf5.attr_str(a.get("utc_time")),
+        host=hdf5.attr_str(a.get("host")), packages=dict(packages), python=hdf5.attr_str(a.get("python")),
+        platform=hdf5.attr_str(a.get("platform")), extra=extra,
     )
 
 
@@ -499,15 +449,15 @@ def read_asset(path: str | os.PathLike, *, verify: bool = True) -> Asset:
             net_probs = net.problems()
             if net_probs:
                 raise AssetError(f"{p}: {net_probs[0]}; {ADVICE}")
-            text = _h5.get_text(f["/material/toml"]) if "/material/toml" in f else ""
+            text = hdf5.get_text(f["/material/toml"]) if "/material/toml" in f else ""
             quality = _json(f, "/quality/report")
             passes = f["/quality"].attrs.get("passes") if "/quality" in f else None
             asset = Asset(
-                path=p, network=net, material=None, material_toml=text, tables=_tables(f), effects=_effects(f),
+                path=p, network=net, material=None, material_toml=text, tables=_tables(f), effects=read_effects(f),
                 quality=quality, quality_passes=None if passes is None else bool(passes),
                 cleaning=_json(f, "/cleaning/report"), provenance=_provenance(f),
-                fixed_region=_h5.attr_str(f["/nodes"].attrs.get("fixed_region", "")),
-                schema_version=_h5.attr_int(f.attrs.get("esmm_version")),
+                fixed_region=hdf5.attr_str(f["/nodes"].attrs.get("fixed_region", "")),
+                schema_version=hdf5.attr_int(f.attrs.get("esmm_version")),
                 attrs={k: (v.item() if isinstance(v, np.generic) else v) for k, v in f.attrs.items()},
             )
     except _DAMAGE as exc:
@@ -515,12 +465,12 @@ def read_asset(path: str | os.PathLike, *, verify: bool = True) -> Asset:
             raise
         raise _damaged(p, exc) from None
     try:
-        asset.material = _material(text)
+        asset.material = material_from_toml(text)
     except Exception as exc:  # noqa: BLE001 - the stored text is kept; say why it could not be parsed
         raise AssetError(f"{p}: /material/toml cannot be read as a material ({exc}); {ADVICE}") from None
     if asset.effects is None and asset.material is not None:
         try:
-            asset.effects = _effects_of_toml(asset.material)
+            asset.effects = material_effects(asset.material)
         except EsmmError as exc:
             raise AssetError(f"{p}: /material/toml has unreadable [material.effects] ({exc}); {ADVICE}") from None
     return asset
@@ -531,7 +481,7 @@ def _effects_problems(f: h5py.File) -> list[str]:
     if "/material/effects" not in f:
         return []
     try:
-        fx = _effects(f)
+        fx = read_effects(f)
     except EsmmError as exc:
         return [f"/material/effects: {exc}"]
     if not fx:
@@ -539,7 +489,7 @@ def _effects_problems(f: h5py.File) -> list[str]:
     if "/material/toml" not in f:
         return []
     try:
-        text_fx = _effects_of_toml(_material(_h5.get_text(f["/material/toml"])))
+        text_fx = material_effects(material_from_toml(hdf5.get_text(f["/material/toml"])))
     except Exception as exc:  # noqa: BLE001 - any parse failure of the stored text is a problem to report
         return [f"/material/toml: cannot be read with its effects ({exc})"]
     if text_fx is None:
@@ -579,8 +529,6 @@ def validate_asset(path: str | os.PathLike) -> list[str]:
                 return problems
             problems += _network(f).problems()
             if "/tables" in f:
-                from ..errors import EsmmError
-
                 try:
                     _tables(f)
                 except EsmmError as exc:
@@ -596,8 +544,6 @@ def validate_asset(path: str | os.PathLike) -> list[str]:
             raise
         problems.append(" ".join(f"damaged asset ({type(exc).__name__}: {exc})".split())[:300])
         return problems
-    from .xdmf import check_sidecar, sidecar_path
-
     side = sidecar_path(p)
     if side.exists():
         problems += check_sidecar(side)

@@ -26,7 +26,7 @@ GROUPS: dict[str, tuple[str, int, bool]] = {
     "/material/effects/viscoelastic": ("viscoelastic_effect", 1, False),
     "/material/effects/mullins": ("mullins_effect", 1, False),
     "/material/effects/damage": ("damage_effect", 1, False),
-    "/tables": ("stiffness_tables", 1, False),   # written by StiffnessTables.to_hdf5
+    "/tables": ("stiffness_tables", 1, False),   # asset/tables.py
     "/quality": ("quality", 1, False),
     "/cleaning": ("cleaning", 1, False),
     "/provenance": ("provenance", 1, True),

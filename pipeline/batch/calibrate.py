@@ -28,8 +28,12 @@ from pathlib import Path
 from typing import Any
 
 from ..atomicio import write_text
+from ..calibrate.fit import fit_material
+from ..calibrate.report import write_outputs
 from ..errors import ConfigError, EsmmError
 from ..progress import Reporter, ensure
+from ..tensile import read
+from ..validate import choice
 from .jobs import BatchSummary, Job, JobOutput
 from .runner import run_jobs
 
@@ -99,10 +103,6 @@ def fit_group(files: Sequence[str], out_dir: str, name: str, read_kwargs: Mappin
         The four output files and a summary: ``estimates`` (key, value, 95 %
         interval, kind), ``rmse``/``nrmse``/``r2``, ``files``, ``warnings``.
     """
-    from ..calibrate.fit import fit_material
-    from ..calibrate.report import write_outputs
-    from ..tensile import read
-
     tests = [read(p, **dict(read_kwargs)) for p in files]
     result = fit_material(tests, **dict(fit_kwargs))
     written = write_outputs(Path(out_dir) / name, result, tests, name=name)
@@ -145,10 +145,7 @@ def calibrate_jobs(files: Sequence[str | os.PathLike], *, by: str = "specimen",
         *by* is unknown, or the reader options are invalid (they would fail
         every file alike).
     """
-    from ..tensile import read
-
-    if by not in GROUP_BY:
-        raise ConfigError(f"--by: choose one of {', '.join(GROUP_BY)}, got {by!r}")
+    choice(by, GROUP_BY, "by")
     rep = ensure(reporter)
     read_kwargs = {k: v for k, v in dict(read_kwargs or {}).items() if k != "reporter"}
     fit_kwargs = {k: v for k, v in dict(fit_kwargs or {}).items() if k != "reporter"}

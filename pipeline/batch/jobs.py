@@ -23,10 +23,11 @@ import math
 import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from .. import __version__
+from .. import __version__, distributions
 from ..errors import ConfigError, InputError
 
 #: Version of the key recipe; bump when :func:`cache_key` changes meaning.
@@ -37,10 +38,6 @@ STATUSES = ("done", "cached", "failed", "interrupted")
 
 #: Exit codes of a batch (see esmm.cli.main): any failure -> 5, Ctrl-C -> 130.
 EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED = 0, 5, 130
-
-#: Third-party packages whose version enters the code version (they change numbers).
-_DEPENDENCIES = ("numpy", "scipy", "h5py", "gmsh", "meshio", "pyvista", "vtk", "pytetwild", "pymeshfix",
-                 "fast-simplification", "numba", "scikit-image", "nibabel")
 
 _CHUNK = 1 << 20
 
@@ -132,14 +129,13 @@ def code_version() -> str:
     """The version of the code that makes results: ``<esmm version>+<digest>``.
 
     The digest covers the source of :mod:`esmm.pipeline` and the bundled
-    presets (:mod:`esmm.configs`), and the versions of the numerical
-    dependencies, so that an edited checkout or an upgraded dependency never
+    presets (:mod:`esmm.configs`), and the versions of esmm's dependencies
+    (pyproject's ``dependencies`` as installed, the list recorded in every
+    asset), so that an edited checkout or an upgraded dependency never
     reuses results made by other code. The environment variable
     ``ESMM_CODE_VERSION`` replaces the digest (``<esmm version>+<value>``):
     for a deliberate reuse of results across code changes, at your own risk.
     """
-    from importlib import metadata
-
     pinned = os.environ.get(CODE_VERSION_ENV, "").strip()
     if pinned:
         return f"{__version__}+{pinned}"
@@ -151,7 +147,7 @@ def code_version() -> str:
     except (ModuleNotFoundError, TypeError):  # pragma: no cover - configs always installed
         pass
     h = hashlib.sha256(source_digest(roots).encode())
-    for dist in _DEPENDENCIES:
+    for dist in distributions()[1:]:  # esmm itself is the source digest above
         try:
             v = metadata.version(dist)
         except metadata.PackageNotFoundError:

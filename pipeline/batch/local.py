@@ -42,6 +42,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .. import interrupts
+
 #: Environment variables that limit a library's threads; set for each worker
 #: (unless the user set them) so that N workers do not each start N threads.
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
@@ -111,6 +113,7 @@ def _child_main(sock_fd: int, death_fd: int) -> None:  # pragma: no cover - runs
     faulthandler.enable()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_sigterm)
+    interrupts.install((signal.SIGTERM,))  # not in the middle of an import of a compiled library
     _watch_parent(death_fd)
     conn = Connection(sock_fd)
     import cloudpickle

@@ -16,12 +16,14 @@ prepare config). Bundled presets are covered by the code version.
 
 from __future__ import annotations
 
+import inspect
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from ..errors import ConfigError
+from ..prepare import input_stem, load_prepare_config, prepare
 from ..progress import Reporter
 from .jobs import BatchSummary, Job, JobOutput
 from .runner import run_jobs
@@ -34,10 +36,6 @@ _NOT_OPTIONS = ("input_path", "output", "reporter", "argv")
 
 def prepare_options() -> tuple[str, ...]:
     """The keyword options of :func:`esmm.pipeline.prepare.prepare` a batch passes through."""
-    import inspect
-
-    from ..prepare import prepare
-
     return tuple(n for n, prm in inspect.signature(prepare).parameters.items()
                  if prm.kind is inspect.Parameter.KEYWORD_ONLY and n not in _NOT_OPTIONS)
 
@@ -53,8 +51,6 @@ def asset_names(inputs: Sequence[str | os.PathLike]) -> dict[str, str]:
     ConfigError
         The same file is given twice, or two inputs would still collide.
     """
-    from ..prepare import input_stem
-
     paths = [Path(p).resolve() for p in inputs]
     seen: set[Path] = set()
     for p in paths:
@@ -94,8 +90,6 @@ def prepare_one(input_path: str, asset: str, options: Mapping[str, Any], argv: S
         The ``.h5`` and ``.xdmf``; summary: nodes, springs, tets, mesher,
         quality verdict, timings [s], warnings.
     """
-    from ..prepare import prepare
-
     res = prepare(input_path, output=asset, argv=list(argv) if argv else None, **dict(options))
     net = res.network
     summary = {
@@ -131,8 +125,6 @@ def prepare_jobs(inputs: Sequence[str | os.PathLike], *, out_dir: str | os.PathL
         An unknown option, a prepare config that cannot be loaded, or
         colliding asset names (these would fail every organ alike).
     """
-    from ..prepare import load_prepare_config
-
     opts = dict(options or {})
     known = prepare_options()
     unknown = sorted(set(opts) - set(known))

@@ -6,7 +6,6 @@ docs/calibrate.md. Every file is written atomically.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from datetime import UTC, datetime
@@ -16,7 +15,8 @@ from typing import Any
 import numpy as np
 
 from .. import __version__
-from ..atomicio import atomic_path, write_text
+from ..atomicio import atomic_path, write_json, write_text
+from ..materials import get_model
 from ..tensile.data import TensileTest
 from .fit import FitResult, predict
 
@@ -46,8 +46,6 @@ def result_to_dict(result: FitResult, tests: Sequence[TensileTest]) -> dict[str,
             "ci95": [e.lower, e.upper], "unit": _unit_of(e.kind), "at_bound": e.at_bound,
             "fitted": True,
         }
-    from ..materials import get_model
-
     for p in get_model(result.model).parameters:
         if p.name in result.fixed:
             params[p.name] = {"name": p.name, "direction": None, "value": float(result.fixed[p.name]),
@@ -74,23 +72,8 @@ def result_to_dict(result: FitResult, tests: Sequence[TensileTest]) -> dict[str,
     }
 
 
-def write_json(path: str | Path, document: dict[str, Any]) -> Path:
-    text = json.dumps(document, indent=2, default=_json_default, allow_nan=True) + "\n"
-    return write_text(path, text)
-
-
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
-
-
 def params_toml(result: FitResult, tests: Sequence[TensileTest], *, name: str | None = None) -> str:
-    """The fitted material as a config TOML that ``--material``/``--config`` read back."""
+    """The fitted material as a material file (:func:`~esmm.pipeline.materials.material.load_material` reads it)."""
     mat = result.material(
         name=name or f"fit of {', '.join(sorted({t.specimen for t in tests}))}",
         source="esmm calibrate " + " ".join(t.source.name for t in tests),

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..materials.effects import equivalent_stretch
+from ..materials.loading import invariants
 from ..tensile.data import TensileTest
 
 #: |rate| below this fraction of the largest (smoothed) |rate| of the test is a hold
@@ -122,8 +123,6 @@ def _runs(a: np.ndarray) -> list[tuple[int, int, int]]:
 
 def drive_of(test: TensileTest, x: np.ndarray | None = None) -> np.ndarray:
     """Uniaxial-equivalent stretch ξ of the test's samples (or of *x* in its mode)."""
-    from ..materials.loading import invariants
-
     x = test.stretch if x is None else x
     i1, _ = invariants(test.mode, np.asarray(x, float))
     return equivalent_stretch(i1)
@@ -149,44 +148,10 @@ def covariates(test: TensileTest) -> Covariates:
     mag = np.abs(x - ref)
     has_time = test.time is not None and n > 1 and float(test.time[-1] - test.time[0]) > 0
     if has_time:
-        t = np.asarray(test.time, float)
-        elapsed = t - t[0]
-        # a short moving average (7 samples) against displacement quantisation
-        w = 7
-        xs = _smooth(x, w)
-        rate = np.gradient(xs, t) if n > 2 else np.zeros(n)
-        rate = np.where(np.isfinite(rate), rate, 0.0)
-        mag_rate = np.gradient(_smooth(mag, w), t) if n > 2 else np.zeros(n)
-        mag_rate = np.where(np.isfinite(mag_rate), mag_rate, 0.0)
-        scale = float(np.max(np.abs(rate))) if n else 0.0
-        tol = HOLD_FRACTION * scale
-        direction = np.where(mag_rate > tol, 1, np.where(mag_rate < -tol, -1, 0)).astype(np.int8)
-        # holds shorter than HOLD_MIN_SAMPLES inherit the previous direction
-        for s, e, d in _runs(direction):
-            if d == 0 and e - s < HOLD_MIN_SAMPLES and s > 0:
-                direction[s:e] = direction[s - 1]
-        hold_time = np.zeros(n)
-        for s, e, d in _runs(direction):
-            if d == 0:
-                hold_time[s:e] = t[s:e] - t[s]
+        elapsed, rate, direction, hold_time = _timed_segments(x, mag, np.asarray(test.time, float))
     else:
-        elapsed = np.arange(n, dtype=float)
-        rate = np.full(n, np.nan)
-        dm = np.diff(mag, prepend=mag[0])
-        direction = np.where(dm > 0, 1, np.where(dm < 0, -1, 0)).astype(np.int8)
-        if n > 1:
-            direction[0] = direction[1]
-        hold_time = np.full(n, np.nan)
-    # cycles: a reloading after an unloading starts a new cycle
-    cycle = np.zeros(n, dtype=int)
-    c, last = 0, 0
-    for k in range(n):
-        d = int(direction[k])
-        if d == 1 and last == -1:
-            c += 1
-        if d != 0:
-            last = d
-        cycle[k] = c
+        elapsed, rate, direction, hold_time = _untimed_segments(mag)
+    cycle = _cycles(direction)
     if has_time:
         max_so_far = np.maximum.accumulate(drive)
     else:
@@ -203,6 +168,53 @@ def covariates(test: TensileTest) -> Covariates:
         cycle=cycle, max_so_far=max_so_far, below_max=below, elapsed=elapsed, toe=toe, high=high,
         virgin=virgin,
     )
+
+
+def _timed_segments(x: np.ndarray, mag: np.ndarray, t: np.ndarray):
+    """(elapsed, rate, direction, hold time) of a record with time: directions from the smoothed rate."""
+    n = x.size
+    elapsed = t - t[0]
+    # a short moving average (7 samples) against displacement quantisation
+    w = 7
+    rate = np.gradient(_smooth(x, w), t) if n > 2 else np.zeros(n)
+    rate = np.where(np.isfinite(rate), rate, 0.0)
+    mag_rate = np.gradient(_smooth(mag, w), t) if n > 2 else np.zeros(n)
+    mag_rate = np.where(np.isfinite(mag_rate), mag_rate, 0.0)
+    tol = HOLD_FRACTION * (float(np.max(np.abs(rate))) if n else 0.0)
+    direction = np.where(mag_rate > tol, 1, np.where(mag_rate < -tol, -1, 0)).astype(np.int8)
+    # holds shorter than HOLD_MIN_SAMPLES inherit the previous direction
+    for s, e, d in _runs(direction):
+        if d == 0 and e - s < HOLD_MIN_SAMPLES and s > 0:
+            direction[s:e] = direction[s - 1]
+    hold_time = np.zeros(n)
+    for s, e, d in _runs(direction):
+        if d == 0:
+            hold_time[s:e] = t[s:e] - t[s]
+    return elapsed, rate, direction, hold_time
+
+
+def _untimed_segments(mag: np.ndarray):
+    """(elapsed, rate, direction, hold time) of a record without time: directions from the row order."""
+    n = mag.size
+    dm = np.diff(mag, prepend=mag[0])
+    direction = np.where(dm > 0, 1, np.where(dm < 0, -1, 0)).astype(np.int8)
+    if n > 1:
+        direction[0] = direction[1]
+    return np.arange(n, dtype=float), np.full(n, np.nan), direction, np.full(n, np.nan)
+
+
+def _cycles(direction: np.ndarray) -> np.ndarray:
+    """Cycle number per sample: a reloading after an unloading starts a new cycle."""
+    cycle = np.zeros(direction.size, dtype=int)
+    c, last = 0, 0
+    for k in range(direction.size):
+        d = int(direction[k])
+        if d == 1 and last == -1:
+            c += 1
+        if d != 0:
+            last = d
+        cycle[k] = c
+    return cycle
 
 
 def thin(test: TensileTest, max_points: int, *, cov: Covariates | None = None) -> np.ndarray:

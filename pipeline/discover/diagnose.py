@@ -21,8 +21,10 @@ from typing import Any
 
 import numpy as np
 
+from ..calibrate.intervals import lag1
 from ..materials.effects import EFFECT_NAMES
-from .model import Problem, lag1, offset_applicable, runs_test, slack_applicable
+from .model import Problem, offset_applicable, slack_applicable
+from .statistics import runs_test
 
 #: strength used for the finite-difference signatures (in each effect's own coordinate)
 _EPS = 1e-3
@@ -55,17 +57,14 @@ def _pct(v: float) -> str:
     return f"{100.0 * v:+.1f} %"
 
 
-def _facts(problem: Problem, z_full: np.ndarray) -> dict[str, Any]:
-    """Covariate summaries of the normalised residual (measured - model) / stress scale."""
+def _covariate_table(problem: Problem, z_full: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The normalised residual (measured - model) / stress scale of every fitting sample, and its covariates."""
     st = problem.state(z_full)
     coefs = problem.offsets(z_full)
     E, D, RATE, HOLD, BELOW, TOE, HIGH, VIRG, TN, FILE = [], [], [], [], [], [], [], [], [], []
     for k, r in enumerate(problem.records):
         idx = r.fit_idx
-        p = problem.predict(k, st)
-        X = problem.offset_columns(k, idx)
-        if X is not None and coefs[k] is not None:
-            p = p + X @ coefs[k]
+        p = problem.add_offsets(k, problem.predict(k, st), coefs[k])
         e = (r.y[idx] - p) / r.scale
         c = r.cov
         E.append(e)
@@ -83,6 +82,12 @@ def _facts(problem: Problem, z_full: np.ndarray) -> dict[str, Any]:
     cat = {n: np.concatenate(v)[good] for n, v in
            dict(d=D, rate=RATE, hold=HOLD, below=BELOW, toe=TOE, high=HIGH, virgin=VIRG, tn=TN, file=FILE).items()}
     e = e[good]
+    return e, cat
+
+
+def _facts(problem: Problem, z_full: np.ndarray) -> dict[str, Any]:
+    """Covariate summaries of the normalised residual (measured - model) / stress scale."""
+    e, cat = _covariate_table(problem, z_full)
     f: dict[str, Any] = {}
 
     def mean(mask):
@@ -116,117 +121,132 @@ def _facts(problem: Problem, z_full: np.ndarray) -> dict[str, Any]:
     return f
 
 
-def _signature_scores(problem: Problem, z_full: np.ndarray, names: list[str]) -> dict[str, float]:
-    """Share of the residual explained by each effect's first-order signature."""
-    prob = problem
-    st = prob.state(z_full)
-    coefs = prob.offsets(z_full)
-    base_pred, resid, w = [], [], []
-    for k, r in enumerate(prob.records):
-        p = prob.predict(k, st)
-        X = prob.offset_columns(k, r.fit_idx)
-        if X is not None and coefs[k] is not None:
-            p = p + X @ coefs[k]
-        base_pred.append(p)
-        wk = prob.factor[k] / r.scale if prob.factor[k] else math.sqrt(1.0 / r.fit_idx.size) / r.scale
-        w.append(wk)
-        resid.append(np.nan_to_num((r.y[r.fit_idx] - p) * wk))
-    e_all = np.concatenate(resid)
-    ss = float(e_all @ e_all) or 1e-300
-    out: dict[str, float] = {}
+class _Signatures:
+    """The weighted residual of the current model, and the first-order signatures of candidate effects."""
 
-    def shared_score(sigs: list[np.ndarray], sign: float) -> float:
+    def __init__(self, prob: Problem, z_full: np.ndarray):
+        self.prob, self.z_full = prob, z_full
+        st = prob.state(z_full)
+        self.coefs = prob.offsets(z_full)
+        self.base_pred, self.resid, self.w = [], [], []
+        for k, r in enumerate(prob.records):
+            p = prob.add_offsets(k, prob.predict(k, st), self.coefs[k])
+            self.base_pred.append(p)
+            wk = prob.factor[k] / r.scale if prob.factor[k] else math.sqrt(1.0 / r.fit_idx.size) / r.scale
+            self.w.append(wk)
+            self.resid.append(np.nan_to_num((r.y[r.fit_idx] - p) * wk))
+        self.e_all = np.concatenate(self.resid)
+        self.ss = float(self.e_all @ self.e_all) or 1e-300
+
+    def shared_score(self, sigs: list[np.ndarray], sign: float) -> float:
+        """Share of the residual explained by one signature shared by all files, of the allowed *sign*."""
         s = np.concatenate(sigs)
         den = float(s @ s)
         if den <= 0 or not np.isfinite(den):
             return 0.0
-        c = float(s @ e_all) / den
+        c = float(s @ self.e_all) / den
         if c * sign <= 0:
             return 0.0
-        return float((s @ e_all) ** 2 / den / ss)
+        return float((s @ self.e_all) ** 2 / den / self.ss)
 
-    def perturbed(spec_name: str, variant: int, setter) -> list[np.ndarray] | None:
-        spec = prob.spec.with_(spec_name, variant)
+    def per_file_score(self, sigs: list[np.ndarray]) -> float:
+        """Share of the residual explained by one positive coefficient per file."""
+        tot = 0.0
+        for s, e in zip(sigs, self.resid):
+            den = float(s @ s)
+            if den > 0 and float(s @ e) > 0:
+                tot += float(s @ e) ** 2 / den
+        return tot / self.ss
+
+    def perturbed(self, effect: str, variant: int, values=None) -> list[np.ndarray] | None:
+        """Per file: the change of the prediction with *effect* switched on weakly (slot values *values*)."""
+        prob = self.prob
         try:
-            p2 = Problem(prob.model, prob.records, spec, fixed=prob.fixed, directions=prob.directions,
-                         bounds=prob.bounds)
+            p2 = prob.derived(prob.spec.with_(effect, variant))
         except Exception:  # noqa: BLE001 - a candidate that cannot be built scores 0
             return None
-        z = p2.transfer(prob, z_full)
-        z = setter(p2, z)
+        z = p2.transfer(prob, self.z_full)
+        z = _set_slack(p2, z) if values is None else _set_slots(p2, z, values)
         st2 = p2.state(z)
-        sigs = []
-        for k, r in enumerate(prob.records):
-            p = p2.predict(k, st2)
-            X = prob.offset_columns(k, r.fit_idx)
-            if X is not None and coefs[k] is not None:
-                p = p + X @ coefs[k]
-            sigs.append(np.nan_to_num((p - base_pred[k]) * w[k]))
-        return sigs
+        return [np.nan_to_num((prob.add_offsets(k, p2.predict(k, st2), self.coefs[k]) - self.base_pred[k]) * self.w[k])
+                for k in range(len(prob.records))]
 
-    def set_slots(pairs):
-        def f(p2, z):
-            z = z.copy()
-            for i, s in enumerate(p2.slots):
-                for (eff, name), val in pairs.items():
-                    if s.effect == eff and s.name == name:
-                        z[i] = val
-            return z
-        return f
 
-    b = prob.bounds
-    if "viscoelastic" in names and not prob.spec.viscoelastic:
-        best = 0.0
-        for tau in np.geomspace(b.tau_min * 2, b.tau_max / 10, 7):
-            sig = perturbed("viscoelastic", 1, set_slots({("viscoelastic", "u[0]"): _EPS,
-                                                           ("viscoelastic", "tau[0]"): math.log(tau)}))
-            if sig is not None:
-                # QLV lowers the stress relative to the instantaneous response: data above -> c < 0
-                best = max(best, shared_score(sig, -1.0), shared_score(sig, +1.0))
-        out["viscoelastic"] = best
-    if "mullins" in names and not prob.spec.mullins:
-        best = 0.0
-        for mm in (0.02, 0.1, 0.5):
-            sig = perturbed("mullins", 2, set_slots({("mullins", "s"): _EPS, ("mullins", "m"): math.log(mm * b.w_ref)}))
-            if sig is not None:
-                best = max(best, shared_score(sig, +1.0))
-        out["mullins"] = best
-    if "damage" in names and not prob.spec.damage:
-        best = 0.0
-        for q in (0.3, 0.6, 0.85):
-            onset = 1.0 + q * b.xi_span
-            for sc in (0.1, 0.4):
-                sig = perturbed("damage", 3, set_slots({("damage", "onset"): onset,
-                                                        ("damage", "scale"): math.log(sc * b.xi_span / _EPS),
-                                                        ("damage", "shape"): 1.0}))
-                if sig is not None:
-                    best = max(best, shared_score(sig, +1.0))
-        out["damage"] = best
-    if "slack" in names and not prob.spec.slack:
-        # per file: slack delta = eps * stretch span
-        sig = perturbed("slack", 1, lambda p2, z: _set_slack(p2, z))
-        if sig is not None:
-            tot = 0.0
-            for k in range(len(prob.records)):
-                s, e = sig[k], resid[k]
-                den = float(s @ s)
-                if den > 0 and float(s @ e) > 0:
-                    tot += float(s @ e) ** 2 / den
-            out["slack"] = tot / ss
-    if "sensor_offset" in names and not prob.spec.sensor_offset:
-        tot = 0.0
-        for k, r in enumerate(prob.records):
-            if not offset_applicable(r):
-                continue
-            cols = [np.ones(r.fit_idx.size)]
-            if r.t is not None:
-                cols.append((r.t[r.fit_idx] - r.t[0]) / (r.T or 1.0))
-            X = np.stack(cols, 1) * w[k]
-            c, *_ = np.linalg.lstsq(X, resid[k], rcond=None)
-            fit = X @ c
-            tot += float(fit @ fit)
-        out["sensor_offset"] = tot / ss
+def _set_slots(p2: Problem, z: np.ndarray, values: dict[tuple[str, str], float]) -> np.ndarray:
+    z = z.copy()
+    for i, s in enumerate(p2.slots):
+        for (eff, name), val in values.items():
+            if s.effect == eff and s.name == name:
+                z[i] = val
+    return z
+
+
+def _signature_scores(problem: Problem, z_full: np.ndarray, names: list[str]) -> dict[str, float]:
+    """Share of the residual explained by each effect's first-order signature."""
+    sig = _Signatures(problem, z_full)
+    spec = problem.spec
+    scorers = {"viscoelastic": _viscoelastic_score, "mullins": _mullins_score, "damage": _damage_score,
+               "slack": _slack_score, "sensor_offset": _offset_score}
+    out: dict[str, float] = {}
+    for n, scorer in scorers.items():
+        if n in names and not getattr(spec, n):
+            score = scorer(sig)
+            if score is not None:
+                out[n] = score
     return out
+
+
+def _viscoelastic_score(sig: _Signatures) -> float:
+    b, best = sig.prob.bounds, 0.0
+    for tau in np.geomspace(b.tau_min * 2, b.tau_max / 10, 7):
+        s = sig.perturbed("viscoelastic", 1, {("viscoelastic", "u[0]"): _EPS, ("viscoelastic", "tau[0]"): math.log(tau)})
+        if s is not None:
+            # QLV lowers the stress relative to the instantaneous response: data above -> c < 0
+            best = max(best, sig.shared_score(s, -1.0), sig.shared_score(s, +1.0))
+    return best
+
+
+def _mullins_score(sig: _Signatures) -> float:
+    b, best = sig.prob.bounds, 0.0
+    for mm in (0.02, 0.1, 0.5):
+        s = sig.perturbed("mullins", 2, {("mullins", "s"): _EPS, ("mullins", "m"): math.log(mm * b.w_ref)})
+        if s is not None:
+            best = max(best, sig.shared_score(s, +1.0))
+    return best
+
+
+def _damage_score(sig: _Signatures) -> float:
+    b, best = sig.prob.bounds, 0.0
+    for q in (0.3, 0.6, 0.85):
+        for sc in (0.1, 0.4):
+            s = sig.perturbed("damage", 3, {("damage", "onset"): 1.0 + q * b.xi_span,
+                                            ("damage", "scale"): math.log(sc * b.xi_span / _EPS),
+                                            ("damage", "shape"): 1.0})
+            if s is not None:
+                best = max(best, sig.shared_score(s, +1.0))
+    return best
+
+
+def _slack_score(sig: _Signatures) -> float | None:
+    # per file: slack delta = eps * stretch span
+    s = sig.perturbed("slack", 1)
+    return None if s is None else sig.per_file_score(s)
+
+
+def _offset_score(sig: _Signatures) -> float:
+    """Share explained by an offset (and a drift, where there is time) fitted per file."""
+    tot = 0.0
+    for k, r in enumerate(sig.prob.records):
+        if not offset_applicable(r):
+            continue
+        cols = [np.ones(r.fit_idx.size)]
+        if r.t is not None:
+            cols.append((r.t[r.fit_idx] - r.t[0]) / (r.T or 1.0))
+        X = np.stack(cols, 1) * sig.w[k]
+        c, *_ = np.linalg.lstsq(X, sig.resid[k], rcond=None)
+        fit = X @ c
+        tot += float(fit @ fit)
+    return tot / sig.ss
 
 
 def _set_slack(p2: Problem, z: np.ndarray) -> np.ndarray:

@@ -9,7 +9,9 @@ The objective is the one of :func:`esmm.pipeline.calibrate.fit.fit_material`
     \qquad s_f = \max_k |P_{f,k}|,
 
 with θ the base parameters (laid out, bounded and log-transformed exactly as
-the calibrate fit does: its ``_Problem`` provides the slots), φ the material
+the calibrate fit does: :class:`esmm.pipeline.calibrate.problem.ParameterLayout`
+provides the slots, and the weights, scales and NaN penalty are those of
+:mod:`esmm.pipeline.calibrate.problem`), φ the material
 effects' parameters (shared by all files) and ψ_f the artefact parameters of
 file *f* (slack, load-cell offset and drift). The sum runs over the thinned
 fitting samples of each file (:func:`~esmm.pipeline.discover.covariates.thin`);
@@ -34,15 +36,17 @@ parameter reuses the cached base stresses.
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import optimize
 
 from ..blas import single_threaded_blas
+from ..calibrate.problem import NAN_PENALTY, layout_for, stress_scale
 from ..errors import FitError
 from ..materials.effects import (
     ARTEFACTS,
@@ -56,6 +60,7 @@ from ..materials.effects import (
     mullins_factor,
     qlv_stress,
 )
+from ..materials.loading import energy_density, invariants, nominal_stress
 from ..tensile.data import TensileTest
 from .covariates import Covariates, covariates, thin
 
@@ -67,8 +72,6 @@ VARIANTS = {
     "slack": (1,),  # one slack length per file
     "sensor_offset": (1, 2),  # offset, or offset + linear drift, per file
 }
-#: where a NaN (outside the model's domain) appears, the normalised residual is this
-NAN_PENALTY = 1e3
 #: Prony weights are stick-broken fractions u_i in [0, U_MAX]
 U_MAX = 0.995
 
@@ -126,7 +129,7 @@ class Record:
         self.x = np.asarray(t.stretch, float)
         self.y = np.asarray(t.stress, float)
         self.t = None if not self.cov.has_time else np.asarray(t.time, float)
-        self.scale = max(float(np.max(np.abs(self.y))), 1e-30)
+        self.scale = stress_scale(self.y)
         self.range = float(np.ptp(self.y)) or self.scale
         ref = 0.0 if t.mode == "simple_shear" else 1.0
         x0 = float(np.min(self.x)) if t.mode != "simple_shear" else -1.0
@@ -298,19 +301,16 @@ class Problem:
 
     def __init__(self, model, records: Sequence[Record], spec: Spec, *, fixed: Mapping[str, float],
                  directions: list[str] | None, bounds: Bounds, train=None):
-        from ..calibrate.fit import _Problem
-
         self.model = model
         self.records = list(records)
         self.spec = spec
         self.fixed = dict(fixed)
         self.directions = directions
         self.bounds = bounds
-        views = [view_test(r) for r in self.records]
-        self._base = _Problem(model, views, [r.weight for r in self.records], self.fixed, directions)
-        slots: list[Slot] = []
-        for s in self._base.slots:
-            slots.append(Slot(s.name, None, None, s.log, s.lo, s.hi, s.kind, s.direction))
+        # the base parameters' slots: those of the calibrate fit on the fitting samples
+        self.layout = layout_for(model, [view_test(r) for r in self.records], fixed=self.fixed,
+                                 directions=directions)
+        slots = [Slot(s.name, None, None, s.log, s.lo, s.hi, s.kind, s.direction) for s in self.layout.slots]
         self.n_base = len(slots)
         b = bounds
         if spec.viscoelastic:
@@ -350,6 +350,11 @@ class Problem:
         self.active = np.arange(len(slots))
         self.z_full = self.default_z()
 
+    def derived(self, spec: Spec | None = None, *, train=None) -> Problem:
+        """The problem of the same records, base and bounds with another *spec* and/or training set."""
+        return Problem(self.model, self.records, self.spec if spec is None else spec, fixed=self.fixed,
+                       directions=self.directions, bounds=self.bounds, train=train)
+
     # ------------------------------------------------------------ layout
     def set_train(self, train) -> None:
         m = len(self.records)
@@ -380,10 +385,8 @@ class Problem:
 
     def default_z(self) -> np.ndarray:
         """A neutral starting vector: base defaults; effects nearly off."""
-        from ..calibrate.fit import _defaults
-
         z = np.empty(len(self.slots))
-        z[: self.n_base] = self._base.from_params({**_defaults(self.model), **self.fixed})
+        z[: self.n_base] = self.layout.from_params({**self.model.defaults(), **self.fixed})
         b = self.bounds
         for i, s in enumerate(self.slots[self.n_base:], start=self.n_base):
             if s.effect == "viscoelastic":
@@ -456,7 +459,7 @@ class Problem:
 
     # ------------------------------------------------------------ decoding
     def state(self, z_full: np.ndarray) -> State:
-        per_dir = self._base.to_params(z_full[: self.n_base])
+        per_dir = self.layout.to_params(z_full[: self.n_base])
         st = State(base=per_dir)
         sl = self.slots
         if self.spec.viscoelastic:
@@ -494,8 +497,6 @@ class Problem:
 
     def _compute_elastic(self, mode: str, params, xs: list[np.ndarray]):
         """(P_e, W, ξ) for several stretch arrays of one mode and parameter set, in one call each."""
-        from ..materials.loading import energy_density, invariants, nominal_stress
-
         x = np.concatenate(xs) if len(xs) > 1 else xs[0]
         with np.errstate(all="ignore"):
             pe = np.asarray(nominal_stress(self.model, params, mode, x), float)
@@ -576,6 +577,22 @@ class Problem:
                 p = p * mullins_factor(w, wm, *st.mullins)
         return p
 
+    def add_offsets(self, k: int, pred: np.ndarray, coef: np.ndarray | None, idx: np.ndarray | None = None,
+                    ) -> np.ndarray:
+        """*pred* of record k on samples *idx* (default: its fitting samples) plus its offset and drift *coef*."""
+        X = self.offset_columns(k, self.records[k].fit_idx if idx is None else idx)
+        return pred if X is None or coef is None else pred + X @ coef
+
+    @contextlib.contextmanager
+    def offsets_held(self) -> Iterator[None]:
+        """Within: the offsets are not eliminated in closed form (derivatives at fixed offsets)."""
+        saved = self._X
+        self._X = [None] * len(self.records)
+        try:
+            yield
+        finally:
+            self._X = saved
+
     def offset_columns(self, k: int, idx: np.ndarray) -> np.ndarray | None:
         n_o = self.n_offset[k]
         if not n_o:
@@ -586,7 +603,7 @@ class Problem:
             cols.append((r.t[idx] - r.t[0]) / (r.T or 1.0))
         return np.stack(cols, axis=1)
 
-    def _block(self, k: int, st: State) -> tuple[np.ndarray, np.ndarray | None]:
+    def residual_block(self, k: int, st: State) -> tuple[np.ndarray, np.ndarray | None]:
         """Normalised residual block of record k (training samples) and its offset coefficients."""
         r = self.records[k]
         pred = self.predict(k, st)
@@ -617,14 +634,14 @@ class Problem:
     def residuals(self, z: np.ndarray) -> np.ndarray:
         st = self.state(self._full(z))
         self.prefetch(st, [k for k in range(len(self.records)) if self.n_train[k]])
-        blocks = [self._block(k, st)[0] if self.n_train[k] else np.zeros(0) for k in range(len(self.records))]
+        blocks = [self.residual_block(k, st)[0] if self.n_train[k] else np.zeros(0) for k in range(len(self.records))]
         return np.concatenate(blocks)
 
     def jac(self, z: np.ndarray) -> np.ndarray:
         zf = self._full(z)
         st0 = self.state(zf)
         self.prefetch(st0, [k for k in range(len(self.records)) if self.n_train[k]])
-        base_blocks = [self._block(k, st0)[0] if self.n_train[k] else np.zeros(0)
+        base_blocks = [self.residual_block(k, st0)[0] if self.n_train[k] else np.zeros(0)
                        for k in range(len(self.records))]
         offs = np.concatenate([[0], np.cumsum([b.size for b in base_blocks])])
         r0 = np.concatenate(base_blocks)
@@ -642,7 +659,7 @@ class Problem:
             for k in files:
                 if not self.n_train[k]:
                     continue
-                J[offs[k]:offs[k + 1], c] = (self._block(k, stp)[0] - base_blocks[k]) / h
+                J[offs[k]:offs[k + 1], c] = (self.residual_block(k, stp)[0] - base_blocks[k]) / h
         return J
 
     def cost(self, z: np.ndarray) -> float:
@@ -676,18 +693,14 @@ class Problem:
     def offsets(self, z_full: np.ndarray) -> list[np.ndarray | None]:
         """Offset/drift coefficients (Pa) per record, as estimated on its training samples."""
         st = self.state(z_full)
-        return [self._block(k, st)[1] if self.n_train[k] else None for k in range(len(self.records))]
+        return [self.residual_block(k, st)[1] if self.n_train[k] else None for k in range(len(self.records))]
 
     def full_prediction(self, k: int, z_full: np.ndarray, coef=None) -> np.ndarray:
         """Prediction of record k on *all* its samples, with its offsets applied."""
         st = self.state(z_full)
         r = self.records[k]
         idx = np.arange(r.test.n)
-        p = self.predict(k, st, idx)
-        X = self.offset_columns(k, idx)
-        if X is not None and coef is not None:
-            p = p + X @ coef
-        return p
+        return self.add_offsets(k, self.predict(k, st, idx), coef, idx)
 
     def fit_residuals(self, z_full: np.ndarray) -> list[np.ndarray]:
         """Unnormalised residuals (Pa, model - data) on each record's training samples."""
@@ -697,306 +710,10 @@ class Problem:
             if not self.n_train[k]:
                 out.append(np.zeros(0))
                 continue
-            blk, _ = self._block(k, st)
+            blk, _ = self.residual_block(k, st)
             out.append(blk * r.scale / self.factor[k])
         return out
 
     def n_params(self) -> int:
         """Free parameters: active slots + offset coefficients of the training records."""
         return int(len(self.active) + sum(n for k, n in enumerate(self.n_offset) if self.n_train[k]))
-
-
-# --------------------------------------------------------------------------- statistics
-def lag1(r: np.ndarray) -> float:
-    """Lag-1 autocorrelation of a residual sequence (0 for fewer than 3 values)."""
-    r = np.asarray(r, float)
-    r = r[np.isfinite(r)]
-    if r.size < 3:
-        return 0.0
-    r = r - r.mean()
-    den = float(r @ r)
-    return 0.0 if den == 0 else float(r[:-1] @ r[1:] / den)
-
-
-def runs_test(r: np.ndarray) -> tuple[int, float]:
-    """Wald-Wolfowitz runs test of the residual signs: (runs, z-score; z << 0 = too few runs)."""
-    s = np.sign(np.asarray(r, float))
-    s = s[s != 0]
-    n = s.size
-    if n < 3:
-        return 0, 0.0
-    n1 = int((s > 0).sum())
-    n2 = n - n1
-    runs = 1 + int(np.count_nonzero(s[1:] != s[:-1]))
-    if n1 == 0 or n2 == 0:
-        return runs, -math.inf
-    mu = 2.0 * n1 * n2 / n + 1.0
-    var = 2.0 * n1 * n2 * (2.0 * n1 * n2 - n) / (n * n * (n - 1.0))
-    return runs, (runs - mu) / math.sqrt(var) if var > 0 else 0.0
-
-
-#: lag-1 autocorrelation is clipped to this for the effective sample size
-RHO_MAX = 0.98
-#: ... and a file counts for at least this many effective samples (or its size)
-NU_MIN = 5.0
-
-
-def n_effective(res: Sequence[np.ndarray]) -> list[float]:
-    """Effective sample sizes per record: ``n (1-ρ)/(1+ρ)``, ρ = lag-1 autocorrelation in [0, RHO_MAX],
-    at least ``min(n, NU_MIN)``."""
-    out = []
-    for r in res:
-        rho = min(max(lag1(r), 0.0), RHO_MAX)
-        out.append(max(r.size * (1.0 - rho) / (1.0 + rho), min(float(r.size), NU_MIN)))
-    return out
-
-
-def information(res: Sequence[np.ndarray], n_eff: Sequence[float], k: int) -> dict[str, float]:
-    """Gaussian log-likelihood with one noise level per file, AICc and BIC on effective sizes.
-
-    ``logL = -sum_f nu_f/2 (log(2 pi RSS_f/n_f) + 1)``, ``N = sum_f nu_f``,
-    ``AICc = -2 logL + 2k + 2k(k+1)/max(N-k-1, 1)``, ``BIC = -2 logL + k log N``.
-    """
-    ll = 0.0
-    N = 0.0
-    for r, nu in zip(res, n_eff):
-        if r.size == 0:
-            continue
-        rss = float(np.sum(r[np.isfinite(r)] ** 2)) or 1e-300
-        ll += -0.5 * nu * (math.log(2 * math.pi * rss / r.size) + 1.0)
-        N += nu
-    # small-sample correction; its denominator is floored at 1 so that the criterion
-    # stays finite (and heavily penalising) when the effective size is tiny
-    corr = 2.0 * k * (k + 1) / max(N - k - 1, 1.0)
-    return {"loglik": ll, "aicc": -2 * ll + 2 * k + corr, "bic": -2 * ll + k * math.log(max(N, 1.0)),
-            "n_eff": N, "k": k}
-
-
-@dataclass
-class Estimate:
-    """A reported parameter with its 95 % interval (SI)."""
-
-    key: str
-    value: float
-    lower: float
-    upper: float
-    unit: str = ""
-    wide: bool = False
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"value": self.value, "ci95": [self.lower, self.upper], "unit": self.unit,
-                "not_identifiable": self.wide}
-
-
-def estimates(problem: Problem, z_full: np.ndarray) -> list[Estimate]:
-    """Parameters of *problem* at *z_full* with 95 % intervals.
-
-    Covariance ``s² (JᵀJ)⁻¹`` over all slots plus the offset coefficients
-    (explicit columns), inflated by ``(1+ρ)/(1-ρ)`` as in the calibrate fit;
-    derived parameters (Prony weights, r, offsets in N) by the delta method.
-    """
-    prob = problem
-    prob.z_full = z_full.copy()
-    prob.active = np.arange(len(prob.slots))
-    st = prob.state(z_full)
-    coefs = prob.offsets(z_full)
-    # Jacobian at fixed offsets: FD over slots with the projection switched off
-    saved = prob._X
-    prob._X = [None] * len(prob.records)
-    try:
-        # residuals with the fitted offsets added explicitly
-        def res_fixed(zz, cf):
-            zf = z_full.copy()
-            zf[prob.active] = zz
-            s = prob.state(zf)
-            out = []
-            for k, r in enumerate(prob.records):
-                if not prob.n_train[k]:
-                    continue
-                p = prob.predict(k, s)
-                X = prob.offset_columns(k, r.fit_idx)
-                if X is not None and cf[k] is not None:
-                    p = p + X @ cf[k]
-                pos = prob.train[k]
-                y = r.y[r.fit_idx]
-                if pos is not None:
-                    p, y = p[pos], y[pos]
-                o = prob.factor[k] * (p - y) / r.scale
-                out.append(np.where(np.isfinite(o), o, NAN_PENALTY))
-            return np.concatenate(out)
-
-        r0 = res_fixed(z_full, coefs)
-        Js = prob.jac(z_full)  # projection off: plain derivatives
-        cols = [Js]
-        off_keys = []
-        for k, r in enumerate(prob.records):
-            if not prob.n_train[k] or coefs[k] is None:
-                continue
-            X = prob.offset_columns(k, r.fit_idx)
-            pos = prob.train[k]
-            if pos is not None:
-                X = X[pos]
-            block = np.zeros((r0.size, X.shape[1]))
-            start = int(sum(prob.n_train[j] for j in range(k) if prob.n_train[j]))
-            block[start:start + X.shape[0]] = prob.factor[k] * X / r.scale
-            cols.append(block)
-            off_keys += [(k, j) for j in range(X.shape[1])]
-        J = np.concatenate(cols, axis=1)
-    finally:
-        prob._X = saved
-    n, p = J.shape
-    dof = max(n - p, 1)
-    s2 = float(r0 @ r0) / dof
-    rhos = [lag1(b) for b in prob.fit_residuals(z_full) if b.size]
-    ns = [b.size for b in prob.fit_residuals(z_full) if b.size]
-    rho = float(np.clip(np.average(rhos, weights=ns), 0.0, 0.99)) if ns else 0.0
-    infl = (1 + rho) / (1 - rho)
-    # as the calibrate fit: the pseudo-inverse on the identified subspace; a
-    # quantity with weight in the null space (relative singular value < 1e-7) is unbounded
-    _, sv, Vt = np.linalg.svd(J, full_matrices=False)
-    null = sv <= 1e-7 * sv.max() if sv.size and sv.max() > 0 else np.ones_like(sv, bool)
-    keep = ~null
-    cov = (Vt[keep].T / sv[keep] ** 2) @ Vt[keep] * s2 * infl
-    Vnull = Vt[null]
-    tq = float(stats.t.ppf(0.975, dof))
-    out: list[Estimate] = []
-
-    def add(key, grad, value, *, positive, unit=""):
-        var = float(grad @ cov @ grad)
-        gn = float(np.linalg.norm(grad)) or 1.0
-        if Vnull.size and float(np.sum((Vnull @ grad) ** 2)) / gn**2 > 1e-2:
-            var = math.inf
-        sd = math.sqrt(max(var, 0.0)) if math.isfinite(var) else math.inf
-        if positive and value > 0:
-            sl = sd / value
-            lo = value * math.exp(-tq * sl) if math.isfinite(sl) else 0.0
-            hi = value * math.exp(min(tq * sl, 700)) if math.isfinite(sl) else math.inf
-            wide = (not math.isfinite(sl)) or hi / max(lo, 1e-300) > 10.0
-        else:
-            lo, hi = value - tq * sd, value + tq * sd
-            wide = (not math.isfinite(sd)) or 2 * tq * sd > max(abs(value), 1e-12)
-        out.append(Estimate(key, float(value), float(lo), float(hi), unit, bool(wide)))
-
-    P = J.shape[1]
-    # base and direct slots
-    for i, s in enumerate(prob.slots):
-        if s.effect in ("viscoelastic",) or (s.effect == "mullins" and s.name == "s"):
-            continue
-        grad = np.zeros(P)
-        if s.log:
-            v = math.exp(z_full[i])
-            grad[i] = v
-        else:
-            v = float(z_full[i])
-            grad[i] = 1.0
-        unit = {"stress": "Pa", "time": "s"}.get(s.kind, "")
-        key = s.key if s.file is None else f"{s.key}[{prob.records[s.file].name}]"
-        if s.effect == "slack":
-            r = prob.records[s.file]
-            if r.gauge:
-                add(f"slack.length[{r.name}]", grad * r.gauge, v * r.gauge, positive=False, unit="m")
-            add(key, grad, v, positive=False)
-            continue
-        add(key, grad, v, positive=s.log or s.kind == "stress", unit=unit)
-    # derived: Prony weights and mullins r
-    if st.g is not None:
-        idx_u = [i for i, s in enumerate(prob.slots) if s.effect == "viscoelastic" and s.name.startswith("u")]
-        idx_t = [i for i, s in enumerate(prob.slots) if s.effect == "viscoelastic" and s.name.startswith("tau")]
-        u = z_full[idx_u]
-        rank = {int(j): r for r, j in enumerate(np.argsort(st.tau))}  # report sorted by tau, as MaterialEffects
-        for j in range(len(u)):
-            grad = np.zeros(P)
-            for q in range(j + 1):
-                # dg_j/du_q
-                if q == j:
-                    d = np.prod(1 - u[:j])
-                else:
-                    d = -u[j] * np.prod([1 - u[m] for m in range(j) if m != q])
-                grad[idx_u[q]] = d
-            add(f"viscoelastic.g[{rank[j]}]", grad, float(st.g[j]), positive=True)
-            gt = np.zeros(P)
-            gt[idx_t[j]] = st.tau[j]
-            add(f"viscoelastic.tau[{rank[j]}]", gt, float(st.tau[j]), positive=True, unit="s")
-        grad = np.zeros(P)
-        for q in range(len(u)):
-            grad[idx_u[q]] = -np.prod([1 - u[m] for m in range(len(u)) if m != q])
-        add("viscoelastic.g_inf", grad, float(np.prod(1 - u)), positive=False)
-    if st.mullins is not None:
-        i = next(i for i, s in enumerate(prob.slots) if s.effect == "mullins" and s.name == "s")
-        grad = np.zeros(P)
-        grad[i] = -1.0 / max(z_full[i], 1e-12) ** 2
-        add("mullins.r", grad, st.mullins[0], positive=True)
-    # offsets
-    for c, (k, j) in enumerate(off_keys):
-        r = prob.records[k]
-        grad = np.zeros(P)
-        grad[len(prob.slots) + c] = 1.0
-        v = float(coefs[k][j])
-        # data = model + offset: the load cell reads `offset` when the true force is zero
-        if r.area:
-            g2 = grad * r.area
-            if j == 0:
-                add(f"sensor_offset.force[{r.name}]", g2, v * r.area, positive=False, unit="N")
-            else:
-                add(f"sensor_offset.drift[{r.name}]", g2 / (r.T or 1.0), v * r.area / (r.T or 1.0),
-                    positive=False, unit="N/s")
-        else:
-            if j == 0:
-                add(f"sensor_offset.stress[{r.name}]", grad, v, positive=False, unit="Pa")
-            else:
-                add(f"sensor_offset.drift[{r.name}]", grad / (r.T or 1.0), v / (r.T or 1.0),
-                    positive=False, unit="Pa/s")
-    # Prony terms in order of their relaxation time
-    ve = sorted((e for e in out if e.key.startswith("viscoelastic.") and "[" in e.key),
-                key=lambda e: (int(e.key[e.key.index("[") + 1:-1]), e.key))
-    it = iter(ve)
-    return [next(it) if (e.key.startswith("viscoelastic.") and "[" in e.key) else e for e in out]
-
-
-# --------------------------------------------------------------------------- errors
-@dataclass
-class Errors:
-    """Error measures over files (every file counts equally)."""
-
-    rmse: float
-    nrmse: float
-    max_abs: float
-    per_file: list[dict[str, Any]]
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"rmse": self.rmse, "nrmse": self.nrmse, "max_abs": self.max_abs, "unit": "Pa",
-                "per_file": self.per_file}
-
-
-def error_measures(items: Sequence[tuple[str, np.ndarray, np.ndarray]]) -> Errors:
-    """Errors from ``(name, measured, predicted)`` triples (Pa).
-
-    Per file: RMSE, NRMSE = RMSE / range of its measured stress, max |error|,
-    R². Overall: RMSE = sqrt(mean over files of MSE_f) (files count equally,
-    as in the fit's objective), NRMSE = that RMSE / range of all measured stress
-    pooled, max = largest |error| anywhere.
-    """
-    per = []
-    mses, lo, hi, mx = [], math.inf, -math.inf, 0.0
-    for name, y, p in items:
-        y = np.asarray(y, float)
-        p = np.asarray(p, float)
-        good = np.isfinite(p)
-        if not good.any():
-            per.append({"file": name, "n": int(y.size), "rmse": math.inf, "nrmse": math.inf,
-                        "max_abs": math.inf, "r2": -math.inf})
-            mses.append(math.inf)
-            continue
-        e = np.where(good, p - y, np.nan)
-        e = np.nan_to_num(e, nan=float(np.nanmax(np.abs(e))))
-        mse = float(np.mean(e**2))
-        rng = float(np.ptp(y)) or 1.0
-        ss = float(np.sum((y - y.mean()) ** 2)) or 1.0
-        per.append({"file": name, "n": int(y.size), "rmse": math.sqrt(mse), "nrmse": math.sqrt(mse) / rng,
-                    "max_abs": float(np.max(np.abs(e))), "r2": 1.0 - float(np.sum(e**2)) / ss})
-        mses.append(mse)
-        lo, hi = min(lo, float(y.min())), max(hi, float(y.max()))
-        mx = max(mx, float(np.max(np.abs(e))))
-    rmse = math.sqrt(float(np.mean(mses))) if mses else math.nan
-    rng = (hi - lo) if hi > lo else 1.0
-    return Errors(rmse, rmse / rng, mx, per)

@@ -14,7 +14,6 @@ Files written by :func:`write_outputs` into the output folder (docs/discover.md)
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from datetime import UTC, datetime
@@ -24,11 +23,13 @@ from typing import Any
 import numpy as np
 
 from .. import __version__
-from ..atomicio import atomic_path, write_text
+from ..atomicio import atomic_path, write_json, write_text
+from ..calibrate.report import display_stress_unit
 from ..materials.effects import ARTEFACTS, MATERIAL_EFFECTS, MaterialEffects
+from ..materials.material import Material
 from .covariates import thin
-from .model import Spec
-from .search import DiscoverResult, Fitted
+from .fitted import Fitted
+from .search import DiscoverResult, discover
 
 JSON_SCHEMA = "esmm.discover/1"
 MODEL_SCHEMA = "esmm.discover-model/1"
@@ -52,8 +53,8 @@ def _params_doc(f: Fitted) -> dict[str, Any]:
 
 
 def _errors_doc(f: Fitted) -> dict[str, Any]:
-    e, h = f.errors, f.heldout
-    d = {"rmse": e.rmse, "nrmse": e.nrmse, "max_abs": e.max_abs, "unit": "Pa", "per_file": e.per_file}
+    h = f.heldout
+    d = f.errors.to_dict()
     if h is not None:
         d.update({"heldout_rmse": h.rmse, "heldout_nrmse": h.nrmse, "heldout_max_abs": h.max_abs,
                   "heldout_per_file": h.per_file})
@@ -111,32 +112,6 @@ def result_to_dict(res: DiscoverResult) -> dict[str, Any]:
         "saved_model": saved_model(res),
         "seconds": res.seconds,
     }
-
-
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
-
-
-def _finite(obj):
-    """Replace non-finite floats by None (strict JSON)."""
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, float | np.floating) and not math.isfinite(float(obj)):
-        return None
-    return obj
-
-
-def write_json(path: str | Path, doc: dict[str, Any]) -> Path:
-    """Write *doc* as strict JSON (non-finite numbers become null), atomically."""
-    return write_text(path, json.dumps(_finite(doc), indent=2, default=_json_default) + "\n")
 
 
 # --------------------------------------------------------------------------- words
@@ -309,13 +284,11 @@ def markdown(res: DiscoverResult, *, plots: bool = True) -> str:
 
 # --------------------------------------------------------------------------- TOML
 def params_toml(res: DiscoverResult, *, which: str = "final", stress_unit: str | None = None) -> str:
-    """A material file (``--material``) for the final model, with ``[material.effects.*]``.
+    """A material file (:func:`~esmm.pipeline.materials.material.load_material`) for the final model,
+    with ``[material.effects.*]``.
 
     ``which="base"`` gives the base model alone.
     """
-    from ..calibrate.report import display_stress_unit
-    from ..materials.material import Material
-
     f = res.final if which == "final" else res.base
     st = f.state
     directions = None
@@ -352,33 +325,10 @@ def plot_residuals(path: str | Path, res: DiscoverResult, *, which: str = "base"
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..calibrate.report import display_stress_unit
-
     f = res.base if which == "base" else res.final
-    prob = f.problem
-    coefs = prob.offsets(f.z)
     unit, fac = display_stress_unit([r.scale for r in res.records])
     fig, ax = plt.subplots(2, 2, figsize=(13, 8.5), constrained_layout=True)
-    cmap = plt.get_cmap("tab10")
-    seg_res: dict[str, list[np.ndarray]] = {"loading": [], "unloading": [], "hold": [], "toe": [], "high end": []}
-    for k, r in enumerate(res.records):
-        c = cmap(k % 10)
-        p = prob.full_prediction(k, f.z, coefs[k])
-        e = (r.y - p) / fac
-        sl = thin(r.test, 3000, cov=r.cov)  # arc-length thinning: ramps and holds both drawn
-        label = r.name if len(res.records) <= 12 else None
-        ax[0, 0].plot(r.x[sl], r.y[sl] / fac, ".", ms=1.5, color=c, alpha=0.35, label=label)
-        ax[0, 0].plot(r.x[sl], p[sl] / fac, "-", lw=1.0, color=c)
-        tt = r.cov.elapsed
-        tn = tt / (float(tt[-1]) or 1.0) + k
-        ax[0, 1].plot(tn[sl], e[sl], "-", lw=0.7, color=c)
-        ax[1, 0].plot(r.x[sl], e[sl], ".", ms=1.2, color=c, alpha=0.5)
-        d = r.cov.direction
-        seg_res["loading"].append(e[d > 0])
-        seg_res["unloading"].append(e[d < 0])
-        seg_res["hold"].append(e[d == 0])
-        seg_res["toe"].append(e[r.cov.toe])
-        seg_res["high end"].append(e[r.cov.high])
+    seg_res = _draw_records(ax, res, f, fac, plt.get_cmap("tab10"))
     ax[0, 0].set(xlabel="stretch λ (γ for shear)", ylabel=f"nominal stress [{unit}]",
                  title=f"{'base ' + res.model if which == 'base' else 'final: +' + (', '.join(res.kept) or 'nothing')}: "
                        f"data (dots) and model (lines)")
@@ -405,6 +355,32 @@ def plot_residuals(path: str | Path, res: DiscoverResult, *, which: str = "base"
         fig.savefig(tmp, dpi=100, format="png")
     plt.close(fig)
     return Path(path)
+
+
+def _draw_records(ax, res: DiscoverResult, f: Fitted, fac: float, cmap) -> dict[str, list[np.ndarray]]:
+    """Draw every record's data, model and residual; return the residuals by loading segment."""
+    prob = f.problem
+    coefs = prob.offsets(f.z)
+    seg_res: dict[str, list[np.ndarray]] = {"loading": [], "unloading": [], "hold": [], "toe": [], "high end": []}
+    for k, r in enumerate(res.records):
+        c = cmap(k % 10)
+        p = prob.full_prediction(k, f.z, coefs[k])
+        e = (r.y - p) / fac
+        sl = thin(r.test, 3000, cov=r.cov)  # arc-length thinning: ramps and holds both drawn
+        label = r.name if len(res.records) <= 12 else None
+        ax[0, 0].plot(r.x[sl], r.y[sl] / fac, ".", ms=1.5, color=c, alpha=0.35, label=label)
+        ax[0, 0].plot(r.x[sl], p[sl] / fac, "-", lw=1.0, color=c)
+        tt = r.cov.elapsed
+        tn = tt / (float(tt[-1]) or 1.0) + k
+        ax[0, 1].plot(tn[sl], e[sl], "-", lw=0.7, color=c)
+        ax[1, 0].plot(r.x[sl], e[sl], ".", ms=1.2, color=c, alpha=0.5)
+        d = r.cov.direction
+        seg_res["loading"].append(e[d > 0])
+        seg_res["unloading"].append(e[d < 0])
+        seg_res["hold"].append(e[d == 0])
+        seg_res["toe"].append(e[r.cov.toe])
+        seg_res["high end"].append(e[r.cov.high])
+    return seg_res
 
 
 # --------------------------------------------------------------------------- corrected data
@@ -523,13 +499,7 @@ def discover_and_save(tests: Sequence, *, out_dir: str | Path | None = None, jso
     DiscoverResult
         Its :func:`summary_lines` are what the CLI prints.
     """
-    from .search import discover
-
     res = discover(tests, reporter=reporter, **options)
     write_outputs(out_dir, res, json_path=json_path)
     return res
 
-
-def spec_of(doc: dict[str, Any]) -> Spec:
-    """The :class:`Spec` of a saved model document."""
-    return Spec.from_dict(doc.get("spec", {}))

@@ -6,7 +6,7 @@ Procedure (docs/discover.md):
 
 1. Fit the base model (:func:`esmm.pipeline.calibrate.fit.fit_material`, on
    the thinned fitting samples) and measure its error on every sample, and on
-   held-out data.
+   held-out data (:mod:`.heldout`).
 2. Diagnose the residual (:mod:`.diagnose`): size, serial correlation, runs,
    covariates, and the first-order share of each candidate effect.
 3. For every candidate that the data can identify: fit each variant (base +
@@ -16,12 +16,6 @@ Procedure (docs/discover.md):
    the AICc and the held-out error say so; among those that pass, the one with
    the lowest AICc is kept. Repeat with what is left, until nothing passes.
 4. Report errors before and after, on the fitting data and held out.
-
-Held-out schemes, in order of preference: leave one loading-rate group out
-(several rates), leave one file out (several files of a loading mode), leave
-one cycle out (one file with several cycles), leave one of five consecutive
-blocks of every file out. A file is never held out if it is the only one of
-its loading mode (that would test extrapolation between modes, not effects).
 """
 
 from __future__ import annotations
@@ -33,37 +27,34 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import optimize
 
 from ..blas import single_threaded_blas
+from ..calibrate.config import check_model
+from ..calibrate.fit import FitResult, fit_material
+from ..calibrate.problem import fibre_directions, file_weights
 from ..errors import ConfigError, FitError
-from ..materials.effects import (
-    ARTEFACTS,
-    EFFECT_NAMES,
-    MATERIAL_EFFECTS,
-    MaterialEffects,
-    qlv_stress,
-)
+from ..materials import get_model
+from ..materials.effects import ARTEFACTS, EFFECT_NAMES, MATERIAL_EFFECTS, MaterialEffects
+from ..materials.loading import energy_density
 from ..progress import Reporter, ensure
 from ..tensile.data import TensileTest
+from ..validate import number
 from .diagnose import Diagnosis, diagnose
+from .estimates import estimates
+from .fitted import Fitted, effect_params, finish, fit_spec
+from .heldout import Fold, heldout, make_folds
 from .model import (
     VARIANTS,
     Bounds,
-    Errors,
-    Estimate,
     Problem,
     Record,
     Spec,
-    error_measures,
-    estimates,
-    information,
-    n_effective,
     offset_applicable,
     prepare,
     slack_applicable,
     view_test,
 )
+from .statistics import information, n_effective
 
 #: default ΔAICc an effect must reach (Burnham & Anderson: > 10 = no support for the simpler model)
 AICC_THRESHOLD = -10.0
@@ -71,28 +62,9 @@ AICC_THRESHOLD = -10.0
 MIN_HELDOUT_GAIN = 0.05
 #: candidates whose first-order signature explains less of the residual than this are not fitted
 MIN_SHARE = 0.005
-#: most folds of any held-out scheme
-MAX_FOLDS = 6
 
 
 # --------------------------------------------------------------------------- results
-@dataclass
-class Fitted:
-    """One fitted model: its problem, parameters, information and errors."""
-
-    spec: Spec
-    problem: Problem
-    z: np.ndarray
-    info: dict[str, float]
-    errors: Errors  # on all samples of the fitting files
-    heldout: Errors | None = None
-    estimates: list[Estimate] = field(default_factory=list)
-
-    @property
-    def state(self):
-        return self.problem.state(self.z)
-
-
 @dataclass
 class Candidate:
     """The verdict on one effect (last round it was tried in)."""
@@ -123,10 +95,50 @@ class Candidate:
 
 
 @dataclass
-class Fold:
+class Trial:
+    """A candidate model of one round: the fit, its information and that of the current model."""
+
     name: str
-    train: list  # per record: None (all fitting samples) or positions (possibly empty)
-    test: list  # per record: None (not tested) or a boolean mask over all samples
+    fit: Fitted
+    info: dict[str, float]
+    ref: dict[str, float]  # the current model's, on the candidate's effective sample sizes
+    nu: list[float]  # the candidate's effective sample sizes
+
+    @property
+    def d_aicc(self) -> float:
+        return self.info["aicc"] - self.ref["aicc"]
+
+    @property
+    def d_bic(self) -> float:
+        return self.info["bic"] - self.ref["bic"]
+
+
+@dataclass(frozen=True)
+class Criteria:
+    """When an effect is kept, and when the search stops (see :func:`discover`)."""
+
+    aicc_threshold: float = AICC_THRESHOLD
+    min_heldout_gain: float = MIN_HELDOUT_GAIN
+    max_effects: int = 4
+    min_share: float = MIN_SHARE
+
+
+@dataclass
+class Search:
+    """The state of the greedy search: the current model, the verdicts so far, what was kept."""
+
+    base: Fitted
+    current: Fitted
+    folds: list[Fold]
+    candidates: dict[str, Candidate]
+    testable: list[str]
+    kept: list[str] = field(default_factory=list)
+    diagnoses: list[Diagnosis] = field(default_factory=list)
+    upgrades: list[str] = field(default_factory=list)
+
+    def gain(self, f: Fitted) -> float:
+        """Relative reduction of the held-out NRMSE from the current model to *f*."""
+        return 1.0 - f.heldout.nrmse / max(self.current.heldout.nrmse, 1e-300)
 
 
 @dataclass
@@ -214,377 +226,6 @@ def identifiability(records: Sequence[Record]) -> dict[str, tuple[bool, bool, st
     return out
 
 
-# --------------------------------------------------------------------------- held-out folds
-def make_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
-    """The held-out scheme and its folds (see the module docstring).
-
-    A file (or rate group) is only held out if every loading mode it has is
-    still in the training files: predicting a mode never fitted tests the base
-    model's extrapolation between modes, not the effects.
-    """
-    m = len(records)
-    folds: list[Fold] = []
-    modes = [r.test.mode for r in records]
-
-    def modes_kept(held: list[int]) -> bool:
-        rest = {modes[k] for k in range(m) if k not in held}
-        return all(modes[k] in rest for k in held)
-
-    rates = [r.cov.loading_rate() for r in records]
-    finite = [v for v in rates if math.isfinite(v) and v > 0]
-    if m >= 2 and len(finite) == m:
-        order = np.argsort(rates)
-        groups: list[list[int]] = []
-        for k in order:
-            if groups and rates[k] / rates[groups[-1][0]] < 1.5:
-                groups[-1].append(int(k))
-            else:
-                groups.append([int(k)])
-        if len(groups) >= 2 and all(modes_kept(g) for g in groups):
-            for g in groups[:MAX_FOLDS]:
-                name = f"rate {np.median([rates[k] for k in g]):.3g}/s ({len(g)} file{'s' if len(g) > 1 else ''})"
-                folds.append(_file_fold(name, records, g))
-            return "leave one loading rate out", folds
-    eligible = [k for k in sorted(range(m), key=lambda k: records[k].name) if modes_kept([k])]
-    if len(eligible) >= 2:
-        nf = min(len(eligible), MAX_FOLDS)
-        for j in range(nf):
-            g = eligible[j::nf]
-            folds.append(_file_fold(", ".join(records[k].name for k in g), records, g))
-        scheme = "leave one file out" if nf == len(eligible) else f"leave files out ({nf} groups)"
-        if len(eligible) < m:
-            scheme += " (files whose loading mode has another file)"
-        return scheme, folds
-    if m == 1 and records[0].history and records[0].cov.n_cycles >= 2:
-        r = records[0]
-        nc = r.cov.n_cycles
-        groups = [list(range(c, nc, min(nc, MAX_FOLDS))) for c in range(min(nc, MAX_FOLDS))]
-        for g in groups:
-            mask = np.isin(r.cov.cycle, g)
-            folds.append(_block_fold(f"cycle {', '.join(str(c + 1) for c in g)}", records, {0: mask}))
-        return "leave one cycle out", folds
-    for j in range(5):
-        masks = {}
-        for k, r in enumerate(records):
-            n = r.test.n
-            edges = np.linspace(0, n, 6).round().astype(int)
-            mask = np.zeros(n, bool)
-            mask[edges[j]:edges[j + 1]] = True
-            masks[k] = mask
-        folds.append(_block_fold(f"block {j + 1}/5", records, masks))
-    return ("leave one of 5 consecutive blocks out" + (" (of every file)" if m > 1 else "")), folds
-
-
-def _file_fold(name: str, records, held: list[int]) -> Fold:
-    train = [np.zeros(0, dtype=int) if k in held else None for k in range(len(records))]
-    test = [np.ones(records[k].test.n, bool) if k in held else None for k in range(len(records))]
-    return Fold(name, train, test)
-
-
-def _block_fold(name: str, records, masks: dict[int, np.ndarray]) -> Fold:
-    """Hold out the samples in *masks* (record index -> boolean mask over all its samples)."""
-    train, test = [], []
-    for k, r in enumerate(records):
-        mask = masks.get(k)
-        if mask is None:
-            train.append(None)
-            test.append(None)
-        else:
-            train.append(np.flatnonzero(~mask[r.fit_idx]))
-            test.append(mask)
-    return Fold(name, train, test)
-
-
-# --------------------------------------------------------------------------- fitting helpers
-def _fit_spec(spec: Spec, current: Fitted | None, records, model, fixed, directions, bounds,
-              *, init_from: Fitted | None = None) -> Fitted:
-    """Fit *spec* on all fitting samples, initialised from *current* plus a search for the new effect."""
-    prob = Problem(model, records, spec, fixed=fixed, directions=directions, bounds=bounds)
-    src = init_from or current
-    z0 = prob.transfer(src.problem, src.z) if src is not None else prob.default_z()
-    new = [n for n in spec.names() if src is None or not getattr(src.spec, n)]
-    for n in new:
-        z0 = _initialise(prob, z0, n)
-    new_idx = [i for i, s in enumerate(prob.slots) if s.effect in new]
-    if src is not None:
-        # slots of a richer variant of an effect already present (another Prony term, beta)
-        old_keys = {s.key for s in src.problem.slots}
-        extra = [i for i, s in enumerate(prob.slots) if s.effect is not None and s.effect not in new
-                 and s.file is None and s.key not in old_keys]
-        if extra:
-            z0 = _extend_variant(prob, z0, extra)
-            new_idx += extra
-    z, _ = prob.solve(z0)
-    return _finish(prob, z)
-
-
-def _extend_variant(prob: Problem, z: np.ndarray, extra: list[int]) -> np.ndarray:
-    """Start the added slots of a richer variant: a small new Prony term far from the others."""
-    z = z.copy()
-    b = prob.bounds
-    taus = [z[i] for i, s in enumerate(prob.slots) if s.effect == "viscoelastic" and s.name.startswith("tau")
-            and i not in extra]
-    grid = np.log(np.geomspace(b.tau_min * 2, b.tau_max / 5, 15))
-    for i in extra:
-        s = prob.slots[i]
-        if s.effect == "viscoelastic" and s.name.startswith("tau"):
-            far = max(grid, key=lambda g: min([abs(g - t) for t in taus] or [0.0]))
-            z[i] = far
-            taus.append(far)
-        elif s.effect == "viscoelastic":
-            z[i] = 0.05
-        elif s.name == "beta":
-            z[i] = 0.1
-    return np.clip(z, prob.lower, prob.upper)
-
-
-def _finish(prob: Problem, z: np.ndarray) -> Fitted:
-    res = prob.fit_residuals(z)
-    info = information(res, n_effective(res), prob.n_params())
-    errs = full_errors(prob, z)
-    return Fitted(prob.spec, prob, z, info, errs)
-
-
-def full_errors(prob: Problem, z: np.ndarray) -> Errors:
-    """Errors of every record on all its samples."""
-    coefs = prob.offsets(z)
-    items = []
-    for k, r in enumerate(prob.records):
-        p = prob.full_prediction(k, z, coefs[k])
-        items.append((r.name, r.y, p))
-    return error_measures(items)
-
-
-def _grid_eval(prob: Problem, z: np.ndarray) -> float:
-    prob.z_full = z
-    prob.active = np.zeros(0, dtype=int)
-    return prob.cost(np.zeros(0))
-
-
-def _set(prob: Problem, z: np.ndarray, effect: str, values: Mapping[str, float]) -> np.ndarray:
-    z = z.copy()
-    for i, s in enumerate(prob.slots):
-        if s.effect == effect and s.name in values:
-            z[i] = values[s.name]
-    return np.clip(z, prob.lower, prob.upper)
-
-
-def _initialise(prob: Problem, z: np.ndarray, name: str) -> np.ndarray:
-    """Starting values of effect *name* with everything else held (grid search / NNLS)."""
-    b = prob.bounds
-    if name == "viscoelastic":
-        return _init_prony(prob, z)
-    if name == "mullins":
-        best, zb = math.inf, z
-        betas = (0.0, 0.5) if prob.spec.mullins == 3 else (0.0,)
-        for s in (0.2, 0.5, 0.8):
-            for mm in (0.01, 0.05, 0.2, 1.0):
-                for be in betas:
-                    zz = _set(prob, z, "mullins", {"s": s, "m": math.log(mm * b.w_ref), "beta": be})
-                    c = _grid_eval(prob, zz)
-                    if c < best:
-                        best, zb = c, zz
-        return zb
-    if name == "damage":
-        best, zb = math.inf, z
-        for q in (0.2, 0.4, 0.6, 0.8, 0.95):
-            for sc in (0.05, 0.2, 0.6):
-                for k in (1.5, 3.0):
-                    zz = _set(prob, z, "damage", {"onset": 1.0 + q * b.xi_span,
-                                                  "scale": math.log(sc * b.xi_span), "shape": k})
-                    c = _grid_eval(prob, zz)
-                    if c < best:
-                        best, zb = c, zz
-        return zb
-    if name == "slack":
-        idx = [i for i, s in enumerate(prob.slots) if s.effect == "slack"]
-        if not idx:
-            return z
-        st = prob.state(z)
-        best = {i: (math.inf, z[i]) for i in idx}
-        for q in np.linspace(0.0, 1.0, 13):
-            zz = z.copy()
-            for i in idx:
-                zz[i] = prob.lower[i] + q * (prob.upper[i] - prob.lower[i]) * 0.6
-            st = prob.state(zz)
-            for i in idx:
-                k = prob.slots[i].file
-                blk, _ = prob._block(k, st)
-                c = float(blk @ blk)
-                if c < best[i][0]:
-                    best[i] = (c, zz[i])
-        z = z.copy()
-        for i in idx:
-            z[i] = best[i][1]
-        return z
-    return z
-
-
-def _init_prony(prob: Problem, z: np.ndarray) -> np.ndarray:
-    """Prony starting values: non-negative least squares over a dictionary of relaxation times."""
-    b = prob.bounds
-    n_terms = prob.spec.viscoelastic
-    taus = np.geomspace(b.tau_min * 2, b.tau_max / 5, 14)
-    st = prob.state(z)
-    cols, target = [], []
-    for k, r in enumerate(prob.records):
-        if not prob.n_train[k] or r.t is None:
-            continue
-        idx = r.fit_idx
-        pd = np.nan_to_num(prob.softened(k, st, idx))
-        tt = r.t[idx]
-        atoms = np.stack([qlv_stress(tt, pd, [1.0], [tau]) - pd for tau in taus], axis=1)
-        y = r.y[idx] - pd
-        pos = prob.train[k]
-        if pos is not None:
-            atoms, y = atoms[pos], y[pos]
-        X = prob.offset_columns(k, idx)
-        if X is not None and prob.n_offset[k]:
-            if pos is not None:
-                X = X[pos]
-            Q, _ = np.linalg.qr(X)
-            atoms = atoms - Q @ (Q.T @ atoms)
-            y = y - Q @ (Q.T @ y)
-        w = prob.factor[k] / r.scale
-        cols.append(atoms * w)
-        target.append(y * w)
-    if not cols:
-        return z
-    A = np.concatenate(cols)
-    yv = np.concatenate(target)
-    try:
-        g, _ = optimize.nnls(A, yv, maxiter=50 * A.shape[1])
-    except RuntimeError:
-        g = np.zeros(len(taus))
-    order = np.argsort(-g)
-    chosen = [j for j in order if g[j] > 0][:n_terms]
-    gs = [float(g[j]) for j in chosen]
-    ts = [float(taus[j]) for j in chosen]
-    spread = np.geomspace(b.tau_min * 10, b.tau_max / 20, n_terms + 2)[1:-1]
-    while len(ts) < n_terms:
-        cand = [t for t in spread if all(abs(math.log(t / u)) > 0.5 for u in ts)] or list(spread)
-        ts.append(float(cand[0]))
-        gs.append(0.05)
-    tot = sum(gs)
-    if tot > 0.95:
-        gs = [v * 0.95 / tot for v in gs]
-    # stick-breaking fractions
-    us, rest = [], 1.0
-    for v in gs:
-        u = min(max(v / rest, 1e-3), 0.99) if rest > 0 else 0.5
-        us.append(u)
-        rest *= 1 - u
-    vals = {}
-    for j in range(n_terms):
-        vals[f"u[{j}]"] = us[j]
-        vals[f"tau[{j}]"] = math.log(min(max(ts[j], b.tau_min * 1.01), b.tau_max * 0.99))
-    return _set(prob, z, "viscoelastic", vals)
-
-
-def _best_variant(name, variants, current: Fitted, records, model, fixed, directions, bounds, aicc_threshold,
-                  *, upgrade: bool = False):
-    """Fit the variants of effect *name* in order; stop when one more term stops paying.
-
-    Returns (fit, info, reference info) of the best variant by AICc, the
-    information of both models computed on the candidate's effective sample
-    sizes (its residual is the better estimate of the noise's correlation).
-    """
-    best = None
-    prev = None
-    for v in variants:
-        spec = current.spec.with_(name, v)
-        try:
-            f = _fit_spec(spec, current, records, model, fixed, directions, bounds,
-                          init_from=prev[0] if prev is not None else None)
-        except FitError:
-            break
-        res = f.problem.fit_residuals(f.z)
-        nu = n_effective(res)
-        inf = information(res, nu, f.problem.n_params())
-        ref = information(current.problem.fit_residuals(current.z), nu, current.problem.n_params())
-        if prev is not None:
-            # the richer variant must beat the simpler one on the same footing
-            prev_inf = information(prev[0].problem.fit_residuals(prev[0].z), nu, prev[0].problem.n_params())
-            if inf["aicc"] - prev_inf["aicc"] > aicc_threshold:
-                break
-        if best is None or inf["aicc"] - ref["aicc"] < best[1]["aicc"] - best[2]["aicc"]:
-            best = (f, inf, ref)
-        if not upgrade and inf["aicc"] - ref["aicc"] > 0 and name != "viscoelastic":
-            break  # the simplest variant does not help at all: the richer ones will not either
-        prev = (f, inf)
-    return best
-
-
-def _try_pairs(singles, current: Fitted, records, model, fixed, directions, bounds, folds, aicc_threshold,
-               min_heldout_gain):
-    """When no single effect passes, try two at once (effects that only show together, e.g. slack
-    hiding a rate effect). Pairs among the three best single candidates by AICc.
-
-    Returns ((a, b), fit, ΔAICc) of the first pair (best AICc first) that passes both tests, or None.
-    """
-    pool = sorted((n for n, (f, inf, ref) in singles.items() if math.isfinite(inf["aicc"] - ref["aicc"])),
-                  key=lambda n: singles[n][1]["aicc"] - singles[n][2]["aicc"])[:3]
-    tried = []
-    for i in range(len(pool)):
-        for j in range(i + 1, len(pool)):
-            a, b = pool[i], pool[j]
-            spec = current.spec.with_(a, getattr(singles[a][0].spec, a)).with_(b, getattr(singles[b][0].spec, b))
-            try:
-                f = _fit_spec(spec, current, records, model, fixed, directions, bounds)
-            except FitError:
-                continue
-            res = f.problem.fit_residuals(f.z)
-            nu = n_effective(res)
-            inf = information(res, nu, f.problem.n_params())
-            ref = information(current.problem.fit_residuals(current.z), nu, current.problem.n_params())
-            d = inf["aicc"] - ref["aicc"]
-            if math.isfinite(d) and d <= aicc_threshold:
-                tried.append(((a, b), f, d))
-    for (a, b), f, d in sorted(tried, key=lambda t: t[2]):
-        f.heldout = heldout(f, folds)
-        gain = 1.0 - f.heldout.nrmse / max(current.heldout.nrmse, 1e-300)
-        if gain >= min_heldout_gain:
-            return (a, b), f, d
-    return None
-
-
-def heldout(fitted: Fitted, folds: Sequence[Fold]) -> Errors:
-    """Held-out errors of *fitted*'s model: refit per fold, predict what was left out.
-
-    Per-test artefact parameters (slack, offsets) of a held-out *file* are
-    re-estimated on that file with the material fixed (as ``esmm evaluate``
-    does); a held-out *block* keeps those fitted on the rest of its file.
-    """
-    prob = fitted.problem
-    per_file: dict[int, tuple[list, list]] = {}
-    for fold in folds:
-        fp = Problem(prob.model, prob.records, prob.spec, fixed=prob.fixed, directions=prob.directions,
-                     bounds=prob.bounds, train=fold.train)
-        excluded = {k for k, t in enumerate(fold.train) if t is not None and len(t) == 0}
-        active = [i for i, s in enumerate(fp.slots) if s.file is None or s.file not in excluded]
-        try:
-            z, _ = fp.solve(fitted.z.copy(), active=active, max_nfev=8 * (len(active) + 2), ftol=1e-5)
-        except FitError:
-            z = fitted.z.copy()
-        held_files = sorted(excluded)
-        if held_files:
-            # re-estimate the held-out files' own artefacts with the material fixed
-            fp.set_train([None if k in excluded else np.zeros(0, dtype=int) for k in range(len(fp.records))])
-            own = [i for i, s in enumerate(fp.slots) if s.file in excluded]
-            if own:
-                z, _ = fp.solve(z, active=own, max_nfev=10 * (len(own) + 2), ftol=1e-5)
-        coefs = fp.offsets(z)
-        for k, mask in enumerate(fold.test):
-            if mask is None:
-                continue
-            p = fp.full_prediction(k, z, coefs[k])
-            ys, ps = per_file.setdefault(k, ([], []))
-            ys.append(fp.records[k].y[mask])
-            ps.append(p[mask])
-    items = [(prob.records[k].name, np.concatenate(v[0]), np.concatenate(v[1])) for k, v in sorted(per_file.items())]
-    return error_measures(items)
-
-
 # --------------------------------------------------------------------------- the loop
 def discover(
     tests: Sequence[TensileTest],
@@ -615,9 +256,9 @@ def discover(
     base : FitResult, optional
         A base fit already made (its parameters start the base fit here).
     fixed : mapping, optional
-        Base parameters held (SI), as ``--fix``.
+        Base parameters held (SI), as :func:`~esmm.pipeline.calibrate.fit.fit_material`'s ``fixed``.
     free : sequence of str
-        Base parameters the model holds by default to fit anyway, as ``--free``.
+        Base parameters the model holds by default to fit anyway (``fit_material``'s ``free``).
     weights : mapping or sequence, optional
         Per-file weights, as the calibrate fit.
     n_starts, seed : int
@@ -641,56 +282,81 @@ def discover(
     -------
     DiscoverResult
     """
+    criteria = Criteria(aicc_threshold, min_heldout_gain, max_effects, min_share)
     with single_threaded_blas():
         return _discover(tests, model=model, base=base, fixed=fixed, free=free, weights=weights, n_starts=n_starts,
-                         seed=seed, max_points=max_points, candidates=candidates,
-                         aicc_threshold=aicc_threshold, min_heldout_gain=min_heldout_gain,
-                         max_effects=max_effects, min_share=min_share, reporter=reporter)
+                         seed=seed, max_points=max_points, candidates=candidates, criteria=criteria,
+                         reporter=reporter)
 
 
-def _discover(tests, *, model, base, fixed, free, weights, n_starts, seed, max_points, candidates, aicc_threshold,
-              min_heldout_gain, max_effects, min_share, reporter) -> DiscoverResult:
-    from ..calibrate.fit import _directions, _weights, fit_material
-    from ..materials import MODEL_NAMES, get_model
-
+def _discover(tests, *, model, base, fixed, free, weights, n_starts, seed, max_points, candidates,
+              criteria: Criteria, reporter) -> DiscoverResult:
     rep = ensure(reporter)
     t_start = time.perf_counter()
-    if not tests:
-        raise FitError("no tensile data to analyse; give at least one file")
-    if model not in MODEL_NAMES:
-        raise ConfigError(f"--model: unknown model {model!r}; choose one of {', '.join(MODEL_NAMES)}")
-    bad = [c for c in candidates if c not in EFFECT_NAMES]
-    if bad:
-        raise ConfigError(f"unknown effect {bad[0]!r}; the effects are {', '.join(EFFECT_NAMES)}")
-    if not aicc_threshold < 0:
-        raise ConfigError(f"aicc_threshold must be negative, got {aicc_threshold}")
-    if not 0 <= min_heldout_gain < 1:
-        raise ConfigError(f"min_heldout_gain must be in [0, 1), got {min_heldout_gain}")
-    if max_points < 20:
-        raise ConfigError(f"max_points must be at least 20, got {max_points}")
-    m = get_model(model)
-    w = _weights(tests, weights)
-    directions = _directions(tests)
+    _check(tests, model=model, candidates=candidates, criteria=criteria, max_points=max_points)
+    w = file_weights(tests, weights)
+    directions = fibre_directions(tests)
     records = prepare(tests, max_points=max_points, weights=w)
-
-    # 1. base fit on the thinned samples
     rep.step(f"discover: {len(tests)} file(s), {sum(t.n for t in tests)} samples, "
              f"{sum(r.fit_idx.size for r in records)} used for fitting")
-    views = [view_test(r) for r in records]
-    init = None
-    if base is not None:
-        init = dict(base.params)
-    base_fit = fit_material(views, model=model, n_starts=n_starts, seed=seed, fixed=fixed, free=tuple(free),
-                            weights=w, initial=init)
+    # 1. the base model, fitted on the thinned samples, and its held-out error
+    base_fit = fit_material([view_test(r) for r in records], model=model, n_starts=n_starts, seed=seed,
+                            fixed=fixed, free=tuple(free), weights=w,
+                            initial=dict(base.params) if base is not None else None)
+    start = _base_model(records, base_fit, fixed, directions)
+    scheme, folds = make_folds(records)
+    with rep.task("held-out check of the base model", total=1) as adv:
+        start.heldout = heldout(start, folds)
+        adv(1)
+    start.estimates = estimates(start.problem, start.z)
+    rep.step(f"base {model}: RMSE {start.errors.rmse:.4g} Pa, NRMSE {start.errors.nrmse:.2%}, "
+             f"held-out NRMSE {start.heldout.nrmse:.2%} ({scheme})")
+    # 2.-3. add effects, one per round, while one passes both tests
+    search = _start_search(start, folds, records, candidates)
+    rnd = 1
+    while _round(search, rnd, criteria, rep):
+        rnd += 1
+    _final_verdicts(search, records)
+    result = _result(search, base_fit, scheme, t_start, settings={
+        "max_points": max_points, "criterion": "AICc", "aicc_threshold": criteria.aicc_threshold,
+        "min_heldout_gain": criteria.min_heldout_gain, "n_starts": n_starts, "seed": seed,
+        "candidates": list(candidates)})
+    rep.step(f"discover: kept {', '.join(search.kept) or 'nothing'}; NRMSE {start.errors.nrmse:.2%} -> "
+             f"{search.current.errors.nrmse:.2%}, held-out {start.heldout.nrmse:.2%} -> "
+             f"{search.current.heldout.nrmse:.2%} ({result.seconds:.1f} s)")
+    return result
+
+
+def _check(tests, *, model, candidates, criteria: Criteria, max_points) -> None:
+    if not tests:
+        raise FitError("no tensile data to analyse; give at least one file")
+    check_model(model)
+    bad = [c for c in candidates if c not in EFFECT_NAMES]
+    if bad:
+        raise ConfigError(f"candidates: unknown effect {bad[0]!r}; the effects are {', '.join(EFFECT_NAMES)}",
+                          parameter="candidates")
+    number(criteria.aicc_threshold, "aicc_threshold", hi=0.0, hi_open=True)
+    number(criteria.min_heldout_gain, "min_heldout_gain", lo=0.0, hi=1.0, hi_open=True)
+    number(max_points, "max_points", lo=20, integer=True)
+
+
+def _base_model(records: list[Record], base_fit: FitResult, fixed, directions) -> Fitted:
+    """The base model refitted on the extended problem, with the effects' data-derived bounds."""
+    m = get_model(base_fit.model)
     free = {e.name for e in base_fit.estimates}
     fixed_all = {k: v for k, v in base_fit.params.items() if k not in free}
     fixed_all.update(fixed or {})
     base_params = {None: dict(base_fit.params)}
     if base_fit.directions:
         base_params.update({d: dict(p) for d, p in base_fit.directions.items()})
-    # data-derived bounds of the effect parameters
-    from ..materials.loading import energy_density
+    bounds = Bounds(records, _largest_energy(m, records, base_params, directions) or 1.0)
+    bprob = Problem(m, records, Spec(), fixed=fixed_all, directions=directions, bounds=bounds)
+    z, _ = bprob.solve(bprob.set_base(bprob.default_z(), base_params))
+    return finish(bprob, z)
 
+
+def _largest_energy(m, records: list[Record], base_params, directions) -> float:
+    """The largest strain energy density [Pa] of the base model on the fitting samples (0 if none is finite)."""
     w_ref = 0.0
     for r in records:
         p = base_params.get(r.key if directions else None, base_params[None])
@@ -698,200 +364,287 @@ def _discover(tests, *, model, base, fixed, free, weights, n_starts, seed, max_p
             wv = np.asarray(energy_density(m, p, r.test.mode, r.x[r.fit_idx]), float)
         if np.any(np.isfinite(wv)):
             w_ref = max(w_ref, float(np.nanmax(wv[np.isfinite(wv)])))
-    bounds = Bounds(records, w_ref or 1.0)
-    bprob = Problem(m, records, Spec(), fixed=fixed_all, directions=directions, bounds=bounds)
-    z0 = bprob.set_base(bprob.default_z(), base_params)
-    z, _ = bprob.solve(z0)
-    current = _finish(bprob, z)
-    scheme, folds = make_folds(records)
-    with rep.task("held-out check of the base model", total=1) as adv:
-        current.heldout = heldout(current, folds)
-        adv(1)
-    current.estimates = estimates(bprob, current.z)
-    base_f = current
-    rep.step(f"base {model}: RMSE {current.errors.rmse:.4g} Pa, NRMSE {current.errors.nrmse:.2%}, "
-             f"held-out NRMSE {current.heldout.nrmse:.2%} ({scheme})")
+    return w_ref
 
+
+def _start_search(start: Fitted, folds: list[Fold], records: list[Record], considered: Sequence[str]) -> Search:
+    """Every effect's candidate, with the reason it is not tried where the data cannot show it."""
     ident = identifiability(records)
     cands: dict[str, Candidate] = {}
     for n in EFFECT_NAMES:
         applicable, ok, why = ident[n]
         c = Candidate(n, "material" if n in MATERIAL_EFFECTS else "artefact", identifiable=ok,
                       applicable=applicable)
-        if n not in candidates:
+        if n not in considered:
             c.reason = "not considered (excluded by the caller)"
         elif not applicable or not ok:
             c.reason = why
         cands[n] = c
-    testable = [n for n in candidates if ident[n][0] and ident[n][1]]
-    kept: list[str] = []
-    diagnoses: list[Diagnosis] = []
-    upgrades: list[str] = []
-    rnd = 0
-    while True:
-        rnd += 1
-        remaining = [n for n in testable if n not in kept]
-        diag = diagnose(current.problem, current.z, candidates=remaining, errors=current.errors)
-        diagnoses.append(diag)
-        upgradable = [n for n in kept if getattr(current.spec, n) < max(VARIANTS[n])]
-        if (not remaining and not upgradable) or len(kept) >= max_effects:
-            break
-        order = [x for x in diag.ranking if x in remaining] + [x for x in remaining if x not in diag.ranking]
-        trials: list[tuple[str, Fitted, dict, dict]] = []  # (name, fit, info, ref info)
-        singles: dict[str, tuple[Fitted, dict, dict]] = {}  # every candidate fitted this round
-        with rep.task(f"round {rnd}: trying {', '.join(order + [u + ' (more terms)' for u in upgradable])}",
-                      total=len(order) + len(upgradable)) as adv:
-            for n in order:
-                c = cands[n]
-                c.round, c.score = rnd, diag.scores.get(n, 0.0)
-                if c.score < min_share:
-                    why = (f"its first-order signature explains {100 * c.score:.2f} % of the residual "
-                           f"(less than {100 * min_share:.1f} %)")
-                    if c.delta_aicc is not None or c.reason.startswith("rejected:"):
-                        # keep the verdict of the round in which it was fitted
-                        c.reason = f"{c.reason.split('; in round')[0]}; in round {rnd}, after {', '.join(kept)}, {why}"
-                    else:
-                        c.delta_aicc = c.delta_bic = c.heldout_nrmse = c.heldout_gain = None
-                        c.reason = f"rejected without a fit: {why}"
-                    adv(1)
-                    continue
-                got = _best_variant(n, VARIANTS[n], current, records, m, fixed_all, directions, bounds,
-                                    aicc_threshold)
-                adv(1)
-                if got is None:
-                    c.reason = "the fit with this effect failed"
-                    continue
-                f, inf, ref = got
-                if n == "sensor_offset":
-                    bad = _offset_inconsistent(f)
-                    if bad:
-                        c.variant = f.spec.variant_text(n)
-                        c.delta_aicc = inf["aicc"] - ref["aicc"]
-                        c.delta_bic = inf["bic"] - ref["bic"]
-                        c.params = _effect_params(f, n)
-                        c.heldout_nrmse = c.heldout_gain = None
-                        c.reason = ("rejected: " + bad + "; the offset compensates for misfit instead of "
-                                    "correcting the load cell")
-                        continue
-                c.variant = f.spec.variant_text(n)
-                c.delta_aicc = inf["aicc"] - ref["aicc"]
-                c.delta_bic = inf["bic"] - ref["bic"]
-                c.params = _effect_params(f, n)
-                c.heldout_nrmse = c.heldout_gain = None
-                singles[n] = (f, inf, ref)
-                if not math.isfinite(c.delta_aicc):
-                    c.delta_aicc = None
-                    c.reason = "rejected: the information criterion could not be computed for this fit"
-                elif c.delta_aicc > aicc_threshold:
-                    c.reason = (f"rejected: AICc {c.delta_aicc:+.1f} (needs {aicc_threshold:+.0f} or less): "
-                                "the improvement does not pay for the extra parameters")
-                else:
-                    c.reason = f"AICc {c.delta_aicc:+.1f}; held-out check pending"
-                    trials.append((n, f, inf, ref))
-            for n in upgradable:
-                nxt = [v for v in VARIANTS[n] if v > getattr(current.spec, n)]
-                got = _best_variant(n, nxt, current, records, m, fixed_all, directions, bounds, aicc_threshold,
-                                    upgrade=True)
-                adv(1)
-                if got is None:
-                    continue
-                f, inf, ref = got
-                if math.isfinite(inf["aicc"] - ref["aicc"]) and inf["aicc"] - ref["aicc"] <= aicc_threshold:
-                    trials.append((n, f, inf, ref))
-        # held-out check, best AICc first; the first that passes is kept
-        trials.sort(key=lambda t: t[2]["aicc"] - t[3]["aicc"])
-        winner = None
-        for n, f, inf, ref in trials:
-            f.heldout = heldout(f, folds)
-            gain = 1.0 - f.heldout.nrmse / max(current.heldout.nrmse, 1e-300)
-            d_aicc = inf["aicc"] - ref["aicc"]
-            if n in kept:  # a variant upgrade of a kept effect
-                if gain >= min_heldout_gain:
-                    winner = n
-                    upgrades.append(f"round {rnd}: {n} extended to {f.spec.variant_text(n)} (AICc {d_aicc:+.1f}, "
-                                    f"held-out NRMSE {current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%})")
-                    break
-                continue
-            c = cands[n]
-            c.heldout_nrmse, c.heldout_gain = f.heldout.nrmse, gain
-            if gain < min_heldout_gain:
-                c.reason = (f"rejected: AICc {d_aicc:+.1f} favours it but the held-out NRMSE goes "
-                            f"{current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%} ({-gain:+.1%}; needs "
-                            f"-{min_heldout_gain:.0%} or better): it does not predict data it was not fitted to")
-                continue
-            winner = n
-            break
-        for n, _f, inf, ref in trials:  # candidates never reached by the held-out check this round
-            c = cands[n]
-            if n != winner and n not in kept and c.reason.endswith("pending"):
-                c.reason = (f"AICc {inf['aicc'] - ref['aicc']:+.1f}, but {winner} explained more in round {rnd}; "
-                            "tried again after it")
-        if winner is None and len(kept) + 2 <= max_effects:
-            pair = _try_pairs(singles, current, records, m, fixed_all, directions, bounds, folds,
-                              aicc_threshold, min_heldout_gain)
-            if pair is not None:
-                (a, b), f, d_aicc = pair
-                for n, other in ((a, b), (b, a)):
-                    c = cands[n]
-                    c.kept = True
-                    c.variant = f.spec.variant_text(n)
-                    c.heldout_nrmse = f.heldout.nrmse
-                    c.heldout_gain = 1.0 - f.heldout.nrmse / max(current.heldout.nrmse, 1e-300)
-                    kind = "corrected in the data" if n in ARTEFACTS else "added to the material"
-                    c.reason = (f"kept ({kind}) in round {rnd} together with {other}: neither alone passed, "
-                                f"together AICc {d_aicc:+.1f} and held-out NRMSE {current.heldout.nrmse:.2%} -> "
-                                f"{f.heldout.nrmse:.2%}")
-                rep.step(f"round {rnd}: kept {a} and {b} together: NRMSE {current.errors.nrmse:.2%} -> "
-                         f"{f.errors.nrmse:.2%}, held-out {current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%}")
-                kept += [a, b]
-                current = f
-                continue
-        if winner is None:
-            break
-        f = next(t[1] for t in trials if t[0] == winner)
-        if winner in kept:
-            rep.step(upgrades[-1])
-            current = f
+    testable = [n for n in considered if ident[n][0] and ident[n][1]]
+    return Search(start, start, folds, cands, testable)
+
+
+# --------------------------------------------------------------------------- one round
+def _round(s: Search, rnd: int, crit: Criteria, rep) -> bool:
+    """Diagnose, try every candidate (and richer variants of kept effects), keep the best that passes.
+
+    Returns False when the search is over.
+    """
+    remaining = [n for n in s.testable if n not in s.kept]
+    diag = diagnose(s.current.problem, s.current.z, candidates=remaining, errors=s.current.errors)
+    s.diagnoses.append(diag)
+    upgradable = [n for n in s.kept if getattr(s.current.spec, n) < max(VARIANTS[n])]
+    if (not remaining and not upgradable) or len(s.kept) >= crit.max_effects:
+        return False
+    order = [x for x in diag.ranking if x in remaining] + [x for x in remaining if x not in diag.ranking]
+    with rep.task(f"round {rnd}: trying {', '.join(order + [u + ' (more terms)' for u in upgradable])}",
+                  total=len(order) + len(upgradable)) as adv:
+        trials, singles = _try_candidates(s, order, diag, rnd, crit, adv)
+        trials += _try_upgrades(s, upgradable, crit, adv)
+    trials.sort(key=lambda t: t.d_aicc)
+    winner = _heldout_winner(s, trials, rnd, crit)
+    for t in trials:  # candidates never reached by the held-out check this round
+        c = s.candidates[t.name]
+        if t.name != winner and t.name not in s.kept and c.reason.endswith("pending"):
+            c.reason = (f"AICc {t.d_aicc:+.1f}, but {winner} explained more in round {rnd}; "
+                        "tried again after it")
+    if winner is None and len(s.kept) + 2 <= crit.max_effects:
+        pair = _try_pairs(singles, s, crit)
+        if pair is not None:
+            _keep_pair(s, pair, rnd, rep)
+            return True
+    if winner is None:
+        return False
+    _keep(s, next(t.fit for t in trials if t.name == winner), winner, rnd, rep)
+    return True
+
+
+def _try_candidates(s: Search, order: list[str], diag: Diagnosis, rnd: int, crit: Criteria, advance,
+                    ) -> tuple[list[Trial], dict[str, Trial]]:
+    """Fit every remaining candidate; those whose AICc passes go to the held-out check (the trials)."""
+    trials: list[Trial] = []
+    singles: dict[str, Trial] = {}  # every candidate fitted this round
+    for n in order:
+        c = s.candidates[n]
+        c.round, c.score = rnd, diag.scores.get(n, 0.0)
+        if c.score < crit.min_share:
+            _too_small(c, s.kept, rnd, crit.min_share)
+            advance(1)
             continue
-        c = cands[winner]
+        t = _best_variant(n, VARIANTS[n], s.current, crit.aicc_threshold)
+        advance(1)
+        if t is None:
+            c.reason = "the fit with this effect failed"
+            continue
+        _record(c, t)
+        bad = _offset_inconsistent(t.fit) if n == "sensor_offset" else ""
+        if bad:
+            c.reason = "rejected: " + bad + "; the offset compensates for misfit instead of correcting the load cell"
+            continue
+        singles[n] = t
+        if not math.isfinite(c.delta_aicc):
+            c.delta_aicc = None
+            c.reason = "rejected: the information criterion could not be computed for this fit"
+        elif c.delta_aicc > crit.aicc_threshold:
+            c.reason = (f"rejected: AICc {c.delta_aicc:+.1f} (needs {crit.aicc_threshold:+.0f} or less): "
+                        "the improvement does not pay for the extra parameters")
+        else:
+            c.reason = f"AICc {c.delta_aicc:+.1f}; held-out check pending"
+            trials.append(t)
+    return trials, singles
+
+
+def _too_small(c: Candidate, kept: list[str], rnd: int, min_share: float) -> None:
+    """The verdict on a candidate whose first-order signature explains too little of the residual."""
+    why = (f"its first-order signature explains {100 * c.score:.2f} % of the residual "
+           f"(less than {100 * min_share:.1f} %)")
+    if c.delta_aicc is not None or c.reason.startswith("rejected:"):
+        # keep the verdict of the round in which it was fitted
+        c.reason = f"{c.reason.split('; in round')[0]}; in round {rnd}, after {', '.join(kept)}, {why}"
+    else:
+        c.delta_aicc = c.delta_bic = c.heldout_nrmse = c.heldout_gain = None
+        c.reason = f"rejected without a fit: {why}"
+
+
+def _record(c: Candidate, t: Trial) -> None:
+    """Write a fitted candidate's variant, information and parameters into its verdict."""
+    c.variant = t.fit.spec.variant_text(c.name)
+    c.delta_aicc = t.d_aicc
+    c.delta_bic = t.d_bic
+    c.params = effect_params(t.fit, c.name)
+    c.heldout_nrmse = c.heldout_gain = None
+
+
+def _try_upgrades(s: Search, upgradable: list[str], crit: Criteria, advance) -> list[Trial]:
+    """Richer variants (another Prony term, beta) of the kept effects whose AICc passes."""
+    trials = []
+    for n in upgradable:
+        nxt = [v for v in VARIANTS[n] if v > getattr(s.current.spec, n)]
+        t = _best_variant(n, nxt, s.current, crit.aicc_threshold, upgrade=True)
+        advance(1)
+        if t is not None and math.isfinite(t.d_aicc) and t.d_aicc <= crit.aicc_threshold:
+            trials.append(t)
+    return trials
+
+
+def _heldout_winner(s: Search, trials: list[Trial], rnd: int, crit: Criteria) -> str | None:
+    """The held-out check, best AICc first: the first trial that passes wins (None: none passes)."""
+    for t in trials:
+        f = t.fit
+        f.heldout = heldout(f, s.folds)
+        gain = s.gain(f)
+        if t.name in s.kept:  # a variant upgrade of a kept effect
+            if gain >= crit.min_heldout_gain:
+                s.upgrades.append(f"round {rnd}: {t.name} extended to {f.spec.variant_text(t.name)} (AICc "
+                                  f"{t.d_aicc:+.1f}, held-out NRMSE {s.current.heldout.nrmse:.2%} -> "
+                                  f"{f.heldout.nrmse:.2%})")
+                return t.name
+            continue
+        c = s.candidates[t.name]
+        c.heldout_nrmse, c.heldout_gain = f.heldout.nrmse, gain
+        if gain < crit.min_heldout_gain:
+            c.reason = (f"rejected: AICc {t.d_aicc:+.1f} favours it but the held-out NRMSE goes "
+                        f"{s.current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%} ({-gain:+.1%}; needs "
+                        f"-{crit.min_heldout_gain:.0%} or better): it does not predict data it was not fitted to")
+            continue
+        return t.name
+    return None
+
+
+def _keep(s: Search, f: Fitted, winner: str, rnd: int, rep) -> None:
+    """Make *f* (the current model plus *winner*) the current model."""
+    if winner in s.kept:
+        rep.step(s.upgrades[-1])
+        s.current = f
+        return
+    c = s.candidates[winner]
+    c.kept = True
+    kind = "corrected in the data" if winner in ARTEFACTS else "added to the material"
+    c.reason = (f"kept ({kind}) in round {rnd}: AICc {c.delta_aicc:+.1f}, held-out NRMSE "
+                f"{s.current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%}")
+    rep.step(f"round {rnd}: kept {winner} ({c.variant}): NRMSE {s.current.errors.nrmse:.2%} -> "
+             f"{f.errors.nrmse:.2%}, held-out {s.current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%}")
+    s.kept.append(winner)
+    s.current = f
+
+
+def _keep_pair(s: Search, pair, rnd: int, rep) -> None:
+    """Keep two effects that only passed together."""
+    (a, b), f, d_aicc = pair
+    for n, other in ((a, b), (b, a)):
+        c = s.candidates[n]
         c.kept = True
-        kind = "corrected in the data" if winner in ARTEFACTS else "added to the material"
-        c.reason = (f"kept ({kind}) in round {rnd}: AICc {c.delta_aicc:+.1f}, held-out NRMSE "
-                    f"{current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%}")
-        rep.step(f"round {rnd}: kept {winner} ({c.variant}): NRMSE {current.errors.nrmse:.2%} -> "
-                 f"{f.errors.nrmse:.2%}, held-out {current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%}")
-        kept.append(winner)
-        current = f
-    # final estimates and the verdicts of the effects not kept
-    current.estimates = estimates(current.problem, current.z)
-    for n in kept:
-        cands[n].params = _effect_params(current, n)
-        cands[n].variant = current.spec.variant_text(n)
-        for u in upgrades:
+        c.variant = f.spec.variant_text(n)
+        c.heldout_nrmse = f.heldout.nrmse
+        c.heldout_gain = s.gain(f)
+        kind = "corrected in the data" if n in ARTEFACTS else "added to the material"
+        c.reason = (f"kept ({kind}) in round {rnd} together with {other}: neither alone passed, "
+                    f"together AICc {d_aicc:+.1f} and held-out NRMSE {s.current.heldout.nrmse:.2%} -> "
+                    f"{f.heldout.nrmse:.2%}")
+    rep.step(f"round {rnd}: kept {a} and {b} together: NRMSE {s.current.errors.nrmse:.2%} -> "
+             f"{f.errors.nrmse:.2%}, held-out {s.current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%}")
+    s.kept += [a, b]
+    s.current = f
+
+
+# --------------------------------------------------------------------------- the outcome
+def _final_verdicts(s: Search, records: list[Record]) -> None:
+    """Final estimates, the kept effects' parameters and variants, and the confounds to warn about."""
+    s.current.estimates = estimates(s.current.problem, s.current.z)
+    cands = s.candidates
+    for n in s.kept:
+        cands[n].params = effect_params(s.current, n)
+        cands[n].variant = s.current.spec.variant_text(n)
+        for u in s.upgrades:
             if f": {n} extended" in u:
                 cands[n].reason += f"; {u.split(': ', 1)[1]}"
     # a confound the data cannot resolve: on a single monotonic ramp, damage and relaxation look alike
-    if "damage" in kept and not cands["viscoelastic"].identifiable and any(r.history for r in records):
+    if "damage" in s.kept and not cands["viscoelastic"].identifiable and any(r.history for r in records):
         cands["damage"].reason += (
             "; caution: with one monotonic ramp at one rate, damage cannot be told from rate-dependent "
             "relaxation (which is not identifiable here); an unloading-reloading cycle or a second rate "
             "would tell them apart")
-    not_ident = [n for n in EFFECT_NAMES if cands[n].applicable and not cands[n].identifiable]
+
+
+def _result(s: Search, base_fit: FitResult, scheme: str, t_start: float, *, settings: dict[str, Any],
+            ) -> DiscoverResult:
+    cur = s.current
+    prob = cur.problem
+    not_ident = [n for n in EFFECT_NAMES if s.candidates[n].applicable and not s.candidates[n].identifiable]
     warnings = [f"{e.key} is not identifiable from these data: 95 % interval [{e.lower:.4g}, {e.upper:.4g}]"
-                for e in current.estimates if e.wide and e.key.split(".")[0] in MATERIAL_EFFECTS]
-    settings = {"max_points": max_points, "criterion": "AICc", "aicc_threshold": aicc_threshold,
-                "min_heldout_gain": min_heldout_gain, "n_starts": n_starts, "seed": seed,
-                "candidates": list(candidates), "bounds": bounds.to_dict(), "fixed": fixed_all,
-                "directions": directions}
-    result = DiscoverResult(
-        model=m.name, records=records, base=base_f, final=current, kept=kept, candidates=cands,
-        not_identifiable=not_ident, diagnoses=diagnoses, scheme=scheme, folds=[f.name for f in folds],
+                for e in cur.estimates if e.wide and e.key.split(".")[0] in MATERIAL_EFFECTS]
+    settings = {**settings, "bounds": prob.bounds.to_dict(), "fixed": dict(prob.fixed), "directions": prob.directions}
+    return DiscoverResult(
+        model=prob.model.name, records=prob.records, base=s.base, final=cur, kept=s.kept, candidates=s.candidates,
+        not_identifiable=not_ident, diagnoses=s.diagnoses, scheme=scheme, folds=[f.name for f in s.folds],
         settings=settings, warnings=warnings, seconds=time.perf_counter() - t_start, base_fit=base_fit,
     )
-    rep.step(f"discover: kept {', '.join(kept) or 'nothing'}; NRMSE {base_f.errors.nrmse:.2%} -> "
-             f"{current.errors.nrmse:.2%}, held-out {base_f.heldout.nrmse:.2%} -> {current.heldout.nrmse:.2%} "
-             f"({result.seconds:.1f} s)")
-    return result
+
+
+# --------------------------------------------------------------------------- fitting candidates
+def _compared(name: str, f: Fitted, current: Fitted) -> Trial:
+    """*f* against *current*, both judged on *f*'s effective sample sizes.
+
+    The candidate's residual is the better estimate of the noise's correlation.
+    """
+    res = f.problem.fit_residuals(f.z)
+    nu = n_effective(res)
+    return Trial(name, f, information(res, nu, f.problem.n_params()), _information(current, nu), nu)
+
+
+def _information(f: Fitted, nu: list[float]) -> dict[str, float]:
+    return information(f.problem.fit_residuals(f.z), nu, f.problem.n_params())
+
+
+def _best_variant(name: str, variants, current: Fitted, aicc_threshold: float, *,
+                  upgrade: bool = False) -> Trial | None:
+    """Fit the variants of effect *name* in order; stop when one more term stops paying.
+
+    Returns the best variant by AICc (None if no fit succeeded).
+    """
+    best: Trial | None = None
+    prev: Trial | None = None
+    for v in variants:
+        try:
+            f = fit_spec(current.spec.with_(name, v), current, init_from=prev.fit if prev is not None else None)
+        except FitError:
+            break
+        t = _compared(name, f, current)
+        # the richer variant must beat the simpler one on the same footing
+        if prev is not None and t.info["aicc"] - _information(prev.fit, t.nu)["aicc"] > aicc_threshold:
+            break
+        if best is None or t.d_aicc < best.d_aicc:
+            best = t
+        if not upgrade and t.d_aicc > 0 and name != "viscoelastic":
+            break  # the simplest variant does not help at all: the richer ones will not either
+        prev = t
+    return best
+
+
+def _try_pairs(singles: dict[str, Trial], s: Search, crit: Criteria):
+    """When no single effect passes, try two at once (effects that only show together, e.g. slack
+    hiding a rate effect). Pairs among the three best single candidates by AICc.
+
+    Returns ((a, b), fit, ΔAICc) of the first pair (best AICc first) that passes both tests, or None.
+    """
+    current = s.current
+    pool = sorted((n for n, t in singles.items() if math.isfinite(t.d_aicc)), key=lambda n: singles[n].d_aicc)[:3]
+    tried = []
+    for i in range(len(pool)):
+        for j in range(i + 1, len(pool)):
+            a, b = pool[i], pool[j]
+            spec = current.spec.with_(a, getattr(singles[a].fit.spec, a)).with_(b, getattr(singles[b].fit.spec, b))
+            try:
+                t = _compared(f"{a}+{b}", fit_spec(spec, current), current)
+            except FitError:
+                continue
+            if math.isfinite(t.d_aicc) and t.d_aicc <= crit.aicc_threshold:
+                tried.append(((a, b), t.fit, t.d_aicc))
+    for (a, b), f, d in sorted(tried, key=lambda t: t[2]):
+        f.heldout = heldout(f, s.folds)
+        if s.gain(f) >= crit.min_heldout_gain:
+            return (a, b), f, d
+    return None
 
 
 def _noise_sd(y: np.ndarray) -> float:
@@ -928,36 +681,3 @@ def _offset_inconsistent(f: Fitted) -> str:
                     f"load cell read {float(r.y[0]) * fac:+.3g} {unit} there before loading (noise "
                     f"{sd * fac:.2g} {unit})")
     return ""
-
-
-def _effect_params(f: Fitted, name: str) -> dict[str, Any]:
-    """The fitted parameters of effect *name* in *f* (values only; intervals in the final model)."""
-    st = f.state
-    if name == "viscoelastic" and st.g is not None:
-        return {"g": [float(v) for v in st.g], "tau": [float(v) for v in st.tau],
-                "g_inf": float(max(0.0, 1 - float(np.sum(st.g))))}
-    if name == "mullins" and st.mullins is not None:
-        return dict(zip(("r", "m", "beta"), map(float, st.mullins)))
-    if name == "damage" and st.damage is not None:
-        return dict(zip(("onset", "scale", "shape"), map(float, st.damage)))
-    if name == "slack" and st.slack is not None:
-        out = {}
-        for k, r in enumerate(f.problem.records):
-            if any(s.effect == "slack" and s.file == k for s in f.problem.slots):
-                d = float(st.slack[k])
-                out[r.name] = {"delta": d, "length_m": d * r.gauge if r.gauge else None}
-        return out
-    if name == "sensor_offset":
-        coefs = f.problem.offsets(f.z)
-        out = {}
-        for k, r in enumerate(f.problem.records):
-            c = coefs[k]
-            if c is None:
-                continue
-            o = float(c[0])  # data = model + offset (what the load cell reads at zero force)
-            d = float(c[1]) / (r.T or 1.0) if len(c) > 1 else 0.0
-            out[r.name] = {"stress_Pa": o, "drift_Pa_per_s": d,
-                           "force_N": o * r.area if r.area else None,
-                           "drift_N_per_s": d * r.area if r.area else None}
-        return out
-    return {}

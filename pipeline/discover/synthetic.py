@@ -36,10 +36,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import tomli_w
 from scipy.special import erf
 
 from ..atomicio import write_text
 from ..errors import ConfigError
+from ..materials import get_model
+from ..materials.loading import energy_density, nominal_stress
 
 __all__ = ["Protocol", "Truth", "load_unload", "cycles", "ramp_hold", "monotonic", "simulate",
            "write_csv", "write_set"]
@@ -152,8 +155,33 @@ class Truth:
         return [n for n in ("viscoelastic", "mullins", "damage", "slack", "sensor_offset") if getattr(self, n)]
 
 
-def _prony_trapezoid(t: np.ndarray, p: np.ndarray, g: Sequence[float], tau: Sequence[float]) -> np.ndarray:
-    """QLV by the trapezoidal rule on a grid refined to Δ <= min(tau)/8."""
+def prony_trapezoid(t: np.ndarray, p: np.ndarray, g: Sequence[float], tau: Sequence[float]) -> np.ndarray:
+    r"""Quasi-linear viscoelastic stress by the trapezoidal rule (the generator's own integration).
+
+    .. math::
+
+        P(t) = g_\infty P_e(t) + \sum_i g_i h_i(t), \qquad
+        \dot h_i = \dot P_e - h_i / \tau_i, \quad h_i(0) = P_e(0),
+
+    with :math:`g_\infty = 1 - \sum_i g_i`, integrated by Crank-Nicolson on a grid
+    refined to Δt <= min(τ)/8 (P_e linear between samples). Independent of the
+    fit's exact recursion (:func:`esmm.pipeline.materials.effects.qlv_stress`), so
+    the test that compares them checks both.
+
+    Parameters
+    ----------
+    t : ndarray, shape (n,)
+        Sample times [s], increasing.
+    p : ndarray, shape (n,)
+        Elastic (instantaneous) stress P_e [Pa].
+    g, tau : sequence of float, shape (m,)
+        Prony weights and relaxation times [s].
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        P [Pa] at the sample times.
+    """
     dt = float(np.min(np.diff(t))) if t.size > 1 else 1.0
     sub = max(1, int(math.ceil(8 * dt / min(tau))))
     if sub > 1:
@@ -195,9 +223,6 @@ def simulate(protocol: Protocol, truth: Truth, *, gauge_length: float = 0.03, ar
     -------
     dict with ``time`` [s], ``displacement`` [m], ``force`` [N], ``true_force`` [N]
     """
-    from ..materials import get_model
-    from ..materials.loading import energy_density, nominal_stress
-
     m = get_model(truth.model)
     rng = np.random.default_rng(seed)
     t = protocol.t
@@ -217,7 +242,7 @@ def simulate(protocol: Protocol, truth: Truth, *, gauge_length: float = 0.03, ar
         Wm = np.maximum.accumulate(W)
         p = p * (1.0 - erf((Wm - W) / (mu["m"] + mu.get("beta", 0.0) * Wm)) / mu["r"])
     if truth.viscoelastic:
-        p = _prony_trapezoid(t, p, truth.viscoelastic["g"], truth.viscoelastic["tau"])
+        p = prony_trapezoid(t, p, truth.viscoelastic["g"], truth.viscoelastic["tau"])
     p = np.maximum(p, 0.0)  # a pulled strip buckles instead of carrying compression
     f_true = p * area
     f = f_true.copy()
@@ -263,8 +288,6 @@ def write_csv(path: str | Path, channels: Mapping[str, np.ndarray], *, gauge_len
         lines.append("time [s],displacement [mm],force [N]")
         lines += [f"{a:.4f},{b:.5f},{c:.5f}" for a, b, c in zip(t, u, f)]
     elif style == "sidecar":
-        import tomli_w
-
         write_text(path.with_suffix(".toml"), tomli_w.dumps({k: v for k, v in meta.items() if v}))
         lines = ["Time (s),Extension (mm),Load (N)"]
         lines += [f"{a:.4f},{b:.5f},{c:.5f}" for a, b, c in zip(t, u, f)]

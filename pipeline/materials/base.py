@@ -191,16 +191,21 @@ class MaterialModel:
         self._check_extra(out, where=where)
         return out
 
-    def unknown_parameter_error(self, name: str, *, where: str = "") -> ConfigError:
-        """The one-line error for a key that is not a parameter of this model."""
+    def unknown_parameter_error(self, name: str, *, where: str = "", parameter: str | None = None) -> ConfigError:
+        """The one-line error for a key that is not a parameter of this model.
+
+        *where* starts the message; *parameter* is the library option the key was
+        given to (then *where* should be that option's name).
+        """
         loc = f"{where}: " if where else ""
         if name in self.not_parameters:
             return ConfigError(
-                f"{loc}{name!r} is not a parameter of model {self.name!r}: {self.not_parameters[name]}"
+                f"{loc}{name!r} is not a parameter of model {self.name!r}: {self.not_parameters[name]}",
+                parameter=parameter,
             )
         return ConfigError(
             f"{loc}unknown parameter {name!r} for model {self.name!r}; "
-            f"its parameters are {', '.join(self.parameter_names)}"
+            f"its parameters are {', '.join(self.parameter_names)}", parameter=parameter,
         )
 
     def check_value(self, name: str, value, *, where: str = "") -> float:

@@ -67,6 +67,7 @@ import numpy as np
 from scipy.special import erf
 
 from ..errors import ConfigError
+from ..units import from_si, parse_quantity, to_si
 
 try:  # numba makes the O(n) recursion fast; the pure-numpy fallback is exact too
     from numba import njit
@@ -467,8 +468,6 @@ class MaterialEffects:
 
     def to_toml_table(self, *, stress_unit: str = "Pa") -> dict[str, Any]:
         """The ``[material.effects]`` table: dimensional values as strings with units."""
-        from ..units import from_si
-
         t: dict[str, Any] = {}
         if self.viscoelastic is not None:
             v = self.viscoelastic
@@ -490,8 +489,6 @@ class MaterialEffects:
     def from_toml_table(cls, t: Mapping[str, Any] | None, *, stress_unit: str | None = None,
                         where: str = "[material.effects]") -> MaterialEffects:
         """Read a ``[material.effects]`` table (strings with units, or SI numbers)."""
-        from ..units import parse_quantity, to_si
-
         if not t:
             return cls()
         if not isinstance(t, Mapping):

@@ -318,20 +318,7 @@ def load_material(name_or_path: str | os.PathLike) -> Material:
         )
     params = _read_values(m, raw, f_stress, unit, where=f"{where}: [material.parameters]")
     params = m.check(params, where=f"{where}: [material.parameters]")
-    directions = None
-    if "directions" in mat:
-        dtab = mat["directions"]
-        if not isinstance(dtab, dict):
-            raise ConfigError(f"{where}: [material.directions] must be a table of x, y, z tables")
-        directions = {}
-        for d, over in dtab.items():
-            w = f"{where}: [material.directions.{d}]"
-            if d not in DIRECTIONS:
-                raise ConfigError(f"{w}: unknown direction {d!r}; use {', '.join(DIRECTIONS)}")
-            if not isinstance(over, dict):
-                raise ConfigError(f"{w}: must be a table of parameter overrides")
-            vals = _read_values(m, over, f_stress, unit, where=w, partial=True)
-            directions[d] = _check_overrides(m, vals, where=w)
+    directions = _read_directions(m, mat["directions"], f_stress, unit, where=where) if "directions" in mat else None
     name = mat.get("name")
     if name is not None and not isinstance(name, str):
         raise ConfigError(f"{where}: [material] name must be a string")
@@ -345,6 +332,23 @@ def load_material(name_or_path: str | os.PathLike) -> Material:
         name=name or default_name, source=source, metadata=metadata,
         stress_unit=unit if unit is not None else "MPa",
     )
+
+
+def _read_directions(m: MaterialModel, dtab: Any, f_stress: float | None, unit: str | None, *,
+                     where: str) -> dict[str, dict[str, float]]:
+    """The ``[material.directions.x|y|z]`` tables: overrides of the model's directional parameters (SI)."""
+    if not isinstance(dtab, dict):
+        raise ConfigError(f"{where}: [material.directions] must be a table of x, y, z tables")
+    directions = {}
+    for d, over in dtab.items():
+        w = f"{where}: [material.directions.{d}]"
+        if d not in DIRECTIONS:
+            raise ConfigError(f"{w}: unknown direction {d!r}; use {', '.join(DIRECTIONS)}")
+        if not isinstance(over, dict):
+            raise ConfigError(f"{w}: must be a table of parameter overrides")
+        vals = _read_values(m, over, f_stress, unit, where=w, partial=True)
+        directions[d] = _check_overrides(m, vals, where=w)
+    return directions
 
 
 def _stress_factor(unit: str, where: str) -> float:

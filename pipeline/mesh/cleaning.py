@@ -32,6 +32,7 @@ smoothing keeps the volume, :class:`~esmm.pipeline.errors.MeshingError`.
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,6 +41,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ..errors import ConfigError, MeshingError
 from ..progress import ensure
+from ..validate import choice, number
 from .surface import Surface, cross3, triple
 
 #: Largest accepted relative change of the enclosed volume by the cleaning.
@@ -48,11 +50,14 @@ MAX_VOLUME_CHANGE = 0.02
 #: Decimation target when neither ``target_faces`` nor ``target_edge`` is given.
 DEFAULT_TARGET_FACES = 20_000
 
+#: Fewest triangles a decimation target may ask for.
+MIN_TARGET_FACES = 100
+
 #: Points closer than this fraction of the extent are merged.
 MERGE_TOLERANCE = 1e-7
 
 
-@dataclass
+@dataclass(frozen=True)
 class CleaningOptions:
     """Options of :func:`clean_surface`.
 
@@ -68,7 +73,7 @@ class CleaningOptions:
     smooth_passband : float
         Windowed-sinc pass band in (0, 2); smaller smooths more.
     target_faces : int or None
-        Decimate to about this many triangles.
+        Decimate to about this many triangles (at least :data:`MIN_TARGET_FACES`).
     target_edge : float or None
         Decimate to a mean edge of about this length [m] (ignored if
         ``target_faces`` is given). Half the tetrahedron size is a good value.
@@ -81,23 +86,24 @@ class CleaningOptions:
     target_faces: int | None = None
     target_edge: float | None = None
 
-    def validate(self) -> None:
-        """Raise ConfigError naming the bad option."""
-        if self.keep not in ("largest", "all"):
-            raise ConfigError(f"keep: expected 'largest' or 'all', got {self.keep!r}")
-        if self.body is not None and (isinstance(self.body, bool) or not isinstance(self.body, (int, np.integer))
-                                      or self.body < 0):
-            raise ConfigError(f"body: expected a body index >= 0 (0 = largest), got {self.body!r}")
-        if isinstance(self.smooth_iterations, bool) or not isinstance(self.smooth_iterations, (int, np.integer)) \
-                or self.smooth_iterations < 0:
-            raise ConfigError(f"smooth_iterations: expected an integer >= 0, got {self.smooth_iterations!r}")
-        if not (0.0 < float(self.smooth_passband) < 2.0):
-            raise ConfigError(f"smooth_passband: expected a value in (0, 2), got {self.smooth_passband!r}")
-        if self.target_faces is not None and (not isinstance(self.target_faces, (int, np.integer))
-                                              or self.target_faces < 100):
-            raise ConfigError(f"target_faces: expected an integer >= 100, got {self.target_faces!r}")
-        if self.target_edge is not None and not (float(self.target_edge) > 0):
-            raise ConfigError(f"target_edge: expected a positive length in m, got {self.target_edge!r}")
+    def validate(self, names: Mapping[str, str] | None = None) -> None:
+        """Raise ConfigError naming the bad option.
+
+        *names* maps an attribute to the parameter name used in messages
+        (default: the attribute's name; e.g. ``[cleaning] body`` for a config key).
+        """
+        def name(key: str) -> str:
+            return (names or {}).get(key, key)
+
+        choice(self.keep, ("largest", "all"), name("keep"))
+        if self.body is not None:
+            number(self.body, name("body"), lo=0, integer=True)
+        number(self.smooth_iterations, name("smooth_iterations"), lo=0, integer=True)
+        number(self.smooth_passband, name("smooth_passband"), lo=0.0, hi=2.0, lo_open=True, hi_open=True)
+        if self.target_faces is not None:
+            number(self.target_faces, name("target_faces"), lo=MIN_TARGET_FACES, integer=True)
+        if self.target_edge is not None:
+            number(self.target_edge, name("target_edge"), lo=0.0, lo_open=True)
 
 
 @dataclass
@@ -368,12 +374,27 @@ def _smooth(points: np.ndarray, faces: np.ndarray, iterations: int, passband: fl
     f.Update()
     out = vtk_to_numpy(f.GetOutput().GetPoints().GetData()).astype(np.float64)
     if out.shape != points.shape:  # pragma: no cover - VTK keeps the points
-        raise MeshingError("smoothing changed the number of points; use --smooth-iterations 0")
+        raise MeshingError("smoothing changed the number of points; set smooth_iterations to 0")
     return out
 
 
-def _keep_largest(points, faces, n_keep: int = 1):
-    """Keep the *n_keep* bodies of largest enclosed volume; return points, faces, dropped count."""
+def keep_largest(points: np.ndarray, faces: np.ndarray, n_keep: int = 1) -> tuple[np.ndarray, np.ndarray, int]:
+    """Keep the *n_keep* bodies of largest enclosed volume.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    faces : ndarray, shape (m, 3)
+    n_keep : int
+
+    Returns
+    -------
+    points : ndarray, shape (n', 3)
+        Compacted (only the kept bodies' points).
+    faces : ndarray, shape (m', 3)
+    dropped : int
+        Number of bodies dropped.
+    """
     n, lab = face_components(points.shape[0], faces)
     if n <= n_keep:
         return points, faces, 0
@@ -383,8 +404,25 @@ def _keep_largest(points, faces, n_keep: int = 1):
     return p, f, n - n_keep
 
 
-def _orient_outward(points, faces):
-    """Consistent orientation and positive volume for each body."""
+def orient_outward(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, int, int, int]:
+    """Consistent orientation and positive (outward) volume for each body.
+
+    Parameters
+    ----------
+    points : ndarray, shape (n, 3)
+    faces : ndarray, shape (m, 3)
+
+    Returns
+    -------
+    faces : ndarray, shape (m, 3)
+        Reoriented.
+    flipped : int
+        Faces flipped.
+    conflicts : int
+        Components that are not orientable (left as they were).
+    bodies_turned : int
+        Bodies turned outward as a whole.
+    """
     f, n_flip, conflicts = orient_consistently(points.shape[0], faces)
     n, lab = face_components(points.shape[0], f)
     vols = capped_volumes(points, f, lab, n)
@@ -652,10 +690,10 @@ def _smooth_to_closed(pts, fcs, iters, passband, target, record, where, n_bodies
     refilled = int(tm.fill_small_boundaries(0, True)) if tm.n_boundaries else 0
     v, f = tm.return_arrays()
     p1, f1 = np.asarray(v, np.float64), np.asarray(f, np.int64)
-    p1, f1, n_pieces = _keep_largest(p1, f1, n_bodies) if f1.shape[0] else (p1, f1, 0)
+    p1, f1, n_pieces = keep_largest(p1, f1, n_bodies) if f1.shape[0] else (p1, f1, 0)
     if f1.shape[0] == 0:
         raise MeshingError(f"{where}: nothing is left after repair; check the input file")
-    f1, n_flip, _, _ = _orient_outward(p1, f1)
+    f1, n_flip, _, _ = orient_outward(p1, f1)
     s1 = Surface(p1, f1)
     record("repair", t0, pts, fcs, p1, f1,
            f"degeneracies and self-intersections (pymeshfix, converged={converged}); "

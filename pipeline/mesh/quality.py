@@ -20,11 +20,16 @@ The floors (:data:`QUALITY_FLOORS`) and their reasons are in docs/prepare.md.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-#: Minimum quality accepted by ``esmm prepare`` (override with --force); see docs/prepare.md.
+from ..errors import ConfigError
+from ..validate import number
+
+#: Minimum quality accepted by ``esmm prepare`` (unless forced); see docs/prepare.md.
 QUALITY_FLOORS: dict[str, float] = {
     # No inverted, flat or nearly flat element (volume below ~2 % of the regular one of the
     # same size): its volume weight and its springs' directions are meaningless.
@@ -39,6 +44,26 @@ QUALITY_FLOORS: dict[str, float] = {
     "gamma_p1": 0.15,
     "radius_ratio_p1": 0.15,
 }
+
+#: The figures of a :class:`QualityReport` a floor may be set on (:meth:`QualityReport.values`).
+QUALITY_FIGURES = ("sicn_min", "sicn_p1", "gamma_min", "gamma_p1", "radius_ratio_min", "radius_ratio_p1",
+                   "min_dihedral_deg")
+
+
+def check_floors(floors: Mapping[str, Any], where: str = "[quality]") -> dict[str, float]:
+    """Quality floors to use instead of the defaults: known figure names, numeric values.
+
+    Raises
+    ------
+    ConfigError
+        An unknown figure or a value that is not a number (naming ``where`` and the key).
+    """
+    unknown = sorted(set(floors) - set(QUALITY_FIGURES))
+    if unknown:
+        raise ConfigError(f"{where}: unknown figure(s) {', '.join(unknown)}; known: {', '.join(sorted(QUALITY_FIGURES))}",
+                          parameter=where)
+    return {k: number(v, f"{where} {k}") for k, v in floors.items()}
+
 
 _REGULAR_W_INV = np.linalg.inv(np.array([[1.0, 0.5, 0.5],
                                          [0.0, math.sqrt(3.0) / 2.0, math.sqrt(3.0) / 6.0],
@@ -74,7 +99,7 @@ class QualityReport:
     percentiles: dict = field(default_factory=dict)
 
     def values(self) -> dict[str, float]:
-        """The figures compared with :data:`QUALITY_FLOORS`."""
+        """The figures compared with :data:`QUALITY_FLOORS` (keys: :data:`QUALITY_FIGURES`)."""
         return {
             "sicn_min": self.sicn[0], "sicn_p1": self.sicn[1],
             "gamma_min": self.gamma[0], "gamma_p1": self.gamma[1],

@@ -4,7 +4,7 @@ Every reader returns a :class:`~esmm.pipeline.mesh.surface.Surface` in metres.
 The file's unit is never guessed: ``unit`` says what the coordinates are in
 (``"mm"`` by default, as InVesalius and 3D Slicer write), and the size check
 (:func:`check_unit_sanity`) refuses an organ whose largest extent is not
-between 10 and 400 mm, suggesting the ``--unit`` that would make it plausible.
+between 10 and 400 mm, suggesting the ``unit`` that would make it plausible.
 
 Formats
 -------
@@ -37,9 +37,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomicio import atomic_path
 from ..errors import InputError
 from ..progress import ensure
 from ..units import factor, normalise_unit
+from .gmsh_worker import GmshFailure, GmshTimeout, run_worker
 from .surface import Surface
 
 #: Plausible organ size: largest bounding-box extent in mm.
@@ -95,10 +97,10 @@ def read_surface(path: str | os.PathLike, *, unit: str = "mm", label: int | None
     if p.stat().st_size == 0:
         raise InputError(f"{p}: the file is empty; export the surface again")
     if label is not None and (isinstance(label, bool) or not isinstance(label, (int, np.integer))):
-        raise InputError(f"label: expected an integer label, got {label!r}")
+        raise InputError(f"label: expected an integer label, got {label!r}", parameter="label")
     suf = _suffix(p)
     if label is not None and suf not in (".nii", ".nii.gz"):
-        raise InputError(f"label: --label applies to NIfTI masks only, not to {p.name}")
+        raise InputError(f"label: applies to NIfTI masks only, not to {p.name}", parameter="label")
     if suf == ".stl":
         pts, faces = _read_stl(p)
         what = "STL"
@@ -142,12 +144,12 @@ def check_unit_sanity(surface: Surface, *, unit: str, where: str = "") -> None:
     good = [u for u in ("m", "cm", "mm", "um") if lo <= raw * factor(u, "length") * 1e3 <= hi
             and u != unit]
     loc = f"{where}: " if where else ""
-    hint = (f"if the file is in {' or '.join(good)}, give --unit {good[0]}" if good
+    hint = (f"if the file is in {' or '.join(good)}, read it with unit {good[0]}" if good
             else "check that the file holds one organ and export it again in mm")
     conv = f" ({ext_m * 1e3:.4g} mm)" if normalise_unit(unit) != "mm" else ""
     raise InputError(
-        f"{loc}the organ is {raw:.4g} {unit} across{conv}, not a plausible organ size "
-        f"({lo:g}-{hi:g} mm); {hint}"
+        f"unit: {loc}the organ is {raw:.4g} {unit} across{conv}, not a plausible organ size "
+        f"({lo:g}-{hi:g} mm); {hint}", parameter="unit"
     )
 
 
@@ -245,8 +247,6 @@ def write_stl(surface: Surface, path: str | os.PathLike, *, unit: str = "mm", as
     ascii
         Write ASCII STL instead of binary.
     """
-    from ..atomicio import atomic_path
-
     s = 1.0 / factor(unit, "length", where="unit")
     pts = surface.points * s
     tri = pts[surface.faces]
@@ -412,12 +412,6 @@ def _ply_header(p: Path, data: bytes) -> tuple[str | None, list[_PlyElement], in
     if fmt is None:
         raise InputError(f"{p}: the PLY header has no 'format' line; the file is corrupt")
     return order, elements, m.end()
-
-
-def _ply_lists_fast(el: _PlyElement, first: list[int]) -> list[tuple[str, str, int]]:
-    """Record layout assuming every list has the length it has in the first record."""
-    return [(pr.name, pr.type, 1) if pr.count is None else (pr.name, pr.type, k)
-            for pr, k in zip(el.props, first)]
 
 
 def _ply_read_ascii(p: Path, elements: list[_PlyElement], body: bytes) -> dict[str, dict]:
@@ -651,8 +645,6 @@ def _short(x) -> str:
 
 # ----------------------------------------------------------------- gmsh MSH
 def _read_msh(p: Path) -> tuple[np.ndarray, np.ndarray, str]:
-    from .gmsh_worker import GmshFailure, GmshTimeout, run_worker
-
     try:
         out = run_worker("read", {"path": str(p.resolve())}, timeout=60.0)
     except GmshTimeout:
@@ -741,13 +733,13 @@ def _read_nifti(p: Path, *, label: int | None, scale: float) -> tuple[np.ndarray
         if len(nonzero) > 1:
             listing = ", ".join(f"{v} ({c} voxels)" for v, c in sorted(nonzero, key=lambda t: -t[1])[:8])
             raise InputError(
-                f"{p}: a multi-label segmentation ({len(nonzero)} labels: {listing}{', ...' if len(nonzero) > 8 else ''}); "
-                f"choose the organ with --label N (TotalSegmentator liver: 5)"
-            )
+                f"label: {p} is a multi-label segmentation ({len(nonzero)} labels: {listing}"
+                f"{', ...' if len(nonzero) > 8 else ''}); choose the organ's label (TotalSegmentator liver: 5)",
+                parameter="label")
         label = nonzero[0][0]
     elif label not in {v for v, _ in nonzero}:
         listing = ", ".join(str(v) for v, _ in nonzero[:20])
-        raise InputError(f"label: {label} is not in {p.name}; labels present: {listing}")
+        raise InputError(f"label: {label} is not in {p.name}; labels present: {listing}", parameter="label")
     verts, faces = surface_from_mask(data == label, spacing=spacing)
     what = f"NIfTI label {label}, voxel {'x'.join(f'{s:g}' for s in spacing)}"
     return verts, faces, unit_scale, what

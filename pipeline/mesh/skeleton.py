@@ -36,12 +36,15 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 
-from ..errors import ConfigError, MeshingError
+from ..errors import MeshingError
 from ..progress import ensure
+from ..validate import number
+from .cleaning import keep_largest, orient_outward
 from .surface import Surface
 
-#: Surface vertices kept when ``n_surface`` is not given.
+#: Surface vertices kept when ``n_surface`` is not given, and the fewest that may be asked for.
 DEFAULT_N_SURFACE = 1000
+MIN_N_SURFACE = 20
 
 #: Voxels along the organ's largest extent for the skeletonisation.
 VOXELS_ALONG_EXTENT = 64
@@ -81,6 +84,17 @@ class SkeletonStructure:
         return int(np.count_nonzero(self.kind == 1))
 
 
+def check_n_surface(n_surface, name: str = "n_surface") -> int | None:
+    """The number of surface vertices to keep: None (the default) or an integer >= :data:`MIN_N_SURFACE`.
+
+    Raises
+    ------
+    ConfigError
+        Naming *name*.
+    """
+    return None if n_surface is None else number(n_surface, name, lo=MIN_N_SURFACE, integer=True)
+
+
 def skeleton_structure(surface: Surface, *, n_surface: int | None = None, k: int = 2,
                        spacing: float | None = None, reporter=None) -> SkeletonStructure:
     """Build the skeleton + surface spring structure of a closed organ surface.
@@ -116,13 +130,10 @@ def skeleton_structure(surface: Surface, *, n_surface: int | None = None, k: int
     """
     rep = ensure(reporter)
     where = surface.source or "surface"
-    if n_surface is not None and (isinstance(n_surface, bool) or not isinstance(n_surface, (int, np.integer))
-                                  or n_surface < 20):
-        raise ConfigError(f"n_surface: expected an integer >= 20, got {n_surface!r}")
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= k <= 6:
-        raise ConfigError(f"k: expected an integer 1-6, got {k!r}")
-    if spacing is not None and not float(spacing) > 0:
-        raise ConfigError(f"spacing: expected a positive length in m, got {spacing!r}")
+    check_n_surface(n_surface)
+    number(k, "k", lo=1, hi=6, integer=True)
+    if spacing is not None:
+        number(spacing, "spacing", lo=0.0, lo_open=True)
     if not surface.is_closed() or not surface.volume() > 0:
         raise MeshingError(f"{where}: the skeleton structure needs a closed, outward surface; clean it first")
     log: list[str] = []
@@ -202,8 +213,6 @@ def _decimate(surface: Surface, n_vertices: int) -> Surface:
     import fast_simplification
     import pymeshfix
 
-    from .cleaning import _keep_largest, _orient_outward
-
     if surface.n_points <= n_vertices:
         return surface.compact()
     target_faces = 2 * n_vertices  # closed surface: F = 2V - 4 + 4g
@@ -214,8 +223,8 @@ def _decimate(surface: Surface, n_vertices: int) -> Surface:
     tm.fill_small_boundaries(0, True)
     tm.clean(10, 3)
     v, f = tm.return_arrays()
-    v, f, _ = _keep_largest(np.asarray(v, np.float64), np.asarray(f, np.int64))
-    f, *_ = _orient_outward(v, f)
+    v, f, _ = keep_largest(np.asarray(v, np.float64), np.asarray(f, np.int64))
+    f, *_ = orient_outward(v, f)
     out = Surface(v, f, surface.source).compact()
     if not out.is_closed():
         raise MeshingError(f"{surface.source or 'surface'}: the decimated surface is not closed; "
@@ -258,7 +267,7 @@ def _voxelise(surf: Surface) -> tuple[np.ndarray, np.ndarray, float]:
 
 def _skeleton_graph(skel: np.ndarray, origin: np.ndarray, h: float, spacing: float):
     """Cluster skeleton voxels into nodes about *spacing* apart; join touching clusters."""
-    from scipy.ndimage import label as nd_label
+    from scipy.sparse.csgraph import dijkstra
 
     idx = np.argwhere(skel)
     pts = origin + idx * h
@@ -279,11 +288,10 @@ def _skeleton_graph(skel: np.ndarray, origin: np.ndarray, h: float, spacing: flo
         cols.append(nb[has])
     r = np.concatenate(rows) if rows else np.zeros(0, int)
     c = np.concatenate(cols) if cols else np.zeros(0, int)
-    # Cluster by geodesic distance along the skeleton: BFS layers from seeds (greedy).
+    # Cluster by geodesic distance along the skeleton (Dijkstra on the voxel graph): seeds by
+    # greedy farthest-point sampling, then each voxel to its nearest seed.
     g = sparse.coo_matrix((np.ones(r.size), (r, c)), shape=(n, n)).tocsr()
     g = g + g.T
-    from scipy.sparse.csgraph import dijkstra
-
     cluster = np.full(n, -1, np.int64)
     step = max(1, int(round(spacing / h)))
     n_comp, comp = connected_components(g, directed=False)
@@ -302,10 +310,10 @@ def _skeleton_graph(skel: np.ndarray, origin: np.ndarray, h: float, spacing: flo
             remaining.difference_update(covered)
             if not remaining:
                 break
+            # Next seed: the uncovered voxel farthest from the seeds so far; a voxel beyond the
+            # searches' reach (3 spacings, infinite distance) comes first.
             rem = np.fromiter(remaining, int)
-            far = rem[np.argmax(np.where(np.isfinite(dist_min[rem]), dist_min[rem], 1e9))]
-            # Prefer an uncovered voxel next to the covered region (keeps clusters contiguous).
-            seed = far
+            seed = rem[np.argmax(np.where(np.isfinite(dist_min[rem]), dist_min[rem], 1e9))]
         # Assign each voxel to its geodesically nearest seed.
         d = dijkstra(g, indices=seeds)
         d = np.atleast_2d(d)
@@ -326,7 +334,6 @@ def _skeleton_graph(skel: np.ndarray, origin: np.ndarray, h: float, spacing: flo
     a, b = cluster[r], cluster[c]
     sel = a != b
     e = np.unique(np.sort(np.column_stack([a[sel], b[sel]]), axis=1), axis=0) if sel.any() else np.zeros((0, 2), int)
-    _ = nd_label  # (kept for clarity: components come from the voxel graph)
     return nodes, e.astype(np.int64)
 
 

@@ -26,6 +26,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from .readers import write_stl
 from .surface import Surface
 
 #: Organ-like shapes: lists of ellipsoids (centre mm, semi-axes mm) blended smoothly.
@@ -164,8 +165,6 @@ def invesalius_like_surface(*, shape: str = "liver", voxel: tuple[float, float, 
            f"open_border={open_border} second_body={second_body} inward_normals={inward_normals} seed={seed}")
     surf = Surface(verts * 1e-3, faces, src)
     if path is not None:
-        from .readers import write_stl
-
         write_stl(surf, path, unit="mm")
     return surf
 

@@ -19,12 +19,12 @@ boundary recovery fails), no inverted or flat element (all signed volumes
 positive once the global orientation is fixed), and the mesh volume within
 :data:`MAX_MESH_VOLUME_ERROR` (1 %) of the surface's enclosed volume. The path
 taken and every failure are recorded in :attr:`VolumeMesh.path` and
-:attr:`VolumeMesh.log`.
+:attr:`VolumeMesh.log`. How fine the mesh is asked for (a size, a node or a
+tetrahedron count) is the rule of :mod:`~esmm.pipeline.mesh.targets`.
 """
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -32,25 +32,31 @@ import numpy as np
 
 from ..errors import ConfigError, MeshingError
 from ..progress import ensure
+from ..validate import number
+from .cleaning import face_components, keep_largest, orient_outward
 from .gmsh_worker import GmshFailure, GmshTimeout, run_worker
 from .readers import boundary_of_tets
 from .surface import Surface
+from .targets import (
+    DEFAULT_NODES,
+    ELEMENTS_TOLERANCE,
+    NODES_TOLERANCE,
+    MeshTarget,
+    expected_nodes,
+    mesh_target,
+    nodes_exponent,
+    size_for_elements,
+    size_for_nodes,
+)
 
 #: Largest accepted relative difference of mesh and surface volume.
 MAX_MESH_VOLUME_ERROR = 0.01
 
-#: Node count aimed at when neither ``size`` nor ``nodes`` is given.
-DEFAULT_NODES = 5000
-
-#: Node-count model N = a V / h^3 + b A / h^2 (interior + surface nodes), fitted on gmsh
-#: Delaunay meshes of three livers at 1 200-18 000 nodes (docs/prepare.md); within ~25 %.
-_NODES_A, _NODES_B = 0.387, 2.44
-
 #: fTetWild edge length / gmsh size giving about the same node count (measured).
 _TETWILD_EDGE_FACTOR = 1.3
 
-#: Relative node-count error that triggers one re-run with a corrected size.
-_NODES_TOLERANCE = 0.25
+#: Most nodes a mesh may be expected to have (beyond: refused before meshing).
+MAX_EXPECTED_NODES = 2_000_000
 
 
 @dataclass(frozen=True)
@@ -104,43 +110,8 @@ class VolumeMesh:
         return Surface(self.points, self.boundary_faces, f"boundary of a {self.path} mesh").compact()
 
 
-def expected_nodes(volume: float, area: float, h: float) -> float:
-    """Node count a gmsh mesh of element size *h* [m] is expected to have."""
-    return _NODES_A * volume / h ** 3 + _NODES_B * area / h ** 2
-
-
-def size_for_nodes(volume: float, nodes: int, area: float | None = None) -> float:
-    """Element size h [m] expected to give about *nodes* nodes.
-
-    Solves ``nodes = a V / h^3 + b A / h^2`` (interior plus surface nodes;
-    ``a``, ``b`` fitted on organ meshes, see docs/prepare.md). Without the
-    area, a sphere's area for the volume is used.
-
-    Parameters
-    ----------
-    volume : float
-        Enclosed volume [m3].
-    nodes : int
-        Wanted node count.
-    area : float, optional
-        Surface area [m2].
-    """
-    if area is None:
-        area = (36.0 * math.pi * volume ** 2) ** (1.0 / 3.0)
-    # a V x^3 + b A x^2 - N = 0 for x = 1/h: one positive root (Descartes).
-    roots = np.roots([_NODES_A * volume, _NODES_B * area, 0.0, -float(nodes)])
-    x = max(r.real for r in roots if abs(r.imag) < 1e-9 * max(1.0, abs(r.real)) and r.real > 0)
-    return 1.0 / x
-
-
-def _nodes_exponent(volume: float, area: float, h: float) -> float:
-    """-d ln N / d ln h of the node-count model (between 2 and 3)."""
-    vi, ar = _NODES_A * volume / h ** 3, _NODES_B * area / h ** 2
-    return (3 * vi + 2 * ar) / (vi + ar)
-
-
 def mesh_volume(surface: Surface, *, size: float | None = None, nodes: int | None = None,
-                timeout: float = 120.0, reporter=None) -> VolumeMesh:
+                elements: int | None = None, timeout: float = 120.0, reporter=None) -> VolumeMesh:
     """Fill a closed surface with tetrahedra.
 
     Parameters
@@ -148,12 +119,11 @@ def mesh_volume(surface: Surface, *, size: float | None = None, nodes: int | Non
     surface
         A closed, outward surface (from
         :func:`~esmm.pipeline.mesh.cleaning.clean_surface`), points in metres.
-    size
-        Target tetrahedron edge [m].
-    nodes
-        Target number of nodes instead (ignored if ``size`` is given); the size
-        is estimated from the volume and area and corrected once if the result
-        is more than 25 % off. Default: :data:`DEFAULT_NODES`.
+    size, nodes, elements
+        At most one target (:mod:`~esmm.pipeline.mesh.targets`): the
+        tetrahedron edge [m], a node count or a tetrahedron count; the size for
+        a count is estimated and corrected once if the result is off by more
+        than the target's tolerance. Default: :data:`~.targets.DEFAULT_NODES` nodes.
     timeout
         Time limit of each mesher run [s]; a run that exceeds it is killed.
     reporter
@@ -166,18 +136,21 @@ def mesh_volume(surface: Surface, *, size: float | None = None, nodes: int | Non
     Raises
     ------
     ConfigError
-        ``size`` or ``nodes`` is not positive.
+        A bad target or timeout (naming the parameter).
     MeshingError
         The surface is open, or every path failed (the message lists why).
     """
     rep = ensure(reporter)
+    target = mesh_target(size=size, nodes=nodes, elements=elements)
+    timeout = number(timeout, "timeout", lo=0.0, lo_open=True)
+    _check_closed(surface)
+    if target.elements is not None:
+        return _mesh_for_elements(surface, target.elements, timeout, rep)
+    return _mesh_at(surface, target, timeout, rep)
+
+
+def _check_closed(surface: Surface) -> None:
     where = surface.source or "surface"
-    if size is not None and not (float(size) > 0 and math.isfinite(float(size))):
-        raise ConfigError(f"size: expected a positive element size in m, got {size!r}")
-    if nodes is not None and (isinstance(nodes, bool) or not isinstance(nodes, (int, np.integer)) or nodes < 10):
-        raise ConfigError(f"nodes: expected an integer >= 10, got {nodes!r}")
-    if not (float(timeout) > 0):
-        raise ConfigError(f"timeout: expected a positive number of seconds, got {timeout!r}")
     if not surface.is_closed():
         raise MeshingError(
             f"{where}: the surface is not closed ({surface.n_boundary_edges()} open, "
@@ -187,22 +160,32 @@ def mesh_volume(surface: Surface, *, size: float | None = None, nodes: int | Non
     if not v_surf > 0:
         raise MeshingError(f"{where}: the surface encloses a volume of {v_surf:.3g} m3 (inward normals?); "
                            f"clean it first (clean_surface)")
-    target_nodes = None
-    if size is None:
-        target_nodes = int(nodes) if nodes is not None else DEFAULT_NODES
+
+
+def _size_of(surface: Surface, target: MeshTarget) -> tuple[float, int | None]:
+    """Element size [m] for a size or node target, and the node target (None for a size)."""
+    v_surf = surface.volume()
+    if target.size is None:
+        target_nodes = target.nodes if target.nodes is not None else DEFAULT_NODES
         h = size_for_nodes(v_surf, target_nodes, surface.area())
     else:
-        h = float(size)
+        h, target_nodes = target.size, None
     extent = surface.extent()
     if h > extent:
         raise ConfigError(f"size: {h * 1e3:.3g} mm is larger than the organ ({extent * 1e3:.3g} mm); "
-                          f"give a smaller --size or more --nodes")
+                          f"give a smaller size or more nodes", parameter="size")
     est_nodes = expected_nodes(v_surf, surface.area(), h)
-    if est_nodes > 2_000_000:
-        raise ConfigError(f"size: {h * 1e3:.3g} mm would give about {est_nodes:.3g} nodes; give a larger --size")
+    if est_nodes > MAX_EXPECTED_NODES:
+        raise ConfigError(f"size: {h * 1e3:.3g} mm would give about {est_nodes:.3g} nodes; give a larger size",
+                          parameter="size")
+    return h, target_nodes
 
-    from .cleaning import face_components
 
+def _mesh_at(surface: Surface, target: MeshTarget, timeout: float, rep) -> VolumeMesh:
+    """Mesh at a size, or at a node count (one corrected re-run if off by more than the tolerance)."""
+    where = surface.source or "surface"
+    v_surf = surface.volume()
+    h, target_nodes = _size_of(surface, target)
     n_bodies, lab = face_components(surface.n_points, surface.faces)
     bodies = [surface] if n_bodies == 1 else [
         Surface(surface.points, surface.faces[lab == k], f"{where}, body {k}").compact() for k in range(n_bodies)]
@@ -211,11 +194,11 @@ def mesh_volume(surface: Surface, *, size: float | None = None, nodes: int | Non
         log.append(f"{n_bodies} bodies, meshed one by one at the same size")
     meshes = [_mesh_one(b, h, timeout, rep, log, where) for b in bodies]
     total = sum(m.n_nodes for m in meshes)
-    if target_nodes is not None and abs(total / target_nodes - 1.0) > _NODES_TOLERANCE:
+    if target_nodes is not None and abs(total / target_nodes - 1.0) > NODES_TOLERANCE:
         if any(m.path == "pytetwild" for m in meshes):
             log.append(f"{total} nodes for a target of {target_nodes}; not remeshed (fTetWild is slow)")
         else:
-            h2 = h * (total / target_nodes) ** (1.0 / _nodes_exponent(v_surf, surface.area(), h))
+            h2 = h * (total / target_nodes) ** (1.0 / nodes_exponent(v_surf, surface.area(), h))
             log.append(f"{total} nodes for a target of {target_nodes}; size {h * 1e3:.3g} -> {h2 * 1e3:.3g} mm")
             try:
                 meshes = [_mesh_one(b, h2, timeout, rep, log, where, start=m.path) for b, m in zip(bodies, meshes)]
@@ -229,6 +212,28 @@ def mesh_volume(surface: Surface, *, size: float | None = None, nodes: int | Non
              f"{h * 1e3:.3g} mm, volume {mesh.volume() * 1e6:.1f} mL "
              f"({(mesh.volume() / v_surf - 1) * 100:+.2f} % of the surface)")
     return VolumeMesh(mesh.points, mesh.tets, mesh.boundary_faces, path, log)
+
+
+def _mesh_for_elements(surface: Surface, elements: int, timeout: float, rep) -> VolumeMesh:
+    """Mesh for a tetrahedron count: at the size it implies, then once more if off by more than
+    :data:`~.targets.ELEMENTS_TOLERANCE` (N ~ h^-3). The second run is an improvement, not a
+    requirement: its time is bounded and, if it fails, the first mesh is kept."""
+    size = size_for_elements(abs(float(surface.volume())), elements)
+    t0 = time.perf_counter()
+    mesh = _mesh_at(surface, MeshTarget(size=size), timeout, rep)
+    first = time.perf_counter() - t0
+    got = mesh.n_tets
+    if abs(got / elements - 1.0) <= ELEMENTS_TOLERANCE:
+        return mesh
+    size2 = size * (got / elements) ** (1.0 / 3.0)
+    rep.step(f"mesh: {got} tets for a target of {elements}; remeshing at {size2 * 1e3:.2f} mm "
+             f"instead of {size * 1e3:.2f} mm")
+    try:
+        return _mesh_at(surface, MeshTarget(size=size2), min(timeout, max(30.0, 4.0 * first)), rep)
+    except MeshingError as exc:
+        rep.warn(f"mesh: remeshing at {size2 * 1e3:.2f} mm failed ({exc}); keeping the first mesh "
+                 f"({got} tets at {size * 1e3:.2f} mm)")
+        return mesh
 
 
 _PATHS = ["gmsh", "gmsh-after-repair", "pytetwild"]
@@ -254,7 +259,7 @@ def _mesh_one(surface: Surface, h: float, timeout: float, rep, log: list[str], w
         if path != _PATHS[-1]:
             rep.warn(f"volume mesh: {path} failed ({msg}); trying the next mesher")
     raise MeshingError(f"{where}: every mesher failed ({'; '.join(failures)}); "
-                       f"check the surface or give a larger --size")
+                       f"check the surface or give a larger size")
 
 
 def _combine(meshes: list[VolumeMesh]) -> VolumeMesh:
@@ -392,8 +397,6 @@ def _repair_for_gmsh(surface: Surface) -> Surface:
     """Stronger pymeshfix repair (joins, removes intersecting triangles, fills)."""
     import pymeshfix
 
-    from .cleaning import _keep_largest, _orient_outward
-
     tm = pymeshfix.PyTMesh()
     tm.set_quiet(True)
     tm.load_array(surface.points, surface.faces.astype(np.int32))
@@ -407,8 +410,8 @@ def _repair_for_gmsh(surface: Surface) -> Surface:
     f = np.asarray(f, np.int64)
     if f.shape[0] == 0:
         raise MeshingError("nothing left after repair")
-    v, f, _ = _keep_largest(v, f)
-    f, _, _, _ = _orient_outward(v, f)
+    v, f, _ = keep_largest(v, f)
+    f, _, _, _ = orient_outward(v, f)
     s = Surface(v, f, surface.source + "; repaired")
     if not s.is_closed():
         raise MeshingError(f"still {s.n_boundary_edges()} open edges after repair")

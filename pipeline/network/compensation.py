@@ -29,18 +29,27 @@ is matched worse the further it is stretched (docs/model-tables.md).
 Both are properties of the mesh (element shape statistics and size relative to
 the specimen) and of the law; the record stored in the tables' metadata says
 on what specimen they were found.
+
+:func:`compensate` is the policy ``esmm prepare`` and ``esmm tables`` share:
+the calibration range (:data:`DEFAULT_RANGE`, clipped to the grid), the
+specimen (:func:`specimen_for`, :data:`DEFAULT_RADIUS_ELEMENTS`) and the cache
+of calibrations (:mod:`~esmm.pipeline.network.compensation_policy`).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..errors import ConfigError, SimulationError
 from ..progress import ensure
+from ..validate import number
+from . import compensation_policy as policy
+from .compensation_policy import DEFAULT_RADIUS_ELEMENTS, DEFAULT_RANGE, RADIUS_ELEMENTS_RANGE
 from .tables import LAWS, StiffnessTables
 from .tensile_test import (
     Specimen,
@@ -50,12 +59,11 @@ from .tensile_test import (
     virtual_tensile_test,
 )
 
-__all__ = ["CompensationResult", "calibrate_compensation", "correction_on_grid", "specimen_for"]
+__all__ = ["Compensation", "CompensationResult", "calibrate_compensation", "compensate", "correction_on_grid",
+           "specimen_for"]
 
 #: Small-strain stretch of the scalar calibration.
 SMALL_STRAIN = 1e-4
-#: Radius of the calibration cylinder of :func:`specimen_for`, in element sizes.
-DEFAULT_RADIUS_ELEMENTS = 4.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -264,13 +272,17 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
     if not converged:
         rep.warn(f"compensation ({law}): stopped after {it} iterations at max |error| "
                  f"{100 * err:.2f} % (tolerance {100 * tol:.2g} %)")
+    return _apply(tables, law, c, knots, g_best, result.record()), result
+
+
+def _apply(tables: StiffnessTables, law: str, factor: float, knots, g, record: dict[str, Any]) -> StiffnessTables:
+    """*tables* with the scalar factor and the correction of *law* (knots, g), and its record."""
     # Other laws' corrections were found relative to the old factor: keep c * g unchanged.
-    corr = {law: correction_on_grid(base, knots, g_best)}
+    corr = {law: correction_on_grid(tables, knots, g)}
     for other in LAWS:
         if other != law and tables.is_corrected(other):
-            corr[other] = tables.correction[LAWS.index(other)] * (tables.volume_factor / c)
-    out = tables.with_compensation(c, correction=corr, record=_merge_record(tables, law, result.record()))
-    return out, result
+            corr[other] = tables.correction[LAWS.index(other)] * (tables.volume_factor / factor)
+    return tables.with_compensation(factor, correction=corr, record=_merge_record(tables, law, record))
 
 
 def specimen_for(network, *, radius_elements: float = DEFAULT_RADIUS_ELEMENTS, reporter=None) -> Specimen:
@@ -286,6 +298,103 @@ def specimen_for(network, *, radius_elements: float = DEFAULT_RADIUS_ELEMENTS, r
         raise ConfigError("network: rest lengths are not positive; rebuild the network")
     r = radius_elements * h
     return cylinder_specimen(radius=r, length=4.0 * r, size=h, reporter=reporter)
+
+
+@dataclass(frozen=True)
+class Compensation:
+    """What :func:`compensate` made.
+
+    Attributes
+    ----------
+    tables : StiffnessTables
+        The compensated tables (``metadata["compensation"]`` holds the record).
+    record : dict
+        The calibration record of the law (:meth:`CompensationResult.record`;
+        with ``cache = {"key", "hit": True}`` when it was reused).
+    reused : Path or None
+        The cache file it was reused from (None: calibrated now).
+    """
+
+    tables: StiffnessTables
+    record: dict[str, Any]
+    reused: Path | None = None
+
+    def summary(self) -> str:
+        """The virtual tensile test's error, one line (``93.5 % raw -> 0.51 %``)."""
+        after = 100 * self.record["errors_after"]["max_abs_rel_error"]
+        if self.reused is not None:
+            return f"{after:.2f} % (calibration reused from {self.reused})"
+        return f"{100 * self.record['errors_before']['max_abs_rel_error']:.1f} % raw -> {after:.2f} %"
+
+
+def calibration_stretches(tables: StiffnessTables, calibration_range=None) -> tuple[float, float]:
+    """Compression and tension ends of a calibration on *tables*: *calibration_range*
+    (default :data:`DEFAULT_RANGE`) clipped to two grid steps inside the grid.
+
+    Raises
+    ------
+    ConfigError
+        *calibration_range* is not two finite numbers with ``LO < 1 < HI``.
+    """
+    lo, hi = DEFAULT_RANGE if calibration_range is None else calibration_range
+    lo, hi = number(lo, "calibration_range"), number(hi, "calibration_range")
+    if not lo < 1.0 < hi:
+        raise ConfigError(f"calibration_range: need LO < 1 < HI, got {lo:g} {hi:g}", parameter="calibration_range")
+    return max(lo, tables.lam_min + 2 * tables.dlam), min(hi, tables.lam_max - 2 * tables.dlam)
+
+
+def compensate(tables: StiffnessTables, network, *, material=None, calibration_range=None,
+               radius_elements: float | None = None, reporter=None) -> Compensation:
+    """Calibrate the volumetric compensation of *tables* for their default law, or reuse a calibration.
+
+    One virtual tensile test on a cylinder meshed like *network*
+    (:func:`specimen_for`), by :func:`calibrate_compensation`; a calibration
+    with the same content address (:mod:`~esmm.pipeline.network.compensation_policy`)
+    is reused instead of run again.
+
+    Parameters
+    ----------
+    tables : StiffnessTables
+    network : SpringNetwork
+        Its median rest length is the specimen's element size.
+    material : Material, optional
+        Continuum reference (default: the tables' own stress).
+    calibration_range : (float, float), optional
+        Compression and tension ends (default :data:`DEFAULT_RANGE`), clipped to the grid.
+    radius_elements : float, optional
+        Specimen radius in element sizes (default :data:`DEFAULT_RADIUS_ELEMENTS`,
+        accepted :data:`RADIUS_ELEMENTS_RANGE`).
+    reporter
+        Progress reporter.
+
+    Returns
+    -------
+    Compensation
+
+    Raises
+    ------
+    ConfigError
+        A bad range or radius (named ``calibration_range``, ``radius_elements``).
+    SimulationError
+        The virtual tensile test failed before any correction.
+    """
+    law = tables.default_law
+    lo, hi = calibration_stretches(tables, calibration_range)
+    r = number(DEFAULT_RADIUS_ELEMENTS if radius_elements is None else radius_elements, "radius_elements",
+               lo=RADIUS_ELEMENTS_RANGE[0], hi=RADIUS_ELEMENTS_RANGE[1])
+    key = policy.cache_key(tables, law, lo, hi, r)
+    hit = policy.load(key)
+    if hit is not None:
+        record = dict(hit["record"], cache={"key": key, "hit": True})
+        out = _apply(tables, law, hit["factor"], hit["knots"], hit["g"], record)
+        return Compensation(out, record, policy.cache_path(key))
+    specimen = specimen_for(network, radius_elements=r, reporter=reporter)
+    out, calib = calibrate_compensation(tables, specimen, law=law, material=material, tension=hi,
+                                        compression=lo, reporter=reporter)
+    record = calib.record()
+    policy.store(key, factor=calib.factor, knots=calib.knots.tolist(), g=calib.g.tolist(),
+                             record=record)
+    return Compensation(out, record)
 
 
 def _update(g: np.ndarray, log_r: np.ndarray, history: dict[str, np.ndarray]) -> np.ndarray:

@@ -45,6 +45,8 @@ REORDER_METHODS = ("rcm", "morton", None)
 
 #: default tissue density [kg/m3] (soft tissue, liver ~1050-1070).
 DEFAULT_DENSITY = 1060.0
+#: Densities accepted for tissue [kg/m3] (soft tissue is ~1000-1100; outside: a unit slip).
+DENSITY_RANGE = (100.0, 20000.0)
 
 # The 6 edges and the 4 outward faces of a positively oriented tetrahedron (a, b, c, d):
 # det(b - a, c - a, d - a) > 0. Face k is opposite vertex k.
@@ -397,24 +399,39 @@ def morton_codes(points: np.ndarray, *, bits: int = 21) -> np.ndarray:
     return spread(q[:, 0]) | (spread(q[:, 1]) << np.uint64(1)) | (spread(q[:, 2]) << np.uint64(2))
 
 
-def _check_reorder(reorder) -> str | None:
+def check_reorder(reorder, name: str = "reorder") -> str | None:
+    """The node ordering method: ``"rcm"``, ``"morton"``, or None for ``None``/``"none"``.
+
+    Raises
+    ------
+    InputError
+        Another method (the message starts with *name*).
+    """
     if reorder in (None, "none"):
         return None
-    if reorder not in ("rcm", "morton"):
-        raise InputError(f"reorder: unknown method {reorder!r}; use \"rcm\", \"morton\" or none")
+    if reorder not in REORDER_METHODS:
+        raise InputError(f"{name}: unknown method {reorder!r}; use \"rcm\", \"morton\" or none", parameter=name)
     return reorder
 
 
-def _check_density(density) -> float:
+def check_density(density, name: str = "density") -> float:
+    """A tissue density [kg/m3] within :data:`DENSITY_RANGE` (a unit slip is refused, not guessed).
+
+    Raises
+    ------
+    InputError
+        Not a positive number, or not plausible for tissue (the message starts with *name*).
+    """
     try:
         rho = float(density)
     except (TypeError, ValueError):
-        raise InputError(f"density: {density!r} is not a number (kg/m3)") from None
+        raise InputError(f"{name}: {density!r} is not a number (kg/m3)", parameter=name) from None
     if not np.isfinite(rho) or rho <= 0:
-        raise InputError(f"density: {density!r} must be a positive number of kg/m3")
-    if not 100.0 <= rho <= 20000.0:
-        raise InputError(f"density: {rho:g} kg/m3 is not plausible for tissue (soft tissue is ~1000-1100); "
-                         f"give it in kg/m3")
+        raise InputError(f"{name}: {density!r} must be a positive number of kg/m3", parameter=name)
+    lo, hi = DENSITY_RANGE
+    if not lo <= rho <= hi:
+        raise InputError(f"{name}: {rho:g} kg/m3 is not plausible for tissue (soft tissue is ~1000-1100); "
+                         f"give it in kg/m3", parameter=name)
     return rho
 
 
@@ -465,8 +482,8 @@ def network_from_tets(mesh, *, density: float = DEFAULT_DENSITY, fibre_frame=Non
         Degenerate (zero-volume) tetrahedra.
     """
     rep = ensure(reporter)
-    rho = _check_density(density)
-    reorder = _check_reorder(reorder)
+    rho = check_density(density)
+    reorder = check_reorder(reorder)
     points = np.asarray(getattr(mesh, "points", None), dtype=np.float64)
     tets = np.asarray(getattr(mesh, "tets", None))
     if points.ndim != 2 or points.shape[1] != 3:
@@ -568,8 +585,8 @@ def network_from_skeleton(points, edges, *, volume: float, surface_faces=None, n
     weight_exponent : float
         ``p`` above.
     """
-    rho = _check_density(density)
-    reorder = _check_reorder(reorder)
+    rho = check_density(density)
+    reorder = check_reorder(reorder)
     pts = np.asarray(points, dtype=np.float64)
     e = np.asarray(edges)
     if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] < 2:

@@ -54,20 +54,21 @@ a material whose uniaxial stress does not increase over the grid.
 
 from __future__ import annotations
 
-import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
 
 import numpy as np
 
-from ..errors import AssetError, ConfigError, InputError
+from ..errors import ConfigError, InputError
+from ..materials.loading import nominal_stress
+from ..materials.material import DIRECTIONS
+from ..validate import choice, number
 
 #: Names of the force laws, in the order of preference.
 LAWS = ("secant", "energy")
-#: The rows of every table: material directions in the fibre frame.
-DIRECTIONS = ("x", "y", "z")
 #: Default number of grid points.
 DEFAULT_N = 1024
 #: Default grid ends when the material has no locking stretch.
@@ -76,9 +77,8 @@ DEFAULT_LAM_MAX = 2.0
 #: Fraction of the distance between 1 and a locking stretch kept free at each end.
 LOCK_MARGIN = 0.02
 
-ESMM_TYPE = "stiffness_tables"
-ESMM_VERSION = 1
-
+# The three texts below describe the tables where they are stored (the /tables group of an
+# asset, docs/asset-format.md): the grid, the extrapolation and the force laws.
 GRID_RULE = (
     "uniform grid of n points from lam_min to lam_max; defaults: "
     f"lam_min = max({DEFAULT_LAM_MIN}, lower admissible stretch + {LOCK_MARGIN:g}*(1 - lower)), "
@@ -89,6 +89,12 @@ GRID_RULE = (
 EXTRAPOLATION = (
     "linear interpolation inside the grid; outside, mu_e is held at its end value "
     "and the stress continues with the slope of its end segment"
+)
+FORCE_LAW = (
+    "F = volume_factor * V_ij / L0 * sum_d cos2_d * f_d(lam), lam = L/L0, positive = tension; "
+    "secant (paper Eq. 9): f = mu_e(lam) * (lam - 1), i.e. F = k (L - L0) with "
+    "k = volume_factor * v_ij * sum_d cos2_d * mu_e_d(lam); energy: f = stress(lam); "
+    "mu_e and stress are the datasets (stretch correction included)"
 )
 
 
@@ -370,113 +376,6 @@ class StiffnessTables:
         meta = {k: v for k, v in self.metadata.items() if k != "compensation"}
         return self._with_rows(np.ones((len(LAWS), self.n)), volume_factor=1.0, metadata=meta)
 
-    def with_law(self, law: str) -> StiffnessTables:
-        """A copy whose default force law is *law*."""
-        return replace(self, default_law=self.check_law(law))
-
-    # -- HDF5 --------------------------------------------------------------
-    def to_hdf5(self, group) -> None:
-        """Write the tables into an open h5py group (existing datasets are replaced).
-
-        Layout: attributes ``esmm_type``, ``esmm_version``, ``lam_min``,
-        ``lam_max``, ``n``, ``dlam``, ``default_law``, ``laws``,
-        ``volume_factor``, ``directions``, ``isotropic``, ``grid_rule``,
-        ``extrapolation``, ``force_law``, ``material_toml``, ``metadata``
-        (JSON); datasets (each with ``units`` and ``description``): ``lam``
-        (n,), ``mu_e`` (= :attr:`values`), ``stress``, ``energy`` (3, n) and
-        ``correction`` (2, n). ``mu_e`` and ``stress`` are what a simulator
-        interpolates (the correction is already applied).
-        """
-        for name in _DATASETS:
-            if name in group:
-                del group[name]
-        a = group.attrs
-        a["esmm_type"] = ESMM_TYPE
-        a["esmm_version"] = ESMM_VERSION
-        a["lam_min"] = self.lam_min
-        a["lam_max"] = self.lam_max
-        a["n"] = self.n
-        a["dlam"] = self.dlam
-        a["default_law"] = self.default_law
-        a["laws"] = ",".join(LAWS)
-        a["volume_factor"] = self.volume_factor
-        a["directions"] = ",".join(DIRECTIONS)
-        a["isotropic"] = self.isotropic
-        a["grid_rule"] = GRID_RULE
-        a["extrapolation"] = EXTRAPOLATION
-        a["force_law"] = FORCE_LAW
-        a["material_toml"] = self.material_toml
-        a["metadata"] = json.dumps(self.metadata, sort_keys=True, default=_json_default)
-        for name, data, units, desc in (
-            ("lam", self.lam, "1", "stretch grid (uniform)"),
-            ("mu_e", self.values, "Pa", "secant-law table: correction[0] * material mu_e, mu_e = 2 W_T / "
-             "(lam-1)^2; k_ij = volume_factor * v_ij * sum_d cos2_d * mu_e_d(lam); rows x, y, z"),
-            ("stress", self.stress, "Pa", "energy-law table: correction[1] * material W_T'(lam) (nominal "
-             "uniaxial stress); F = volume_factor * V_ij / L0 * sum_d cos2_d * stress_d(lam); rows x, y, z"),
-            ("energy", self.energy, "Pa", "integral from 1 of the interpolated stress (energy-law potential "
-             "per volume); rows x, y, z"),
-            ("correction", self.correction, "1", "stretch correction g(lam) already applied to mu_e "
-             "(row 0, secant) and stress (row 1, energy); the material's curves are mu_e/g, stress/g"),
-        ):
-            ds = group.create_dataset(name, data=np.asarray(data, dtype=np.float64))
-            ds.attrs["units"] = units
-            ds.attrs["description"] = desc
-
-    @classmethod
-    def from_hdf5(cls, group) -> StiffnessTables:
-        """Read tables written by :meth:`to_hdf5`; raise :class:`AssetError` if they are not valid."""
-        where = f"{getattr(getattr(group, 'file', None), 'filename', '?')}:{getattr(group, 'name', '?')}"
-        a = group.attrs
-        kind = _attr_str(a.get("esmm_type"))
-        if kind != ESMM_TYPE:
-            raise AssetError(f"{where}: not a stiffness-table group (esmm_type={kind!r}); "
-                             "rebuild the tables with 'esmm tables'")
-        version = int(a.get("esmm_version", -1))
-        if version != ESMM_VERSION:
-            raise AssetError(f"{where}: stiffness tables of version {version}, this esmm reads "
-                             f"version {ESMM_VERSION}; rebuild them with 'esmm tables'")
-        try:
-            n = int(a["n"])
-            tables = cls(
-                lam_min=float(a["lam_min"]), lam_max=float(a["lam_max"]), n=n,
-                values=np.asarray(group["mu_e"][()]), stress=np.asarray(group["stress"][()]),
-                energy=np.asarray(group["energy"][()]),
-                default_law=_attr_str(a.get("default_law", "secant")),
-                volume_factor=float(a.get("volume_factor", 1.0)),
-                correction=np.asarray(group["correction"][()]) if "correction" in group else None,
-                material_toml=_attr_str(a.get("material_toml", "")),
-                metadata=json.loads(_attr_str(a.get("metadata", "{}")) or "{}"),
-            )
-        except (KeyError, ValueError, TypeError, OSError) as exc:
-            raise AssetError(f"{where}: damaged stiffness tables ({exc}); rebuild them with "
-                             "'esmm tables'") from None
-        if "dlam" in a and not math.isclose(float(a["dlam"]), tables.dlam, rel_tol=1e-9):
-            raise AssetError(f"{where}: dlam attribute disagrees with lam_min/lam_max/n; "
-                             "rebuild the tables with 'esmm tables'")
-        return tables
-
-
-_DATASETS = ("lam", "mu_e", "stress", "energy", "correction", "k_per_spring")  # replaced on rewrite
-FORCE_LAW = (
-    "F = volume_factor * V_ij / L0 * sum_d cos2_d * f_d(lam), lam = L/L0, positive = tension; "
-    "secant (paper Eq. 9): f = mu_e(lam) * (lam - 1), i.e. F = k (L - L0) with "
-    "k = volume_factor * v_ij * sum_d cos2_d * mu_e_d(lam); energy: f = stress(lam); "
-    "mu_e and stress are the datasets (stretch correction included)"
-)
-
-
-def _attr_str(v) -> str:
-    if isinstance(v, bytes):
-        return v.decode("utf-8")
-    return "" if v is None else str(v)
-
-
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
 
 
 # ---------------------------------------------------------------------------
@@ -495,8 +394,6 @@ def _material_directions(material) -> tuple[str | None, str | None, str | None]:
 
 def _material_curves(material, lam: np.ndarray, direction: str | None):
     """(W, W', mu_e) of *material* in uniaxial stretch *lam* along *direction*."""
-    from ..materials.loading import nominal_stress
-
     W = np.asarray(material.uniaxial_energy(lam, direction), dtype=np.float64)
     mu = np.asarray(material.mu_e(lam, direction), dtype=np.float64)
     P = np.asarray(nominal_stress(material.model_obj, material.params_for(direction), "uniaxial", lam),
@@ -534,6 +431,40 @@ def material_toml_text(material) -> str:
     return ""
 
 
+@dataclass(frozen=True)
+class GridOptions:
+    """The options of :func:`build_tables` that do not depend on the material (checked by
+    :func:`grid_options`): grid points, default law, grid ends (None: from the material)."""
+
+    n: int = DEFAULT_N
+    law: str = "secant"
+    lam_min: float | None = None
+    lam_max: float | None = None
+
+
+def grid_options(*, n=DEFAULT_N, law="secant", lam_min=None, lam_max=None,
+                 names: Mapping[str, str] | None = None) -> GridOptions:
+    """Checked :class:`GridOptions`: ``n >= 3`` points, a law of :data:`LAWS`,
+    ``0 < lam_min < 1 < lam_max`` (finite).
+
+    *names* maps an option to the parameter name used in messages (default:
+    the option's name; e.g. ``[tables] n`` for a config key).
+
+    Raises
+    ------
+    ConfigError
+        Naming the option.
+    """
+    def name(key: str) -> str:
+        return (names or {}).get(key, key)
+
+    return GridOptions(
+        n=number(n, name("n"), lo=3, integer=True), law=choice(law, LAWS, name("law")),
+        lam_min=None if lam_min is None else number(lam_min, name("lam_min"), lo=0.0, hi=1.0, lo_open=True,
+                                                    hi_open=True),
+        lam_max=None if lam_max is None else number(lam_max, name("lam_max"), lo=1.0, lo_open=True))
+
+
 def build_tables(material, *, n: int = DEFAULT_N, lam_min: float | None = None,
                  lam_max: float | None = None, law: str = "secant") -> StiffnessTables:
     """Tabulate :math:`\\mu_e`, :math:`W_T'` and :math:`W_T` of *material*.
@@ -564,17 +495,11 @@ def build_tables(material, *, n: int = DEFAULT_N, lam_min: float | None = None,
         stress does not increase with stretch there (the network would be
         unstable); narrow the grid.
     """
-    if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 3:
-        raise ConfigError(f"n: number of grid points must be an integer >= 3, got {n!r}")
-    if law not in LAWS:
-        raise ConfigError(f"law: unknown force law {law!r}; use one of {', '.join(LAWS)}")
+    grid = grid_options(n=n, law=law, lam_min=lam_min, lam_max=lam_max)
+    n, law = grid.n, grid.law
     d_lo, d_hi = default_grid(material)
-    lo = d_lo if lam_min is None else float(lam_min)
-    hi = d_hi if lam_max is None else float(lam_max)
-    if not (0.0 < lo < 1.0):
-        raise ConfigError(f"lam_min: must lie in (0, 1), got {lo}")
-    if not (1.0 < hi < math.inf):
-        raise ConfigError(f"lam_max: must be a finite stretch > 1, got {hi}")
+    lo = d_lo if grid.lam_min is None else grid.lam_min
+    hi = d_hi if grid.lam_max is None else grid.lam_max
     name = getattr(material, "name", None) or getattr(material, "model", "material")
     dirs = _material_directions(material)
     for d in sorted(set(dirs), key=str):
@@ -678,109 +603,3 @@ def per_spring_table(tables: StiffnessTables, network, *, dtype=np.float32) -> n
     """Materialised stiffness :math:`k_{ij}(\\lambda_m)` [N/m] on the table grid, shape (s, n)."""
     a = spring_factors(tables, network)
     return (a @ tables.values).astype(dtype, copy=False)
-
-
-def write_per_spring(group, tables: StiffnessTables, network, *, name: str = "k_per_spring",
-                     dtype=np.float32, compression: str = "gzip", level: int = 4,
-                     chunk_springs: int = 4096) -> None:
-    """Write :func:`per_spring_table` into *group* as a chunked, compressed dataset.
-
-    The dataset ``name`` has shape (s, n), units N/m, and attributes
-    ``lam_min``, ``lam_max``, ``n`` (the grid of the tables). It is written
-    block by block, so memory stays at one block of ``chunk_springs`` rows.
-    """
-    a = spring_factors(tables, network)
-    s = a.shape[0]
-    if name in group:
-        del group[name]
-    rows = max(1, min(chunk_springs, s))
-    cols = tables.n
-    chunk_rows = max(1, min(s, (1 << 16) // cols))  # ~256 KiB chunks of float32
-    ds = group.create_dataset(name, shape=(s, cols), dtype=dtype, chunks=(chunk_rows, cols) if s else None,
-                              compression=compression if s else None,
-                              compression_opts=level if s and compression == "gzip" else None,
-                              shuffle=bool(s))
-    for start in range(0, s, rows):
-        stop = min(s, start + rows)
-        ds[start:stop] = (a[start:stop] @ tables.values).astype(dtype, copy=False)
-    ds.attrs["units"] = "N/m"
-    ds.attrs["description"] = "k_ij(lam) = volume_factor * v_ij * sum_d cos2_d * mu_e_d(lam) on the table grid (secant law)"
-    ds.attrs["lam_min"] = tables.lam_min
-    ds.attrs["lam_max"] = tables.lam_max
-    ds.attrs["n"] = tables.n
-    ds.attrs["volume_factor"] = tables.volume_factor
-
-
-# ---------------------------------------------------------------------------
-# Rewriting the /tables group of an asset
-# ---------------------------------------------------------------------------
-
-def update_asset_tables(path, tables: StiffnessTables, *, material=None, per_spring: bool = False,
-                        reporter=None):
-    """Replace the ``/tables`` group (and optionally ``/material``) of an asset, atomically.
-
-    The asset is read and verified first (checksums); a new file is written
-    next to it with every other group copied unchanged, the new tables (and,
-    with *per_spring*, the materialised ``/tables/k_per_spring``), re-sealed
-    (dataset digests and root checksum), validated, and only then renamed
-    over the original. The XDMF sidecar stays valid (it does not reference
-    ``/tables`` or ``/material``).
-
-    Parameters
-    ----------
-    path : str or Path
-        The ``.h5`` asset.
-    tables : StiffnessTables
-    material : Material, optional
-        Also replace ``/material`` (when the tables were built from another material).
-    per_spring : bool
-        Write the (s, n) per-spring stiffness table too.
-
-    Returns
-    -------
-    Path
-
-    Raises
-    ------
-    AssetError
-        The asset cannot be read, or the rewritten file does not validate.
-    """
-    from pathlib import Path
-
-    import h5py
-
-    from ..asset import read_asset, validate_asset
-    from ..asset._h5 import seal
-    from ..atomicio import atomic_path
-    from ..progress import ensure
-
-    rep = ensure(reporter)
-    p = Path(path)
-    asset = read_asset(p)
-    skip = {"tables"} | ({"material"} if material is not None else set())
-    try:
-        with atomic_path(p) as tmp:
-            with h5py.File(p, "r") as src, h5py.File(tmp, "w") as dst:
-                for k, v in src.attrs.items():
-                    dst.attrs[k] = v
-                for name in src:
-                    if name not in skip:
-                        src.copy(src[name], dst, name=name)
-                if material is not None:
-                    from ..asset.write import _write_material
-
-                    _write_material(dst, material)
-                g = dst.create_group("tables")
-                tables.to_hdf5(g)
-                if per_spring:
-                    write_per_spring(g, tables, asset.network)
-                    rep.step(f"per-spring table: {asset.network.n_springs} x {tables.n} (float32, gzip)")
-                seal(dst)
-            problems = validate_asset(tmp)
-            if problems:
-                raise AssetError(f"{p}: the rewritten asset does not validate ({problems[0]}); "
-                                 "the original file is unchanged")
-    except OSError as exc:
-        raise AssetError(f"{p}: cannot rewrite the asset ({exc.strerror or exc}); check the folder "
-                         "is writable and has space") from None
-    return p

@@ -33,8 +33,10 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 
 from ..errors import ConfigError, MeshingError, SimulationError
+from ..materials.loading import nominal_stress
 from ..progress import ensure
 from . import forcelaw
+from .springs import network_from_tets
 from .tables import StiffnessTables
 
 __all__ = [
@@ -112,8 +114,6 @@ def cylinder_specimen(*, radius: float = 5e-3, length: float = 20e-3, size: floa
     MeshingError
         gmsh produced no tetrahedra.
     """
-    from .springs import network_from_tets
-
     rep = ensure(reporter)
     for name, v in (("radius", radius), ("length", length), ("size", size)):
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -278,8 +278,6 @@ class TensileResult:
 
 def continuum_stress(material, stretch, *, direction: str | None = "z") -> np.ndarray:
     """Uniaxial nominal stress of *material* along *direction* [Pa], shape of *stretch*."""
-    from ..materials.loading import nominal_stress
-
     if getattr(material, "is_isotropic", True):
         direction = None
     return np.asarray(nominal_stress(material.model_obj, material.params_for(direction), "uniaxial",

@@ -164,7 +164,7 @@ def quantity_of(name: str) -> str | None:
 
 
 def column_keyword(entry: str, *, where: str) -> str:
-    """Resolve one entry of a ``columns`` list (sidecar or command line) to a quantity."""
+    """Resolve one entry of a ``columns`` list (sidecar or override) to a quantity."""
     raw = str(entry).strip()
     key = raw.lower()
     if key in _COLUMN_KEYWORDS:

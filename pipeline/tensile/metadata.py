@@ -6,7 +6,8 @@ Metadata come, in rising precedence, from
    testing software's own header lines (Instron Bluehill's
    ``Specimen properties : Diameter,"0.39900",mm``),
 2. a TOML sidecar with the data file's stem (``test1.csv`` -> ``test1.toml``),
-3. the command line (the ``overrides`` mapping of :func:`esmm.pipeline.tensile.read`).
+3. the caller (the ``overrides`` mapping of :func:`esmm.pipeline.tensile.read`;
+   the command line's metadata options).
 
 Each key is taken from the highest source that states it. Dimensional keys
 (``gauge_length``, ``width``, ``thickness``, ``area``) carry their unit as a
@@ -17,10 +18,11 @@ from __future__ import annotations
 
 import codecs
 import difflib
+import functools
 import math
 import re
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -76,12 +78,21 @@ class Entry:
     """One stated metadata value and where it was stated."""
 
     value: Any
-    where: str   # e.g. "test1.toml: gauge_length" or "test1.csv line 2: gauge_length"
+    where: str   # e.g. "test1.toml: gauge_length", "test1.csv line 2: gauge_length" or "gauge_length" (override)
     level: int   # COMMENT, SIDECAR or OVERRIDE
+    parameter: str | None = None  # an override: the key of the reader's overrides (the CLI maps it to its flag)
 
     @property
-    def error(self) -> type[EsmmError]:
-        return ConfigError if self.level == OVERRIDE else InputError
+    def error(self) -> Callable[[str], EsmmError]:
+        """The exception for a bad value: ConfigError naming the override, else InputError (a file's)."""
+        if self.level == OVERRIDE:
+            return functools.partial(ConfigError, parameter=self.parameter)
+        return InputError
+
+    @property
+    def described(self) -> str:
+        """Where the value was stated, for the middle of a sentence."""
+        return f"the {self.where} option" if self.level == OVERRIDE and self.parameter else self.where
 
 
 @dataclass
@@ -228,15 +239,19 @@ def from_sidecar(path: Path) -> Metadata:
 
 
 def from_overrides(overrides: Mapping[str, Any] | None, *, encoding: str | None = None) -> Metadata:
-    """Metadata from the command line (``None`` values are left out)."""
+    """Metadata from the caller's *overrides* (``None`` values are left out).
+
+    An override's messages start with its key (``gauge_length: ...``), which the
+    command line shows as its flag.
+    """
     md = Metadata()
     for k, v in (overrides or {}).items():
         if v is None:
             continue
         key = normalise_key(k)
         if key not in KEYS:
-            raise ConfigError(_unknown_key_message("command line", str(k)))
-        md.entries[key] = Entry(v, f"command line --{key.replace('_', '-')}", OVERRIDE)
+            raise ConfigError(_unknown_key_message("overrides", str(k)), parameter="overrides")
+        md.entries[key] = Entry(v, key, OVERRIDE, parameter=key)
     if encoding is not None:
         md.entries["encoding"] = Entry(encoding, "encoding argument", OVERRIDE)
     return md
@@ -337,7 +352,7 @@ def columns_value(e: Entry) -> list[str]:
     out = []
     for i, item in enumerate(items, 1):
         try:
-            out.append(column_keyword(item, where=f"{e.where} entry {i}"))
+            out.append(column_keyword(item, where=f"{e.where}: entry {i}"))
         except InputError as exc:
             raise e.error(str(exc)) from None
     return out
@@ -387,11 +402,11 @@ def geometry(md: Metadata, *, label: str) -> Geometry:
         )
     stated = []  # (area, how, where) in order of preference
     if "area" in md.entries:
-        stated.append((length_value(md.entries["area"], "area"), "area", md.entries["area"].where))
+        stated.append((length_value(md.entries["area"], "area"), "area", md.entries["area"].described))
     if w is not None and t is not None:
-        stated.append((w * t, "width x thickness", md.entries["width"].where))
+        stated.append((w * t, "width x thickness", md.entries["width"].described))
     if d is not None:
-        stated.append((math.pi * d * d / 4.0, "diameter", md.entries["diameter"].where))
+        stated.append((math.pi * d * d / 4.0, "diameter", md.entries["diameter"].described))
     area = area_from = None
     if stated:
         area, area_from, where = stated[0]

@@ -144,41 +144,12 @@ def _decode(raw: bytes, label: str, enc_entry: M.Entry | None) -> tuple[str, str
     """Decode the file's bytes: stated encoding, else a BOM, else a ``# encoding:`` line, else UTF-8."""
     if _CONTENT.search(raw) is None:
         raise InputError(f"{label}: empty file; export the test again (one header line and one row per sample)")
-    name = M.encoding_value(enc_entry) if enc_entry else None
-    bom = _bom(raw)
-    if name is not None and bom is not None and not _codec(name).startswith(bom.split("-sig")[0]):
-        raise InputError(
-            f"{label}: starts with a {bom} byte-order mark but {enc_entry.where} says {name}; "
-            f"remove the encoding statement (the mark is definitive)"
-        )
-    src = enc_entry.where if enc_entry else "its byte-order mark"
-    if name is None:
-        name = bom
-    if name is None:
-        m = _ENCODING_COMMENT.search(raw[:8192])
-        if m:
-            line = raw.count(b"\n", 0, m.start(1)) + 1
-            src = f"{label} line {line}: encoding"
-            name = M.encoding_value(M.Entry(m.group(1).decode("ascii"), src, M.COMMENT))
+    name, src = _stated_encoding(raw, label, enc_entry)
     wide = name is not None and _codec(name).startswith(("utf-16", "utf-32"))
     if not wide:
         _check_text(raw, label)
     if name is not None:
-        try:
-            text = raw.decode(name)
-        except UnicodeDecodeError as exc:
-            line = raw.count(b"\n", 0, exc.start) + 1
-            raise InputError(
-                f"{label}: does not decode as {name} (stated by {src}): byte 0x{raw[exc.start]:02x} "
-                f"on line {line}; state the file's real encoding"
-            ) from None
-        except (UnicodeError, LookupError, ValueError) as exc:
-            # Codecs that fail without a position (punycode, idna: "codec failed", label errors).
-            why = " ".join(str(exc).split())[:120]
-            raise InputError(
-                f"{label}: does not decode as {name} (stated by {src}: {why}); state the file's real "
-                f"encoding, e.g. utf-8 or gbk"
-            ) from None
+        text = _decode_as(raw, label, name, src)
     else:
         try:
             text = raw.decode("utf-8")
@@ -189,7 +160,7 @@ def _decode(raw: bytes, label: str, enc_entry: M.Entry | None) -> tuple[str, str
             raise InputError(
                 f"{label}: not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line}){hint}; state its encoding: "
                 f"encoding = \"...\" in the sidecar {M.sidecar_path(Path(label)).name}, "
-                f"a '# encoding: ...' first line, or --encoding on the command line"
+                f"a '# encoding: ...' first line, or the reader's encoding option"
             ) from None
     if text.startswith("\ufeff"):
         text = text[1:]
@@ -198,6 +169,46 @@ def _decode(raw: bytes, label: str, enc_entry: M.Entry | None) -> tuple[str, str
         if "\r" in text:
             text = text.replace("\r", "\n")
     return text, _codec(name)
+
+
+def _stated_encoding(raw: bytes, label: str, enc_entry: M.Entry | None) -> tuple[str | None, str]:
+    """The encoding stated (metadata, else a byte-order mark, else a ``# encoding:`` line), and by whom."""
+    name = M.encoding_value(enc_entry) if enc_entry else None
+    bom = _bom(raw)
+    if name is not None and bom is not None and not _codec(name).startswith(bom.split("-sig")[0]):
+        raise InputError(
+            f"{label}: starts with a {bom} byte-order mark but {enc_entry.described} says {name}; "
+            f"remove the encoding statement (the mark is definitive)"
+        )
+    src = enc_entry.described if enc_entry else "its byte-order mark"
+    if name is None:
+        name = bom
+    if name is None:
+        m = _ENCODING_COMMENT.search(raw[:8192])
+        if m:
+            line = raw.count(b"\n", 0, m.start(1)) + 1
+            src = f"{label} line {line}: encoding"
+            name = M.encoding_value(M.Entry(m.group(1).decode("ascii"), src, M.COMMENT))
+    return name, src
+
+
+def _decode_as(raw: bytes, label: str, name: str, src: str) -> str:
+    """The bytes decoded with the stated encoding *name* (one-line InputError where they do not decode)."""
+    try:
+        return raw.decode(name)
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise InputError(
+            f"{label}: does not decode as {name} (stated by {src}): byte 0x{raw[exc.start]:02x} "
+            f"on line {line}; state the file's real encoding"
+        ) from None
+    except (UnicodeError, LookupError, ValueError) as exc:
+        # Codecs that fail without a position (punycode, idna: "codec failed", label errors).
+        why = " ".join(str(exc).split())[:120]
+        raise InputError(
+            f"{label}: does not decode as {name} (stated by {src}: {why}); state the file's real "
+            f"encoding, e.g. utf-8 or gbk"
+        ) from None
 
 
 def _bom(raw: bytes) -> str | None:
@@ -226,7 +237,7 @@ def _check_text(raw: bytes, label: str) -> None:
             guess = "utf-16-le" if odd > even else "utf-16-be"
             raise InputError(
                 f"{label}: looks like {guess} text without a byte-order mark; state encoding = \"{guess}\" "
-                f"in the sidecar or on the command line"
+                f"in the sidecar or as the encoding option"
             )
         raise InputError(
             f"{label}: is not a text file (binary data at byte {nul}); export the test as CSV text"
@@ -330,49 +341,9 @@ _BLANK_LINE = re.compile(r"\n[ \t]+(?:\n|$)")
 
 def _layout(lines: list[str], label: str, delimiter: str | None) -> _Layout:
     """Find the top comments, the header, a units row and the data rows of the file."""
-    excel_sep = None
-    for k, ln in enumerate(lines):
-        if ln.strip():
-            m = _EXCEL_SEP.match(ln)
-            if m:  # Excel's "sep=;" first line
-                excel_sep = k
-                delimiter = delimiter or m.group(1)
-            break
-    if excel_sep is not None:
-        lines = [""] * (excel_sep + 1) + lines[excel_sep + 1:]
-    if delimiter is None:
-        tail: list[str] = []
-        for ln in reversed(lines):
-            if not _skip(ln):
-                tail.append(ln)
-                if len(tail) == 50:
-                    break
-        if not tail:
-            raise InputError(
-                f"{label}: no numeric rows (only comments or blank lines); export the test data with one row per sample"
-            )
-        delimiter = _detect_delimiter(tail[::-1], label)
-    delim = delimiter
-    head: list[tuple[int, str]] = []   # non-blank, non-comment lines before the first numeric row
-    first = None
-    for i, ln in enumerate(lines):
-        if _skip(ln):
-            continue
-        cells = _split(ln, delim)
-        if _numeric_row(cells):
-            first = i
-            break
-        if any(C.clean_cell(c) for c in cells):  # a row of bare delimiters is blank
-            head.append((i + 1, ln))
-    if first is None:
-        if not head:
-            raise InputError(
-                f"{label}: no numeric rows (only comments or blank lines); export the test data with one row per sample"
-            )
-        raise InputError(
-            f"{label}: no numeric rows (found {len(head)} text line(s), the last on line {head[-1][0]}); "
-            f"the file must hold one row of numbers per sample"
-        )
+    lines, delimiter = _excel_separator(lines, delimiter)
+    delim = delimiter or _detect_delimiter(_last_rows(lines, label), label)
+    head, first = _head(lines, delim, label)
     header = units = None
     j = len(head) - 1
     if j >= 0:
@@ -384,16 +355,7 @@ def _layout(lines: list[str], label: str, delimiter: str | None) -> _Layout:
         header = (head[j][0], _split(head[j][1], delim))
     head_end = header[0] if header else (units[0] if units else first + 1)
     top = [(i, lines[i - 1]) for i in range(1, head_end) if lines[i - 1].lstrip().startswith("#")]
-
-    region = lines[first:]
-    while region and not region[-1].strip():
-        region.pop()
-    joined = "\n".join(region)
-    if "#" not in joined and "\n\n" not in joined and _BLANK_LINE.search(joined) is None:
-        data_lines, linenos = region, list(range(first + 1, first + 1 + len(region)))
-    else:
-        pairs = [(i, ln) for i, ln in enumerate(region, first + 1) if not _skip(ln)]
-        data_lines, linenos = [ln for _, ln in pairs], [i for i, _ in pairs]
+    data_lines, linenos = _data_rows(lines, first)
     return _Layout(
         delimiter=delim,
         top_comments=top,
@@ -405,6 +367,65 @@ def _layout(lines: list[str], label: str, delimiter: str | None) -> _Layout:
         preamble=[ln.strip() for _, ln in head[: max(j, 0)]],
         preamble_cells=[(i, _split(ln, delim)) for i, ln in head[: max(j, 0)]],
     )
+
+
+def _excel_separator(lines: list[str], delimiter: str | None) -> tuple[list[str], str | None]:
+    """Excel's ``sep=;`` first line: its delimiter (unless one is stated), and the line blanked."""
+    for k, ln in enumerate(lines):
+        if ln.strip():
+            m = _EXCEL_SEP.match(ln)
+            if m:
+                return [""] * (k + 1) + lines[k + 1:], delimiter or m.group(1)
+            break
+    return lines, delimiter
+
+
+def _last_rows(lines: list[str], label: str) -> list[str]:
+    """The last 50 non-blank, non-comment lines (where the delimiter is looked for), in file order."""
+    tail: list[str] = []
+    for ln in reversed(lines):
+        if not _skip(ln):
+            tail.append(ln)
+            if len(tail) == 50:
+                break
+    if not tail:
+        raise InputError(
+            f"{label}: no numeric rows (only comments or blank lines); export the test data with one row per sample"
+        )
+    return tail[::-1]
+
+
+def _head(lines: list[str], delim: str, label: str) -> tuple[list[tuple[int, str]], int]:
+    """The text lines (line number, text) before the first numeric row, and that row's index."""
+    head: list[tuple[int, str]] = []   # non-blank, non-comment lines before the first numeric row
+    for i, ln in enumerate(lines):
+        if _skip(ln):
+            continue
+        cells = _split(ln, delim)
+        if _numeric_row(cells):
+            return head, i
+        if any(C.clean_cell(c) for c in cells):  # a row of bare delimiters is blank
+            head.append((i + 1, ln))
+    if not head:
+        raise InputError(
+            f"{label}: no numeric rows (only comments or blank lines); export the test data with one row per sample"
+        )
+    raise InputError(
+        f"{label}: no numeric rows (found {len(head)} text line(s), the last on line {head[-1][0]}); "
+        f"the file must hold one row of numbers per sample"
+    )
+
+
+def _data_rows(lines: list[str], first: int) -> tuple[list[str], list[int]]:
+    """The data rows from index *first* on (comments and blank lines dropped), and their line numbers."""
+    region = lines[first:]
+    while region and not region[-1].strip():
+        region.pop()
+    joined = "\n".join(region)
+    if "#" not in joined and "\n\n" not in joined and _BLANK_LINE.search(joined) is None:
+        return region, list(range(first + 1, first + 1 + len(region)))
+    pairs = [(i, ln) for i, ln in enumerate(region, first + 1) if not _skip(ln)]
+    return [ln for _, ln in pairs], [i for i, _ in pairs]
 
 
 # ---------------------------------------------------------------------------
@@ -425,43 +446,62 @@ class _Column:
 
 
 def _columns(label: str, layout: _Layout, md: M.Metadata, warnings: list[str]) -> list[_Column]:
+    """The columns: names and units from the header and units row, quantities and units as stated."""
     hdr_cells = [C.clean_cell(c) for c in layout.header[1]] if layout.header else None
-    unit_cells = [C.clean_cell(c) for c in layout.units_row[1]] if layout.units_row else None
+    n = _column_count(label, layout, hdr_cells)
+    names, file_units = _header_units(label, layout, hdr_cells, n)
+    qs = _quantities(label, layout, md, names, hdr_cells is not None, n)
+    absolute = [bool(nm) and C.normalise_name(nm) in C.ABSOLUTE_POSITION for nm in names]
+    units = _stated_units(label, md, file_units, n, warnings)
+    return [_Column(i, names[i] or None, qs[i], units[i], absolute[i]) for i in range(n)]
+
+
+def _column_count(label: str, layout: _Layout, hdr_cells: list[str] | None) -> int:
+    """The number of columns; trailing empty cells (a trailing delimiter) do not make columns."""
     n = layout.n_fields
-    # Trailing empty cells (a trailing delimiter) do not make columns.
     if hdr_cells is None:
         first = _split(layout.data_lines[0], layout.delimiter)
         while n > 1 and not first[n - 1].strip():
             n -= 1
-    if hdr_cells is not None:
-        while len(hdr_cells) > 1 and not hdr_cells[-1]:
-            hdr_cells.pop()
-        if len(hdr_cells) != n:
-            extra = _split(layout.data_lines[0], layout.delimiter)[len(hdr_cells):]
-            if len(hdr_cells) < n and not any(c.strip() for c in extra):
-                n = len(hdr_cells)
-            else:
-                raise InputError(
-                    f"{label}: the header on line {layout.header[0]} has {len(hdr_cells)} columns but the data row "
-                    f"on line {layout.data_linenos[0]} has {n}; make them match"
-                )
+        return n
+    while len(hdr_cells) > 1 and not hdr_cells[-1]:
+        hdr_cells.pop()
+    if len(hdr_cells) != n:
+        extra = _split(layout.data_lines[0], layout.delimiter)[len(hdr_cells):]
+        if len(hdr_cells) < n and not any(c.strip() for c in extra):
+            return len(hdr_cells)
+        raise InputError(
+            f"{label}: the header on line {layout.header[0]} has {len(hdr_cells)} columns but the data row "
+            f"on line {layout.data_linenos[0]} has {n}; make them match"
+        )
+    return n
+
+
+def _header_units(label: str, layout: _Layout, hdr_cells: list[str] | None, n: int,
+                  ) -> tuple[list[str | None], list[str | None]]:
+    """Column names and units from the header (``stress [kPa]``) and the units row."""
     names: list[str | None] = [None] * n
     file_units: list[str | None] = [None] * n
     if hdr_cells is not None:
         for i, cell in enumerate(hdr_cells):
             names[i], file_units[i] = C.split_header(cell)
-    if unit_cells is not None:
-        for i, cell in enumerate(unit_cells[:n]):
-            u = cell.strip().strip("()[]{}").strip() if cell else ""
-            if not u:
-                continue
-            if file_units[i] is not None and not _same_unit(file_units[i], u):
-                raise InputError(
-                    f"{label}: column {i + 1}: the header says unit {file_units[i]!r} but the units row on line "
-                    f"{layout.units_row[0]} says {u!r}; keep one"
-                )
-            file_units[i] = u
+    unit_cells = [C.clean_cell(c) for c in layout.units_row[1]] if layout.units_row else None
+    for i, cell in enumerate((unit_cells or [])[:n]):
+        u = cell.strip().strip("()[]{}").strip() if cell else ""
+        if not u:
+            continue
+        if file_units[i] is not None and not _same_unit(file_units[i], u):
+            raise InputError(
+                f"{label}: column {i + 1}: the header says unit {file_units[i]!r} but the units row on line "
+                f"{layout.units_row[0]} says {u!r}; keep one"
+            )
+        file_units[i] = u
+    return names, file_units
 
+
+def _quantities(label: str, layout: _Layout, md: M.Metadata, names: list[str | None], has_header: bool,
+                n: int) -> list[str | None]:
+    """The quantity of each column: as stated (``columns = [...]``), else from the header names."""
     col_entry = md.get("columns")
     if col_entry is not None:
         qs = M.columns_value(col_entry)
@@ -470,34 +510,37 @@ def _columns(label: str, layout: _Layout, md: M.Metadata, warnings: list[str]) -
                 f"{col_entry.where}: lists {len(qs)} columns but the file has {n} (data line "
                 f"{layout.data_linenos[0]}); list one quantity per column, 'ignore' for those to skip"
             )
-        absolute = [bool(nm) and C.normalise_name(nm) in C.ABSOLUTE_POSITION for nm in names]
-    else:
-        if hdr_cells is None:
-            raise InputError(
-                f"{label}: no header line naming the columns (data start on line {layout.data_linenos[0]}); "
-                f"add one such as 'stretch,nominal stress [kPa]', or give columns = [...] and units = [...] "
-                f"in the sidecar {M.sidecar_path(Path(label)).name}"
-            )
-        qs = [C.quantity_of(nm) if nm else None for nm in names]
-        absolute = [bool(nm) and C.normalise_name(nm) in C.ABSOLUTE_POSITION for nm in names]
+        return qs
+    if not has_header:
+        raise InputError(
+            f"{label}: no header line naming the columns (data start on line {layout.data_linenos[0]}); "
+            f"add one such as 'stretch,nominal stress [kPa]', or give columns = [...] and units = [...] "
+            f"in the sidecar {M.sidecar_path(Path(label)).name}"
+        )
+    return [C.quantity_of(nm) if nm else None for nm in names]
 
+
+def _stated_units(label: str, md: M.Metadata, file_units: list[str | None], n: int,
+                  warnings: list[str]) -> list[str | None]:
+    """The units of the file, replaced by those stated (``units = [...]``) with a warning where they differ."""
     units: list[str | None] = list(file_units)
     unit_entry = md.get("units")
-    if unit_entry is not None:
-        given = M.list_value(unit_entry)
-        if len(given) != n:
-            raise unit_entry.error(
-                f"{unit_entry.where}: lists {len(given)} units but the file has {n} columns; "
-                f"list one unit per column (\"\" for dimensionless ones)"
+    if unit_entry is None:
+        return units
+    given = M.list_value(unit_entry)
+    if len(given) != n:
+        raise unit_entry.error(
+            f"{unit_entry.where}: lists {len(given)} units but the file has {n} columns; "
+            f"list one unit per column (\"\" for dimensionless ones)"
+        )
+    for i, u in enumerate(given):
+        u = u.strip().strip("()[]{}").strip()
+        if file_units[i] is not None and not _same_unit(file_units[i], u):
+            warnings.append(
+                f"{label}: column {i + 1}: unit {file_units[i]!r} in the file replaced by {u!r} from {unit_entry.described}"
             )
-        for i, u in enumerate(given):
-            u = u.strip().strip("()[]{}").strip()
-            if file_units[i] is not None and not _same_unit(file_units[i], u):
-                warnings.append(
-                    f"{label}: column {i + 1}: unit {file_units[i]!r} in the file replaced by {u!r} from {unit_entry.where}"
-                )
-            units[i] = u
-    return [_Column(i, names[i] or None, qs[i], units[i], absolute[i]) for i in range(n)]
+        units[i] = u
+    return units
 
 
 def _same_unit(a: str, b: str) -> bool:
@@ -658,7 +701,7 @@ def _mode(md: M.Metadata, by_q: dict[str, _Column]) -> tuple[str, str]:
     shear = any(q in by_q for q in ("shear_strain", "shear_stress"))
     axial = any(q in by_q for q in ("stretch", "strain", "true_strain", "stress", "true_stress"))
     if mode_e is not None:
-        return M.mode_value(mode_e), mode_e.where
+        return M.mode_value(mode_e), mode_e.described
     if shear and not axial:
         return "simple_shear", "columns"
     return "uniaxial", "default"
@@ -711,8 +754,8 @@ def _plan(label: str, layout: _Layout, md: M.Metadata, cols: list[_Column], by_q
     def missing_geometry(key: str, why: str) -> InputError:
         example = '"30 mm"' if key == "gauge_length" else '"22 mm2" (or width and thickness, or diameter)'
         return InputError(
-            f"{label}: missing geometry: {why} needs {key}; give {key} = {example} in the sidecar {side}, "
-            f"a '# {key}: ...' line at the top of the file, or --{key.replace('_', '-')} on the command line"
+            f"{key}: missing geometry for {label}: {why} needs {key}; give {key} = {example} in the sidecar "
+            f"{side}, a '# {key}: ...' line at the top of the file, or this option", parameter=key
         )
 
     if x_col is None and geo.gauge_length is None:

@@ -25,10 +25,19 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from .. import __version__
 from ..errors import ConfigError, InputError
+from ..materials import get_model
+from ..materials.effects import MaterialEffects
+from ..materials.material import load_material
 from ..progress import Reporter, ensure
 from ..tensile.data import TensileTest
+from .fitted import Fitted, effect_params, full_errors
+from .initialise import initialise
+from .model import Bounds, Problem, Spec, prepare, slack_applicable
+from .statistics import Errors
 
 JSON_SCHEMA = "esmm.evaluate/1"
 
@@ -83,33 +92,33 @@ def load_fit(path: str | Path) -> SavedFit:
         for name in ("discover.json", "fit.json", "params.toml"):
             if (p / name).is_file():
                 return load_fit(p / name)
-        raise ConfigError(f"{p}: no discover.json, fit.json or params.toml here; give the --out folder of "
-                          "'esmm calibrate' (with or without --discover)")
+        raise ConfigError(f"{p}: no discover.json, fit.json or params.toml here; give the output folder of "
+                          "a calibration or of a discovery")
     if not p.is_file():
-        raise ConfigError(f"{p}: no such file or folder; give the --out folder of 'esmm calibrate'")
+        raise ConfigError(f"{p}: no such file or folder; give the output folder of a calibration or of a discovery")
     if p.suffix == ".toml":
         return _from_material(p)
     try:
         doc = json.loads(p.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ConfigError(f"{p}: not a JSON file written by esmm ({exc}); give the --out folder of "
-                          "'esmm calibrate'") from None
+        raise ConfigError(f"{p}: not a JSON file written by esmm ({exc}); give the output folder of a "
+                          "calibration or of a discovery") from None
     schema = str(doc.get("schema", ""))
     if schema.startswith("esmm.discover/"):
         sm = doc.get("saved_model")
         if not isinstance(sm, dict):
-            raise ConfigError(f"{p}: has no saved_model section; rerun 'esmm calibrate --discover'")
+            raise ConfigError(f"{p}: has no saved_model section; rerun the discovery")
         try:
             return SavedFit(path=p, kind="discover", model=str(sm["model"]), spec=dict(sm["spec"]),
                             base=dict(sm["base"]), final=dict(sm["final"]), fixed=dict(sm.get("fixed") or {}),
                             directions=sm.get("directions"), bounds=sm.get("bounds"),
                             max_points=int(sm.get("max_points", 400)))
         except (KeyError, TypeError, ValueError) as exc:
-            raise ConfigError(f"{p}: saved_model is incomplete ({exc}); rerun 'esmm calibrate --discover'") from None
+            raise ConfigError(f"{p}: saved_model is incomplete ({exc}); rerun the discovery") from None
     if schema.startswith("esmm.calibrate/"):
         mat = doc.get("material") or {}
         if "params" not in mat:
-            raise ConfigError(f"{p}: has no material section; rerun 'esmm calibrate'")
+            raise ConfigError(f"{p}: has no material section; rerun the calibration")
         params = {"params": dict(mat["params"])}
         if mat.get("directions"):
             params["directions"] = dict(mat["directions"])
@@ -120,9 +129,6 @@ def load_fit(path: str | Path) -> SavedFit:
 
 
 def _from_material(p: Path) -> SavedFit:
-    from ..materials.effects import MaterialEffects
-    from ..materials.material import load_material
-
     mat = load_material(p)
     eff_table = mat.metadata.get("effects")
     effects = MaterialEffects.from_toml_table(eff_table, stress_unit=mat.stress_unit,
@@ -145,15 +151,12 @@ class Evaluation:
 
     fit: SavedFit
     files: list[str]
-    before: Any  # esmm.pipeline.discover.model.Errors
-    after: Any
+    before: Errors
+    after: Errors
     artefacts: dict[str, dict[str, Any]]
     warnings: list[str]
 
     def to_dict(self) -> dict[str, Any]:
-        def err(e):
-            return {"rmse": e.rmse, "nrmse": e.nrmse, "max_abs": e.max_abs, "unit": "Pa", "per_file": e.per_file}
-
         return {
             "schema": JSON_SCHEMA,
             "esmm_version": __version__,
@@ -163,8 +166,8 @@ class Evaluation:
             "model": self.fit.model,
             "effects": self.fit.effects,
             "files": list(self.files),
-            "before": err(self.before),
-            "after": err(self.after),
+            "before": self.before.to_dict(),
+            "after": self.after.to_dict(),
             "artefacts": self.artefacts,
             "warnings": list(self.warnings),
         }
@@ -183,66 +186,26 @@ def evaluate(fit: SavedFit | str | Path, tests: list[TensileTest], *, reporter: 
     -------
     Evaluation
     """
-    from ..discover.model import Bounds, Problem, Spec, prepare, slack_applicable
-    from ..discover.search import _effect_params, _initialise, full_errors
-    from ..materials import get_model
-    from ..materials.effects import MaterialEffects
-
     rep = ensure(reporter)
     saved = fit if isinstance(fit, SavedFit) else load_fit(fit)
     if not tests:
         raise InputError("no tensile files to evaluate; give at least one")
+    _check_orientations(saved, tests)
     m = get_model(saved.model)
-    dirs = saved.directions
-    if dirs:
-        bad = [t.name for t in tests if t.orientation not in dirs]
-        if bad:
-            raise InputError(
-                f"{bad[0]}: the fit is anisotropic ({', '.join(dirs)}); tag the file with orientation = "
-                f"{'|'.join(dirs)} (sidecar, '# orientation: x' comment or --orientation)")
     records = prepare(tests, max_points=saved.max_points)
     bounds = Bounds.from_dict(saved.bounds) if saved.bounds else Bounds(records, 1.0)
-
-    def per_dir(block):
-        out = {None: dict(block["params"])}
-        for d, p in (block.get("directions") or {}).items():
-            out[d] = {**block["params"], **p}
-        return out
-
-    warnings: list[str] = []
     spec = Spec.from_dict(saved.spec)
     effects = MaterialEffects.from_dict(saved.final.get("effects"), where=f"{saved.path}: effects")
-    if spec.viscoelastic:
-        for r in records:
-            if r.t is None:
-                warnings.append(f"{r.name}: no time column, so the viscoelastic effect is not applied to it")
-    if spec.mullins:
-        for r in records:
-            if not r.history:
-                warnings.append(f"{r.name}: no time column (no loading history), so Mullins softening is not applied")
-    if spec.slack and not any(slack_applicable(r) for r in records):
-        warnings.append("slack correction not applicable to these files (no tension test from zero displacement)")
-    fixed = dict(saved.fixed)
-
+    warnings = _not_applied(spec, records)
     # before: the base model alone, no corrections
-    pb = Problem(m, records, Spec(), fixed=fixed, directions=dirs, bounds=bounds)
-    zb = pb.encode(per_dir(saved.base))
-    before = full_errors(pb, zb)
+    pb = Problem(m, records, Spec(), fixed=dict(saved.fixed), directions=saved.directions, bounds=bounds)
+    before = full_errors(pb, pb.encode(_per_direction(saved.base)))
     # after: final material + effects; artefacts re-estimated per file
-    pa = Problem(m, records, spec, fixed=fixed, directions=dirs, bounds=bounds)
-    za = pa.encode(per_dir(saved.final), effects)
-    own = [i for i, s in enumerate(pa.slots) if s.file is not None]
-    if own:
-        za = _initialise(pa, za, "slack")  # a grid first: the slack optimum is not found from zero
-        za, _ = pa.solve(za, active=own)
+    pa = pb.derived(spec)
+    za = _artefacts_refitted(pa, pa.encode(_per_direction(saved.final), effects))
     after = full_errors(pa, za)
-    artefacts: dict[str, dict[str, Any]] = {}
-    from ..discover.search import Fitted
-
     fitted = Fitted(spec, pa, za, {}, after)
-    for n in ("slack", "sensor_offset"):
-        if getattr(spec, n):
-            artefacts[n] = _effect_params(fitted, n)
+    artefacts = {n: effect_params(fitted, n) for n in ("slack", "sensor_offset") if getattr(spec, n)}
     for w in warnings:
         rep.warn(w)
     rep.step(f"evaluated {saved.kind} fit of {saved.model} on {len(tests)} file(s): NRMSE "
@@ -252,11 +215,45 @@ def evaluate(fit: SavedFit | str | Path, tests: list[TensileTest], *, reporter: 
     return Evaluation(saved, [str(t.source) for t in tests], before, after, artefacts, warnings)
 
 
-def write_json(path: str | Path, ev: Evaluation) -> Path:
-    """Write the evaluation document (strict JSON), atomically."""
-    from ..discover.report import write_json as _write
+def _check_orientations(saved: SavedFit, tests: list[TensileTest]) -> None:
+    """An anisotropic fit predicts only files tagged with one of its fibre directions."""
+    dirs = saved.directions
+    bad = [t.name for t in tests if t.orientation not in dirs] if dirs else []
+    if bad:
+        raise InputError(
+            f"{bad[0]}: the fit is anisotropic ({', '.join(dirs)}); tag the file with orientation = "
+            f"{'|'.join(dirs)} (in its sidecar, a '# orientation: x' comment or the orientation override)")
 
-    return _write(path, ev.to_dict())
+
+def _per_direction(block: dict[str, Any]) -> dict[str | None, dict[str, float]]:
+    """``{"params", "directions"}`` of a saved fit as parameters per direction (None: shared)."""
+    out = {None: dict(block["params"])}
+    for d, p in (block.get("directions") or {}).items():
+        out[d] = {**block["params"], **p}
+    return out
+
+
+def _not_applied(spec: Spec, records) -> list[str]:
+    """Warnings for the effects of *spec* that cannot apply to some of the new files."""
+    warnings: list[str] = []
+    if spec.viscoelastic:
+        warnings += [f"{r.name}: no time column, so the viscoelastic effect is not applied to it"
+                     for r in records if r.t is None]
+    if spec.mullins:
+        warnings += [f"{r.name}: no time column (no loading history), so Mullins softening is not applied"
+                     for r in records if not r.history]
+    if spec.slack and not any(slack_applicable(r) for r in records):
+        warnings.append("slack correction not applicable to these files (no tension test from zero displacement)")
+    return warnings
+
+
+def _artefacts_refitted(prob: Problem, z: np.ndarray) -> np.ndarray:
+    """*z* with the per-file artefact parameters re-estimated, the material held."""
+    own = [i for i, s in enumerate(prob.slots) if s.file is not None]
+    if own:
+        z = initialise(prob, z, "slack")  # a grid first: the slack optimum is not found from zero
+        z, _ = prob.solve(z, active=own)
+    return z
 
 
 def summary_lines(ev: Evaluation) -> list[str]:
@@ -275,4 +272,4 @@ def summary_lines(ev: Evaluation) -> list[str]:
     return lines
 
 
-__all__ = ["Evaluation", "SavedFit", "evaluate", "load_fit", "summary_lines", "write_json"]
+__all__ = ["Evaluation", "SavedFit", "evaluate", "load_fit", "summary_lines"]

@@ -1,12 +1,20 @@
-"""Small HDF5 helpers shared by the asset writer, reader and validator."""
+"""HDF5 helpers of the asset: typed groups, text datasets, content hashes and the sealed file header.
+
+Shared by the asset writer, reader, validator and rewriter; :func:`seal` is what every
+writer that creates or edits an asset calls last (tests use it to make consistent edits).
+"""
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import json
 import math
+import os
 import re
+import shutil
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -194,10 +202,6 @@ def _header(digest: str, length: int) -> bytes:
 
 def _prepend_userblock(path: Path) -> None:
     """Give an HDF5 file without a user block one of USERBLOCK_SIZE zero bytes (as h5jam does)."""
-    import os
-    import shutil
-    import tempfile
-
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.ub-", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as out, open(path, "rb") as src:
@@ -241,6 +245,19 @@ def seal_file(path) -> bool:
     return True
 
 
+def _remains_of_header(head: bytes) -> bool:
+    """Whether a user block that is not a valid header still holds part of one.
+
+    Any 16-byte piece of the note, the magic, ``sha256=`` or ``length=`` is a
+    remain: a few damaged bytes cannot make an esmm file pass for one without a
+    header (whose HDF5 parsing the hash no longer guards), as that would need
+    about 300 bytes overwritten.
+    """
+    if FILE_MAGIC in head or b"sha256=" in head or b" length=" in head:
+        return True
+    return any(_NOTE[k:k + 16] in head for k in range(0, len(_NOTE) - 15, 16))
+
+
 def check_file(path) -> tuple[bool, str]:
     """Check the file header before libhdf5 parses the file.
 
@@ -267,7 +284,7 @@ def check_file(path) -> tuple[bool, str]:
                 if v and int(v.group(1)) > FILE_HEADER_VERSION:
                     return True, (f"written by a newer esmm (file header version {int(v.group(1))}, this esmm "
                                   f"reads {FILE_HEADER_VERSION}); upgrade esmm")
-            if FILE_MAGIC in head or b" sha256=" in head:  # a header with a damaged (or shifted) start
+            if _remains_of_header(head):  # a header with damaged (or shifted) bytes
                 return True, "damaged or modified after esmm wrote it (its esmm file header is unreadable)"
             return False, ""
         if int(m.group(1)) > FILE_HEADER_VERSION:
@@ -289,8 +306,6 @@ def check_file(path) -> tuple[bool, str]:
 
 def to_json(obj) -> str:
     """JSON text of a report (dataclass, dict, numpy values), keys sorted."""
-    import dataclasses
-
     def conv(o):
         if dataclasses.is_dataclass(o) and not isinstance(o, type):
             return {f.name: conv(getattr(o, f.name)) for f in dataclasses.fields(o)}

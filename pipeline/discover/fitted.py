@@ -1,0 +1,106 @@
+"""A fitted extended model, how one is fitted from another, and what it says about each effect."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .estimates import Estimate
+from .initialise import extend_variant, initialise
+from .model import Problem, Spec, State
+from .statistics import Errors, error_measures, information, n_effective
+
+
+@dataclass
+class Fitted:
+    """One fitted model: its problem, parameters, information and errors."""
+
+    spec: Spec
+    problem: Problem
+    z: np.ndarray
+    info: dict[str, float]
+    errors: Errors  # on all samples of the fitting files
+    heldout: Errors | None = None
+    estimates: list[Estimate] = field(default_factory=list)
+
+    @property
+    def state(self) -> State:
+        return self.problem.state(self.z)
+
+
+def finish(prob: Problem, z: np.ndarray) -> Fitted:
+    """The :class:`Fitted` of *prob* at *z*: information criteria and errors on all samples."""
+    res = prob.fit_residuals(z)
+    info = information(res, n_effective(res), prob.n_params())
+    return Fitted(prob.spec, prob, z, info, full_errors(prob, z))
+
+
+def full_errors(prob: Problem, z: np.ndarray) -> Errors:
+    """Errors of every record on all its samples."""
+    coefs = prob.offsets(z)
+    return error_measures([(r.name, r.y, prob.full_prediction(k, z, coefs[k])) for k, r in enumerate(prob.records)])
+
+
+def fit_spec(spec: Spec, current: Fitted, *, init_from: Fitted | None = None) -> Fitted:
+    """Fit *spec* on all fitting samples of *current*'s records.
+
+    Started from *init_from* (default *current*), its new effects first set by
+    :func:`~esmm.pipeline.discover.initialise.initialise` and the added slots of
+    a richer variant by :func:`~esmm.pipeline.discover.initialise.extend_variant`.
+    """
+    prob = current.problem.derived(spec)
+    src = init_from or current
+    z0 = prob.transfer(src.problem, src.z)
+    new = [n for n in spec.names() if not getattr(src.spec, n)]
+    for n in new:
+        z0 = initialise(prob, z0, n)
+    # slots of a richer variant of an effect already present (another Prony term, beta)
+    old_keys = {s.key for s in src.problem.slots}
+    extra = [i for i, s in enumerate(prob.slots) if s.effect is not None and s.effect not in new
+             and s.file is None and s.key not in old_keys]
+    if extra:
+        z0 = extend_variant(prob, z0, extra)
+    z, _ = prob.solve(z0)
+    return finish(prob, z)
+
+
+def effect_params(f: Fitted, name: str) -> dict[str, Any]:
+    """The fitted parameters of effect *name* in *f* (values only; intervals in the final model)."""
+    st = f.state
+    if name == "viscoelastic" and st.g is not None:
+        return {"g": [float(v) for v in st.g], "tau": [float(v) for v in st.tau],
+                "g_inf": float(max(0.0, 1 - float(np.sum(st.g))))}
+    if name == "mullins" and st.mullins is not None:
+        return dict(zip(("r", "m", "beta"), map(float, st.mullins)))
+    if name == "damage" and st.damage is not None:
+        return dict(zip(("onset", "scale", "shape"), map(float, st.damage)))
+    if name == "slack" and st.slack is not None:
+        return _slack_params(f.problem, st)
+    if name == "sensor_offset":
+        return _offset_params(f.problem, f.z)
+    return {}
+
+
+def _slack_params(prob: Problem, st: State) -> dict[str, Any]:
+    out = {}
+    for k, r in enumerate(prob.records):
+        if any(s.effect == "slack" and s.file == k for s in prob.slots):
+            d = float(st.slack[k])
+            out[r.name] = {"delta": d, "length_m": d * r.gauge if r.gauge else None}
+    return out
+
+
+def _offset_params(prob: Problem, z: np.ndarray) -> dict[str, Any]:
+    out = {}
+    for k, c in enumerate(prob.offsets(z)):
+        if c is None:
+            continue
+        r = prob.records[k]
+        o = float(c[0])  # data = model + offset (what the load cell reads at zero force)
+        d = float(c[1]) / (r.T or 1.0) if len(c) > 1 else 0.0
+        out[r.name] = {"stress_Pa": o, "drift_Pa_per_s": d,
+                       "force_N": o * r.area if r.area else None,
+                       "drift_N_per_s": d * r.area if r.area else None}
+    return out

@@ -1,0 +1,175 @@
+"""Held-out errors: which data a model is tested on without being fitted to them, and how.
+
+Held-out schemes, in order of preference (:func:`make_folds`): leave one
+loading-rate group out (several rates), leave one file out (several files of a
+loading mode), leave one cycle out (one file with several cycles), leave one of
+five consecutive blocks of every file out. A file is never held out if it is
+the only one of its loading mode (that would test extrapolation between modes,
+not effects).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import FitError
+from .fitted import Fitted
+from .model import Record
+from .statistics import Errors, error_measures
+
+#: most folds of any held-out scheme
+MAX_FOLDS = 6
+
+
+@dataclass
+class Fold:
+    name: str
+    train: list  # per record: None (all fitting samples) or positions (possibly empty)
+    test: list  # per record: None (not tested) or a boolean mask over all samples
+
+
+def make_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
+    """The held-out scheme and its folds (see the module docstring).
+
+    A file (or rate group) is only held out if every loading mode it has is
+    still in the training files: predicting a mode never fitted tests the base
+    model's extrapolation between modes, not the effects.
+    """
+    for scheme in (_rate_folds, _file_folds, _cycle_folds):
+        got = scheme(records)
+        if got is not None:
+            return got
+    return _block_folds(records)
+
+
+def _modes_kept(records: Sequence[Record], held: list[int]) -> bool:
+    """Whether every loading mode of the *held* records is still among the others."""
+    modes = [r.test.mode for r in records]
+    rest = {modes[k] for k in range(len(records)) if k not in held}
+    return all(modes[k] in rest for k in held)
+
+
+def _rate_folds(records: Sequence[Record]) -> tuple[str, list[Fold]] | None:
+    """Leave one loading-rate group out (rates within a factor 1.5 form a group)."""
+    m = len(records)
+    rates = [r.cov.loading_rate() for r in records]
+    finite = [v for v in rates if math.isfinite(v) and v > 0]
+    if m < 2 or len(finite) != m:
+        return None
+    groups: list[list[int]] = []
+    for k in np.argsort(rates):
+        if groups and rates[k] / rates[groups[-1][0]] < 1.5:
+            groups[-1].append(int(k))
+        else:
+            groups.append([int(k)])
+    if len(groups) < 2 or not all(_modes_kept(records, g) for g in groups):
+        return None
+    folds = []
+    for g in groups[:MAX_FOLDS]:
+        name = f"rate {np.median([rates[k] for k in g]):.3g}/s ({len(g)} file{'s' if len(g) > 1 else ''})"
+        folds.append(_file_fold(name, records, g))
+    return "leave one loading rate out", folds
+
+
+def _file_folds(records: Sequence[Record]) -> tuple[str, list[Fold]] | None:
+    """Leave one file (or one group of files) out, among those whose loading mode has another file."""
+    m = len(records)
+    eligible = [k for k in sorted(range(m), key=lambda k: records[k].name) if _modes_kept(records, [k])]
+    if len(eligible) < 2:
+        return None
+    nf = min(len(eligible), MAX_FOLDS)
+    folds = []
+    for j in range(nf):
+        g = eligible[j::nf]
+        folds.append(_file_fold(", ".join(records[k].name for k in g), records, g))
+    scheme = "leave one file out" if nf == len(eligible) else f"leave files out ({nf} groups)"
+    if len(eligible) < m:
+        scheme += " (files whose loading mode has another file)"
+    return scheme, folds
+
+
+def _cycle_folds(records: Sequence[Record]) -> tuple[str, list[Fold]] | None:
+    """Leave one cycle out of a single file with several cycles."""
+    if len(records) != 1 or not records[0].history or records[0].cov.n_cycles < 2:
+        return None
+    r = records[0]
+    nc = r.cov.n_cycles
+    groups = [list(range(c, nc, min(nc, MAX_FOLDS))) for c in range(min(nc, MAX_FOLDS))]
+    folds = [_block_fold(f"cycle {', '.join(str(c + 1) for c in g)}", records, {0: np.isin(r.cov.cycle, g)})
+             for g in groups]
+    return "leave one cycle out", folds
+
+
+def _block_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
+    """Leave one of five consecutive blocks of every file out."""
+    folds = []
+    for j in range(5):
+        masks = {}
+        for k, r in enumerate(records):
+            n = r.test.n
+            edges = np.linspace(0, n, 6).round().astype(int)
+            mask = np.zeros(n, bool)
+            mask[edges[j]:edges[j + 1]] = True
+            masks[k] = mask
+        folds.append(_block_fold(f"block {j + 1}/5", records, masks))
+    return ("leave one of 5 consecutive blocks out" + (" (of every file)" if len(records) > 1 else "")), folds
+
+
+def _file_fold(name: str, records, held: list[int]) -> Fold:
+    train = [np.zeros(0, dtype=int) if k in held else None for k in range(len(records))]
+    test = [np.ones(records[k].test.n, bool) if k in held else None for k in range(len(records))]
+    return Fold(name, train, test)
+
+
+def _block_fold(name: str, records, masks: dict[int, np.ndarray]) -> Fold:
+    """Hold out the samples in *masks* (record index -> boolean mask over all its samples)."""
+    train, test = [], []
+    for k, r in enumerate(records):
+        mask = masks.get(k)
+        if mask is None:
+            train.append(None)
+            test.append(None)
+        else:
+            train.append(np.flatnonzero(~mask[r.fit_idx]))
+            test.append(mask)
+    return Fold(name, train, test)
+
+
+def heldout(fitted: Fitted, folds: Sequence[Fold]) -> Errors:
+    """Held-out errors of *fitted*'s model: refit per fold, predict what was left out.
+
+    Per-test artefact parameters (slack, offsets) of a held-out *file* are
+    re-estimated on that file with the material fixed (as ``esmm evaluate``
+    does); a held-out *block* keeps those fitted on the rest of its file.
+    """
+    prob = fitted.problem
+    per_file: dict[int, tuple[list, list]] = {}
+    for fold in folds:
+        fp = prob.derived(train=fold.train)
+        excluded = {k for k, t in enumerate(fold.train) if t is not None and len(t) == 0}
+        active = [i for i, s in enumerate(fp.slots) if s.file is None or s.file not in excluded]
+        try:
+            z, _ = fp.solve(fitted.z.copy(), active=active, max_nfev=8 * (len(active) + 2), ftol=1e-5)
+        except FitError:
+            z = fitted.z.copy()
+        held_files = sorted(excluded)
+        if held_files:
+            # re-estimate the held-out files' own artefacts with the material fixed
+            fp.set_train([None if k in excluded else np.zeros(0, dtype=int) for k in range(len(fp.records))])
+            own = [i for i, s in enumerate(fp.slots) if s.file in excluded]
+            if own:
+                z, _ = fp.solve(z, active=own, max_nfev=10 * (len(own) + 2), ftol=1e-5)
+        coefs = fp.offsets(z)
+        for k, mask in enumerate(fold.test):
+            if mask is None:
+                continue
+            p = fp.full_prediction(k, z, coefs[k])
+            ys, ps = per_file.setdefault(k, ([], []))
+            ys.append(fp.records[k].y[mask])
+            ps.append(p[mask])
+    items = [(prob.records[k].name, np.concatenate(v[0]), np.concatenate(v[1])) for k, v in sorted(per_file.items())]
+    return error_measures(items)
