@@ -778,6 +778,63 @@ steps_parallel = njit(parallel=True, **JIT_OPTIONS)(twin(_steps, "steps_parallel
 # quasi-static relaxation (FIRE)
 # ---------------------------------------------------------------------------
 
+@njit(inline="always", **JIT_OPTIONS)
+def _floor_reaction(n, f, free, fl_n, fl_stick, fl_mask, contact):
+    """Take off the floor's reaction from the force of the free nodes in contact that press into it."""
+    for a in range(n):
+        if free[a] and fl_mask[a] and contact[a]:
+            fn = f[a, 0] * fl_n[0] + f[a, 1] * fl_n[1] + f[a, 2] * fl_n[2]
+            if fn < 0.0:
+                if fl_stick:
+                    f[a, 0] = 0.0
+                    f[a, 1] = 0.0
+                    f[a, 2] = 0.0
+                else:
+                    for d in range(3):
+                        f[a, d] -= fn * fl_n[d]
+
+
+@njit(inline="always", **JIT_OPTIONS)
+def _fire_measure(n, f, v, free):
+    """(largest |f| on a free node, power f.v, |v|^2, |f|^2) over the free nodes."""
+    resid = 0.0
+    P = 0.0
+    vn2 = 0.0
+    fn2 = 0.0
+    for a in range(n):
+        if free[a]:
+            fa2 = f[a, 0] ** 2 + f[a, 1] ** 2 + f[a, 2] ** 2
+            if fa2 > resid:
+                resid = fa2
+            P += f[a, 0] * v[a, 0] + f[a, 1] * v[a, 1] + f[a, 2] * v[a, 2]
+            vn2 += v[a, 0] ** 2 + v[a, 1] ** 2 + v[a, 2] ** 2
+            fn2 += fa2
+    return np.sqrt(resid), P, vn2, fn2
+
+
+@njit(inline="always", **JIT_OPTIONS)
+def _fire_move(n, dt, x, v, f, inv_mass, free, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact):
+    """FIRE's MD update of the free nodes (vfac = 1), the floor's nodes then put back by its rule."""
+    if fl_on:
+        for a in range(n):
+            if free[a] and not fl_mask[a]:
+                s = dt * inv_mass[a]
+                for d in range(3):
+                    v[a, d] += s * f[a, d]
+                    x[a, d] += dt * v[a, d]
+        for a in range(n):
+            if free[a] and fl_mask[a]:
+                _integrate_range_floor(a, a + 1, dt, x, v, f, inv_mass, 1.0, fl_n, fl_h, fl_stick, fl_mask,
+                                       contact)
+    else:
+        for a in range(n):
+            if free[a]:
+                s = dt * inv_mass[a]
+                for d in range(3):
+                    v[a, d] += s * f[a, d]
+                    x[a, d] += dt * v[a, d]
+
+
 @njit(**JIT_OPTIONS)
 def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, max_iter):
     """FIRE minimisation (Bitzek et al. 2006) of the network energy under fext.
@@ -788,7 +845,8 @@ def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, m
     largest residual force on a free node is below *ftol* [N]. Returns
     (iterations, final max residual); iterations = -1 when the forces became
     non-finite. With effects (*fx* not None) their long-term force (mode
-    ``FX_RELAXED``, state unchanged) is used.
+    ``FX_RELAXED``, state unchanged) is used. Standard parameters: N_min 5,
+    f_inc 1.1, f_dec 0.5, alpha_start 0.1, f_alpha 0.99.
 
     With ``floor.on`` the rigid floor of :func:`_integrate_range_floor` constrains
     the nodes with ``floor.mask``: each MD update puts the nodes that end below
@@ -802,17 +860,10 @@ def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, m
     g_mode, g_nodes, g_off, g_k, wp_t, wp_x = grasp
     fl_on, fl_n, fl_h, fl_stick, fl_mask, contact = floor
     n = x.shape[0]
-    n_min = 5
-    f_inc = 1.1
-    f_dec = 0.5
-    alpha_start = 0.1
-    f_alpha = 0.99
-    alpha = alpha_start
+    alpha = 0.1
     dt = dt0
     since_neg = 0
-    for a in range(n):
-        for d in range(3):
-            v[a, d] = 0.0
+    v[:, :] = 0.0
     resid = np.inf
     out = np.zeros(3)
     for it in range(max_iter):
@@ -820,30 +871,8 @@ def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, m
         if g_mode == GRASP_SPRING:
             _grasp_forces(f, x, g_mode, g_nodes, g_off, g_k, tip, out)
         if fl_on:
-            for a in range(n):
-                if free[a] and fl_mask[a] and contact[a]:
-                    fn = f[a, 0] * fl_n[0] + f[a, 1] * fl_n[1] + f[a, 2] * fl_n[2]
-                    if fn < 0.0:
-                        if fl_stick:
-                            f[a, 0] = 0.0
-                            f[a, 1] = 0.0
-                            f[a, 2] = 0.0
-                        else:
-                            for d in range(3):
-                                f[a, d] -= fn * fl_n[d]
-        resid = 0.0
-        P = 0.0
-        vn2 = 0.0
-        fn2 = 0.0
-        for a in range(n):
-            if free[a]:
-                fa2 = f[a, 0] ** 2 + f[a, 1] ** 2 + f[a, 2] ** 2
-                if fa2 > resid:
-                    resid = fa2
-                P += f[a, 0] * v[a, 0] + f[a, 1] * v[a, 1] + f[a, 2] * v[a, 2]
-                vn2 += v[a, 0] ** 2 + v[a, 1] ** 2 + v[a, 2] ** 2
-                fn2 += fa2
-        resid = np.sqrt(resid)
+            _floor_reaction(n, f, free, fl_n, fl_stick, fl_mask, contact)
+        resid, P, vn2, fn2 = _fire_measure(n, f, v, free)
         if not np.isfinite(resid):
             return -1, resid
         if resid < ftol:
@@ -857,35 +886,15 @@ def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, m
                         for d in range(3):
                             v[a, d] = (1.0 - alpha) * v[a, d] + alpha * vn * f[a, d] / fn
             since_neg += 1
-            if since_neg > n_min:
-                dt = min(dt * f_inc, dt_max)
-                alpha *= f_alpha
+            if since_neg > 5:
+                dt = min(dt * 1.1, dt_max)
+                alpha *= 0.99
         else:
             since_neg = 0
-            dt *= f_dec
-            alpha = alpha_start
-            for a in range(n):
-                for d in range(3):
-                    v[a, d] = 0.0
-        if fl_on:
-            for a in range(n):
-                if free[a] and not fl_mask[a]:
-                    s = dt * inv_mass[a]
-                    for d in range(3):
-                        v[a, d] += s * f[a, d]
-                        x[a, d] += dt * v[a, d]
-            # the floor's nodes: same update, then the contact rule (vfac = 1)
-            for a in range(n):
-                if free[a] and fl_mask[a]:
-                    _integrate_range_floor(a, a + 1, dt, x, v, f, inv_mass, 1.0, fl_n, fl_h, fl_stick, fl_mask,
-                                           contact)
-        else:
-            for a in range(n):
-                if free[a]:
-                    s = dt * inv_mass[a]
-                    for d in range(3):
-                        v[a, d] += s * f[a, d]
-                        x[a, d] += dt * v[a, d]
+            dt *= 0.5
+            alpha = 0.1
+            v[:, :] = 0.0
+        _fire_move(n, dt, x, v, f, inv_mass, free, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
     return max_iter, resid
 
 
