@@ -293,6 +293,9 @@ def _effects_block(p0, nb, sd, lam_min, inv_h, damped, a1, a0, etab, fxp, ab, h,
     """Replace the elastic forces F_e in buf[5] by the effects' forces F, updating the state per *mode*.
 
     buf[5] holds the table's weighted f_d before the law's factor ``a1 (lam - 1) + a0``.
+    One function on purpose: helpers taking arrays, called per spring, cost an atomic
+    reference count per array and call (measured 5x slower when damage, Mullins and
+    QLV were split out).
     """
     for b in range(nb):
         buf[5, b] = buf[5, b] * (a1 * (buf[4, b] - 1.0) + a0)
