@@ -183,9 +183,15 @@ class Simulator:
         return self.stepper.advance(self.model, self.state, self.control, nsteps, record=record)
 
     def relax(self, *, ftol: float | None = None, rtol: float = 1e-8, max_iter: int = 200_000) -> dict:
-        """Static equilibrium under gravity (and a held grasp) with FIRE: :func:`.relax.relax`."""
-        return relax(self.model, self.state, self.control, dt_critical=self.bound.dt_critical, ftol=ftol,
-                     rtol=rtol, max_iter=max_iter)
+        """Static equilibrium under gravity (and a held grasp) with FIRE: :func:`.relax.relax`.
+
+        FIRE's molecular-dynamics step is the explicit stability bound (also
+        when the stepper is implicit and has none).
+        """
+        dtc = self.bound.dt_critical
+        if not np.isfinite(dtc):
+            dtc = SymplecticEuler().bound(self.model, self.control).dt_critical
+        return relax(self.model, self.state, self.control, dt_critical=dtc, ftol=ftol, rtol=rtol, max_iter=max_iter)
 
     def settle_effects(self) -> None:
         """Take the current configuration as long held (:func:`.relax.settle_effects`)."""
@@ -231,8 +237,11 @@ class Simulator:
         return -float(np.sum(self.model.fext * self.state.x))
 
 
-def warm_up(springs: SpringTerm, *, threads: int = 1) -> float:
-    """Compile (or load from cache) the step loop on a 2-node problem; return the seconds spent."""
+def warm_up(springs: SpringTerm, *, threads: int = 1, implicit: bool = False) -> float:
+    """Compile (or load from cache) the step loop on a 2-node problem; return the seconds spent.
+
+    *implicit*: also the tangent kernels of the implicit stepper.
+    """
     t = time.perf_counter()
     x = np.array([[0.0, 0, 0], [1.0, 0, 0]])
     sub = SpringTerm(n_nodes=2, ij=np.array([[0], [1]], np.uint32), order=np.zeros(1, np.int64),
@@ -245,4 +254,6 @@ def warm_up(springs: SpringTerm, *, threads: int = 1) -> float:
     sim.attach(Grasp(nodes=np.array([1]), offsets=np.zeros((1, 3)), wp_t=np.array([0.0, 1.0]),
                      wp_x=np.array([[1.0, 0, 0], [1.0, 0, 0]])))
     sim.advance(1)
+    if implicit:
+        sub.tangent(sim.x, state=sim.state.effects, dt=1e-3)
     return time.perf_counter() - t
