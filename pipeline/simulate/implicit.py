@@ -105,7 +105,11 @@ class BackwardEuler:
     haptic_rate : float
         Grasper force samples per second of simulated time.
     definite : bool
-        Factor the tangent with each spring block made positive semi-definite.
+        Newton's matrix with each spring block made positive semi-definite
+        (negative axial and geometric stiffness dropped: a descent direction
+        whatever the compression).
+    single : bool
+        Factor in float32 (faster solves; the factor is a preconditioner).
     threads : int
         Kept for the :class:`~.simulator.Simulator` interface (the implicit step runs on one thread).
     """
@@ -113,6 +117,7 @@ class BackwardEuler:
     step: float = DEFAULT_STEP
     rtol: float = 0.05
     xtol: float = 1e-4
+    contact_rounds: int = 0
     max_newton: int = 4
     cg_rtol: float = 0.1
     max_cg: int = 20
@@ -120,6 +125,7 @@ class BackwardEuler:
     haptic_rate: float = HAPTIC_RATE
     haptic_drift: bool = True
     definite: bool = True
+    single: bool = True
     threads: int = 1
     stats: ImplicitStats = field(default_factory=ImplicitStats)
     _factor: SparseFactor | None = field(default=None, repr=False)
@@ -220,7 +226,7 @@ class BackwardEuler:
         _, g = self._residual(model, state, control, x, x0, v0, h, dt_fx)
         norm = self._norm(g, control, contact, floor)
         it = 0
-        for rounds in range(3):
+        for rounds in range(self.contact_rounds + 1):
             limit = it + self.max_newton
             moved = math.inf
             while norm > tol and moved > xtol and it < limit:
@@ -229,12 +235,13 @@ class BackwardEuler:
                 it += 1
             # the floor lets go of the nodes it would have to pull; solve again without them
             released = self._released(g, contact, floor)
-            if not released.any() or rounds == 2:
+            if released.any():
+                contact &= ~released
+                st.contact_changes += int(released.sum())
+                self._set_rows(model, control, contact, h)
+                norm = self._norm(g, control, contact, floor)
+            if not released.any() or rounds == self.contact_rounds:
                 break
-            contact &= ~released
-            st.contact_changes += int(released.sum())
-            self._set_rows(model, control, contact, h)
-            norm = self._norm(g, control, contact, floor)
         if norm > tol and moved > xtol:
             st.unconverged += 1
         st.max_newton = max(st.max_newton, it)
@@ -437,7 +444,7 @@ class BackwardEuler:
             from .linsolve import node_ordering
 
             self._perm = node_ordering(A)
-        fac = SparseFactor.of(A, self._perm)
+        fac = SparseFactor.of(A, self._perm, single=self.single)
         st = self.stats
         st.factorizations += 1
         st.factor_s += fac.seconds

@@ -82,29 +82,37 @@ class SparseFactor:
     seconds: float
     nnz: int
 
+    dtype: type = np.float64
+
     @classmethod
-    def of(cls, A, perm: np.ndarray | None = None) -> SparseFactor:
-        """Factor *A* (N, N), in order *perm* (default: :func:`node_ordering`)."""
+    def of(cls, A, perm: np.ndarray | None = None, *, single: bool = False) -> SparseFactor:
+        """Factor *A* (N, N), in order *perm* (default: :func:`node_ordering`).
+
+        *single*: factor and solve in float32 (measured on the fine liver: solves
+        1.6x faster, relative residual ~3e-4: a preconditioner, not a solver).
+        """
         from scipy.sparse.linalg import splu
 
         t = time.perf_counter()
         perm = node_ordering(A) if perm is None else perm
-        B = sps.csr_matrix(A)[perm][:, perm].tocsc()
+        dtype = np.float32 if single else np.float64
+        B = sps.csr_matrix(A)[perm][:, perm].tocsc().astype(dtype)
         try:
             lu = splu(B, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
         except RuntimeError as exc:            # an exactly singular pivot
             raise SimulationError(f"the implicit step's matrix could not be factored ({exc}); "
                                   "check the asset's masses and fixed nodes") from None
-        return cls(perm=perm, lu=lu, seconds=time.perf_counter() - t, nnz=int(lu.nnz + B.shape[0]) // 2)
+        return cls(perm=perm, lu=lu, seconds=time.perf_counter() - t, nnz=int(lu.nnz + B.shape[0]) // 2,
+                   dtype=dtype)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``A^-1 b`` for *b* of shape (N,) or (N, k)."""
         out = np.empty_like(b, dtype=np.float64)
         if b.ndim == 1:
-            out[self.perm] = self.lu.solve(np.ascontiguousarray(b[self.perm], dtype=np.float64))
+            out[self.perm] = self.lu.solve(np.ascontiguousarray(b[self.perm], dtype=self.dtype))
             return out
         for c in range(0, b.shape[1], 3):
-            out[self.perm, c:c + 3] = self.lu.solve(np.ascontiguousarray(b[self.perm, c:c + 3], dtype=np.float64))
+            out[self.perm, c:c + 3] = self.lu.solve(np.ascontiguousarray(b[self.perm, c:c + 3], dtype=self.dtype))
         return out
 
 
