@@ -47,7 +47,7 @@ import scipy.sparse as sps
 
 from ..errors import ConfigError
 from . import kernels as K
-from .linsolve import Constraints, SparseFactor, pcg
+from .linsolve import Constraints, SparseFactor, node_ordering, pcg
 from .model import Control, Model, State
 from .stepper import StepBound
 
@@ -441,8 +441,6 @@ class BackwardEuler:
         h = state.dt
         A = self._system_matrix(model, state, x, h, dt_fx)
         if self._perm is None or self._perm.size != A.shape[0]:
-            from .linsolve import node_ordering
-
             self._perm = node_ordering(A)
         fac = SparseFactor.of(A, self._perm, single=self.single)
         st = self.stats

@@ -52,7 +52,8 @@ def node_ordering(A) -> np.ndarray:
     if c.size == 0:
         order = np.arange(n)
     else:
-        perm, _ = pymetis.nested_dissection(xadj=xadj, adjncy=c.astype(np.int64))   # row i of A' is row perm[i]
+        graph = pymetis.CSRAdjacency(xadj, c.astype(np.int64))
+        perm, _ = pymetis.nested_dissection(adjacency=graph)      # row i of A' is row perm[i] of A
         order = np.asarray(perm, dtype=np.int64)
     return (3 * order[:, None] + np.arange(3)).ravel()
 
