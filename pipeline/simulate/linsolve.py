@@ -204,6 +204,12 @@ class Constraints:
         self.solves += 1
         if self.W is not None:
             z = z - self.W @ (self.cap_inv @ self.gather(z))
+            hard = self.comp == 0.0            # exactly in the null space (the factor may be float32)
+            if hard.any():
+                zz = z.reshape(self.n, 3)
+                for m in np.flatnonzero(hard):
+                    a = self.node[m]
+                    zz[a] -= (zz[a] @ self.e[m]) * self.e[m]
         if fixed is not None:
             z[fixed] = 0.0
         return z

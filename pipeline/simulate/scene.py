@@ -210,7 +210,7 @@ class Scene:
     method: str = "implicit"
     implicit_step: Any = "frame"
     haptic_rate: float = 1000.0
-    newton_tol: float = 1e-3
+    newton_tol: float = 0.01
     safety: float = 0.9
     step: str = "adaptive"
     window: float = 0.05
