@@ -10,8 +10,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.sparse as sps
-from scipy.linalg import eigh
-from esmm.pipeline.materials.effects import DamageEffect, MaterialEffects, MullinsEffect, ViscoelasticEffect
+from esmm.pipeline.materials.effects import (
+    DamageEffect,
+    MaterialEffects,
+    MullinsEffect,
+    ViscoelasticEffect,
+)
 from esmm.pipeline.mesh.synthetic import box_tets
 from esmm.pipeline.network.forcelaw import tangent_stiffness
 from esmm.pipeline.network.springs import network_from_tets
@@ -26,6 +30,7 @@ from esmm.pipeline.simulate.scene import scene_from_dict
 from esmm.pipeline.simulate.simulator import Simulator
 from esmm.pipeline.simulate.springterm import build_spring_term
 from esmm.pipeline.simulate.stepper import SymplecticEuler, stable_step
+from scipy.linalg import eigh
 
 
 def make_tables(mu0=2.0e4, lo=0.5, hi=2.0, n=301, aniso=True):
