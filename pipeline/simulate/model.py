@@ -39,12 +39,10 @@ class ForceTerm(Protocol):
       sums of its tangent stiffness |K| [N/m] (Gershgorin), over every
       configuration or over a window around *x*: the explicit step's bound;
     * ``damping_rows()``: the same for its damping matrix [N s/m];
-    * ``state_rows(state, x, delta)``: rows added by its state (None if none).
-
-    An implicit stepper will add ``tangent_matvec(x, v, dx, out)`` (the
-    product of the term's tangent stiffness with a vector, for conjugate
-    gradients) or an assembled tangent; each term implements it for its own
-    elements.
+    * ``state_rows(state, x, delta)``: rows added by its state (None if none);
+    * ``tangent(x, v=None)``: its tangent stiffness ``K = -df/dx`` at *x*, a
+      ``scipy.sparse.csr_matrix`` (3n, 3n), dof order ``x.ravel()`` (the
+      implicit stepper, :mod:`.implicit`, sums it over the terms).
     """
 
     n_nodes: int
@@ -56,6 +54,8 @@ class ForceTerm(Protocol):
     def damping_rows(self) -> np.ndarray: ...
 
     def state_rows(self, state, x: np.ndarray, delta: float) -> np.ndarray | None: ...
+
+    def tangent(self, x: np.ndarray, v: np.ndarray | None = None): ...
 
 
 @dataclass(eq=False)
