@@ -116,7 +116,7 @@ class BackwardEuler:
 
     step: float = DEFAULT_STEP
     rtol: float = 0.01
-    xtol: float = 1e-5
+    xtol: float = 1e-4
     contact_rounds: int = 0
     max_newton: int = 4
     cg_rtol: float = 0.1
