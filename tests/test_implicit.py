@@ -31,19 +31,12 @@ from esmm.pipeline.simulate.simulator import Simulator
 from esmm.pipeline.simulate.springterm import build_spring_term
 from esmm.pipeline.simulate.stepper import SymplecticEuler, stable_step
 from scipy.linalg import eigh
+from simkit import make_tables as simkit_tables
 
 
-def make_tables(mu0=2.0e4, lo=0.5, hi=2.0, n=301, aniso=True):
-    """Stiffening tables from closed forms, different per direction (or the same: *aniso* False)."""
-    lam = np.linspace(lo, hi, n)
-    rows = [mu0 * (1 + 4 * (lam - 1) ** 2), mu0 * (1.3 + 2 * (lam - 1) ** 2),
-            mu0 * (0.9 + (lam - 1) ** 2 + 6 * (lam - 1) ** 4)]
-    mu = np.vstack(rows if aniso else [rows[0]] * 3)
-    stress = mu * (lam - 1)
-    h = lam[1] - lam[0]
-    energy = np.concatenate([np.zeros((3, 1)), np.cumsum(0.5 * (stress[:, 1:] + stress[:, :-1]) * h, axis=1)], axis=1)
-    energy -= energy[:, [int(round((1 - lo) / h))]]
-    return StiffnessTables(lam_min=lo, lam_max=hi, n=n, values=mu, stress=stress, energy=energy)
+def make_tables(mu0=2.0e4, aniso=True):
+    """Stiffening tables, different per fibre direction (or the same: *aniso* False)."""
+    return simkit_tables("nonlinear" if aniso else "stiffening", mu0=mu0)
 
 
 @pytest.fixture(scope="module")
