@@ -104,6 +104,11 @@ class BackwardEuler:
         diagonal (no factorization; the 1 kHz force then holds its last value).
     haptic_rate : float
         Grasper force samples per second of simulated time.
+    haptic_drift : bool
+        Extrapolate the last step's unexplained change between solves (module doc).
+    contact_rounds : int
+        Times a step is solved again after the floor let go of nodes (0: they
+        move from the next step on, as measured best for cost at equal accuracy).
     definite : bool
         Newton's matrix with each spring block made positive semi-definite
         (negative axial and geometric stiffness dropped: a descent direction
@@ -187,45 +192,57 @@ class BackwardEuler:
 
     # -- one step ------------------------------------------------------------------
     def _step(self, model: Model, state: State, control: Control, rec: np.ndarray) -> None:
-        h = state.dt
-        t = state.t
-        t1 = t + h
-        n = model.n_nodes
-        st = self.stats
-        x0 = state.x.copy()
-        v0 = state.v.copy()
+        """One step of ``state.dt``: predictor, the grasper force's samples, Newton, the floor, commit."""
+        h, t = state.dt, state.t
+        x0, v0 = state.x.copy(), state.v.copy()
         g_ = control.grasp
-        spring_grasp = g_ is not None and g_.mode == "spring"
-        held = np.zeros(n, bool)
+        fmask = (control.floor_mask > 0) & model.movable
         if g_ is not None:
-            held[g_.nodes] = True
-        movable = model.movable
-        fixed_dof = np.repeat(~movable, 3)
+            fmask[g_.nodes] = False
         floor = model.floor
-        fmask = (control.floor_mask > 0) & movable & ~held
-        contact = (state.contact > 0) & fmask if floor is not None else np.zeros(n, bool)
+        contact = (state.contact > 0) & fmask if floor is not None else np.zeros(model.n_nodes, bool)
         dt_fx = self._dt_fx(state, h)
         if self.preconditioner == "factor" and (self._factor is None or self._factor_h != h or self._stale):
             self._refactor(model, state, x0, dt_fx)
         F0 = self._start_force(model, state, control, t)
-        # the predictor: inertial motion; held nodes on the path, contacts on the floor
-        x = x0 + h * v0
-        x[~movable] = x0[~movable]
-        if g_ is not None and not spring_grasp:
-            x[g_.nodes] = g_.tip(t1) + g_.offsets
-        if contact.any():
-            x[contact] = self._on_floor(floor, x0[contact], x[contact])
+        x = self._predictor(model, control, x0, v0, h, contact, t + h)
         self._set_rows(model, control, contact, h)
         S = self._patch_stiffness(model, control, h)
         self._haptic_ticks(rec, F0, S, g_, t, h)
-        fscale = self._force_scale(model)
-        tol = self.rtol * fscale
+        x = self._converge(model, state, control, x, x0, v0, h, dt_fx, contact, np.repeat(~model.movable, 3))
+        if floor is not None:
+            # free nodes that went below the plane are put back on it (where their path crossed
+            # it, with "stick") and held from the next step on: the explicit step's rule, per step
+            landed = self._touchdown(floor, x0, x, fmask & ~contact)
+            contact |= landed
+            self.stats.contact_changes += int(landed.sum())
+        self._commit(model, state, control, x, x0, h, dt_fx, contact, F0, S)
+
+    def _predictor(self, model, control, x0, v0, h, contact, t1):
+        """The Newton iteration's start: inertial motion, held nodes on the path, contacts on the floor."""
+        g_ = control.grasp
+        x = x0 + h * v0
+        x[~model.movable] = x0[~model.movable]
+        if g_ is not None and g_.mode == "prescribed":
+            x[g_.nodes] = g_.tip(t1) + g_.offsets
+        if contact.any():
+            x[contact] = self._on_floor(model.floor, x0[contact], x[contact])
+        return x
+
+    def _converge(self, model, state, control, x, x0, v0, h, dt_fx, contact, fixed_dof):
+        """Newton's iteration from *x* until the residual or the update is small (module doc); the
+        floor then lets go of the nodes it would have to pull (*contact* updated in place; with
+        ``contact_rounds`` > 0 the step is solved again without them)."""
+        st = self.stats
+        floor = model.floor
+        tol = self.rtol * self._force_scale(model)
         xtol = self.xtol * float(np.ptp(model.rest, axis=0).max())
         mass_dof = np.repeat(model.mass * (1.0 / (h * h) + model.mass_damping / h), 3)
-        coupling = self._coupling_dofs(control, n)
+        coupling = self._coupling_dofs(control, model.n_nodes)
         _, g = self._residual(model, state, control, x, x0, v0, h, dt_fx)
         norm = self._norm(g, control, contact, floor)
         it = 0
+        moved = math.inf
         for rounds in range(self.contact_rounds + 1):
             limit = it + self.max_newton
             moved = math.inf
@@ -233,7 +250,6 @@ class BackwardEuler:
                 x, g, norm, moved = self._newton(model, state, control, x, x0, v0, h, dt_fx, g, norm, contact,
                                                  mass_dof, coupling, fixed_dof)
                 it += 1
-            # the floor lets go of the nodes it would have to pull; solve again without them
             released = self._released(g, contact, floor)
             if released.any():
                 contact &= ~released
@@ -245,13 +261,7 @@ class BackwardEuler:
         if norm > tol and moved > xtol:
             st.unconverged += 1
         st.max_newton = max(st.max_newton, it)
-        if floor is not None:
-            # free nodes that went below the plane are put back on it (where their path crossed
-            # it, with "stick") and held from the next step on: the explicit step's rule, per step
-            landed = self._touchdown(floor, x0, x, fmask & ~contact)
-            contact |= landed
-            st.contact_changes += int(landed.sum())
-        self._commit(model, state, control, x, x0, h, dt_fx, contact, held, spring_grasp, t1, F0, S)
+        return x
 
     def _newton(self, model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, mass_dof, coupling, fixed_dof):
         """One Newton iteration from x (residual g, |g| = norm): the update's solve and its line search."""
@@ -559,9 +569,11 @@ class BackwardEuler:
             tau = q * h / T
             rec[q] = F0 - S @ (g_.tip(t + tau) - p0) + (tau / h) * drift
 
-    def _commit(self, model, state, control, x, x0, h, dt_fx, contact, held, spring_grasp, t1, F0, S) -> None:
+    def _commit(self, model, state, control, x, x0, h, dt_fx, contact, F0, S) -> None:
         """Write the step into *state*: positions, velocities, effect state, contacts, clock; remember the force."""
         g_ = control.grasp
+        t1 = state.t + h
+        spring_grasp = g_ is not None and g_.mode == "spring"
         v = (x - x0) / h
         v[~model.movable] = 0.0
         if g_ is not None and not spring_grasp:
