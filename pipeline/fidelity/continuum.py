@@ -31,13 +31,21 @@ from io import StringIO
 
 import numpy as np
 
-from ..errors import SimulationError
+from ..errors import ConfigError, SimulationError
 from ..progress import ensure
 from .cases import LoadCase
 from .material import IsochoricMaterial, bulk_modulus
 from .solution import Solution
 
-__all__ = ["quadratic_tets", "solve_continuum"]
+__all__ = ["ELEMENTS", "quadratic_tets", "solve_continuum"]
+
+#: The mixed elements on the asset's tetrahedra (both free of volumetric locking).
+ELEMENTS = {
+    "p2": "quadratic tetrahedra (a node on every edge), pressure and volume ratio constant per element, "
+          "condensed (felupe SolidBodyNearlyIncompressible)",
+    "mini": "linear tetrahedra with a cubic bubble (MINI), pressure and volume ratio linear "
+            "(felupe ThreeFieldVariation on RegionTetraMINI)",
+}
 
 #: Edge k of a tetrahedron joins vertices (I[k], J[k]): the 10-node order of felupe (and VTK).
 _EDGE_I = (0, 1, 2, 3, 3, 3)
@@ -106,7 +114,27 @@ def _force_scale(case: LoadCase, material, mask: np.ndarray, u: np.ndarray) -> f
     return max(weight, material.youngs_modulus() * strain * size**2, 1e-12)
 
 
-def solve_continuum(case: LoadCase, material, *, bulk: float | None = None, steps: int = 8,
+def _discretise(fem, case: LoadCase, material, K: float, element: str):
+    """felupe's field and solid body of *case*, its constraint groups and prescribed values."""
+    if element == "p2":
+        p10, cells, edges = quadratic_tets(case.points, case.tets)
+        members, mask, u = _groups(case, edges, p10.shape[0])
+        region = fem.RegionQuadraticTetra(fem.Mesh(p10, cells, "tetra10"))
+        field = fem.FieldContainer([fem.Field(region, dim=3)])
+        solid = fem.SolidBodyNearlyIncompressible(IsochoricMaterial(material), field, bulk=K)
+    else:  # MINI: a bubble node in every tet (free), u-p-J with p and J linear
+        mesh = fem.Mesh(case.points, case.tets, "tetra").add_midpoints_volumes()
+        field = fem.FieldsMixed(fem.RegionTetraMINI(mesh), n=3)
+        solid = fem.SolidBody(fem.ThreeFieldVariation(IsochoricMaterial(material, bulk=K)), field)
+        members = {c.name: c.nodes for c in case.constraints}
+        mask_v, u_v = case.prescribed()
+        mask = np.zeros((mesh.npoints, 3), bool)
+        u = np.zeros((mesh.npoints, 3))
+        mask[:case.n_nodes], u[:case.n_nodes] = mask_v, u_v
+    return field, solid, members, mask, u, case.tets.shape[0]
+
+
+def solve_continuum(case: LoadCase, material, *, bulk: float | None = None, element: str = "p2", steps: int = 8,
                     rtol: float = 1e-8, max_iter: int = 25, max_cuts: int = 10, reporter=None) -> Solution:
     """Solve *case* as a nearly incompressible hyperelastic continuum (felupe).
 
@@ -117,6 +145,8 @@ def solve_continuum(case: LoadCase, material, *, bulk: float | None = None, step
         Isotropic, W(I1) (:class:`~.material.IsochoricMaterial`).
     bulk : float, optional
         Bulk modulus K [Pa]; default :func:`~.material.bulk_modulus`.
+    element : {"p2", "mini"}
+        :data:`ELEMENTS`.
     steps : int
         Load steps (equal increments of the load factor, halved on failure).
     rtol : float
@@ -137,20 +167,18 @@ def solve_continuum(case: LoadCase, material, *, bulk: float | None = None, step
 
     rep = ensure(reporter)
     t_start = time.perf_counter()
+    if element not in ELEMENTS:
+        raise ConfigError(f"element: {element!r} is not one of {', '.join(ELEMENTS)}", parameter="element")
     K = bulk_modulus(material) if bulk is None else float(bulk)
-    p10, cells, edges = quadratic_tets(case.points, case.tets)
-    members, mask, u_full = _groups(case, edges, p10.shape[0])
-    mesh = fem.Mesh(p10, cells, "tetra10")
-    region = fem.RegionQuadraticTetra(mesh)
-    field = fem.FieldContainer([fem.Field(region, dim=3)])
-    solid = fem.SolidBodyNearlyIncompressible(IsochoricMaterial(material), field, bulk=K)
+    field, solid, members, mask, u_full, ncells = _discretise(fem, case, material, K, element)
     gvec = case.density * np.asarray(case.gravity, dtype=np.float64)
     body = fem.SolidBodyForce(field, values=gvec, scale=0.0)
+    ndof = int(np.sum(field.fieldsizes))
     dof0 = np.flatnonzero(mask.ravel())
-    dof1 = np.flatnonzero(~mask.ravel())
+    dof1 = np.setdiff1d(np.arange(ndof), dof0)
     check = _Check(_force_scale(case, material, mask, u_full), rtol)
     t, dt, cuts, iterations, done_steps = 0.0, 1.0 / max(1, int(steps)), 0, 0, 0
-    with rep.task(f"continuum {case.name} (felupe, {cells.shape[0]} quadratic tets)", total=1.0) as advance:
+    with rep.task(f"continuum {case.name} (felupe, {ncells} tets, {element})", total=1.0) as advance:
         while t < 1.0 - 1e-12:
             t1 = min(1.0, t + dt)
             saved = solid.checkpoint()
@@ -170,10 +198,16 @@ def solve_continuum(case: LoadCase, material, *, bulk: float | None = None, step
             advance(t1 - t)
             t, done_steps = t1, done_steps + 1
     return _solution(case, solid, body, field, members, K, {
-        "bulk_modulus_Pa": K, "elements": "quadratic tetrahedra (10 nodes), pressure and volume ratio "
-        "constant per element (felupe SolidBodyNearlyIncompressible)", "dofs": int(mask.size),
+        "bulk_modulus_Pa": K, "element": element, "elements": ELEMENTS[element], "dofs": ndof,
         "load_steps": done_steps, "step_cuts": cuts, "newton_iterations": iterations,
         "seconds": time.perf_counter() - t_start})
+
+
+def _lu_solve(A, b):
+    """SuperLU with COLAMD: 2-4x faster here than scipy's spsolve default, and far faster than MMD."""
+    import scipy.sparse.linalg as spl
+
+    return spl.splu(A.tocsc(), permc_spec="COLAMD").solve(np.asarray(b, dtype=np.float64).ravel())
 
 
 def _newton(fem, field, solid, body, dof0, dof1, ext0, check, max_iter):
@@ -184,7 +218,7 @@ def _newton(fem, field, solid, body, dof0, dof1, ext0, check, max_iter):
         try:
             with np.errstate(all="ignore"):
                 res = fem.newtonraphson(field, items=[solid, body], dof1=dof1, dof0=dof0, ext0=ext0,
-                                        verbose=0, maxiter=max_iter, check=check)
+                                        verbose=0, maxiter=max_iter, check=check, solver=_lu_solve)
         except (fem.tools.NewtonConvergenceError, ValueError, FloatingPointError, np.linalg.LinAlgError):
             return False, field, max_iter
     ok = bool(res.success) and np.all(np.isfinite(res.x[0].values))
@@ -193,11 +227,12 @@ def _newton(fem, field, solid, body, dof0, dof1, ext0, check, max_iter):
 
 def _solution(case: LoadCase, solid, body, field, members, K: float, info: dict) -> Solution:
     n = case.n_nodes
-    fint = np.asarray(solid.assemble.vector(field).todense()).reshape(-1, 3)
-    fext = np.asarray(body.assemble.vector(field).todense()).reshape(-1, 3)
+    nu = field[0].values.size
+    fint = np.asarray(solid.assemble.vector(field).todense()).ravel()[:nu].reshape(-1, 3)
+    fext = np.asarray(body.assemble.vector(field).todense()).ravel()[:nu].reshape(-1, 3)
     on_body = fext - fint                       # what the supports take: -(residual)
     reactions = {name: on_body[nodes].sum(axis=0) for name, nodes in members.items()}
-    F = field.extract()[0]
+    F = field[0].extract()
     J = np.linalg.det(np.moveaxis(F, (0, 1), (-2, -1)))   # (q, c)
     dV = field.region.dV
     return Solution(solver="continuum", displacement=field[0].values[:n].copy(), reactions=reactions,

@@ -134,9 +134,10 @@ class IsochoricMaterial:
         Isotropic, W(I1) (:func:`check_continuum`).
     """
 
-    def __init__(self, material):
+    def __init__(self, material, *, bulk: float | None = None):
         check_continuum(material)
         self.material = material
+        self.bulk = None if bulk is None else float(bulk)
         self._model = material.model_obj
         self._params = material.params_for(None)
         self.x = [np.eye(3), np.zeros(0)]   # felupe's probe input
@@ -156,15 +157,17 @@ class IsochoricMaterial:
     def gradient(self, x, **kwargs):
         """``[P, statevars]``: the first Piola-Kirchhoff stress of the isochoric part [Pa]."""
         F, statevars = x[0], x[-1]
-        _, iFT, a, I1 = self._invariants(F)
+        J, iFT, a, I1 = self._invariants(F)
         w1, _ = self._model.dW(a * I1, np.full_like(I1, 3.0), self._params)
         P = (2.0 * w1 * a) * (F - (I1 / 3.0) * iFT)
+        if self.bulk is not None:
+            P = P + (self.bulk * (J - 1.0) * J) * iFT
         return [P, statevars]
 
     def hessian(self, x, **kwargs):
         """``[A]``: dP/dF of the isochoric part, shape (3, 3, 3, 3, ...) [Pa]."""
         F = x[0]
-        _, iFT, a, I1 = self._invariants(F)
+        J, iFT, a, I1 = self._invariants(F)
         i1 = a * I1
         w1, _ = self._model.dW(i1, np.full_like(i1, 3.0), self._params)
         w11, _, _ = self._model.d2W(i1, np.full_like(i1, 3.0), self._params)
@@ -176,4 +179,8 @@ class IsochoricMaterial:
         A = A + (I1 / 3.0) * np.einsum("il...,kj...->ijkl...", iFT, iFT)
         A = A + (2.0 * I1 / 9.0) * np.einsum("ij...,kl...->ijkl...", iFT, iFT)
         A = (2.0 * w1 * a) * A + w11 * np.einsum("ij...,kl...->ijkl...", D, D)
+        if self.bulk is not None:   # U = K (J - 1)^2 / 2, as felupe's NeoHooke
+            K = self.bulk
+            A = A + (K * J * (2.0 * J - 1.0)) * np.einsum("ij...,kl...->ijkl...", iFT, iFT) \
+                - (K * J * (J - 1.0)) * np.einsum("il...,kj...->ijkl...", iFT, iFT)
         return [A]
