@@ -219,7 +219,8 @@ def _newton(fem, field, solid, body, dof0, dof1, ext0, check, max_iter):
             with np.errstate(all="ignore"):
                 res = fem.newtonraphson(field, items=[solid, body], dof1=dof1, dof0=dof0, ext0=ext0,
                                         verbose=0, maxiter=max_iter, check=check, solver=_lu_solve)
-        except (fem.tools.NewtonConvergenceError, ValueError, FloatingPointError, np.linalg.LinAlgError):
+        except (fem.tools.NewtonConvergenceError, ValueError, RuntimeError, FloatingPointError,
+                np.linalg.LinAlgError):
             return False, field, max_iter
     ok = bool(res.success) and np.all(np.isfinite(res.x[0].values))
     return ok, res.x, int(res.iterations)
