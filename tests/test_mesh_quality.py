@@ -137,8 +137,8 @@ def test_inverted_mesh_fails_the_floors():
 
 def test_slivers_are_relocated_above_the_floor():
     """Slivers made by pushing an interior vertex towards a neighbour: relocated above 10 deg, volume kept."""
-    from esmm.pipeline.mesh.quality import QUALITY_FLOORS, tet_measures
-    from esmm.pipeline.mesh.slivers import improve_slivers
+    from esmm.pipeline.mesh.quality import tet_measures
+    from esmm.pipeline.mesh.slivers import SLIVER_TARGET_DEG, improve_slivers
     from esmm.pipeline.mesh.synthetic import box_tets
     from esmm.pipeline.network.springs import boundary_faces, tet_volumes
 
@@ -154,7 +154,7 @@ def test_slivers_are_relocated_above_the_floor():
     assert before < 10.0 and np.all(tet_volumes(p, t) > 0)
     q, info = improve_slivers(p, t, boundary_faces(t))
     after = tet_measures(q, t)["min_dihedral_deg"].min()
-    assert after >= QUALITY_FLOORS["min_dihedral_deg"] and info["below_after"] == 0
+    assert after >= SLIVER_TARGET_DEG and info["below_after"] == 0
     assert info["min_dihedral_before"] == pytest.approx(before)
     # boundary vertices move in their tangent plane only: the volume changes to second order
     assert tet_volumes(q, t).sum() == pytest.approx(tet_volumes(p, t).sum(), rel=1e-4)
