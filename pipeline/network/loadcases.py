@@ -34,7 +34,7 @@ from .tables import StiffnessTables
 from .tensile_test import Potential, _newton
 from .volume import VolumeSpec, inverted_tets, volume_elements
 
-__all__ = ["HomogeneousResult", "ShearResult", "boundary_nodes", "homogeneous_test", "shear_deformation",
+__all__ = ["PLANES", "HomogeneousResult", "ShearResult", "boundary_nodes", "homogeneous_test", "shear_deformation",
            "virtual_shear_test"]
 
 
@@ -43,10 +43,15 @@ def boundary_nodes(network) -> np.ndarray:
     return np.unique(np.asarray(network.surface_faces, dtype=np.int64).ravel())
 
 
-def shear_deformation(gamma: float) -> np.ndarray:
-    """F = I + gamma e_x (x) e_z: x moves by gamma times z, shape (3, 3)."""
+#: Simple-shear planes: (moving axis, gradient axis). "xz": x moves by gamma z.
+PLANES = {"xz": (0, 2), "xy": (0, 1), "yz": (1, 2)}
+
+
+def shear_deformation(gamma: float, plane: str = "xz") -> np.ndarray:
+    """F = I + gamma e_a (x) e_b for *plane* "ab" (default "xz": x moves by gamma z), shape (3, 3)."""
+    a, b = PLANES[plane]
     F = np.eye(3)
-    F[0, 2] = gamma
+    F[a, b] = gamma
     return F
 
 
@@ -206,8 +211,8 @@ class ShearResult:
 
 
 def virtual_shear_test(network, tables: StiffnessTables, *, gamma=None, law: str | None = None, material=None,
-                       volume: VolumeSpec | None = None, rtol: float = 1e-9) -> ShearResult:
-    """Simple shear ``x = X + gamma z e_x`` prescribed on the whole boundary of *network*.
+                       volume: VolumeSpec | None = None, plane: str = "xz", rtol: float = 1e-9) -> ShearResult:
+    """Simple shear ``x = X + gamma z e_x`` (*plane* "xz") prescribed on the whole boundary of *network*.
 
     Parameters
     ----------
@@ -219,17 +224,24 @@ def virtual_shear_test(network, tables: StiffnessTables, *, gamma=None, law: str
     material : Material, optional
         The continuum reference (default: none; then ``reference`` is NaN).
     volume : VolumeSpec, optional
+    plane : {"xz", "xy", "yz"}
+        The moving and the gradient axis (mesh frame); ``stress`` is ``P_ab``.
     """
+    if plane not in PLANES:
+        raise ConfigError(f"plane: unknown {plane!r}; use one of {', '.join(PLANES)}")
+    a, b = PLANES[plane]
     g = np.linspace(0.05, 0.4, 8) if gamma is None else np.asarray(gamma, dtype=np.float64).ravel()
     if g.size == 0 or not np.all(np.isfinite(g)) or np.any(np.diff(np.concatenate([[0.0], g])) <= 0):
         raise ConfigError("gamma: need increasing positive amounts of shear")
-    res = homogeneous_test(network, tables, [shear_deformation(v) for v in g], law=law, volume=volume, rtol=rtol)
+    res = homogeneous_test(network, tables, [shear_deformation(v, plane) for v in g], law=law, volume=volume,
+                           rtol=rtol)
     if material is not None:
         params = material.params_for(None if material.is_isotropic else "z")
         ref = np.asarray(nominal_stress(material.model_obj, params, "simple_shear", g), dtype=np.float64)
         eref = res.rest_volume * np.asarray(energy_density(material.model_obj, params, "simple_shear", g))
     else:
         ref = eref = np.full(g.size, np.nan)
-    return ShearResult(gamma=g, stress=res.stress[:, 0, 2], reference=ref, energy=res.energy, energy_reference=eref,
+    return ShearResult(gamma=g, stress=res.stress[:, a, b], reference=ref, energy=res.energy, energy_reference=eref,
                        volume_ratio=res.volume_ratio, inverted=res.inverted,
-                       info={"nodes": int(network.n_nodes), "boundary_nodes": int(boundary_nodes(network).size)})
+                       info={"nodes": int(network.n_nodes), "boundary_nodes": int(boundary_nodes(network).size),
+                             "plane": plane})

@@ -372,9 +372,9 @@ class VolumeElements:
             Factor on every length: gradients (face areas) are scaled by
             ``growth**2``, the perimeters by *growth* (the whole run: the
             largest tabulated stretch; a stretch window: ``1 + delta / lam_min``).
-        j_bound : float, optional
-            Bound of ``|J - 1|`` for the pressures (default: the current
-            ``|J - 1|`` at *points*; at rest :data:`J_RANGE`).
+        j_bound : float or ndarray of shape (m,), optional
+            Bound of ``|J - 1|`` for the pressures, per element or for all
+            (default: the current ``|J - 1|`` at *points*; at rest :data:`J_RANGE`).
         """
         rest = self._cache["rest_points"]
         x = rest if points is None else self._x(points)
@@ -395,7 +395,8 @@ class VolumeElements:
         if j_bound is None and points is not None:
             jdev = np.abs(self.jacobians(x) - 1.0)
         else:
-            jdev = np.full(self.n_elements, J_RANGE if j_bound is None else float(j_bound))
+            jdev = np.broadcast_to(np.asarray(J_RANGE if j_bound is None else j_bound, dtype=np.float64),
+                                   (self.n_elements,))
         pbar = kappa * (A.T @ jdev)
         p = x[self.tets]
         d = p[:, _FACE_EDGES[:, 1]] - p[:, _FACE_EDGES[:, 0]]                # (t, 12, 3)
