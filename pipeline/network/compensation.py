@@ -88,8 +88,9 @@ class CompensationResult:
     g : ndarray, shape (k,)
         :math:`g` at the knots.
     before, scalar, after : TensileResult
-        Tests without compensation (:math:`c = 1`; derived exactly from the
-        scalar run), with :math:`c` only, and with :math:`c` and :math:`g`.
+        Tests of the raw network (springs alone, :math:`c = 1`; without a
+        volume term derived exactly from the scalar run), with :math:`c` only,
+        and with :math:`c` and :math:`g` (both with the volume term, if any).
         Tension and compression points are concatenated (compression first).
     iterations : int
         Fixed-point iterations used.
@@ -361,10 +362,10 @@ def _scalar_factor(specimen, base, law, material, volume, reference) -> dict[str
 
 
 def _before(first, c, specimen, base, lam_t, lam_c, law, reference, rtol, volume) -> TensileResult:
-    """The uncompensated test (c = 1, g = 1): exact scaling of *first* for springs alone, else a run."""
+    """The raw network (springs alone, c = 1, g = 1): exact scaling of *first* without a volume term, else a run."""
     if volume is None:
         return _scaled(first, 1.0 / c, 1.0)      # stress is proportional to c under displacement control
-    return _both_sides(specimen, base, lam_t, lam_c, law, reference, {}, rtol, volume)
+    return _both_sides(specimen, base, lam_t, lam_c, law, reference, {}, rtol, None)
 
 
 def _shear_record(r) -> dict[str, Any]:

@@ -434,6 +434,8 @@ def _advance(x, lam_from, lam_to, pot: Potential, free, H, rtol, max_iter):
             target = lam_to
         trial = x.copy()
         trial[:, 2] *= target / lam_cur         # affine predictor; satisfies the grip conditions
+        if pot.volume is not None:              # ... and keeps the volume (the term is stiff)
+            trial[:, :2] *= math.sqrt(lam_cur / target)
         ok, trial, its, res = _newton(trial, pot, free, H, rtol, max_iter)
         total_its += its
         if ok:
@@ -462,6 +464,7 @@ class Potential:
     tables: StiffnessTables
     law: str
     volume: VolumeElements | None = None
+    factor: dict = field(default_factory=dict, repr=False)     #: a kept factorization (see :func:`_newton`)
 
     def energy(self, x: np.ndarray) -> float:
         e = forcelaw.spring_energy(x, self.network, self.tables, law=self.law)
@@ -489,21 +492,44 @@ class Potential:
 
 
 def _newton(x, pot: Potential, free, H, rtol, max_iter):
+    """Newton's method on the potential, from *x*: (converged, x, iterations, residual).
+
+    With the volume term the tangent is costly to factor, so a factorization
+    is kept (``pot.factor``) and reused, for the next iterations and the next
+    load step, as long as each step it gives cuts the residual at least
+    threefold with a full step (a modified Newton method); otherwise the
+    tangent is factored anew.
+    """
     x = x.copy()
     xf = x.ravel()
     E = pot.energy(x)
     if not math.isfinite(E):
         return False, x, 0, math.inf
     res = math.inf
+    ordering = "MMD_AT_PLUS_A" if pot.volume is None else "COLAMD"
+    frozen = None                                  # residual before a step taken with a kept factorization
     for it in range(1, max_iter + 1):
         g = -pot.forces(x).ravel()[free]
-        res = float(np.max(np.abs(g))) / pot.force_scale(x) if g.size else 0.0
+        gmax = float(np.max(np.abs(g))) if g.size else 0.0
+        res = gmax / pot.force_scale(x) if g.size else 0.0
         if res <= rtol:
             return True, x, it - 1, res
-        K = pot.tangent(x)[free][:, free].tocsc()
-        d = _descent_direction(K, g)
+        if frozen is not None and gmax > frozen / 3.0:
+            pot.factor.pop("lu", None)              # the kept factorization no longer converges fast
+        d, frozen = None, None
+        lu = pot.factor.get("lu")
+        if lu is not None:
+            d = -lu.solve(g)
+            if np.all(np.isfinite(d)) and float(g @ d) < 0:
+                frozen = gmax
+            else:
+                d = None
         if d is None:
-            return False, x, it, res
+            d, lu = _descent_direction(pot.tangent(x)[free][:, free].tocsc(), g, ordering=ordering)
+            if d is None:
+                return False, x, it, res
+            if pot.volume is not None:
+                pot.factor["lu"] = lu
         slope = float(g @ d)
         a = 1.0
         while True:
@@ -521,7 +547,10 @@ def _newton(x, pot: Potential, free, H, rtol, max_iter):
                     break
             a *= 0.5
             if a < 1e-8:
+                pot.factor.pop("lu", None)
                 return False, x, it, res
+        if a < 1.0:
+            pot.factor.pop("lu", None)
         x, xf, E = xt, xt.ravel(), Et
         if a * float(np.max(np.abs(d))) <= 1e-13 * H:
             g = -pot.forces(x).ravel()[free]
@@ -530,19 +559,24 @@ def _newton(x, pot: Potential, free, H, rtol, max_iter):
     return False, x, max_iter, res
 
 
-def _descent_direction(K, g):
-    """Newton direction ``-K^-1 g``; K shifted towards positive definite when needed."""
+def _descent_direction(K, g, ordering: str = "MMD_AT_PLUS_A"):
+    """Newton direction ``-K^-1 g`` and the factorization; K shifted towards positive definite when needed.
+
+    *ordering* is SuperLU's column ordering: with the volume term the tangent
+    couples second neighbours and COLAMD factors it about twice as fast (and
+    with half the fill) as the minimum degree ordering of the springs alone.
+    """
     diag = K.diagonal()
     scale = float(np.mean(np.abs(diag))) or 1.0
     shift = 0.0
     for _ in range(8):
         A = K if shift == 0.0 else (K + shift * sp.identity(K.shape[0], format="csc")).tocsc()
         try:
-            lu = spl.splu(A, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+            lu = spl.splu(A, permc_spec=ordering, options={"SymmetricMode": True})
             d = -lu.solve(g)
         except RuntimeError:  # exactly singular
             d = None
         if d is not None and np.all(np.isfinite(d)) and float(g @ d) < 0:
-            return d
+            return d, lu
         shift = 1e-4 * scale if shift == 0.0 else shift * 10.0
-    return None
+    return None, None

@@ -310,10 +310,12 @@ class VolumeElements:
         """G (t, 3n): row t is the gradient of V_t (dof order ``x.ravel()``)."""
         x = self._x(points)
         t = self.tets.shape[0]
+        if "G_index" not in self._cache:
+            cols = (3 * self.tets[:, :, None] + np.arange(3)[None, None, :]).reshape(t, 12)
+            self._cache["G_index"] = (np.repeat(np.arange(t), 12), cols.ravel())
+        rows, cols = self._cache["G_index"]
         g = self._gradients(x)
-        cols = (3 * self.tets[:, :, None] + np.arange(3)[None, None, :]).reshape(t, 12)
-        rows = np.repeat(np.arange(t), 12)
-        return sp.csr_matrix((g.reshape(t, 12).ravel(), (rows, cols.ravel())), shape=(t, 3 * self.n_nodes))
+        return sp.csr_matrix((g.ravel(), (rows, cols)), shape=(t, 3 * self.n_nodes))
 
     def tangent(self, points) -> sp.csr_matrix:
         """Hessian of :meth:`energy` (= -d forces / dx), symmetric sparse (3n, 3n) CSR [N/m]."""
@@ -326,25 +328,31 @@ class VolumeElements:
         return (K + self._geometric(x, pbar)).tocsr()
 
     def _geometric(self, x: np.ndarray, pbar: np.ndarray) -> sp.coo_matrix:
-        """``sum_t pbar_t d2 V_t / dx2`` as a sparse (3n, 3n) matrix (off-diagonal node blocks only)."""
-        p = x[self.tets]
-        t = self.tets.shape[0]
-        rows, cols, vals = [], [], []
-        r3 = np.arange(3)
-        for k in range(4):
-            a, _, b, c = _EVEN[k]
-            # d/dx of (x_b - x_a) x (x_c - x_a) with respect to x_b, x_c and x_a
-            for other, w in ((b, -(p[:, c] - p[:, a])), (c, p[:, b] - p[:, a]), (a, p[:, c] - p[:, b])):
-                blk = pbar[:, None, None] * _skew(w) / 6.0        # (t, 3, 3): d grad_k / d x_other
-                rr = (3 * self.tets[:, k][:, None, None] + r3[None, :, None]).repeat(3, axis=2)
-                cc = (3 * self.tets[:, other][:, None, None] + r3[None, None, :]).repeat(3, axis=1)
-                rows.append(rr.ravel())
-                cols.append(cc.ravel())
-                vals.append(blk.ravel())
+        """``sum_t pbar_t d2 V_t / dx2`` as a sparse (3n, 3n) matrix (off-diagonal node blocks only).
+
+        For node k with the even ordering (a, k, b, c) of its tet,
+        ``d(6V)/dx_k = (x_b - x_a) x (x_c - x_a)``, whose derivatives are the
+        cross-product matrices ``-[x_c - x_a]``, ``[x_b - x_a]`` and ``[x_c - x_b]``
+        with respect to x_b, x_c and x_a.
+        """
+        p = x[self.tets]                                      # (t, 4, 3)
         m = 3 * self.n_nodes
+        t = self.tets.shape[0]
         if t == 0:
             return sp.coo_matrix((m, m))
-        return sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(m, m))
+        a, b, c = _EVEN[:, 0], _EVEN[:, 2], _EVEN[:, 3]        # per local node k
+        w = np.stack([-(p[:, c] - p[:, a]), p[:, b] - p[:, a], p[:, c] - p[:, b]], axis=2)   # (t, 4, 3, 3)
+        vals = pbar[:, None, None, None, None] * _skew(w) / 6.0                              # (t, 4, 3, 3, 3)
+        if "H_index" not in self._cache:
+            other = np.stack([b, c, a], axis=1)                                              # (4, 3)
+            r3 = np.arange(3)
+            node_k = self.tets[:, :, None]                                                   # (t, 4, 1)
+            node_o = self.tets[:, other]                                                     # (t, 4, 3)
+            rows = np.broadcast_to(3 * node_k[..., None, None] + r3[:, None], (t, 4, 3, 3, 3))
+            cols = np.broadcast_to(3 * node_o[..., None, None] + r3[None, :], (t, 4, 3, 3, 3))
+            self._cache["H_index"] = (rows.ravel().copy(), cols.ravel().copy())
+        rows, cols = self._cache["H_index"]
+        return sp.coo_matrix((vals.ravel(), (rows, cols)), shape=(m, m))
 
     # -- stability (Gershgorin rows) ---------------------------------------------
     def stiffness_rows(self, points=None, *, growth: float = 1.0, j_bound: float | None = None) -> np.ndarray:

@@ -662,30 +662,27 @@ def volume_node_pass(c, x, f, vt, lay, second):
         f[a, 2] += fz0
 
 
-def _volume_threaded(x, f, vt, lay):
-    """The volume term's forces added to *f* on numba's threads: four gathering passes, no scatter."""
+@njit(inline="always", **JIT_OPTIONS)
+def _volume_forces(x, f, vt, lay):
+    """Add the volume term's forces to *f*: scattered on one chunk, else four gathering passes on the chunks.
+
+    Inlined into the force pass and the step loop, whose parallel variant runs
+    the passes' ``prange`` on numba's threads (a cached function calling a
+    separately compiled parallel one crashes numba when loaded from its cache,
+    so the passes live in the caller).
+    """
     nchunk = lay.node_start.shape[0] - 1
-    for c in prange(nchunk):
-        volume_tet_pass(c, nchunk, x, vt, False)
-    for c in prange(nchunk):
-        volume_node_pass(c, x, f, vt, lay, False)
-    for c in prange(nchunk):
-        volume_tet_pass(c, nchunk, x, vt, True)
-    for c in prange(nchunk):
-        volume_node_pass(c, x, f, vt, lay, True)
-
-
-#: The threaded volume pass (its chunks are the layout's node ranges and equal tet ranges).
-volume_forces_parallel = njit(parallel=True, **JIT_OPTIONS)(twin(_volume_threaded, "volume_forces_parallel"))
-
-
-@njit(**JIT_OPTIONS)
-def volume_forces(x, f, vt, lay):
-    """Add the volume term's forces to *f*: scattered on one chunk, gathered on threads otherwise."""
-    if lay.node_start.shape[0] == 2:
+    if nchunk == 1:
         volume_forces_serial(x, f, vt)
     else:
-        volume_forces_parallel(x, f, vt, lay)
+        for c in prange(nchunk):
+            volume_tet_pass(c, nchunk, x, vt, False)
+        for c in prange(nchunk):
+            volume_node_pass(c, x, f, vt, lay, False)
+        for c in prange(nchunk):
+            volume_tet_pass(c, nchunk, x, vt, True)
+        for c in prange(nchunk):
+            volume_node_pass(c, x, f, vt, lay, True)
 
 
 def _forces(x, v, f, fext, sp, fx, lay, vt=None):
@@ -695,7 +692,7 @@ def _forces(x, v, f, fext, sp, fx, lay, vt=None):
     for c in prange(nchunk):
         chunk_forces(c, x, v, f, fext, sp, fx, lay)
     if vt is not None:
-        volume_forces(x, f, vt, lay)
+        _volume_forces(x, f, vt, lay)
     for c in prange(nchunk):
         apply_halo(c, f, lay)
 
@@ -943,7 +940,7 @@ def _steps(clock, nodes, sp, fx, grasp, floor, lay, rec, vt=None):
         for c in prange(nchunk):
             chunk_forces(c, x, v, f, fext, sp, fx, lay)
         if vt is not None:
-            volume_forces(x, f, vt, lay)
+            _volume_forces(x, f, vt, lay)
         if g_mode != GRASP_NONE:
             # The grasped nodes' halo contributions must be in before the force on the
             # grasper is read: apply all halos, read, then integrate.
