@@ -65,8 +65,10 @@ __all__ = [
 
 FORMULATIONS = ("nodal", "tet")
 
-#: Poisson ratio of the stiffest state the volume term is sized for (docs/model.md, Part C2).
-DEFAULT_POISSON = 0.49
+#: Poisson ratio of the stiffest calibrated state the volume term is sized for (docs/model.md, Part C2):
+#: kappa = 9.7 times the liver's tangent shear modulus at stretch 1.3, i.e. Poisson ratio 0.4987 at small
+#: strain; the volume changes by at most 0.4 % over the calibration range.
+DEFAULT_POISSON = 0.45
 #: Accepted Poisson ratios (0: no volume stiffness beyond the springs'; 0.5 is the incompressible limit).
 POISSON_RANGE = (0.0, 0.4999)
 #: Largest |J - 1| the whole-run stability bound assumes (the term keeps J near 1; docs/simulate.md).
@@ -160,7 +162,7 @@ def bulk_modulus(tables, *, poisson: float = DEFAULT_POISSON, calibration_range=
     small-strain modulus stops being incompressible once the fibres stiffen
     (the liver's tangent is 6 E at 1.1 and 37 E at 1.3), so it is sized on the
     stiffest state the network is calibrated for. The ratio is the bulk/shear
-    ratio of an isotropic solid of Poisson ratio *poisson* (0.49: 49.7).
+    ratio of an isotropic solid of Poisson ratio *poisson* (0.45: 9.67; 0.49: 49.7).
 
     Parameters
     ----------

@@ -17,7 +17,9 @@ and the steppers build:
   by, and the implicit mass-damping factor ``1 / (1 + alpha dt)``;
 * :class:`Nodes` ``(x, v, f, fext, inv_mass)``;
 * :class:`GraspKernel` ``(mode, nodes, offsets, stiffness, wp_t, wp_x)``;
-* :class:`FloorKernel` ``(on, normal, height, stick, mask, contact)``.
+* :class:`FloorKernel` ``(on, normal, height, stick, mask, contact)``;
+* :class:`VolumeKernel` ``(tets, s24, kq, dsum, q, tv, node_ptr, node_tet,
+  node_loc)``: the volume term's elements and scratch (None: no volume term).
 
 The entry points take these tuples; they unpack them once and hand plain arrays
 to the inlined helpers of the loops (an array taken out of a tuple is
@@ -76,10 +78,11 @@ contains no effect code and no branch for it, and the effects variant shares
 every other line. The force pass (:func:`_forces`) and the step loop
 (:func:`_steps`) are written once with ``prange`` and compiled twice, on one
 thread (``prange`` is ``range``; one chunk) and on numba's threads
-(:func:`twin`). A force term that joins later (a per-tetrahedron volume term)
-joins the same way: its own tuple (None when absent), its own chunk function
-adding its forces to the owned nodes and halo slots of a chunk, called next to
-:func:`chunk_forces`.
+(:func:`twin`). The volume term joins the same way: its own tuple
+(:class:`VolumeKernel`, None when absent: the spring-only variant contains no
+volume code), its passes called after :func:`chunk_forces` in the force pass,
+the step loop and FIRE (:func:`_volume_forces`: one chunk scatters over the
+tets; several chunks gather per node range, race-free, in four passes).
 
 Race-free threading
 -------------------
