@@ -49,6 +49,7 @@ ALLOWED: dict[str, set[str]] = {
     "asset": {"mesh", "network", "materials"},
     "simulate": {"mesh", "network", "asset", "materials"},
     "prepare": {"mesh", "network", "asset", "materials"},
+    "fidelity": {"mesh", "network", "asset", "simulate", "materials"},
     "batch": {"tensile", "materials", "calibrate", "discover", "mesh", "network", "asset", "simulate",
               "prepare"},
     "cli": None,  # on top: anything of the library
