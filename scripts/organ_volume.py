@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -89,8 +90,7 @@ def main(argv=None) -> int:
         work.mkdir(parents=True, exist_ok=True)
         for name, surface in organs.items():
             data[name] = organ(name, surface, work)
-            data[name]["surface"] = str(surface.relative_to(ROOT.parent) if surface.is_relative_to(ROOT.parent)
-                                        else surface)
+            data[name]["surface"] = os.path.relpath(surface, ROOT)
             OUT.parent.mkdir(parents=True, exist_ok=True)
             OUT.write_text(json.dumps(data, indent=1))
     return 0

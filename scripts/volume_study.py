@@ -17,7 +17,10 @@ Parts (``python scripts/volume_study.py PART [PART ...]``, results merged into
 * ``transfer``: the compensation of the default specimen (radius 4 element
   sizes) checked on other cylinders (radius 2, 3, 6 element sizes) and, by
   homogeneous deformations of the whole boundary, on organ networks
-  (``--organ ASSET.h5``, several allowed).
+  (``--organ ASSET.h5``, several allowed);
+* ``record``: the compensation record each ``--organ`` asset carries (the
+  calibration ``esmm prepare`` ran: c, its three small-strain factors, the
+  stretch correction, errors, shear checks, volume change).
 
 Takes tens of minutes on a shared two-core machine (``transfer`` most).
 """
@@ -186,9 +189,18 @@ def transfer(mat, tb, organs):
     return out
 
 
+def record(organs):
+    """The compensation record stored in each organ asset (what ``esmm prepare`` calibrated)."""
+    out = {}
+    for path in organs:
+        rec = read_asset(path).tables.metadata["compensation"]
+        out[Path(path).stem] = rec["laws"] if "laws" in rec else rec
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("parts", nargs="+", choices=("small", "locking", "kappa", "transfer"))
+    ap.add_argument("parts", nargs="+", choices=("small", "locking", "kappa", "transfer", "record"))
     ap.add_argument("--organ", action="append", default=[], help="organ asset for 'kappa' (first) and 'transfer'")
     args = ap.parse_args(argv)
     mat = load_material("porcine_liver_paper")
@@ -200,6 +212,8 @@ def main(argv=None) -> int:
             data[part] = kappa(mat, tb, args.organ[0] if args.organ else None)
         elif part == "transfer":
             data[part] = transfer(mat, tb, args.organ)
+        elif part == "record":
+            data[part] = record(args.organ)
         else:
             data[part] = {"small": small, "locking": locking}[part](mat, tb)
         data[part]["seconds"] = time.time() - t
