@@ -47,8 +47,8 @@ from .network_solve import solve_network
 from .report import plot_case, table_markdown, write_fields
 from .specimen import cube_specimen
 
-__all__ = ["VOLUME_TERM", "LoadOptions", "ValidationReport", "network_terms", "resolved_volume_term", "validate_asset", "validate_network",
-           "validate_specimen"]
+__all__ = ["VOLUME_TERM", "LoadOptions", "ValidationReport", "network_terms", "resolved_volume_term", "validate_asset",
+           "validate_network", "validate_specimen"]
 
 #: ``volume_term`` values: the network with its volume term (issue 11, part B) if it has one, with it, without it.
 VOLUME_TERM = ("auto", "on", "off")
@@ -76,6 +76,7 @@ class ValidationReport:
         What was validated (asset path or specimen).
     results : list of CaseResult
     volume_term : str
+        "on" or "off": whether the network ran with its volume term.
     files : dict
         Output files by kind (``json``, ``table``, per case ``png`` and ``xdmf``).
     info : dict
@@ -125,8 +126,8 @@ def resolved_volume_term(network, volume_term: str) -> str:
     choice(volume_term, VOLUME_TERM, "volume_term")
     has = getattr(network, "volume_term", None) is not None and network.tets is not None
     if volume_term == "on" and not has:
-        raise ConfigError("volume_term: this network has no volume term (an asset prepared with --no-volume or "
-                          "the skeleton structure); use off, or prepare it again", parameter="volume_term")
+        raise ConfigError("volume_term: this network has no volume term (an asset prepared without one, or with "
+                          "the skeleton structure); use off, or prepare the asset again with the volume term", parameter="volume_term")
     return "on" if volume_term == "on" or (volume_term == "auto" and has) else "off"
 
 
