@@ -159,7 +159,7 @@ def test_threaded_trajectory_equals_serial(box, vol, tables):
 
 
 def test_gravity_keeps_the_volume_within_one_percent_with_the_term_and_not_without(box, tables):
-    """Issue 11's target on a cantilever that sags by ~60 % of its height: |dV/V| < 1 % and no inverted
+    """Issue 11's target on a cantilever that sags by more than half its height: |dV/V| < 1 % and no inverted
     tet with the volume term the asset gets (the bulk rule), more than 1 % without it."""
     vol = build_volume_term(box.points, box.tets, bulk_modulus(tables), lam_max=tables.lam_max)
     springs = build_spring_term(box, tables)
