@@ -13,6 +13,7 @@ import pytest
 from esmm.pipeline.discover import MaterialEffects, discover, discover_and_save
 from esmm.pipeline.discover import synthetic as syn
 from esmm.pipeline.discover.covariates import covariates, thin
+from esmm.pipeline.discover.model import CANDIDATES
 from esmm.pipeline.discover.statistics import information, lag1, runs_test
 from esmm.pipeline.errors import ConfigError
 from esmm.pipeline.materials import get_model
@@ -250,9 +251,9 @@ def test_outputs_json_schema_and_params_toml(tmp_path):
     for key in ("rmse", "nrmse", "heldout_nrmse", "params"):
         assert key in doc["final"]
     assert doc["effects"] == ["viscoelastic"]
-    assert {c["name"] for c in doc["candidates"]} == {"viscoelastic", "mullins", "damage", "slack", "sensor_offset"}
+    assert {c["name"] for c in doc["candidates"]} == set(CANDIDATES)
     for c in doc["candidates"]:
-        assert {"name", "delta_aicc", "heldout_nrmse", "kept", "reason"} <= set(c)
+        assert {"name", "kind", "dchi2", "dbic_noise", "heldout_z", "heldout_nrmse", "kept", "reason"} <= set(c)
     assert isinstance(doc["not_identifiable"], list) and doc["summary"]
     for name in ("params.toml", "params_base.toml", "discover.md", "discover.json", "residuals_before.png",
                  "residuals_after.png"):
@@ -267,8 +268,8 @@ def test_outputs_json_schema_and_params_toml(tmp_path):
 def test_bad_options_are_refused():
     with pytest.raises(ConfigError, match="unknown effect"):
         discover([_dummy()], candidates=["plasticity"])
-    with pytest.raises(ConfigError, match="aicc_threshold"):
-        discover([_dummy()], aicc_threshold=5.0)
+    with pytest.raises(ConfigError, match="heldout_z"):
+        discover([_dummy()], heldout_z=-1.0)
 
 
 def _dummy():

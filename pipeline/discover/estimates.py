@@ -93,7 +93,7 @@ def _residual_at_offsets(prob: Problem, z_full: np.ndarray, coefs) -> np.ndarray
             p, y = p[pos], y[pos]
         o = prob.factor[k] * (p - y) / r.scale
         out.append(np.where(np.isfinite(o), o, NAN_PENALTY))
-    return np.concatenate(out)
+    return np.concatenate(out + [prob.constraint_residual(z_full)])
 
 
 def _jacobian(prob: Problem, z_full: np.ndarray, coefs) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int]]]:
@@ -162,10 +162,11 @@ def _slot_estimates(iv: _Intervals, prob: Problem, z_full: np.ndarray) -> None:
         grad = iv.unit_grad(i, v if s.log else 1.0)
         unit = {"stress": "Pa", "time": "s"}.get(s.kind, "")
         key = s.key if s.file is None else f"{s.key}[{prob.records[s.file].name}]"
-        if s.effect == "slack":
+        if s.effect in ("slack", "grip_slip"):
             r = prob.records[s.file]
             if r.gauge:
-                iv.add(f"slack.length[{r.name}]", grad * r.gauge, v * r.gauge, positive=False, unit="m")
+                what = "length" if s.effect == "slack" else f"length{s.name[4:]}"
+                iv.add(f"{s.effect}.{what}[{r.name}]", grad * r.gauge, v * r.gauge, positive=False, unit="m")
             iv.add(key, grad, v, positive=False)
             continue
         iv.add(key, grad, v, positive=s.log or s.kind == "stress", unit=unit)

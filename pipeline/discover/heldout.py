@@ -18,7 +18,7 @@ import numpy as np
 
 from ..errors import FitError
 from .fitted import Fitted
-from .model import Record
+from .records import Record
 from .statistics import Errors, error_measures
 
 #: most folds of any held-out scheme
@@ -147,29 +147,53 @@ def heldout(fitted: Fitted, folds: Sequence[Fold]) -> Errors:
     does); a held-out *block* keeps those fitted on the rest of its file.
     """
     prob = fitted.problem
-    per_file: dict[int, tuple[list, list]] = {}
+    per_file: dict[int, tuple[list, list, list]] = {}
     for fold in folds:
-        fp = prob.derived(train=fold.train)
-        excluded = {k for k, t in enumerate(fold.train) if t is not None and len(t) == 0}
-        active = [i for i, s in enumerate(fp.slots) if s.file is None or s.file not in excluded]
-        try:
-            z, _ = fp.solve(fitted.z.copy(), active=active, max_nfev=8 * (len(active) + 2), ftol=1e-5)
-        except FitError:
-            z = fitted.z.copy()
-        held_files = sorted(excluded)
-        if held_files:
-            # re-estimate the held-out files' own artefacts with the material fixed
-            fp.set_train([None if k in excluded else np.zeros(0, dtype=int) for k in range(len(fp.records))])
-            own = [i for i, s in enumerate(fp.slots) if s.file in excluded]
-            if own:
-                z, _ = fp.solve(z, active=own, max_nfev=10 * (len(own) + 2), ftol=1e-5)
+        z, fp = _fold_fit(fitted, fold)
         coefs = fp.offsets(z)
         for k, mask in enumerate(fold.test):
             if mask is None:
                 continue
             p = fp.full_prediction(k, z, coefs[k])
-            ys, ps = per_file.setdefault(k, ([], []))
+            idx, ys, ps = per_file.setdefault(k, ([], [], []))
+            idx.append(np.flatnonzero(mask))
             ys.append(fp.records[k].y[mask])
             ps.append(p[mask])
-    items = [(prob.records[k].name, np.concatenate(v[0]), np.concatenate(v[1])) for k, v in sorted(per_file.items())]
-    return error_measures(items)
+    samples = {}
+    for k, (idx, ys, ps) in per_file.items():
+        i = np.concatenate(idx)
+        order = np.argsort(i, kind="stable")
+        samples[k] = (i[order], np.concatenate(ys)[order], np.concatenate(ps)[order])
+    items = [(prob.records[k].name, v[1], v[2]) for k, v in sorted(samples.items())]
+    out = error_measures(items)
+    out.samples = samples
+    return out
+
+
+def _fold_fit(fitted: Fitted, fold: Fold):
+    """The whole model refitted on a fold's training samples (warm start), and that fold's problem.
+
+    A slot whose records are all held out (a held-out file's slack, slips,
+    specimen scale) is not fitted with the rest; it is re-estimated afterwards on
+    the held-out file with the material fixed, as ``esmm evaluate`` does.
+    """
+    fp = fitted.problem.derived(train=fold.train)
+    excluded = {k for k, t in enumerate(fold.train) if t is not None and len(t) == 0}
+
+    def own(s) -> bool:
+        return bool(s.records) and all(k in excluded for k in s.records)
+
+    active = [i for i, s in enumerate(fp.slots) if not own(s)]
+    try:
+        z, _ = fp.solve(fitted.z.copy(), active=active, max_nfev=8 * (len(active) + 2), ftol=1e-5)
+    except FitError:
+        z = fitted.z.copy()
+    if excluded:
+        fp.set_train([None if k in excluded else np.zeros(0, dtype=int) for k in range(len(fp.records))])
+        mine = [i for i, s in enumerate(fp.slots) if own(s)]
+        if mine:
+            try:
+                z, _ = fp.solve(z, active=mine, max_nfev=10 * (len(mine) + 2), ftol=1e-5)
+            except FitError:
+                pass
+    return z, fp
