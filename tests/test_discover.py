@@ -196,7 +196,7 @@ def test_damage_found_in_monotonic_ramp_to_failure(tmp_path):
 def test_sensor_offset_found_with_the_right_sign(tmp_path):
     truth = syn.Truth("arruda-boyce", BASE, sensor_offset={"force": 0.01, "drift": 2e-4})
     tests = _tests(tmp_path, [syn.load_unload(0.05, 1.5, name="a"), syn.load_unload(0.05, 1.4, name="b")],
-                   truth, vary={"offset": [0.01, -0.015]})
+                   truth, vary={"offset": [0.01, -0.015]}, rest=20)  # 20 samples at rest read the offset
     res = discover(tests, **FAST)
     _check_found(res, "sensor_offset")
     got = res.candidates["sensor_offset"].params

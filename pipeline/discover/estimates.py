@@ -105,7 +105,9 @@ def _jacobian(prob: Problem, z_full: np.ndarray, coefs) -> tuple[np.ndarray, np.
         for k, r in enumerate(prob.records):
             if not prob.n_train[k] or coefs[k] is None:
                 continue
-            X = prob.offset_columns(k, r.fit_idx)
+            X = prob.free_offset_columns(k, r.fit_idx)
+            if X is None:
+                continue
             pos = prob.train[k]
             if pos is not None:
                 X = X[pos]
@@ -113,7 +115,8 @@ def _jacobian(prob: Problem, z_full: np.ndarray, coefs) -> tuple[np.ndarray, np.
             start = int(sum(prob.n_train[j] for j in range(k) if prob.n_train[j]))
             block[start:start + X.shape[0]] = prob.factor[k] * X / r.scale
             cols.append(block)
-            off_keys += [(k, j) for j in range(X.shape[1])]
+            first = prob.n_offset[k] - X.shape[1]  # a held offset read at rest is coefficient 0
+            off_keys += [(k, first + j) for j in range(X.shape[1])]
     return r0, np.concatenate(cols, axis=1), off_keys
 
 

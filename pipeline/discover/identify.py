@@ -22,6 +22,7 @@ from .records import (
     set_applicable,
     slack_applicable,
     slip_applicable,
+    strain_softening,
     stretch_levels,
 )
 
@@ -34,12 +35,9 @@ def identifiability(records: Sequence[Record]) -> dict[str, Verdict]:
     out["viscoelastic"] = _viscoelastic(records)
     out["nonlinear_viscoelastic"] = _nonlinear(records, out["viscoelastic"])
     out["mullins"] = _mullins(records)
-    span = largest_span(records)
-    out["damage"] = (True, span >= 0.01, f"identifiable: the primary loading reaches an equivalent stretch of "
-                     f"{1 + span:.3g}" if span >= 0.01 else "not identifiable from these data: the deformation "
-                     "stays below 1 %")
+    out["damage"] = _damage(records)
     out["cyclic_softening"] = _cyclic(records)
-    out["permanent_set"] = _set(records)
+    out["permanent_set"] = _set(records, out["viscoelastic"])
     out.update(_artefacts(records))
     for n, t in TERMS.items():
         out[n] = (True, True, f"a strain-energy term ({t.addresses}); identifiable from the shape of the "
@@ -48,12 +46,22 @@ def identifiability(records: Sequence[Record]) -> dict[str, Verdict]:
     return out
 
 
+def _rate_groups(records: Sequence[Record]) -> list[float]:
+    """The distinct loading rates of the timed records (within a factor 1.5 of each other: one)."""
+    rates = sorted({v for r in records if r.history for v in r.cov.rates()})
+    groups: list[float] = []
+    for v in rates:
+        if not groups or v / groups[-1] >= 1.5:
+            groups.append(v)
+    return groups
+
+
 def _viscoelastic(records: Sequence[Record]) -> Verdict:
     timed = [r for r in records if r.history]
     if not timed:
         return (True, False, "not identifiable from these data: no time column, so no rate, hold or loading history")
-    rates = sorted({v for r in timed for v in r.cov.rates()})
-    several_rates = len(rates) >= 2 and rates[-1] / max(rates[0], 1e-300) >= 1.5
+    rates = _rate_groups(timed)
+    several_rates = len(rates) >= 2
     unloading = any(r.cov.has_unloading for r in timed)
     holds = any(r.cov.has_hold and float(np.nanmax(r.cov.hold_time)) >= 5 * float(np.median(np.diff(r.t)))
                 for r in timed)
@@ -87,6 +95,23 @@ def _mullins(records: Sequence[Record]) -> Verdict:
     return (True, True, "identifiable: unloading or reloading below a previous maximum")
 
 
+def _damage(records: Sequence[Record]) -> Verdict:
+    """Damage lowers the curve past an onset, for good: on a first loading alone that is a softer elastic law
+    (the library's terms make any stable shape), unless the curve turns down (strain softening)."""
+    if largest_span(records) < 0.01:
+        return (True, False, "not identifiable from these data: the deformation stays below 1 %")
+    below = any(r.history and np.any(r.cov.below_max > 0.02) for r in records)
+    down = [r.name for r in records if r.history and strain_softening(r)]
+    if below:
+        return (True, True, "identifiable: unloading or reloading below a previous maximum shows what is lost for good")
+    if down:
+        return (True, True, f"identifiable: the stress falls while the stretch still increases ({', '.join(down)}), "
+                "which no stable elastic law does")
+    return (True, False, "not identifiable from these data: on a first loading alone, damage is a softer elastic "
+            "law; it shows on unloading and reloading below a previous maximum, or as a falling stress at "
+            "increasing stretch")
+
+
 def _cyclic(records: Sequence[Record]) -> Verdict:
     if any(repeated_cycles(r) for r in records):
         return (True, True, "identifiable: cycles repeated to the same maximum")
@@ -94,8 +119,12 @@ def _cyclic(records: Sequence[Record]) -> Verdict:
             "from cycle to cycle cannot be told from Mullins softening or the elastic law")
 
 
-def _set(records: Sequence[Record]) -> Verdict:
+def _set(records: Sequence[Record], ve: Verdict) -> Verdict:
     if any(set_applicable(r) for r in records):
+        if ve[1] and len(_rate_groups(records)) < 2:
+            return (True, False, "not identifiable from these data: at one loading rate a residual strain cannot be "
+                    "told from slow viscoelastic recovery (the specimen may recover given time); test at a second "
+                    "rate, or wait at zero force before reloading")
         return (True, True, "identifiable: tension records unload back towards the reference state")
     return (True, False, "not identifiable from these data: no tension record with time unloads back towards its "
             "reference state, where a residual strain would show")

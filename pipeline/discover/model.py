@@ -74,6 +74,7 @@ from .records import (
     fitting_view,
     largest_span,
     offset_applicable,
+    rest_reading,
     slack_applicable,
     slip_applicable,
     specimen_groups,
@@ -230,7 +231,8 @@ class Bounds:
         dts = [float(np.median(np.diff(r.t))) for r in records if r.t is not None and r.t.size > 1]
         Ts = [r.T for r in records if r.t is not None]
         self.tau_min = max(min(dts) * 0.5, 1e-4) if dts else 1e-3
-        self.tau_max = max(Ts) * 10.0 if Ts else 1e3
+        #: a relaxation time longer than the longest record is a linear trend over it (not identifiable)
+        self.tau_max = max(Ts) if Ts else 1e3
         self.w_ref = max(w_ref, 1e-12)  # largest base strain energy in the data [Pa]
         self.xi_max = 1.0 + largest_span(records)
         self._derive()
@@ -350,10 +352,13 @@ class Problem:
         self.lower = np.array([s.lo for s in slots])
         self.upper = np.array([s.hi for s in slots])
         self.n_offset = [0] * len(self.records)
+        #: per record: the offset read at rest before loading (held, not fitted), or None
+        self.pinned: list[float | None] = [None] * len(self.records)
         if spec.sensor_offset:
             for k, r in enumerate(self.records):
                 if offset_applicable(r):
                     self.n_offset[k] = 2 if (spec.sensor_offset == 2 and drift_applicable(r)) else 1
+                    self.pinned[k] = rest_reading(r)
         self.set_train(train)
         # the specimens whose scales the constraint holds: those with training samples now
         self.scale_ref = [] if free_scales else [i for i, s in enumerate(slots) if s.effect == "specimen_scale"
@@ -380,10 +385,9 @@ class Problem:
         self._X = [self._design(k) for k in range(m)]
 
     def _design(self, k: int):
-        n_o = self.n_offset[k] if hasattr(self, "n_offset") else 0
-        if not n_o:
+        X = self.free_offset_columns(k, self.records[k].fit_idx) if hasattr(self, "n_offset") else None
+        if X is None:
             return None
-        X = self.offset_columns(k, self.records[k].fit_idx)
         pos = self.train[k]
         return X if pos is None else X[pos]
 
@@ -530,7 +534,7 @@ class Problem:
             return [None] * len(xs) if a is None else np.split(a, cuts)
 
         pes = [p if s is None else p / s for p, s in zip(split(pe), lam_s)]
-        xis = [equivalent_stretch(invariants(mode, xx)[0]) for xx in xs] if need_xi else [None] * len(xs)
+        xis = [_xi(mode, xx) for xx in xs] if need_xi else [None] * len(xs)
         return list(zip(pes, split(w), xis))
 
     def _remember(self, k: int, key, value) -> None:
@@ -579,7 +583,10 @@ class Problem:
         p = self._softened(k, st, pe, w, xi)
         if st.g is not None and r.t is not None:
             q = qlv_stress(r.t[idx], p, st.g, st.tau)
-            p = q if not st.kappa else p - relaxation_strength(xi, st.kappa, float(np.sum(st.g))) * (p - q)
+            if st.kappa:
+                with np.errstate(invalid="ignore"):
+                    q = p - relaxation_strength(xi, st.kappa, float(np.sum(st.g))) * (p - q)
+            p = q
         if r.tension_only:
             p = np.maximum(p, 0.0)
         return p * st.scale[k] if st.scale is not None else p
@@ -621,6 +628,7 @@ class Problem:
             self._X = saved
 
     def offset_columns(self, k: int, idx: np.ndarray) -> np.ndarray | None:
+        """Design of record k's offset (and drift, (t - t0)/T) on samples *idx*; None without an offset."""
         n_o = self.n_offset[k]
         if not n_o:
             return None
@@ -629,6 +637,16 @@ class Problem:
         if n_o == 2:
             cols.append((r.t[idx] - r.t[0]) / (r.T or 1.0))
         return np.stack(cols, axis=1)
+
+    def free_offset_columns(self, k: int, idx: np.ndarray) -> np.ndarray | None:
+        """The fitted columns of :meth:`offset_columns` (an offset read at rest is held; None if nothing is fitted)."""
+        X = self.offset_columns(k, idx)
+        if X is None or self.pinned[k] is None:
+            return X
+        return X[:, 1:] if X.shape[1] > 1 else None
+
+    def n_free_offsets(self, k: int) -> int:
+        return self.n_offset[k] - (1 if self.pinned[k] is not None and self.n_offset[k] else 0)
 
     def residual_block(self, k: int, st: State) -> tuple[np.ndarray, np.ndarray | None]:
         """Normalised residual block of record k (training samples) and its offset coefficients."""
@@ -641,11 +659,16 @@ class Problem:
         res = pred - y
         coef = None
         X = self._X[k]
+        pin = self.pinned[k] if self.n_offset[k] else None
+        if pin is not None:
+            res = res + pin
+            coef = np.array([pin] + [0.0] * (self.n_offset[k] - 1))
         if X is not None and res.size:
             good = np.isfinite(res)
             if good.sum() > X.shape[1]:
-                coef, *_ = np.linalg.lstsq(X[good], -res[good], rcond=None)
-                res = res + X @ coef
+                c, *_ = np.linalg.lstsq(X[good], -res[good], rcond=None)
+                res = res + X @ c
+                coef = c if pin is None else np.concatenate([[pin], c])
         out = self.factor[k] * res / r.scale
         bad = ~np.isfinite(out)
         if bad.any():
@@ -753,8 +776,23 @@ class Problem:
 
     def n_params(self) -> int:
         """Free parameters: active slots + offset coefficients of the training records - the scale constraint."""
-        k = int(len(self.active) + sum(n for k, n in enumerate(self.n_offset) if self.n_train[k]))
+        k = int(len(self.active) + sum(self.n_free_offsets(j) for j in range(len(self.records)) if self.n_train[j]))
         return k - (1 if len(self.scale_ref) >= 2 else 0)
+
+
+_XI_CACHE: dict = {}
+
+
+def _xi(mode: str, x: np.ndarray) -> np.ndarray:
+    """Uniaxial-equivalent stretch of *x* in *mode* (memoised: it depends on the kinematics only)."""
+    key = (mode, x.size, hash(x.tobytes()))
+    hit = _XI_CACHE.get(key)
+    if hit is None:
+        hit = equivalent_stretch(invariants(mode, x)[0])
+        if len(_XI_CACHE) > 256:
+            _XI_CACHE.clear()
+        _XI_CACHE[key] = hit
+    return hit
 
 
 def _effect_values(effects: MaterialEffects) -> dict[tuple[str, str], float]:

@@ -171,11 +171,15 @@ def offset_applicable(rec: Record) -> bool:
 
 
 def drift_applicable(rec: Record) -> bool:
-    """A drift is separable from the material only where the zero-force state is seen early *and* late.
+    """A drift is separable from the material where the zero-force state is seen early *and* late,
+    or where the stress rises during a long hold.
 
-    That is a test that starts and ends near its reference state (a load-unload
-    cycle, or a tension test whose slack specimen reads zero force at the end).
-    In a relaxation test the drift would be indistinguishable from slow relaxation.
+    The first is a test that starts and ends near its reference state (a
+    load-unload cycle, or a tension test whose slack specimen reads zero force at
+    the end). In a relaxation test a falling drift would be indistinguishable
+    from slow relaxation; but no material effect of the library raises the
+    stress at a held stretch (relaxation only lowers it), so a hold whose stress
+    rises is evidence of a drift (:func:`rising_hold`).
     """
     if rec.t is None or rec.T <= 0:
         return False
@@ -183,7 +187,44 @@ def drift_applicable(rec: Record) -> bool:
     span = float(np.ptp(rec.x)) or 1.0
     near = np.abs(rec.x - ref) <= 0.05 * span
     tn = (rec.t - rec.t[0]) / rec.T
-    return bool(np.any(near & (tn <= 0.25)) and np.any(near & (tn >= 0.75)))
+    return bool(np.any(near & (tn <= 0.25)) and np.any(near & (tn >= 0.75))) or rising_hold(rec)
+
+
+def rising_hold(rec: Record) -> bool:
+    """A hold lasting a quarter of the record or more, whose stress rises over its second half
+    by more than 5 noise standard deviations (of |stress|: away from zero)."""
+    if rec.t is None or rec.T <= 0:
+        return False
+    d = rec.cov.direction
+    for s0, e0 in _holds(d):
+        if rec.t[e0 - 1] - rec.t[s0] < 0.25 * rec.T or e0 - s0 < 8:
+            continue
+        mid = (s0 + e0) // 2
+        tt, yy = rec.t[mid:e0], np.abs(rec.y[mid:e0])
+        slope = np.polyfit(tt - tt[0], yy, 1)[0]
+        if slope * (tt[-1] - tt[0]) > 5.0 * rec.sigma:
+            return True
+    return False
+
+
+def _holds(direction: np.ndarray) -> list[tuple[int, int]]:
+    """(start, stop) of the runs where the stretch is held."""
+    return [(a, b) for a, b, v in _runs_of(direction) if v == 0]
+
+
+def rest_reading(rec: Record) -> float | None:
+    """The stress the load cell read at rest in the reference state before loading (its offset), or None.
+
+    A machine record whose first sample is at the reference state (stretch 1,
+    shear 0) starts at zero true force: what the load cell reads there, averaged
+    over the samples before the crosshead moves, *is* its offset. It is held,
+    not fitted, so an offset can never absorb misfit.
+    """
+    pre = rec.preload()
+    span = float(np.ptp(rec.x)) or 1.0
+    if pre is None or abs(float(rec.x[0]) - reference(rec.test.mode)) > 1e-3 * span:
+        return None
+    return pre[0]
 
 
 def slip_applicable(rec: Record) -> bool:
@@ -211,6 +252,29 @@ def set_applicable(rec: Record) -> bool:
     span = float(np.ptp(rec.x)) or 1.0
     after_peak = rec.x[int(np.argmax(rec.x)):]
     return float(np.min(after_peak)) - 1.0 <= 0.5 * span
+
+
+def strain_softening(rec: Record) -> bool:
+    """While the stretch increases on its first loading, the stress falls more than 10 noise standard
+    deviations below its maximum so far and does not come back: a descending branch that no stable
+    elastic law makes (a softening only damage explains)."""
+    if not rec.tension_only:
+        return False
+    d = rec.cov.direction
+    for s0, e0 in [(a, b) for a, b, v in _runs_of(d) if v > 0]:
+        y = rec.y[s0:e0]
+        top = np.maximum.accumulate(y)
+        later = np.maximum.accumulate(y[::-1])[::-1]
+        if np.any((y < top - 10.0 * rec.sigma) & (later < top)):
+            return True
+    return False
+
+
+def _runs_of(a: np.ndarray) -> list[tuple[int, int, int]]:
+    edges = np.flatnonzero(np.diff(a)) + 1
+    starts = np.concatenate([[0], edges])
+    stops = np.concatenate([edges, [a.size]])
+    return [(int(x), int(y), int(a[x])) for x, y in zip(starts, stops)]
 
 
 def repeated_cycles(rec: Record) -> bool:
@@ -250,5 +314,5 @@ def largest_span(records: Sequence[Record]) -> float:
 
 
 __all__ = ["Record", "prepare", "view_test", "fitting_view", "cut_at_rupture", "reference", "machine_record",
-           "slack_applicable", "offset_applicable", "drift_applicable", "slip_applicable", "specimen_groups",
-           "scale_applicable", "set_applicable", "repeated_cycles", "stretch_levels", "largest_span"]
+           "slack_applicable", "offset_applicable", "drift_applicable", "rest_reading", "slip_applicable", "specimen_groups",
+           "scale_applicable", "set_applicable", "strain_softening", "repeated_cycles", "stretch_levels", "largest_span"]

@@ -625,7 +625,9 @@ class MaterialEffects:
             pset = PermanentSetEffect(float(ps["fraction"])) if ps else None
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(f"{where}: incomplete or malformed effect entry ({exc}); see docs/discover.md") from None
-        intervals = {str(k): [float(a) for a in val] for k, val in (d.get("intervals") or {}).items()}
+        # strict JSON writes an unbounded side as null: lower -inf, upper +inf
+        intervals = {str(k): [(-math.inf, math.inf)[j] if a is None else float(a) for j, a in enumerate(val)]
+                     for k, val in (d.get("intervals") or {}).items()}
         return cls(visco, mull, dam, intervals, cyc, pset)
 
     def to_toml_table(self, *, stress_unit: str = "Pa") -> dict[str, Any]:
