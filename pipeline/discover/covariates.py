@@ -36,7 +36,7 @@ SUDDEN_STEEPNESS = 10.0
 #: a sudden drop below this fraction of the stress before it is a rupture (a slip loses less)
 RUPTURE_FRACTION = 0.5
 #: a slip must lose more than this many noise standard deviations of stress
-SLIP_SIGMAS = 10.0
+SLIP_SIGMAS = 6.0
 
 
 @dataclass
@@ -324,9 +324,10 @@ def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray) -> list[int
     sawtooth, not a smooth maximum); the fall
     exceeds :data:`SLIP_SIGMAS` local noise standard deviations (the
     third-difference estimate of :func:`noise_sd` over the 50 samples around it:
-    a white-noise excursion that large essentially never happens), measured from
-    the level three samples before the fall (so that a spike that falls back to
-    the trend is not a slip); it loses less than a rupture; and the same run later
+    a step that large between two noisy samples is 4.2 standard deviations of
+    their difference, about one chance in 10^5 per sample) and ends more than 2σ
+    below the level three samples before the fall began (a spike falls back to the
+    trend, a slip below it); it loses less than a rupture; and the same run later
     climbs back above the stress before the fall (the curve continues, shifted).
     """
     x = np.asarray(x, float)
@@ -353,7 +354,7 @@ def _is_slip(x, y, s: int, e: int, k: int, m: int) -> bool:
     k0 = max(s, k - 5)
     rise = (y[k] - y[k0]) / (x[k] - x[k0]) if x[k] > x[k0] else 0.0
     ref = y[max(s, k - 3)]
-    return bool(ref - y[m] > SLIP_SIGMAS * sigma and y[m] > RUPTURE_FRACTION * y[k]
+    return bool(y[k] - y[m] > SLIP_SIGMAS * sigma and ref - y[m] > 2.0 * sigma and y[m] > RUPTURE_FRACTION * y[k]
                 and _falls(x, y, k, m, max(rise, 0.0)) and np.any(y[m:e] > y[k]))
 
 

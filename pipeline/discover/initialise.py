@@ -35,8 +35,15 @@ def initialise(prob: Problem, z: np.ndarray, name: str) -> np.ndarray:
 
 
 def _init_kappa(prob: Problem, z: np.ndarray) -> np.ndarray:
+    """The strength's stretch dependence on a grid, each with its own Prony terms by NNLS."""
     km = prob.bounds.kappa_max
-    return _grid_search(prob, z, "nonlinear_viscoelastic", ({"kappa": q * km} for q in (-0.6, -0.3, 0.0, 0.3, 0.6)))
+    best, zb = math.inf, z
+    for q in (-0.6, -0.4, -0.2, 0.0, 0.2, 0.4, 0.6):
+        zk = _set(prob, z, "nonlinear_viscoelastic", {"kappa": q * km})
+        zk, rnorm = _prony_nnls(prob, zk, q * km)
+        if rnorm < best:
+            best, zb = rnorm, zk
+    return zb
 
 
 def _init_cyclic(prob: Problem, z: np.ndarray) -> np.ndarray:
@@ -191,19 +198,25 @@ def _init_slack(prob: Problem, z: np.ndarray) -> np.ndarray:
     return z
 
 
-def _init_prony(prob: Problem, z: np.ndarray) -> np.ndarray:
+def _init_prony(prob: Problem, z: np.ndarray, kappa: float = 0.0) -> np.ndarray:
     """Prony starting values: non-negative least squares over a dictionary of relaxation times."""
+    return _prony_nnls(prob, z, kappa)[0]
+
+
+def _prony_nnls(prob: Problem, z: np.ndarray, kappa: float) -> tuple[np.ndarray, float]:
+    """*z* with the Prony terms of least squares over a dictionary of relaxation times (the relaxed part
+    scaled by exp(kappa (xi - 1))), and the residual norm of that fit."""
     b = prob.bounds
     n_terms = prob.spec.viscoelastic
     taus = np.geomspace(b.tau_min * 2, b.tau_max / 5, 14)
-    system = _relaxation_system(prob, z, taus)
+    system = _relaxation_system(prob, z, taus, kappa)
     if system is None:
-        return z
+        return z, math.inf
     A, yv = system
     try:
-        g, _ = optimize.nnls(A, yv, maxiter=50 * A.shape[1])
+        g, rnorm = optimize.nnls(A, yv, maxiter=50 * A.shape[1])
     except RuntimeError:
-        g = np.zeros(len(taus))
+        g, rnorm = np.zeros(len(taus)), math.inf
     chosen = [j for j in np.argsort(-g) if g[j] > 0][:n_terms]
     gs = [float(g[j]) for j in chosen]
     ts = [float(taus[j]) for j in chosen]
@@ -219,14 +232,17 @@ def _init_prony(prob: Problem, z: np.ndarray) -> np.ndarray:
     for j, u in enumerate(_stick_breaking(gs)):
         vals[f"u[{j}]"] = u
         vals[f"tau[{j}]"] = math.log(min(max(ts[j], b.tau_min * 1.01), b.tau_max * 0.99))
-    return _set(prob, z, "viscoelastic", vals)
+    return _set(prob, z, "viscoelastic", vals), float(rnorm)
 
 
-def _relaxation_system(prob: Problem, z: np.ndarray, taus: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+def _relaxation_system(prob: Problem, z: np.ndarray, taus: np.ndarray, kappa: float = 0.0,
+                       ) -> tuple[np.ndarray, np.ndarray] | None:
     """The weighted linear system (atoms, target) of one Prony term per relaxation time in *taus*.
 
-    Each atom is the relaxation of the softened elastic stress with one unit term;
-    the offset columns are projected out. None where no training record has time.
+    Each atom is the relaxation of the softened elastic stress with one unit term
+    (scaled by exp(kappa (ξ - 1)) for a stretch-dependent strength); the fitted
+    offset columns are projected out, a held offset taken off the data. None where
+    no training record has time.
     """
     st = prob.state(z)
     cols, target = [], []
@@ -234,14 +250,17 @@ def _relaxation_system(prob: Problem, z: np.ndarray, taus: np.ndarray) -> tuple[
         if not prob.n_train[k] or r.t is None:
             continue
         idx = r.fit_idx
-        pd = np.nan_to_num(prob.softened(k, st, idx)) * (st.scale[k] if st.scale is not None else 1.0)
+        sc = st.scale[k] if st.scale is not None else 1.0
+        pd = np.nan_to_num(prob.softened(k, st, idx)) * sc
         atoms = np.stack([qlv_stress(r.t[idx], pd, [1.0], [tau]) - pd for tau in taus], axis=1)
-        y = r.y[idx] - pd
+        if kappa:
+            atoms = atoms * np.exp(kappa * (prob.elastic(k, st)[2] - 1.0))[:, None]
+        y = r.y[idx] - pd - (prob.pinned[k] if prob.n_offset[k] and prob.pinned[k] is not None else 0.0)
         pos = prob.train[k]
         if pos is not None:
             atoms, y = atoms[pos], y[pos]
-        X = prob.offset_columns(k, idx)
-        if X is not None and prob.n_offset[k]:
+        X = prob.free_offset_columns(k, idx)
+        if X is not None:
             if pos is not None:
                 X = X[pos]
             Q, _ = np.linalg.qr(X)

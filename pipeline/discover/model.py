@@ -606,6 +606,10 @@ class Problem:
                     p = p * cyclic_factor(accumulated_energy(w), *st.cyclic)
         return p
 
+    def elastic(self, k: int, st: State) -> tuple:
+        """(P_e, W, ξ) of record k on its fitting samples (W, ξ None where no effect needs them)."""
+        return self._elastic(k, st, self.records[k].fit_idx, True)
+
     def softened(self, k: int, st: State, idx: np.ndarray, *, use_cache: bool = True) -> np.ndarray:
         """Elastic stress after slips, slack, set and softening (before relaxation), on samples *idx*."""
         pe, w, xi = self._elastic(k, st, idx, use_cache)

@@ -277,6 +277,7 @@ def _discover(tests, *, model, base, fixed, free, weights, n_starts, seed, max_p
     rnd = 1
     while _round(search, rnd, rep):
         rnd += 1
+    _backward(search, rep)
     _final_verdicts(search, records)
     result = _result(search, base_fit, scheme, t_start, settings={
         "max_points": max_points, "criterion": "noise-referenced BIC, then held-out paired test",
@@ -349,9 +350,8 @@ def _start_search(start: Fitted, folds: list[Fold], records: list[Record], consi
 
 # --------------------------------------------------------------------------- one round
 def _remaining(s: Search) -> list[str]:
-    """Candidates still to try: not kept, and stretch-dependent relaxation only once relaxation is kept."""
-    return [n for n in s.testable if n not in s.kept
-            and (n != "nonlinear_viscoelastic" or "viscoelastic" in s.kept)]
+    """Candidates still to try (not kept). Stretch-dependent relaxation brings relaxation with it."""
+    return [n for n in s.testable if n not in s.kept]
 
 
 def _round(s: Search, rnd: int, rep) -> bool:
@@ -371,6 +371,7 @@ def _round(s: Search, rnd: int, rep) -> bool:
         trials, singles = _try_candidates(s, order, rnd, adv)
         trials += _try_upgrades(s, upgradable, adv)
     trials.sort(key=lambda t: t.dbic)
+    _nested_after(trials, "nonlinear_viscoelastic", "viscoelastic")
     winner = _heldout_winner(s, trials, rnd)
     for t in trials:  # candidates never reached by the held-out check this round
         c = s.candidates[t.name]
@@ -385,6 +386,14 @@ def _round(s: Search, rnd: int, rep) -> bool:
         return False
     _keep(s, next(t for t in trials if t.name == winner), rnd, rep)
     return True
+
+
+def _nested_after(trials: list[Trial], rich: str, simple: str) -> None:
+    """Check the simpler of two nested candidates first: the richer one (which always fits at least as
+    well) is kept only when the simpler one does not pass."""
+    names = [t.name for t in trials]
+    if rich in names and simple in names and names.index(rich) < names.index(simple):
+        trials.insert(names.index(simple), trials.pop(names.index(rich)))
 
 
 def _order(s: Search, remaining: list[str], diag: Diagnosis, rnd: int) -> list[str]:
@@ -505,6 +514,11 @@ def _keep(s: Search, t: Trial, rnd: int, rep) -> None:
         return
     c = s.candidates[winner]
     c.kept = True
+    if winner == "nonlinear_viscoelastic" and "viscoelastic" not in s.kept:  # it brings relaxation with it
+        v = s.candidates["viscoelastic"]
+        v.kept, v.variant = True, f.spec.variant_text("viscoelastic")
+        v.reason = f"kept in round {rnd} with its stretch-dependent strength (nonlinear_viscoelastic)"
+        s.kept.append("viscoelastic")
     kind = {"artefact": "corrected in the data", "material": "added to the material",
             "elastic": "added to the strain energy"}[c.kind]
     c.reason = (f"kept ({kind}) in round {rnd}: fitted Δχ² {t.noise['dchi2']:.4g} noise variances; held-out NRMSE "
@@ -518,14 +532,14 @@ def _keep(s: Search, t: Trial, rnd: int, rep) -> None:
 
 def _try_pairs(singles: dict[str, Trial], s: Search):
     """When no single candidate passes, two at once (e.g. slack hiding a rate effect), among the three
-    best single fits by the noise test that each improved the held-out error on average.
+    whose held-out error improved most alone.
 
-    Returns ((a, b), trial) of the first pair (best noise test first) that passes both tests, or None.
+    Returns ((a, b), trial) of the pair that passes both tests with the lowest held-out error, or None.
     """
     current = s.current
-    # only candidates that, alone, predicted held-out data better on average (just not enough to pass)
-    helped = [n for n, t in singles.items() if math.isfinite(t.dbic) and t.heldout.get("noise_units", 0.0) > 0]
-    pool = sorted(helped, key=lambda n: singles[n].dbic)[:3]
+    # the three that, alone, came closest to passing: the best held-out gains (all were checked this round)
+    pool = sorted((n for n, t in singles.items() if math.isfinite(t.dbic) and t.dbic < 0 and t.heldout),
+                  key=lambda n: -singles[n].heldout["noise_units"])[:3]
     tried = []
     for i in range(len(pool)):
         for j in range(i + 1, len(pool)):
@@ -537,10 +551,9 @@ def _try_pairs(singles: dict[str, Trial], s: Search):
                 continue
             if math.isfinite(t.dbic) and t.dbic < 0:
                 tried.append(((a, b), t))
-    for (a, b), t in sorted(tried, key=lambda p: p[1].dbic):
-        if check_heldout(t, current, s.folds, z=s.crit.heldout_z, noise_units=s.crit.min_noise_units):
-            return (a, b), t
-    return None
+    passed = [((a, b), t) for (a, b), t in tried
+              if check_heldout(t, current, s.folds, z=s.crit.heldout_z, noise_units=s.crit.min_noise_units)]
+    return min(passed, key=lambda p: p[1].fit.heldout.nrmse) if passed else None
 
 
 def _keep_pair(s: Search, pair, rnd: int, rep) -> None:
@@ -561,6 +574,37 @@ def _keep_pair(s: Search, pair, rnd: int, rep) -> None:
              f"{f.errors.nrmse:.2%}, held-out {s.current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%}")
     s.kept += [a, b]
     s.current = f
+
+
+def _backward(s: Search, rep) -> None:
+    """Backward elimination: a kept candidate that, given the others, no longer passes both tests goes.
+
+    The forward search adds one candidate at a time, and what was kept early
+    (or in a pair) may have been only a proxy for what came later. Each kept
+    candidate, latest first, is judged again against the model without it.
+    """
+    for name in list(reversed(s.kept)):
+        if len(s.kept) < 2 or (name == "viscoelastic" and "nonlinear_viscoelastic" in s.kept):
+            continue
+        spec = s.current.spec.with_(name, 0)
+        try:
+            reduced = fit_spec(spec, s.current)
+        except FitError:
+            continue
+        reduced.heldout = heldout(reduced, s.folds)
+        t = compared(name, s.current, reduced)
+        ok = t.dbic < 0 and check_heldout(t, reduced, s.folds, z=s.crit.heldout_z,
+                                          noise_units=s.crit.min_noise_units)
+        if ok:
+            continue
+        c = s.candidates[name]
+        c.kept = False
+        c.reason = (f"kept in round {c.round}, then removed: given {', '.join(n for n in s.kept if n != name)}, it "
+                    f"no longer predicts held-out data better (held-out NRMSE {reduced.heldout.nrmse:.2%} without "
+                    f"it, {s.current.heldout.nrmse:.2%} with it)")
+        rep.step(f"removed {name}: the others explain what it did")
+        s.kept.remove(name)
+        s.current = reduced
 
 
 # --------------------------------------------------------------------------- the outcome

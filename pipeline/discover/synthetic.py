@@ -414,8 +414,8 @@ def write_set(folder: str | Path, protocols: Sequence[Protocol], truth: Truth, *
     vary : mapping, optional
         Per-file values of the artefacts, e.g. ``{"slack": [1e-3, 2e-3]}``,
         ``{"offset": [0.01, -0.02]}`` (force offsets [N]), ``{"scale": [0.8, 1.25]}``
-        (specimen scales: every file is then its own specimen) or
-        ``{"slips": [((0.4, 2e-4),), ()]}``; cycled over files.
+        (specimen scales: every file is then its own specimen, unless ``"specimen"``
+        gives the ids) or ``{"slips": [((0.4, 2e-4),), ()]}``; cycled over files.
     rest : int
         Samples recorded at rest before each protocol starts.
     """
@@ -425,7 +425,11 @@ def write_set(folder: str | Path, protocols: Sequence[Protocol], truth: Truth, *
     for i, pr in enumerate(protocols):
         tr = _varied(truth, vary, i) if vary else truth
         ch = simulate(pr, tr, gauge_length=gauge_length, area=area, noise=noise, seed=seed + i, rest=rest)
-        specimen = f"specimen-{i + 1}" if vary and "scale" in vary else "synthetic"
+        specimen = "synthetic"
+        if vary and "specimen" in vary:
+            specimen = str(vary["specimen"][i % len(vary["specimen"])])
+        elif vary and "scale" in vary:
+            specimen = f"specimen-{i + 1}"
         out.append(write_csv(folder / f"{pr.name}.csv", ch, gauge_length=gauge_length, area=area,
                              style=styles[i % len(styles)], notes=pr.notes, specimen=specimen))
     return out

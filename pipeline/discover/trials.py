@@ -21,8 +21,8 @@ from .fitted import Fitted, fit_spec
 from .heldout import Fold, heldout
 from .statistics import information, n_effective, noise_test, paired_heldout
 
-#: a candidate must predict held-out data better by this many standard errors (one-sided p ~ 0.02)
-HELDOUT_Z = 2.0
+#: a candidate must predict held-out data better by this many standard errors (one-sided p = 0.05)
+HELDOUT_Z = 1.645
 #: ... and by at least this many noise variances per held-out sample
 MIN_NOISE_UNITS = 1.0
 #: ... and, when the sign test establishes it, better on average by at least one standard error too
@@ -100,7 +100,8 @@ def check_heldout(t: Trial, current: Fitted, folds: list[Fold], *, z: float = HE
                   noise_units: float = MIN_NOISE_UNITS) -> bool:
     """Run the held-out check of *t* against *current*; True when it passes (``t.heldout`` filled)."""
     f = t.fit
-    f.heldout = heldout(f, folds)
+    if f.heldout is None or f.heldout.samples is None:
+        f.heldout = heldout(f, folds)
     t.heldout = paired_heldout(_pairs(current, f))
     h = t.heldout
     return max(h["z"], h["z_mean"]) >= z and h["z_mean"] >= MEAN_AT_LEAST and h["noise_units"] >= noise_units
