@@ -24,7 +24,7 @@ from .records import Record
 from .statistics import Errors, error_measures
 
 #: most folds of any held-out scheme
-MAX_FOLDS = 6
+MAX_FOLDS = 5
 
 
 @dataclass
@@ -223,7 +223,7 @@ def _fold_fit(fitted: Fitted, fold: Fold):
 
     active = [i for i, s in enumerate(fp.slots) if not own(s)]
     try:
-        z, _ = fp.solve(fitted.z.copy(), active=active, max_nfev=8 * (len(active) + 2), ftol=1e-5)
+        z, _ = fp.solve(fitted.z.copy(), active=active, max_nfev=5 * (len(active) + 2), ftol=1e-5)
     except FitError:
         z = fitted.z.copy()
     if excluded:

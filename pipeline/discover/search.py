@@ -62,6 +62,8 @@ from .trials import (
 
 #: the most strain-energy terms fitted per round (the best by their first-order gain)
 TERMS_PER_ROUND = 3
+#: the most candidates checked on held-out data per round (the best by their fitted improvement)
+CHECKS_PER_ROUND = 5
 
 
 def kind_of(name: str) -> str:
@@ -377,7 +379,7 @@ def _round(s: Search, rnd: int, rep) -> bool:
         c = s.candidates[t.name]
         if t.name != winner and t.name not in s.kept and c.reason.endswith("pending"):
             c.reason = f"fitted improvement {-t.dbic:+.1f} (noise BIC), but {winner} was kept first in round {rnd}"
-    if winner is None and len(s.kept) + 2 <= s.crit.max_effects:
+    if winner is None and not s.kept and s.crit.max_effects >= 2:
         pair = _try_pairs(singles, s)
         if pair is not None:
             _keep_pair(s, pair, rnd, rep)
@@ -481,8 +483,16 @@ def _try_upgrades(s: Search, upgradable: list[str], advance) -> list[Trial]:
 
 
 def _heldout_winner(s: Search, trials: list[Trial], rnd: int) -> str | None:
-    """The held-out check, best noise test first: the first trial that passes wins (None: none passes)."""
-    for t in trials:
+    """The held-out check, best noise test first: the first trial that passes wins (None: none passes).
+
+    At most :data:`CHECKS_PER_ROUND` trials are checked (the held-out check refits every fold).
+    """
+    for t in trials[CHECKS_PER_ROUND:]:
+        c = s.candidates[t.name]
+        if t.name not in s.kept:
+            c.reason = (f"fitted improvement Δχ² {t.noise['dchi2']:.4g}, but not checked on held-out data in round "
+                        f"{rnd}: {CHECKS_PER_ROUND} candidates with larger fitted improvements were checked first")
+    for t in trials[:CHECKS_PER_ROUND]:
         ok = check_heldout(t, s.current, s.folds, z=s.crit.heldout_z, noise_units=s.crit.min_noise_units)
         h = t.heldout
         if t.name in s.kept:  # a variant upgrade of a kept effect
@@ -531,8 +541,10 @@ def _keep(s: Search, t: Trial, rnd: int, rep) -> None:
 
 
 def _try_pairs(singles: dict[str, Trial], s: Search):
-    """When no single candidate passes, two at once (e.g. slack hiding a rate effect), among the three
-    whose held-out error improved most alone.
+    """When no single candidate passes in the first round, two at once (e.g. slack hiding a rate effect),
+    among the three whose held-out error improved most alone. Only in the first round: pairs are for
+    effects that mask each other's signature in the base model's residual; once one is in the model,
+    the other's signature shows on its own.
 
     Returns ((a, b), trial) of the pair that passes both tests with the lowest held-out error, or None.
     """
