@@ -280,13 +280,27 @@ def _dummy():
 
 
 # --------------------------------------------------------------------------- measured data
-def test_brain_nothing_more_to_add(shared_data):
+def test_brain_asymmetry_explained_by_an_elastic_term(shared_data):
+    """Budday's cortex: no time, so no history effect; the tension-compression asymmetry calls for I2."""
     folder = shared_data / "tensile" / "budday2017_brain"
     tests = [read(folder / "cortex_tension_compression.csv"), read(folder / "cortex_simple_shear.csv")]
     res = discover(tests, model="esedf", n_starts=4)
-    assert res.kept == []
     assert {"viscoelastic", "mullins"} <= set(res.not_identifiable)  # no time column
-    assert not res.candidates["slack"].applicable
+    assert not res.candidates["slack"].applicable  # processed curves: no artefact corrected
+    assert [n for n in res.kept if res.candidates[n].kind != "elastic"] == []
+    assert {"mooney", "i2exp", "i2log"} & set(res.kept), res.kept
+    assert res.final.errors.nrmse < 0.8 * res.base.errors.nrmse
+    assert res.final.heldout.nrmse < res.base.heldout.nrmse
+    assert res.final_model.startswith("esedf+")
+
+
+@pytest.mark.slow
+def test_tendon_relaxation_found_and_error_halved(shared_data):
+    """A raw Instron ramp-and-hold, geometry from its own header lines: the relaxation is found."""
+    res = discover([read(shared_data / "tensile" / "tendon_instron" / "relax_incubated_1.csv")])
+    assert "viscoelastic" in res.kept
+    assert res.final.errors.nrmse <= 0.5 * res.base.errors.nrmse
+    assert res.final.heldout.nrmse <= 0.5 * res.base.heldout.nrmse
 
 
 @pytest.mark.slow

@@ -220,7 +220,7 @@ def case_term(rng, i: int) -> Case:
             i2 = float(invariants("uniaxial", np.array([lo]))[1][0]) - 3.0
             params = {**base, "i2exp_a": float(rng.uniform(0.3, 1.0)) * base["mu"],
                       "i2exp_b": float(rng.uniform(2.0, 5.0)) / i2}
-    return Case(term, syn.Truth(f"arruda-boyce+{term}", params), prs)
+    return Case(f"elastic term ({term})", syn.Truth(f"arruda-boyce+{term}", params), prs)
 
 
 def _pair(a: Callable, b_apply: Callable, label: str) -> Callable:
