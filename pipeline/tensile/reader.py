@@ -790,8 +790,10 @@ def _require_columns(label: str, mode: str, cols: list[_Column], x_col, s_col, d
     if unknown and len(unknown) == len(cols):
         names = ", ".join(f"'{c.header}'" for c in unknown if c.header)
         raise NotATestError(
-            f"{label}: not a test record: none of its columns ({names}{hdr_line}) names a quantity of a tensile "
-            "test (a table of specimen measurements?); leave it out, or name its columns (docs/tensile-input.md)")
+            f"{label}: unknown column names {names}{hdr_line}: none names a quantity of a tensile test, so this "
+            "is not a test record (a table of specimen measurements?); leave it out, or rename the columns (time, "
+            "displacement, force, stretch, strain, stress, ...) or give columns = [...] in the sidecar "
+            f"{M.sidecar_path(Path(label)).name}")
     if unknown:
         names = ", ".join(f"'{c.header}'" for c in unknown if c.header)
         raise InputError(
