@@ -76,7 +76,7 @@ def _covariate_table(problem: Problem, z_full: np.ndarray) -> tuple[np.ndarray, 
     st = problem.state(z_full)
     coefs = problem.offsets(z_full)
     cols: dict[str, list] = {n: [] for n in ("d", "rate", "hold", "below", "toe", "high", "virgin", "tn", "file",
-                                             "drive", "cycle", "compression")}
+                                             "drive", "cycle", "compression", "timed")}
     E, N = [], []
     for k, r in enumerate(problem.records):
         idx = r.fit_idx
@@ -97,6 +97,7 @@ def _covariate_table(problem: Problem, z_full: np.ndarray) -> tuple[np.ndarray, 
         cols["drive"].append(c.drive[idx])
         cols["cycle"].append(c.cycle[idx])
         cols["compression"].append((r.x[idx] < reference(r.test.mode)) & (r.test.mode != "simple_shear"))
+        cols["timed"].append(np.full(idx.size, r.history))
     e, en = np.concatenate(E), np.concatenate(N)
     good = np.isfinite(e)
     cat = {n: np.concatenate(v)[good] for n, v in cols.items()}
@@ -160,7 +161,9 @@ def structure(en: np.ndarray, cat: dict[str, np.ndarray]) -> dict[str, Any]:
     previous maximum measure a history effect.
     """
     ss = float(en @ en) or 1e-300
-    segs = {"loading": cat["d"] > 0, "unloading": cat["d"] < 0, "hold": cat["d"] == 0, "toe": cat["toe"],
+    timed = cat["timed"]  # loading, unloading and holds are segments of a history
+    segs = {"loading": timed & (cat["d"] > 0), "unloading": timed & (cat["d"] < 0), "hold": timed & (cat["d"] == 0),
+            "tension": ~cat["compression"] & (cat["drive"] > 1.0), "toe": cat["toe"],
             "high stretch end": cat["high"], "below the previous maximum": cat["below"] > 0.02,
             "compression": cat["compression"]}
     seg_out = {n: {"samples": int(m.sum()), "mean_noise_sd": float(np.mean(en[m])),
@@ -171,8 +174,12 @@ def structure(en: np.ndarray, cat: dict[str, np.ndarray]) -> dict[str, Any]:
         if m.sum() >= 10:
             elastic += _binned_r2(en[m], cat["drive"][m] * np.where(cat["compression"][m], -1, 1)) * \
                 float(en[m] @ en[m]) / ss
-    cov = {"stretch (elastic law)": elastic, "time": _binned_r2(en, cat["tn"]), "cycle": _binned_r2(en, cat["cycle"]),
-           "time in a hold": _binned_r2(en, cat["hold"]), "depth below the previous maximum": _binned_r2(en, cat["below"])}
+    cov = {"stretch (elastic law)": elastic}
+    if timed.any():  # history covariates, on the records that have a history
+        share = float(en[timed] @ en[timed]) / ss
+        for name, key in (("time", "tn"), ("cycle", "cycle"), ("time in a hold", "hold"),
+                          ("depth below the previous maximum", "below")):
+            cov[name] = _binned_r2(en[timed], cat[key][timed]) * share
     return {"segments": seg_out, "covariates": cov}
 
 

@@ -120,7 +120,9 @@ def _init_term(prob: Problem, z: np.ndarray, name: str) -> np.ndarray:
     term = TERMS[name]
     stiff, shapes = term_grid(prob, name)
     shape = term.shape_parameter
-    grid = [{term.modulus: stiff * 10.0**e, **({shape: v} if shape else {})} for e in range(-4, 2) for v in shapes]
+    # from "off" (the current model: the start is never worse than it) to ten times the data's stiffness
+    grid = [{term.modulus: stiff * 10.0**e, **({shape: v} if shape else {})} for e in (-12, -4, -3, -2, -1, 0, 1)
+            for v in shapes]
     return _grid_search_base(prob, z, grid)
 
 

@@ -295,7 +295,7 @@ def _discover(tests, *, model, base, fixed, free, weights, n_starts, seed, max_p
 def _check(tests, *, model, candidates, criteria: Criteria, max_points) -> None:
     if not tests:
         raise FitError("no tensile data to analyse; give at least one file")
-    check_model(model)
+    check_model(model, terms=False)  # the terms are the discovery's candidates, not its base
     bad = [c for c in candidates if c not in CANDIDATES]
     if bad:
         raise ConfigError(f"candidates: unknown effect or term {bad[0]!r}; the candidates are "
