@@ -390,9 +390,9 @@ def plot_residuals(path: str | Path, res: DiscoverResult, *, which: str = "base"
     unit, fac = display_stress_unit([r.scale for r in res.records])
     fig, ax = plt.subplots(2, 2, figsize=(13, 8.5), constrained_layout=True)
     seg_res = _draw_records(ax, res, f, fac, plt.get_cmap("tab10"))
-    ax[0, 0].set(xlabel="stretch λ (γ for shear)", ylabel=f"nominal stress [{unit}]",
-                 title=f"{'base ' + res.model if which == 'base' else 'final: +' + (', '.join(res.kept) or 'nothing')}: "
-                       f"data (dots) and model (lines)")
+    what = 'base ' + res.model if which == 'base' else 'final: +' + (', '.join(res.kept) or 'nothing')
+    ax[0, 0].set(xlabel="stretch λ (γ for shear)", ylabel=f"nominal stress [{unit}]")
+    ax[0, 0].set_title(f"{what}: data (dots) and model (lines)", fontsize=9 if len(what) > 40 else None, wrap=True)
     if len(res.records) <= 12:
         ax[0, 0].legend(fontsize=6, loc="best")
     ax[0, 1].axhline(0, color="k", lw=0.5)
