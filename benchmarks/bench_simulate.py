@@ -90,18 +90,19 @@ def _time_steps(sim, steps: int, repeats: int) -> tuple[float, float]:
     return statistics.median(walls), statistics.median(cpus)
 
 
-def bench_sizes(tables, threads_all: int) -> dict:
+def bench_sizes(tables, threads_all: int, *, sizes=None, repeats: int = 5) -> dict:
     import numba
     from esmm.pipeline.network.springs import network_from_tets
-    from esmm.pipeline.simulate.integrator import Simulator, build_force_model, warm_up
+    from esmm.pipeline.simulate.simulator import Simulator, warm_up
+    from esmm.pipeline.simulate.springterm import build_spring_term
 
     out = {}
-    for name, n in SIZES.items():
+    for name, n in (SIZES if sizes is None else {k: SIZES[k] for k in sizes}).items():
         t = time.perf_counter()
         net = network_from_tets(box_tets(n))
         t_net = time.perf_counter() - t
         t = time.perf_counter()
-        model = build_force_model(net, tables)
+        model = build_spring_term(net, tables)
         t_model = time.perf_counter() - t
         warm = warm_up(model, threads=1) + (warm_up(model, threads=threads_all) if threads_all > 1 else 0.0)
         fixed = np.flatnonzero(net.points[:, 2] < 1e-9)
@@ -110,21 +111,21 @@ def bench_sizes(tables, threads_all: int) -> dict:
         steps = int(np.clip(3e7 / s / 10, 10, 4000))          # ~0.1 s per repeat at 10 ns/spring
         row = {"springs": s, "nodes": net.n_nodes, "network_build_s": t_net, "model_build_s": t_model,
                "warm_up_s": warm, "steps_per_repeat": steps,
-               "halo_springs_2_threads": int(model.layout(2)[2][-1]) if threads_all > 1 else 0}
+               "halo_springs_2_threads": int(model.layout(2).halo_start[-1]) if threads_all > 1 else 0}
         sim.threads = 1
-        w, c = _time_steps(sim, steps, 5)
+        w, c = _time_steps(sim, steps, repeats)
         row.update({"t1_us_per_step": w * 1e6, "t1_ns_per_spring_step": w / s * 1e9,
                     "t1_cpu_ns_per_spring_step": c / s * 1e9})
         if threads_all > 1:
             sim.threads = threads_all
-            w2, _ = _time_steps(sim, steps, 5)
+            w2, _ = _time_steps(sim, steps, repeats)
             row.update({f"t{threads_all}_us_per_step": w2 * 1e6, f"t{threads_all}_ns_per_spring_step": w2 / s * 1e9,
                         "speedup": w / w2})
         if name == "50k":   # float32 spring data
-            m32 = build_force_model(net, tables, precision="float32")
+            m32 = build_spring_term(net, tables, precision="float32")
             warm_up(m32)
             sim32 = Simulator(m32, net.points, net.mass, fixed=fixed, gravity=(0, 0, -9.81))
-            w32, c32 = _time_steps(sim32, steps, 5)
+            w32, c32 = _time_steps(sim32, steps, repeats)
             row["float32_t1_ns_per_spring_step"] = w32 / s * 1e9
             row["float32_t1_cpu_ns_per_spring_step"] = c32 / s * 1e9
         row["bytes_per_spring_step"] = bytes_touched(model, net)
@@ -146,7 +147,8 @@ def bench_effects(tables, n: int = SIZES["50k"], steps: int = 60, repeats: int =
         ViscoelasticEffect,
     )
     from esmm.pipeline.network.springs import network_from_tets
-    from esmm.pipeline.simulate.integrator import Simulator, build_force_model, warm_up
+    from esmm.pipeline.simulate.simulator import Simulator, warm_up
+    from esmm.pipeline.simulate.springterm import build_spring_term
 
     net = network_from_tets(box_tets(n))
     fixed = np.flatnonzero(net.points[:, 2] < 1e-9)
@@ -155,7 +157,7 @@ def bench_effects(tables, n: int = SIZES["50k"], steps: int = 60, repeats: int =
                 "all": MaterialEffects(visco, MullinsEffect(2.0, 500.0, 0.1), DamageEffect(1.3, 0.2, 2.0))}
     out: dict = {}
     for name, fx in variants.items():
-        model = build_force_model(net, tables, effects=fx)
+        model = build_spring_term(net, tables, effects=fx)
         out[f"{name}_warm_up_s"] = warm_up(model)
         sim = Simulator(model, net.points, net.mass, fixed=fixed, gravity=(0, 0, -9.81), mass_damping=5.0)
         w, c = _time_steps(sim, steps, repeats)
@@ -193,7 +195,7 @@ def bench_demo(tables_unused=None) -> dict:
             sc = replace(base, step=mode)
             res = simulate_network(asset.network, asset.tables, sc, Path(d) / mode)
             s = res.summary
-            out[mode] = {k: s[k] for k in ("springs", "nodes", "threads", "steps", "dt_min_s", "dt_max_s",
+            out[mode] = {k: getattr(s, k) for k in ("springs", "nodes", "threads", "steps", "dt_min_s", "dt_max_s",
                                            "dt_mean_s", "dt_table_bound_s", "frames_redone", "stepping_wall_s",
                                            "wall_per_step_us", "ns_per_spring_step", "real_time_factor",
                                            "warm_up_s")}
@@ -203,46 +205,76 @@ def bench_demo(tables_unused=None) -> dict:
     return out
 
 
-def run() -> dict:
+def run(*, parts=("sizes", "effects", "demo"), sizes=None, repeats: int = 5, threads: int | None = None) -> dict:
+    """The benchmark's figures; ``make bench`` runs everything (see :func:`main` for a quick subset).
+
+    Parameters
+    ----------
+    parts : subset of {"sizes", "effects", "demo"}
+    sizes : subset of :data:`SIZES` keys, optional
+    repeats : int
+        Timed repeats per figure (medians).
+    threads : int, optional
+        Threads for the multi-thread rows (default: all numba has; 1 skips them).
+    """
     import numba
 
-    threads_all = int(numba.config.NUMBA_NUM_THREADS)
+    threads_all = int(numba.config.NUMBA_NUM_THREADS) if threads is None else int(threads)
     t0 = time.perf_counter()
     tables = _tables()
     res: dict = {"threads_available": threads_all, "threading_layer": None}
-    res["sizes"] = bench_sizes(tables, threads_all)
-    try:
-        res["threading_layer"] = numba.threading_layer()
-    except ValueError:
-        pass
-    bw_dram = copy_bandwidth(1 << 30, repeats=3)
-    bw_cache = copy_bandwidth(8 << 20, repeats=20)
-    res["copy_bandwidth_GBps"] = {"dram_1GiB": bw_dram, "cache_8MiB": bw_cache}
-    for row in res["sizes"].values():
-        b = row["bytes_per_spring_step"]
-        row["bandwidth_bound_ns_dram"] = b / bw_dram
-        row["bandwidth_bound_ns_cache"] = b / bw_cache
-        row["fraction_of_dram_bound"] = row["bandwidth_bound_ns_dram"] / row["t1_ns_per_spring_step"]
-    res["effects_50k"] = bench_effects(tables)
-    res["paper_ns_per_element_step"] = PAPER_NS_PER_ELEMENT
-    s5 = res["sizes"]["5k"]
-    res["speedup_vs_paper_5k"] = PAPER_NS_PER_ELEMENT / s5["t1_ns_per_spring_step"]
-    res["goal_lt_20ns_single_thread"] = all(r["t1_ns_per_spring_step"] < 20 for r in res["sizes"].values())
-    r100 = res["sizes"]["100k"]
-    best100 = min(r100["t1_us_per_step"], r100.get(f"t{threads_all}_us_per_step", np.inf))
-    res["step_100k_best_us"] = best100
-    res["goal_100k_step_lt_1ms"] = best100 < 1000.0
-    try:
-        res["demo"] = bench_demo()
-    except Exception as exc:  # the demo needs gmsh and the bundled liver; report, don't fail the rest
-        res["demo"] = {"error": f"{type(exc).__name__}: {exc}"}
+    if "sizes" in parts:
+        res["sizes"] = bench_sizes(tables, threads_all, sizes=sizes, repeats=repeats)
+        try:
+            res["threading_layer"] = numba.threading_layer()
+        except ValueError:
+            pass
+        bw_dram = copy_bandwidth(1 << 30, repeats=3)
+        bw_cache = copy_bandwidth(8 << 20, repeats=20)
+        res["copy_bandwidth_GBps"] = {"dram_1GiB": bw_dram, "cache_8MiB": bw_cache}
+        for row in res["sizes"].values():
+            b = row["bytes_per_spring_step"]
+            row["bandwidth_bound_ns_dram"] = b / bw_dram
+            row["bandwidth_bound_ns_cache"] = b / bw_cache
+            row["fraction_of_dram_bound"] = row["bandwidth_bound_ns_dram"] / row["t1_ns_per_spring_step"]
+        res["paper_ns_per_element_step"] = PAPER_NS_PER_ELEMENT
+        res["goal_lt_20ns_single_thread"] = all(r["t1_ns_per_spring_step"] < 20 for r in res["sizes"].values())
+        if "5k" in res["sizes"]:
+            res["speedup_vs_paper_5k"] = PAPER_NS_PER_ELEMENT / res["sizes"]["5k"]["t1_ns_per_spring_step"]
+        if "100k" in res["sizes"]:
+            r100 = res["sizes"]["100k"]
+            best100 = min(r100["t1_us_per_step"], r100.get(f"t{threads_all}_us_per_step", np.inf))
+            res["step_100k_best_us"] = best100
+            res["goal_100k_step_lt_1ms"] = best100 < 1000.0
+    if "effects" in parts:
+        res["effects_50k"] = bench_effects(tables, repeats=max(repeats, 7))
+    if "demo" in parts:
+        try:
+            res["demo"] = bench_demo()
+        except Exception as exc:  # the demo needs gmsh and the bundled liver; report, don't fail the rest
+            res["demo"] = {"error": f"{type(exc).__name__}: {exc}"}
     res["bench_seconds"] = time.perf_counter() - t0
     return res
 
 
-if __name__ == "__main__":
+def main(argv=None) -> int:
+    """``python benchmarks/bench_simulate.py [--parts sizes] [--sizes 5k,50k] [--repeats 5] [--threads 1]``."""
+    import argparse
     import json
-    import sys
 
-    print(json.dumps(run(), indent=2, default=float))
-    sys.exit(0)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 epilog="quick: --parts sizes --sizes 5k,50k --threads 1 (about a minute)")
+    ap.add_argument("--parts", default="sizes,effects,demo", help="any of sizes, effects, demo (default: all)")
+    ap.add_argument("--sizes", default=None, help=f"networks to time, any of {', '.join(SIZES)} (default: all)")
+    ap.add_argument("--repeats", type=int, default=5, help="timed repeats per figure (default 5)")
+    ap.add_argument("--threads", type=int, default=None, help="threads of the multi-thread rows (1: none)")
+    args = ap.parse_args(argv)
+    parts = tuple(p.strip() for p in args.parts.split(",") if p.strip())
+    sizes = None if args.sizes is None else [s.strip() for s in args.sizes.split(",") if s.strip()]
+    print(json.dumps(run(parts=parts, sizes=sizes, repeats=args.repeats, threads=args.threads), indent=2,
+                     default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

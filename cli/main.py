@@ -30,6 +30,7 @@ COMMANDS: dict[str, str] = {
     "info": "esmm.cli.info",
     "tables": "esmm.cli.tables",
     "simulate": "esmm.cli.simulate",
+    "validate": "esmm.cli.validate",
 }
 
 

@@ -4,9 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from esmm.pipeline.errors import ConfigError
-from esmm.pipeline.units import parse_quantity
-
 EPILOG = """\
 outputs (in --out DIR, default ASSET-sim/ beside the asset):
   history.h5, history.xdmf   displacement per frame (open the .xdmf in ParaView), grasper
@@ -30,29 +27,6 @@ examples:
 """
 
 
-def _duration(text: str) -> float:
-    try:
-        return float(text)
-    except ValueError:
-        pass
-    try:
-        return parse_quantity(text, "time", where="--duration")
-    except Exception as exc:  # InputError -> argparse usage error
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def _threads(text: str):
-    if text == "auto":
-        return "auto"
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected 'auto' or a whole number, got {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"expected a number >= 1, got {n}")
-    return n
-
-
 def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser(
         "simulate", help="run an asset in a scripted scene (history, force plot, video)",
@@ -64,9 +38,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--scene", metavar="C", default=None,
                    help="bundled scene name or .toml file (default: 'default')")
     p.add_argument("--video", metavar="OUT.mp4", default=None, help="also render a video (off-screen)")
-    p.add_argument("--duration", metavar="S", type=_duration, default=None,
+    p.add_argument("--duration", metavar="S", default=None,
                    help="simulated time in seconds (or with a unit, '500 ms'); overrides the scene")
-    p.add_argument("--threads", metavar="N", type=_threads, default=None,
+    p.add_argument("--threads", metavar="N", default=None,
                    help="'auto' (measure and pick) or a number of threads; overrides the scene")
     p.add_argument("--law", choices=("asset", "secant", "energy"), default=None,
                    help="force law: the asset's default, secant (paper Eq. 9) or energy-consistent")
@@ -81,22 +55,18 @@ def add_parser(sub) -> argparse.ArgumentParser:
 def run(args, ui) -> int:
     from esmm.pipeline.simulate.run import simulate
 
-    if args.duration is not None and not args.duration > 0:
-        raise ConfigError(f"--duration: must be positive, got {args.duration}")
-    res = simulate(args.asset, scene=args.scene, out_dir=args.out, video_path=args.video,
+    res = simulate(args.asset, scene=args.scene, out_dir=args.out, video=args.video,
                    duration=args.duration, threads=args.threads, law=args.law, effects=args.effects,
                    reporter=ui)
     s = res.summary
-    ui.info(f"simulated {s['simulated_s']:g} s: {s['springs']} springs, {s['steps']} steps of "
-            f"{s['dt_min_s'] * 1e6:.4g}..{s['dt_max_s'] * 1e6:.4g} us, real-time factor "
-            f"{s['real_time_factor']:.3g} ({s['threads']} thread(s))")
-    fx = s.get("effects")
-    if fx:
-        ui.info("material effects: " + ", ".join(fx.get("final_state", {}).get("effects", [])))
+    ui.info(f"simulated {s.simulated_s:g} s: {s.springs} springs, {s.steps} steps of "
+            f"{s.dt_min_s * 1e6:.4g}..{s.dt_max_s * 1e6:.4g} us, real-time factor "
+            f"{s.real_time_factor:.3g} ({s.threads} thread(s))")
+    if s.effects:
+        ui.info("material effects: " + ", ".join(s.effect_names))
     ui.info(f"history: {res.xdmf}")
     if res.force_plot is not None:
-        g = s.get("grasper") or {}
-        ui.info(f"grasper force: {res.force_plot} (max {g.get('max_force_N', 0.0):.3g} N)")
+        ui.info(f"grasper force: {res.force_plot} (max {s.grasper.max_force_N if s.grasper else 0.0:.3g} N)")
     if res.video is not None:
         ui.info(f"video: {res.video}")
     ui.info(f"summary: {res.summary_path}")

@@ -38,6 +38,22 @@ def shared_data() -> Path:
     return SHARED
 
 
+@pytest.fixture(scope="session")
+def liver():
+    """The bundled porcine-liver material of the ESMM paper (configs/materials)."""
+    from esmm.pipeline.materials.material import load_material
+
+    return load_material("porcine_liver_paper")
+
+
+@pytest.fixture(scope="session")
+def tables(liver):
+    """The stiffness tables of :func:`liver` on the default grid (no compensation)."""
+    from esmm.pipeline.network.tables import build_tables
+
+    return build_tables(liver)
+
+
 @pytest.fixture()
 def run_cli(capsys):
     """Run ``esmm`` in-process: returns (exit code, stdout, stderr)."""

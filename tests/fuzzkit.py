@@ -4,7 +4,9 @@ A fuzz module states its *property* (what a reader must do with any input) and
 its input strategies; this module holds what they have in common:
 
 * :func:`fuzz` — hypothesis settings with the budget ``ESMM_FUZZ_EXAMPLES=<n>``
-  (default: each test's CI-sized number);
+  (default: each test's CI-sized number, with the examples derandomized so that
+  ``make test`` tries the same inputs every time; a run with a budget explores
+  new random inputs, and what it finds becomes a regression test);
 * :class:`Campaign` — one per module: runs probes in a :class:`Sandbox`
   process (a segfault or a hang is recorded, not fatal), tells known crashes
   from new ones (a new one fails the test), counts outcomes, checks refusals are
@@ -41,8 +43,12 @@ EXAMPLES = int(os.environ.get("ESMM_FUZZ_EXAMPLES", "0") or 0)
 
 
 def fuzz(default: int):
-    """Hypothesis settings: *default* examples unless ESMM_FUZZ_EXAMPLES says otherwise; no deadline."""
-    return settings(max_examples=EXAMPLES or default, deadline=None, database=None,
+    """Hypothesis settings: *default* examples unless ESMM_FUZZ_EXAMPLES says otherwise; no deadline.
+
+    Derandomized at the default budget: the suite must decide the same way on every run
+    (a random new finding in CI would block work that did not cause it).
+    """
+    return settings(max_examples=EXAMPLES or default, deadline=None, database=None, derandomize=not EXAMPLES,
                     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
                                            HealthCheck.filter_too_much])
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from esmm.pipeline.materials.loading import nominal_stress
-from esmm.pipeline.materials.material import load_material
 from esmm.pipeline.network.forcelaw import (
     spring_energy,
     spring_force_magnitudes,
@@ -18,12 +17,8 @@ from esmm.pipeline.network.tables import LAWS, build_tables
 
 
 @pytest.fixture(scope="module")
-def liver():
-    return load_material("porcine_liver_paper")
-
-
-@pytest.fixture(scope="module")
 def tables(liver):
+    """Compensated tables (c = 6): this module's own, over the shared uncompensated ones."""
     return build_tables(liver).with_compensation(6.0)
 
 

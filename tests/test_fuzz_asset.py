@@ -300,6 +300,21 @@ def test_known_hang_on_zeroed_bytes(tmp_path, base_asset):
     assert kind == "result", value[0] if kind == "died" else value
 
 
+def test_known_hang_on_a_header_with_its_start_zeroed(tmp_path, base_asset):
+    """14 zero bytes over 'ESMM-ASSET 1 s' and 62 in the HDF5 metadata: the header was taken for absent,
+    the hash check skipped, and libhdf5 looped on the damaged metadata (found by test_damaged_bytes)."""
+    p = Path(shutil.copy(base_asset, tmp_path / "organ.h5"))
+    b = bytearray(p.read_bytes())
+    b[0:14] = bytes(14)
+    at = int(0.6636144167119001 * len(b))
+    b[at:at + 62] = bytes(62)
+    p.write_bytes(bytes(b))
+    with Sandbox() as sb:
+        kind, value = sb.call(probe, str(p), timeout=PROBE_TIMEOUT)
+    assert kind == "result" and value["read"] == "refused", value
+    assert "header is unreadable" in value["read_message"]
+
+
 def test_known_crash_attribute_error(tmp_path, base_asset):
     """104 zero bytes inserted in the middle of the file."""
     from esmm.pipeline.asset import read_asset

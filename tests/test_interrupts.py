@@ -18,7 +18,10 @@ MODULE = textwrap.dedent("""
 """)
 
 DRIVER = textwrap.dedent("""
-    import sys
+    import signal, sys
+    # Python's own Ctrl-C handler, whatever this process inherited (a shell's background job
+    # starts with SIGINT ignored).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     sys.path.insert(0, sys.argv[1])
     if sys.argv[2] == "guarded":
         from esmm.pipeline import interrupts

@@ -133,3 +133,29 @@ def test_inverted_mesh_fails_the_floors():
     q = tet_quality(VolumeMesh(mesh.points, tets, mesh.boundary_faces, "test", []))
     ok, problems = q.passes()
     assert not ok and any("sicn_min" in p for p in problems)
+
+
+def test_slivers_are_relocated_above_the_floor():
+    """Slivers made by pushing an interior vertex towards a neighbour: relocated above 10 deg, volume kept."""
+    from esmm.pipeline.mesh.quality import tet_measures
+    from esmm.pipeline.mesh.slivers import SLIVER_TARGET_DEG, improve_slivers
+    from esmm.pipeline.mesh.synthetic import box_tets
+    from esmm.pipeline.network.springs import boundary_faces, tet_volumes
+
+    b = box_tets(3, 3, 3, (0.03, 0.03, 0.03))
+    t = b.tets.copy()
+    neg = tet_volumes(b.points, t) < 0
+    t[neg, 2], t[neg, 3] = t[neg, 3], t[neg, 2].copy()
+    p = b.points.copy()
+    v = 21                                     # the interior vertex at (1, 1, 1) cells
+    assert np.allclose(p[v], 0.01)
+    p[v] += np.array([0.0085, 0.0, 0.0])       # towards a neighbouring vertex: slivers (4.6 deg) around it
+    before = tet_measures(p, t)["min_dihedral_deg"].min()
+    assert before < 10.0 and np.all(tet_volumes(p, t) > 0)
+    q, info = improve_slivers(p, t, boundary_faces(t))
+    after = tet_measures(q, t)["min_dihedral_deg"].min()
+    assert after >= SLIVER_TARGET_DEG and info["below_after"] == 0
+    assert info["min_dihedral_before"] == pytest.approx(before)
+    # boundary vertices move in their tangent plane only: the volume changes to second order
+    assert tet_volumes(q, t).sum() == pytest.approx(tet_volumes(p, t).sum(), rel=1e-4)
+    assert np.all(tet_volumes(q, t) > 0)

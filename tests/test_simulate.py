@@ -19,16 +19,15 @@ from esmm.pipeline.mesh.synthetic import box_tets  # noqa: E402  (shared structu
 from esmm.pipeline.network.forcelaw import spring_energy, spring_forces
 from esmm.pipeline.network.springs import SpringNetwork, network_from_tets, stiffness_matrix
 from esmm.pipeline.network.tables import StiffnessTables
-from esmm.pipeline.simulate.integrator import (
-    Grasp,
-    Simulator,
-    build_force_model,
+from esmm.pipeline.simulate.model import Grasp
+from esmm.pipeline.simulate.simulator import Simulator
+from esmm.pipeline.simulate.springterm import (
+    build_spring_term,
     cell_tangent_bound,
-    mass_scaling,
-    stable_step,
     tangent_bound,
     windowed_bound,
 )
+from esmm.pipeline.simulate.stepper import mass_scaling, stable_step
 
 
 def make_tables(kind="nonlinear", lo=0.5, hi=2.0, n=301, mu0=2.0e4):
@@ -77,7 +76,7 @@ def test_one_spring_analytic(law, lam):
     L0 = 0.01
     net = one_spring([0, 0, 0], L0 * d)
     x = np.array([[0.0, 0, 0], lam * L0 * d])
-    f = build_force_model(net, tb, law=law).forces(x)
+    f = build_spring_term(net, tb, law=law).forces(x)
     c2 = np.array([0.2, 0.3, 0.5])
     mu0 = 2.0e4
     lam_c = min(max(lam, 0.5), 2.0)       # mu_e is held constant off the grid
@@ -103,7 +102,7 @@ def test_one_spring_dashpot():
     tb = make_tables("constant")
     net = one_spring([0, 0, 0], [0.01, 0, 0])
     beta = 1e-3
-    m = build_force_model(net, tb, dashpot=beta)
+    m = build_spring_term(net, tb, dashpot=beta)
     x = net.points.copy()
     v = np.array([[0.0, 0.0, 0.0], [0.2, 0.7, 0.0]])      # only the axial part (0.2) is damped
     k = 2e-6 / 0.01**2 * 2e4
@@ -122,7 +121,7 @@ def test_kernel_matches_reference(box, tables, law, precision):
     rng = np.random.default_rng(1)
     # Large perturbations: some springs leave the table on both sides.
     x = box.points + rng.normal(scale=4e-3, size=box.points.shape)
-    m = build_force_model(box, tables, law=law, precision=precision)
+    m = build_spring_term(box, tables, law=law, precision=precision)
     f = m.forces(x)
     ref = spring_forces(x, box, tables, law=law)
     lo, hi = m.stretch_range(x)
@@ -137,8 +136,8 @@ def test_isotropic_fast_path_matches_three_directions(box, law):
     rng = np.random.default_rng(5)
     x = box.points + rng.normal(scale=2e-3, size=box.points.shape)
     v = rng.normal(size=x.shape)
-    one = build_force_model(box, tb, law=law, dashpot=1e-4)
-    three = build_force_model(box, tb, law=law, dashpot=1e-4, isotropic_fast=False)
+    one = build_spring_term(box, tb, law=law, dashpot=1e-4)
+    three = build_spring_term(box, tb, law=law, dashpot=1e-4, isotropic_fast=False)
     assert (one.n_directions, three.n_directions) == (1, 3)
     f1, f3 = one.forces(x, v), three.forces(x, v)
     assert np.abs(f1 - f3).max() <= 1e-13 * np.abs(f3).max()
@@ -153,13 +152,13 @@ def test_parallel_layout_matches_serial(box, tables):
     rng = np.random.default_rng(2)
     x = box.points + rng.normal(scale=1e-3, size=box.points.shape)
     v = rng.normal(size=x.shape)
-    m = build_force_model(box, tables, dashpot=2e-4)
+    m = build_spring_term(box, tables, dashpot=2e-4)
     fe = rng.normal(size=x.shape)
     ref = np.empty_like(x)
-    K.forces_serial(x, v, ref, fe, *m.kernel_args())
+    K.forces_serial(x, v, ref, fe, m.kernel(), None, m.layout(1))
     for chunks in (1, 2, 3, 7):
         f = np.full_like(x, np.nan)
-        K.forces_parallel(x, v, f, fe, *m.kernel_args(), *m.layout(chunks))
+        K.forces_parallel(x, v, f, fe, m.kernel(), None, m.layout(chunks))
         assert np.abs(f - ref).max() <= 1e-13 * np.abs(ref).max(), chunks
 
 
@@ -168,7 +167,7 @@ def test_threaded_trajectory_matches_serial(box, tables):
     fixed = np.flatnonzero(box.points[:, 0] < 1e-9)
     runs = []
     for threads in (1, 2):
-        m = build_force_model(box, tables, dashpot=1e-4)
+        m = build_spring_term(box, tables, dashpot=1e-4)
         sim = Simulator(m, box.points, box.mass, fixed=fixed, gravity=(0, 0, -9.81), mass_damping=2.0,
                         threads=threads)
         tgt = int(np.argmax(box.points[:, 0]))
@@ -188,7 +187,7 @@ def test_threaded_trajectory_matches_serial(box, tables):
 def test_zero_net_force_and_torque(box, tables, law):
     rng = np.random.default_rng(3)
     x = box.points + rng.normal(scale=2e-3, size=box.points.shape)
-    f = build_force_model(box, tables, law=law).forces(x)
+    f = build_spring_term(box, tables, law=law).forces(x)
     scale = np.abs(f).sum()
     assert np.abs(f.sum(axis=0)).max() < 1e-13 * scale
     c = x.mean(axis=0)
@@ -198,7 +197,7 @@ def test_zero_net_force_and_torque(box, tables, law):
 
 @pytest.mark.parametrize("law", ["secant", "energy"])
 def test_no_force_under_rigid_motion(box, tables, law):
-    m = build_force_model(box, tables, law=law)
+    m = build_spring_term(box, tables, law=law)
     a, b, c = 0.7, -1.1, 2.3
     Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
     Ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
@@ -246,7 +245,7 @@ def test_cell_and_window_bounds_cover_the_tangent(tables):
 def test_window_bound_at_rest_is_larger_and_safe(box, tables):
     fixed = np.flatnonzero(box.points[:, 0] < 1e-9)
     free = ~np.isin(np.arange(box.n_nodes), fixed)
-    m = build_force_model(box, tables)
+    m = build_spring_term(box, tables)
     whole = stable_step(m, box.mass, free=free)
     near = stable_step(m, box.mass, free=free, x=box.points, window=0.02)
     assert near.dt_critical > 2 * whole.dt_critical
@@ -264,7 +263,7 @@ def test_window_bound_at_rest_is_larger_and_safe(box, tables):
 def test_gershgorin_bound_exceeds_true_omega_and_is_sharp(box):
     tb = make_tables("constant")
     fixed = np.flatnonzero(box.points[:, 0] < 1e-9)
-    m = build_force_model(box, tb)
+    m = build_spring_term(box, tb)
     b = stable_step(m, box.mass, free=~np.isin(np.arange(box.n_nodes), fixed), safety=1.0)
     Kmat = stiffness_matrix(box, modulus=2e4).toarray()
     free = np.setdiff1d(np.arange(box.n_nodes), fixed)
@@ -288,7 +287,7 @@ def test_gershgorin_bound_exceeds_true_omega_and_is_sharp(box):
 
 
 def test_step_above_bound_refused(box, tables):
-    m = build_force_model(box, tables)
+    m = build_spring_term(box, tables)
     b = stable_step(m, box.mass)
     with pytest.raises(SimulationError, match="stability bound"):
         Simulator(m, box.points, box.mass, dt=1.01 * b.dt_critical)
@@ -304,7 +303,7 @@ def test_energy_bounded_without_damping(box, tables, law):
     Euler (symplectic) keeps the total energy within O(dt) of its start for all time:
     the error is small against the energy exchanged, halves with dt, and does not grow."""
     fixed = np.flatnonzero(box.points[:, 0] < 1e-9)
-    m = build_force_model(box, tables, law=law)
+    m = build_spring_term(box, tables, law=law)
     errs = []
     for safety in (0.4, 0.2):
         sim = Simulator(m, box.points, box.mass, fixed=fixed, gravity=(0, 0, -9.81), safety=safety)
@@ -335,7 +334,7 @@ def test_first_order_convergence_in_dt(box, tables):
     velocity is shifted by dt a0 / 2, so with a0 != 0 (released from rest under
     gravity) the position error at a fixed time halves with dt."""
     fixed = np.flatnonzero(box.points[:, 0] < 1e-9)
-    m = build_force_model(box, tables)
+    m = build_spring_term(box, tables)
     dt0 = 0.5 * stable_step(m, box.mass, free=~np.isin(np.arange(box.n_nodes), fixed)).dt_critical
     n0 = 64
 
@@ -356,7 +355,7 @@ def test_mass_damping_decay_rate():
     """A free node under mass-proportional damping alone: v_n = v_0 / (1 + alpha dt)^n."""
     tb = make_tables("constant")
     net = one_spring([0, 0, 0], [0.01, 0, 0], mass=(1e-3, 1e-3))
-    m = build_force_model(net, tb)
+    m = build_spring_term(net, tb)
     sim = Simulator(m, net.points, net.mass, fixed=[], mass_damping=5.0, dt=1e-4)
     sim.v[:] = [0.0, 0.1, 0.0]                    # transverse, same for both: rigid translation
     sim.advance(1000)
@@ -408,7 +407,7 @@ def test_cantilever_sag_matches_euler_bernoulli():
     inertia = b * h**3 / 12
     g = (L / 1000) * 8 * E * inertia / (rho * b * h * L**4)   # small load: w_EB = L / 1000 (linear)
     fixed = np.flatnonzero(net.points[:, 0] < 1e-9)
-    m = build_force_model(net, tb, law="secant")
+    m = build_spring_term(net, tb, law="secant")
     sim = Simulator(m, net.points, net.mass, fixed=fixed, gravity=(0, 0, -g))
     info = sim.relax(rtol=1e-6)
     tip = np.flatnonzero(net.points[:, 0] > L - 1e-9)
@@ -438,7 +437,7 @@ def test_cantilever_sag_matches_euler_bernoulli():
 
 def test_relax_reports_non_convergence(box, tables):
     fixed = np.flatnonzero(box.points[:, 0] < 1e-9)
-    sim = Simulator(build_force_model(box, tables), box.points, box.mass, fixed=fixed, gravity=(0, 0, -9.81))
+    sim = Simulator(build_spring_term(box, tables), box.points, box.mass, fixed=fixed, gravity=(0, 0, -9.81))
     with pytest.raises(SimulationError, match="did not converge"):
         sim.relax(rtol=1e-12, max_iter=5)
 
@@ -450,7 +449,7 @@ def test_relax_reports_non_convergence(box, tables):
 @pytest.mark.parametrize("mode", ["prescribed", "spring"])
 def test_grasper_carries_the_weight_at_equilibrium(box, tables, mode):
     """A network held only by the grasper: at rest the grasper feels the total weight."""
-    m = build_force_model(box, tables)
+    m = build_spring_term(box, tables)
     sim = Simulator(m, box.points, box.mass, fixed=[], gravity=(0, 0, -9.81))
     top = np.flatnonzero(box.points[:, 2] > 0.03 - 1e-9)
     k = None if mode == "prescribed" else np.full(top.size, 50.0)
@@ -464,7 +463,7 @@ def test_grasper_carries_the_weight_at_equilibrium(box, tables, mode):
 
 def test_grasper_follows_path_and_releases(box, tables):
     fixed = np.flatnonzero(box.points[:, 0] < 1e-9)
-    m = build_force_model(box, tables)
+    m = build_spring_term(box, tables)
     sim = Simulator(m, box.points, box.mass, fixed=fixed, gravity=(0, 0, 0), mass_damping=3.0)
     tgt = int(np.argmax(box.points[:, 0] + box.points[:, 2]))
     p0 = box.points[tgt].copy()
@@ -497,7 +496,7 @@ def test_mass_scaling_respects_budget_and_raises_the_step():
         (mesh.points > 1e-9) & (mesh.points < np.array([0.06, 0.05, 0.04]) - 1e-9))
     net = network_from_tets(mesh)
     tb = make_tables()
-    m = build_force_model(net, tb)
+    m = build_spring_term(net, tb)
     fixed = np.flatnonzero(net.points[:, 0] < 1e-9)
     free = ~np.isin(np.arange(net.n_nodes), fixed)
     base = stable_step(m, net.mass, free=free, safety=1.0)
@@ -514,9 +513,9 @@ def test_mass_scaling_respects_budget_and_raises_the_step():
 
 
 def test_mass_scaling_keeps_the_true_weight(box, tables):
-    scaled, info = mass_scaling(build_force_model(box, tables), box.mass, budget=0.05)
+    scaled, info = mass_scaling(build_spring_term(box, tables), box.mass, budget=0.05)
     assert info["added_fraction"] > 0.01
-    m = build_force_model(box, tables)
+    m = build_spring_term(box, tables)
     sim = Simulator(m, box.points, scaled, fixed=[], gravity=(0, 0, -9.81), gravity_mass=box.mass)
     top = np.flatnonzero(box.points[:, 2] > 0.03 - 1e-9)
     sim.attach(Grasp(nodes=top, offsets=box.points[top] - box.points[top[0]], wp_t=np.array([0.0]),

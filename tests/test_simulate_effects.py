@@ -28,9 +28,12 @@ from esmm.pipeline.network.springs import SpringNetwork, network_from_tets
 from esmm.pipeline.network.tables import StiffnessTables
 from esmm.pipeline.simulate import kernels as K
 from esmm.pipeline.simulate.history import History
-from esmm.pipeline.simulate.integrator import Grasp, Simulator, build_force_model, stable_step
+from esmm.pipeline.simulate.model import Grasp
 from esmm.pipeline.simulate.run import simulate_network
 from esmm.pipeline.simulate.scene import scene_from_dict
+from esmm.pipeline.simulate.simulator import Simulator
+from esmm.pipeline.simulate.springterm import build_spring_term
+from esmm.pipeline.simulate.stepper import stable_step
 
 VISCO = ViscoelasticEffect((0.3, 0.25), (0.03, 0.3))
 
@@ -100,7 +103,7 @@ def test_one_spring_history_matches_reference(law):
     cos2 = np.array([0.2, 0.3, 0.5])
     net = one_spring(cos2=tuple(cos2))
     fx = MaterialEffects(VISCO, MullinsEffect(2.5, 300.0, 0.2), DamageEffect(1.25, 0.15, 2.0))
-    model = build_force_model(net, tables, law=law, effects=fx)
+    model = build_spring_term(net, tables, law=law, effects=fx)
     assert model.n_directions == 3
     st = model.effects.new_state(1)
     w = 1e-6 / 0.01 * cos2                                     # c V cos2 / L0 [m2]
@@ -127,11 +130,11 @@ def test_one_spring_history_matches_reference(law):
 def test_modes_peek_relaxed_settle():
     tables = make_tables("linear")
     net = one_spring()
-    model = build_force_model(net, tables, effects=MaterialEffects(VISCO))
+    model = build_spring_term(net, tables, effects=MaterialEffects(VISCO))
     st = model.effects.new_state(1)
     x = net.points.copy()
     x[1, 0] = 0.012
-    fe = build_force_model(net, tables).forces(x)
+    fe = build_spring_term(net, tables).forces(x)
     # From the virgin state, with no time elapsed, the response is instantaneous: G(0) = 1.
     np.testing.assert_allclose(model.forces(x), fe, rtol=1e-13)
     before = st.copy()
@@ -151,7 +154,7 @@ def test_equivalent_stretch_in_the_kernel_matches_reference():
     tables = make_tables("constant")
     net = one_spring()
     fx = MaterialEffects(damage=DamageEffect(1.0, 0.5, 1.0))
-    model = build_force_model(net, tables, effects=fx)
+    model = build_spring_term(net, tables, effects=fx)
     for lam in (0.45, 0.6, 0.8123, 0.95, 1.0, 1.3):      # below the grid, on and between nodes
         st = model.effects.new_state(1)
         x = net.points.copy()
@@ -170,8 +173,8 @@ def test_mullins_reloading_tangent_is_bounded():
     lam1 = 1.3
     W1 = 1e5 * (lam1 - 1) ** 2 / 2
     mu = MullinsEffect(2.0, 0.05 * W1, 0.0)                    # a sharp transition back to the primary curve
-    model = build_force_model(net, tables, effects=MaterialEffects(mullins=mu))
-    plain = build_force_model(net, tables)
+    model = build_spring_term(net, tables, effects=MaterialEffects(mullins=mu))
+    plain = build_spring_term(net, tables)
     st = model.effects.new_state(1)
     st.wmax[0] = W1
     lam = np.linspace(1.0, lam1, 3001)
@@ -193,7 +196,7 @@ def test_mullins_reloading_tangent_is_bounded():
 def test_visco_history_forces_enter_the_frame_bound():
     tables = make_tables("constant", mu0=1e5)
     net = network_from_tets(box_tets(3, 2, 2, (0.03, 0.02, 0.02)))
-    model = build_force_model(net, tables, effects=MaterialEffects(VISCO))
+    model = build_spring_term(net, tables, effects=MaterialEffects(VISCO))
     sim = Simulator(model, net.points, net.mass, fixed=np.flatnonzero(net.points[:, 0] < 1e-9))
     assert sim.history_stiffness(0.05).max() == 0.0           # no history yet
     # Stretch the box by 20 %, commit a step, then let it spring back: the history carries force.
@@ -205,7 +208,7 @@ def test_visco_history_forces_enter_the_frame_bound():
     with_hist = stable_step(model, sim.mass, free=sim.free, x=sim.x, window=0.05, extra_stiffness=extra)
     assert with_hist.dt < base.dt
     # whole-table bound: kappa includes 2 sum(g) max|f| / lam_min per unit weight
-    assert np.all(model.kappa > build_force_model(net, tables).kappa)
+    assert np.all(model.kappa > build_spring_term(net, tables).kappa)
 
 
 # ---------------------------------------------------------------------------
@@ -227,13 +230,13 @@ def test_step_stretch_relaxes_like_the_fitted_relaxation_function():
     path = np.array([tip0, tip0 + [strain * 0.03, 0, 0]])
 
     def sim_for(effects):
-        m = build_force_model(net, tables, effects=effects, dashpot=1e-4)
+        m = build_spring_term(net, tables, effects=effects, dashpot=1e-4)
         s = Simulator(m, net.points, net.mass, fixed=left, mass_damping=300.0)
         s.attach(Grasp(nodes=right, offsets=net.points[right] - tip0, wp_t=np.array([0.0, tr]), wp_x=path))
         return s
 
     # The elastic (instantaneous) reaction at the held stretch: static equilibrium of the plain network.
-    el = Simulator(build_force_model(net, tables), net.points, net.mass, fixed=left)
+    el = Simulator(build_spring_term(net, tables), net.points, net.mass, fixed=left)
     el.attach(Grasp(nodes=right, offsets=net.points[right] - tip0, wp_t=np.array([0.0]), wp_x=path[1:]))
     el.relax(rtol=1e-12)
     f_inst = -el.grasper_force()[0]
@@ -263,7 +266,7 @@ def test_mullins_reload_below_the_maximum_is_softer_by_eta():
     lam1, lam2 = 1.3, 1.15
     W = lambda lam: float(np.full(3, 1 / 3) @ material_energy(tables, lam))   # noqa: E731
     mu = MullinsEffect(2.0, 0.3 * W(lam1), 0.1)
-    model = build_force_model(net, tables, effects=MaterialEffects(mullins=mu))
+    model = build_spring_term(net, tables, effects=MaterialEffects(mullins=mu))
     sim = Simulator(model, net.points, net.mass, fixed=[0], mass_damping=2000.0)
     # load to lam1, unload to 1, reload to 1.4 (back on the primary path beyond lam1)
     knots_t = np.array([0.0, 0.15, 0.3, 0.51])
@@ -299,7 +302,7 @@ def test_long_term_sag_is_elastic_sag_over_g_inf():
     fixed = np.flatnonzero(net.points[:, 0] < 1e-9)
     sags = []
     for fx in (None, MaterialEffects(VISCO)):
-        sim = Simulator(build_force_model(net, tables, effects=fx), net.points, net.mass, fixed=fixed,
+        sim = Simulator(build_spring_term(net, tables, effects=fx), net.points, net.mass, fixed=fixed,
                         gravity=(0, 0, -9.81))
         sim.relax(rtol=1e-10)
         sags.append(-sim.displacement()[:, 2].min())
@@ -311,7 +314,7 @@ def _box_sim(threads=1):
     net = network_from_tets(box_tets(4, 3, 3, (0.04, 0.03, 0.03)))
     tables = make_tables()
     fx = MaterialEffects(VISCO, MullinsEffect(2.0, 50.0, 0.1), DamageEffect(1.05, 0.2, 1.5))
-    model = build_force_model(net, tables, effects=fx, dashpot=2e-4)
+    model = build_spring_term(net, tables, effects=fx, dashpot=2e-4)
     sim = Simulator(model, net.points, net.mass, fixed=np.flatnonzero(net.points[:, 0] < 1e-9),
                     gravity=(0, 0, -9.81), mass_damping=5.0, threads=threads)
     tgt = int(np.argmax(net.points[:, 0] + net.points[:, 2]))
@@ -384,7 +387,7 @@ def test_run_records_the_effects_used(tmp_path, slab):
     # switched off by the scene: the plain elastic run, recorded as such
     off = simulate_network(slab, make_tables(mu0=2e5), short_scene().with_overrides(effects="none"), tmp_path / "off",
                            effects=fx)
-    assert off.summary["effects"] is None and off.summary["effects_available"] == ["viscoelastic", "mullins"]
+    assert off.summary.effects is None and off.summary.effects_available == ["viscoelastic", "mullins"]
     with History(off.history) as h:
         assert "effects" not in h.attrs
         t_off, f_off = h.forces()
@@ -403,7 +406,7 @@ def test_effects_from_a_material_table():
     fx = effects_of_material(mat)
     assert fx.viscoelastic.tau == (0.05,) and fx.mullins.m == pytest.approx(1500.0)
     assert effects_of_material(SimpleNamespace(metadata={})) is None
-    assert math.isclose(build_force_model(one_spring(), make_tables(), effects=fx).effects.g_inf, 0.8)
+    assert math.isclose(build_spring_term(one_spring(), make_tables(), effects=fx).effects.g_inf, 0.8)
 
 
 # ---------------------------------------------------------------------------

@@ -8,23 +8,13 @@ import pytest
 from esmm.pipeline.asset.tables import read_tables, write_per_spring, write_tables
 from esmm.pipeline.errors import AssetError, ConfigError, InputError
 from esmm.pipeline.materials.loading import nominal_stress
-from esmm.pipeline.materials.material import Material, load_material
+from esmm.pipeline.materials.material import Material
 from esmm.pipeline.network.tables import (
     LAWS,
     build_tables,
     per_spring_table,
     spring_factors,
 )
-
-
-@pytest.fixture(scope="module")
-def liver():
-    return load_material("porcine_liver_paper")
-
-
-@pytest.fixture(scope="module")
-def tables(liver):
-    return build_tables(liver)
 
 
 def test_grid_covers_compression_and_tension_below_locking(liver, tables):

@@ -7,27 +7,15 @@ import math
 import numpy as np
 import pytest
 from esmm.pipeline.errors import ConfigError
-from esmm.pipeline.materials.material import load_material
 from esmm.pipeline.network.compensation import calibrate_compensation
 from esmm.pipeline.network.forcelaw import spring_forces
 from esmm.pipeline.network.springs import affine_elasticity, engineering_constants
-from esmm.pipeline.network.tables import build_tables
 from esmm.pipeline.network.tensile_test import (
     continuum_stress,
     cylinder_specimen,
     virtual_tensile_test,
 )
 from esmm.pipeline.progress import ListReporter
-
-
-@pytest.fixture(scope="module")
-def liver():
-    return load_material("porcine_liver_paper")
-
-
-@pytest.fixture(scope="module")
-def tables(liver):
-    return build_tables(liver)
 
 
 @pytest.fixture(scope="module")

@@ -245,6 +245,19 @@ def seal_file(path) -> bool:
     return True
 
 
+def _remains_of_header(head: bytes) -> bool:
+    """Whether a user block that is not a valid header still holds part of one.
+
+    Any 16-byte piece of the note, the magic, ``sha256=`` or ``length=`` is a
+    remain: a few damaged bytes cannot make an esmm file pass for one without a
+    header (whose HDF5 parsing the hash no longer guards), as that would need
+    about 300 bytes overwritten.
+    """
+    if FILE_MAGIC in head or b"sha256=" in head or b" length=" in head:
+        return True
+    return any(_NOTE[k:k + 16] in head for k in range(0, len(_NOTE) - 15, 16))
+
+
 def check_file(path) -> tuple[bool, str]:
     """Check the file header before libhdf5 parses the file.
 
@@ -271,7 +284,7 @@ def check_file(path) -> tuple[bool, str]:
                 if v and int(v.group(1)) > FILE_HEADER_VERSION:
                     return True, (f"written by a newer esmm (file header version {int(v.group(1))}, this esmm "
                                   f"reads {FILE_HEADER_VERSION}); upgrade esmm")
-            if FILE_MAGIC in head or b" sha256=" in head:  # a header with a damaged (or shifted) start
+            if _remains_of_header(head):  # a header with damaged (or shifted) bytes
                 return True, "damaged or modified after esmm wrote it (its esmm file header is unreadable)"
             return False, ""
         if int(m.group(1)) > FILE_HEADER_VERSION:

@@ -94,6 +94,7 @@ spring is listed by :meth:`MaterialEffects.state_variables`.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -104,11 +105,6 @@ from scipy.special import erf
 
 from ..errors import ConfigError
 from ..units import from_si, parse_quantity, to_si
-
-try:  # numba makes the O(n) recursion fast; the pure-numpy fallback is exact too
-    from numba import njit
-except ImportError:  # pragma: no cover
-    njit = None
 
 __all__ = [
     "MATERIAL_EFFECTS",
@@ -165,10 +161,15 @@ def _qlv_py(t, pe, g, tau, out, state):  # pragma: no cover - used only without 
     state[:] = h
 
 
-if njit is not None:
-    _qlv_kernel = njit(cache=True, nogil=True)(_qlv_py)
-else:  # pragma: no cover
-    _qlv_kernel = _qlv_py
+@functools.cache
+def _qlv_kernel():
+    """The compiled recursion (numba, imported on first use: reading an asset or a material must
+    not pay numba's start-up); the plain-Python one without numba."""
+    try:
+        from numba import njit
+    except ImportError:  # pragma: no cover
+        return _qlv_py
+    return njit(cache=True, nogil=True)(_qlv_py)
 
 
 def qlv_stress(t, pe, g, tau, *, return_state: bool = False):
@@ -202,7 +203,7 @@ def qlv_stress(t, pe, g, tau, *, return_state: bool = False):
     state = np.empty_like(g)
     if pe.size == 0:
         return (out, state) if return_state else out
-    _qlv_kernel(t, pe, g, tau, out, state)
+    _qlv_kernel()(t, pe, g, tau, out, state)
     return (out, state) if return_state else out
 
 

@@ -34,8 +34,10 @@ QUALITY_FLOORS: dict[str, float] = {
     # No inverted, flat or nearly flat element (volume below ~2 % of the regular one of the
     # same size): its volume weight and its springs' directions are meaningless.
     "sicn_min": 0.02,
-    # Slivers: with a dihedral angle below 2 degrees the four nodes are nearly coplanar, the
-    # element's springs give no stiffness across that plane (a local soft mode).
+    # Slivers: with a small dihedral angle the four nodes are nearly coplanar, the element's
+    # springs give little stiffness across that plane (a local soft mode) and a finite-element
+    # solve on it is poorly conditioned; the mesher's slivers are relocated up to it
+    # (pipeline/mesh/slivers.py).
     "min_dihedral_deg": 2.0,
     # The worst 1 % of the elements must still be reasonable shapes; gmsh+Netgen meshes of
     # organs reach 0.55-0.65 (SICN) and 0.43-0.50 (gamma, radius ratio), the fTetWild

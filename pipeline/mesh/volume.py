@@ -36,6 +36,7 @@ from ..validate import number
 from .cleaning import face_components, keep_largest, orient_outward
 from .gmsh_worker import GmshFailure, GmshTimeout, run_worker
 from .readers import boundary_of_tets
+from .slivers import SLIVER_TARGET_DEG, improve_slivers
 from .surface import Surface
 from .targets import (
     DEFAULT_NODES,
@@ -331,18 +332,24 @@ def check_tets(nodes: np.ndarray, tets: np.ndarray, v_surf: float, *, path: str 
     bad = int(np.count_nonzero(det <= 1e-12 * scale))
     if bad:
         return False, f"{bad} inverted or flat tetrahedra", None
+    bfaces = boundary_of_tets(pts, t)
     vol = float(det.sum() / 6.0)
     err = vol / v_surf - 1.0
-    bfaces = boundary_of_tets(pts, t)
     note = ""
     if abs(err) > MAX_MESH_VOLUME_ERROR:
         moved = restore_volume(pts, t, bfaces, v_surf)
         if moved is not None:
             pts, delta = moved
             vol2 = float(VolumeMesh(pts, t, bfaces).volume())
-            note = (f"; boundary nodes moved {delta * 1e3:+.3f} mm along their normals to restore the "
+            note += (f"; boundary nodes moved {delta * 1e3:+.3f} mm along their normals to restore the "
                     f"volume ({err * 100:+.2f} % -> {(vol2 / v_surf - 1) * 100:+.2f} %)")
             err = vol2 / v_surf - 1.0
+    # After the volume restoration, which moves boundary nodes and may flatten elements.
+    pts, sliv = improve_slivers(pts, t, bfaces)
+    if sliv["moved"]:
+        note += (f"; {sliv['below_before']} slivers below {SLIVER_TARGET_DEG:g} deg relocated (min dihedral "
+                 f"{sliv['min_dihedral_before']:.1f} -> {sliv['min_dihedral_after']:.1f} deg)")
+        err = float(VolumeMesh(pts, t, bfaces).volume()) / v_surf - 1.0
     if abs(err) > MAX_MESH_VOLUME_ERROR:
         return False, (f"mesh volume {vol * 1e6:.1f} mL is {err * 100:+.2f} % off the surface's "
                        f"{v_surf * 1e6:.1f} mL"), None

@@ -23,9 +23,10 @@ otherwise), and :math:`W_{max}`, :math:`\xi_{max}` their largest values so far.
 The tables hold the *instantaneous* response (:math:`G(0) = 1`); the long-term
 response is :math:`g_\infty` times it.
 
-:class:`EffectModel` holds the compiled kernels' parameters and tables;
-:class:`EffectState` the per-spring state (``h`` (nt, s), ``pold``, ``wmax``,
-``ximax`` (s,), in the force model's spring order) and the time it refers to.
+:class:`EffectModel` holds the compiled kernels' parameters and tables (part of
+the spring term, constant); :class:`EffectState` the per-spring state (``h``
+(nt, s), ``pold``, ``wmax``, ``ximax`` (s,), in the spring term's order) and the
+time it refers to (part of the simulation's state).
 
 Stability. The instantaneous tangent of a QLV spring is
 :math:`(g_\infty + \sum g_i b_i)\,P' \le P'` and damage lowers it, so the elastic
@@ -35,7 +36,7 @@ bound holds for those; two terms are added where they are not covered:
   :math:`(1 - 1/r)P_e` back to :math:`P_e` over an energy range of about
   :math:`m`, a tangent up to :math:`\frac{2}{\sqrt\pi\,r\,m}|F_e|\,|W'|` above
   the elastic one. It is bounded per table cell and enters the cell (and
-  window, and whole-table) bounds of :mod:`.integrator`.
+  window, and whole-table) bounds of :mod:`.springterm`.
 * Viscoelastic history forces :math:`\sum g_i h_i` are not functions of the
   current length; their geometric stiffness :math:`F/L` is bounded per frame
   from the state (:meth:`EffectModel.history_stiffness`) and, for the
@@ -52,14 +53,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError
+from ..materials.effects import MaterialEffects, equivalent_stretch
 from . import kernels as K
-
-
-def equivalent_stretch(I1):
-    """The uniaxial-equivalent stretch (``esmm.pipeline.materials.effects.equivalent_stretch``)."""
-    from ..materials.effects import equivalent_stretch as _xi
-
-    return _xi(I1)
 
 __all__ = ["EffectModel", "EffectState", "build_effect_model", "effects_of_material"]
 
@@ -77,8 +72,6 @@ def effects_of_material(material) -> Any:
     table = (getattr(material, "metadata", None) or {}).get("effects")
     if not table:
         return None
-    from ..materials.effects import MaterialEffects
-
     fx = MaterialEffects.from_toml_table(table, stress_unit=getattr(material, "stress_unit", None),
                                          where=f"{getattr(material, 'name', '') or 'material'} [material.effects]")
     return fx if fx else None
@@ -86,7 +79,7 @@ def effects_of_material(material) -> Any:
 
 @dataclass
 class EffectState:
-    """Per-spring state of the material effects (model spring order).
+    """Per-spring state of the material effects (spring term order).
 
     Attributes
     ----------
@@ -176,9 +169,9 @@ class EffectModel:
         K.prony_ab(self.fxp, float(dt), out)
         return out
 
-    def kernel_args(self) -> tuple:
-        """(etab, fxp) for the kernels."""
-        return (self.etab, self.fxp)
+    def kernel(self, state: EffectState, *, mode: int, dt: float = 0.0) -> K.EffectKernel:
+        """The kernels' tuple: tables, the Prony factors of a step *dt*, *state*'s arrays, *mode*."""
+        return K.EffectKernel(self.etab, self.fxp, self.ab(dt), *state.arrays(), int(mode))
 
     def history_stiffness(self, state: EffectState, lam: np.ndarray, rest_length: np.ndarray,
                           delta: float) -> np.ndarray:
@@ -193,6 +186,38 @@ class EffectModel:
             return np.zeros_like(lam)
         q = np.abs(state.h).T @ self.g + self.g.sum() * np.abs(state.pold)
         return q / (rest_length * np.maximum(lam - delta, 0.05))
+
+    def report(self, state: EffectState) -> dict:
+        """Extremes of *state* (JSON-ready): the largest history and elastic forces, energy density,
+        equivalent stretch, remaining fraction and damaged springs, as the effects present have them."""
+        out: dict = {"effects": self.names}
+        if self.n_terms:
+            q = np.abs(state.h).T @ self.g
+            out["max_history_force_N"] = float(q.max()) if q.size else 0.0
+            out["max_elastic_force_N"] = float(np.abs(state.pold).max()) if state.pold.size else 0.0
+        if self.effects.mullins is not None:
+            out["max_energy_density_Pa"] = float(state.wmax.max()) if state.wmax.size else 0.0
+        if self.effects.damage is not None:
+            xi = float(state.ximax.max()) if state.ximax.size else 1.0
+            out["max_equivalent_stretch"] = xi
+            out["min_remaining_fraction"] = float(self.effects.damage.factor(np.array([xi]))[0])
+            out["damaged_springs"] = int(np.count_nonzero(state.ximax > self.effects.damage.onset))
+        return out
+
+    def explain(self) -> str:
+        """One line naming the effects and their parameters (for the run's report)."""
+        e = self.effects
+        parts = []
+        if e.viscoelastic is not None:
+            v = e.viscoelastic
+            parts.append("viscoelastic (QLV, " + ", ".join(f"g {g:.3g} tau {t:.3g} s" for g, t in zip(v.g, v.tau))
+                         + f"; long-term {v.g_inf:.3g} of the instantaneous response)")
+        if e.mullins is not None:
+            parts.append(f"Mullins (r {e.mullins.r:.3g}, m {e.mullins.m:.3g} Pa, beta {e.mullins.beta:.3g})")
+        if e.damage is not None:
+            parts.append(f"damage (onset {e.damage.onset:.3g}, scale {e.damage.scale:.3g}, "
+                         f"shape {e.damage.shape:.3g})")
+        return "; ".join(parts) + " per spring"
 
     def describe(self) -> dict:
         """JSON-ready description for the run's summary and history."""

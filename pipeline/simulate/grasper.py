@@ -16,7 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import ConfigError
-from .integrator import Grasp
+from .model import Grasp
 from .scene import JAW_RADIUS, GrasperSpec
 
 
@@ -53,7 +53,7 @@ class GraspPlan:
     radius: float = 0.0
 
     def make_grasp(self, x: np.ndarray, mass: np.ndarray) -> Grasp:
-        """The :class:`~.integrator.Grasp` that closes on the current positions *x*."""
+        """The :class:`~.model.Grasp` that closes on the current positions *x*."""
         tip0 = np.asarray(x[self.target], dtype=np.float64).copy()
         offsets = x[self.nodes] - tip0
         stiffness = None
@@ -62,6 +62,14 @@ class GraspPlan:
             stiffness = self.spec.stiffness * m / m.sum()
         return Grasp(nodes=self.nodes.copy(), offsets=offsets, wp_t=self.times.copy(),
                      wp_x=tip0[None, :] + self.offsets, mode=self.spec.mode, stiffness=stiffness)
+
+    def coupling_rows(self, x: np.ndarray, mass: np.ndarray) -> np.ndarray | None:
+        """Per node, the coupling stiffness this grasper will add [N/m] (None unless mode "spring")."""
+        if self.spec.mode != "spring":
+            return None
+        out = np.zeros(np.asarray(x).shape[0])
+        out[self.nodes] = self.make_grasp(x, mass).stiffness
+        return out
 
     def describe(self) -> str:
         far = np.linalg.norm(self.offsets, axis=1).max() * 1e3
@@ -118,44 +126,15 @@ def plan_grasp(spec: GrasperSpec, points: np.ndarray, surface_faces: np.ndarray,
     cand = surface[~is_fixed[surface]]
     if cand.size == 0:
         raise ConfigError("[grasper]: every surface node is fixed; shrink the fixed region")
-    if isinstance(spec.target, str):  # "auto": farthest from the fixed region (or the centroid)
-        if fixed.size:
-            d, _ = cKDTree(p[fixed]).query(p[cand])
-        else:
-            d = np.linalg.norm(p[cand] - p.mean(axis=0), axis=1)
-        target = int(cand[np.argmax(d)])
-    else:
-        d = np.linalg.norm(p[cand] - np.asarray(spec.target), axis=1)
-        target = int(cand[np.argmin(d)])
-    radius = spec.radius
-    if isinstance(radius, str):      # "auto"
-        radius = JAW_RADIUS
-        if springs is not None:
-            sp = np.asarray(springs)
-            inc = (sp[:, 0] == target) | (sp[:, 1] == target)
-            if inc.any():
-                lengths = np.linalg.norm(p[sp[inc, 1]] - p[sp[inc, 0]], axis=1)
-                radius = max(radius, 1.05 * float(np.median(lengths)))
+    target = _target_node(spec, p, cand, fixed)
+    radius = _grasp_radius(spec, p, target, springs)
     near = cKDTree(p[cand]).query_ball_point(p[target], r=radius)
     nodes = np.union1d(cand[np.asarray(near, dtype=np.int64)], [target]).astype(np.int64)
-
     normal = vertex_normals(p, faces)[target]
     if not np.any(normal):
         normal = p[target] - p.mean(axis=0)
         normal = normal / (np.linalg.norm(normal) or 1.0)
-    if isinstance(spec.direction, str):
-        if spec.direction == "up":
-            gn = float(np.linalg.norm(gravity))
-            if gn == 0:
-                raise ConfigError("[grasper] direction: \"up\" needs gravity; give a vector instead")
-            direction = -np.asarray(gravity, dtype=np.float64) / gn
-        else:
-            ref = p[fixed].mean(axis=0) if fixed.size else p.mean(axis=0)
-            direction = p[target] - ref
-            norm = float(np.linalg.norm(direction))
-            direction = direction / norm if norm > 0 else normal
-    else:
-        direction = np.asarray(spec.direction, dtype=np.float64)
+    direction = _pull_direction(spec, p, target, fixed, gravity, normal)
 
     times = [w.time for w in spec.waypoints]
     offs = [w.offset if w.offset is not None else w.distance * direction for w in spec.waypoints]
@@ -165,3 +144,45 @@ def plan_grasp(spec: GrasperSpec, points: np.ndarray, surface_faces: np.ndarray,
     return GraspPlan(target=target, nodes=nodes, direction=direction, normal=normal,
                      times=np.asarray(times, dtype=np.float64), offsets=np.asarray(offs, dtype=np.float64),
                      spec=spec, radius=float(radius))
+
+
+def _target_node(spec: GrasperSpec, p: np.ndarray, cand: np.ndarray, fixed: np.ndarray) -> int:
+    """The candidate node the tip goes to: "auto" farthest from the fixed nodes (or the centroid), else nearest."""
+    if isinstance(spec.target, str):
+        if fixed.size:
+            d, _ = cKDTree(p[fixed]).query(p[cand])
+        else:
+            d = np.linalg.norm(p[cand] - p.mean(axis=0), axis=1)
+        return int(cand[np.argmax(d)])
+    d = np.linalg.norm(p[cand] - np.asarray(spec.target), axis=1)
+    return int(cand[np.argmin(d)])
+
+
+def _grasp_radius(spec: GrasperSpec, p: np.ndarray, target: int, springs) -> float:
+    """The grasp radius [m]; "auto": the jaws, or 1.05 x the median length of the target's springs."""
+    radius = spec.radius
+    if isinstance(radius, str):
+        radius = JAW_RADIUS
+        if springs is not None:
+            sp = np.asarray(springs)
+            inc = (sp[:, 0] == target) | (sp[:, 1] == target)
+            if inc.any():
+                lengths = np.linalg.norm(p[sp[inc, 1]] - p[sp[inc, 0]], axis=1)
+                radius = max(radius, 1.05 * float(np.median(lengths)))
+    return radius
+
+
+def _pull_direction(spec: GrasperSpec, p: np.ndarray, target: int, fixed: np.ndarray, gravity,
+                    normal: np.ndarray) -> np.ndarray:
+    """Unit direction of ``distance`` waypoints: against gravity, away from the fixed nodes, or given."""
+    if not isinstance(spec.direction, str):
+        return np.asarray(spec.direction, dtype=np.float64)
+    if spec.direction == "up":
+        gn = float(np.linalg.norm(gravity))
+        if gn == 0:
+            raise ConfigError("[grasper] direction: \"up\" needs gravity; give a vector instead")
+        return -np.asarray(gravity, dtype=np.float64) / gn
+    ref = p[fixed].mean(axis=0) if fixed.size else p.mean(axis=0)
+    direction = p[target] - ref
+    norm = float(np.linalg.norm(direction))
+    return direction / norm if norm > 0 else normal

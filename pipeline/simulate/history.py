@@ -27,7 +27,6 @@ temporary names and renamed when complete.
 from __future__ import annotations
 
 import json
-import os
 import sys
 from contextlib import ExitStack
 from pathlib import Path
@@ -36,7 +35,7 @@ from xml.sax.saxutils import escape
 import h5py
 import numpy as np
 
-from ..atomicio import atomic_path
+from ..atomicio import atomic_path, jsonable
 from ..errors import AssetError
 
 ESMM_TYPE = "simulation_history"
@@ -87,7 +86,7 @@ class HistoryWriter:
         f.attrs["esmm_type"] = ESMM_TYPE
         f.attrs["esmm_version"] = ESMM_VERSION
         for k, v in self.attrs.items():
-            f.attrs[k] = json.dumps(v, default=_jsonable) if isinstance(v, (dict, list, tuple)) else v
+            f.attrs[k] = _attr(v)
         m = f.create_group("mesh")
         _ds(m, "points", self.points, "m", "rest positions")
         _ds(m, "cells", self.cells, "1", "tetrahedra" if self.cells.shape[1] == 4 else "triangles")
@@ -139,7 +138,7 @@ class HistoryWriter:
 
     def set_attrs(self, **attrs) -> None:
         for k, v in attrs.items():
-            self._h5.attrs[k] = json.dumps(v, default=_jsonable) if isinstance(v, (dict, list, tuple)) else v
+            self._h5.attrs[k] = _attr(v)
 
     def set_grasped(self, nodes) -> None:
         g = self._h5["grasper"]
@@ -174,14 +173,9 @@ def _ds(group, name, data, units, description):
     return d
 
 
-def _jsonable(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, os.PathLike):
-        return os.fspath(o)
-    return str(o)
+def _attr(value):
+    """An HDF5 attribute value: dicts, lists and tuples as (strict) JSON text, the rest as it is."""
+    return json.dumps(jsonable(value)) if isinstance(value, (dict, list, tuple)) else value
 
 
 def xdmf_text(h5_name: str, *, n_nodes: int, cells: np.ndarray, times: np.ndarray, disp_dtype) -> str:

@@ -1,8 +1,35 @@
-r"""Compiled (numba) hot loops of the simulator.
+r"""Compiled (numba) kernels of the simulator: the force pass, the step loop, FIRE.
 
-Everything here works on plain arrays in SI units; :mod:`.integrator` builds
-them from a :class:`~esmm.pipeline.network.springs.SpringNetwork` and
-:class:`~esmm.pipeline.network.tables.StiffnessTables`.
+Everything here works on plain arrays in SI units, grouped in a few tuples
+that :class:`~.springterm.SpringTerm`, :mod:`.effects`, :class:`~.model.Control`
+and the steppers build:
+
+* :class:`SpringKernel` ``(ij, sd, tab, lam_min, inv_h, last_cell, law, damped)``:
+  the springs and their table (constant during a run);
+* :class:`EffectKernel` ``(etab, fxp, ab, h, pold, wmax, ximax, mode)``: the
+  material effects' parameters and tables, the Prony factors of the step, the
+  per-spring state and what to do with it; **None** for an elastic run;
+* :class:`Layout` ``(node_start, spring_start, halo_start, hbuf, own_start,
+  own_slot, own_node)``: the race-free threading layout (one chunk: serial);
+* :class:`Clock` ``(n, dt, t0, step0, dt_first, vfac)``: how many steps, the
+  step, the time origin and the step count from it (step ``k`` is at
+  ``t0 + (step0 + k) dt``), the time the effects' state must first advance
+  by, and the implicit mass-damping factor ``1 / (1 + alpha dt)``;
+* :class:`Nodes` ``(x, v, f, fext, inv_mass)``;
+* :class:`GraspKernel` ``(mode, nodes, offsets, stiffness, wp_t, wp_x)``;
+* :class:`FloorKernel` ``(on, normal, height, stick, mask, contact)``.
+
+The entry points take these tuples; they unpack them once and hand plain arrays
+to the inlined helpers of the loops (an array taken out of a tuple is
+reference-counted: an atomic increment and decrement each time, measurable
+when done per block of springs). Every kernel lives in this one file on
+purpose: numba's on-disk cache of a function is invalidated only when *its*
+file changes, not when a function it calls from another file does.
+
+Symplectic Euler with implicit mass damping (docs/simulate.md §2)::
+
+    f_n = f(x_n, v_n) + f_ext
+    v_{n+1} = (v_n + dt f_n / m) / (1 + alpha dt),   x_{n+1} = x_n + dt v_{n+1}
 
 Spring force (the tables module's convention, paper Eq. 8-9)::
 
@@ -35,10 +62,24 @@ Blocking
 --------
 Springs are processed in blocks of :data:`BLOCK`: (1) gather the end-node
 differences into block buffers (scalar), (2) length, stretch, table cell and
-weight (contiguous: LLVM vectorises it, sqrt included), (3) table fetch, (4)
-force coefficient ``F/L`` (vectorised, the division included), (5) scatter.
-This is ~20 % faster than the one-loop form on AVX-512 hardware and gives
-bitwise the same numbers.
+weight (contiguous: LLVM vectorises it, sqrt included), (3) table fetch and
+law factor, (4) the material effects when there are any, (5) force
+coefficient ``F/L`` (vectorised, the division included), (6) scatter. This is
+~20 % faster than the one-loop form on AVX-512 hardware and gives bitwise the
+same numbers.
+
+Written once, compiled as needed
+--------------------------------
+The effects are one optional argument: ``fx is None`` is decided when numba
+compiles (dead-branch pruning on the argument's type), so the elastic variant
+contains no effect code and no branch for it, and the effects variant shares
+every other line. The force pass (:func:`_forces`) and the step loop
+(:func:`_steps`) are written once with ``prange`` and compiled twice, on one
+thread (``prange`` is ``range``; one chunk) and on numba's threads
+(:func:`twin`). A force term that joins later (a per-tetrahedron volume term)
+joins the same way: its own tuple (None when absent), its own chunk function
+adding its forces to the owned nodes and halo slots of a chunk, called next to
+:func:`chunk_forces`.
 
 Race-free threading
 -------------------
@@ -49,13 +90,41 @@ springs whose ``i`` lies in its range. It writes ``f[i]`` (owned) and
 chunk's range (a *halo* spring: few after a bandwidth-reducing node order)
 writes its force into a private slot ``hbuf[h]`` instead. A second parallel
 pass over the node ranges adds the halo slots of each range (precomputed per
-owner) and integrates its nodes. No two threads ever write the same address:
-no atomics and no reduction buffers.
+owner). No two threads ever write the same address: no atomics and no
+reduction buffers. With one chunk there is no halo and the scatter is the
+plain one.
+
+Material effects
+----------------
+With effects (viscoelastic QLV, Mullins, damage), each spring carries state
+(model spring order, structure of arrays):
+
+    h     (nt, s)  Prony internal variables h_i [N]
+    pold  (s,)     the spring's softened elastic force P at the last committed evaluation [N]
+    wmax  (s,)     largest energy density W reached so far [Pa]            (Mullins)
+    ximax (s,)     largest uniaxial-equivalent stretch reached so far      (damage)
+
+and its force is (docs/simulate.md, "Material effects")
+
+    F_e = sum_d w_d f_d(lam)                      the elastic (instantaneous) force
+    P   = (1 - D(ximax)) * eta(W, wmax) * F_e     damage and Mullins softening
+    h_i <- a_i h_i + b_i (P - pold),  a_i = exp(-dt/tau_i), b_i = tau_i/dt (1 - a_i)
+    F   = g_inf P + sum_i g_i h_i                 QLV, G(0) = 1
+
+``etab`` (n_cells, 8): per cell ``[W_x, W_y, W_z, dW_x, dW_y, dW_z, xi, dxi]``: the
+material's uniaxial energy density [Pa] and the uniaxial-equivalent stretch of a
+spring at the cell's left node, with their increments (xi is exact for lam >= 1
+and below the grid). Parameters ``fxp`` (float64): [g_inf, nt, mullins_on, 1/r, m,
+beta, damage_on, onset, scale, shape, g_1..g_nt, tau_1..tau_nt]; ``ab`` (2, nt):
+a_i and b_i of the current step (from :func:`prony_ab`); ``mode`` one of
+:data:`FX_STEP`, :data:`FX_PEEK`, :data:`FX_RELAXED`, :data:`FX_SETTLE`.
 """
 
 from __future__ import annotations
 
 import math
+import types
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -63,26 +132,85 @@ from numba import njit, prange
 LAW_SECANT = 0
 LAW_ENERGY = 1
 
-GRASP_NONE = 0
-GRASP_PRESCRIBED = 1
-GRASP_SPRING = 2
+FX_STEP = 0       #: advance the state by the step in ``ab`` and commit it
+FX_PEEK = 1       #: the force the step in ``ab`` would give, state unchanged
+FX_RELAXED = 2    #: long-term force g_inf * P (maxima including the current stretch), state unchanged
+FX_SETTLE = 3     #: commit the maxima and a fully relaxed history at the current stretch (h = 0)
 
-#: Springs per block (buffers of 10 x BLOCK doubles stay in L1).
+#: Number of leading scalars in ``fxp`` before the Prony weights.
+FXP_HEAD = 10
+
+#: Springs per block (buffers of 8 x BLOCK doubles stay in L1).
 BLOCK = 64
 
-_OPTS = dict(cache=True, error_model="numpy")
+#: Options of every compiled function: cached on disk, numpy semantics for division (inf, NaN).
+JIT_OPTIONS = dict(cache=True, error_model="numpy")
+
+
+class SpringKernel(NamedTuple):
+    """The springs and their table, as the kernels read them (see the module doc)."""
+
+    ij: np.ndarray          #: (2, s) uint32
+    sd: np.ndarray          #: (2..5, s) float64 or float32
+    tab: np.ndarray         #: (n_cells, 6) float64
+    lam_min: float
+    inv_h: float
+    last_cell: int
+    law: int                #: :data:`LAW_SECANT` or :data:`LAW_ENERGY`
+    damped: bool            #: the last row of ``sd`` is the dashpot c_ij
+
+
+class EffectKernel(NamedTuple):
+    """The material effects' tables, step factors, per-spring state and mode."""
+
+    etab: np.ndarray        #: (n_cells, 8)
+    fxp: np.ndarray         #: (10 + 2 nt,)
+    ab: np.ndarray          #: (2, nt)
+    h: np.ndarray           #: (nt, s)
+    pold: np.ndarray        #: (s,)
+    wmax: np.ndarray        #: (s,)
+    ximax: np.ndarray       #: (s,)
+    mode: int
+
+
+class Layout(NamedTuple):
+    """Owner/halo threading layout (:func:`~.springterm.thread_layout`)."""
+
+    node_start: np.ndarray   #: (T+1,) node ranges
+    spring_start: np.ndarray  #: (T+1,) their spring ranges
+    halo_start: np.ndarray   #: (T+1,) their halo slot ranges
+    hbuf: np.ndarray         #: (H, 3) halo slots
+    own_start: np.ndarray    #: (T+1,) per chunk, the range of the slots landing in its nodes
+    own_slot: np.ndarray     #: the slots
+    own_node: np.ndarray     #: the node each lands on
+
+
+def twin(fn, name: str):
+    """A copy of the Python function *fn* named *name* (its own numba dispatcher and cache file).
+
+    A loop written once with ``prange`` is compiled twice, serial (``prange``
+    is ``range``) and parallel; numba's cache tells its entries apart by the
+    function's qualified name, not by the ``parallel`` flag, so each variant
+    gets its own name.
+    """
+    g = types.FunctionType(fn.__code__.replace(co_name=name, co_qualname=name), fn.__globals__, name,
+                           fn.__defaults__, fn.__closure__)
+    g.__qualname__ = name
+    g.__doc__ = fn.__doc__
+    g.__module__ = fn.__module__
+    return g
 
 
 # ---------------------------------------------------------------------------
 # one block of springs
 # ---------------------------------------------------------------------------
 
-@njit(inline="always", **_OPTS)
-def _block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, buf, kk):
-    """Force coefficients of springs p0..p0+nb-1 into buf[5] (F/L + dashpot), d into buf[0:3].
+@njit(inline="always", **JIT_OPTIONS)
+def _elastic_block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, buf, kk):
+    """Elastic forces F_e of springs p0..p0+nb-1 into buf[5], d into buf[0:3], 1/L into buf[3].
 
-    buf rows: 0-2 dx dy dz, 3 L, 4 lam, 5 coefficient, 6 t, 7 d.dv. The law is
-    applied without branches: secant clips t to [0, 1] and multiplies by
+    buf rows: 0-2 dx dy dz, 3 1/L, 4 lam, 5 force, 6 t, 7 d.dv; kk the table cells.
+    The law is applied without branches: secant clips t to [0, 1] and multiplies by
     (lam - 1); energy leaves t unclipped and multiplies by 1. The damping
     branch is outside the loops, so that both versions vectorise.
     """
@@ -90,8 +218,6 @@ def _block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, bu
     secant = law == LAW_SECANT
     t_lo = 0.0 if secant else -np.inf
     t_hi = 1.0 if secant else np.inf
-    a1 = 1.0 if secant else 0.0          # factor = a1 * (lam - 1) + a0
-    a0 = 0.0 if secant else 1.0
     if damped:
         for b in range(nb):
             i = ij[0, p0 + b]
@@ -133,18 +259,127 @@ def _block(p0, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, bu
         for b in range(nb):
             k = kk[b]
             buf[5, b] = sd[1, p0 + b] * (tab[k, 0] + buf[6, b] * tab[k, 3])
+
+
+@njit(inline="always", **JIT_OPTIONS)
+def _coefficients(p0, nb, sd, damped, a1, a0, buf):
+    """buf[5] <- buf[5] (a1 (lam - 1) + a0) / L (+ the dashpot's c (d.dv) / L^2): the factor of d on node i."""
     if damped:
         cd = sd.shape[0] - 1
         for b in range(nb):
             rinv = buf[3, b]
-            buf[5, b] = (buf[5, b] * (a1 * (buf[4, b] - 1.0) + a0)
-                         + sd[cd, p0 + b] * buf[7, b] * rinv) * rinv
+            buf[5, b] = (buf[5, b] * (a1 * (buf[4, b] - 1.0) + a0) + sd[cd, p0 + b] * buf[7, b] * rinv) * rinv
     else:
         for b in range(nb):
             buf[5, b] = buf[5, b] * (a1 * (buf[4, b] - 1.0) + a0) * buf[3, b]
 
 
-@njit(inline="always", **_OPTS)
+@njit(inline="always", **JIT_OPTIONS)
+def _equivalent_stretch(lam):
+    """Uniaxial-equivalent stretch xi >= 1 of a spring at stretch lam (lam itself in tension)."""
+    if lam >= 1.0:
+        return lam
+    if lam <= 1e-6:
+        return np.inf
+    i1 = lam * lam + 2.0 / lam
+    c = -((3.0 / i1) ** 1.5)
+    c = min(max(c, -1.0), 1.0)
+    return 2.0 * np.sqrt(i1 / 3.0) * np.cos(np.arccos(c) / 3.0)
+
+
+@njit(inline="always", **JIT_OPTIONS)
+def _effects_block(p0, nb, sd, lam_min, inv_h, damped, a1, a0, etab, fxp, ab, h, pold, wmax, ximax, mode, buf,
+                   kk):
+    """Replace the elastic forces F_e in buf[5] by the effects' forces F, updating the state per *mode*.
+
+    buf[5] holds the table's weighted f_d before the law's factor ``a1 (lam - 1) + a0``.
+    One function on purpose: helpers taking arrays, called per spring, cost an atomic
+    reference count per array and call (measured 5x slower when damage, Mullins and
+    QLV were split out).
+    """
+    for b in range(nb):
+        buf[5, b] = buf[5, b] * (a1 * (buf[4, b] - 1.0) + a0)
+    aniso = sd.shape[0] - damped >= 4
+    g_inf = fxp[0]
+    nt = int(fxp[1])
+    mullins = fxp[2] != 0.0
+    inv_r = fxp[3]
+    m_w = fxp[4]
+    beta = fxp[5]
+    damage = fxp[6] != 0.0
+    onset = fxp[7]
+    dscale = fxp[8]
+    dshape = fxp[9]
+    commit_max = mode == FX_STEP or mode == FX_SETTLE
+    for b in range(nb):
+        p = p0 + b
+        fac = 1.0
+        if damage:
+            lam = buf[4, b]
+            if lam >= 1.0:
+                xi = lam
+            elif lam >= lam_min:           # tabulated on the grid (exact at its nodes)
+                k = kk[b]
+                xi = etab[k, 6] + ((lam - lam_min) * inv_h - k) * etab[k, 7]
+            else:
+                xi = _equivalent_stretch(lam)
+            xi = max(ximax[p], xi)
+            if commit_max:
+                ximax[p] = xi
+            e = max(xi - onset, 0.0) / dscale
+            if e > 0.0:
+                fac = np.exp(-(e ** dshape))
+        if mullins:
+            k = kk[b]
+            tr = (buf[4, b] - lam_min) * inv_h - k     # unclipped: the energy continues linearly off the grid
+            if aniso:
+                ws = sd[1, p] + sd[2, p] + sd[3, p]
+                w = (sd[1, p] * (etab[k, 0] + tr * etab[k, 3]) + sd[2, p] * (etab[k, 1] + tr * etab[k, 4])
+                     + sd[3, p] * (etab[k, 2] + tr * etab[k, 5]))
+                w = w / ws if ws > 0.0 else 0.0
+            else:
+                w = etab[k, 0] + tr * etab[k, 3]
+            wm = max(wmax[p], w)
+            if commit_max:
+                wmax[p] = wm
+            z = (wm - w) / (m_w + beta * wm)
+            if z > 0.0:                           # erf(0) = 0 on the primary path; erf(z > 6) = 1 - 2e-17
+                fac *= 1.0 - inv_r * (math.erf(z) if z < 6.0 else 1.0)
+        pe = fac * buf[5, b]
+        f_tot = g_inf * pe
+        if mode == FX_STEP:                       # (the mode decided once per spring, outside the Prony loop)
+            dp = pe - pold[p]
+            for q in range(nt):
+                hq = ab[0, q] * h[q, p] + ab[1, q] * dp
+                f_tot += fxp[FXP_HEAD + q] * hq
+                h[q, p] = hq
+            pold[p] = pe
+        elif mode == FX_PEEK:
+            dp = pe - pold[p]
+            for q in range(nt):
+                f_tot += fxp[FXP_HEAD + q] * (ab[0, q] * h[q, p] + ab[1, q] * dp)
+        elif mode == FX_SETTLE:
+            pold[p] = pe
+            for q in range(nt):
+                h[q, p] = 0.0
+        buf[5, b] = f_tot
+
+
+@njit(**JIT_OPTIONS)
+def prony_ab(fxp, dd, ab):
+    """a_i = exp(-dd/tau_i), b_i = tau_i/dd (1 - a_i) (1 at dd = 0) into ab (2, nt)."""
+    nt = int(fxp[1])
+    for q in range(nt):
+        x = dd / fxp[FXP_HEAD + nt + q]
+        ab[0, q] = np.exp(-x)
+        ab[1, q] = -np.expm1(-x) / x if x > 1e-12 else 1.0 - 0.5 * x
+
+
+# ---------------------------------------------------------------------------
+# scatter and the force pass of a range of springs
+# ---------------------------------------------------------------------------
+
+@njit(inline="always", **JIT_OPTIONS)
 def _scatter_all(nb, p0, ij, f, buf):
     for b in range(nb):
         i = ij[0, p0 + b]
@@ -161,7 +396,7 @@ def _scatter_all(nb, p0, ij, f, buf):
         f[j, 2] -= fz
 
 
-@njit(inline="always", **_OPTS)
+@njit(inline="always", **JIT_OPTIONS)
 def _scatter_owned(nb, p0, hi, h, ij, f, buf, hbuf):
     for b in range(nb):
         i = ij[0, p0 + b]
@@ -185,309 +420,156 @@ def _scatter_owned(nb, p0, hi, h, ij, f, buf, hbuf):
     return h
 
 
-@njit(inline="always", **_OPTS)
-def _range_forces(p0, p1, hi, h, x, v, f, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-                  hbuf, owned):
+@njit(inline="always", **JIT_OPTIONS)
+def _range_forces(p0, p1, hi, h, x, v, f, sp, fx, hbuf, owned):
+    # The tuples are unpacked once, here, and the inlined block functions get plain
+    # arrays: an array taken out of a tuple is reference-counted (an atomic increment
+    # and decrement), which done per block of springs costs ~10 % of the pass.
+    ij, sd, tab, lam_min, inv_h, last_cell, law, damped = sp
+    if fx is not None:
+        etab, fxp, ab, hp, pold, wmax, ximax, mode = fx
     buf = np.empty((8, BLOCK))
     kk = np.empty(BLOCK, np.int64)
+    secant = law == LAW_SECANT
+    a1 = 1.0 if secant else 0.0          # the law's factor a1 (lam - 1) + a0
+    a0 = 0.0 if secant else 1.0
     for q in range(p0, p1, BLOCK):
         nb = min(BLOCK, p1 - q)
-        _block(q, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, buf, kk)
+        _elastic_block(q, nb, x, v, ij, sd, tab, lam_min, inv_h, last_cell, law, damped, buf, kk)
+        if fx is not None:
+            _effects_block(q, nb, sd, lam_min, inv_h, damped, a1, a0, etab, fxp, ab, hp, pold, wmax, ximax, mode,
+                           buf, kk)
+            _coefficients(q, nb, sd, damped, 0.0, 1.0, buf)      # the factor is in the effects' force
+        else:
+            _coefficients(q, nb, sd, damped, a1, a0, buf)
         if owned:
             h = _scatter_owned(nb, q, hi, h, ij, f, buf, hbuf)
         else:
             _scatter_all(nb, q, ij, f, buf)
 
 
-# ---------------------------------------------------------------------------
-# force passes
-# ---------------------------------------------------------------------------
-
-@njit(**_OPTS)
-def forces_serial(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped):
-    """f = fext + spring forces (+ dashpots), one thread, scatter over the springs."""
-    n = x.shape[0]
-    for a in range(n):
-        f[a, 0] = fext[a, 0]
-        f[a, 1] = fext[a, 1]
-        f[a, 2] = fext[a, 2]
-    hbuf = np.empty((0, 3))
-    _range_forces(0, ij.shape[1], n, 0, x, v, f, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-                  hbuf, False)
-
-
-@njit(**_OPTS)
-def _chunk_forces(c, x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-                  node_start, spring_start, halo_start, hbuf):
-    # Not inlined: the parallel loops only call it, which keeps their (slow) parfor
-    # compilation small; it is compiled and cached once like forces_serial.
-    lo = node_start[c]
-    hi = node_start[c + 1]
+@njit(inline="always", **JIT_OPTIONS)
+def _start_forces(lo, hi, f, fext):
     for a in range(lo, hi):
         f[a, 0] = fext[a, 0]
         f[a, 1] = fext[a, 1]
         f[a, 2] = fext[a, 2]
-    _range_forces(spring_start[c], spring_start[c + 1], hi, halo_start[c], x, v, f, ij, sd, tab, lam_min,
-                  inv_h, last_cell, law, damped, hbuf, True)
 
 
-@njit(**_OPTS)
-def _apply_halo(c, f, own_start, own_slot, own_node, hbuf):
-    for q in range(own_start[c], own_start[c + 1]):
-        h = own_slot[q]
-        a = own_node[q]
-        f[a, 0] -= hbuf[h, 0]
-        f[a, 1] -= hbuf[h, 1]
-        f[a, 2] -= hbuf[h, 2]
+@njit(**JIT_OPTIONS)
+def chunk_forces(c, x, v, f, fext, sp, fx, lay):
+    """f = fext + spring forces on the nodes of chunk *c*, halo springs into their slots.
 
-
-@njit(parallel=True, **_OPTS)
-def forces_parallel(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-                    node_start, spring_start, halo_start, hbuf, own_start, own_slot, own_node):
-    """:func:`forces_serial` with the owner/halo threading (see the module doc)."""
-    nchunk = node_start.shape[0] - 1
-    for c in prange(nchunk):
-        _chunk_forces(c, x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-                      node_start, spring_start, halo_start, hbuf)
-    for c in prange(nchunk):
-        _apply_halo(c, f, own_start, own_slot, own_node, hbuf)
-
-
-# ---------------------------------------------------------------------------
-# material effects (viscoelastic QLV, Mullins, damage): a separate kernel family
-# ---------------------------------------------------------------------------
-#
-# The plain kernels above stay exactly as they are (no branch, no state) so that an
-# elastic run pays nothing for the effects. With effects, each spring carries state
-# (model order, structure of arrays):
-#
-#   h     (nt, s)  Prony internal variables h_i [N]
-#   pold  (s,)     the spring's softened elastic force P at the last committed evaluation [N]
-#   wmax  (s,)     largest energy density W reached so far [Pa]            (Mullins)
-#   ximax (s,)     largest uniaxial-equivalent stretch reached so far      (damage)
-#
-# and its force is (docs/simulate.md, "Material effects")
-#
-#   F_e = sum_d w_d f_d(lam)                      the elastic (instantaneous) force
-#   P   = (1 - D(ximax)) * eta(W, wmax) * F_e     damage and Mullins softening
-#   h_i <- a_i h_i + b_i (P - pold),  a_i = exp(-dt/tau_i), b_i = tau_i/dt (1 - a_i)
-#   F   = g_inf P + sum_i g_i h_i                 QLV, G(0) = 1
-#
-# ``etab`` (n_cells, 8): per cell ``[W_x, W_y, W_z, dW_x, dW_y, dW_z, xi, dxi]``: the material's
-# uniaxial energy density [Pa] and the uniaxial-equivalent stretch of a spring at the cell's left
-# node, with their increments (xi is exact for lam >= 1 and below the grid).
-# Parameters ``fxp`` (float64): [g_inf, nt, mullins_on, 1/r, m, beta, damage_on, onset,
-# scale, shape, g_1..g_nt, tau_1..tau_nt]; ``ab`` (2, nt): a_i and b_i of the current
-# step (from :func:`prony_ab`). Modes:
-
-FX_STEP = 0       #: advance the state by the step in ``ab`` and commit it
-FX_PEEK = 1       #: the force the step in ``ab`` would give, state unchanged
-FX_RELAXED = 2    #: long-term force g_inf * P (maxima including the current stretch), state unchanged
-FX_SETTLE = 3     #: commit the maxima and a fully relaxed history at the current stretch (h = 0)
-
-#: Number of leading scalars in ``fxp`` before the Prony weights.
-FXP_HEAD = 10
-
-
-@njit(**_OPTS)
-def prony_ab(fxp, dd, ab):
-    """a_i = exp(-dd/tau_i), b_i = tau_i/dd (1 - a_i) (1 at dd = 0) into ab (2, nt)."""
-    nt = int(fxp[1])
-    for q in range(nt):
-        x = dd / fxp[FXP_HEAD + nt + q]
-        ab[0, q] = np.exp(-x)
-        ab[1, q] = -np.expm1(-x) / x if x > 1e-12 else 1.0 - 0.5 * x
-
-
-@njit(inline="always", **_OPTS)
-def _equivalent_stretch(lam):
-    """Uniaxial-equivalent stretch xi >= 1 of a spring at stretch lam (lam itself in tension)."""
-    if lam >= 1.0:
-        return lam
-    if lam <= 1e-6:
-        return np.inf
-    i1 = lam * lam + 2.0 / lam
-    c = -((3.0 / i1) ** 1.5)
-    c = min(max(c, -1.0), 1.0)
-    return 2.0 * np.sqrt(i1 / 3.0) * np.cos(np.arccos(c) / 3.0)
-
-
-@njit(inline="always", **_OPTS)
-def _block_fx(p0, nb, x, v, ij, sd, tab, etab, lam_min, inv_h, last_cell, law, damped, buf, kk,
-              fxp, ab, h, pold, wmax, ximax, mode):
-    """:func:`_block` with the material effects and their per-spring state (see above)."""
-    last = float(last_cell)
-    secant = law == LAW_SECANT
-    t_lo = 0.0 if secant else -np.inf
-    t_hi = 1.0 if secant else np.inf
-    a1 = 1.0 if secant else 0.0
-    a0 = 0.0 if secant else 1.0
-    for b in range(nb):
-        i = ij[0, p0 + b]
-        j = ij[1, p0 + b]
-        dx = x[j, 0] - x[i, 0]
-        dy = x[j, 1] - x[i, 1]
-        dz = x[j, 2] - x[i, 2]
-        buf[0, b] = dx
-        buf[1, b] = dy
-        buf[2, b] = dz
-        if damped:
-            buf[7, b] = (v[j, 0] - v[i, 0]) * dx + (v[j, 1] - v[i, 1]) * dy + (v[j, 2] - v[i, 2]) * dz
-    for b in range(nb):
-        L = np.sqrt(buf[0, b] * buf[0, b] + buf[1, b] * buf[1, b] + buf[2, b] * buf[2, b])
-        buf[3, b] = 1.0 / L if L > 0.0 else 0.0
-        lam = L * sd[0, p0 + b]
-        buf[4, b] = lam
-        s = (lam - lam_min) * inv_h
-        sc = min(max(s, 0.0), last + 1.0)
-        k = min(np.int64(sc), last_cell)
-        kk[b] = k
-        buf[8, b] = s - k                      # unclipped: the energy continues linearly off the grid
-        buf[6, b] = min(max(s - k, t_lo), t_hi)
-    aniso = sd.shape[0] - damped >= 4
-    for b in range(nb):
-        k = kk[b]
-        t = buf[6, b]
-        p = p0 + b
-        if aniso:
-            fe = (sd[1, p] * (tab[k, 0] + t * tab[k, 3]) + sd[2, p] * (tab[k, 1] + t * tab[k, 4])
-                  + sd[3, p] * (tab[k, 2] + t * tab[k, 5]))
-        else:
-            fe = sd[1, p] * (tab[k, 0] + t * tab[k, 3])
-        buf[5, b] = fe * (a1 * (buf[4, b] - 1.0) + a0)
-    g_inf = fxp[0]
-    nt = int(fxp[1])
-    mullins = fxp[2] != 0.0
-    inv_r = fxp[3]
-    m_w = fxp[4]
-    beta = fxp[5]
-    damage = fxp[6] != 0.0
-    onset = fxp[7]
-    dscale = fxp[8]
-    dshape = fxp[9]
-    commit_max = mode == FX_STEP or mode == FX_SETTLE
-    for b in range(nb):
-        p = p0 + b
-        fac = 1.0
-        if damage:
-            lam = buf[4, b]
-            if lam >= 1.0:
-                xi = lam
-            elif lam >= lam_min:              # tabulated on the grid (exact at its nodes)
-                xi = etab[kk[b], 6] + buf[8, b] * etab[kk[b], 7]
-            else:
-                xi = _equivalent_stretch(lam)
-            xi = max(ximax[p], xi)
-            if commit_max:
-                ximax[p] = xi
-            e = max(xi - onset, 0.0) / dscale
-            if e > 0.0:
-                fac = np.exp(-(e ** dshape))
-        if mullins:
-            k = kk[b]
-            tr = buf[8, b]
-            if aniso:
-                ws = sd[1, p] + sd[2, p] + sd[3, p]
-                w = (sd[1, p] * (etab[k, 0] + tr * etab[k, 3]) + sd[2, p] * (etab[k, 1] + tr * etab[k, 4])
-                     + sd[3, p] * (etab[k, 2] + tr * etab[k, 5]))
-                w = w / ws if ws > 0.0 else 0.0
-            else:
-                w = etab[k, 0] + tr * etab[k, 3]
-            wm = max(wmax[p], w)
-            if commit_max:
-                wmax[p] = wm
-            z = (wm - w) / (m_w + beta * wm)
-            if z > 0.0:                           # erf(0) = 0 on the primary path; erf(z > 6) = 1 - 2e-17
-                fac *= 1.0 - inv_r * (math.erf(z) if z < 6.0 else 1.0)
-        pe = fac * buf[5, b]
-        if mode == FX_RELAXED:
-            f_tot = g_inf * pe
-        elif mode == FX_SETTLE:
-            f_tot = g_inf * pe
-            pold[p] = pe
-            for q in range(nt):
-                h[q, p] = 0.0
-        else:
-            dp = pe - pold[p]
-            f_tot = g_inf * pe
-            for q in range(nt):
-                hq = ab[0, q] * h[q, p] + ab[1, q] * dp
-                f_tot += fxp[FXP_HEAD + q] * hq
-                if mode == FX_STEP:
-                    h[q, p] = hq
-            if mode == FX_STEP:
-                pold[p] = pe
-        buf[5, b] = f_tot
-    if damped:
-        cd = sd.shape[0] - 1
-        for b in range(nb):
-            rinv = buf[3, b]
-            buf[5, b] = (buf[5, b] + sd[cd, p0 + b] * buf[7, b] * rinv) * rinv
+    Not inlined: the parallel loops only call it, which keeps their (slow)
+    parfor compilation small. A spring's effect state is written only by the
+    chunk that owns the spring.
+    """
+    if lay.node_start.shape[0] == 2:
+        _all_forces(x, v, f, fext, sp, fx)
     else:
-        for b in range(nb):
-            buf[5, b] = buf[5, b] * buf[3, b]
+        _owned_forces(c, x, v, f, fext, sp, fx, lay)
 
 
-@njit(inline="always", **_OPTS)
-def _range_forces_fx(p0, p1, hi, h0, x, v, f, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-                     hbuf, owned, etab, fxp, ab, h, pold, wmax, ximax, mode):
-    buf = np.empty((9, BLOCK))
-    kk = np.empty(BLOCK, np.int64)
-    hh = h0
-    for q in range(p0, p1, BLOCK):
-        nb = min(BLOCK, p1 - q)
-        _block_fx(q, nb, x, v, ij, sd, tab, etab, lam_min, inv_h, last_cell, law, damped, buf, kk,
-                  fxp, ab, h, pold, wmax, ximax, mode)
-        if owned:
-            hh = _scatter_owned(nb, q, hi, hh, ij, f, buf, hbuf)
-        else:
-            _scatter_all(nb, q, ij, f, buf)
+@njit(**JIT_OPTIONS)
+def _all_forces(x, v, f, fext, sp, fx):
+    # One chunk: every node and spring, scattered plainly. Its own compiled function
+    # with literal bounds: LLVM then keeps the block buffers' row offsets constant and
+    # the loop's constants in registers (~5 % faster than the chunked form).
+    _start_forces(0, x.shape[0], f, fext)
+    _range_forces(0, sp.ij.shape[1], x.shape[0], 0, x, v, f, sp, fx, np.empty((0, 3)), False)
 
 
-@njit(**_OPTS)
-def forces_serial_fx(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-                     etab, fxp, ab, h, pold, wmax, ximax, mode):
-    """:func:`forces_serial` with the material effects (state updated according to *mode*)."""
-    n = x.shape[0]
-    for a in range(n):
-        f[a, 0] = fext[a, 0]
-        f[a, 1] = fext[a, 1]
-        f[a, 2] = fext[a, 2]
-    hbuf = np.empty((0, 3))
-    _range_forces_fx(0, ij.shape[1], n, 0, x, v, f, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-                     hbuf, False, etab, fxp, ab, h, pold, wmax, ximax, mode)
+@njit(**JIT_OPTIONS)
+def _owned_forces(c, x, v, f, fext, sp, fx, lay):
+    hi = lay.node_start[c + 1]
+    _start_forces(lay.node_start[c], hi, f, fext)
+    _range_forces(lay.spring_start[c], lay.spring_start[c + 1], hi, lay.halo_start[c], x, v, f, sp, fx,
+                  lay.hbuf, True)
 
 
-@njit(**_OPTS)
-def _chunk_forces_fx(c, x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-                     node_start, spring_start, halo_start, hbuf, etab, fxp, ab, h, pold, wmax, ximax, mode):
-    # A spring's state is written only by the chunk that owns the spring: race-free.
-    lo = node_start[c]
-    hi = node_start[c + 1]
-    for a in range(lo, hi):
-        f[a, 0] = fext[a, 0]
-        f[a, 1] = fext[a, 1]
-        f[a, 2] = fext[a, 2]
-    _range_forces_fx(spring_start[c], spring_start[c + 1], hi, halo_start[c], x, v, f, ij, sd, tab, lam_min,
-                     inv_h, last_cell, law, damped, hbuf, True, etab, fxp, ab, h, pold, wmax, ximax, mode)
+@njit(**JIT_OPTIONS)
+def apply_halo(c, f, lay):
+    """Add to the nodes of chunk *c* the halo slots that land there (see the module doc)."""
+    for q in range(lay.own_start[c], lay.own_start[c + 1]):
+        h = lay.own_slot[q]
+        a = lay.own_node[q]
+        f[a, 0] -= lay.hbuf[h, 0]
+        f[a, 1] -= lay.hbuf[h, 1]
+        f[a, 2] -= lay.hbuf[h, 2]
 
 
-@njit(**_OPTS)
-def forces_any(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-               fx_on, etab, fxp, ab, h, pold, wmax, ximax, mode):
-    """The plain force pass, or the effects pass when *fx_on* (used by FIRE)."""
-    if fx_on:
-        forces_serial_fx(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-                         etab, fxp, ab, h, pold, wmax, ximax, mode)
-    else:
-        forces_serial(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped)
+def _forces(x, v, f, fext, sp, fx, lay):
+    """f = fext + spring forces (+ dashpots, + effects unless *fx* is None), chunked as *lay*."""
+    nchunk = lay.node_start.shape[0] - 1
+    for c in prange(nchunk):
+        chunk_forces(c, x, v, f, fext, sp, fx, lay)
+    for c in prange(nchunk):
+        apply_halo(c, f, lay)
+
+
+#: The force pass on one thread (``prange`` is ``range``): any layout, one chunk is the plain pass.
+forces_serial = njit(**JIT_OPTIONS)(twin(_forces, "forces_serial"))
+#: The same pass with the chunks on numba's threads.
+forces_parallel = njit(parallel=True, **JIT_OPTIONS)(twin(_forces, "forces_parallel"))
 
 
 # ---------------------------------------------------------------------------
-# grasper path
+# time stepping
 # ---------------------------------------------------------------------------
 
-@njit(**_OPTS)
+GRASP_NONE = 0
+GRASP_PRESCRIBED = 1
+GRASP_SPRING = 2
+
+
+class Clock(NamedTuple):
+    """Steps to take and where they sit in time."""
+
+    n: int
+    dt: float
+    t0: float
+    step0: int
+    dt_first: float     #: the effects' state advances by this at the first step (then by dt)
+    vfac: float         #: 1 / (1 + alpha dt)
+
+
+class Nodes(NamedTuple):
+    """Node arrays: positions, velocities (updated), force buffer, external force, 1/m (0: not integrated)."""
+
+    x: np.ndarray
+    v: np.ndarray
+    f: np.ndarray
+    fext: np.ndarray
+    inv_mass: np.ndarray
+
+
+class GraspKernel(NamedTuple):
+    """The grasper: mode, held nodes, their offsets from the tip, coupling stiffness, tip path."""
+
+    mode: int
+    nodes: np.ndarray       #: (g,) int64
+    offsets: np.ndarray     #: (g, 3)
+    stiffness: np.ndarray   #: (g,) [N/m] (mode SPRING)
+    wp_t: np.ndarray        #: (p,) path times [s]
+    wp_x: np.ndarray        #: (p, 3) tip positions [m]
+
+
+class FloorKernel(NamedTuple):
+    """The rigid floor ``normal . x >= height`` acting on the nodes with ``mask``; ``contact`` is written."""
+
+    on: bool
+    normal: np.ndarray
+    height: float
+    stick: bool
+    mask: np.ndarray        #: (n,) uint8
+    contact: np.ndarray     #: (n,) uint8
+
+
+# ---------------------------------------------------------------------------
+# grasper
+# ---------------------------------------------------------------------------
+
+@njit(**JIT_OPTIONS)
 def tip_state(t, wp_t, wp_x):
     """Position (3,) and velocity (3,) of a piecewise-linear path at time t (held at the ends)."""
     pos = np.empty(3)
@@ -512,15 +594,15 @@ def tip_state(t, wp_t, wp_x):
     return pos, vel
 
 
-@njit(inline="always", **_OPTS)
-def _grasp_forces(f, x, g_nodes, g_off, g_k, tip, mode, out):
+@njit(inline="always", **JIT_OPTIONS)
+def _grasp_forces(f, x, g_mode, g_nodes, g_off, g_k, tip, out):
     """Add the coupling springs (mode SPRING); put the force on the grasper in *out*."""
     out[0] = 0.0
     out[1] = 0.0
     out[2] = 0.0
     for q in range(g_nodes.shape[0]):
         a = g_nodes[q]
-        if mode == GRASP_SPRING:
+        if g_mode == GRASP_SPRING:
             for d in range(3):
                 fs = g_k[q] * (tip[d] + g_off[q, d] - x[a, d])
                 f[a, d] += fs
@@ -530,7 +612,7 @@ def _grasp_forces(f, x, g_nodes, g_off, g_k, tip, mode, out):
                 out[d] += f[a, d]
 
 
-@njit(inline="always", **_OPTS)
+@njit(inline="always", **JIT_OPTIONS)
 def _place_grasped(x, v, g_nodes, g_off, tip, tip_v):
     for q in range(g_nodes.shape[0]):
         a = g_nodes[q]
@@ -539,7 +621,13 @@ def _place_grasped(x, v, g_nodes, g_off, tip, tip_v):
             v[a, d] = tip_v[d]
 
 
-@njit(inline="always", **_OPTS)
+# ---------------------------------------------------------------------------
+# integration of a node range (and the floor)
+# ---------------------------------------------------------------------------
+# The helpers take plain arrays: the tuples are unpacked once by the compiled entry
+# points (reading their fields inside the loops is measurably slower).
+
+@njit(inline="always", **JIT_OPTIONS)
 def _integrate_range(lo, hi, dt, x, v, f, inv_mass, vfac):
     for a in range(lo, hi):
         s = dt * inv_mass[a]
@@ -551,7 +639,7 @@ def _integrate_range(lo, hi, dt, x, v, f, inv_mass, vfac):
         x[a, 2] += dt * v[a, 2]
 
 
-@njit(inline="always", **_OPTS)
+@njit(inline="always", **JIT_OPTIONS)
 def _integrate_range_floor(lo, hi, dt, x, v, f, inv_mass, vfac, fl_n, fl_h, fl_stick, fl_mask, contact):
     """:func:`_integrate_range`, then the rigid floor ``n.x >= h`` (unit normal *fl_n*, offset *fl_h*).
 
@@ -613,231 +701,181 @@ def _integrate_range_floor(lo, hi, dt, x, v, f, inv_mass, vfac, fl_n, fl_h, fl_s
                 v[a, 2] -= vn * n2
 
 
-@njit(inline="always", **_OPTS)
-def _integrate_any(lo, hi, dt, x, v, f, inv_mass, vfac, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact):
+@njit(inline="always", **JIT_OPTIONS)
+def _integrate_nodes(lo, hi, dt, x, v, f, inv_mass, vfac, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact):
     if fl_on:
         _integrate_range_floor(lo, hi, dt, x, v, f, inv_mass, vfac, fl_n, fl_h, fl_stick, fl_mask, contact)
     else:
         _integrate_range(lo, hi, dt, x, v, f, inv_mass, vfac)
 
 
+@njit(**JIT_OPTIONS)
+def _integrate(c, lay, dt, x, v, f, inv_mass, vfac, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact):
+    """Integrate the nodes of chunk *c* (one chunk: all nodes, from literal bounds)."""
+    if lay.node_start.shape[0] == 2:
+        _integrate_nodes(0, x.shape[0], dt, x, v, f, inv_mass, vfac, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
+    else:
+        _integrate_nodes(lay.node_start[c], lay.node_start[c + 1], dt, x, v, f, inv_mass, vfac,
+                         fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
+
+
 # ---------------------------------------------------------------------------
-# time stepping (symplectic Euler)
+# the step loop (symplectic Euler), written once
 # ---------------------------------------------------------------------------
 
-@njit(**_OPTS)
-def run_serial(nsteps, dt, t0, step0, x, v, f, fext, inv_mass, vfac,
-               ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-               g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec,
-               fl_on, fl_n, fl_h, fl_stick, fl_mask, contact):
-    """Advance *nsteps* semi-implicit Euler steps on one thread.
+def _steps(clock, nodes, sp, fx, grasp, floor, lay, rec):
+    """Advance ``clock.n`` semi-implicit Euler steps.
 
-    Step k (time ``t = t0 + (step0 + k) * dt``): forces at (x, v); the force on
-    the grasper goes to ``rec[k]``; ``v <- (v + dt f / m) * vfac`` (``vfac =
-    1 / (1 + alpha dt)``: implicit mass-proportional damping), ``x <- x + dt
-    v``. Nodes with ``inv_mass = 0`` keep ``v = 0`` (fixed) unless grasped in
-    prescribed mode: those are put on the path at ``t + dt``.
+    Step k (time ``t = t0 + (step0 + k) dt``): forces at (x, v); the force on
+    the grasper goes to ``rec[k]``; ``v <- (v + dt f / m) * vfac``, ``x <- x +
+    dt v``. Nodes with ``inv_mass = 0`` keep ``v = 0`` (fixed) unless grasped in
+    prescribed mode: those are put on the path at ``t + dt``. With effects, the
+    springs' state advances by ``dt_first`` at the first step, then by dt.
     """
-    n = x.shape[0]
-    out = np.zeros(3)
-    for k in range(nsteps):
-        t = t0 + (step0 + k) * dt
-        forces_serial(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped)
-        if g_mode != GRASP_NONE:
-            tip, tip_v = tip_state(t, wp_t, wp_x)
-            _grasp_forces(f, x, g_nodes, g_off, g_k, tip, g_mode, out)
-            rec[k, 0] = out[0]
-            rec[k, 1] = out[1]
-            rec[k, 2] = out[2]
-        _integrate_any(0, n, dt, x, v, f, inv_mass, vfac, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
-        if g_mode == GRASP_PRESCRIBED:
-            tip, tip_v = tip_state(t0 + (step0 + k + 1) * dt, wp_t, wp_x)
-            _place_grasped(x, v, g_nodes, g_off, tip, tip_v)
-
-
-@njit(parallel=True, **_OPTS)
-def run_parallel(nsteps, dt, t0, step0, x, v, f, fext, inv_mass, vfac,
-                 ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-                 g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec,
-                 fl_on, fl_n, fl_h, fl_stick, fl_mask, contact,
-                 node_start, spring_start, halo_start, hbuf, own_start, own_slot, own_node):
-    """:func:`run_serial` with the race-free owner/halo threading (same arithmetic)."""
+    nsteps, dt, t0, step0, dt_first, vfac = clock
+    x, v, f, fext, inv_mass = nodes
+    g_mode, g_nodes, g_off, g_k, wp_t, wp_x = grasp
+    fl_on, fl_n, fl_h, fl_stick, fl_mask, contact = floor
+    node_start = lay.node_start
     nchunk = node_start.shape[0] - 1
     out = np.zeros(3)
+    if fx is not None:
+        prony_ab(fx.fxp, dt_first, fx.ab)
     for k in range(nsteps):
         t = t0 + (step0 + k) * dt
+        if fx is not None:
+            if k == 1:
+                prony_ab(fx.fxp, dt, fx.ab)
         for c in prange(nchunk):
-            _chunk_forces(c, x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-                          node_start, spring_start, halo_start, hbuf)
+            chunk_forces(c, x, v, f, fext, sp, fx, lay)
         if g_mode != GRASP_NONE:
             # The grasped nodes' halo contributions must be in before the force on the
             # grasper is read: apply all halos, read, then integrate.
             for c in prange(nchunk):
-                _apply_halo(c, f, own_start, own_slot, own_node, hbuf)
+                apply_halo(c, f, lay)
             tip, tip_v = tip_state(t, wp_t, wp_x)
-            _grasp_forces(f, x, g_nodes, g_off, g_k, tip, g_mode, out)
+            _grasp_forces(f, x, g_mode, g_nodes, g_off, g_k, tip, out)
             rec[k, 0] = out[0]
             rec[k, 1] = out[1]
             rec[k, 2] = out[2]
             for c in prange(nchunk):
-                _integrate_any(node_start[c], node_start[c + 1], dt, x, v, f, inv_mass, vfac,
-                               fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
+                _integrate(c, lay, dt, x, v, f, inv_mass, vfac,
+                           fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
         else:
             for c in prange(nchunk):
-                _apply_halo(c, f, own_start, own_slot, own_node, hbuf)
-                _integrate_any(node_start[c], node_start[c + 1], dt, x, v, f, inv_mass, vfac,
-                               fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
+                apply_halo(c, f, lay)
+                _integrate(c, lay, dt, x, v, f, inv_mass, vfac,
+                           fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
         if g_mode == GRASP_PRESCRIBED:
             tip, tip_v = tip_state(t0 + (step0 + k + 1) * dt, wp_t, wp_x)
             _place_grasped(x, v, g_nodes, g_off, tip, tip_v)
 
 
-@njit(**_OPTS)
-def run_serial_fx(nsteps, dt, dt_first, t0, step0, x, v, f, fext, inv_mass, vfac,
-                  ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-                  etab, fxp, h, pold, wmax, ximax,
-                  g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec,
-               fl_on, fl_n, fl_h, fl_stick, fl_mask, contact):
-    """:func:`run_serial` with the material effects: every step advances each spring's state.
-
-    The state is advanced by *dt_first* at the first step (the time since the
-    state was last committed) and by *dt* afterwards.
-    """
-    n = x.shape[0]
-    out = np.zeros(3)
-    nt = int(fxp[1])
-    ab = np.empty((2, nt))
-    prony_ab(fxp, dt_first, ab)
-    for k in range(nsteps):
-        t = t0 + (step0 + k) * dt
-        if k == 1:
-            prony_ab(fxp, dt, ab)
-        forces_serial_fx(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-                         etab, fxp, ab, h, pold, wmax, ximax, FX_STEP)
-        if g_mode != GRASP_NONE:
-            tip, tip_v = tip_state(t, wp_t, wp_x)
-            _grasp_forces(f, x, g_nodes, g_off, g_k, tip, g_mode, out)
-            rec[k, 0] = out[0]
-            rec[k, 1] = out[1]
-            rec[k, 2] = out[2]
-        _integrate_any(0, n, dt, x, v, f, inv_mass, vfac, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
-        if g_mode == GRASP_PRESCRIBED:
-            tip, tip_v = tip_state(t0 + (step0 + k + 1) * dt, wp_t, wp_x)
-            _place_grasped(x, v, g_nodes, g_off, tip, tip_v)
-
-
-@njit(parallel=True, **_OPTS)
-def run_parallel_fx(nsteps, dt, dt_first, t0, step0, x, v, f, fext, inv_mass, vfac,
-                    ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-                    etab, fxp, h, pold, wmax, ximax,
-                    g_mode, g_nodes, g_off, g_k, wp_t, wp_x, rec,
-                    fl_on, fl_n, fl_h, fl_stick, fl_mask, contact,
-                    node_start, spring_start, halo_start, hbuf, own_start, own_slot, own_node):
-    """:func:`run_parallel` with the material effects (same arithmetic as :func:`run_serial_fx`)."""
-    nchunk = node_start.shape[0] - 1
-    out = np.zeros(3)
-    nt = int(fxp[1])
-    ab = np.empty((2, nt))
-    prony_ab(fxp, dt_first, ab)
-    for k in range(nsteps):
-        t = t0 + (step0 + k) * dt
-        if k == 1:
-            prony_ab(fxp, dt, ab)
-        for c in prange(nchunk):
-            _chunk_forces_fx(c, x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, damped,
-                             node_start, spring_start, halo_start, hbuf, etab, fxp, ab, h, pold, wmax, ximax,
-                             FX_STEP)
-        if g_mode != GRASP_NONE:
-            for c in prange(nchunk):
-                _apply_halo(c, f, own_start, own_slot, own_node, hbuf)
-            tip, tip_v = tip_state(t, wp_t, wp_x)
-            _grasp_forces(f, x, g_nodes, g_off, g_k, tip, g_mode, out)
-            rec[k, 0] = out[0]
-            rec[k, 1] = out[1]
-            rec[k, 2] = out[2]
-            for c in prange(nchunk):
-                _integrate_any(node_start[c], node_start[c + 1], dt, x, v, f, inv_mass, vfac,
-                               fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
-        else:
-            for c in prange(nchunk):
-                _apply_halo(c, f, own_start, own_slot, own_node, hbuf)
-                _integrate_any(node_start[c], node_start[c + 1], dt, x, v, f, inv_mass, vfac,
-                               fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
-        if g_mode == GRASP_PRESCRIBED:
-            tip, tip_v = tip_state(t0 + (step0 + k + 1) * dt, wp_t, wp_x)
-            _place_grasped(x, v, g_nodes, g_off, tip, tip_v)
+#: The step loop on one thread (a one-chunk layout).
+steps_serial = njit(**JIT_OPTIONS)(twin(_steps, "steps_serial"))
+#: The step loop on numba's threads (same arithmetic; the owner/halo layout above).
+steps_parallel = njit(parallel=True, **JIT_OPTIONS)(twin(_steps, "steps_parallel"))
 
 
 # ---------------------------------------------------------------------------
 # quasi-static relaxation (FIRE)
 # ---------------------------------------------------------------------------
 
-@njit(**_OPTS)
-def fire_relax(x, v, f, fext, inv_mass, free, ij, sd, tab, lam_min, inv_h, last_cell, law,
-               g_mode, g_nodes, g_off, g_k, tip, dt0, dt_max, ftol, max_iter,
-               fx_on, etab, fxp, ab, h, pold, wmax, ximax,
-               fl_on, fl_n, fl_h, fl_stick, fl_mask, contact):
+@njit(inline="always", **JIT_OPTIONS)
+def _floor_reaction(n, f, free, fl_n, fl_stick, fl_mask, contact):
+    """Take off the floor's reaction from the force of the free nodes in contact that press into it."""
+    for a in range(n):
+        if free[a] and fl_mask[a] and contact[a]:
+            fn = f[a, 0] * fl_n[0] + f[a, 1] * fl_n[1] + f[a, 2] * fl_n[2]
+            if fn < 0.0:
+                if fl_stick:
+                    f[a, 0] = 0.0
+                    f[a, 1] = 0.0
+                    f[a, 2] = 0.0
+                else:
+                    for d in range(3):
+                        f[a, d] -= fn * fl_n[d]
+
+
+@njit(inline="always", **JIT_OPTIONS)
+def _fire_measure(n, f, v, free):
+    """(largest |f| on a free node, power f.v, |v|^2, |f|^2) over the free nodes."""
+    resid = 0.0
+    P = 0.0
+    vn2 = 0.0
+    fn2 = 0.0
+    for a in range(n):
+        if free[a]:
+            fa2 = f[a, 0] ** 2 + f[a, 1] ** 2 + f[a, 2] ** 2
+            if fa2 > resid:
+                resid = fa2
+            P += f[a, 0] * v[a, 0] + f[a, 1] * v[a, 1] + f[a, 2] * v[a, 2]
+            vn2 += v[a, 0] ** 2 + v[a, 1] ** 2 + v[a, 2] ** 2
+            fn2 += fa2
+    return np.sqrt(resid), P, vn2, fn2
+
+
+@njit(inline="always", **JIT_OPTIONS)
+def _fire_move(n, dt, x, v, f, inv_mass, free, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact):
+    """FIRE's MD update of the free nodes (vfac = 1), the floor's nodes then put back by its rule."""
+    if fl_on:
+        for a in range(n):
+            if free[a] and not fl_mask[a]:
+                s = dt * inv_mass[a]
+                for d in range(3):
+                    v[a, d] += s * f[a, d]
+                    x[a, d] += dt * v[a, d]
+        for a in range(n):
+            if free[a] and fl_mask[a]:
+                _integrate_range_floor(a, a + 1, dt, x, v, f, inv_mass, 1.0, fl_n, fl_h, fl_stick, fl_mask,
+                                       contact)
+    else:
+        for a in range(n):
+            if free[a]:
+                s = dt * inv_mass[a]
+                for d in range(3):
+                    v[a, d] += s * f[a, d]
+                    x[a, d] += dt * v[a, d]
+
+
+@njit(**JIT_OPTIONS)
+def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, max_iter):
     """FIRE minimisation (Bitzek et al. 2006) of the network energy under fext.
 
-    Uses the dynamics' force pass (without dashpots) and a mass-weighted
-    semi-implicit Euler MD step; grasper coupling springs (mode SPRING) pull
-    the held nodes to ``tip + g_off``. Converged when the largest residual force
-    on a free node is below *ftol* [N]. Returns (iterations, final max residual);
-    iterations = -1 when the forces became non-finite. With *fx_on* the material
-    effects' long-term force (mode :data:`FX_RELAXED`, state unchanged) is used.
+    Uses the dynamics' force pass (*sp* without dashpots; one-chunk *lay*) and a
+    mass-weighted semi-implicit Euler MD step; grasper coupling springs (mode
+    SPRING) pull the held nodes to ``tip + offsets``. Converged when the
+    largest residual force on a free node is below *ftol* [N]. Returns
+    (iterations, final max residual); iterations = -1 when the forces became
+    non-finite. With effects (*fx* not None) their long-term force (mode
+    ``FX_RELAXED``, state unchanged) is used. Standard parameters: N_min 5,
+    f_inc 1.1, f_dec 0.5, alpha_start 0.1, f_alpha 0.99.
 
-    With *fl_on* the rigid floor of :func:`_integrate_range_floor` constrains
-    the nodes with ``fl_mask``: each MD update puts the nodes that end below
+    With ``floor.on`` the rigid floor of :func:`_integrate_range_floor` constrains
+    the nodes with ``floor.mask``: each MD update puts the nodes that end below
     the plane back on it (same rule as the dynamics, "stick" or "slip"), and
-    for a node in contact (``contact[a]``, set by the last update) whose force
+    for a node in contact (``floor.contact[a]``, set by the last update) whose force
     presses into the floor the floor's reaction is taken off the force used
     by FIRE and by the convergence test (the normal part with "slip", all of it
     with "stick": sticking friction carries any tangential load).
     """
+    x, v, f, fext, inv_mass = nodes
+    g_mode, g_nodes, g_off, g_k, wp_t, wp_x = grasp
+    fl_on, fl_n, fl_h, fl_stick, fl_mask, contact = floor
     n = x.shape[0]
-    n_min = 5
-    f_inc = 1.1
-    f_dec = 0.5
-    alpha_start = 0.1
-    f_alpha = 0.99
-    alpha = alpha_start
+    alpha = 0.1
     dt = dt0
     since_neg = 0
-    for a in range(n):
-        for d in range(3):
-            v[a, d] = 0.0
+    v[:, :] = 0.0
     resid = np.inf
     out = np.zeros(3)
     for it in range(max_iter):
-        forces_any(x, v, f, fext, ij, sd, tab, lam_min, inv_h, last_cell, law, False,
-                   fx_on, etab, fxp, ab, h, pold, wmax, ximax, FX_RELAXED)
+        forces_serial(x, v, f, fext, sp, fx, lay)
         if g_mode == GRASP_SPRING:
-            _grasp_forces(f, x, g_nodes, g_off, g_k, tip, g_mode, out)
+            _grasp_forces(f, x, g_mode, g_nodes, g_off, g_k, tip, out)
         if fl_on:
-            for a in range(n):
-                if free[a] and fl_mask[a] and contact[a]:
-                    fn = f[a, 0] * fl_n[0] + f[a, 1] * fl_n[1] + f[a, 2] * fl_n[2]
-                    if fn < 0.0:
-                        if fl_stick:
-                            f[a, 0] = 0.0
-                            f[a, 1] = 0.0
-                            f[a, 2] = 0.0
-                        else:
-                            for d in range(3):
-                                f[a, d] -= fn * fl_n[d]
-        resid = 0.0
-        P = 0.0
-        vn2 = 0.0
-        fn2 = 0.0
-        for a in range(n):
-            if free[a]:
-                fa2 = f[a, 0] ** 2 + f[a, 1] ** 2 + f[a, 2] ** 2
-                if fa2 > resid:
-                    resid = fa2
-                P += f[a, 0] * v[a, 0] + f[a, 1] * v[a, 1] + f[a, 2] * v[a, 2]
-                vn2 += v[a, 0] ** 2 + v[a, 1] ** 2 + v[a, 2] ** 2
-                fn2 += fa2
-        resid = np.sqrt(resid)
+            _floor_reaction(n, f, free, fl_n, fl_stick, fl_mask, contact)
+        resid, P, vn2, fn2 = _fire_measure(n, f, v, free)
         if not np.isfinite(resid):
             return -1, resid
         if resid < ftol:
@@ -851,48 +889,23 @@ def fire_relax(x, v, f, fext, inv_mass, free, ij, sd, tab, lam_min, inv_h, last_
                         for d in range(3):
                             v[a, d] = (1.0 - alpha) * v[a, d] + alpha * vn * f[a, d] / fn
             since_neg += 1
-            if since_neg > n_min:
-                dt = min(dt * f_inc, dt_max)
-                alpha *= f_alpha
+            if since_neg > 5:
+                dt = min(dt * 1.1, dt_max)
+                alpha *= 0.99
         else:
             since_neg = 0
-            dt *= f_dec
-            alpha = alpha_start
-            for a in range(n):
-                for d in range(3):
-                    v[a, d] = 0.0
-        if fl_on:
-            for a in range(n):
-                if free[a] and not fl_mask[a]:
-                    s = dt * inv_mass[a]
-                    for d in range(3):
-                        v[a, d] += s * f[a, d]
-                        x[a, d] += dt * v[a, d]
-            # the floor's nodes: same update, then the contact rule (vfac = 1)
-            _integrate_masked_floor(n, dt, x, v, f, inv_mass, free, fl_n, fl_h, fl_stick, fl_mask, contact)
-        else:
-            for a in range(n):
-                if free[a]:
-                    s = dt * inv_mass[a]
-                    for d in range(3):
-                        v[a, d] += s * f[a, d]
-                        x[a, d] += dt * v[a, d]
+            dt *= 0.5
+            alpha = 0.1
+            v[:, :] = 0.0
+        _fire_move(n, dt, x, v, f, inv_mass, free, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
     return max_iter, resid
-
-
-@njit(**_OPTS)
-def _integrate_masked_floor(n, dt, x, v, f, inv_mass, free, fl_n, fl_h, fl_stick, fl_mask, contact):
-    """FIRE's MD update of the free nodes under the floor (``fl_mask``), with the contact rule."""
-    for a in range(n):
-        if free[a] and fl_mask[a]:
-            _integrate_range_floor(a, a + 1, dt, x, v, f, inv_mass, 1.0, fl_n, fl_h, fl_stick, fl_mask, contact)
 
 
 # ---------------------------------------------------------------------------
 # diagnostics
 # ---------------------------------------------------------------------------
 
-@njit(**_OPTS)
+@njit(**JIT_OPTIONS)
 def stretch_range(x, ij, sd):
     """(min, max) spring stretch of configuration *x* (NaN if a stretch is not finite)."""
     lo = np.inf
@@ -913,7 +926,7 @@ def stretch_range(x, ij, sd):
     return lo, hi
 
 
-@njit(**_OPTS)
+@njit(**JIT_OPTIONS)
 def node_tangent_sums(x, ij, sd, gwin, lam_min, inv_h, last_cell, aniso, out):
     """out[a] = sum over the springs of node a of kappa_ij = sum_d (w_d / L0) gwin[cell(lam), d].
 
@@ -942,7 +955,7 @@ def node_tangent_sums(x, ij, sd, gwin, lam_min, inv_h, last_cell, aniso, out):
         out[j] += kap
 
 
-@njit(**_OPTS)
+@njit(**JIT_OPTIONS)
 def stretch_change(x, x0, ij, sd):
     """Largest |lam(x) - lam(x0)| over the springs (inf if not finite)."""
     worst = 0.0

@@ -21,6 +21,7 @@ yuv420p) into a temporary file renamed on success.
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 import time
@@ -208,8 +209,6 @@ def _attr_vector(attrs, key, default) -> np.ndarray:
     if isinstance(v, bytes):
         v = v.decode()
     if isinstance(v, str):
-        import json
-
         try:
             v = json.loads(v)
         except ValueError:

@@ -30,8 +30,9 @@ from typing import Any
 import numpy as np
 
 from ..config import load as load_config
-from ..errors import ConfigError, InputError
-from ..units import parse_quantity
+from ..errors import ConfigError
+from ..network.regions import region_from_config
+from ..validate import boolean, choice, keys, number, number_text, quantity, table
 
 DEFAULT_SCENE = "default"
 #: Half-width of a laparoscopic grasper's jaws [m] (radius "auto" grasps at least this).
@@ -53,6 +54,11 @@ VIEWS = ("auto", "xy", "xz", "yz", "iso")
 LAWS = ("asset", "secant", "energy")
 EFFECTS = ("asset", "none")
 GRASP_MODES = ("prescribed", "spring")
+STARTS = ("equilibrium", "rest")
+STEPS = ("adaptive", "table")
+PRECISIONS = ("float64", "float32")
+FRICTIONS = ("stick", "slip")
+DIRECTIONS = ("away", "up")
 
 
 @dataclass(frozen=True)
@@ -209,22 +215,22 @@ class Scene:
         """Frames after the initial one."""
         return max(1, int(math.ceil(self.duration * self.frame_rate - 1e-9)))
 
-    def with_overrides(self, *, duration: float | None = None, threads=None, law: str | None = None,
+    def with_overrides(self, *, duration=None, threads=None, law: str | None = None,
                        effects: str | None = None) -> Scene:
-        """A copy with command-line overrides applied (validated)."""
+        """A copy with overrides applied (validated; a message names the parameter).
+
+        *duration* is a number of seconds or a time with its unit (``"500 ms"``;
+        text with a bare number is seconds); *threads* ``"auto"`` or a whole number.
+        """
         out = self
         if effects is not None:
-            if effects not in EFFECTS:
-                raise ConfigError(f"--effects: {effects!r} is not one of {', '.join(EFFECTS)}")
-            out = replace(out, effects=effects)
+            out = replace(out, effects=choice(effects, EFFECTS, "effects"))
         if duration is not None:
-            out = replace(out, duration=_positive(duration, "--duration", "s"))
+            out = replace(out, duration=_seconds(duration, "duration"))
         if threads is not None:
-            out = replace(out, threads=_threads(threads, "--threads"))
+            out = replace(out, threads=_threads(threads, "threads"))
         if law is not None:
-            if law not in LAWS:
-                raise ConfigError(f"--law: {law!r} is not one of {', '.join(LAWS)}")
-            out = replace(out, law=law)
+            out = replace(out, law=choice(law, LAWS, "law"))
         if out.grasper is not None:
             _check_grasper_times(out.grasper, out.duration, "[grasper]")
         return out
@@ -244,91 +250,72 @@ class Scene:
 
 
 # ---------------------------------------------------------------------------
-# parsing helpers
+# value helpers (on top of esmm.pipeline.validate)
 # ---------------------------------------------------------------------------
 
-def _quantity(value, kind: str, where: str) -> float:
-    try:
-        return parse_quantity(value, kind, where=where)
-    except InputError as exc:
-        raise ConfigError(str(exc)) from None
+def _seconds(value, name: str) -> float:
+    """A positive time: a number of seconds (also as text, "2") or a time with its unit ("500 ms")."""
+    if isinstance(value, str):
+        try:
+            float(value)
+        except ValueError:
+            return quantity(value, "time", name, lo=0.0, lo_open=True)
+    return number_text(value, name, lo=0.0, lo_open=True)
 
 
-def _positive(value, where: str, unit: str) -> float:
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        v = float(value)                       # CLI numbers are in the stated unit
-    else:
-        v = _quantity(value, "time", where)
-    if not (math.isfinite(v) and v > 0):
-        raise ConfigError(f"{where}: must be a positive time, got {value!r}")
-    return v
-
-
-def _number(value, where: str, *, lo: float | None = None, hi: float | None = None,
-            lo_open: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f"{where}: expected a number, got {value!r}")
-    v = float(value)
-    if not math.isfinite(v) or (lo is not None and (v < lo or (lo_open and v == lo))) or (hi is not None and v > hi):
-        rng = f"{'(' if lo_open else '['}{lo if lo is not None else '-inf'}, {hi if hi is not None else 'inf'}]"
-        raise ConfigError(f"{where}: expected a number in {rng}, got {value!r}")
-    return v
-
-
-def _threads(value, where: str):
+def _threads(value, name: str):
+    """``"auto"`` or a whole number >= 1 (also as text)."""
     if value == "auto":
         return "auto"
-    if isinstance(value, str) and value.isdigit():
-        value = int(value)
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ConfigError(f"{where}: expected \"auto\" or a whole number >= 1, got {value!r}")
-    return int(value)
+    try:
+        return number_text(value, name, lo=1, integer=True)
+    except ConfigError:
+        raise ConfigError(f"{name}: expected \"auto\" or a whole number >= 1, got {value!r}",
+                          parameter=name) from None
 
 
-def _bool(value, where: str) -> bool:
-    if not isinstance(value, bool):
-        raise ConfigError(f"{where}: expected true or false, got {value!r}")
-    return value
-
-
-def _vec3(value, where: str, *, lengths: bool) -> np.ndarray:
+def _vec3(value, name: str, *, lengths: bool) -> np.ndarray:
+    """Three numbers, or three lengths with their units (SI)."""
     if not isinstance(value, (list, tuple)) or len(value) != 3:
         ex = '["10 mm", "0 mm", "5 mm"]' if lengths else "[0, 0, 1]"
-        raise ConfigError(f"{where}: expected a list of 3 {'lengths with units' if lengths else 'numbers'}, e.g. {ex}")
+        raise ConfigError(f"{name}: expected a list of 3 {'lengths with units' if lengths else 'numbers'}, e.g. {ex}",
+                          parameter=name)
     if lengths:
-        return np.array([_quantity(v, "length", f"{where}[{k}]") for k, v in enumerate(value)])
-    return np.array([_number(v, f"{where}[{k}]") for k, v in enumerate(value)])
+        return np.array([quantity(v, "length", f"{name}[{k}]") for k, v in enumerate(value)])
+    return np.array([number(v, f"{name}[{k}]") for k, v in enumerate(value)])
 
 
 _STIFF = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(\S+)\s*$")
 
 
-def _stiffness(value, where: str) -> float:
+def _stiffness(value, name: str) -> float:
+    """A positive stiffness with its unit (N/m, N/mm, kN/m), in N/m."""
     m = _STIFF.match(value) if isinstance(value, str) else None
     if not m or m.group(2).lower() not in _STIFFNESS_UNITS:
-        raise ConfigError(f"{where}: expected a stiffness with its unit ({', '.join(['N/m', 'N/mm', 'kN/m'])}), "
-                          f"e.g. \"200 N/m\", got {value!r}")
+        raise ConfigError(f"{name}: expected a stiffness with its unit ({', '.join(['N/m', 'N/mm', 'kN/m'])}), "
+                          f"e.g. \"200 N/m\", got {value!r}", parameter=name)
     v = float(m.group(1)) * _STIFFNESS_UNITS[m.group(2).lower()]
     if not (math.isfinite(v) and v > 0):
-        raise ConfigError(f"{where}: must be positive, got {value!r}")
+        raise ConfigError(f"{name}: must be positive, got {value!r}", parameter=name)
     return v
 
 
-def _check_keys(table: dict, name: str) -> None:
-    allowed = _TABLES[name]
-    if not isinstance(table, dict):
-        raise ConfigError(f"[{name}]: expected a table, got {type(table).__name__}")
-    if allowed is None:
-        return
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise ConfigError(f"[{name}]: unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(allowed))}")
+def _section(data: dict, name: str) -> dict:
+    """The table ``[name]`` of a scene (empty when absent), its keys checked."""
+    t = table(data.get(name, {}), f"[{name}]")
+    if _TABLES[name] is not None:
+        keys(t, sorted(_TABLES[name]), f"[{name}]")
+    return t
 
 
 def _check_grasper_times(g: GrasperSpec, duration: float, where: str) -> None:
     if g.grasp_time >= duration:
         raise ConfigError(f"{where} grasp_time: {g.grasp_time:g} s is not before the end of the scene "
                           f"({duration:g} s); shorten it or lengthen the duration")
+
+
+def _default_gravity(kw: dict) -> np.ndarray:
+    return np.asarray(kw.get("gravity", Scene.__dataclass_fields__["gravity"].default_factory()))
 
 
 # ---------------------------------------------------------------------------
@@ -350,130 +337,102 @@ def scene_from_dict(data: dict, *, source: str = "<dict>") -> Scene:
         raise ConfigError(f"{source}: unknown table(s) {', '.join('[' + u + ']' for u in unknown)}; "
                           f"allowed: {', '.join('[' + t + ']' for t in _TABLES)}")
     kw: dict[str, Any] = {"source": source}
-
-    sc = data.get("scene", {})
-    _check_keys(sc, "scene")
-    if "duration" in sc:
-        kw["duration"] = _positive(sc["duration"], "[scene] duration", "s") if isinstance(sc["duration"], str) \
-            else _bad_unit("[scene] duration", sc["duration"], "3 s")
-    if "frame_rate" in sc:
-        kw["frame_rate"] = _number(sc["frame_rate"], "[scene] frame_rate (frames per second)", lo=0.0,
-                                   hi=10_000.0, lo_open=True)
-    unit = sc.get("gravity_unit", "m/s2")
-    if not isinstance(unit, str) or unit.lower().replace(" ", "") not in _GRAVITY_UNITS:
-        raise ConfigError(f"[scene] gravity_unit: {unit!r} is not one of {', '.join(_GRAVITY_UNITS)}")
-    if "gravity" in sc:
-        kw["gravity"] = _vec3(sc["gravity"], "[scene] gravity", lengths=False) * _GRAVITY_UNITS[unit.lower().replace(" ", "")]
-    if "start" in sc:
-        if sc["start"] not in ("equilibrium", "rest"):
-            raise ConfigError(f"[scene] start: {sc['start']!r} is not \"equilibrium\" or \"rest\"")
-        kw["start"] = sc["start"]
-    if "law" in sc:
-        if sc["law"] not in LAWS:
-            raise ConfigError(f"[scene] law: {sc['law']!r} is not one of {', '.join(LAWS)}")
-        kw["law"] = sc["law"]
-    if "effects" in sc:
-        if sc["effects"] not in EFFECTS:
-            raise ConfigError(f"[scene] effects: {sc['effects']!r} is not \"asset\" (the asset's material "
-                              f"effects) or \"none\" (elastic only)")
-        kw["effects"] = sc["effects"]
-
-    dm = data.get("damping", {})
-    _check_keys(dm, "damping")
-    if "dashpot" in dm:
-        v = dm["dashpot"]
-        kw["dashpot"] = 0.0 if v in ("none", 0) else _quantity(v, "time", "[damping] dashpot")
-        if not (math.isfinite(kw["dashpot"]) and kw["dashpot"] >= 0):
-            raise ConfigError(f"[damping] dashpot: must be a time >= 0, got {v!r}")
-    if "velocity_decay" in dm:
-        v = dm["velocity_decay"]
-        kw["velocity_decay"] = None if v in ("none", 0) else _positive(v, "[damping] velocity_decay", "s") \
-            if isinstance(v, str) else _bad_unit("[damping] velocity_decay", v, "0.2 s")
-
-    it = data.get("integrator", {})
-    _check_keys(it, "integrator")
-    if "safety" in it:
-        kw["safety"] = _number(it["safety"], "[integrator] safety", lo=0.0, hi=1.0, lo_open=True)
-    if "threads" in it:
-        kw["threads"] = _threads(it["threads"], "[integrator] threads")
-    if "step" in it:
-        if it["step"] not in ("adaptive", "table"):
-            raise ConfigError(f"[integrator] step: {it['step']!r} is not \"adaptive\" or \"table\"")
-        kw["step"] = it["step"]
-    if "mass_scaling" in it:
-        kw["mass_scaling"] = _number(it["mass_scaling"], "[integrator] mass_scaling (fraction of the mass)",
-                                     lo=0.0, hi=0.1)
-    if "window" in it:
-        kw["window"] = _number(it["window"], "[integrator] window (stretch)", lo=0.0, hi=1.0, lo_open=True)
-    if "precision" in it:
-        if it["precision"] not in ("float64", "float32"):
-            raise ConfigError(f"[integrator] precision: {it['precision']!r} is not \"float64\" or \"float32\"")
-        kw["precision"] = it["precision"]
-    if "max_steps" in it:
-        ms = it["max_steps"]
-        if isinstance(ms, bool) or not isinstance(ms, int) or ms < 1:
-            raise ConfigError(f"[integrator] max_steps: expected a whole number >= 1, got {ms!r}")
-        kw["max_steps"] = ms
-
+    kw.update(_scene_table(_section(data, "scene")))
+    kw.update(_damping(_section(data, "damping")))
+    kw.update(_integrator(_section(data, "integrator")))
     if "fixed" in data:
-        fx = data["fixed"]
-        _check_keys(fx, "fixed")
-        if fx.get("kind") == "asset":
-            if set(fx) - {"kind"}:
-                raise ConfigError("[fixed]: kind = \"asset\" takes no other key")
-            kw["fixed"] = None
-        else:
-            from ..network.regions import region_from_config
-
-            if fx.get("axis") in ("up", "down"):
-                # A band across the vertical: its normal is the gravity direction of this scene.
-                g = np.asarray(kw.get("gravity", Scene.__dataclass_fields__["gravity"].default_factory()))
-                if not np.any(g):
-                    raise ConfigError(f"[fixed] axis: {fx['axis']!r} needs gravity; give a vector such as [0, 0, 1]")
-                up = -g / np.linalg.norm(g)
-                fx = {**fx, "axis": (up if fx["axis"] == "up" else -up).tolist()}
-            kw["fixed"] = region_from_config(fx, where="[fixed]")
-
-    fl = data.get("floor", {})
-    _check_keys(fl, "floor")
-    if "enabled" in fl:
-        _bool(fl["enabled"], "[floor] enabled")
-    if fl.get("enabled", bool(fl)) is True:
-        h = fl.get("height", "auto")
-        if h != "auto":
-            if not isinstance(h, str):
-                _bad_unit("[floor] height", h, "-20 mm")
-            h = _quantity(h, "length", "[floor] height")
-            if not math.isfinite(h):
-                raise ConfigError(f"[floor] height: must be finite, got {fl['height']!r}")
-        fr = fl.get("friction", "stick")
-        if fr not in ("stick", "slip"):
-            raise ConfigError(f"[floor] friction: {fr!r} is not \"stick\" (sticking friction) or \"slip\" "
-                              f"(frictionless)")
-        g = np.asarray(kw.get("gravity", Scene.__dataclass_fields__["gravity"].default_factory()))
-        if not np.any(g):
-            raise ConfigError("[floor]: needs gravity (the floor is perpendicular to it); set [scene] gravity "
-                              "or enabled = false")
-        kw["floor"] = FloorSpec(height=h, friction=fr)
-
-    gr = data.get("grasper", {})
-    _check_keys(gr, "grasper")
-    kw["grasper"] = None if gr.get("enabled", True) is False else _grasper(gr)
+        kw["fixed"] = _fixed(_section(data, "fixed"), _default_gravity(kw))
+    kw["floor"] = _floor(_section(data, "floor"), _default_gravity(kw))
+    gr = _section(data, "grasper")
     if "enabled" in gr:
-        _bool(gr["enabled"], "[grasper] enabled")
-
-    vd = data.get("video", {})
-    _check_keys(vd, "video")
-    kw["video"] = _video(vd)
-
+        boolean(gr["enabled"], "[grasper] enabled")
+    kw["grasper"] = None if gr.get("enabled", True) is False else _grasper(gr)
+    kw["video"] = _video(_section(data, "video"))
     scene = Scene(**kw)
     if scene.grasper is not None:
         _check_grasper_times(scene.grasper, scene.duration, "[grasper]")
     return scene
 
 
-def _bad_unit(where: str, value, example: str):
-    raise ConfigError(f"{where}: {value!r} has no unit; write it as a string with its unit, e.g. \"{example}\"")
+def _scene_table(sc: dict) -> dict:
+    kw: dict[str, Any] = {}
+    if "duration" in sc:
+        kw["duration"] = quantity(sc["duration"], "time", "[scene] duration", lo=0.0, lo_open=True)
+    if "frame_rate" in sc:
+        kw["frame_rate"] = number(sc["frame_rate"], "[scene] frame_rate", lo=0.0, hi=10_000.0, lo_open=True)
+    unit = sc.get("gravity_unit", "m/s2")
+    unit = choice(unit.lower().replace(" ", "") if isinstance(unit, str) else unit, _GRAVITY_UNITS,
+                  "[scene] gravity_unit")
+    if "gravity" in sc:
+        kw["gravity"] = _vec3(sc["gravity"], "[scene] gravity", lengths=False) * _GRAVITY_UNITS[unit]
+    if "start" in sc:
+        kw["start"] = choice(sc["start"], STARTS, "[scene] start")
+    if "law" in sc:
+        kw["law"] = choice(sc["law"], LAWS, "[scene] law")
+    if "effects" in sc:
+        kw["effects"] = choice(sc["effects"], EFFECTS, "[scene] effects")
+    return kw
+
+
+def _damping(dm: dict) -> dict:
+    kw: dict[str, Any] = {}
+    if "dashpot" in dm:
+        v = dm["dashpot"]
+        kw["dashpot"] = 0.0 if v in ("none", 0) else quantity(v, "time", "[damping] dashpot", lo=0.0)
+    if "velocity_decay" in dm:
+        v = dm["velocity_decay"]
+        kw["velocity_decay"] = None if v in ("none", 0) else quantity(v, "time", "[damping] velocity_decay",
+                                                                      lo=0.0, lo_open=True)
+    return kw
+
+
+def _integrator(it: dict) -> dict:
+    kw: dict[str, Any] = {}
+    if "safety" in it:
+        kw["safety"] = number(it["safety"], "[integrator] safety", lo=0.0, hi=1.0, lo_open=True)
+    if "threads" in it:
+        kw["threads"] = _threads(it["threads"], "[integrator] threads")
+    if "step" in it:
+        kw["step"] = choice(it["step"], STEPS, "[integrator] step")
+    if "mass_scaling" in it:
+        kw["mass_scaling"] = number(it["mass_scaling"], "[integrator] mass_scaling", lo=0.0, hi=0.1)
+    if "window" in it:
+        kw["window"] = number(it["window"], "[integrator] window", lo=0.0, hi=1.0, lo_open=True)
+    if "precision" in it:
+        kw["precision"] = choice(it["precision"], PRECISIONS, "[integrator] precision")
+    if "max_steps" in it:
+        kw["max_steps"] = number(it["max_steps"], "[integrator] max_steps", lo=1, integer=True)
+    return kw
+
+
+def _fixed(fx: dict, gravity: np.ndarray):
+    """The ``[fixed]`` region (None: the asset's fixed nodes); a band's axis may be "up" or "down"."""
+    if fx.get("kind") == "asset":
+        if set(fx) - {"kind"}:
+            raise ConfigError("[fixed]: kind = \"asset\" takes no other key")
+        return None
+    if fx.get("axis") in ("up", "down"):
+        # A band across the vertical: its normal is the gravity direction of this scene.
+        if not np.any(gravity):
+            raise ConfigError(f"[fixed] axis: {fx['axis']!r} needs gravity; give a vector such as [0, 0, 1]")
+        up = -gravity / np.linalg.norm(gravity)
+        fx = {**fx, "axis": (up if fx["axis"] == "up" else -up).tolist()}
+    return region_from_config(fx, where="[fixed]")
+
+
+def _floor(fl: dict, gravity: np.ndarray) -> FloorSpec | None:
+    if "enabled" in fl:
+        boolean(fl["enabled"], "[floor] enabled")
+    if fl.get("enabled", bool(fl)) is not True:
+        return None
+    h = fl.get("height", "auto")
+    if h != "auto":
+        h = quantity(h, "length", "[floor] height")
+    fr = choice(fl.get("friction", "stick"), FRICTIONS, "[floor] friction")
+    if not np.any(gravity):
+        raise ConfigError("[floor]: needs gravity (the floor is perpendicular to it); set [scene] gravity "
+                          "or enabled = false")
+    return FloorSpec(height=h, friction=fr)
 
 
 def _grasper(gr: dict) -> GrasperSpec:
@@ -481,13 +440,8 @@ def _grasper(gr: dict) -> GrasperSpec:
     target = gr.get("target", "auto")
     kw["target"] = "auto" if target == "auto" else _vec3(target, "[grasper] target", lengths=True)
     if "radius" in gr and gr["radius"] != "auto":
-        kw["radius"] = _quantity(gr["radius"], "length", "[grasper] radius")
-        if not (kw["radius"] >= 0):
-            raise ConfigError(f"[grasper] radius: must be >= 0 or \"auto\", got {gr['radius']!r}")
-    mode = gr.get("mode", "prescribed")
-    if mode not in GRASP_MODES:
-        raise ConfigError(f"[grasper] mode: {mode!r} is not one of {', '.join(GRASP_MODES)}")
-    kw["mode"] = mode
+        kw["radius"] = quantity(gr["radius"], "length", "[grasper] radius", lo=0.0)
+    kw["mode"] = mode = choice(gr.get("mode", "prescribed"), GRASP_MODES, "[grasper] mode")
     if mode == "spring":
         if "stiffness" not in gr:
             raise ConfigError("[grasper] stiffness: mode \"spring\" needs a stiffness, e.g. \"500 N/m\"")
@@ -496,24 +450,25 @@ def _grasper(gr: dict) -> GrasperSpec:
         raise ConfigError("[grasper] stiffness: only used with mode = \"spring\"; remove it or change the mode")
     direction = gr.get("direction", "away")
     if isinstance(direction, str):
-        if direction not in ("away", "up"):
-            raise ConfigError(f"[grasper] direction: {direction!r} is not \"away\", \"up\" or a vector [x, y, z]")
-        kw["direction"] = direction
+        kw["direction"] = choice(direction, DIRECTIONS, "[grasper] direction")
     else:
         d = _vec3(direction, "[grasper] direction", lengths=False)
         if np.linalg.norm(d) == 0:
             raise ConfigError("[grasper] direction: the zero vector is not a direction")
         kw["direction"] = d / np.linalg.norm(d)
-    grasp_time = _time_or(gr.get("grasp_time"), "[grasper] grasp_time", 0.0)
-    if grasp_time < 0:
-        raise ConfigError(f"[grasper] grasp_time: must be >= 0, got {gr['grasp_time']!r}")
+    grasp_time = 0.0 if gr.get("grasp_time") is None else quantity(gr["grasp_time"], "time", "[grasper] grasp_time",
+                                                                    lo=0.0)
     kw["grasp_time"] = grasp_time
     rt = gr.get("release_time", "2 s")
-    kw["release_time"] = None if rt == "never" else _time_or(rt, "[grasper] release_time", 2.0)
+    kw["release_time"] = None if rt == "never" else quantity(rt, "time", "[grasper] release_time")
     if kw["release_time"] is not None and kw["release_time"] <= grasp_time:
         raise ConfigError(f"[grasper] release_time: {kw['release_time']:g} s must come after grasp_time "
                           f"({grasp_time:g} s), or be \"never\"")
-    wps = gr.get("waypoints", None)
+    kw["waypoints"] = _waypoints(gr.get("waypoints", None), grasp_time)
+    return GrasperSpec(**kw)
+
+
+def _waypoints(wps, grasp_time: float) -> tuple:
     if wps is None:
         wps = [{"time": "0 s", "distance": "0 mm"}, {"time": "1 s", "distance": "15 mm"}]
     if not isinstance(wps, list) or not wps:
@@ -523,17 +478,15 @@ def _grasper(gr: dict) -> GrasperSpec:
         where = f"[grasper] waypoints[{k}]"
         if not isinstance(w, dict):
             raise ConfigError(f"{where}: expected a table like {{time = \"1 s\", distance = \"15 mm\"}}")
-        extra = sorted(set(w) - {"time", "distance", "offset"})
-        if extra:
-            raise ConfigError(f"{where}: unknown key(s) {', '.join(extra)}; use time and distance or offset")
+        keys(w, ("time", "distance", "offset"), where)
         if "time" not in w:
             raise ConfigError(f"{where}: needs a time, e.g. time = \"1 s\"")
-        t = _quantity(w["time"], "time", f"{where} time")
+        t = quantity(w["time"], "time", f"{where} time")
         if ("distance" in w) == ("offset" in w):
             raise ConfigError(f"{where}: give exactly one of distance = \"15 mm\" (along direction) "
                               f"or offset = [\"0 mm\", \"0 mm\", \"15 mm\"]")
         if "distance" in w:
-            out.append(Waypoint(time=t, distance=_quantity(w["distance"], "length", f"{where} distance")))
+            out.append(Waypoint(time=t, distance=quantity(w["distance"], "length", f"{where} distance")))
         else:
             out.append(Waypoint(time=t, offset=_vec3(w["offset"], f"{where} offset", lengths=True)))
     times = np.array([w.time for w in out])
@@ -542,25 +495,14 @@ def _grasper(gr: dict) -> GrasperSpec:
     if times[0] < grasp_time - 1e-12:
         raise ConfigError(f"[grasper] waypoints: the first waypoint ({times[0]:g} s) is before grasp_time "
                           f"({grasp_time:g} s); the path starts when the grasper closes")
-    kw["waypoints"] = tuple(out)
-    return GrasperSpec(**kw)
-
-
-def _time_or(value, where: str, default: float) -> float:
-    if value is None:
-        return default
-    if not isinstance(value, str):
-        _bad_unit(where, value, "1 s")
-    return _quantity(value, "time", where)
+    return tuple(out)
 
 
 def _video(vd: dict) -> VideoSpec:
     kw: dict[str, Any] = {}
     for key in ("width", "height"):
         if key in vd:
-            v = vd[key]
-            if isinstance(v, bool) or not isinstance(v, int) or not 64 <= v <= 4096:
-                raise ConfigError(f"[video] {key}: expected a whole number of pixels in 64..4096, got {v!r}")
+            v = number(vd[key], f"[video] {key}", lo=64, hi=4096, integer=True)
             kw[key] = v + (v % 2)           # H.264 with yuv420p needs even sizes
     if "colormap" in vd:
         cm = vd["colormap"]
@@ -570,14 +512,12 @@ def _video(vd: dict) -> VideoSpec:
             raise ConfigError(f"[video] colormap: {cm!r} is not a matplotlib colormap name (e.g. \"viridis\")")
         kw["colormap"] = cm
     if "view" in vd:
-        if vd["view"] not in VIEWS:
-            raise ConfigError(f"[video] view: {vd['view']!r} is not one of {', '.join(VIEWS)}")
-        kw["view"] = vd["view"]
+        kw["view"] = choice(vd["view"], VIEWS, "[video] view")
     if "zoom" in vd:
-        kw["zoom"] = _number(vd["zoom"], "[video] zoom", lo=0.1, hi=10.0)
+        kw["zoom"] = number(vd["zoom"], "[video] zoom", lo=0.1, hi=10.0)
     for key in ("show_fixed", "show_edges"):
         if key in vd:
-            kw[key] = _bool(vd[key], f"[video] {key}")
+            kw[key] = boolean(vd[key], f"[video] {key}")
     return VideoSpec(**kw)
 
 

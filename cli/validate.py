@@ -1,0 +1,81 @@
+"""``esmm validate``: the spring network against an independent finite-element reference."""
+
+from __future__ import annotations
+
+import argparse
+
+EPILOG = """\
+cases: tension, compression (frictionless grips on the end faces along z), shear (bottom
+face clamped, top face moved sideways), gravity (the organ on its bed: the scene's anchor
+and floor), lift (the bed, and the grasped patch moved by the scene's lift). Default: the
+organ cases for an ASSET, the specimen cases for --specimen. docs/validate.md states every
+boundary condition and the figures.
+
+outputs (in --out DIR, default ASSET-validate/ or specimen-validate/):
+  validation.md, validation.json   the table and every figure per case
+  CASE.png                         the continuum and the network side by side, and the error
+  CASE.xdmf + CASE.h5              both displacement fields and their difference (ParaView)
+
+examples:
+  esmm validate liver.h5
+  esmm validate --specimen --size 2.5 --json spec.json
+  esmm validate liver.h5 --cases gravity --volume-term off --out runs/val
+"""
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "validate", help="compare the network with a finite-element continuum, case by case",
+        description="Solve the asset's mesh with its material as a nearly incompressible hyperelastic "
+                    "continuum (felupe) and the spring network under the same load cases, and report the "
+                    "displacement, force and volume errors of the network.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("asset", metavar="ASSET.h5", nargs="?", default=None, help="asset written by 'esmm prepare'")
+    p.add_argument("--specimen", action="store_true",
+                   help="validate on the built-in specimen (a meshed cube) instead of an asset")
+    p.add_argument("--side", metavar="MM", type=float, default=20.0, help="specimen cube edge in mm (20)")
+    p.add_argument("--size", metavar="MM", type=float, default=2.5, help="specimen element size in mm (2.5)")
+    p.add_argument("--material", metavar="FILE_OR_NAME", default="porcine_liver_paper",
+                   help="specimen material: preset name or TOML file (default porcine_liver_paper)")
+    p.add_argument("--cases", metavar="CASE", nargs="+", default=None,
+                   help="tension, compression, shear, gravity, lift")
+    p.add_argument("--volume-term", dest="volume_term", choices=("off", "on"), default="off",
+                   help="run the network without (off) or with (on) its volume term")
+    p.add_argument("--law", choices=("secant", "energy"), default=None, help="network force law (the tables')")
+    p.add_argument("--element", choices=("auto", "p2", "mini"), default="auto",
+                   help="continuum element: quadratic tets (p2) or MINI; auto by size")
+    p.add_argument("--scene", metavar="C", default=None, help="scene of the organ cases (default 'default')")
+    p.add_argument("--json", metavar="OUT.json", default=None, help="also write the figures there ('-': stdout)")
+    p.add_argument("--out", metavar="DIR", default=None, help="output folder")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args, ui) -> int:
+    from pathlib import Path
+
+    from esmm.pipeline.atomicio import json_text, write_json
+    from esmm.pipeline.errors import ConfigError
+    from esmm.pipeline.fidelity.validate import LoadOptions, validate_asset, validate_specimen
+    from esmm.pipeline.materials.material import load_material
+
+    if (args.asset is None) == (not args.specimen):
+        raise ConfigError("give an ASSET.h5 or --specimen (one of them)")
+    opts = {"cases": args.cases, "volume_term": args.volume_term, "law": args.law, "element": args.element,
+            "loads": LoadOptions(scene=args.scene), "reporter": ui}
+    if args.specimen:
+        out = Path(args.out) if args.out else Path("specimen-validate")
+        rep = validate_specimen(load_material(args.material), side=args.side * 1e-3, size=args.size * 1e-3,
+                                out_dir=out, **opts)
+    else:
+        out = Path(args.out) if args.out else Path(args.asset).with_name(Path(args.asset).stem + "-validate")
+        rep = validate_asset(args.asset, out_dir=out, **opts)
+    ui.info(f"validated {rep.label} (volume term {rep.volume_term}, continuum element {rep.info['element']}, "
+            f"{rep.info['seconds']:.3g} s)")
+    ui.info(rep.table())
+    if args.json == "-":
+        ui.info(json_text(rep.figures()))
+    elif args.json:
+        write_json(args.json, rep.figures())
+    ui.info(f"outputs: {out}")
+    return 0

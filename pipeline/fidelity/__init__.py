@@ -1,0 +1,4 @@
+"""Fidelity of the spring network: an independent continuum (finite-element) reference.
+
+See docs/validate.md.
+"""

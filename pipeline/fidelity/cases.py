@@ -1,0 +1,335 @@
+"""Load cases: one solver-neutral description of a static problem for both solvers.
+
+A :class:`LoadCase` is the rest mesh (the asset's nodes and tetrahedra), a
+body force (gravity on the tissue density) and Dirichlet constraints per node
+and component (:class:`Constraint`), each reached linearly with the load factor
+t in [0, 1]. The continuum (:mod:`.continuum`) and the network
+(:mod:`.network_solve`) solve exactly this problem; nothing else about the
+boundary is assumed by either.
+
+Cases (docs/validate.md §2 states each boundary condition and why):
+
+* ``tension``, ``compression`` -- frictionless grips on the two end faces
+  along an axis (normal displacement prescribed, lateral motion free, rigid
+  modes held at two nodes): on a block a homogeneous continuum is exactly in
+  uniaxial stress, the analytic reference of the FE verification;
+* ``shear`` -- bottom face clamped, top face clamped and moved sideways by
+  γ times the height, lateral faces free;
+* ``gravity`` -- the default scene: gravity, the lowest 5 % along gravity
+  held (the anchor), the floor's sticking contacts as pins (:func:`with_floor_pins`);
+* ``lift`` -- the same bed with the grasped patch moved by the scene's
+  last waypoint (20 mm up) from its rest position.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..network.springs import tet_volumes
+
+__all__ = ["CASES", "SPECIMEN_CASES", "ORGAN_CASES", "Constraint", "LoadCase", "Floor", "end_faces",
+           "oriented", "uniaxial_case", "shear_case", "gravity_case", "lift_case", "with_floor_pins"]
+
+SPECIMEN_CASES = ("tension", "compression", "shear")
+ORGAN_CASES = ("gravity", "lift")
+CASES = SPECIMEN_CASES + ORGAN_CASES
+
+
+@dataclass(frozen=True, eq=False)
+class Constraint:
+    """Prescribed displacements of a group of nodes.
+
+    Attributes
+    ----------
+    name : str
+    nodes : ndarray of int, shape (k,)
+    mask : ndarray of bool, shape (k, 3)
+        The prescribed components.
+    displacement : ndarray, shape (k, 3)
+        Their values at full load [m] (ignored where ``mask`` is False).
+    """
+
+    name: str
+    nodes: np.ndarray
+    mask: np.ndarray
+    displacement: np.ndarray
+
+    @classmethod
+    def clamp(cls, name: str, nodes, displacement=(0.0, 0.0, 0.0)) -> Constraint:
+        """All three components of *nodes* prescribed to *displacement* ((3,) or (k, 3))."""
+        nodes = np.asarray(nodes, dtype=np.int64).ravel()
+        u = np.broadcast_to(np.asarray(displacement, dtype=np.float64), (nodes.size, 3)).copy()
+        return cls(name, nodes, np.ones((nodes.size, 3), bool), u)
+
+
+@dataclass(frozen=True)
+class Floor:
+    """The bed: the plane ``normal . x = height`` (normal against gravity), sticking contact."""
+
+    normal: np.ndarray
+    height: float
+
+
+@dataclass(frozen=True, eq=False)
+class LoadCase:
+    """A static problem on a tetrahedral mesh (SI units).
+
+    Attributes
+    ----------
+    name : str
+        One of :data:`CASES`.
+    description : str
+        The boundary conditions in words (for the report).
+    points : ndarray, shape (n, 3)
+        Rest positions [m].
+    tets : ndarray of int, shape (t, 4)
+        Positively oriented tetrahedra.
+    constraints : tuple of Constraint
+        Disjoint node groups.
+    force_group : str
+        The constraint whose reaction is compared.
+    gravity : ndarray, shape (3,)
+        [m/s2] (zeros: none).
+    density : float
+        [kg/m3] (the network's masses are its own lumped masses: the same weight).
+    force_scale : float or None
+        Divisor of the force error [N]; None: the FE reaction's magnitude.
+    floor : Floor or None
+        Checked after a solve: a node below it becomes a pin (:func:`with_floor_pins`).
+    load : dict
+        The load's figures (stretch, gamma, lift vector) for the report.
+    """
+
+    name: str
+    description: str
+    points: np.ndarray
+    tets: np.ndarray
+    constraints: tuple
+    force_group: str
+    gravity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    density: float = 0.0
+    force_scale: float | None = None
+    floor: Floor | None = None
+    load: dict = field(default_factory=dict)
+
+    @property
+    def n_nodes(self) -> int:
+        return int(self.points.shape[0])
+
+    def constraint(self, name: str) -> Constraint:
+        for c in self.constraints:
+            if c.name == name:
+                return c
+        raise KeyError(name)
+
+    def prescribed(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(mask, u)``: prescribed components (n, 3) bool and their full-load values (n, 3) [m]."""
+        mask = np.zeros((self.n_nodes, 3), bool)
+        u = np.zeros((self.n_nodes, 3))
+        for c in self.constraints:
+            mask[c.nodes] |= c.mask
+            u[c.nodes] = np.where(c.mask, c.displacement, u[c.nodes])
+        return mask, u
+
+    def node_volumes(self) -> np.ndarray:
+        """Lumped nodal volumes (a quarter of each tet) [m3], shape (n,): the L2 weights."""
+        v = np.zeros(self.n_nodes)
+        np.add.at(v, self.tets.ravel(), np.repeat(tet_volumes(self.points, self.tets) / 4.0, 4))
+        return v
+
+
+def oriented(points: np.ndarray, tets) -> np.ndarray:
+    """*tets* (t, 4) with the negatively oriented ones turned (two vertices swapped)."""
+    t = np.array(tets, dtype=np.int64).reshape(-1, 4)
+    neg = tet_volumes(points, t) < 0
+    t[neg, 2], t[neg, 3] = t[neg, 3], t[neg, 2].copy()
+    return t
+
+
+def _check_disjoint(constraints) -> tuple:
+    seen = np.concatenate([c.nodes for c in constraints]) if constraints else np.zeros(0, np.int64)
+    if np.unique(seen).size != seen.size:
+        raise ConfigError("constraints: node groups overlap; every node may belong to one group only")
+    return tuple(constraints)
+
+
+def end_faces(points: np.ndarray, axis: int, *, slab: float = 0.05) -> tuple[np.ndarray, np.ndarray, float]:
+    """The nodes of the two end faces along *axis* and the length between them.
+
+    A flat end face (a block, a cylinder): the nodes within 1e-6 of the
+    extent of the extreme coordinate; otherwise (an organ) the *slab*
+    fraction of the extent at each end.
+
+    Returns
+    -------
+    bottom, top : ndarray of int
+    length : float
+        Distance between the two faces' mean coordinates along *axis* [m].
+    """
+    s = np.asarray(points)[:, axis]
+    lo, hi = float(s.min()), float(s.max())
+    tol = 1e-6 * (hi - lo)
+    bottom, top = np.flatnonzero(s <= lo + tol), np.flatnonzero(s >= hi - tol)
+    if bottom.size < 3 or top.size < 3:
+        bottom = np.flatnonzero(s <= lo + slab * (hi - lo))
+        top = np.flatnonzero(s >= hi - slab * (hi - lo))
+    return bottom, top, float(s[top].mean() - s[bottom].mean())
+
+
+def _axis(points, axis) -> int:
+    if axis is None:  # the longest extent
+        return int(np.argmax(np.ptp(points, axis=0)))
+    if axis not in (0, 1, 2):
+        raise ConfigError(f"axis: must be 0, 1 or 2 (x, y, z), got {axis!r}", parameter="axis")
+    return int(axis)
+
+
+def _rigid_pair(points, bottom, lat) -> tuple[int, int, int]:
+    """Two bottom nodes c, r and the component of r to hold, so that the rigid modes are held
+    without restraining a homogeneous lateral strain about c.
+
+    Holding c laterally and r across the line c-r is compatible with any
+    lateral stretch about c when that line is a coordinate direction: the two
+    are taken on the row of bottom nodes with the most nodes at one lateral
+    coordinate (an edge of a block's face), c nearest the row's middle, r
+    farthest from c. On a face without such a row (an organ's slab) the
+    bottom node nearest the centre and the farthest one are used.
+    """
+    p = points[bottom][:, lat]
+    span = float(np.ptp(p, axis=0).max()) or 1.0
+    for k in (1, 0):
+        key = np.round(p[:, k] / (1e-7 * span)).astype(np.int64)
+        vals, counts = np.unique(key, return_counts=True)
+        row = np.flatnonzero(key == vals[np.argmax(counts)])
+        if row.size >= 3:
+            mid = p[row, 1 - k].mean()
+            c = row[np.argmin(np.abs(p[row, 1 - k] - mid))]
+            r = row[np.argmax(np.abs(p[row, 1 - k] - p[c, 1 - k]))]
+            return int(bottom[c]), int(bottom[r]), lat[k]
+    c = int(np.argmin(np.linalg.norm(p - p.mean(axis=0), axis=1)))
+    r = int(np.argmax(np.linalg.norm(p - p[c], axis=1)))
+    d = p[r] - p[c]
+    return int(bottom[c]), int(bottom[r]), lat[int(np.argmin(np.abs(d)))]
+
+
+def uniaxial_case(points, tets, *, stretch: float, axis: int | None = 2, density: float = 0.0) -> LoadCase:
+    """Uniaxial tension (stretch > 1) or compression (< 1) between frictionless grips.
+
+    The two end faces along *axis* get their normal displacement (0 and
+    ``(stretch - 1) L``); lateral motion is free, except the rigid modes: the
+    bottom node nearest the face's centre is held laterally, the bottom node
+    farthest from it is held across the line joining them.
+    """
+    if not (np.isfinite(stretch) and 0.5 <= stretch <= 2.0 and stretch != 1.0):
+        raise ConfigError(f"stretch: must be in 0.5..2 and not 1, got {stretch!r}", parameter="stretch")
+    points = np.asarray(points, dtype=np.float64)
+    a = _axis(points, axis)
+    lat = [k for k in range(3) if k != a]
+    bottom, top, length = end_faces(points, a)
+    c, r, k_across = _rigid_pair(points, bottom, lat)
+    mask_b = np.zeros((bottom.size, 3), bool)
+    mask_b[:, a] = True
+    mask_b[bottom == c, lat[0]] = mask_b[bottom == c, lat[1]] = True
+    mask_b[bottom == r, k_across] = True
+    mask_t = np.zeros((top.size, 3), bool)
+    mask_t[:, a] = True
+    u_t = np.zeros((top.size, 3))
+    u_t[:, a] = (stretch - 1.0) * length
+    name = "tension" if stretch > 1 else "compression"
+    ax = "xyz"[a]
+    cons = _check_disjoint([Constraint("bottom", bottom, mask_b, np.zeros((bottom.size, 3))),
+                            Constraint("top", top, mask_t, u_t)])
+    desc = (f"uniaxial {name} to stretch {stretch:g} along {ax} (length {length * 1e3:.4g} mm): frictionless "
+            f"grips, the {bottom.size} bottom-face nodes at u_{ax} = 0 and the {top.size} top-face nodes at "
+            f"u_{ax} = {(stretch - 1) * length * 1e3:.4g} mm, lateral motion free; rigid modes held at two "
+            "bottom nodes; reaction on the top face")
+    return LoadCase(name, desc, points, oriented(points, tets), cons, "top", density=density,
+                    load={"stretch": float(stretch), "axis": ax, "length_m": length,
+                          "area_m2": float(np.abs(tet_volumes(points, tets)).sum()) / length})
+
+
+def shear_case(points, tets, *, gamma: float, axis: int | None = 2, direction: int | None = None,
+               density: float = 0.0) -> LoadCase:
+    """Simple shear of a block: bottom face clamped, top face clamped and moved by ``gamma L`` sideways."""
+    if not (np.isfinite(gamma) and 0 < abs(gamma) <= 1.0):
+        raise ConfigError(f"gamma: must be in 0..1 in magnitude and not 0, got {gamma!r}", parameter="gamma")
+    points = np.asarray(points, dtype=np.float64)
+    a = _axis(points, axis)
+    b = [k for k in range(3) if k != a][0] if direction is None else int(direction)
+    bottom, top, length = end_faces(points, a)
+    shift = np.zeros(3)
+    shift[b] = gamma * length
+    cons = _check_disjoint([Constraint.clamp("bottom", bottom), Constraint.clamp("top", top, shift)])
+    ax, bx = "xyz"[a], "xyz"[b]
+    desc = (f"simple shear gamma = {gamma:g} ({bx} displacement over {ax} height {length * 1e3:.4g} mm): the "
+            f"{bottom.size} bottom-face nodes clamped, the {top.size} top-face nodes clamped and moved "
+            f"{gamma * length * 1e3:.4g} mm along {bx}, lateral faces free; reaction on the top face")
+    return LoadCase("shear", desc, points, oriented(points, tets), cons, "top", density=density,
+                    load={"gamma": float(gamma), "axis": ax, "direction": bx, "length_m": length})
+
+
+def _bed(points, scene, fixed: np.ndarray):
+    g = np.asarray(scene.gravity, dtype=np.float64)
+    if not np.any(g):
+        raise ConfigError("scene: the gravity and lift cases need gravity", parameter="scene")
+    up = -g / np.linalg.norm(g)
+    floor = None
+    if scene.floor is not None:
+        h = scene.floor.height
+        floor = Floor(up, float(np.min(points @ up)) if isinstance(h, str) else float(h))
+    if fixed.size == 0 and floor is None:
+        raise ConfigError("scene: holds nothing (no fixed nodes, no floor); a static problem needs a support",
+                          parameter="scene")
+    return g, floor
+
+
+def gravity_case(points, tets, *, scene, fixed, density: float, weight: float) -> LoadCase:
+    """The organ under gravity on its bed: the scene's fixed nodes clamped, the floor as pins."""
+    points = np.asarray(points, dtype=np.float64)
+    fixed = np.asarray(fixed, dtype=np.int64)
+    g, floor = _bed(points, scene, fixed)
+    cons = _check_disjoint([Constraint.clamp("anchor", fixed)])
+    desc = (f"gravity {np.linalg.norm(g):.4g} m/s2 on the tissue ({weight:.4g} N); the scene's {fixed.size} "
+            "fixed nodes clamped (the anchor)"
+            + ("; the sticking floor as pins at the plane under each node that would go below it"
+               if floor is not None else "") + "; reaction on the anchor, relative to the weight")
+    return LoadCase("gravity", desc, points, oriented(points, tets), cons, "anchor", gravity=g,
+                    density=float(density), force_scale=float(weight), floor=floor,
+                    load={"weight_N": float(weight)})
+
+
+def lift_case(points, tets, *, scene, fixed, grasped, lift, density: float, weight: float) -> LoadCase:
+    """The grasper's lift: the bed of :func:`gravity_case` and the grasped patch moved by *lift* from rest."""
+    points = np.asarray(points, dtype=np.float64)
+    fixed = np.asarray(fixed, dtype=np.int64)
+    grasped = np.setdiff1d(np.asarray(grasped, dtype=np.int64), fixed)
+    g, floor = _bed(points, scene, fixed)
+    lift = np.asarray(lift, dtype=np.float64).reshape(3)
+    if grasped.size == 0:
+        raise ConfigError("scene: the grasper holds no free node", parameter="scene")
+    cons = _check_disjoint([Constraint.clamp("anchor", fixed), Constraint.clamp("grasper", grasped, lift)])
+    desc = (f"the bed of the gravity case and the {grasped.size} grasped surface nodes moved "
+            f"{np.linalg.norm(lift) * 1e3:.4g} mm along {np.round(lift / np.linalg.norm(lift), 3).tolist()} "
+            "from their rest positions (prescribed); reaction on the grasped nodes (the grasper force)")
+    return LoadCase("lift", desc, points, oriented(points, tets), cons, "grasper", gravity=g,
+                    density=float(density), floor=floor, load={"lift_m": lift.tolist(), "weight_N": float(weight)})
+
+
+def with_floor_pins(case: LoadCase, nodes) -> LoadCase:
+    """*case* with *nodes* pinned on its floor: each at the point of the plane under its rest position.
+
+    A pin holds a node's tangential position (sticking friction) at the plane
+    (no penetration). Nodes already in another group are skipped.
+    """
+    if case.floor is None:
+        return case
+    taken = np.concatenate([c.nodes for c in case.constraints if c.name != "floor"])
+    nodes = np.setdiff1d(np.asarray(nodes, dtype=np.int64), taken)
+    n, h = case.floor.normal, case.floor.height
+    drop = -((case.points[nodes] @ n) - h)[:, None] * n[None, :]
+    others = tuple(c for c in case.constraints if c.name != "floor")
+    cons = others + ((Constraint.clamp("floor", nodes, drop),) if nodes.size else ())
+    return replace(case, constraints=_check_disjoint(cons))

@@ -1,0 +1,276 @@
+"""``esmm validate``: the network against an independent continuum reference, case by case.
+
+:func:`validate_network` builds the load cases on a network (:mod:`.cases`),
+solves each with the continuum (:mod:`.continuum`, felupe) and with the
+network (:mod:`.network_solve`), compares them (:mod:`.compare`) and writes
+the outputs (:mod:`.report`) when given a folder. :func:`validate_asset` reads
+an asset first; :func:`validate_specimen` makes the built-in cube
+(:mod:`.specimen`). docs/validate.md explains every choice.
+
+The floor of the organ cases is a unilateral sticking contact; both solvers
+get it as the same bilateral constraints, found by an active set: solve, pin
+every node that went below the plane (either solver) at the point of the plane
+under its rest position, solve again, until no node goes below.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..asset import read_asset
+from ..atomicio import write_json, write_text
+from ..errors import ConfigError
+from ..progress import ensure
+from ..simulate.grasper import plan_grasp
+from ..simulate.runsetup import fixed_nodes
+from ..simulate.scene import load_scene
+from ..validate import choice
+from .cases import (
+    CASES,
+    ORGAN_CASES,
+    SPECIMEN_CASES,
+    gravity_case,
+    lift_case,
+    shear_case,
+    uniaxial_case,
+    with_floor_pins,
+)
+from .compare import CaseResult, compare
+from .continuum import solve_continuum
+from .material import DEFAULT_BULK_RATIO, bulk_modulus, check_continuum
+from .network_solve import solve_network
+from .report import plot_case, table_markdown, write_fields
+from .specimen import cube_specimen
+
+__all__ = ["VOLUME_TERM", "LoadOptions", "ValidationReport", "network_terms", "validate_asset", "validate_network",
+           "validate_specimen"]
+
+#: ``volume_term`` values: the network with or without the volume term of issue 11.
+VOLUME_TERM = ("off", "on")
+#: Continuum elements by size: quadratic tetrahedra up to this many tets, MINI above (docs/validate.md §1).
+P2_MAX_TETS = 3000
+
+
+@dataclass(frozen=True)
+class LoadOptions:
+    """The loads of the cases: specimen stretches and shear, and the scene of the organ cases."""
+
+    tension: float = 1.2
+    compression: float = 0.9
+    gamma: float = 0.3
+    scene: object = None      #: a Scene, a scene name or TOML path; None: the bundled default
+
+
+@dataclass(eq=False)
+class ValidationReport:
+    """The outcome of a validation.
+
+    Attributes
+    ----------
+    label : str
+        What was validated (asset path or specimen).
+    results : list of CaseResult
+    volume_term : str
+    files : dict
+        Output files by kind (``json``, ``table``, per case ``png`` and ``xdmf``).
+    info : dict
+        Material, law, bulk modulus, element, timings.
+    """
+
+    label: str
+    results: list
+    volume_term: str
+    files: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+    def table(self) -> str:
+        return table_markdown(self.results)
+
+    def figures(self) -> dict:
+        """The JSON document of ``--json``."""
+        return {"label": self.label, "volume_term": self.volume_term, **self.info,
+                "cases": [r.figures() for r in self.results]}
+
+    def worst(self) -> dict:
+        """The largest L2 and force errors over the cases."""
+        return {"l2_error": max((r.l2_error for r in self.results), default=float("nan")),
+                "force_error": max((r.force_error for r in self.results), default=float("nan"))}
+
+
+def network_terms(network, tables, material, *, volume_term: str = "off") -> tuple:
+    """The terms of the network's potential beside its springs (:func:`~.network_solve.solve_network`).
+
+    ``"on"`` adds the volume term (issue 11, part B) once it is in the build;
+    this is the one place that decides it.
+    """
+    choice(volume_term, VOLUME_TERM, "volume_term")
+    if volume_term == "off":
+        return ()
+    raise ConfigError("volume_term: the network's volume term is not in this build yet (issue 11, part B); "
+                      "use \"off\"", parameter="volume_term")
+
+
+def _cases_for(network, names, loads: LoadOptions, reporter) -> list:
+    """The load cases *names* on *network*'s nodes and tetrahedra."""
+    pts, tets = network.points, network.tets
+    density = float(network.mass.sum()) / float(network.total_volume())
+    out = []
+    for name in names:
+        if name == "tension":
+            out.append(uniaxial_case(pts, tets, stretch=loads.tension, density=density))
+        elif name == "compression":
+            out.append(uniaxial_case(pts, tets, stretch=loads.compression, density=density))
+        elif name == "shear":
+            out.append(shear_case(pts, tets, gamma=loads.gamma, density=density))
+        else:
+            out.append(_organ_case(network, name, loads, density))
+    return out
+
+
+def _organ_case(network, name: str, loads: LoadOptions, density: float):
+    scene = loads.scene if hasattr(loads.scene, "gravity") else load_scene(loads.scene)
+    fixed = fixed_nodes(network, scene)
+    weight = float(network.mass.sum() * np.linalg.norm(scene.gravity))
+    if name == "gravity":
+        return gravity_case(network.points, network.tets, scene=scene, fixed=fixed, density=density, weight=weight)
+    if scene.grasper is None:
+        raise ConfigError("cases: the lift case needs the scene's grasper; enable it or drop the case",
+                          parameter="cases")
+    plan = plan_grasp(scene.grasper, network.points, network.surface_faces, fixed, scene.gravity,
+                      springs=network.springs)
+    return lift_case(network.points, network.tets, scene=scene, fixed=fixed, grasped=plan.nodes,
+                     lift=plan.offsets[-1], density=density, weight=weight)
+
+
+def _below(case, solutions) -> np.ndarray:
+    """Nodes that either solution put below the case's floor (beyond a round-off tolerance)."""
+    fl = case.floor
+    tol = 1e-6 * float(np.ptp(case.points, axis=0).max())
+    out = [np.flatnonzero((case.points + s.displacement) @ fl.normal < fl.height - tol) for s in solutions]
+    return np.union1d(*out)
+
+
+def _solve_case(case, network, tables, material, *, law, terms, bulk, element, max_rounds: int, rep) -> CaseResult:
+    """Both solutions of *case* (with the floor's active set) and their comparison."""
+    pins = np.zeros(0, np.int64)
+    for round_ in range(max_rounds):
+        c = with_floor_pins(case, pins)
+        fe = solve_continuum(c, material, bulk=bulk, element=element, reporter=rep)
+        nw = solve_network(c, network, tables, law=law, terms=terms, reporter=rep)
+        if case.floor is None:
+            break
+        new = np.setdiff1d(_below(c, (fe, nw)), pins)
+        if new.size == 0:
+            break
+        pins = np.union1d(pins, new)
+        rep.step(f"{case.name}: {new.size} more nodes reach the floor; pinned there (round {round_ + 2})")
+    else:
+        rep.warn(f"{case.name}: nodes still reach the floor after {max_rounds} rounds of pins; the figures "
+                 "include a small penetration")
+    res = compare(c, fe, nw, pins=pins.size)
+    rep.step(f"{case.name}: L2 error {100 * res.l2_error:.2f} %, max {100 * res.max_error:.2f} %, force "
+             f"{100 * res.force_error:.2f} % (largest continuum displacement {res.max_displacement_m * 1e3:.3g} mm)")
+    return res
+
+
+def validate_network(network, tables, material, *, cases=None, label: str = "network", loads: LoadOptions | None = None,
+                     volume_term: str = "off", law: str | None = None, element: str = "auto",
+                     bulk_ratio: float = DEFAULT_BULK_RATIO, out_dir=None, max_rounds: int = 6,
+                     reporter=None) -> ValidationReport:
+    """Validate *network* with *tables* against the continuum of *material*, case by case.
+
+    Parameters
+    ----------
+    network : SpringNetwork
+        Tetrahedral (the continuum is solved on its tetrahedra).
+    tables : StiffnessTables
+    material : Material
+        Isotropic (:func:`~.material.check_continuum`).
+    cases : sequence of str, optional
+        From :data:`~.cases.CASES`; default all.
+    label : str
+    loads : LoadOptions, optional
+    volume_term : {"off", "on"}
+        :func:`network_terms`.
+    law : {"secant", "energy"}, optional
+        The network's force law (default: the tables').
+    element : {"auto", "p2", "mini"}
+        The continuum's element ("auto": :data:`P2_MAX_TETS`).
+    bulk_ratio : float
+        K over the largest tangent shear modulus (:func:`~.material.bulk_modulus`).
+    out_dir : path-like, optional
+        Write ``validation.json``, ``validation.md`` and per case ``<case>.png``,
+        ``<case>.xdmf`` + ``.h5`` there.
+
+    Returns
+    -------
+    ValidationReport
+
+    Raises
+    ------
+    ConfigError
+        A skeleton network, an unknown case, an anisotropic material.
+    SimulationError
+        A solver found no equilibrium.
+    """
+    rep = ensure(reporter)
+    t0 = time.perf_counter()
+    if network.tets is None or network.n_tets == 0:
+        raise ConfigError("the continuum reference needs tetrahedra; this network has the skeleton structure "
+                          "(prepare it with structure tetra)")
+    names = list(CASES) if cases is None else [choice(c, CASES, "cases") for c in cases]
+    if not names:
+        raise ConfigError("cases: no case to run", parameter="cases")
+    check_continuum(material)
+    terms = network_terms(network, tables, material, volume_term=volume_term)
+    element = choice(element, ("auto", "p2", "mini"), "element")
+    if element == "auto":
+        element = "p2" if network.n_tets <= P2_MAX_TETS else "mini"
+    bulk = bulk_modulus(material, ratio=bulk_ratio)
+    law = tables.check_law(law)
+    loads = LoadOptions() if loads is None else loads
+    results = [_solve_case(c, network, tables, material, law=law, terms=terms, bulk=bulk, element=element,
+                           max_rounds=max_rounds, rep=rep)
+               for c in _cases_for(network, names, loads, rep)]
+    info = {"material": material.name or material.model, "law": law, "volume_factor": float(tables.volume_factor),
+            "bulk_modulus_Pa": bulk, "bulk_ratio": float(bulk_ratio), "element": element,
+            "nodes": network.n_nodes, "springs": network.n_springs, "tets": network.n_tets,
+            "seconds": time.perf_counter() - t0}
+    report = ValidationReport(label=label, results=results, volume_term=volume_term, info=info)
+    if out_dir is not None:
+        _write(report, Path(out_dir))
+    return report
+
+
+def _write(report: ValidationReport, out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    for r in report.results:
+        report.files[f"{r.case.name}_png"] = str(plot_case(r, out / f"{r.case.name}.png"))
+        report.files[f"{r.case.name}_xdmf"] = str(write_fields(r, out / f"{r.case.name}.xdmf"))
+    text = (f"# esmm validate: {report.label}\n\nvolume term {report.volume_term}; "
+            + ", ".join(f"{k} {v}" for k, v in report.info.items() if k != "seconds") + "\n\n"
+            + report.table() + "\n\n" + "\n".join(f"* {r.case.name}: {r.case.description}" for r in report.results)
+            + "\n")
+    report.files["table"] = str(write_text(out / "validation.md", text))
+    report.files["json"] = str(write_json(out / "validation.json", report.figures()))
+
+
+def validate_asset(path, *, cases=None, **options) -> ValidationReport:
+    """:func:`validate_network` on an asset's network, tables and material (default cases: the organ's)."""
+    asset = read_asset(path)
+    if asset.tables is None or asset.material is None:
+        raise ConfigError(f"{path}: the asset has no stiffness tables or material; rebuild it with 'esmm tables'")
+    return validate_network(asset.network, asset.tables, asset.material, label=str(path),
+                            cases=list(ORGAN_CASES) if cases is None else cases, **options)
+
+
+def validate_specimen(material, *, side: float = 20e-3, size: float = 2.5e-3, cases=None, reporter=None,
+                      **options) -> ValidationReport:
+    """:func:`validate_network` on the built-in cube (default cases: the specimen's)."""
+    spec = cube_specimen(material, side=side, size=size, reporter=reporter)
+    return validate_network(spec.network, spec.tables, material, label=f"specimen: {spec.label}",
+                            cases=list(SPECIMEN_CASES) if cases is None else cases, reporter=reporter, **options)

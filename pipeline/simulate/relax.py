@@ -1,0 +1,85 @@
+"""Quasi-static equilibrium (FIRE) and the settling of the material effects' state.
+
+:func:`relax` moves a :class:`~.model.State` to the static equilibrium of its
+:class:`~.model.Model` under gravity (and a held grasp, at its current tip)
+with FIRE (Bitzek et al., PRL 97, 170201, 2006) on the same force pass as the
+dynamics (:func:`~.kernels.fire_relax`). With material effects this is the
+*long-term* equilibrium (forces ``g_inf (1 - D) eta F_e`` with the maxima so
+far), after which the history is taken as relaxed there (:func:`settle_effects`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import SimulationError
+from . import kernels as K
+from .kernels import Nodes, fire_relax
+from .model import Control, Model, State
+
+
+def settle_effects(model: Model, state: State) -> None:
+    """Take the current configuration as long held: maxima updated, history relaxed (h = 0).
+
+    Called after a static equilibrium: the organ has rested in it long enough
+    for every Prony term to relax. No-op without effects.
+    """
+    if state.effects is None:
+        return
+    model.springs.forces(state.x, state=state.effects, mode=K.FX_SETTLE)
+    state.effects.t = state.t
+
+
+def relax(model: Model, state: State, control: Control, *, dt_critical: float, ftol: float | None = None,
+          rtol: float = 1e-8, max_iter: int = 200_000) -> dict:
+    """Move *state* to static equilibrium under gravity (and a held grasp, at its current tip).
+
+    Parameters
+    ----------
+    model, state, control
+        The simulation; ``state.x`` moves, ``state.v`` ends at zero, the
+        effect state is settled (:func:`settle_effects`).
+    dt_critical : float
+        The stability bound of the dynamics [s]: FIRE's MD step starts at 0.2
+        and is capped at 0.9 times it.
+    ftol : float, optional
+        Largest residual force on a free node [N]; default ``rtol`` times
+        the largest external force on a node (or times the largest spring
+        force scale when there is no gravity).
+    rtol : float
+    max_iter : int
+
+    Returns
+    -------
+    dict with ``iterations``, ``residual`` [N], ``ftol`` [N].
+
+    Raises
+    ------
+    SimulationError
+        The forces became non-finite, or no convergence within *max_iter*.
+    """
+    springs = model.springs
+    free = control.free
+    if ftol is None:
+        scale = float(np.abs(model.fext[free]).max()) if free.any() else 0.0
+        if scale == 0.0:
+            scale = float(np.median(springs.rest_tangent / springs.sd[0])) or 1.0
+        ftol = rtol * scale
+    g = control.grasp
+    tip = g.tip(state.t) if g is not None and g.mode == "spring" else np.zeros(3)
+    fx = None if state.effects is None else springs.effects.kernel(state.effects, mode=K.FX_RELAXED)
+    if model.floor is not None:
+        state.contact[:] = (model.floor.distance(state.x) <= 0.0) & (control.floor_mask > 0)
+    nodes = Nodes(state.x, state.v, np.zeros_like(state.x), model.fext, control.inv_mass)
+    it, res = fire_relax(nodes, free, springs.kernel(damped=False), fx, springs.layout(1), control.grasp_kernel(),
+                         tip, control.floor_kernel(model, state), 0.2 * dt_critical, 0.9 * dt_critical,
+                         float(ftol), int(max_iter))
+    state.v[:] = 0.0
+    settle_effects(model, state)
+    if it < 0 or not np.isfinite(res):
+        raise SimulationError("quasi-static relaxation diverged (non-finite forces); check the asset")
+    if res >= ftol:
+        raise SimulationError(
+            f"quasi-static relaxation did not converge in {max_iter} iterations "
+            f"(residual {res:.3g} N > {ftol:.3g} N); raise max_iter or the tolerance")
+    return {"iterations": int(it), "residual": float(res), "ftol": float(ftol)}

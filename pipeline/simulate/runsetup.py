@@ -1,0 +1,200 @@
+"""Setting a run up: the simulation of a scene on a network, its start, grasper and steps.
+
+Each function is one stage of :func:`~.run.simulate_network` before the
+frames run, reporting what it decided:
+
+* :func:`prepare_run`: the law, the fixed nodes, the spring term (with the
+  scene's material effects), the compiled kernels, mass scaling, the floor,
+  and the :class:`~.simulator.Simulator`;
+* :func:`settle_at_start`: the static equilibrium under gravity (``start =
+  "equilibrium"``);
+* :func:`plan_grasper`: the grasper resolved on the network;
+* :func:`plan_steps`: the whole-table bound, the per-frame
+  :class:`~.stepper.StepSchedule`, the first step and the threads.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import SimulationError
+from ..network.regions import select_fixed
+from .grasper import GraspPlan, plan_grasp
+from .model import Floor
+from .scene import Scene
+from .simulator import Simulator, warm_up
+from .springterm import build_spring_term
+from .stepper import StepSchedule, mass_scaling, stable_step
+
+#: Below this many springs one thread is used ("auto"): the parallel pass's
+#: fork/join costs more than it saves (benchmarks/bench_simulate.py).
+AUTO_PARALLEL_MIN_SPRINGS = 20_000
+
+
+@dataclass
+class RunSetup:
+    """A run ready to go: its simulator and what was decided on the way."""
+
+    sim: Simulator
+    law: str
+    fixed: np.ndarray
+    scaling: dict              #: mass scaling's ``added_fraction``, ``nodes``, ``gain``
+    build_s: float             #: building the spring term [s]
+    warm_up_s: float           #: compiling (or loading) the kernels [s]
+    schedule: StepSchedule | None = None
+    threads: int = 1
+    thread_timing: dict = field(default_factory=dict)
+
+
+def threads_available() -> int:
+    """Threads numba may use."""
+    import numba
+
+    return int(numba.config.NUMBA_NUM_THREADS)
+
+
+def fixed_nodes(network, scene: Scene) -> np.ndarray:
+    """The scene's fixed nodes on *network* (its own region, or the asset's)."""
+    if scene.fixed is None:
+        return np.asarray(network.fixed, dtype=np.int64)
+    return select_fixed(network.points, scene.fixed, node_kind=getattr(network, "node_kind", None),
+                        where="[fixed]")
+
+
+def prepare_run(network, tables, scene: Scene, *, effects, reporter) -> RunSetup:
+    """The simulator of *scene* on *network* with *tables* (and the asset's *effects*, unless switched off)."""
+    rep = reporter
+    law = tables.check_law(None if scene.law == "asset" else scene.law)
+    fixed = fixed_nodes(network, scene)
+    if fixed.size == 0 and np.any(scene.gravity) and scene.grasper is None and scene.floor is None:
+        rep.warn("no node is fixed and gravity is on: the organ will fall freely")
+    use_fx = effects if (scene.effects == "asset" and effects) else None
+    if effects and use_fx is None:
+        rep.step(f"material effects {', '.join(effects.names)} switched off by the scene (effects = \"none\")")
+    t = time.perf_counter()
+    springs = build_spring_term(network, tables, law=law, dashpot=scene.dashpot, precision=scene.precision,
+                                effects=use_fx)
+    build_s = time.perf_counter() - t
+    if springs.effects is not None:
+        rep.step(f"material effects: {springs.effects.explain()}")
+    warm = warm_up(springs, threads=1)
+    if threads_available() > 1 and springs.n_springs >= AUTO_PARALLEL_MIN_SPRINGS:
+        warm += warm_up(springs, threads=threads_available())
+    free0 = np.ones(springs.n_nodes, bool)
+    free0[fixed] = False
+    inertia, scaling = mass_scaling(springs, network.mass, free=free0, budget=scene.mass_scaling)
+    if scaling["nodes"]:
+        rep.step(f"mass scaling: +{scaling['added_fraction'] * 100:.3g} % of the mass on {scaling['nodes']} "
+                 f"light nodes (inertia only) raises the stable step {scaling['gain']:.3g}x")
+    floor = None if scene.floor is None else Floor.under(network.points, scene.gravity, height=scene.floor.height,
+                                                         friction=scene.floor.friction)
+    sim = Simulator(springs, network.points, inertia, fixed=fixed, gravity=scene.gravity,
+                    mass_damping=scene.mass_damping, safety=scene.safety, gravity_mass=network.mass, floor=floor)
+    if floor is not None:
+        below = int(np.count_nonzero(floor.distance(network.points)[sim.free] < 0))
+        rep.step(f"floor: {floor.friction}, plane {floor.height * 1e3:.4g} mm along up"
+                 + (f"; {below} free nodes start below it and are put on it at the first step" if below else ""))
+    return RunSetup(sim=sim, law=law, fixed=fixed, scaling=scaling, build_s=build_s, warm_up_s=warm)
+
+
+def settle_at_start(run: RunSetup, scene: Scene, network, reporter) -> dict | None:
+    """Start from the static equilibrium under gravity (``start = "equilibrium"``); its record, or None."""
+    sim, rep = run.sim, reporter
+    if not (scene.start == "equilibrium" and np.any(scene.gravity) and (run.fixed.size or sim.floor is not None)):
+        return None
+    t = time.perf_counter()
+    try:
+        info = sim.relax(rtol=1e-4, max_iter=400_000)
+        settle = {**info, "seconds": time.perf_counter() - t, "converged": True}
+    except SimulationError as exc:
+        if "diverged" in str(exc):
+            raise
+        settle = {"converged": False, "seconds": time.perf_counter() - t}
+        rep.warn(f"the equilibrium under gravity was not reached before t = 0 ({exc}); "
+                 "starting from the closest state found")
+    u = np.linalg.norm(sim.displacement(), axis=1).max()
+    settle["max_displacement_m"] = float(u)
+    gdir = scene.gravity / np.linalg.norm(scene.gravity)
+    height = float(np.ptp(np.asarray(network.points) @ gdir))
+    if sim.floor is not None:
+        settle["contact_nodes"] = sim.n_contact
+    if u > height:
+        rep.warn(f"under its own weight the organ sags {u * 1e3:.3g} mm, more than its height along gravity "
+                 f"({height * 1e3:.3g} mm): the network is too soft to carry itself in this scene ("
+                 + ("the floor holds only what lies on it, " if sim.floor is not None else "no contact holds it, ")
+                 + "only the fixed nodes hold the rest). Stiffen it (volumetric compensation: 'esmm tables ASSET "
+                 "--compensate') or hold it elsewhere ([fixed])")
+    fx = sim.model.springs.effects
+    rep.step(f"equilibrium under gravity: largest sag {u * 1e3:.3g} mm "
+             f"({settle.get('iterations', '?')} FIRE iterations, {settle['seconds']:.2g} s)"
+             + ("; long-term (relaxed) response, history relaxed" if fx is not None and fx.n_terms else ""))
+    return settle
+
+
+def plan_grasper(run: RunSetup, scene: Scene, network, reporter) -> GraspPlan | None:
+    """The scene's grasper resolved on the (settled) network, or None."""
+    if scene.grasper is None:
+        return None
+    plan = plan_grasp(scene.grasper, run.sim.x, network.surface_faces, run.fixed, scene.gravity,
+                      springs=network.springs)
+    reporter.step(plan.describe())
+    return plan
+
+
+def choose_threads(sim: Simulator, requested, *, trial_steps: int = 30) -> tuple[int, dict]:
+    """Resolve ``threads = "auto"`` by timing both step loops on the current state (then restored)."""
+    avail = threads_available()
+    if requested != "auto":
+        return max(1, min(int(requested), avail)), {}
+    if avail == 1 or sim.model.springs.n_springs < AUTO_PARALLEL_MIN_SPRINGS:
+        return 1, {}
+    state = sim.snapshot()
+    timing = {}
+    for th in (1, avail):
+        sim.threads = th
+        sim.advance(2)
+        t = time.perf_counter()
+        sim.advance(trial_steps)
+        timing[th] = (time.perf_counter() - t) / trial_steps
+        sim.restore(state)
+    best = min(timing, key=timing.get)
+    return best, {str(k): v for k, v in timing.items()}
+
+
+def plan_steps(run: RunSetup, scene: Scene, plan: GraspPlan | None, reporter) -> None:
+    """The run's step schedule, its first step and threads (into *run*).
+
+    Raises
+    ------
+    SimulationError
+        The scene could need more than ``[integrator] max_steps`` steps.
+    """
+    sim = run.sim
+    springs = sim.model.springs
+    # The grasper's coupling springs (mode "spring") enter the bound from the start.
+    reserve = None if plan is None else plan.coupling_rows(sim.x, sim.mass)
+    table = stable_step(springs, sim.mass, free=sim.free, extra_stiffness=reserve, safety=scene.safety)
+    adaptive = scene.step == "adaptive"
+    schedule = StepSchedule(table=table, adaptive=adaptive, window=scene.window, reserve=reserve,
+                            safety=scene.safety)
+    frame_dt = 1.0 / scene.frame_rate
+    first = schedule.bound(sim.model, sim.state, sim.control, schedule.first_window)
+    spf0 = schedule.steps_per_frame(frame_dt, first)
+    # The whole-table bound gives the worst case: refuse runs that could need too many steps.
+    need = scene.n_frames * (spf0 if adaptive else schedule.steps_per_frame(frame_dt, table))
+    if need > scene.max_steps:
+        raise SimulationError(
+            f"the scene needs {need} steps (stability bound of this asset: "
+            f"{first.dt_critical:.3g} s, set by node {first.node}); over [integrator] max_steps = "
+            f"{scene.max_steps}; shorten the duration, coarsen the asset or raise max_steps")
+    sim.set_time_step(frame_dt / spf0, bound=first, t0=0.0)
+    run.threads, run.thread_timing = choose_threads(sim, scene.threads)
+    sim.threads = run.threads
+    run.schedule = schedule
+    window = "adaptive, window " + format(scene.window, "g") if adaptive else "fixed"
+    reporter.step(f"{springs.n_springs} springs, {springs.n_nodes} nodes ({run.fixed.size} fixed), law {run.law}; "
+                  f"step {sim.dt * 1e6:.4g} us at start ({spf0} per frame; {window}); whole-table bound "
+                  f"{table.dt_critical * 1e6:.4g} us, omega_max {table.omega_max:.4g} rad/s; {run.threads} thread(s)")

@@ -1,0 +1,227 @@
+"""esmm validate: the continuum reference verified against analytic solutions, the network solve,
+the cases and the command (docs/validate.md)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from esmm.cli.main import main
+from esmm.pipeline.errors import ConfigError
+from esmm.pipeline.fidelity.cases import (
+    Constraint,
+    Floor,
+    LoadCase,
+    oriented,
+    shear_case,
+    uniaxial_case,
+    with_floor_pins,
+)
+from esmm.pipeline.fidelity.continuum import quadratic_tets, solve_continuum
+from esmm.pipeline.fidelity.material import IsochoricMaterial, bulk_modulus, tangent_shear_modulus
+from esmm.pipeline.fidelity.network_solve import solve_network
+from esmm.pipeline.fidelity.validate import network_terms, validate_network
+from esmm.pipeline.materials.loading import nominal_stress, stress_tangent
+from esmm.pipeline.materials.material import Material
+from esmm.pipeline.mesh.synthetic import box_tets
+from esmm.pipeline.network.springs import network_from_tets
+from esmm.pipeline.network.tables import build_tables
+from esmm.pipeline.simulate.simulator import Simulator
+from esmm.pipeline.simulate.springterm import build_spring_term
+
+L = 0.01
+
+
+@pytest.fixture(scope="module")
+def block():
+    b = box_tets(3, 3, 3, (L, L, L))
+    return b.points, oriented(b.points, b.tets)
+
+
+def _reference(material, mode, x):
+    return float(nominal_stress(material.model_obj, material.params_for(None), mode, x))
+
+
+def test_material_derivatives_match_finite_differences(liver):
+    um = IsochoricMaterial(liver, bulk=1e6)
+    rng = np.random.default_rng(3)
+    F = np.eye(3)[:, :, None, None] + 0.08 * rng.standard_normal((3, 3, 2, 3))
+    P = um.gradient([F, None])[0]
+    A = um.hessian([F, None])[0]
+    h = 1e-7
+    for k in range(3):
+        for m in range(3):
+            dF = np.zeros_like(F)
+            dF[k, m] = h
+            dA = (um.gradient([F + dF, None])[0] - um.gradient([F - dF, None])[0]) / (2 * h)
+            assert np.abs(dA - A[:, :, k, m]).max() < 1e-6 * np.abs(A).max()
+    # the isochoric stress is the derivative of the energy
+    iso = IsochoricMaterial(liver)
+    P0 = iso.gradient([F, None])[0]
+    for k in range(3):
+        for m in range(3):
+            dF = np.zeros_like(F)
+            dF[k, m] = h
+            dW = (iso.energy(F + dF) - iso.energy(F - dF)) / (2 * h)
+            assert np.abs(dW - P0[k, m]).max() < 1e-6 * np.abs(P0).max()
+    assert not np.allclose(P, P0)   # the volumetric part acts off J = 1
+
+
+def test_bulk_modulus_is_sized_on_the_tangent(liver):
+    mu_t = tangent_shear_modulus(liver)
+    et13 = float(stress_tangent(liver.model_obj, liver.params_for(None), "uniaxial", 1.3))
+    assert mu_t == pytest.approx(et13 / 3, rel=1e-3)          # the stiffest point of 0.9..1.3 is 1.3
+    assert mu_t > 30 * liver.youngs_modulus() / 3     # far above the small-strain modulus
+    assert bulk_modulus(liver, ratio=500) == pytest.approx(500 * mu_t)
+    with pytest.raises(ConfigError, match="bulk_ratio"):
+        bulk_modulus(liver, ratio=-1)
+
+
+@pytest.mark.parametrize("element", ["p2", "mini"])
+@pytest.mark.parametrize("stretch", [0.8, 0.9, 1.1, 1.3])
+def test_continuum_uniaxial_matches_analytic(block, liver, element, stretch):
+    case = uniaxial_case(*block, stretch=stretch)
+    sol = solve_continuum(case, liver, element=element)
+    P = -sol.reactions["top"][2] / case.load["area_m2"]
+    assert P == pytest.approx(_reference(liver, "uniaxial", stretch), rel=5e-3)
+    # homogeneous: lateral contraction lambda^-1/2 about the held centre node, volume kept
+    bottom = case.constraint("bottom")
+    c = bottom.nodes[bottom.mask[:, 0] & bottom.mask[:, 1]][0]
+    X = case.points
+    lateral = (stretch ** -0.5 - 1.0) * (X[:, :2] - X[c, :2])
+    umax = np.abs(sol.displacement).max()
+    assert np.abs(sol.displacement[:, :2] - lateral).max() < 5e-3 * umax
+    assert abs(sol.volume_ratio - 1) < 1e-3 and sol.inverted == 0
+
+
+@pytest.mark.parametrize("gamma", [0.1, 0.3, 0.5])
+def test_continuum_simple_shear_matches_analytic(block, liver, gamma):
+    X, tets = block
+    on_boundary = np.any((X < 1e-9) | (X > L - 1e-9), axis=1)
+    top = np.flatnonzero(X[:, 1] > L - 1e-9)
+    rest = np.setdiff1d(np.flatnonzero(on_boundary), top)
+    U = np.zeros_like(X)
+    U[:, 0] = gamma * X[:, 1]
+    case = LoadCase("shear", "homogeneous simple shear", X, tets,
+                    (Constraint.clamp("top", top, U[top]), Constraint.clamp("sides", rest, U[rest])), "top")
+    sol = solve_continuum(case, liver)
+    # the x-faces are translates of each other: their shares of P11 on the top edges cancel
+    P12 = -sol.reactions["top"][0] / (L * L)
+    assert P12 == pytest.approx(_reference(liver, "simple_shear", gamma), rel=5e-3)
+    assert np.abs(sol.displacement - U).max() < 1e-8 * gamma * L
+
+
+def test_continuum_prints_nothing(block, liver, capsys):
+    solve_continuum(uniaxial_case(*block, stretch=1.1), liver, steps=2)
+    out = capsys.readouterr()
+    assert out.out == "" and out.err == ""
+
+
+def test_quadratic_tets_put_a_node_on_every_edge(block):
+    X, tets = block
+    p10, cells, edges = quadratic_tets(X, tets)
+    n = X.shape[0]
+    assert np.array_equal(p10[:n], X) and cells.shape == (tets.shape[0], 10)
+    assert np.allclose(p10[cells[:, 4]], 0.5 * (X[tets[:, 0]] + X[tets[:, 1]]))
+    assert np.allclose(p10[n:], 0.5 * (X[edges[:, 0]] + X[edges[:, 1]]))
+
+
+def test_anisotropic_material_is_refused(block):
+    m = Material("esedf", {"mu": 2.973, "N": 1.1074, "A1": 3.9106e6, "A2": 4.519193e8, "f": 0.0019},
+                 directions={"x": {"A1": 4.2e6}})
+    with pytest.raises(ConfigError, match="isotropic"):
+        IsochoricMaterial(m)
+
+
+def test_rigid_modes_do_not_restrain_the_lateral_strain(block):
+    case = uniaxial_case(*block, stretch=1.2)
+    bottom = case.constraint("bottom")
+    held = bottom.nodes[bottom.mask[:, 0] | bottom.mask[:, 1]]
+    assert held.size == 2
+    c = bottom.nodes[bottom.mask[:, 0] & bottom.mask[:, 1]][0]
+    r = held[held != c][0]
+    k = int(np.flatnonzero(bottom.mask[bottom.nodes == r][0, :2])[0])
+    assert case.points[r, k] == pytest.approx(case.points[c, k])   # c-r is a coordinate line
+
+
+def test_floor_pins_sit_on_the_plane_under_the_rest_position(block):
+    X, tets = block
+    case = LoadCase("gravity", "", X, tets, (Constraint.clamp("anchor", [0]),), "anchor",
+                    gravity=np.array([0, 0, -9.8]), floor=Floor(np.array([0.0, 0, 1]), -1e-3))
+    pinned = with_floor_pins(case, [0, 5, 7])
+    fl = pinned.constraint("floor")
+    assert list(fl.nodes) == [5, 7]                       # node 0 belongs to the anchor
+    assert np.allclose((X[fl.nodes] + fl.displacement)[:, 2], -1e-3)
+    assert np.allclose(fl.displacement[:, :2], 0.0)       # sticking: no tangential motion
+
+
+@pytest.fixture(scope="module")
+def small_network(liver):
+    b = box_tets(4, 3, 3, (0.04, 0.03, 0.03))
+    net = network_from_tets(b)
+    return net, build_tables(liver)
+
+
+def test_network_newton_is_the_simulators_equilibrium(small_network):
+    net, tables = small_network
+    anchor = np.flatnonzero(net.points[:, 0] < 1e-9)
+    g = np.array([0.0, 0.0, -9.80665])   # uncompensated tables: a sag of a few % of the length
+    case = LoadCase("gravity", "", net.points, net.tets, (Constraint.clamp("anchor", anchor),), "anchor",
+                    gravity=g, density=1.0)
+    sol = solve_network(case, net, tables)
+    sim = Simulator(build_spring_term(net, tables), net.points, net.mass, fixed=anchor, gravity=g)
+    sim.relax(rtol=1e-10, max_iter=2_000_000)
+    u_fire = sim.displacement()
+    umax = np.abs(u_fire).max()
+    assert 0.01 * 0.04 < umax < 0.5 * 0.04
+    assert np.abs(sol.displacement - u_fire).max() < 1e-4 * umax
+    # the anchor carries the weight
+    assert sol.reactions["anchor"] == pytest.approx(net.mass.sum() * g, rel=1e-8)
+
+
+def test_validate_network_runs_both_sides_and_reports(small_network, liver, tmp_path):
+    net, tables = small_network
+    rep = validate_network(net, tables, liver, cases=["shear"], element="p2", out_dir=tmp_path)
+    r = rep.results[0]
+    assert 0 < r.l2_error < 1 and 0 <= r.max_error < 2 and np.isfinite(r.force_error)
+    doc = json.loads((tmp_path / "validation.json").read_text())
+    assert doc["cases"][0]["case"] == "shear" and doc["volume_term"] == "off"
+    for name in ("shear.png", "shear.xdmf", "shear.h5", "validation.md"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert "| shear |" in (tmp_path / "validation.md").read_text()
+
+
+def test_volume_term_on_is_one_flag_away(small_network, liver):
+    net, tables = small_network
+    assert network_terms(net, tables, liver, volume_term="off") == ()
+    with pytest.raises(ConfigError, match="volume_term"):
+        network_terms(net, tables, liver, volume_term="on")
+    with pytest.raises(ConfigError, match="volume_term"):
+        network_terms(net, tables, liver, volume_term="maybe")
+
+
+def test_shear_case_states_its_conditions(block):
+    case = shear_case(*block, gamma=0.2)
+    top = case.constraint("top")
+    assert np.allclose(top.displacement[:, 0], 0.2 * L) and top.mask.all()
+    assert "clamped" in case.description and "0.2" in case.description
+
+
+@pytest.mark.slow
+def test_cli_validates_the_specimen(tmp_path, capsys):
+    out = tmp_path / "val"
+    code = main(["validate", "--specimen", "--size", "5", "--cases", "tension", "shear", "--out", str(out),
+                 "--json", str(tmp_path / "v.json")])
+    assert code == 0
+    doc = json.loads((tmp_path / "v.json").read_text())
+    assert [c["case"] for c in doc["cases"]] == ["tension", "shear"]
+    for c in doc["cases"]:
+        assert c["inverted_network"] == 0 and c["inverted_continuum"] == 0
+        assert abs(c["volume_change_continuum"]) < 1e-3
+    assert "| tension |" in capsys.readouterr().out
+
+
+def test_cli_needs_an_asset_or_the_specimen(capsys):
+    assert main(["validate"]) == 2
+    assert "--specimen" in capsys.readouterr().err
