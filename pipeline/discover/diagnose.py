@@ -166,7 +166,8 @@ def structure(en: np.ndarray, cat: dict[str, np.ndarray]) -> dict[str, Any]:
             "tension": ~cat["compression"] & (cat["drive"] > 1.0), "toe": cat["toe"],
             "high stretch end": cat["high"], "below the previous maximum": cat["below"] > 0.02,
             "compression": cat["compression"]}
-    seg_out = {n: {"samples": int(m.sum()), "mean_noise_sd": float(np.mean(en[m])),
+    seg_out = {"all": {"samples": int(en.size), "mean_noise_sd": float(np.mean(en)), "chi2_share": 1.0}}
+    seg_out |= {n: {"samples": int(m.sum()), "mean_noise_sd": float(np.mean(en[m])),
                    "chi2_share": float(en[m] @ en[m]) / ss} for n, m in segs.items() if m.sum() >= 3}
     elastic = 0.0
     for k in np.unique(cat["file"]):

@@ -643,7 +643,10 @@ def outcome(diag: Diagnosis, kept: list[str]) -> str:
     if diag.white:
         return ""
     st = diag.structure
-    segs = sorted(st.get("segments", {}).items(), key=lambda kv: -kv[1]["chi2_share"])
+    n_all = max((v["samples"] for v in st.get("segments", {}).values()), default=0)
+    # the segment holding most of the residual, among those that are a part of the data, not all of it
+    segs = sorted(((k, v) for k, v in st.get("segments", {}).items() if v["samples"] < 0.9 * n_all or n_all == 0),
+                  key=lambda kv: -kv[1]["chi2_share"])
     covs = sorted(st.get("covariates", {}).items(), key=lambda kv: -kv[1])
     words = [f"What is left is systematic, not noise: {diag.chi2:.3g} noise variances per sample "
              f"(lag-1 autocorrelation {diag.lag1:.2f})"]
