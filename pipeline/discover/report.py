@@ -362,7 +362,8 @@ def params_toml(res: DiscoverResult, *, which: str = "final", stress_unit: str |
         meta["effects"] = me.to_toml_table(stress_unit=unit)
     model = f.problem.model.name
     mat = Material(model=model, params=dict(st.base[None]), directions=directions,
-                   name=f"{model} {'with ' + ', '.join(me.names) if me else '(base)'} from esmm discover",
+                   name=f"{model}{' with ' + ', '.join(me.names) if me else ''} from esmm discover"
+                        + ("" if which == "final" else " (base model alone)"),
                    source="esmm calibrate --discover " + " ".join(r.name for r in res.records),
                    metadata=meta, stress_unit=unit)
     e = f.errors

@@ -379,7 +379,7 @@ def _round(s: Search, rnd: int, rep) -> bool:
         c = s.candidates[t.name]
         if t.name != winner and t.name not in s.kept and c.reason.endswith("pending"):
             c.reason = f"fitted improvement {-t.dbic:+.1f} (noise BIC), but {winner} was kept first in round {rnd}"
-    if winner is None and not s.kept and s.crit.max_effects >= 2:
+    if winner is None and not diag.white and len(s.kept) + 2 <= s.crit.max_effects:
         pair = _try_pairs(singles, s)
         if pair is not None:
             _keep_pair(s, pair, rnd, rep)
@@ -524,11 +524,6 @@ def _keep(s: Search, t: Trial, rnd: int, rep) -> None:
         return
     c = s.candidates[winner]
     c.kept = True
-    if winner == "nonlinear_viscoelastic" and "viscoelastic" not in s.kept:  # it brings relaxation with it
-        v = s.candidates["viscoelastic"]
-        v.kept, v.variant = True, f.spec.variant_text("viscoelastic")
-        v.reason = f"kept in round {rnd} with its stretch-dependent strength (nonlinear_viscoelastic)"
-        s.kept.append("viscoelastic")
     kind = {"artefact": "corrected in the data", "material": "added to the material",
             "elastic": "added to the strain energy"}[c.kind]
     c.reason = (f"kept ({kind}) in round {rnd}: fitted Δχ² {t.noise['dchi2']:.4g} noise variances; held-out NRMSE "
@@ -538,20 +533,34 @@ def _keep(s: Search, t: Trial, rnd: int, rep) -> None:
              f"{f.errors.nrmse:.2%}, held-out {s.current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%}")
     s.kept.append(winner)
     s.current = f
+    _sync_kept(s, rnd)
+
+
+def _sync_kept(s: Search, rnd: int) -> None:
+    """Name what the current model holds without having been kept by name: the relaxation that
+    stretch-dependent relaxation brings with it."""
+    for n in s.current.spec.names():
+        if n not in s.kept:
+            c = s.candidates[n]
+            c.kept, c.variant = True, s.current.spec.variant_text(n)
+            c.reason = f"kept in round {rnd}: brought in by nonlinear_viscoelastic, which contains it"
+            s.kept.append(n)
 
 
 def _try_pairs(singles: dict[str, Trial], s: Search):
-    """When no single candidate passes in the first round, two at once (e.g. slack hiding a rate effect),
-    among the three whose held-out error improved most alone. Only in the first round: pairs are for
-    effects that mask each other's signature in the base model's residual; once one is in the model,
-    the other's signature shows on its own.
+    """When no single candidate passes and the residual is not noise, two at once (effects that mask
+    each other's signature: slack hiding a rate effect, specimen scales hiding a relaxation), among the
+    two whose held-out error improved most alone and the two that fitted best.
 
     Returns ((a, b), trial) of the pair that passes both tests with the lowest held-out error, or None.
     """
     current = s.current
-    # the three that, alone, came closest to passing: the best held-out gains (all were checked this round)
-    pool = sorted((n for n, t in singles.items() if math.isfinite(t.dbic) and t.dbic < 0 and t.heldout),
-                  key=lambda n: -singles[n].heldout["noise_units"])[:3]
+    # the two that, alone, came closest to passing (best held-out gains) and the two that fitted best: a
+    # masked effect fits well but predicts badly until its partner is in the model
+    fitted = [n for n, t in singles.items() if math.isfinite(t.dbic) and t.dbic < 0]
+    by_gain = sorted((n for n in fitted if singles[n].heldout), key=lambda n: -singles[n].heldout["noise_units"])
+    by_fit = sorted(fitted, key=lambda n: singles[n].dbic)
+    pool = list(dict.fromkeys(by_gain[:2] + by_fit[:2]))
     tried = []
     for i in range(len(pool)):
         for j in range(i + 1, len(pool)):
@@ -586,6 +595,7 @@ def _keep_pair(s: Search, pair, rnd: int, rep) -> None:
              f"{f.errors.nrmse:.2%}, held-out {s.current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%}")
     s.kept += [a, b]
     s.current = f
+    _sync_kept(s, rnd)
 
 
 def _backward(s: Search, rep) -> None:
@@ -617,6 +627,7 @@ def _backward(s: Search, rep) -> None:
         rep.step(f"removed {name}: the others explain what it did")
         s.kept.remove(name)
         s.current = reduced
+        _sync_kept(s, c.round)
 
 
 # --------------------------------------------------------------------------- the outcome
