@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import statistics
 import time
-import warnings
 from pathlib import Path
 
 DATA = Path(__file__).resolve().parent.parent / "data" / "tensile"
@@ -35,18 +34,10 @@ def _runtime() -> dict:
 
 
 def _population() -> dict:
-    from esmm.pipeline.discover.population import confusion, population, run_case
+    from esmm.pipeline.discover.population import score
 
-    t0 = time.perf_counter()
-    results = []
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        for case in population(POPULATION, SEED):
-            results.append(run_case(case))
-    table = confusion(results)
-    table["seconds"] = round(time.perf_counter() - t0, 1)
-    table["seed"], table["goal_right_rate"] = SEED, 0.95
-    table["wrong"] = [{k: r[k] for k in ("class", "hidden", "kept")} for r in results if not r["right"]]
+    table = score(POPULATION, SEED)
+    table["goal_right_rate"] = 0.95
     return table
 
 

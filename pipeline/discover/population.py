@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import math
 import tempfile
+import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -341,6 +343,24 @@ def run_case(case: Case, folder: str | Path | None = None, **options) -> dict[st
             "heldout_before": b.heldout.nrmse, "heldout_after": f.heldout.nrmse,
             "halved": (not hidden) or f.errors.nrmse <= 0.5 * b.errors.nrmse or res.diagnoses[-1].white,
             "seconds": res.seconds}
+
+
+def score(n: int = 114, seed: int = 0, **options) -> dict[str, Any]:
+    """Run the population of *n* cases drawn with *seed* and tabulate it (:func:`confusion`).
+
+    Returns the confusion table with the run's ``seed``, its wall time ``seconds`` and the
+    ``wrong`` cases (class, hidden names, kept names); ``options`` go to ``discover``.
+    """
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        results = [run_case(case, **options) for case in population(n, seed)]
+    table = confusion(results)
+    table["seconds"], table["seed"] = round(time.perf_counter() - t0, 1), seed
+    table["wrong"] = [{k: r[k] for k in ("class", "hidden", "kept")} for r in results if not r["right"]]
+    table["not_halved"] = [{k: r[k] for k in ("class", "hidden", "kept", "nrmse_before", "nrmse_after")}
+                           for r in results if not r["halved"]]
+    return table
 
 
 def confusion(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
