@@ -18,6 +18,7 @@ from .frames import FrameLog, RangeCheck
 from .grasper import GraspPlan
 from .runsetup import RunSetup
 from .scene import Scene
+from .volumeterm import shape_change
 
 
 @dataclass
@@ -104,6 +105,7 @@ class SimulationSummary:
     grasper: GrasperSummary | None
     integrator: dict | None = None
     video: VideoSummary | None = None
+    volume: dict | None = None
 
     @property
     def effect_names(self) -> list[str]:
@@ -164,6 +166,7 @@ def summarize(run: RunSetup, scene: Scene, log: FrameLog, range_check: RangeChec
             direction=plan.direction.tolist(), max_force_N=log.max_force_norm,
             force_at_max_N=log.max_force.tolist()),
         integrator=_integrator(run, scene),
+        volume=_volume_summary(run, scene),
     )
 
 
@@ -173,6 +176,15 @@ def _integrator(run: RunSetup, scene: Scene) -> dict:
     if scene.method == "implicit":
         return {**st.report(), "prefactor_s": run.prefactor_s}
     return {"method": "explicit", "step": scene.step, "safety": scene.safety}
+
+
+def _volume_summary(run: RunSetup, scene: Scene) -> dict:
+    """The volume term used (or why none) and the organ's shape at the end: volume, inverted tets, sag."""
+    sim = run.sim
+    vol = sim.model.volume
+    tets = run.tets if vol is None else vol.elements.tets
+    return {"term": None if vol is None else vol.spec.describe(), "scene": scene.volume,
+            "final": shape_change(sim.rest, tets, sim.x, scene.gravity)}
 
 
 def _floor_summary(sim, scene: Scene, log: FrameLog) -> FloorSummary | None:
