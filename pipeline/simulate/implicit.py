@@ -419,7 +419,7 @@ class BackwardEuler:
         Kt = sp.tangent(x, state=state.effects, dt=dt_fx, definite=definite)
         for term in model.terms:
             if term is not sp:
-                Kt = Kt + term.tangent(x)
+                Kt = Kt + term.tangent(x, definite=definite)
         return Kt
 
     def _operator(self, model, state, x, h, dt_fx, mass_dof, coupling, fixed_dof):

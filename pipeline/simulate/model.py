@@ -42,9 +42,10 @@ class ForceTerm(Protocol):
       configuration or over a window around *x*: the explicit step's bound;
     * ``damping_rows()``: the same for its damping matrix [N s/m];
     * ``state_rows(state, x, delta)``: rows added by its state (None if none);
-    * ``tangent(x, v=None)``: its tangent stiffness ``K = -df/dx`` at *x*, a
-      ``scipy.sparse.csr_matrix`` (3n, 3n), dof order ``x.ravel()`` (the
-      implicit stepper, :mod:`.implicit`, sums it over the terms).
+    * ``tangent(x, v=None, *, definite=False)``: its tangent stiffness
+      ``K = -df/dx`` at *x*, a ``scipy.sparse.csr_matrix`` (3n, 3n), dof order
+      ``x.ravel()``; *definite*: a positive semi-definite part of it (the
+      implicit stepper, :mod:`.implicit`, sums it over the terms for Newton's matrix).
     """
 
     n_nodes: int
@@ -57,7 +58,7 @@ class ForceTerm(Protocol):
 
     def state_rows(self, state, x: np.ndarray, delta: float) -> np.ndarray | None: ...
 
-    def tangent(self, x: np.ndarray, v: np.ndarray | None = None): ...
+    def tangent(self, x: np.ndarray, v: np.ndarray | None = None, *, definite: bool = False): ...
 
 
 @dataclass(eq=False)
