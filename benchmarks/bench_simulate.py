@@ -26,6 +26,12 @@ Demo: the paper-sized liver asset (``esmm prepare`` of data/meshes/sofa_liver.st
 preset "paper") in the default scene for 1 s of simulated time, adaptive and
 whole-table step; then the off-screen rendering rate at 960 x 720.
 
+Implicit stepper (``bench_implicit``, docs/simulate.md §2b and §8): the bundled
+TotalSegmentator liver prepared with the "paper" and "fine" presets, the default
+scene run with the implicit and the explicit stepper in the same process
+(real-time factors and their ratio), the implicit step's cost at 100 k and
+500 k springs (Kuhn boxes), and its memory traffic per step (the GPU note).
+
 Note: on a shared machine the wall times include other processes' load; CPU
 (thread) time of the single-thread runs is reported beside them.
 """
@@ -272,13 +278,155 @@ def bench_demo(tables_unused=None) -> dict:
     return out
 
 
-def run(*, parts=("sizes", "effects", "volume", "demo"), sizes=None, repeats: int = 5,
+LIVER = REPO / "data" / "meshes" / "ts_liver_3mm_closed.stl"
+#: Kuhn boxes of the implicit step's size rows
+IMPLICIT_SIZES = {"100k": 24, "500k": 41}
+
+
+def _liver_asset(preset: str, folder: Path):
+    from esmm.pipeline.asset import read_asset
+    from esmm.pipeline.prepare import prepare
+
+    path = folder / f"liver-{preset}.h5"
+    prepare(LIVER, output=path, config=preset)
+    return read_asset(path)
+
+
+def _run_figures(summary) -> dict:
+    keys = ("springs", "nodes", "method", "steps", "dt_min_s", "dt_max_s", "stepping_wall_s", "wall_per_step_us",
+            "real_time_factor", "threads")
+    out = {k: getattr(summary, k) for k in keys}
+    if summary.grasper is not None:
+        out["max_grasper_force_N"] = summary.grasper.max_force_N
+    if summary.method == "implicit":
+        out["integrator"] = summary.integrator
+    return out
+
+
+def implicit_traffic(stats: dict, springs: int, nnz_tangent: int) -> dict:
+    """Bytes moved per implicit step (the GPU note): factor sweeps, tangent products, force passes.
+
+    A solve streams the factor twice (forward, backward; SuperLU keeps L and U = D L^T, float32
+    values + int32 row indices: ~8 bytes per entry per sweep); a conjugate-gradient product reads
+    the tangent (12 bytes per entry); a Newton iteration assembles it and passes the forces
+    (~50 bytes per spring each, docs/simulate.md §8).
+    """
+    steps = max(1, stats["steps"])
+    solves = stats["solves"] / steps
+    newton = stats["newton"] / steps
+    cg = stats["cg"] / steps
+    factor = 2 * 8 * 2 * stats["factor_nnz"]
+    b = solves * factor + cg * 12 * nnz_tangent + newton * (2 * 50 * springs + 12 * nnz_tangent)
+    return {"solves_per_step": solves, "newton_per_step": newton, "cg_per_step": cg,
+            "bytes_per_solve": factor, "bytes_per_step": b}
+
+
+def implicit_accuracy(hist_implicit: Path, hist_explicit: Path, lift_end: float, frame_dt: float) -> dict:
+    """The implicit run against the explicit one over the lift (t <= *lift_end*): the grasper force at
+    1 kHz and at the solves (max and rms of |F_i - F_e| over the largest |F_e|), and the displacement
+    (largest nodal difference over the frames, over the largest displacement and the largest motion)."""
+    from esmm.pipeline.simulate.history import History
+
+    with History(hist_implicit) as hi, History(hist_explicit) as he:
+        ti, Fi = hi.forces()
+        te, Fe = he.forces()
+        Fe_i = np.stack([np.interp(ti, te, Fe[:, d]) for d in range(3)], axis=1)
+        lift = ti <= lift_end + 1e-9
+        scale = float(np.linalg.norm(Fe[te <= lift_end + 1e-9], axis=1).max())
+        err = np.linalg.norm(Fi - Fe_i, axis=1)[lift]
+        solves = lift & (np.abs(ti / frame_dt - np.round(ti / frame_dt)) < 1e-6)
+        err_s = np.linalg.norm(Fi - Fe_i, axis=1)[solves]
+        frames = [k for k in range(min(hi.n_frames, he.n_frames)) if hi.times[k] <= lift_end + 1e-9]
+        ui = np.array([hi.displacement(k) for k in frames])
+        ue = np.array([he.displacement(k) for k in frames])
+    du = float(np.linalg.norm(ui - ue, axis=2).max())
+    umax = float(np.linalg.norm(ue, axis=2).max())
+    motion = float(np.linalg.norm(ue - ue[0], axis=2).max())
+    return {"lift_end_s": lift_end, "force_scale_N": scale, "haptic_samples": int(lift.sum()),
+            "force_err_max_frac": float(err.max()) / scale, "force_err_rms_frac": float(np.sqrt(np.mean(err ** 2))) / scale,
+            "force_err_at_solves_max_frac": float(err_s.max()) / scale if err_s.size else None,
+            "force_within_5pct": bool(err.max() <= 0.05 * scale),
+            "displacement_err_max_m": du, "largest_displacement_m": umax, "largest_motion_m": motion,
+            "displacement_err_frac_of_largest": du / umax, "displacement_err_frac_of_motion": du / motion,
+            "displacement_within_5pct": bool(du <= 0.05 * umax)}
+
+
+def bench_implicit(*, duration: float = 3.0, sizes=("100k", "500k"), steps: int = 3) -> dict:
+    """Real-time factors of the default scene on the bundled liver (paper and fine presets), implicit and
+    explicit in one run, and the implicit run's accuracy against the explicit one over the lift; the
+    implicit step at 100 k and 500 k springs; the memory traffic per step."""
+    import os
+
+    from esmm.pipeline.simulate.run import simulate_network
+    from esmm.pipeline.simulate.scene import load_scene
+    from esmm.pipeline.simulate.springterm import build_spring_term
+
+    out: dict = {"load_average_at_start": os.getloadavg()}
+    base = load_scene("default").with_overrides(duration=duration)
+    lift_end = base.grasper.waypoints[-1].time
+    with tempfile.TemporaryDirectory() as d:
+        for preset in ("paper", "fine"):
+            asset = _liver_asset(preset, Path(d))
+            row, hist = {}, {}
+            for method in ("implicit", "explicit"):
+                res = simulate_network(asset.network, asset.tables, base.with_overrides(method=method),
+                                       Path(d) / f"{preset}-{method}")
+                row[method] = _run_figures(res.summary)
+                row[method]["load_average_after"] = os.getloadavg()
+                hist[method] = res.history
+            imp, exp = row["implicit"], row["explicit"]
+            row["speedup_implicit_over_explicit"] = exp["stepping_wall_s"] / imp["stepping_wall_s"]
+            row["accuracy_over_lift"] = implicit_accuracy(hist["implicit"], hist["explicit"], lift_end,
+                                                          imp["dt_max_s"])
+            term = build_spring_term(asset.network, asset.tables)
+            row["traffic"] = implicit_traffic(imp["integrator"], term.n_springs, term.pattern.nnz)
+            out[preset] = row
+    out["sizes"] = {}
+    for name in sizes:
+        try:
+            out["sizes"][name] = _implicit_box(IMPLICIT_SIZES[name], steps)
+        except Exception as exc:  # 500k may not fit or take too long: report, keep the rest
+            out["sizes"][name] = {"error": f"{type(exc).__name__}: {exc}"}
+        out["sizes"][name]["load_average_after"] = os.getloadavg()
+    return out
+
+
+def _implicit_box(n: int, steps: int) -> dict:
+    """Implicit steps of 1/30 s on a Kuhn box of n cells per side, gravity, the base fixed: the first
+    factorization and the median wall time per step."""
+    from esmm.pipeline.network.springs import network_from_tets
+    from esmm.pipeline.simulate.implicit import BackwardEuler
+    from esmm.pipeline.simulate.simulator import Simulator
+    from esmm.pipeline.simulate.springterm import build_spring_term
+
+    net = network_from_tets(box_tets(n))
+    term = build_spring_term(net, _tables(), dashpot=5e-4)
+    fixed = np.flatnonzero(net.points[:, 2] < 1e-9)
+    stepper = BackwardEuler()
+    sim = Simulator(term, net.points, net.mass, fixed=fixed, gravity=(0, 0, -9.81), mass_damping=1 / 0.15,
+                    stepper=stepper)
+    t = time.perf_counter()
+    stepper.prepare(sim.model, sim.state, sim.control)
+    prefactor = time.perf_counter() - t
+    walls = []
+    for _ in range(steps):
+        t = time.perf_counter()
+        sim.advance(1)
+        walls.append(time.perf_counter() - t)
+    rep = stepper.report()
+    return {"springs": term.n_springs, "nodes": net.n_nodes, "prefactor_s": prefactor,
+            "step_ms_median": 1e3 * statistics.median(walls), "step_ms": [1e3 * w for w in walls],
+            "real_time_factor_at_30Hz": (1 / 30) / statistics.median(walls),
+            "traffic": implicit_traffic(rep, term.n_springs, term.pattern.nnz), "integrator": rep}
+
+
+def run(*, parts=("sizes", "effects", "volume", "demo", "implicit"), sizes=None, repeats: int = 5,
         threads: int | None = None) -> dict:
     """The benchmark's figures; ``make bench`` runs everything (see :func:`main` for a quick subset).
 
     Parameters
     ----------
-    parts : subset of {"sizes", "effects", "volume", "demo"}
+    parts : subset of {"sizes", "effects", "volume", "demo", "implicit"}
     sizes : subset of :data:`SIZES` keys, optional
     repeats : int
         Timed repeats per figure (medians).
@@ -323,6 +471,11 @@ def run(*, parts=("sizes", "effects", "volume", "demo"), sizes=None, repeats: in
             res["demo"] = bench_demo()
         except Exception as exc:  # the demo needs gmsh and the bundled liver; report, don't fail the rest
             res["demo"] = {"error": f"{type(exc).__name__}: {exc}"}
+    if "implicit" in parts:
+        try:
+            res["implicit"] = bench_implicit()
+        except Exception as exc:  # needs gmsh and the bundled liver; report, don't fail the rest
+            res["implicit"] = {"error": f"{type(exc).__name__}: {exc}"}
     res["bench_seconds"] = time.perf_counter() - t0
     return res
 
@@ -334,8 +487,8 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  epilog="quick: --parts sizes --sizes 5k,50k --threads 1 (about a minute)")
-    ap.add_argument("--parts", default="sizes,effects,volume,demo",
-                    help="any of sizes, effects, volume, demo (default: all)")
+    ap.add_argument("--parts", default="sizes,effects,volume,demo,implicit",
+                    help="any of sizes, effects, volume, demo, implicit (default: all)")
     ap.add_argument("--sizes", default=None, help=f"networks to time, any of {', '.join(SIZES)} (default: all)")
     ap.add_argument("--repeats", type=int, default=5, help="timed repeats per figure (default 5)")
     ap.add_argument("--threads", type=int, default=None, help="threads of the multi-thread rows (1: none)")

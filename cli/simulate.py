@@ -47,6 +47,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--effects", choices=("asset", "none"), default=None,
                    help="apply the asset's material effects (default, when it has any) or none "
                         "(instantaneous elastic response only); overrides the scene")
+    p.add_argument("--method", choices=("implicit", "explicit"), default=None,
+                   help="integrator: implicit (backward Euler, stable at the frame step; the default scene's) or "
+                        "explicit (symplectic Euler under the stiffest spring's bound: the accuracy reference); "
+                        "overrides the scene")
     p.add_argument("--out", metavar="DIR", default=None, help="output folder (default: ASSET-sim/)")
     p.set_defaults(func=run)
     return p
@@ -57,11 +61,18 @@ def run(args, ui) -> int:
 
     res = simulate(args.asset, scene=args.scene, out_dir=args.out, video=args.video,
                    duration=args.duration, threads=args.threads, law=args.law, effects=args.effects,
-                   reporter=ui)
+                   method=args.method, reporter=ui)
     s = res.summary
-    ui.info(f"simulated {s.simulated_s:g} s: {s.springs} springs, {s.steps} steps of "
-            f"{s.dt_min_s * 1e6:.4g}..{s.dt_max_s * 1e6:.4g} us, real-time factor "
-            f"{s.real_time_factor:.3g} ({s.threads} thread(s))")
+    if s.method == "implicit":
+        it = s.integrator
+        ui.info(f"simulated {s.simulated_s:g} s: {s.springs} springs, implicit, {s.steps} steps of "
+                f"{s.dt_max_s * 1e3:.4g} ms ({it['newton'] / max(1, it['steps']):.3g} Newton iterations per step, "
+                f"{it['factorizations']} factorizations), grasper force at {it['haptic_rate_hz']:g} Hz, "
+                f"real-time factor {s.real_time_factor:.3g}")
+    else:
+        ui.info(f"simulated {s.simulated_s:g} s: {s.springs} springs, explicit, {s.steps} steps of "
+                f"{s.dt_min_s * 1e6:.4g}..{s.dt_max_s * 1e6:.4g} us, real-time factor "
+                f"{s.real_time_factor:.3g} ({s.threads} thread(s))")
     if s.effects:
         ui.info("material effects: " + ", ".join(s.effect_names))
     ui.info(f"history: {res.xdmf}")

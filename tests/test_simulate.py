@@ -18,7 +18,6 @@ from esmm.pipeline.errors import SimulationError
 from esmm.pipeline.mesh.synthetic import box_tets  # noqa: E402  (shared structured box)
 from esmm.pipeline.network.forcelaw import spring_energy, spring_forces
 from esmm.pipeline.network.springs import SpringNetwork, network_from_tets, stiffness_matrix
-from esmm.pipeline.network.tables import StiffnessTables
 from esmm.pipeline.simulate.model import Grasp
 from esmm.pipeline.simulate.simulator import Simulator
 from esmm.pipeline.simulate.springterm import (
@@ -28,23 +27,7 @@ from esmm.pipeline.simulate.springterm import (
     windowed_bound,
 )
 from esmm.pipeline.simulate.stepper import mass_scaling, stable_step
-
-
-def make_tables(kind="nonlinear", lo=0.5, hi=2.0, n=301, mu0=2.0e4):
-    """Tables from closed forms; the grid contains lambda = 1 exactly (n = 301 on [0.5, 2])."""
-    lam = np.linspace(lo, hi, n)
-    if kind == "constant":
-        mu = np.full((3, n), mu0)
-    elif kind == "linear":      # mu linear in lambda: linear interpolation is exact
-        mu = np.vstack([mu0 * (1 + 0.5 * (lam - 1)), mu0 * (1.2 + 0.3 * (lam - 1)), mu0 * (0.8 + 0.9 * (lam - 1))])
-    else:                        # stiffening, different per direction
-        mu = np.vstack([mu0 * (1 + 4 * (lam - 1) ** 2), mu0 * (1.3 + 2 * (lam - 1) ** 2),
-                        mu0 * (0.9 + (lam - 1) ** 2 + 6 * (lam - 1) ** 4)])
-    stress = mu * (lam - 1)
-    h = lam[1] - lam[0]
-    energy = np.concatenate([np.zeros((3, 1)), np.cumsum(0.5 * (stress[:, 1:] + stress[:, :-1]) * h, axis=1)], axis=1)
-    energy -= energy[:, [int(round((1 - lo) / h))]]
-    return StiffnessTables(lam_min=lo, lam_max=hi, n=n, values=mu, stress=stress, energy=energy)
+from simkit import make_tables
 
 
 @pytest.fixture(scope="module")

@@ -257,7 +257,7 @@ def short_scene(**grasper) -> Scene:
     # No gravity: after the release the slab recoils towards its rest shape.
     return scene_from_dict({"scene": {"duration": "0.3 s", "frame_rate": 30, "gravity": [0, 0, 0]},
                             "damping": {"dashpot": "0.2 ms", "velocity_decay": "0.05 s"},
-                            "integrator": {"threads": 1}, "grasper": g}, source="test")
+                            "integrator": {"threads": 1, "method": "explicit"}, "grasper": g}, source="test")
 
 
 def test_simulate_network_outputs(tmp_path, slab):
@@ -321,7 +321,7 @@ def test_spring_grasper_and_fixed_override(tmp_path, slab):
 
 def test_table_step_mode_uses_one_step(tmp_path, slab):
     sc = scene_from_dict({"scene": {"duration": "0.1 s", "gravity": [0, 0, 0]},
-                          "integrator": {"threads": 1, "step": "table"}}, source="t")
+                          "integrator": {"threads": 1, "step": "table", "method": "explicit"}}, source="t")
     s = simulate_network(slab, stiff_tables(), sc, tmp_path).summary
     assert s.dt_min_s == s.dt_max_s <= s.dt_table_bound_s * s.safety * (1 + 1e-12)
     assert s.frames_redone == 0
@@ -336,7 +336,8 @@ def test_adaptive_redoes_frames_that_leave_the_window(tmp_path, slab):
     for mode in ("adaptive", "table"):
         sc = scene_from_dict({"scene": {"duration": "0.2 s", "gravity": [0, 0, 0]}, "grasper": g,
                               "damping": {"velocity_decay": "0.02 s"},
-                              "integrator": {"threads": 1, "step": mode, "window": 0.002}}, source="t")
+                              "integrator": {"threads": 1, "step": mode, "window": 0.002, "method": "explicit"}},
+                             source="t")
         res = simulate_network(slab, stiff_tables(), sc, tmp_path / mode)
         with History(res.history) as h:
             out[mode] = (res.summary, h.displacement(h.n_frames - 1))
@@ -347,7 +348,7 @@ def test_adaptive_redoes_frames_that_leave_the_window(tmp_path, slab):
 
 
 def test_too_many_steps_refused(tmp_path, slab):
-    sc = scene_from_dict({"scene": {"duration": "10 s"}, "integrator": {"max_steps": 1000}})
+    sc = scene_from_dict({"scene": {"duration": "10 s"}, "integrator": {"max_steps": 1000, "method": "explicit"}})
     with pytest.raises(SimulationError, match="max_steps"):
         simulate_network(slab, stiff_tables(), sc, tmp_path)
 
@@ -372,7 +373,7 @@ def test_unstable_run_is_reported(tmp_path, slab, monkeypatch):
         return None if b is None else type(b)(b.dt, b.dt_critical * 1e3, b.omega_max, b.gamma_max, b.safety, b.node)
 
     sc = scene_from_dict({"scene": {"duration": "0.5 s"}, "grasper": {"enabled": False},
-                          "integrator": {"threads": 1, "step": "table"}})
+                          "integrator": {"threads": 1, "step": "table", "method": "explicit"}})
     with pytest.raises(SimulationError, match="unstable"):
         simulate_network(slab, stiff_tables(), sc, tmp_path)
     assert not (tmp_path / "history.h5").exists()

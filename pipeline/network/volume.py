@@ -319,13 +319,19 @@ class VolumeElements:
         g = self._gradients(x)
         return sp.csr_matrix((g.ravel(), (rows, cols)), shape=(t, 3 * self.n_nodes))
 
-    def tangent(self, points) -> sp.csr_matrix:
-        """Hessian of :meth:`energy` (= -d forces / dx), symmetric sparse (3n, 3n) CSR [N/m]."""
+    def tangent(self, points, *, definite: bool = False) -> sp.csr_matrix:
+        """Hessian of :meth:`energy` (= -d forces / dx), symmetric sparse (3n, 3n) CSR [N/m].
+
+        *definite*: its positive semi-definite (Gauss-Newton) part ``B^T D B`` only,
+        without the pressures' geometric part (Newton's matrix of the implicit stepper).
+        """
         x = self._x(points)
         A = self.averaging()
         B = (A @ self.gradient_matrix(x)).tocsr()            # (m, 3n): gradients of the element volumes
         D = sp.diags(self.bulk_modulus / self.rest_volume)
         K = (B.T @ D @ B).tocsr()
+        if definite:
+            return K
         pbar = A.T @ self.pressures(x)
         return (K + self._geometric(x, pbar)).tocsr()
 

@@ -2,7 +2,7 @@
 
 Each frame (1 / frame_rate of simulated time) gets its step from the run's
 :class:`~.stepper.FrameSchedule` (the explicit stepper's
-:class:`~.stepper.StepSchedule`); it is advanced in segments cut at the
+:class:`~.stepper.StepSchedule`, or the implicit one's fixed step); it is advanced in segments cut at the
 grasper's events (grasp, release) and, with an adaptive step, at 8 checks of
 the stretch window. A frame whose stretches left the window is redone from a
 snapshot with a wider window (docs/simulate.md §2). After each frame the
@@ -109,7 +109,7 @@ def run_frames(sim: Simulator, schedule: FrameSchedule, spec: FrameSpec, plan: G
             rec, held, dt, spf, delta = _frame(sim, schedule, spec, plan, done, t_start, delta, log)
             log.steps += spf
             log.dts.append(dt)
-            _record_forces(writer, log, rec, held, t_start, dt)
+            _record_forces(writer, log, rec, held, t_start, dt / (rec.shape[0] // spf))
             disp = sim.displacement()
             if not np.all(np.isfinite(disp)) or np.abs(disp).max() > 10.0 * spec.organ_size:
                 raise SimulationError(
@@ -148,16 +148,17 @@ def _frame(sim: Simulator, schedule: FrameSchedule, spec: FrameSpec, plan: Grasp
         if delta is not None:                 # check the window along the frame
             cuts |= set(range(0, spf, max(1, spf // 8)))
         cuts = sorted(cuts)
-        rec = np.zeros((spf, 3))
-        held_rows = np.zeros(spf, bool)
+        ticks = sim.stepper.ticks_per_step(dt)       # grasper force samples per step
+        rec = np.zeros((spf * ticks, 3))
+        held_rows = np.zeros(spf * ticks, bool)
         moved = 0.0
         for a, b in zip(cuts[:-1], cuts[1:]):
             _fire_events(sim, spec, plan, done, t_start, dt, a)
             held = sim.grasp is not None
             t = time.perf_counter()
-            sim.advance(b - a, record=rec[a:b])
+            sim.advance(b - a, record=rec[a * ticks:b * ticks])
             log.wall += time.perf_counter() - t
-            held_rows[a:b] = held
+            held_rows[a * ticks:b * ticks] = held
             if delta is not None:
                 moved = max(moved, springs.stretch_change(sim.x, x0))
                 if moved > delta and delta < span:
@@ -188,7 +189,7 @@ def _fire_events(sim: Simulator, spec: FrameSpec, plan: GraspPlan | None, done: 
 
 def _record_forces(writer: HistoryWriter, log: FrameLog, rec: np.ndarray, held: np.ndarray, t_start: float,
                    dt: float) -> None:
-    """Write the forces of the held steps and keep the largest."""
+    """Write the forces of the held samples (*dt* apart) and keep the largest."""
     if not held.any():
         return
     rows = np.flatnonzero(held)

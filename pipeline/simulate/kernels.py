@@ -1171,3 +1171,173 @@ def stretch_change(x, x0, ij, sd):
         if d > worst:
             worst = d
     return worst
+
+
+# ---------------------------------------------------------------------------
+# tangent stiffness (the implicit stepper; docs/simulate.md §2b)
+# ---------------------------------------------------------------------------
+
+@njit(inline="always", **JIT_OPTIONS)
+def _law_and_slope(sd, p, tab, k, tr, inv_h, secant, aniso, lam):
+    """(F_e, dF_e/dlam) of spring *p* at stretch *lam* in cell *k* (unclipped cell fraction *tr*).
+
+    Secant: F_e = sum_d w_d mu_d(lam) (lam - 1) with mu held off the grid (t clipped, no slope
+    there); energy: F_e = sum_d w_d f_d(lam), the end cells continued linearly.
+    """
+    t = min(max(tr, 0.0), 1.0) if secant else tr
+    if aniso:
+        val = (sd[1, p] * (tab[k, 0] + t * tab[k, 3]) + sd[2, p] * (tab[k, 1] + t * tab[k, 4])
+               + sd[3, p] * (tab[k, 2] + t * tab[k, 5]))
+        slope = (sd[1, p] * tab[k, 3] + sd[2, p] * tab[k, 4] + sd[3, p] * tab[k, 5]) * inv_h
+    else:
+        val = sd[1, p] * (tab[k, 0] + t * tab[k, 3])
+        slope = sd[1, p] * tab[k, 3] * inv_h
+    if not secant:
+        return val, slope
+    inside = 1.0 if (tr >= 0.0 and tr <= 1.0) else 0.0
+    return val * (lam - 1.0), val + (lam - 1.0) * slope * inside
+
+
+@njit(inline="always", **JIT_OPTIONS)
+def _effect_factor(p, lam, k, tr, lam_min, inv_h, sd, aniso, etab, fxp, wmax, ximax):
+    """(fac, dfac/dlam) of spring *p*: damage (1 - D) times Mullins eta, with the state's maxima (not committed).
+
+    On the primary path (the stretch beyond its largest so far) damage grows with lam;
+    below its largest energy density a Mullins spring reloads along the erf curve.
+    """
+    fac = 1.0
+    dfac = 0.0
+    if fxp[6] != 0.0:                               # damage
+        onset = fxp[7]
+        dscale = fxp[8]
+        dshape = fxp[9]
+        if lam >= 1.0:
+            xi = lam
+            dxi = 1.0
+        elif lam >= lam_min:
+            xi = etab[k, 6] + tr * etab[k, 7]
+            dxi = etab[k, 7] * inv_h
+        else:
+            xi = _equivalent_stretch(lam)
+            e2 = 1e-7 * lam
+            dxi = (_equivalent_stretch(lam + e2) - _equivalent_stretch(lam - e2)) / (2.0 * e2)
+        primary = xi > ximax[p]
+        xi = max(ximax[p], xi)
+        e = max(xi - onset, 0.0) / dscale
+        if e > 0.0:
+            fac = np.exp(-(e ** dshape))
+            if primary:
+                dfac = -fac * dshape * e ** (dshape - 1.0) * dxi / dscale
+    if fxp[2] != 0.0:                               # Mullins
+        inv_r = fxp[3]
+        m_w = fxp[4]
+        beta = fxp[5]
+        if aniso:
+            ws = sd[1, p] + sd[2, p] + sd[3, p]
+            w = (sd[1, p] * (etab[k, 0] + tr * etab[k, 3]) + sd[2, p] * (etab[k, 1] + tr * etab[k, 4])
+                 + sd[3, p] * (etab[k, 2] + tr * etab[k, 5]))
+            dw = (sd[1, p] * etab[k, 3] + sd[2, p] * etab[k, 4] + sd[3, p] * etab[k, 5]) * inv_h
+            w = w / ws if ws > 0.0 else 0.0
+            dw = dw / ws if ws > 0.0 else 0.0
+        else:
+            w = etab[k, 0] + tr * etab[k, 3]
+            dw = etab[k, 3] * inv_h
+        wm = max(wmax[p], w)
+        den = m_w + beta * wm
+        z = (wm - w) / den
+        if z > 0.0:
+            eta = 1.0 - inv_r * (math.erf(z) if z < 6.0 else 1.0)
+            deta = inv_r * (2.0 / math.sqrt(math.pi)) * np.exp(-z * z) * dw / den if z < 6.0 else 0.0
+            dfac = dfac * eta + fac * deta
+            fac = fac * eta
+    return fac, dfac
+
+
+@njit(**JIT_OPTIONS)
+def tangent_coefficients(x, sp, fx, kt, fl, u):
+    """Per spring: axial tangent kt = dF/dL [N/m], geometric stiffness fl = F/L [N/m], direction u (s, 3).
+
+    The spring's block of the tangent stiffness K = -df/dx is ``kt u u^T + fl (I - u u^T)``
+    (added at (i, i), (j, j), subtracted at (i, j), (j, i)). With effects (*fx* not None) F
+    is the effects' force of the step in ``fx.ab`` from the state in *fx* (not committed),
+    and kt its derivative: the QLV instantaneous factor ``g_inf + sum_i g_i b_i`` (``g_inf``
+    alone in mode :data:`FX_RELAXED`) times d[(1 - D) eta F_e]/dL. A spring of zero length
+    gets zeros. Dashpots are not included (see :func:`fill_blocks`).
+    """
+    ij, sd, tab, lam_min, inv_h, last_cell, law, damped = sp
+    aniso = sd.shape[0] - damped >= 4
+    secant = law == LAW_SECANT
+    last = float(last_cell)
+    if fx is not None:
+        etab, fxp, ab, hp, pold, wmax, ximax, mode = fx
+    for p in range(ij.shape[1]):
+        i = ij[0, p]
+        j = ij[1, p]
+        d0 = x[j, 0] - x[i, 0]
+        d1 = x[j, 1] - x[i, 1]
+        d2 = x[j, 2] - x[i, 2]
+        L = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        if not L > 0.0:
+            kt[p] = 0.0
+            fl[p] = 0.0
+            u[p, 0] = 0.0
+            u[p, 1] = 0.0
+            u[p, 2] = 0.0
+            continue
+        rinv = 1.0 / L
+        u[p, 0] = d0 * rinv
+        u[p, 1] = d1 * rinv
+        u[p, 2] = d2 * rinv
+        lam = L * sd[0, p]
+        s = (lam - lam_min) * inv_h
+        k = min(np.int64(min(max(s, 0.0), last + 1.0)), last_cell)
+        tr = s - k
+        fe, dfe = _law_and_slope(sd, p, tab, k, tr, inv_h, secant, aniso, lam)
+        F = fe
+        dF = dfe
+        if fx is not None:
+            fac, dfac = _effect_factor(p, lam, k, tr, lam_min, inv_h, sd, aniso, etab, fxp, wmax, ximax)
+            pe = fac * fe
+            dpe = fac * dfe + fe * dfac
+            g_inf = fxp[0]
+            nt = int(fxp[1])
+            F = g_inf * pe
+            inst = g_inf
+            if mode != FX_RELAXED:
+                for q in range(nt):
+                    F += fxp[FXP_HEAD + q] * (ab[0, q] * hp[q, p] + ab[1, q] * (pe - pold[p]))
+                    inst += fxp[FXP_HEAD + q] * ab[1, q]
+            dF = inst * dpe
+        kt[p] = dF * sd[0, p]
+        fl[p] = F * rinv
+
+
+@njit(**JIT_OPTIONS)
+def fill_blocks(ij, kt, fl, u, blk, stride, data, definite):
+    """Add each spring's 3x3 block ``kt u u^T + fl (I - u u^T)`` into a CSR matrix's *data*.
+
+    ``blk`` (4, s): data offsets of the blocks (i, i), (j, j), (i, j), (j, i) at their first
+    row; the block's row r starts ``r * stride[node]`` further (``stride`` (n,): entries per
+    scalar row of the node's rows). *definite*: negative kt and fl are taken as 0 (each block
+    then positive semi-definite).
+    """
+    for p in range(ij.shape[1]):
+        a = kt[p]
+        g = fl[p]
+        if definite:
+            a = max(a, 0.0)
+            g = max(g, 0.0)
+        i = ij[0, p]
+        j = ij[1, p]
+        si = stride[i]
+        sj = stride[j]
+        for r in range(3):
+            for c in range(3):
+                val = (a - g) * (u[p, r] * u[p, c])
+                if r == c:
+                    val += g
+                data[blk[0, p] + r * si + c] += val
+                data[blk[1, p] + r * sj + c] += val
+                data[blk[2, p] + r * si + c] -= val
+                data[blk[3, p] + r * sj + c] -= val
+

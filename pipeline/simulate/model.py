@@ -41,11 +41,11 @@ class ForceTerm(Protocol):
       sums of its tangent stiffness |K| [N/m] (Gershgorin), over every
       configuration or over a window around *x*: the explicit step's bound;
     * ``damping_rows()``: the same for its damping matrix [N s/m];
-    * ``state_rows(state, x, delta)``: rows added by its state (None if none).
-
-    * ``tangent(x, v=None)``: the term's tangent stiffness ``K = -df/dx`` at
-      *x*, a ``scipy.sparse.csr_matrix`` (3n, 3n), dofs in the order of
-      ``x.ravel()`` (the implicit stepper's interface; the volume term has it).
+    * ``state_rows(state, x, delta)``: rows added by its state (None if none);
+    * ``tangent(x, v=None, *, definite=False)``: its tangent stiffness
+      ``K = -df/dx`` at *x*, a ``scipy.sparse.csr_matrix`` (3n, 3n), dof order
+      ``x.ravel()``; *definite*: a positive semi-definite part of it (the
+      implicit stepper, :mod:`.implicit`, sums it over the terms for Newton's matrix).
     """
 
     n_nodes: int
@@ -57,6 +57,8 @@ class ForceTerm(Protocol):
     def damping_rows(self) -> np.ndarray: ...
 
     def state_rows(self, state, x: np.ndarray, delta: float) -> np.ndarray | None: ...
+
+    def tangent(self, x: np.ndarray, v: np.ndarray | None = None, *, definite: bool = False): ...
 
 
 @dataclass(eq=False)

@@ -114,7 +114,8 @@ def _frame_spec(network, scene: Scene, plan: GraspPlan | None) -> FrameSpec:
 def _history_layout(network, run: RunSetup, scene: Scene, plan: GraspPlan | None, asset_label: str) -> dict:
     """The :class:`~.history.HistoryWriter` arguments of a run: mesh, fixed nodes, attributes."""
     attrs = {
-        "asset": asset_label, "law": run.law, "step_mode": scene.step, "frame_rate": scene.frame_rate,
+        "asset": asset_label, "law": run.law, "method": scene.method,
+        "step_mode": "fixed" if scene.method == "implicit" else scene.step, "frame_rate": scene.frame_rate,
         "gravity": scene.gravity.tolist(), "scene_source": scene.source, "scene": scene.describe(),
         "units": "SI (m, s, N)",
     }
@@ -155,7 +156,7 @@ def read_asset_for_simulation(path, *, with_effects: bool = False):
 
 
 def simulate(asset_path, *, scene=None, out_dir=None, video=None, duration=None, threads=None,
-             law=None, effects=None, reporter=None) -> SimulationResult:
+             law=None, effects=None, method=None, reporter=None) -> SimulationResult:
     """Run a scene on an asset file (the ``esmm simulate`` command).
 
     Parameters
@@ -174,9 +175,11 @@ def simulate(asset_path, *, scene=None, out_dir=None, video=None, duration=None,
     law : {"asset", "secant", "energy"}, optional
     effects : {"asset", "none"}, optional
         Override of the scene's use of the asset's material effects.
+    method : {"implicit", "explicit"}, optional
+        Override of the scene's integrator.
     """
     sc = scene if isinstance(scene, Scene) else load_scene(scene)
-    sc = sc.with_overrides(duration=duration, threads=threads, law=law, effects=effects)
+    sc = sc.with_overrides(duration=duration, threads=threads, law=law, effects=effects, method=method)
     network, tables, label, fx = read_asset_for_simulation(asset_path, with_effects=True)
     if out_dir is None:
         out_dir = Path(asset_path).with_name(Path(asset_path).stem + "-sim")

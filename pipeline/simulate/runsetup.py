@@ -11,7 +11,9 @@ frames run, reporting what it decided:
   "equilibrium"``);
 * :func:`plan_grasper`: the grasper resolved on the network;
 * :func:`plan_steps`: the whole-table bound, the per-frame
-  :class:`~.stepper.StepSchedule`, the first step and the threads.
+  :class:`~.stepper.StepSchedule` (explicit) or the fixed step of the
+  :class:`~.implicit.ImplicitSchedule` with its first factorization, the first
+  step and the threads.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import numpy as np
 from ..errors import SimulationError
 from ..network.regions import select_fixed
 from .grasper import GraspPlan, plan_grasp
+from .implicit import BackwardEuler, ImplicitSchedule
 from .model import Floor
 from .scene import Scene
 from .simulator import Simulator, warm_up
@@ -46,9 +49,10 @@ class RunSetup:
     scaling: dict              #: mass scaling's ``added_fraction``, ``nodes``, ``gain``
     build_s: float             #: building the spring term [s]
     warm_up_s: float           #: compiling (or loading) the kernels [s]
-    schedule: StepSchedule | None = None
+    schedule: StepSchedule | ImplicitSchedule | None = None
     threads: int = 1
     thread_timing: dict = field(default_factory=dict)
+    prefactor_s: float = 0.0   #: the implicit stepper's first factorization, before t = 0 [s]
     tets: np.ndarray | None = None      #: the network's tetrahedra (volume and inversion records)
 
 
@@ -83,22 +87,26 @@ def prepare_run(network, tables, scene: Scene, *, effects, reporter) -> RunSetup
     build_s = time.perf_counter() - t
     if springs.effects is not None:
         rep.step(f"material effects: {springs.effects.explain()}")
+    implicit = scene.method == "implicit"
     volume = volume_term(network, tables, scene, rep)
-    warm = warm_up(springs, threads=1, volume=volume)
-    if threads_available() > 1 and springs.n_springs >= AUTO_PARALLEL_MIN_SPRINGS:
+    warm = warm_up(springs, threads=1, volume=volume, implicit=implicit)
+    if not implicit and threads_available() > 1 and springs.n_springs >= AUTO_PARALLEL_MIN_SPRINGS:
         warm += warm_up(springs, threads=threads_available(), volume=volume)
     free0 = np.ones(springs.n_nodes, bool)
     free0[fixed] = False
     terms = [springs] if volume is None else [springs, volume]
-    inertia, scaling = mass_scaling(terms, network.mass, free=free0, budget=scene.mass_scaling)
+    # The implicit step is not bounded by the light nodes: their true inertia is kept.
+    inertia, scaling = mass_scaling(terms, network.mass, free=free0, budget=0.0 if implicit else scene.mass_scaling)
     if scaling["nodes"]:
         rep.step(f"mass scaling: +{scaling['added_fraction'] * 100:.3g} % of the mass on {scaling['nodes']} "
                  f"light nodes (inertia only) raises the stable step {scaling['gain']:.3g}x")
     floor = None if scene.floor is None else Floor.under(network.points, scene.gravity, height=scene.floor.height,
                                                          friction=scene.floor.friction)
+    stepper = BackwardEuler(step=scene.solve_step, rtol=scene.newton_tol, haptic_rate=scene.haptic_rate) \
+        if implicit else None
     sim = Simulator(springs, network.points, inertia, fixed=fixed, gravity=scene.gravity,
                     mass_damping=scene.mass_damping, safety=scene.safety, gravity_mass=network.mass, floor=floor,
-                    volume=volume)
+                    stepper=stepper, volume=volume)
     if floor is not None:
         below = int(np.count_nonzero(floor.distance(network.points)[sim.free] < 0))
         rep.step(f"floor: {floor.friction}, plane {floor.height * 1e3:.4g} mm along up"
@@ -206,6 +214,9 @@ def plan_steps(run: RunSetup, scene: Scene, plan: GraspPlan | None, reporter) ->
     # The grasper's coupling springs (mode "spring") enter the bound from the start.
     reserve = None if plan is None else plan.coupling_rows(sim.x, sim.mass)
     table = stable_step(sim.model.terms, sim.mass, free=sim.free, extra_stiffness=reserve, safety=scene.safety)
+    if scene.method == "implicit":
+        _plan_implicit(run, scene, table, reporter)
+        return
     adaptive = scene.step == "adaptive"
     schedule = StepSchedule(table=table, adaptive=adaptive, window=scene.window, reserve=reserve,
                             safety=scene.safety)
@@ -227,3 +238,25 @@ def plan_steps(run: RunSetup, scene: Scene, plan: GraspPlan | None, reporter) ->
     reporter.step(f"{springs.n_springs} springs, {springs.n_nodes} nodes ({run.fixed.size} fixed), law {run.law}; "
                   f"step {sim.dt * 1e6:.4g} us at start ({spf0} per frame; {window}); whole-table bound "
                   f"{table.dt_critical * 1e6:.4g} us, omega_max {table.omega_max:.4g} rad/s; {run.threads} thread(s)")
+
+
+def _plan_implicit(run: RunSetup, scene: Scene, table, reporter) -> None:
+    """The implicit run's fixed step and its first factorization (before t = 0)."""
+    sim = run.sim
+    springs = sim.model.springs
+    schedule = ImplicitSchedule(step=scene.solve_step, table=table)
+    frame_dt = 1.0 / scene.frame_rate
+    spf = schedule.steps_per_frame(frame_dt, schedule.bound(sim.model, sim.state, sim.control, None))
+    if scene.n_frames * spf > scene.max_steps:
+        raise SimulationError(f"the scene needs {scene.n_frames * spf} implicit steps; over [integrator] max_steps = "
+                              f"{scene.max_steps}; lengthen implicit_step or raise max_steps")
+    sim.set_time_step(frame_dt / spf, bound=schedule.bound(sim.model, sim.state, sim.control, None), t0=0.0)
+    run.threads, run.thread_timing = 1, {}
+    sim.threads = 1
+    run.schedule = schedule
+    run.prefactor_s = sim.stepper.prepare(sim.model, sim.state, sim.control)
+    st = sim.stepper.stats
+    reporter.step(f"{springs.n_springs} springs, {springs.n_nodes} nodes ({run.fixed.size} fixed), law {run.law}; "
+                  f"implicit (backward Euler), step {sim.dt * 1e3:.4g} ms ({spf} per frame; the explicit bound "
+                  f"would be {table.dt_critical * 1e6:.4g} us), grasper force at {scene.haptic_rate:g} Hz; "
+                  f"factored in {run.prefactor_s:.2g} s (fill {st.factor_nnz / 1e6:.3g} M)")

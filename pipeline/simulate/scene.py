@@ -7,7 +7,8 @@ Tables and keys::
 
     [scene]       duration, frame_rate, gravity, gravity_unit, law, start, effects, volume
     [damping]     dashpot, velocity_decay
-    [integrator]  safety, step, window, mass_scaling, threads, precision, max_steps
+    [integrator]  method, implicit_step, haptic_rate, newton_tol (implicit); safety, step, window,
+                  mass_scaling (explicit); threads, precision, max_steps
     [fixed]       kind = "asset" (keep the asset's fixed nodes) or a region
                   table as in prepare configs (band / box / nearest / none);
                   a band's axis may be "up" (against gravity)
@@ -41,7 +42,8 @@ JAW_RADIUS = 0.004
 _TABLES = {
     "scene": {"duration", "frame_rate", "gravity", "gravity_unit", "law", "start", "effects", "volume"},
     "damping": {"dashpot", "velocity_decay"},
-    "integrator": {"safety", "threads", "precision", "max_steps", "step", "window", "mass_scaling"},
+    "integrator": {"method", "implicit_step", "haptic_rate", "newton_tol", "safety", "threads", "precision",
+                   "max_steps", "step", "window", "mass_scaling"},
     "fixed": None,  # validated by esmm.pipeline.network.regions (plus kind = "asset")
     "grasper": {"enabled", "target", "radius", "mode", "stiffness", "direction", "grasp_time",
                 "release_time", "waypoints"},
@@ -61,6 +63,7 @@ STEPS = ("adaptive", "table")
 PRECISIONS = ("float64", "float32")
 FRICTIONS = ("stick", "slip")
 DIRECTIONS = ("away", "up")
+METHODS = ("implicit", "explicit")
 
 
 @dataclass(frozen=True)
@@ -162,8 +165,20 @@ class Scene:
         Stiffness-proportional dashpot time beta [s] (0: none).
     velocity_decay : float or None
         Time constant tau of the mass-proportional damping [s] (None: none).
+    method : {"implicit", "explicit"}
+        The integrator: backward Euler with Newton and a reused factorization
+        (:mod:`.implicit`; stable at any step), or the explicit symplectic Euler
+        bounded by the stiffest spring (the accuracy reference).
+    implicit_step : "frame" or float
+        Step of the implicit solve: one frame (1 / frame_rate), or a time [s].
+    haptic_rate : float
+        Implicit: samples per second of the recorded grasper force (between
+        solves from the grasped patch's stiffness) [Hz].
+    newton_tol : float
+        Implicit: the largest residual force on a node after a step, as a
+        fraction of the largest nodal weight.
     safety : float
-        Fraction of the critical time step used.
+        Explicit: fraction of the critical time step used.
     step : {"adaptive", "table"}
         "table": one step for the whole run, bounded with the largest tangent
         of the whole table (safe whatever happens); "adaptive": per frame, the
@@ -198,6 +213,10 @@ class Scene:
     volume: str = "asset"
     dashpot: float = 0.0
     velocity_decay: float | None = 0.2
+    method: str = "implicit"
+    implicit_step: Any = "frame"
+    haptic_rate: float = 1000.0
+    newton_tol: float = 0.01
     safety: float = 0.9
     step: str = "adaptive"
     window: float = 0.05
@@ -217,18 +236,26 @@ class Scene:
         return 0.0 if self.velocity_decay is None else 1.0 / self.velocity_decay
 
     @property
+    def solve_step(self) -> float:
+        """The implicit step [s] (one frame unless ``implicit_step`` is a time)."""
+        return 1.0 / self.frame_rate if self.implicit_step == "frame" else float(self.implicit_step)
+
+    @property
     def n_frames(self) -> int:
         """Frames after the initial one."""
         return max(1, int(math.ceil(self.duration * self.frame_rate - 1e-9)))
 
     def with_overrides(self, *, duration=None, threads=None, law: str | None = None,
-                       effects: str | None = None, volume: str | None = None) -> Scene:
+                       effects: str | None = None, method: str | None = None,
+                       volume: str | None = None) -> Scene:
         """A copy with overrides applied (validated; a message names the parameter).
 
         *duration* is a number of seconds or a time with its unit (``"500 ms"``;
         text with a bare number is seconds); *threads* ``"auto"`` or a whole number.
         """
         out = self
+        if method is not None:
+            out = replace(out, method=choice(method, METHODS, "method"))
         if effects is not None:
             out = replace(out, effects=choice(effects, EFFECTS, "effects"))
         if volume is not None:
@@ -248,7 +275,9 @@ class Scene:
         grasp = "no grasper" if g is None else (
             f"grasper {g.mode}, {len(g.waypoints)} waypoints, release "
             + ("never" if g.release_time is None else f"{g.release_time:g} s"))
-        return (f"{self.duration:g} s at {self.frame_rate:g} frames/s, gravity "
+        integ = (f"implicit, step {self.solve_step * 1e3:.4g} ms, grasper force at {self.haptic_rate:g} Hz"
+                 if self.method == "implicit" else f"explicit ({self.step} step)")
+        return (f"{self.duration:g} s at {self.frame_rate:g} frames/s, {integ}, gravity "
                 f"{np.round(self.gravity, 3).tolist()} m/s2, law {self.law}, dashpot {self.dashpot * 1e3:g} ms, "
                 f"velocity decay {'none' if self.velocity_decay is None else f'{self.velocity_decay:g} s'}, {grasp}, "
                 f"material effects {'from the asset' if self.effects == 'asset' else 'off'}, "
@@ -399,6 +428,15 @@ def _damping(dm: dict) -> dict:
 
 def _integrator(it: dict) -> dict:
     kw: dict[str, Any] = {}
+    if "method" in it:
+        kw["method"] = choice(it["method"], METHODS, "[integrator] method")
+    if "implicit_step" in it and it["implicit_step"] != "frame":
+        kw["implicit_step"] = quantity(it["implicit_step"], "time", "[integrator] implicit_step", lo=0.0,
+                                       lo_open=True)
+    if "haptic_rate" in it:
+        kw["haptic_rate"] = number(it["haptic_rate"], "[integrator] haptic_rate", lo=1.0, hi=100_000.0)
+    if "newton_tol" in it:
+        kw["newton_tol"] = number(it["newton_tol"], "[integrator] newton_tol", lo=0.0, hi=0.5, lo_open=True)
     if "safety" in it:
         kw["safety"] = number(it["safety"], "[integrator] safety", lo=0.0, hi=1.0, lo_open=True)
     if "threads" in it:

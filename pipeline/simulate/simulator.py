@@ -186,9 +186,15 @@ class Simulator:
         return self.stepper.advance(self.model, self.state, self.control, nsteps, record=record)
 
     def relax(self, *, ftol: float | None = None, rtol: float = 1e-8, max_iter: int = 200_000) -> dict:
-        """Static equilibrium under gravity (and a held grasp) with FIRE: :func:`.relax.relax`."""
-        return relax(self.model, self.state, self.control, dt_critical=self.bound.dt_critical, ftol=ftol,
-                     rtol=rtol, max_iter=max_iter)
+        """Static equilibrium under gravity (and a held grasp) with FIRE: :func:`.relax.relax`.
+
+        FIRE's molecular-dynamics step is the explicit stability bound (also
+        when the stepper is implicit and has none).
+        """
+        dtc = self.bound.dt_critical
+        if not np.isfinite(dtc):
+            dtc = SymplecticEuler().bound(self.model, self.control).dt_critical
+        return relax(self.model, self.state, self.control, dt_critical=dtc, ftol=ftol, rtol=rtol, max_iter=max_iter)
 
     def settle_effects(self) -> None:
         """Take the current configuration as long held (:func:`.relax.settle_effects`)."""
@@ -236,16 +242,18 @@ class Simulator:
         return -float(np.sum(self.model.fext * self.state.x))
 
 
-def warm_up(springs: SpringTerm, *, threads: int = 1, volume: VolumeTerm | None = None) -> float:
+def warm_up(springs: SpringTerm, *, threads: int = 1, volume: VolumeTerm | None = None,
+            implicit: bool = False) -> float:
     """Compile (or load from cache) the step loop on a small problem; return the seconds spent.
 
     With *volume*: the variants of the step loop and of FIRE with a volume term,
-    on one tetrahedron.
+    on one tetrahedron. *implicit*: also the tangent kernels of the implicit stepper.
     """
     t = time.perf_counter()
     if volume is None:
         x = np.array([[0.0, 0, 0], [1.0, 0, 0]])
-        sim = Simulator(_tiny_springs(springs, [[0], [1]]), x, np.ones(2), fixed=[0], dt=1e-3, threads=threads)
+        sub = _tiny_springs(springs, [[0], [1]])
+        sim = Simulator(sub, x, np.ones(2), fixed=[0], dt=1e-3, threads=threads)
     else:
         x = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
         sub = _tiny_springs(springs, [[0, 0, 0, 1, 1, 2], [1, 2, 3, 2, 3, 3]])
@@ -259,6 +267,10 @@ def warm_up(springs: SpringTerm, *, threads: int = 1, volume: VolumeTerm | None 
     sim.attach(Grasp(nodes=np.array([1]), offsets=np.zeros((1, 3)), wp_t=np.array([0.0, 1.0]),
                      wp_x=np.array([[1.0, 0, 0], [1.0, 0, 0]])))
     sim.advance(1)
+    if implicit:
+        sub.tangent(sim.x, state=sim.state.effects, dt=1e-3)
+        if volume is not None:
+            vol.tangent(sim.x)
     return time.perf_counter() - t
 
 

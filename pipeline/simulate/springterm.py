@@ -22,6 +22,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sps
 from scipy.ndimage import maximum_filter1d
 
 from ..errors import ConfigError, InputError
@@ -86,6 +87,7 @@ class SpringTerm:
     effects: EffectModel | None = None
     _layouts: dict = field(default_factory=dict, repr=False)
     _windows: dict = field(default_factory=dict, repr=False)
+    _pattern: BlockPattern | None = field(default=None, repr=False)
 
     @property
     def n_springs(self) -> int:
@@ -162,6 +164,52 @@ class SpringTerm:
         """Largest change of a spring's stretch between positions *x0* and *x*."""
         return float(K.stretch_change(x, x0, self.ij, self.sd))
 
+    # -- tangent stiffness (the implicit step) ---------------------------------
+    @property
+    def pattern(self) -> BlockPattern:
+        """The sparsity pattern of :meth:`tangent` (built once)."""
+        if self._pattern is None:
+            self._pattern = BlockPattern.of(self.ij, self.n_nodes)
+        return self._pattern
+
+    def tangent(self, x: np.ndarray, v: np.ndarray | None = None, *, state: EffectState | None = None,
+                dt: float = 0.0, mode: int = K.FX_PEEK, definite: bool = False):
+        """Tangent stiffness ``K = -df/dx`` at positions *x*, a symmetric CSR matrix (3n, 3n) [N/m].
+
+        Dof order ``x.ravel()`` (node-major, xyz). Per spring ``k_t u u^T + (F/L)(I - u u^T)``
+        with ``k_t = dF/dL`` of the law's table (both laws, every fibre direction); with
+        material effects, the force and its derivative of a step of *dt* from *state* (the
+        same arguments as :meth:`forces`; default the virgin state): the QLV instantaneous
+        factor times the derivative of the damaged and Mullins-softened force. The
+        dashpots are not in it (:meth:`damping_matrix`); *v* is accepted for the
+        :class:`~.model.ForceTerm` interface. *definite*: negative ``k_t`` and ``F/L`` are
+        dropped (every spring block positive semi-definite).
+        """
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        if x.shape != (self.n_nodes, 3):
+            raise InputError(f"x: expected shape ({self.n_nodes}, 3), got {x.shape}")
+        s = self.n_springs
+        kt, fl, u = np.empty(s), np.empty(s), np.empty((s, 3))
+        fx = None
+        if self.effects is not None:
+            st = self.new_state() if state is None else state
+            fx = self.effects.kernel(st, mode=int(mode), dt=dt)
+        K.tangent_coefficients(x, self.kernel(damped=False), fx, kt, fl, u)
+        return self.pattern.matrix(self.ij, kt, fl, u, definite=definite)
+
+    def damping_matrix(self, x: np.ndarray):
+        """The dashpots' damping matrix ``C = sum c_ij u u^T`` (graph-Laplacian signs) at *x*, CSR (3n, 3n) [N s/m].
+
+        The dashpots' force is ``-C v`` (their change with the direction u is left
+        out); zeros without dashpots.
+        """
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        d = x[self.ij[1]] - x[self.ij[0]]
+        L = np.sqrt(np.einsum("ij,ij->i", d, d))
+        u = np.divide(d, L[:, None], out=np.zeros_like(d), where=L[:, None] > 0)
+        c = self.sd[-1].astype(np.float64) if self.damped else np.zeros(self.n_springs)
+        return self.pattern.matrix(self.ij, c, np.zeros(self.n_springs), u, definite=False)
+
     # -- stiffness bounds (the explicit step) --------------------------------
     def window(self, delta: float) -> np.ndarray:
         """Tangent bound per cell over a stretch window of +-*delta* (cached), shape (n_cells, 3)."""
@@ -216,6 +264,73 @@ class SpringTerm:
         if chunks not in self._layouts:
             self._layouts[chunks] = thread_layout(self.ij, self.n_nodes, chunks)
         return self._layouts[chunks]
+
+
+@dataclass(frozen=True, eq=False)
+class BlockPattern:
+    """CSR pattern (3n, 3n) of a node graph with 3x3 blocks: every node with itself and its springs' nodes.
+
+    Attributes
+    ----------
+    indptr, indices : ndarray, int32
+        The scalar CSR arrays (each node row ``a`` has the 3 columns of every block of
+        its node row, in node order).
+    blk : ndarray, shape (4, s), int64
+        Per spring ``(i, j)``: data offsets of the blocks (i, i), (j, j), (i, j), (j, i) at
+        their first row.
+    stride : ndarray, shape (n,), int64
+        Entries per scalar row of node a's rows (3 x its block count).
+    diag : ndarray, shape (3n,), int64
+        Data offset of each diagonal entry.
+    """
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    blk: np.ndarray
+    stride: np.ndarray
+    diag: np.ndarray
+
+    @classmethod
+    def of(cls, ij: np.ndarray, n: int) -> BlockPattern:
+        """The pattern of springs *ij* (2, s) on *n* nodes."""
+        i = ij[0].astype(np.int64)
+        j = ij[1].astype(np.int64)
+        nodes = np.arange(n, dtype=np.int64)
+        rows = np.concatenate([i, j, nodes])
+        cols = np.concatenate([j, i, nodes])
+        key = np.unique(rows * n + cols)                       # node-CSR, sorted by (row, col)
+        brow, bcol = key // n, key % n
+        deg = np.bincount(brow, minlength=n)
+        bstart = np.concatenate([[0], np.cumsum(deg)])          # block-row starts
+        stride = 3 * deg
+        rstart = np.concatenate([[0], np.cumsum(np.repeat(stride, 3))]).astype(np.int64)   # scalar rows
+        indices = np.empty(int(rstart[-1]), np.int32)
+        q = np.arange(key.size) - bstart[brow]                  # position of each block in its row
+        for r in range(3):
+            base = rstart[3 * brow + r] + 3 * q
+            for c in range(3):
+                indices[base + c] = 3 * bcol + c
+
+        def offset(a, b):
+            pos = np.searchsorted(key, a * n + b) - bstart[a]
+            return rstart[3 * a] + 3 * pos
+
+        blk = np.ascontiguousarray(np.stack([offset(i, i), offset(j, j), offset(i, j), offset(j, i)]))
+        d0 = offset(nodes, nodes)
+        diag = (np.repeat(d0, 3) + np.tile(np.arange(3), n) * (np.repeat(stride, 3) + 1)).astype(np.int64)
+        return cls(indptr=rstart.astype(np.int32), indices=indices, blk=blk, stride=stride.astype(np.int64),
+                   diag=diag)
+
+    @property
+    def nnz(self) -> int:
+        return int(self.indices.size)
+
+    def matrix(self, ij, kt, fl, u, *, definite: bool = False):
+        """The CSR matrix of the spring blocks ``kt u u^T + fl (I - u u^T)`` (:func:`.kernels.fill_blocks`)."""
+        data = np.zeros(self.nnz)
+        K.fill_blocks(ij, kt, fl, u, self.blk, self.stride, data, bool(definite))
+        n3 = self.indptr.size - 1
+        return sps.csr_matrix((data, self.indices, self.indptr), shape=(n3, n3), copy=False)
 
 
 def _law_values(tables, law: str) -> np.ndarray:

@@ -38,8 +38,8 @@ table; it is exact for Rayleigh damping of a linear network and conservative
 
 :class:`StepSchedule` chooses the step of each frame of a run ("table": one
 step; "adaptive": a bound over a stretch window around the current state,
-checked along the frame). An implicit stepper brings its own schedule (a
-fixed rate, no window) and implements the same two methods.
+checked along the frame). The implicit stepper (:mod:`.implicit`) brings its
+own schedule (a fixed step, no window) and implements the same methods.
 """
 
 from __future__ import annotations
@@ -194,10 +194,15 @@ class Stepper(Protocol):
 
     def advance(self, model: Model, state: State, control: Control, nsteps: int, *,
                 record: np.ndarray | None = None) -> np.ndarray:
-        """Take *nsteps* steps of ``state.dt``; return the force on the grasper per step, shape (nsteps, 3) [N].
+        """Take *nsteps* steps of ``state.dt``; return the force on the grasper, shape (nsteps * ticks, 3) [N].
 
-        Positions, velocities, the clock, the effect state and the contacts advance.
+        ``ticks = ticks_per_step(state.dt)`` samples per step (row ``k ticks + q``
+        at ``t_k + q dt / ticks``). Positions, velocities, the clock, the
+        effect state and the contacts advance.
         """
+
+    def ticks_per_step(self, dt: float) -> int:
+        """Grasper force samples per step of *dt* (the explicit stepper: 1)."""
 
 
 @dataclass(eq=False)
@@ -216,6 +221,11 @@ class SymplecticEuler:
     safety: float = DEFAULT_SAFETY
     threads: int = 1
     _f: np.ndarray | None = field(default=None, repr=False)
+
+    @staticmethod
+    def ticks_per_step(dt: float) -> int:
+        """One grasper force sample per step."""
+        return 1
 
     def bound(self, model: Model, control: Control) -> StepBound:
         """The whole-table stability bound with the grasper's coupling springs."""

@@ -67,6 +67,7 @@ class SimulationSummary:
     springs: int
     fixed_nodes: int
     law: str
+    method: str
     precision: str
     step_mode: str
     window: float
@@ -102,6 +103,7 @@ class SimulationSummary:
     final_max_displacement_m: float
     floor: FloorSummary | None
     grasper: GrasperSummary | None
+    integrator: dict | None = None
     video: VideoSummary | None = None
     volume: dict | None = None
 
@@ -119,8 +121,14 @@ class SimulationSummary:
 
     def describe(self) -> str:
         """One line for the reporter."""
-        return (f"simulated {self.simulated_s:g} s in {self.stepping_wall_s:.3g} s of stepping (real-time factor "
-                f"{self.real_time_factor:.3g}, {self.ns_per_spring_step:.3g} ns per spring per step)")
+        line = (f"simulated {self.simulated_s:g} s in {self.stepping_wall_s:.3g} s of stepping (real-time factor "
+                f"{self.real_time_factor:.3g}, {self.method}, ")
+        it = self.integrator
+        if self.method == "implicit" and it:
+            return line + (f"{self.steps} steps of {self.dt_max_s * 1e3:.4g} ms, {it['newton'] / max(1, it['steps']):.3g} "
+                           f"Newton iterations and {it['solves'] / max(1, it['steps']):.3g} solves per step, "
+                           f"{it['factorizations']} factorizations; grasper force at {it['haptic_rate_hz']:g} Hz)")
+        return line + f"{self.ns_per_spring_step:.3g} ns per spring per step)"
 
 
 def summarize(run: RunSetup, scene: Scene, log: FrameLog, range_check: RangeCheck, *,
@@ -134,7 +142,8 @@ def summarize(run: RunSetup, scene: Scene, log: FrameLog, range_check: RangeChec
     return SimulationSummary(
         asset=asset_label, scene=scene.describe(), scene_source=scene.source,
         nodes=springs.n_nodes, springs=springs.n_springs, fixed_nodes=int(run.fixed.size),
-        law=run.law, precision=scene.precision, step_mode=scene.step, window=scene.window,
+        law=run.law, method=scene.method, precision=scene.precision,
+        step_mode="fixed" if scene.method == "implicit" else scene.step, window=scene.window,
         dt_min_s=min(log.dts), dt_max_s=max(log.dts), dt_mean_s=sim_time / log.steps,
         steps=log.steps, frames_redone=log.redone, dt_table_bound_s=table.dt_critical,
         safety=scene.safety, omega_max_table_rad_s=table.omega_max, gamma_max_1_s=table.gamma_max,
@@ -156,8 +165,17 @@ def summarize(run: RunSetup, scene: Scene, log: FrameLog, range_check: RangeChec
             target_node=plan.target, held_nodes=int(plan.nodes.size), mode=plan.spec.mode,
             direction=plan.direction.tolist(), max_force_N=log.max_force_norm,
             force_at_max_N=log.max_force.tolist()),
+        integrator=_integrator(run, scene),
         volume=_volume_summary(run, scene),
     )
+
+
+def _integrator(run: RunSetup, scene: Scene) -> dict:
+    """The integrator's record: the implicit stepper's statistics, or the explicit step's settings."""
+    st = run.sim.stepper
+    if scene.method == "implicit":
+        return {**st.report(), "prefactor_s": run.prefactor_s}
+    return {"method": "explicit", "step": scene.step, "safety": scene.safety}
 
 
 def _volume_summary(run: RunSetup, scene: Scene) -> dict:

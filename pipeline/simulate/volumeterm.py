@@ -98,13 +98,15 @@ class VolumeTerm:
         """Stored energy [J]."""
         return self.elements.energy(x)
 
-    def tangent(self, x: np.ndarray, v: np.ndarray | None = None) -> sp.csr_matrix:
+    def tangent(self, x: np.ndarray, v: np.ndarray | None = None, *, definite: bool = False) -> sp.csr_matrix:
         """Tangent stiffness ``K = -df/dx`` at positions *x* (n, 3): symmetric CSR (3n, 3n) [N/m].
 
         Degrees of freedom in the order of ``x.ravel()`` (node-major, xyz). The
         term has no velocity dependence (*v* is accepted for the interface).
+        *definite*: the positive semi-definite part only (no pressure geometric
+        part), as the implicit stepper's Newton matrix needs (docs/simulate.md §2b).
         """
-        return self.elements.tangent(np.asarray(x, dtype=np.float64))
+        return self.elements.tangent(np.asarray(x, dtype=np.float64), definite=definite)
 
     def jacobians(self, x: np.ndarray) -> np.ndarray:
         """Nodal volume ratios ``J_a``, shape (n,)."""

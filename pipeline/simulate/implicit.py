@@ -1,0 +1,625 @@
+r"""The implicit stepper: backward Euler, Newton, conjugate gradients preconditioned by a reused factorization.
+
+One step of :math:`h` from :math:`(\mathbf x_n, \mathbf v_n)` solves for
+:math:`\mathbf x = \mathbf x_{n+1}` (docs/simulate.md §2b)
+
+.. math::
+
+    \mathbf g(\mathbf x) = M\frac{\mathbf x - \mathbf x_n - h\mathbf v_n}{h^2}
+        + \alpha M\frac{\mathbf x - \mathbf x_n}{h}
+        - \mathbf f\Bigl(\mathbf x, \frac{\mathbf x - \mathbf x_n}{h}\Bigr) - \mathbf f_{ext} = 0,
+    \qquad \mathbf v_{n+1} = \frac{\mathbf x_{n+1} - \mathbf x_n}{h}
+
+(:math:`\alpha` the mass-proportional damping, :math:`\mathbf f` the force terms
+with their dashpots and material effects), subject to the fixed nodes, the
+prescribed grasp (held nodes on the tip's path at :math:`t_{n+1}`) and the
+floor's contacts (active set: a node that crosses the plane is held on it;
+one the floor would have to pull is let go). Newton's matrix is
+:math:`A = M/h^2 + (\alpha M + C)/h + K(\mathbf x)` with
+:math:`K = \sum_{terms} K_{term}` (each term's ``tangent``) and :math:`C` the
+dashpots' damping matrix; each Newton update is solved by conjugate gradients
+preconditioned with a sparse factorization of :math:`A` taken at an earlier
+state and reused for as long as it keeps the iterations few (then refactored
+at the current state). Constraints join through the capacitance matrix
+(:class:`~.linsolve.Constraints`), so the factor does not change with the
+grasp or the contacts. Unconditionally stable for a linear network; the
+Newton iteration (with backtracking) carries it through the tables'
+nonlinearity and locking.
+
+The force on the grasper is reported at ``haptic_rate`` (1 kHz) whatever the
+step: at the step's start the force at the solved state, then, until the next
+solve, that force moved by the grasped patch's stiffness in the step's linear
+model, :math:`\mathbf F(t_n + \tau) = \mathbf F_n - S\,(\mathbf p(t_n + \tau) -
+\mathbf p(t_n)) + \tfrac{\tau}{h}\mathbf D_n`, with :math:`S` the Schur
+complement of :math:`A` on the patch's translation (from the capacitance
+matrix, no extra solve) and :math:`\mathbf D_n` the part of the last step's
+change that the tip's motion did not explain.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sps
+
+from ..errors import ConfigError
+from . import kernels as K
+from .linsolve import Constraints, SparseFactor, node_ordering, pcg
+from .model import Control, Model, State
+from .stepper import StepBound
+
+#: Default step of the deformation solve: one frame at 30 frames/s [s].
+DEFAULT_STEP = 1.0 / 30.0
+#: Default rate of the grasper force [Hz] (a haptic device's loop).
+HAPTIC_RATE = 1000.0
+PRECONDITIONERS = ("factor", "fresh", "jacobi")
+
+
+@dataclass
+class ImplicitStats:
+    """What the implicit steps cost (cumulative over a stepper's life)."""
+
+    steps: int = 0
+    newton: int = 0                 #: Newton iterations (each: one force pass, one tangent, one linear solve)
+    cg: int = 0                     #: conjugate-gradient iterations
+    solves: int = 0                 #: triangular solves with the factor (preconditioner, constraint columns)
+    factorizations: int = 0
+    factor_s: float = 0.0           #: seconds spent factoring
+    factor_nnz: int = 0             #: fill of the last factor
+    unconverged: int = 0            #: steps that ended above the tolerance
+    contact_changes: int = 0        #: nodes added to or released from the floor's contact set
+    max_newton: int = 0
+    backtracks: int = 0
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass(eq=False)
+class BackwardEuler:
+    """The implicit stepper (module doc); a :class:`~.stepper.Stepper`.
+
+    Parameters
+    ----------
+    step : float
+        The step it proposes (:meth:`bound`) [s]; any step is stable.
+    rtol : float
+        Newton tolerance: the largest residual force on a node, as a fraction of
+        the largest nodal weight ...
+    xtol : float
+        ... or the largest update of a node, as a fraction of the organ's size
+        (whichever is met first).
+    max_newton : int
+        Newton iterations before the factor is renewed (and again before the
+        step is accepted unconverged, which the statistics count).
+    cg_rtol : float
+        Relative tolerance of each linear solve (inexact Newton).
+    max_cg : int
+    preconditioner : {"factor", "fresh", "jacobi"}
+        "factor": the reused factorization (default); "fresh": factored at every
+        Newton iteration (exact Newton with a direct solve); "jacobi": the
+        diagonal (no factorization; the 1 kHz force then holds its last value).
+    haptic_rate : float
+        Grasper force samples per second of simulated time.
+    haptic_drift : bool
+        Extrapolate the last step's unexplained change between solves (module doc).
+    contact_rounds : int
+        Times a step is solved again after the floor let go of nodes (0: they
+        move from the next step on, as measured best for cost at equal accuracy).
+    definite : bool
+        Newton's matrix with each spring block made positive semi-definite
+        (negative axial and geometric stiffness dropped: a descent direction
+        whatever the compression).
+    single : bool
+        Factor in float32 (faster solves; the factor is a preconditioner).
+    threads : int
+        Kept for the :class:`~.simulator.Simulator` interface (the implicit step runs on one thread).
+    """
+
+    step: float = DEFAULT_STEP
+    rtol: float = 0.01
+    xtol: float = 1e-4
+    contact_rounds: int = 0
+    max_newton: int = 4
+    cg_rtol: float = 0.1
+    max_cg: int = 20
+    preconditioner: str = "factor"
+    haptic_rate: float = HAPTIC_RATE
+    haptic_drift: bool = True
+    definite: bool = True
+    single: bool = True
+    threads: int = 1
+    stats: ImplicitStats = field(default_factory=ImplicitStats)
+    _factor: SparseFactor | None = field(default=None, repr=False)
+    _factor_h: float = field(default=math.nan, repr=False)
+    _cons: Constraints | None = field(default=None, repr=False)
+    _perm: np.ndarray | None = field(default=None, repr=False)
+    _last: tuple | None = field(default=None, repr=False)
+    _solves_before: int = field(default=0, repr=False)
+    _stale: bool = field(default=False, repr=False)
+    _excess: int = field(default=0, repr=False)
+
+    def __post_init__(self):
+        if not (math.isfinite(self.step) and self.step > 0):
+            raise ConfigError(f"implicit_step: must be a positive time, got {self.step}", parameter="implicit_step")
+        if self.preconditioner not in PRECONDITIONERS:
+            raise ConfigError(f"preconditioner: {self.preconditioner!r} is not one of {', '.join(PRECONDITIONERS)}",
+                              parameter="preconditioner")
+        if not (math.isfinite(self.haptic_rate) and self.haptic_rate > 0):
+            raise ConfigError(f"haptic_rate: must be positive, got {self.haptic_rate}", parameter="haptic_rate")
+
+    # -- the Stepper interface ------------------------------------------------------
+    def bound(self, model: Model, control: Control) -> StepBound:
+        """Its proposed step; no stability limit (``dt_critical`` is infinite)."""
+        return StepBound(self.step, math.inf, 0.0, 0.0, 1.0, -1)
+
+    def report(self) -> dict:
+        """The statistics so far (JSON-ready), solves with the current factor included."""
+        self.stats.solves = self._solves_before + (0 if self._cons is None else self._cons.solves)
+        return {"method": "implicit", "preconditioner": self.preconditioner, "step_s": self.step,
+                "haptic_rate_hz": self.haptic_rate, "rtol": self.rtol, **self.stats.as_dict()}
+
+    def ticks_per_step(self, dt: float) -> int:
+        """Grasper force samples per step of *dt*: ``ceil(dt * haptic_rate)`` (spacing <= 1/haptic_rate)."""
+        return max(1, int(math.ceil(dt * self.haptic_rate * (1 - 1e-9))))
+
+    def advance(self, model: Model, state: State, control: Control, nsteps: int, *,
+                record: np.ndarray | None = None) -> np.ndarray:
+        """Take *nsteps* steps of ``state.dt``; the grasper force at ``ticks_per_step`` samples per step.
+
+        Returns
+        -------
+        ndarray, shape (nsteps * ticks, 3)
+            Row ``k * ticks + q`` is the force at ``t_k + q dt / ticks`` [N].
+        """
+        nsteps = int(nsteps)
+        T = self.ticks_per_step(state.dt)
+        rec = np.zeros((max(nsteps, 0) * T, 3)) if record is None else record
+        for k in range(max(nsteps, 0)):
+            self._step(model, state, control, rec[k * T:(k + 1) * T])
+        return rec
+
+    def prepare(self, model: Model, state: State, control: Control) -> float:
+        """Factor the matrix of a step of ``state.dt`` at the current state now (before the run); seconds spent."""
+        if self.preconditioner != "factor":
+            return 0.0
+        t = time.perf_counter()
+        self._refactor(model, state, state.x, self._dt_fx(state, state.dt))
+        return time.perf_counter() - t
+
+    # -- one step ------------------------------------------------------------------
+    def _step(self, model: Model, state: State, control: Control, rec: np.ndarray) -> None:
+        """One step of ``state.dt``: predictor, the grasper force's samples, Newton, the floor, commit."""
+        h, t = state.dt, state.t
+        x0, v0 = state.x.copy(), state.v.copy()
+        g_ = control.grasp
+        fmask = (control.floor_mask > 0) & model.movable
+        if g_ is not None:
+            fmask[g_.nodes] = False
+        floor = model.floor
+        contact = (state.contact > 0) & fmask if floor is not None else np.zeros(model.n_nodes, bool)
+        dt_fx = self._dt_fx(state, h)
+        if self.preconditioner == "factor" and (self._factor is None or self._factor_h != h or self._stale):
+            self._refactor(model, state, x0, dt_fx)
+        F0 = self._start_force(model, state, control, t)
+        x = self._predictor(model, control, x0, v0, h, contact, t + h)
+        self._set_rows(model, control, contact, h)
+        S = self._patch_stiffness(model, control, h)
+        self._haptic_ticks(rec, F0, S, g_, t, h)
+        x = self._converge(model, state, control, x, x0, v0, h, dt_fx, contact, np.repeat(~model.movable, 3))
+        if floor is not None:
+            # free nodes that went below the plane are put back on it (where their path crossed
+            # it, with "stick") and held from the next step on: the explicit step's rule, per step
+            landed = self._touchdown(floor, x0, x, fmask & ~contact)
+            contact |= landed
+            self.stats.contact_changes += int(landed.sum())
+        self._commit(model, state, control, x, x0, h, dt_fx, contact, F0, S)
+
+    def _predictor(self, model, control, x0, v0, h, contact, t1):
+        """The Newton iteration's start: inertial motion, held nodes on the path, contacts on the floor."""
+        g_ = control.grasp
+        x = x0 + h * v0
+        x[~model.movable] = x0[~model.movable]
+        if g_ is not None and g_.mode == "prescribed":
+            x[g_.nodes] = g_.tip(t1) + g_.offsets
+        if contact.any():
+            x[contact] = self._on_floor(model.floor, x0[contact], x[contact])
+        return x
+
+    def _converge(self, model, state, control, x, x0, v0, h, dt_fx, contact, fixed_dof):
+        """Newton's iteration from *x* until the residual or the update is small (module doc); the
+        floor then lets go of the nodes it would have to pull (*contact* updated in place; with
+        ``contact_rounds`` > 0 the step is solved again without them)."""
+        st = self.stats
+        floor = model.floor
+        tol = self.rtol * self._force_scale(model)
+        xtol = self.xtol * float(np.ptp(model.rest, axis=0).max())
+        mass_dof = np.repeat(model.mass * (1.0 / (h * h) + model.mass_damping / h), 3)
+        coupling = self._coupling_dofs(control, model.n_nodes)
+        _, g = self._residual(model, state, control, x, x0, v0, h, dt_fx)
+        norm = self._norm(g, control, contact, floor)
+        it = 0
+        moved = math.inf
+        for rounds in range(self.contact_rounds + 1):
+            limit = it + self.max_newton
+            moved = math.inf
+            while norm > tol and moved > xtol and it < limit:
+                x, g, norm, moved = self._newton(model, state, control, x, x0, v0, h, dt_fx, g, norm, contact,
+                                                 mass_dof, coupling, fixed_dof)
+                it += 1
+            released = self._released(g, contact, floor)
+            if released.any():
+                contact &= ~released
+                st.contact_changes += int(released.sum())
+                self._set_rows(model, control, contact, h)
+                norm = self._norm(g, control, contact, floor)
+            if not released.any() or rounds == self.contact_rounds:
+                break
+        if norm > tol and moved > xtol:
+            st.unconverged += 1
+        st.max_newton = max(st.max_newton, it)
+        return x
+
+    def _newton(self, model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, mass_dof, coupling, fixed_dof):
+        """One Newton iteration from x (residual g, |g| = norm): the update's solve and its line search."""
+        st = self.stats
+        if self.preconditioner == "fresh" or (self._stale and self.preconditioner == "factor"):
+            self._refactor(model, state, x, dt_fx)
+            self._set_rows(model, control, contact, h)
+        precond = self._preconditioner(model, state, x, h, dt_fx, mass_dof, coupling, fixed_dof, contact, control)
+        b = -g.ravel()
+        b[fixed_dof] = 0.0
+        if self.max_cg == 0:                 # the chord step: the reused matrix itself
+            dx, its = precond(b), 1
+        else:
+            matvec = self._operator(model, state, x, h, dt_fx, mass_dof, coupling, fixed_dof)
+            dx, its, _ = pcg(matvec, precond, b, rtol=self.cg_rtol,
+                             max_iter=self.max_cg if self.preconditioner != "jacobi" else 50 * self.max_cg)
+        st.cg += its
+        st.newton += 1
+        x, g, new = self._line_search(model, state, control, x, x0, v0, h, dt_fx, dx.reshape(-1, 3), norm, contact,
+                                      model.floor)
+        self._excess += max(0, its - 1)
+        if self._refactor_pays() or (self.max_cg == 0 and new > 0.5 * norm):
+            self._stale = True
+        return x, g, new, float(np.sqrt(np.einsum("ij,ij->i", dx.reshape(-1, 3), dx.reshape(-1, 3)).max()))
+
+    def _refactor_pays(self) -> bool:
+        """Whether the conjugate-gradient iterations lost to the factor's age (beyond one per Newton
+        iteration) since it was taken have cost more than taking it again (its factorization and
+        constraint columns, as measured): then the factor is renewed."""
+        cons, fac = self._cons, self._factor
+        if self.preconditioner != "factor" or cons is None or cons.solves == 0:
+            return False
+        per_solve = cons.solve_s / max(1, cons.solves - 0)
+        return self._excess * per_solve > fac.seconds + cons.columns_s
+
+    # -- pieces of a step ------------------------------------------------------------
+    @staticmethod
+    def _dt_fx(state: State, h: float) -> float:
+        """How far the springs' effect state must advance to reach the end of a step of *h*."""
+        fxs = state.effects
+        return h if fxs is None else max(0.0, state.t + h - fxs.t)
+
+    @staticmethod
+    def _forces(model: Model, state: State, x: np.ndarray, v: np.ndarray, dt_fx: float,
+                mode: int = K.FX_PEEK) -> np.ndarray:
+        """Every term's force at (x, v) plus the external forces (n, 3) [N]; effects over *dt_fx*."""
+        sp = model.springs
+        if state.effects is None:
+            f = sp.forces(x, v, fext=model.fext)
+        else:
+            f = sp.forces(x, v, fext=model.fext, state=state.effects, mode=mode, dt=dt_fx)
+        for term in model.terms:
+            if term is not sp:
+                f += term.forces(x, v)
+        return f
+
+    def _residual(self, model, state, control, x, x0, v0, h, dt_fx):
+        """(f, g): the forces at x and the residual g (n, 3) (zero on fixed nodes)."""
+        v = (x - x0) / h
+        f = self._forces(model, state, x, v, dt_fx)
+        fc = self._coupling_force(control, x, state.t + h)
+        if fc is not None:
+            f = f + fc
+        m = model.mass[:, None]
+        g = m * ((x - x0 - h * v0) / (h * h) + model.mass_damping * (x - x0) / h) - f
+        g[~model.movable] = 0.0
+        return f, g
+
+    @staticmethod
+    def _coupling_force(control: Control, x: np.ndarray, t1: float) -> np.ndarray | None:
+        """The grasper's coupling springs' forces at time *t1* (mode "spring"), or None."""
+        g_ = control.grasp
+        if g_ is None or g_.mode != "spring":
+            return None
+        out = np.zeros_like(x)
+        out[g_.nodes] = g_.stiffness[:, None] * (g_.tip(t1) + g_.offsets - x[g_.nodes])
+        return out
+
+    @staticmethod
+    def _coupling_dofs(control: Control, n: int) -> np.ndarray | None:
+        k = control.coupling_rows()
+        return None if k is None else np.repeat(k, 3)
+
+    @staticmethod
+    def _force_scale(model: Model) -> float:
+        """The largest nodal weight on a moving node [N] (the residual's scale); a spring force scale without gravity."""
+        mov = model.movable
+        w = float(np.linalg.norm(model.fext[mov], axis=1).max()) if mov.any() else 0.0
+        if w > 0.0:
+            return w
+        sp = model.springs
+        return 1e-3 * float(np.median(sp.rest_tangent / sp.sd[0].astype(np.float64)))
+
+    @staticmethod
+    def _norm(g: np.ndarray, control: Control, contact: np.ndarray, floor) -> float:
+        """The largest residual force on a node that no constraint holds [N]."""
+        r = g.copy()
+        gr = control.grasp
+        if gr is not None and gr.mode == "prescribed":
+            r[gr.nodes] = 0.0
+        if contact.any():
+            if floor.friction == "stick":
+                r[contact] = 0.0
+            else:
+                nrm = floor.normal
+                r[contact] -= (r[contact] @ nrm)[:, None] * nrm
+        return float(np.sqrt(np.einsum("ij,ij->i", r, r)).max()) if r.size else 0.0
+
+    @staticmethod
+    def _released(g: np.ndarray, contact: np.ndarray, floor) -> np.ndarray:
+        """Contact nodes the floor would have to pull (its force on them, g, points into it)."""
+        out = np.zeros_like(contact)
+        if floor is None or not contact.any():
+            return out
+        out[contact] = g[contact] @ floor.normal < 0.0
+        return out
+
+    @staticmethod
+    def _on_floor(floor, x0: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """Nodes put on the plane: "stick" where their path from *x0* crossed it, "slip" along the normal."""
+        nrm = floor.normal
+        d = x @ nrm - floor.height
+        if floor.friction == "stick":
+            d0 = x0 @ nrm - floor.height
+            r = np.where(d0 > 0.0, d0 / np.where(d0 - d > 0, d0 - d, 1.0), 0.0)
+            y = x0 + np.clip(r, 0.0, 1.0)[:, None] * (x - x0)
+            return y - (y @ nrm - floor.height)[:, None] * nrm
+        return x - d[:, None] * nrm
+
+    def _touchdown(self, floor, x0: np.ndarray, x: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+        """Candidate nodes below the plane after an update: put on it (in *x*) and returned as new contacts."""
+        below = candidates & (floor.distance(x) < 0.0)
+        if below.any():
+            x[below] = self._on_floor(floor, x0[below], x[below])
+        return below
+
+    def _line_search(self, model, state, control, x, x0, v0, h, dt_fx, dx, norm, contact, floor):
+        """x + s dx with s = 1, 1/2, 1/4 (the first that lowers the residual; else the last); (x, g, |g|)."""
+        s = 1.0
+        for k in range(3):
+            xt = x + s * dx
+            _, g = self._residual(model, state, control, xt, x0, v0, h, dt_fx)
+            nt = self._norm(g, control, contact, floor)
+            if nt < norm or k == 2:
+                if k:
+                    self.stats.backtracks += k
+                return xt, g, nt
+            s *= 0.5
+        return xt, g, nt
+
+    # -- matrices ------------------------------------------------------------------
+    def _tangent(self, model: Model, state: State, x: np.ndarray, dt_fx: float, *, definite: bool):
+        """Sum of the terms' tangent stiffness at x (CSR (3n, 3n)); the springs' with their effect state."""
+        sp = model.springs
+        Kt = sp.tangent(x, state=state.effects, dt=dt_fx, definite=definite)
+        for term in model.terms:
+            if term is not sp:
+                Kt = Kt + term.tangent(x, definite=definite)
+        return Kt
+
+    def _operator(self, model, state, x, h, dt_fx, mass_dof, coupling, fixed_dof):
+        """Newton's matrix at x as a product ``p -> A p`` (zero on fixed dofs)."""
+        Kt = self._tangent(model, state, x, dt_fx, definite=self.definite)
+        C = model.springs.damping_matrix(x) if model.springs.damped else None
+        diag = mass_dof if coupling is None else mass_dof + coupling
+
+        def matvec(p):
+            y = Kt @ p + diag * p
+            if C is not None:
+                y += (C @ p) / h
+            y[fixed_dof] = 0.0
+            return y
+
+        return matvec
+
+    def _system_matrix(self, model, state, x, h, dt_fx):
+        """The factored matrix: ``M/h^2 + (alpha M + C)/h + K(x)`` (definite springs), identity on fixed dofs."""
+        A = self._tangent(model, state, x, dt_fx, definite=self.definite)
+        if model.springs.damped:
+            A = A + model.springs.damping_matrix(x) / h
+        mass_dof = np.repeat(model.mass * (1.0 / (h * h) + model.mass_damping / h), 3)
+        mov = np.repeat(model.movable, 3).astype(np.float64)
+        D = sps.diags(mov)
+        return (D @ A @ D + sps.diags(mass_dof * mov + (1.0 - mov))).tocsr()
+
+    def _refactor(self, model: Model, state: State, x: np.ndarray, dt_fx: float) -> None:
+        h = state.dt
+        A = self._system_matrix(model, state, x, h, dt_fx)
+        if self._perm is None or self._perm.size != A.shape[0]:
+            self._perm = node_ordering(A)
+        fac = SparseFactor.of(A, self._perm, single=self.single)
+        st = self.stats
+        st.factorizations += 1
+        st.factor_s += fac.seconds
+        st.factor_nnz = fac.nnz
+        if self._cons is not None:
+            self._solves_before += self._cons.solves
+        self._factor, self._factor_h = fac, h
+        self._cons = Constraints(fac, model.n_nodes)
+        self._stale = False
+        self._excess = 0
+
+    def _set_rows(self, model: Model, control: Control, contact: np.ndarray, h: float) -> None:
+        """Constraint rows of the grasp (hard, or coupling springs) and the floor's contacts."""
+        if self._cons is None:
+            return
+        nodes, es, comp = [], [], []
+        g_ = control.grasp
+        eye = np.eye(3)
+        if g_ is not None:
+            for q, a in enumerate(g_.nodes):
+                c = 0.0 if g_.mode == "prescribed" else 1.0 / g_.stiffness[q]
+                for d in range(3):
+                    nodes.append(a)
+                    es.append(eye[d])
+                    comp.append(c)
+        if contact.any():
+            for a in np.flatnonzero(contact):
+                if model.floor.friction == "stick":
+                    for d in range(3):
+                        nodes.append(a)
+                        es.append(eye[d])
+                        comp.append(0.0)
+                else:
+                    nodes.append(a)
+                    es.append(model.floor.normal)
+                    comp.append(0.0)
+        self._cons.set_rows(np.array(nodes, np.int64), np.array(es).reshape(-1, 3), np.array(comp))
+
+    def _preconditioner(self, model, state, x, h, dt_fx, mass_dof, coupling, fixed_dof, contact, control):
+        """``r -> z``: the constrained preconditioner (factor + capacitance, or the diagonal)."""
+        if self.preconditioner != "jacobi":
+            cons = self._cons
+            return lambda r: cons.apply(r, fixed_dof)
+        Kt = self._tangent(model, state, x, dt_fx, definite=False)
+        d = Kt.diagonal() + mass_dof + (0.0 if coupling is None else coupling)
+        if model.springs.damped:
+            d = d + model.springs.damping_matrix(x).diagonal() / h
+        d = np.repeat(d.reshape(-1, 3).mean(axis=1), 3)          # per node: commutes with a normal projection
+        hold = fixed_dof.copy()
+        g_ = control.grasp
+        if g_ is not None and g_.mode == "prescribed":
+            hold.reshape(-1, 3)[g_.nodes] = True
+        stick = model.floor is not None and model.floor.friction == "stick"
+        if contact.any() and stick:
+            hold.reshape(-1, 3)[contact] = True
+
+        def apply(r):
+            z = r / d
+            z[hold] = 0.0
+            if contact.any() and not stick:
+                zz = z.reshape(-1, 3)
+                nrm = model.floor.normal
+                zz[contact] -= (zz[contact] @ nrm)[:, None] * nrm
+            return z
+
+        return apply
+
+    # -- the grasper force at the haptic rate -------------------------------------
+    def _grasp_force(self, control: Control, f: np.ndarray, x: np.ndarray, t: float) -> np.ndarray:
+        """Force of the tissue on the grasper from the nodal forces *f* (springs, weight) at positions *x*."""
+        g_ = control.grasp
+        if g_ is None:
+            return np.zeros(3)
+        if g_.mode == "spring":
+            return -(g_.stiffness[:, None] * (g_.tip(t) + g_.offsets - x[g_.nodes])).sum(axis=0)
+        return f[g_.nodes].sum(axis=0)
+
+    def _start_force(self, model: Model, state: State, control: Control, t: float) -> np.ndarray:
+        """The grasper force at the step's start: the last step's, or computed now (first step, new grasp)."""
+        g_ = control.grasp
+        if g_ is None:
+            return np.zeros(3)
+        last = self._last
+        if last is not None and last[0] is g_ and abs(last[1] - t) <= 1e-9 * max(1.0, abs(t)):
+            return last[2]
+        fxs = state.effects
+        f = self._forces(model, state, state.x, state.v, 0.0 if fxs is None else max(0.0, t - fxs.t))
+        return self._grasp_force(control, f, state.x, t)
+
+    def _patch_stiffness(self, model: Model, control: Control, h: float) -> np.ndarray:
+        """S (3, 3): minus the change of the grasper force per tip displacement in the step's linear model."""
+        g_ = control.grasp
+        cons = self._cons
+        if g_ is None or cons is None or cons.cap_inv is None:
+            return np.zeros((3, 3))
+        rows = np.arange(3 * g_.nodes.size)
+        S = cons.block_stiffness(rows)
+        if g_.mode == "prescribed":
+            mg = float(model.mass[g_.nodes].sum())
+            S = S - mg * (1.0 / (h * h) + model.mass_damping / h) * np.eye(3)
+        return S
+
+    def _haptic_ticks(self, rec: np.ndarray, F0: np.ndarray, S: np.ndarray, g_, t: float, h: float) -> None:
+        """The grasper force at the step's ticks: F0 moved by the patch stiffness along the tip's path (+ drift)."""
+        rec[0] = F0
+        T = rec.shape[0]
+        if g_ is None or T == 1:
+            rec[1:] = F0
+            return
+        last = self._last
+        drift = last[3] if (self.haptic_drift and last is not None and last[0] is g_) else np.zeros(3)
+        p0 = g_.tip(t)
+        for q in range(1, T):
+            tau = q * h / T
+            rec[q] = F0 - S @ (g_.tip(t + tau) - p0) + (tau / h) * drift
+
+    def _commit(self, model, state, control, x, x0, h, dt_fx, contact, F0, S) -> None:
+        """Write the step into *state*: positions, velocities, effect state, contacts, clock; remember the force."""
+        g_ = control.grasp
+        t1 = state.t + h
+        spring_grasp = g_ is not None and g_.mode == "spring"
+        v = (x - x0) / h
+        v[~model.movable] = 0.0
+        if g_ is not None and not spring_grasp:
+            v[g_.nodes] = g_.tip_velocity(state.t + 0.5 * h)
+        fxs = state.effects
+        f = self._forces(model, state, x, (x - x0) / h, dt_fx, mode=K.FX_STEP if fxs is not None else K.FX_PEEK)
+        if fxs is not None:
+            fxs.t = t1
+        state.x[:] = x
+        state.v[:] = v
+        state.contact[:] = contact.astype(np.uint8)
+        state.steps += 1
+        self.stats.steps += 1
+        if g_ is not None:
+            F1 = self._grasp_force(control, f, x, t1)
+            drift = F1 - F0 + S @ (g_.tip(t1) - g_.tip(t1 - h))
+            self._last = (g_, t1, F1, drift)
+        else:
+            self._last = None
+
+
+@dataclass(frozen=True)
+class ImplicitSchedule:
+    """The implicit stepper's :class:`~.stepper.FrameSchedule`: a fixed step, no stretch window.
+
+    Attributes
+    ----------
+    step : float
+        The deformation solve's step [s] (frames get ``ceil(frame_dt / step)`` steps).
+    table : StepBound
+        The explicit whole-table bound of the same model, for the record.
+    """
+
+    step: float
+    table: StepBound
+
+    @property
+    def first_window(self) -> None:
+        return None
+
+    def narrowed(self, delta):
+        return None
+
+    def bound(self, model: Model, state: State, control: Control, delta) -> StepBound:
+        return StepBound(self.step, math.inf, 0.0, 0.0, 1.0, -1)
+
+    @staticmethod
+    def steps_per_frame(frame_dt: float, bound: StepBound) -> int:
+        return max(1, int(math.ceil(frame_dt / bound.dt * (1 - 1e-12))))

@@ -1,0 +1,259 @@
+r"""Sparse linear algebra of the implicit stepper: a reused factorization, constraints, conjugate gradients.
+
+* :func:`node_ordering`: a fill-reducing order of the nodes (METIS nested
+  dissection on the node graph of a 3x3-block matrix), expanded to the dofs;
+* :class:`SparseFactor`: an :math:`LDL^T`-type factorization of a symmetric
+  matrix in that order (SuperLU without pivoting, symmetric mode), used as the
+  Newton iteration's preconditioner for many steps;
+* :class:`Constraints`: dofs held by hard constraints (prescribed grasp, floor
+  contacts: a node, or its normal component) or by stiff coupling springs
+  (the grasper in mode "spring"), joined to the factor by the capacitance
+  (Sherman-Morrison-Woodbury) matrix :math:`C = JP^{-1}J^T + D` so that the
+  factor never changes with them; its inverse gives the grasped patch's
+  stiffness in the step's linear model (the 1 kHz grasper force);
+* :func:`pcg`: preconditioned conjugate gradients in the constraints' null
+  space (the preconditioner :math:`\Pi = P^{-1} - W C^{-1} W^T`,
+  :math:`W = P^{-1}J^T`, maps any residual into it).
+
+docs/simulate.md §2b explains the choices and their measured alternatives.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sps
+
+from ..errors import SimulationError
+
+
+def node_ordering(A) -> np.ndarray:
+    """Fill-reducing dof permutation of *A* (3n, 3n) with 3x3 blocks: METIS nested dissection of its node graph.
+
+    Returns
+    -------
+    ndarray, shape (3n,), int64
+        ``perm`` such that ``A[perm][:, perm]`` is factored with little fill.
+    """
+    import pymetis
+
+    A = sps.csr_matrix(A)
+    n = A.shape[0] // 3
+    rows = A[0::3].tocsr()                          # node a's first row holds every block column
+    nodes = rows.indices // 3
+    rid = np.repeat(np.arange(n), np.diff(rows.indptr))
+    key = np.unique(rid.astype(np.int64) * n + nodes)
+    r, c = key // n, key % n
+    keep = r != c
+    r, c = r[keep], c[keep]
+    xadj = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=n))]).astype(np.int64)
+    if c.size == 0:
+        order = np.arange(n)
+    else:
+        graph = pymetis.CSRAdjacency(xadj, c.astype(np.int64))
+        perm, _ = pymetis.nested_dissection(adjacency=graph)      # row i of A' is row perm[i] of A
+        order = np.asarray(perm, dtype=np.int64)
+    return (3 * order[:, None] + np.arange(3)).ravel()
+
+
+@dataclass(eq=False)
+class SparseFactor:
+    """A symmetric matrix factored once, in a nested-dissection order, for many solves.
+
+    SuperLU (scipy) on the permuted matrix with the natural column order, no
+    pivoting and symmetric mode: for a symmetric positive definite matrix
+    (the stepper's is one) an :math:`LDL^T` factorization (``U = D L^T``),
+    solved by SuperLU's supernodal sweeps. Its solves with many right-hand
+    sides at once slow down steeply (measured: 3 columns 1.8x one, 12 columns
+    100x), so :meth:`solve` takes at most three at a time.
+
+    Attributes
+    ----------
+    perm : ndarray, shape (N,)
+    seconds : float
+        Time the factorization took.
+    nnz : int
+        Nonzeros of L (fill).
+    """
+
+    perm: np.ndarray
+    lu: object
+    seconds: float
+    nnz: int
+
+    dtype: type = np.float64
+
+    @classmethod
+    def of(cls, A, perm: np.ndarray | None = None, *, single: bool = False) -> SparseFactor:
+        """Factor *A* (N, N), in order *perm* (default: :func:`node_ordering`).
+
+        *single*: factor and solve in float32 (measured on the fine liver: solves
+        1.6x faster, relative residual ~3e-4: a preconditioner, not a solver).
+        """
+        from scipy.sparse.linalg import splu
+
+        t = time.perf_counter()
+        perm = node_ordering(A) if perm is None else perm
+        dtype = np.float32 if single else np.float64
+        B = sps.csr_matrix(A)[perm][:, perm].tocsc().astype(dtype)
+        try:
+            lu = splu(B, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+        except RuntimeError as exc:            # an exactly singular pivot
+            raise SimulationError(f"the implicit step's matrix could not be factored ({exc}); "
+                                  "check the asset's masses and fixed nodes") from None
+        return cls(perm=perm, lu=lu, seconds=time.perf_counter() - t, nnz=int(lu.nnz + B.shape[0]) // 2,
+                   dtype=dtype)
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """``A^-1 b`` for *b* of shape (N,) or (N, k)."""
+        out = np.empty_like(b, dtype=np.float64)
+        if b.ndim == 1:
+            out[self.perm] = self.lu.solve(np.ascontiguousarray(b[self.perm], dtype=self.dtype))
+            return out
+        for c in range(0, b.shape[1], 3):
+            out[self.perm, c:c + 3] = self.lu.solve(np.ascontiguousarray(b[self.perm, c:c + 3], dtype=self.dtype))
+        return out
+
+
+@dataclass(eq=False)
+class Constraints:
+    """Constraint rows on top of a :class:`SparseFactor` ``P`` (the capacitance method).
+
+    Each row m acts on node ``node[m]`` along the unit vector ``e[m]`` (3,):
+    a hard constraint (compliance 0: the dof does not move in the Newton
+    update) or a coupling spring (compliance ``1/k``). ``W = P^-1 J^T`` is
+    cached per node (three columns, the solves of the unit vectors) until the
+    factor changes.
+
+    Parameters
+    ----------
+    factor : SparseFactor
+    n : int
+        Nodes.
+    """
+
+    factor: SparseFactor
+    n: int
+    _cols: dict = field(default_factory=dict, repr=False)
+    node: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    e: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    comp: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    W: np.ndarray | None = None
+    cap_inv: np.ndarray | None = None
+    solves: int = 0
+    solve_s: float = 0.0        #: seconds spent in the preconditioner's solves
+    columns_s: float = 0.0      #: seconds spent computing the columns of W
+
+    def columns(self, nodes) -> None:
+        """Compute (once per factor) the three columns ``P^-1 e_{3a+c}`` of every node in *nodes*."""
+        new = [int(a) for a in np.unique(np.asarray(nodes, dtype=np.int64)) if int(a) not in self._cols]
+        if not new:
+            return
+        E = np.zeros((3 * self.n, 3 * len(new)))
+        for q, a in enumerate(new):
+            E[3 * a:3 * a + 3, 3 * q:3 * q + 3] = np.eye(3)
+        t = time.perf_counter()
+        X = self.factor.solve(E)
+        self.columns_s += time.perf_counter() - t
+        self.solves += 3 * len(new)
+        for q, a in enumerate(new):
+            self._cols[a] = np.ascontiguousarray(X[:, 3 * q:3 * q + 3])
+
+    def set_rows(self, node: np.ndarray, e: np.ndarray, comp: np.ndarray) -> None:
+        """Use rows (*node* (c,), unit *e* (c, 3), compliance *comp* (c,)); builds W and the capacitance inverse."""
+        self.node = np.asarray(node, dtype=np.int64)
+        self.e = np.asarray(e, dtype=np.float64).reshape(-1, 3)
+        self.comp = np.asarray(comp, dtype=np.float64)
+        c = self.node.size
+        if c == 0:
+            self.W, self.cap_inv = None, None
+            return
+        self.columns(self.node)
+        W = np.empty((3 * self.n, c))
+        for m in range(c):
+            W[:, m] = self._cols[int(self.node[m])] @ self.e[m]
+        self.W = W
+        cap = self.gather(W) + np.diag(self.comp)
+        cap = 0.5 * (cap + cap.T)
+        try:
+            self.cap_inv = np.linalg.inv(cap)
+        except np.linalg.LinAlgError:
+            raise SimulationError("the implicit step's constraints are dependent (a node held twice?)") from None
+
+    def gather(self, z: np.ndarray) -> np.ndarray:
+        """``J z`` for *z* of shape (3n,) or (3n, k): each row's component of its node."""
+        zz = z.reshape(self.n, 3, -1)[self.node]                 # (c, 3, k)
+        out = np.einsum("mdk,md->mk", zz, self.e)
+        return out[:, 0] if z.ndim == 1 else out
+
+    def scatter(self, lam: np.ndarray) -> np.ndarray:
+        """``J^T lam``, shape (3n,)."""
+        out = np.zeros((self.n, 3))
+        np.add.at(out, self.node, lam[:, None] * self.e)
+        return out.ravel()
+
+    def apply(self, r: np.ndarray, fixed: np.ndarray | None = None) -> np.ndarray:
+        """The constrained preconditioner ``(P^-1 - W C^-1 W^T) r`` (zero on *fixed* dofs)."""
+        if fixed is not None:
+            r = np.where(fixed, 0.0, r)
+        t = time.perf_counter()
+        z = self.factor.solve(r)
+        self.solve_s += time.perf_counter() - t
+        self.solves += 1
+        if self.W is not None:
+            z = z - self.W @ (self.cap_inv @ self.gather(z))
+            hard = self.comp == 0.0            # exactly in the null space (the factor may be float32)
+            if hard.any():
+                zz = z.reshape(self.n, 3)
+                for m in np.flatnonzero(hard):
+                    a = self.node[m]
+                    zz[a] -= (zz[a] @ self.e[m]) * self.e[m]
+        if fixed is not None:
+            z[fixed] = 0.0
+        return z
+
+    def block_stiffness(self, rows: np.ndarray) -> np.ndarray:
+        """``sum over rows a, b of [C^-1]_ab e_a e_b^T`` (3, 3): the stiffness of moving those rows together."""
+        if self.cap_inv is None or rows.size == 0:
+            return np.zeros((3, 3))
+        E = self.e[rows]
+        return E.T @ self.cap_inv[np.ix_(rows, rows)] @ E
+
+
+def pcg(matvec, precond, b: np.ndarray, *, rtol: float, max_iter: int) -> tuple[np.ndarray, int, bool]:
+    """Preconditioned conjugate gradients for ``A y = b`` from ``y = 0``.
+
+    *precond* maps a residual into the constraints' null space (so every
+    iterate stays there). Stops when ``sqrt(r.z) <= rtol sqrt(r0.z0)``, after
+    *max_iter* iterations, or on a direction of non-positive curvature (the
+    iterate so far is returned; the first direction itself if there is none).
+
+    Returns
+    -------
+    (y, iterations, converged)
+    """
+    y = np.zeros_like(b)
+    r = b.copy()
+    z = precond(r)
+    rz = float(r @ z)
+    if not rz > 0.0:
+        return y, 0, True
+    stop = rtol * rtol * rz
+    p = z.copy()
+    for it in range(1, max_iter + 1):
+        Ap = matvec(p)
+        pAp = float(p @ Ap)
+        if not pAp > 0.0:
+            return (p if it == 1 else y), it, False
+        alpha = rz / pAp
+        y += alpha * p
+        r -= alpha * Ap
+        z = precond(r)
+        rz_new = float(r @ z)
+        if rz_new <= stop:
+            return y, it, True
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+    return y, max_iter, False

@@ -1,0 +1,346 @@
+"""The implicit stepper: the tangent stiffness, the linear algebra, and the comparison with the explicit reference.
+
+The explicit stepper (symplectic Euler under its stability bound) is the
+accuracy reference; the implicit one (backward Euler, docs/simulate.md §2b) is
+compared with it on the same network, start and damping.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sps
+from esmm.pipeline.materials.effects import (
+    DamageEffect,
+    MaterialEffects,
+    MullinsEffect,
+    ViscoelasticEffect,
+)
+from esmm.pipeline.mesh.synthetic import box_tets
+from esmm.pipeline.network.forcelaw import tangent_stiffness
+from esmm.pipeline.network.springs import network_from_tets
+from esmm.pipeline.network.tables import StiffnessTables
+from esmm.pipeline.simulate import kernels as K
+from esmm.pipeline.simulate.history import History
+from esmm.pipeline.simulate.implicit import BackwardEuler
+from esmm.pipeline.simulate.linsolve import Constraints, SparseFactor, pcg
+from esmm.pipeline.simulate.model import Floor, Grasp
+from esmm.pipeline.simulate.run import simulate_network
+from esmm.pipeline.simulate.scene import scene_from_dict
+from esmm.pipeline.simulate.simulator import Simulator
+from esmm.pipeline.simulate.springterm import build_spring_term
+from esmm.pipeline.simulate.stepper import SymplecticEuler, stable_step
+from scipy.linalg import eigh
+from simkit import make_tables as simkit_tables
+
+
+def make_tables(mu0=2.0e4, aniso=True):
+    """Stiffening tables, different per fibre direction (or the same: *aniso* False)."""
+    return simkit_tables("nonlinear" if aniso else "stiffening", mu0=mu0)
+
+
+@pytest.fixture(scope="module")
+def box():
+    return network_from_tets(box_tets(4, 3, 3, (0.04, 0.03, 0.03)))
+
+
+@pytest.fixture(scope="module")
+def slab():
+    """A 60 x 20 x 15 mm slab, fixed at x = 0."""
+    net = network_from_tets(box_tets(8, 3, 2, (0.06, 0.02, 0.015)))
+    return net.with_fixed(np.flatnonzero(net.points[:, 0] < 1e-9))
+
+
+def deformed(net, scale=0.08, seed=0):
+    rng = np.random.default_rng(seed)
+    size = np.ptp(net.points, axis=0).max()
+    return net.points + rng.normal(scale=scale * size / 10, size=net.points.shape)
+
+
+# ---------------------------------------------------------------------------
+# the tangent stiffness
+# ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("law", ["secant", "energy"])
+@pytest.mark.parametrize("aniso", [True, False])
+def test_tangent_matches_the_reference_hessian(box, law, aniso):
+    tables = make_tables(aniso=aniso)
+    term = build_spring_term(box, tables, law=law)
+    x = deformed(box)
+    Kt = term.tangent(x)
+    ref = tangent_stiffness(x, box, tables, law=law)
+    assert Kt.shape == (3 * box.n_nodes,) * 2
+    assert abs(Kt - ref).max() <= 1e-9 * abs(ref).max()
+    assert abs(Kt - Kt.T).max() == 0.0
+
+
+def fd_check(term, x, **forces_kw):
+    """Largest relative difference between K dx and the central difference of the compiled forces."""
+    rng = np.random.default_rng(3)
+    Kt = term.tangent(x, **{k: v for k, v in forces_kw.items() if k in ("state", "dt", "mode")})
+    worst = 0.0
+    for _ in range(3):
+        d = rng.normal(size=x.shape)
+        d /= np.abs(d).max()
+        eps = 1e-8 * np.ptp(x)
+        fd = -(term.forces(x + eps * d, **forces_kw) - term.forces(x - eps * d, **forces_kw)).ravel() / (2 * eps)
+        kd = Kt @ d.ravel()
+        worst = max(worst, np.abs(fd - kd).max() / np.abs(kd).max())
+    return worst
+
+
+@pytest.mark.parametrize("law", ["secant", "energy"])
+def test_tangent_is_the_derivative_of_the_compiled_forces(box, law):
+    term = build_spring_term(box, make_tables(), law=law)
+    # Off the cell boundaries (where the tables' slope jumps) the difference is rounding only.
+    assert fd_check(term, deformed(box, scale=0.03)) < 2e-3
+
+
+def test_tangent_with_effects_follows_their_factors(box):
+    """QLV's instantaneous factor, Mullins reloading and damage on its primary path, against finite differences."""
+    tables = make_tables()
+    fx = MaterialEffects(ViscoelasticEffect((0.3, 0.2), (0.05, 0.5)), MullinsEffect(2.0, 2.0, 0.1),
+                         DamageEffect(1.02, 0.05, 2.0))
+    term = build_spring_term(box, tables, effects=fx)
+    x = deformed(box, scale=0.03)
+    state = term.new_state()
+    # Load beyond x first (maxima above the current stretches: Mullins reloads), then come back.
+    far = box.points + 1.6 * (x - box.points)
+    term.forces(far, state=state, mode=K.FX_STEP, dt=1e-3)
+    err = fd_check(term, x, state=state, dt=2e-3, mode=K.FX_PEEK)
+    assert err < 2e-3
+    # The factors matter: the elastic tangent alone is off by far more.
+    plain = build_spring_term(box, tables)
+    d = np.random.default_rng(1).normal(size=x.shape).ravel()
+    a, b = term.tangent(x, state=state, dt=2e-3) @ d, plain.tangent(x) @ d
+    assert np.abs(a - b).max() > 0.05 * np.abs(b).max()
+
+
+def test_definite_tangent_is_positive_semidefinite(box):
+    term = build_spring_term(box, make_tables())
+    x = box.points * np.array([1.0, 1.0, 0.7])          # squeezed: compressed springs, negative F/L
+    true = term.tangent(x).toarray()
+    fixed = term.tangent(x, definite=True).toarray()
+    assert np.linalg.eigvalsh(true).min() < -1e-6 * np.abs(true).max()
+    assert np.linalg.eigvalsh(fixed).min() > -1e-9 * np.abs(fixed).max()
+
+
+def test_damping_matrix_gives_the_dashpot_forces(box):
+    term = build_spring_term(box, make_tables(), dashpot=1e-3)
+    x = deformed(box, scale=0.02)
+    v = np.random.default_rng(2).normal(size=x.shape) * 0.01
+    f_d = term.forces(x, v) - term.forces(x)
+    np.testing.assert_allclose(-(term.damping_matrix(x) @ v.ravel()), f_d.ravel(), atol=1e-12 * np.abs(f_d).max())
+
+
+# ---------------------------------------------------------------------------
+# the linear algebra
+# ---------------------------------------------------------------------------
+
+def spd_system(box):
+    term = build_spring_term(box, make_tables())
+    A = term.tangent(deformed(box, scale=0.02), definite=True) + sps.diags(np.repeat(box.mass, 3) * 900.0)
+    return A.tocsr()
+
+
+@pytest.mark.parametrize("single", [False, True])
+def test_factor_solves(box, single):
+    A = spd_system(box)
+    fac = SparseFactor.of(A, single=single)
+    b = np.random.default_rng(0).normal(size=(A.shape[0], 5))
+    y = fac.solve(b)
+    assert np.linalg.norm(A @ y - b) <= (1e-4 if single else 1e-10) * np.linalg.norm(b)
+    assert fac.nnz < A.shape[0] ** 2 / 2
+
+
+def test_constraints_hold_and_pcg_converges(box):
+    A = spd_system(box)
+    cons = Constraints(SparseFactor.of(A), box.n_nodes)
+    n = np.array([0.0, 0.6, 0.8])
+    cons.set_rows(np.array([0, 0, 0, 5]), np.vstack([np.eye(3), n]), np.zeros(4))
+    z = cons.apply(np.random.default_rng(1).normal(size=A.shape[0]))
+    np.testing.assert_allclose(z[:3], 0.0, atol=1e-12)
+    assert abs(z[15:18] @ n) < 1e-12 * np.abs(z).max()
+    # PCG in the constraints' null space solves the constrained problem exactly (direct preconditioner)
+    b = np.random.default_rng(2).normal(size=A.shape[0])
+    y, its, ok = pcg(lambda p: A @ p, cons.apply, b, rtol=1e-10, max_iter=20)
+    assert ok and its <= 3
+    r = (A @ y - b).reshape(-1, 3)
+    r[0] = 0.0
+    r[5] -= (r[5] @ n) * n
+    assert np.abs(r).max() < 1e-8 * np.abs(b).max()
+
+
+# ---------------------------------------------------------------------------
+# steps: stability and the explicit reference
+# ---------------------------------------------------------------------------
+
+DECAY = 30.0        # 1/s: mass-proportional damping of the comparison (both steppers)
+LIFT = 0.6          # s: the lift's duration: slow against the slab's first mode (~60 rad/s), as an
+                    # organ's (~5 rad/s, docs/simulate.md §3) is against the frame step
+
+
+def lift(slab, tables, stepper, *, frames=24, dt=None, floor=None):
+    """Settle under gravity, grasp the free end's top and lift it 2 mm in LIFT s; (times, forces, frames of x, sim)."""
+    term = build_spring_term(slab, tables, dashpot=2e-4)
+    sim = Simulator(term, slab.points, slab.mass, fixed=slab.fixed, gravity=(0, 0, -9.81), mass_damping=DECAY,
+                    stepper=stepper, floor=floor)
+    sim.relax(rtol=1e-9)
+    p = slab.points
+    nodes = np.flatnonzero((p[:, 0] > p[:, 0].max() - 1e-9) & (p[:, 2] > p[:, 2].max() - 1e-9))
+    tip0 = sim.x[nodes].mean(axis=0)
+    # a smooth path (as a hand moves a haptic device): 2 mm up in LIFT s, velocity zero at both ends
+    s = np.linspace(0.0, 1.0, 21)
+    sim.attach(Grasp(nodes=nodes, offsets=sim.x[nodes] - tip0, wp_t=LIFT * s,
+                     wp_x=tip0 + np.outer(s * s * (3 - 2 * s), [0, 0, 0.002])), check_step=False)
+    step = (1 / 30) if dt is None else dt
+    spf = max(1, int(np.ceil(1 / 30 / step - 1e-9)))
+    sim.set_time_step(1 / 30 / spf, bound=sim.stepper.bound(sim.model, sim.control), t0=0.0)
+    ticks = sim.stepper.ticks_per_step(sim.dt)
+    F, X = [], [sim.x.copy()]
+    for _ in range(frames):
+        F.append(sim.advance(spf))
+        X.append(sim.x.copy())
+    times = np.arange(frames * spf * ticks) * sim.dt / ticks
+    return times, np.concatenate(F), np.array(X), sim
+
+
+@pytest.fixture(scope="module")
+def reference(slab):
+    tables = make_tables(mu0=2.0e4)
+    term = build_spring_term(slab, tables, dashpot=2e-4)
+    dt = stable_step(term, slab.mass).dt
+    return tables, lift(slab, tables, SymplecticEuler(), dt=dt)
+
+
+def test_implicit_matches_the_explicit_reference(slab, reference):
+    tables, (te, Fe, Xe, _) = reference
+    ti, Fi, Xi, sim = lift(slab, tables, BackwardEuler())
+    assert sim.stepper.ticks_per_step(sim.dt) >= 34          # the grasper force at >= 1 kHz
+    assert np.diff(ti).max() <= 1e-3 + 1e-12
+    Fe_i = np.stack([np.interp(ti, te, Fe[:, d]) for d in range(3)], axis=1)
+    lifting = ti <= LIFT
+    scale = np.linalg.norm(Fe[te <= LIFT], axis=1).max()
+    err = np.linalg.norm(Fi - Fe_i, axis=1)[lifting].max()
+    assert err <= 0.05 * scale
+    u_e = Xe - slab.points
+    u_i = Xi - slab.points
+    assert np.abs(u_i - u_e).max() <= 0.05 * np.linalg.norm(u_e, axis=2).max()
+    # and the motion since the start (2 mm at the tip), within 5 % of its largest value too
+    m_e, m_i = Xe - Xe[0], Xi - Xi[0]
+    assert np.linalg.norm(m_i - m_e, axis=2).max() <= 0.05 * np.linalg.norm(m_e, axis=2).max()
+
+
+def test_stable_at_frame_and_haptic_steps_and_near_locking(box):
+    """Tables that lock below 0.8 (tangent x 40), loaded by 300 g: steps of 1/30 s and 1 ms settle on the equilibrium."""
+    lam = np.linspace(0.6, 1.6, 201)
+    mu = np.vstack([2e4 * (1 + 40 * np.clip((0.85 - lam) / 0.1, 0, None) ** 2)] * 3)
+    tables = StiffnessTables(lam_min=0.6, lam_max=1.6, n=201, values=mu, stress=mu * (lam - 1),
+                             energy=np.zeros((3, 201)))
+    fixed = np.flatnonzero(box.points[:, 2] < 1e-9)
+    term = build_spring_term(box, tables)
+    g = (0, 0, -9.81 * 300)
+    ref = Simulator(term, box.points, box.mass, fixed=fixed, gravity=g)
+    ref.relax(rtol=1e-9)
+    lo, _ = term.stretch_range(ref.x)
+    assert lo < 0.85                                   # the equilibrium is in the stiff (locking) range
+    for dt in (1 / 30, 1e-3):
+        sim = Simulator(term, box.points, box.mass, fixed=fixed, gravity=g, mass_damping=20.0,
+                        stepper=BackwardEuler(step=dt))
+        assert dt > 10 * stable_step(term, box.mass).dt
+        sim.advance(int(round(0.6 / dt)))
+        assert np.all(np.isfinite(sim.x))
+        u = ref.x - box.points
+        assert np.abs(sim.x - ref.x).max() < 0.02 * np.abs(u).max()
+
+
+def first_mode_decay(term, box, fixed, stepper, h, duration=0.5):
+    """(omega, zeta): the lowest mode's angular frequency and its measured damping ratio, kicked alone."""
+    free = np.ones(box.n_nodes, bool)
+    free[fixed] = False
+    fd = np.repeat(free, 3)
+    w2, V = eigh(term.tangent(box.points).toarray()[np.ix_(fd, fd)], np.diag(np.repeat(box.mass, 3)[fd]))
+    phi = np.zeros(3 * box.n_nodes)
+    phi[fd] = V[:, 0]
+    omega = float(np.sqrt(w2[0]))
+    sim = Simulator(term, box.points, box.mass, fixed=fixed, stepper=stepper, dt=h)
+    sim.state.v[:] = (1e-3 * omega * phi).reshape(-1, 3)
+    mphi = np.repeat(box.mass, 3) * phi
+    q = []
+    for _ in range(int(duration / h)):
+        sim.advance(1)
+        q.append(mphi @ (sim.x - box.points).ravel())
+    q = np.array(q)
+    peaks = [k for k in range(1, len(q) - 1) if q[k] > q[k - 1] and q[k] >= q[k + 1]]
+    return omega, float(np.log(q[peaks[0]] / q[peaks[-1]]) / (2 * np.pi * (len(peaks) - 1)))
+
+
+def test_numerical_damping_of_backward_euler(box):
+    """The lowest mode without physical damping: backward Euler damps it by ln(1 + (wh)^2) / (2 wh) more
+    than the (energy-conserving) explicit reference."""
+    term = build_spring_term(box, make_tables(aniso=False))
+    fixed = np.flatnonzero(box.points[:, 2] < 1e-9)
+    omega, z_ref = first_mode_decay(term, box, fixed, SymplecticEuler(), stable_step(term, box.mass).dt)
+    for h in (1e-3, 3e-3):
+        _, z = first_mode_decay(term, box, fixed, BackwardEuler(step=h, rtol=1e-9, xtol=1e-12, max_newton=20), h)
+        expected = np.log1p((omega * h) ** 2) / (2 * omega * h)
+        assert z - z_ref == pytest.approx(expected, rel=0.15)
+
+
+def test_floor_contact_in_the_implicit_step(slab):
+    """Released onto a sticking floor 1 mm below: no node ends below it, nodes in contact stay put."""
+    tables = make_tables()
+    term = build_spring_term(slab, tables)
+    fl = Floor.under(slab.points - [0, 0, 0.001], (0, 0, -9.81), friction="stick")
+    free = slab.with_fixed(np.zeros(0, np.int64))
+    sim = Simulator(term, free.points, free.mass, gravity=(0, 0, -9.81), mass_damping=10.0, floor=fl,
+                    stepper=BackwardEuler())
+    for _ in range(30):
+        sim.advance(1)
+        assert fl.distance(sim.x).min() >= -1e-12
+    held = sim.contact.astype(bool)
+    assert held.sum() >= 4
+    x = sim.x.copy()
+    sim.advance(5)
+    np.testing.assert_allclose(sim.x[held & sim.contact.astype(bool)], x[held & sim.contact.astype(bool)], atol=1e-12)
+
+
+def test_effects_state_advances_with_the_implicit_step(slab):
+    tables = make_tables()
+    fx = MaterialEffects(ViscoelasticEffect((0.4,), (0.05,)))
+    term = build_spring_term(slab, tables, effects=fx)
+    sim = Simulator(term, slab.points, slab.mass, fixed=slab.fixed, gravity=(0, 0, -9.81), stepper=BackwardEuler())
+    sim.advance(3)
+    assert sim.fx_state.t == pytest.approx(3 / 30)
+    assert np.abs(sim.fx_state.h).max() > 0
+
+
+# ---------------------------------------------------------------------------
+# the run
+# ---------------------------------------------------------------------------
+
+def test_run_records_the_grasper_force_at_1khz(tmp_path, slab):
+    sc = scene_from_dict({"scene": {"duration": "0.3 s", "frame_rate": 30, "gravity": [0, 0, -9.81]},
+                          "integrator": {"method": "implicit", "haptic_rate": 1000},
+                          "grasper": {"radius": "8 mm", "release_time": "0.2 s",
+                                      "waypoints": [{"time": "0 s", "distance": "0 mm"},
+                                                    {"time": "0.1 s", "distance": "2 mm"}]}}, source="t")
+    res = simulate_network(slab, make_tables(), sc, tmp_path)
+    s = res.summary
+    assert s.method == "implicit" and s.steps == 9 and s.dt_max_s == pytest.approx(1 / 30)
+    assert s.integrator["factorizations"] >= 1 and s.integrator["haptic_rate_hz"] == 1000
+    with History(res.history) as h:
+        t, f = h.forces()
+    assert np.diff(t).max() <= 1e-3 + 1e-12 and t[-1] > 0.19
+    assert np.linalg.norm(f, axis=1).max() > 0
+    assert "implicit" in s.describe()
+
+
+def test_scene_integrator_keys():
+    sc = scene_from_dict({"integrator": {"method": "explicit"}})
+    assert sc.method == "explicit"
+    sc = scene_from_dict({"integrator": {"implicit_step": "1 ms", "haptic_rate": 2000, "newton_tol": 0.01}})
+    assert sc.method == "implicit" and sc.solve_step == pytest.approx(1e-3) and sc.haptic_rate == 2000
+    assert scene_from_dict({}).solve_step == pytest.approx(1 / 30)
+    with pytest.raises(Exception, match="method"):
+        scene_from_dict({"integrator": {"method": "rk4"}})
