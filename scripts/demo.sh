@@ -27,7 +27,7 @@ say "5/6 prepare: an InVesalius-style liver surface (TotalSegmentator liver, 3 m
 "$ESMM" prepare data/meshes/ts_liver_3mm_closed.stl --config paper -o "$OUT/liver.h5"
 "$ESMM" info "$OUT/liver.h5"
 
-say "6/6 simulate: the liver under gravity and a scripted grasper (implicit solver, grasper force at 1 kHz), rendered off-screen"
+say "6/6 simulate: the liver under gravity and a scripted grasper, rendered off-screen (--method implicit: backward Euler, grasper force at 1 kHz)"
 "$ESMM" simulate "$OUT/liver.h5" --video "$OUT/liver.mp4" --out "$OUT/liver-sim"
 RTF=$(python3 - "$OUT/liver-sim/summary.json" <<'PY'
 import json, sys
