@@ -6,28 +6,37 @@ ESMM="${ESMM:-.venv/bin/esmm}"
 mkdir -p "$OUT"
 say() { printf '\n== %s\n' "$*"; }
 
-say "1/6 calibrate: Arruda-Boyce on Treloar's rubber (published: C_R ~ 0.27 MPa, N ~ 26)"
+say "1/9 calibrate: Arruda-Boyce on Treloar's rubber (published: C_R ~ 0.27 MPa, N ~ 26)"
 "$ESMM" calibrate data/tensile/treloar1944/uniaxial.csv --model arruda-boyce \
     --out "$OUT/treloar" --json "$OUT/treloar/treloar.json"
 
-say "2/6 calibrate: the ESEDF on human brain cortex (Budday 2017), tension-compression + shear"
+say "2/9 calibrate: the ESEDF on human brain cortex (Budday 2017), tension-compression + shear"
 "$ESMM" calibrate data/tensile/budday2017_brain/cortex_tension_compression.csv \
     data/tensile/budday2017_brain/cortex_simple_shear.csv --model esedf --out "$OUT/brain-cortex"
 
-say "3/6 calibrate, batch: every brain region on its own, in parallel"
+say "3/9 calibrate, batch: every brain region on its own, in parallel"
 "$ESMM" calibrate --by specimen data/tensile/budday2017_brain/*.csv --model esedf --out "$OUT/brain-batch"
 
-say "4/6 close the loop: what the hyperelastic model misses in raw VHB 4910 exports (fit on 0.05 /s + relaxation)"
+say "4/9 close the loop: what the hyperelastic model misses in raw VHB 4910 exports (fit on 0.05 /s + relaxation)"
 "$ESMM" calibrate data/tensile/vhb4910_raw/lu_0d05_*.csv data/tensile/vhb4910_raw/relax_2d0.csv \
     --discover --out "$OUT/vhb-discover" --json "$OUT/vhb-discover/discover-summary.json"
 say "    ... and predict the 0.01 /s tests it never saw, without refitting"
 "$ESMM" evaluate "$OUT/vhb-discover" data/tensile/vhb4910_raw/lu_0d01_*.csv --json "$OUT/vhb-discover/evaluate-0d01.json"
 
-say "5/6 prepare: an InVesalius-style liver surface (TotalSegmentator liver, 3 mm) -> tetra spring network"
+say "5/9 close the loop on raw Instron exports of rat-tail tendon (geometry read from the files' headers): the relaxation"
+"$ESMM" calibrate data/tensile/tendon_instron/relax_incubated_1.csv --discover --out "$OUT/tendon-discover"
+
+say "6/9 close the loop on racing-shoe foam, 4 specimens cycled: Mullins, hysteresis, cyclic softening"
+"$ESMM" calibrate data/tensile/foam_cyclic/new-heel-tension-?_1.csv --discover --out "$OUT/foam-discover"
+
+say "7/9 prepare: an InVesalius-style liver surface (TotalSegmentator liver, 3 mm) -> tetra spring network"
 "$ESMM" prepare data/meshes/ts_liver_3mm_closed.stl --config paper -o "$OUT/liver.h5"
 "$ESMM" info "$OUT/liver.h5"
 
-say "6/6 simulate: the liver under gravity and a scripted grasper, rendered off-screen (--method implicit: backward Euler, grasper force at 1 kHz)"
+say "8/9 validate: the network (with its volume term) against a felupe continuum, a 20 mm cube in tension, compression, shear"
+"$ESMM" validate --specimen --size 4 --out "$OUT/validate-specimen" --json "$OUT/validate-specimen/validate.json"
+
+say "9/9 simulate: the liver under gravity and a scripted grasper, rendered off-screen (try --method implicit: backward Euler, grasper force at 1 kHz)"
 "$ESMM" simulate "$OUT/liver.h5" --video "$OUT/liver.mp4" --out "$OUT/liver-sim"
 RTF=$(python3 - "$OUT/liver-sim/summary.json" <<'PY'
 import json, sys
@@ -43,7 +52,9 @@ ls -1 "$OUT"
 cat <<MSG
 
   calibration reports : $OUT/treloar/report.md, $OUT/brain-cortex/report.md, $OUT/brain-batch/summary.csv
-  closing the loop    : $OUT/vhb-discover/discover.md (effects found, error before/after), evaluate-0d01.json
+  closing the loop    : $OUT/vhb-discover/discover.md (effects found, error before/after), evaluate-0d01.json,
+                        $OUT/tendon-discover/discover.md, $OUT/foam-discover/discover.md
+  network vs continuum: $OUT/validate-specimen/ (per-case errors, volume change, plots, XDMF error fields)
   liver asset         : $OUT/liver.h5 (+ liver.xdmf for ParaView)
   video               : $OUT/liver.mp4
   simulation outputs  : $OUT/liver-sim/ (displacement history .h5/.xdmf, grasper force plot)
