@@ -112,6 +112,33 @@ def test_continuum_simple_shear_matches_analytic(block, liver, gamma):
     assert np.abs(sol.displacement - U).max() < 1e-8 * gamma * L
 
 
+def test_condensed_mini_solves_the_whole_system(block, liver):
+    """The MINI system with its bubbles condensed element by element gives the whole LU's answer."""
+    import felupe as fem
+    from esmm.pipeline.fidelity.continuum import _CondensedMini, _discretise, _lu_solve
+
+    case = uniaxial_case(*block, stretch=1.1)
+    field, solid, _, mask, _, ncells = _discretise(fem, case, liver, bulk_modulus(liver), "mini")
+    dof1 = np.flatnonzero(~np.concatenate([mask.ravel(), np.zeros(field.fieldsizes[1] * 2, bool)]))
+    A = solid.assemble.matrix(field).tocsr()[dof1][:, dof1]
+    b = np.cos(np.arange(A.shape[0]))
+    solver = _CondensedMini(dof1, case.n_nodes, ncells)
+    x = solver(A, b)
+    assert solver.count == 1 and np.abs(A @ x - b).max() < 1e-10 * abs(A).max() * np.abs(x).max()
+    assert np.abs(x - _lu_solve(A, b)).max() < 1e-6 * np.abs(x).max()
+
+
+@pytest.mark.parametrize("element", ["p2", "mini"])
+def test_continuum_warm_start_reaches_the_same_equilibrium(block, liver, element):
+    """Started from the solution of another stretch, the solve ends where a solve from rest does."""
+    cold = solve_continuum(uniaxial_case(*block, stretch=1.2), liver, element=element)
+    first = solve_continuum(uniaxial_case(*block, stretch=1.1), liver, element=element)
+    warm = solve_continuum(uniaxial_case(*block, stretch=1.2), liver, element=element, start=first, steps=1)
+    assert warm.info["warm_start"] and not cold.info["warm_start"]
+    assert np.abs(warm.displacement - cold.displacement).max() < 1e-6 * np.abs(cold.displacement).max()
+    assert warm.reactions["top"] == pytest.approx(cold.reactions["top"], rel=1e-6)
+
+
 def test_continuum_prints_nothing(block, liver, capsys):
     solve_continuum(uniaxial_case(*block, stretch=1.1), liver, steps=2)
     out = capsys.readouterr()
@@ -178,6 +205,24 @@ def test_network_newton_is_the_simulators_equilibrium(small_network):
     assert np.abs(sol.displacement - u_fire).max() < 1e-4 * umax
     # the anchor carries the weight
     assert sol.reactions["anchor"] == pytest.approx(net.mass.sum() * g, rel=1e-8)
+
+
+def test_network_warm_start_reaches_the_same_equilibrium(small_network):
+    """From the equilibrium without a pin, with gravity on, to the one with a pin: as a solve from rest."""
+    net, tables = small_network
+    anchor = np.flatnonzero(net.points[:, 0] < 1e-9)
+    g = np.array([0.0, 0.0, -9.80665])
+    free_end = np.flatnonzero(net.points[:, 0] > 0.04 - 1e-9)
+    base = LoadCase("gravity", "", net.points, net.tets, (Constraint.clamp("anchor", anchor),), "anchor",
+                    gravity=g, density=1.0)
+    pinned = LoadCase("gravity", "", net.points, net.tets, (Constraint.clamp("anchor", anchor),
+                      Constraint.clamp("end", free_end)), "anchor", gravity=g, density=1.0)
+    first = solve_network(base, net, tables)
+    assert np.abs(first.displacement[free_end]).max() > 1e-3          # the end sags; the pin lifts it back
+    warm = solve_network(pinned, net, tables, start=first, steps=2)
+    cold = solve_network(pinned, net, tables)
+    assert warm.info["warm_start"]
+    assert np.abs(warm.displacement - cold.displacement).max() < 1e-6 * np.abs(first.displacement).max()
 
 
 def test_validate_network_runs_both_sides_and_reports(small_network, liver, tmp_path):
