@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 from esmm.cli.main import main
-from esmm.pipeline.errors import ConfigError
+from esmm.pipeline.errors import ConfigError, SimulationError
 from esmm.pipeline.fidelity.cases import (
     Constraint,
     Floor,
@@ -137,6 +137,28 @@ def test_continuum_warm_start_reaches_the_same_equilibrium(block, liver, element
     assert warm.info["warm_start"] and not cold.info["warm_start"]
     assert np.abs(warm.displacement - cold.displacement).max() < 1e-6 * np.abs(cold.displacement).max()
     assert warm.reactions["top"] == pytest.approx(cold.reactions["top"], rel=1e-6)
+
+
+def test_continuum_gives_up_after_its_iteration_budget(block, liver):
+    with pytest.raises(SimulationError, match="Newton iterations"):
+        solve_continuum(uniaxial_case(*block, stretch=1.2), liver, element="mini", budget=2)
+
+
+def test_a_case_without_equilibrium_is_reported_and_the_others_run(small_network, liver, monkeypatch):
+    import esmm.pipeline.fidelity.validate as V
+
+    real = V.solve_continuum
+
+    def fails_on_tension(case, *args, **kw):
+        if case.name == "tension":
+            raise SimulationError("continuum reference: no equilibrium (test)")
+        return real(case, *args, **kw)
+
+    monkeypatch.setattr(V, "solve_continuum", fails_on_tension)
+    net, tables = small_network
+    rep = validate_network(net, tables, liver, cases=["tension", "shear"], element="p2")
+    assert [r.case.name for r in rep.results] == ["shear"]
+    assert "tension" in rep.info["failed"] and "| tension | no equilibrium:" in rep.table()
 
 
 def test_continuum_prints_nothing(block, liver, capsys):

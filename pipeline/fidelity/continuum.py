@@ -135,8 +135,8 @@ def _discretise(fem, case: LoadCase, material, K: float, element: str):
 
 
 def solve_continuum(case: LoadCase, material, *, bulk: float | None = None, element: str = "p2", steps: int = 8,
-                    rtol: float = 1e-8, max_iter: int = 25, max_cuts: int = 10, start: Solution | None = None,
-                    reporter=None) -> Solution:
+                    rtol: float = 1e-8, max_iter: int = 25, max_cuts: int = 10, budget: int = 250,
+                    start: Solution | None = None, reporter=None) -> Solution:
     """Solve *case* as a nearly incompressible hyperelastic continuum (felupe).
 
     Parameters
@@ -157,6 +157,9 @@ def solve_continuum(case: LoadCase, material, *, bulk: float | None = None, elem
     max_iter : int
     max_cuts : int
         Halvings of one load step before giving up.
+    budget : int
+        Newton iterations of the whole solve before giving up (a load the
+        material can hardly reach creeps on in tiny steps otherwise).
     start : Solution, optional
         A continuum solution of the same mesh, element and body force (a
         previous round of the floor's active set): the solve starts from its
@@ -171,7 +174,8 @@ def solve_continuum(case: LoadCase, material, *, bulk: float | None = None, elem
     Raises
     ------
     SimulationError
-        No equilibrium after *max_cuts* halvings of a step.
+        No equilibrium after *max_cuts* halvings of a step, or not within
+        *budget* Newton iterations.
     """
     import felupe as fem
 
@@ -194,6 +198,11 @@ def solve_continuum(case: LoadCase, material, *, bulk: float | None = None, elem
         while t < 1.0 - 1e-12:
             t1 = min(1.0, t + dt)
             ok, its = stepper.step(path.body(t1), path.prescribed(t1))
+            if stepper.iterations > budget:
+                raise SimulationError(
+                    f"continuum reference: case {case.name!r} took more than {budget} Newton iterations and "
+                    f"reached load factor {t:.3g} only; its constraints may go beyond the material's locking "
+                    "stretch")
             if not ok:
                 cuts, run = cuts + 1, run + 1
                 if run > max_cuts:

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..asset import read_asset
 from ..atomicio import write_json, write_text
-from ..errors import ConfigError
+from ..errors import ConfigError, SimulationError
 from ..progress import ensure
 from ..simulate.grasper import plan_grasp
 from ..simulate.runsetup import fixed_nodes
@@ -88,7 +88,8 @@ class ValidationReport:
     info: dict = field(default_factory=dict)
 
     def table(self) -> str:
-        return table_markdown(self.results)
+        failed = [f"| {name} | no equilibrium: {msg} |" for name, msg in self.info.get("failed", {}).items()]
+        return "\n".join([table_markdown(self.results), *failed])
 
     def figures(self) -> dict:
         """The JSON document of ``--json``."""
@@ -248,10 +249,16 @@ def validate_network(network, tables, material, *, cases=None, label: str = "net
     bulk = bulk_modulus(material, ratio=bulk_ratio)
     law = tables.check_law(law)
     loads = LoadOptions() if loads is None else loads
-    results = [_solve_case(c, network, tables, material, law=law, terms=terms, bulk=bulk, element=element,
-                           max_rounds=max_rounds, rep=rep)
-               for c in _cases_for(network, names, loads, rep)]
-    info = {"material": material.name or material.model, "law": law, "volume_factor": float(tables.volume_factor),
+    results, failed = [], {}
+    for c in _cases_for(network, names, loads, rep):
+        try:
+            results.append(_solve_case(c, network, tables, material, law=law, terms=terms, bulk=bulk,
+                                       element=element, max_rounds=max_rounds, rep=rep))
+        except SimulationError as exc:     # the other cases still run; the report says which failed and why
+            failed[c.name] = str(exc)
+            rep.warn(f"{c.name}: {exc}")
+    info = {"failed": failed, "material": material.name or material.model, "law": law,
+            "volume_factor": float(tables.volume_factor),
             "bulk_modulus_Pa": bulk, "bulk_ratio": float(bulk_ratio), "element": element,
             "nodes": network.n_nodes, "springs": network.n_springs, "tets": network.n_tets,
             "seconds": time.perf_counter() - t0}
@@ -267,7 +274,7 @@ def _write(report: ValidationReport, out: Path) -> None:
         report.files[f"{r.case.name}_png"] = str(plot_case(r, out / f"{r.case.name}.png"))
         report.files[f"{r.case.name}_xdmf"] = str(write_fields(r, out / f"{r.case.name}.xdmf"))
     text = (f"# esmm validate: {report.label}\n\nvolume term {report.volume_term}; "
-            + ", ".join(f"{k} {v}" for k, v in report.info.items() if k != "seconds") + "\n\n"
+            + ", ".join(f"{k} {v}" for k, v in report.info.items() if k not in ("seconds", "failed")) + "\n\n"
             + report.table() + "\n\n" + "\n".join(f"* {r.case.name}: {r.case.description}" for r in report.results)
             + "\n")
     report.files["table"] = str(write_text(out / "validation.md", text))
