@@ -247,6 +247,28 @@ def test_network_warm_start_reaches_the_same_equilibrium(small_network):
     assert np.abs(warm.displacement - cold.displacement).max() < 1e-6 * np.abs(first.displacement).max()
 
 
+def test_floor_contact_is_found_along_the_load_path(small_network):
+    """A cantilever sagging onto a floor just below it: the nodes that touch are pinned where they touch,
+    none ends below the floor, and the pins hold (the tip sags less than without the floor)."""
+    from esmm.pipeline.fidelity.validate import _on_the_floor
+    from esmm.pipeline.progress import ensure
+
+    net, tables = small_network
+    anchor = np.flatnonzero(net.points[:, 0] < 1e-9)
+    g = np.array([0.0, 0.0, -9.80665])
+    free = LoadCase("gravity", "", net.points, net.tets, (Constraint.clamp("anchor", anchor),), "anchor",
+                    gravity=g, density=1.0)
+    sag = -solve_network(free, net, tables).displacement[:, 2].min()
+    floor = Floor(np.array([0.0, 0.0, 1.0]), -0.3 * sag)
+    case = LoadCase("gravity", "", net.points, net.tets, (Constraint.clamp("anchor", anchor),), "anchor",
+                    gravity=g, density=1.0, floor=floor)
+    sol, pins = _on_the_floor(case, lambda c, start: solve_network(c, net, tables, start=start, steps=1), 6,
+                              ensure(None))
+    z = net.points[:, 2] + sol.displacement[:, 2]
+    assert pins > 0 and sol.info["floor_pins"] == pins
+    assert z.min() >= floor.height - 1e-9 and -sol.displacement[:, 2].min() < 0.9 * sag
+
+
 def test_validate_network_runs_both_sides_and_reports(small_network, liver, tmp_path):
     net, tables = small_network
     rep = validate_network(net, tables, liver, cases=["shear"], element="p2", out_dir=tmp_path)
