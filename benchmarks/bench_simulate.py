@@ -16,6 +16,12 @@ copy bandwidth measured with numpy (large arrays: DRAM; 8 MB arrays: cache).
 Material effects: the 50k network without effects, with 3 Prony terms per
 spring, and with viscoelasticity + Mullins + damage (``bench_effects``).
 
+Volume term (``bench_volume``): on the 5k and 50k boxes, the compiled force
+pass of the springs alone and the volume term's pass alone (one thread,
+medians of CPU time per call; goal: the volume pass costs at most 2x the
+spring pass), the whole step with and without the term, and the stable step
+each allows (the term is stiff: docs/model.md, Part C2).
+
 Demo: the paper-sized liver asset (``esmm prepare`` of data/meshes/sofa_liver.stl,
 preset "paper") in the default scene for 1 s of simulated time, adaptive and
 whole-table step; then the off-screen rendering rate at 960 x 720.
@@ -30,6 +36,7 @@ import itertools
 import statistics
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -168,6 +175,66 @@ def bench_effects(tables, n: int = SIZES["50k"], steps: int = 60, repeats: int =
     return out
 
 
+def _median_call(fn, calls: int, repeats: int) -> tuple[float, float]:
+    """Median wall and thread-CPU seconds per call of *fn* (after one warm call)."""
+    fn()
+    walls, cpus = [], []
+    for _ in range(repeats):
+        t, c = time.perf_counter(), time.thread_time()
+        for _ in range(calls):
+            fn()
+        walls.append((time.perf_counter() - t) / calls)
+        cpus.append((time.thread_time() - c) / calls)
+    return statistics.median(walls), statistics.median(cpus)
+
+
+def bench_volume(tables, *, sizes=("5k", "50k"), repeats: int = 7) -> dict:
+    """The volume term against the spring pass, one thread (module doc)."""
+    from esmm.pipeline.network.springs import network_from_tets
+    from esmm.pipeline.network.volume import bulk_modulus
+    from esmm.pipeline.simulate import kernels as K
+    from esmm.pipeline.simulate.simulator import Simulator, warm_up
+    from esmm.pipeline.simulate.springterm import build_spring_term
+    from esmm.pipeline.simulate.stepper import stable_step
+    from esmm.pipeline.simulate.volumeterm import build_volume_term
+
+    spec = bulk_modulus(tables)
+    out: dict = {"bulk_modulus_pa": spec.bulk_modulus}
+    for name in sizes:
+        net = network_from_tets(box_tets(SIZES[name]))
+        springs = build_spring_term(net, tables)
+        vol = build_volume_term(net.points, net.tets, spec, lam_max=tables.lam_max)
+        warm = warm_up(springs) + warm_up(springs, volume=vol)
+        x = net.points * 1.001
+        v = np.zeros_like(x)
+        f = np.zeros_like(x)
+        sk, vk, lay = springs.kernel(), vol.kernel(), springs.layout(1)
+        calls = int(np.clip(3e6 / springs.n_springs, 5, 500))
+        ws, cs = _median_call(partial(K.forces_serial, x, v, f, v, sk, None, lay), calls, repeats)
+        wv, cv = _median_call(partial(K.volume_forces_serial, x, f, vk), calls, repeats)
+        fixed = np.flatnonzero(net.points[:, 2] < 1e-9)
+        steps = {}
+        for label, term in (("springs", None), ("springs+volume", vol)):
+            sim = Simulator(springs, net.points, net.mass, fixed=fixed, gravity=(0, 0, -9.81), mass_damping=5.0,
+                            volume=term)
+            sim.set_time_step(0.5 * sim.bound.dt)
+            w, c = _time_steps(sim, calls, repeats)
+            terms = [springs] if term is None else [springs, term]
+            steps[label] = {"cpu_us_per_step": c * 1e6, "wall_us_per_step": w * 1e6,
+                            "dt_whole_run_us": stable_step(terms, net.mass).dt * 1e6,
+                            "dt_window_at_rest_us": stable_step(terms, net.mass, x=net.points, window=0.05).dt * 1e6}
+        out[name] = {"springs": springs.n_springs, "tets": vol.n_tets, "nodes": net.n_nodes, "warm_up_s": warm,
+                     "spring_pass_cpu_us": cs * 1e6, "volume_pass_cpu_us": cv * 1e6,
+                     "spring_pass_wall_us": ws * 1e6, "volume_pass_wall_us": wv * 1e6,
+                     "volume_over_spring_pass_cpu": cv / cs, "goal_volume_le_2x_spring_pass": cv / cs <= 2.0,
+                     "volume_ns_per_tet": cv / vol.n_tets * 1e9, "steps": steps,
+                     "step_cost_ratio_cpu": steps["springs+volume"]["cpu_us_per_step"]
+                     / steps["springs"]["cpu_us_per_step"],
+                     "stable_step_ratio_window": steps["springs+volume"]["dt_window_at_rest_us"]
+                     / steps["springs"]["dt_window_at_rest_us"]}
+    return out
+
+
 def bytes_touched(model, net) -> float:
     """Bytes moved per spring per step: spring stream + node arrays (x r/w, v r/w, f r/w, fext r, 1/m r)."""
     node_bytes = 8 * (3 * 2 + 3 * 2 + 3 * 2 + 3 + 1)
@@ -205,12 +272,13 @@ def bench_demo(tables_unused=None) -> dict:
     return out
 
 
-def run(*, parts=("sizes", "effects", "demo"), sizes=None, repeats: int = 5, threads: int | None = None) -> dict:
+def run(*, parts=("sizes", "effects", "volume", "demo"), sizes=None, repeats: int = 5,
+        threads: int | None = None) -> dict:
     """The benchmark's figures; ``make bench`` runs everything (see :func:`main` for a quick subset).
 
     Parameters
     ----------
-    parts : subset of {"sizes", "effects", "demo"}
+    parts : subset of {"sizes", "effects", "volume", "demo"}
     sizes : subset of :data:`SIZES` keys, optional
     repeats : int
         Timed repeats per figure (medians).
@@ -248,6 +316,8 @@ def run(*, parts=("sizes", "effects", "demo"), sizes=None, repeats: int = 5, thr
             res["goal_100k_step_lt_1ms"] = best100 < 1000.0
     if "effects" in parts:
         res["effects_50k"] = bench_effects(tables, repeats=max(repeats, 7))
+    if "volume" in parts:
+        res["volume"] = bench_volume(tables, repeats=max(repeats, 7))
     if "demo" in parts:
         try:
             res["demo"] = bench_demo()
@@ -264,7 +334,8 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  epilog="quick: --parts sizes --sizes 5k,50k --threads 1 (about a minute)")
-    ap.add_argument("--parts", default="sizes,effects,demo", help="any of sizes, effects, demo (default: all)")
+    ap.add_argument("--parts", default="sizes,effects,volume,demo",
+                    help="any of sizes, effects, volume, demo (default: all)")
     ap.add_argument("--sizes", default=None, help=f"networks to time, any of {', '.join(SIZES)} (default: all)")
     ap.add_argument("--repeats", type=int, default=5, help="timed repeats per figure (default 5)")
     ap.add_argument("--threads", type=int, default=None, help="threads of the multi-thread rows (1: none)")

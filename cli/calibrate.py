@@ -82,6 +82,24 @@ def _config(args):
                                  fixed=_pairs(args.fixed, "--fix"), free=args.free)
 
 
+def read_tests(paths, overrides, ui) -> list:
+    """Read every file; of several, one that is not a test record at all (a measurements table picked up
+    by a wildcard) is skipped with a warning. A single such file, or any other problem, is an error."""
+    from esmm.pipeline.tensile import NotATestError, read
+
+    tests = []
+    for p in paths:
+        try:
+            tests.append(read(p, overrides=overrides, reporter=ui))
+        except NotATestError as exc:
+            if len(paths) == 1:
+                raise
+            ui.warn(f"{exc} - skipped")
+    if not tests:
+        raise ConfigError("none of the files is a test record; give the tests' CSV files")
+    return tests
+
+
 def run(args, ui) -> int:
     overrides = metadata_overrides(args)
     fit_kwargs = _config(args).fit_kwargs()
@@ -97,9 +115,8 @@ def run_fit(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) 
     from esmm.pipeline.atomicio import write_json
     from esmm.pipeline.calibrate.fit import fit_material
     from esmm.pipeline.calibrate.report import display_stress_unit, result_to_dict, write_outputs
-    from esmm.pipeline.tensile import read
 
-    tests = [read(p, overrides=overrides, reporter=ui) for p in args.files]
+    tests = read_tests(args.files, overrides, ui)
     result = fit_material(tests, **fit_kwargs, reporter=ui)
 
     unit, fac = display_stress_unit([abs(e.value) for e in result.estimates if e.kind == "stress"] or [1.0])
@@ -145,7 +162,6 @@ def run_discover(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, A
     ``--json``, and prints the before/after summary.
     """
     from esmm.pipeline.discover import discover_and_save, summary_lines
-    from esmm.pipeline.tensile import read
 
     if args.by:
         raise ConfigError("--discover analyses one group of files at a time and cannot be combined with --by; "
@@ -155,7 +171,7 @@ def run_discover(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, A
     if loss not in (None, "linear"):
         ui.warn(f"--discover compares models by likelihood and held-out error with the linear loss; "
                 f"--loss {loss} is ignored")
-    tests = [read(p, overrides=overrides, reporter=ui) for p in args.files]
+    tests = read_tests(args.files, overrides, ui)
     res = discover_and_save(tests, out_dir=args.out, json_path=args.json, reporter=ui, **kw)
     for line in summary_lines(res):
         ui.info(line)

@@ -23,8 +23,8 @@ def add_parser(sub) -> None:
         "info",
         help="summarise and validate asset files",
         description="Print what an asset holds (nodes, springs, tets, volume, quality, material, "
-        "tables, provenance) and check it: schema, checksums, shapes, NaNs, index ranges, "
-        "positive tet volumes and masses, direction cosines, the XDMF sidecar.",
+        "tables, volume term, provenance) and check it: schema, checksums, shapes, NaNs, index ranges, "
+        "positive tet volumes and masses, direction cosines, the volume term's rest volumes, the XDMF sidecar.",
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -59,6 +59,12 @@ def _text(s: dict) -> list[str]:
     if effects:
         names = effects.get("names", []) if isinstance(effects, dict) else list(effects)
         lines.append("  effects      " + (", ".join(names) or "(none)"))
+    v = s.get("volume_term")
+    lines.append("  volume term  " + ("(none: the network is compressible)" if not v else
+                                      f"{v['formulation']} elements, bulk modulus {v['bulk_modulus_pa'] / 1e3:.4g} kPa"
+                                      + ("" if v.get("poisson_ratio") is None else
+                                         f" (Poisson ratio {v['poisson_ratio']:g} at the material's stiffest "
+                                         "tangent)")))
     t = s.get("tables")
     lines.append("  tables       " + ("(none)" if not t else
                                       f"{t['n']} points, stretch {t['lam_min']:.3g}..{t['lam_max']:.3g}, "

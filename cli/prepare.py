@@ -58,6 +58,9 @@ def add_parser(sub) -> None:
     p.add_argument("--no-compensate", dest="compensate", action="store_false", default=None,
                    help="skip the volumetric compensation (one virtual tensile test of the mesh, "
                         "a few tens of seconds); the raw network is then ~6x too soft")
+    p.add_argument("--no-volume", dest="volume", action="store_false", default=None,
+                   help="give the network no volume term (it then loses volume under load: Poisson ratio ~1/4); "
+                        "by default the tet network keeps the organ's volume")
     p.add_argument("--force", action="store_true", help="write the asset even if the mesh is below the quality floors")
     p.set_defaults(func=run)
 
@@ -108,7 +111,7 @@ def _options(args) -> dict:
         structure=args.structure, unit=args.unit, label=whole(args.label, "label"),
         keep_all=args.keep_all, body=whole(args.body, "body"), material=args.material,
         density=None if args.density is None else number_text(args.density, "density"),
-        force=args.force, compensate=args.compensate,
+        force=args.force, compensate=args.compensate, volume=args.volume,
     )
 
 

@@ -108,17 +108,42 @@ def _carry(tables, old, args, ui):
     return tables, False
 
 
-def _compensate(tables, asset, material, args, ui):
+def _calibration_range(args):
+    from esmm.pipeline.validate import number_text
+
+    if args.calibration_range is None:
+        return None
+    return tuple(number_text(v, "calibration_range") for v in args.calibration_range)
+
+
+def _volume(tables, asset, args, ui):
+    """The asset's volume term for these tables: (spec or None, replaced?).
+
+    Kept as it is for the same material; re-sized (same Poisson ratio) when
+    ``--material`` gives another one, since its bulk modulus follows the material.
+    """
+    from esmm.pipeline.network.compensation import calibration_stretches
+    from esmm.pipeline.network.volume import DEFAULT_POISSON, bulk_modulus
+
+    old = asset.network.volume_term
+    if old is None or args.material is None:
+        return old, False
+    nu = DEFAULT_POISSON if old.poisson_ratio is None else old.poisson_ratio
+    spec = bulk_modulus(tables, poisson=nu, calibration_range=calibration_stretches(tables, _calibration_range(args)),
+                        formulation=old.formulation)
+    ui.step(f"volume term re-sized for the new material: bulk modulus {old.bulk_modulus / 1e3:.4g} -> "
+            f"{spec.bulk_modulus / 1e3:.4g} kPa (Poisson ratio {nu:g})")
+    return spec, True
+
+
+def _compensate(tables, asset, material, volume, args, ui):
     """The compensation of ``esmm prepare`` (same policy and cache), with the command line's overrides."""
     from esmm.pipeline.network.compensation import compensate
     from esmm.pipeline.validate import number_text
 
-    c_range = None
-    if args.calibration_range is not None:
-        c_range = tuple(number_text(v, "calibration_range") for v in args.calibration_range)
     r_el = None if args.radius_elements is None else number_text(args.radius_elements, "radius_elements")
-    return compensate(tables, asset.network, material=material, calibration_range=c_range,
-                      radius_elements=r_el, reporter=ui)
+    return compensate(tables, asset.network, material=material, calibration_range=_calibration_range(args),
+                      radius_elements=r_el, volume=volume, reporter=ui)
 
 
 def _summary(args, material, tables, carried: bool, comp) -> dict:
@@ -181,16 +206,17 @@ def run(args, ui) -> int:
     law = args.law or (asset.tables.default_law if asset.tables is not None else "secant")
     tables = build_tables(material, law=law, **_grid(args, asset.tables))
     tables, carried = _carry(tables, asset.tables, args, ui)
+    volume, resized = _volume(tables, asset, args, ui)
     comp = None
     if args.compensate:
-        comp = _compensate(tables, asset, material, args, ui)
+        comp = _compensate(tables, asset, material, volume, args, ui)
         tables, carried = comp.tables, False
     meta = dict(tables.metadata)
     meta["written_by"] = {"command": ["esmm", *getattr(args, "_argv", [])],
                           "utc": datetime.now(UTC).isoformat(timespec="seconds")}
     tables = dataclasses.replace(tables, metadata=meta)
     update_asset_tables(args.asset, tables, material=material if args.material is not None else None,
-                        per_spring=args.per_spring, reporter=ui)
+                        per_spring=args.per_spring, volume=volume if resized else None, reporter=ui)
     summary = _summary(args, material, tables, carried, comp)
     if args.json:
         ui.info(json_text(summary).rstrip("\n"))

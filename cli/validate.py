@@ -39,8 +39,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="specimen material: preset name or TOML file (default porcine_liver_paper)")
     p.add_argument("--cases", metavar="CASE", nargs="+", default=None,
                    help="tension, compression, shear, gravity, lift")
-    p.add_argument("--volume-term", dest="volume_term", choices=("off", "on"), default="off",
-                   help="run the network without (off) or with (on) its volume term")
+    p.add_argument("--volume-term", dest="volume_term", choices=("auto", "on", "off"), default="auto",
+                   help="the network with its volume term (on), without it (off), or with it if the asset "
+                        "has one (auto, default)")
     p.add_argument("--law", choices=("secant", "energy"), default=None, help="network force law (the tables')")
     p.add_argument("--element", choices=("auto", "p2", "mini"), default="auto",
                    help="continuum element: quadratic tets (p2) or MINI; auto by size")

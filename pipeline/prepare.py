@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
 import os
 import time
 from collections.abc import Iterator, Mapping
@@ -55,6 +56,7 @@ from .network.springs import (
     network_from_tets,
 )
 from .network.tables import GridOptions, StiffnessTables, build_tables, grid_options
+from .network.volume import DEFAULT_POISSON, POISSON_RANGE, VolumeSpec, bulk_modulus
 from .progress import ensure
 from .units import factor
 from .validate import boolean, choice, number, quantity
@@ -77,6 +79,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     "fixed": {"kind": "band", "axis": "longest", "end": "min", "width_fraction": 0.1},
     "quality": {},
     "tables": {"n": 1024, "law": "secant", "lam_min": None, "lam_max": None, "compensate": True},
+    "volume": {"enabled": True, "poisson_ratio": DEFAULT_POISSON},
 }
 
 #: Keyword option of :func:`prepare` -> the (section, key) of the config it sets.
@@ -85,6 +88,7 @@ KEYWORDS: dict[str, tuple[str, str]] = {
     "structure": ("prepare", "structure"), "material": ("prepare", "material"),
     "density": ("prepare", "density"), "unit": ("input", "unit"), "label": ("input", "label"),
     "keep_all": ("cleaning", "keep"), "body": ("cleaning", "body"), "compensate": ("tables", "compensate"),
+    "volume": ("volume", "enabled"),
 }
 
 
@@ -123,6 +127,10 @@ class PrepareConfig:
         The stiffness tables' grid and default law.
     compensate : bool
         Calibrate the volumetric compensation.
+    volume : bool
+        Give the network its volume term (tet structure; docs/model.md, Part C2).
+    poisson_ratio : float
+        The Poisson ratio the volume term's bulk modulus is sized for.
     source : str
         Where the config came from.
     toml : str
@@ -145,6 +153,8 @@ class PrepareConfig:
     floors: Mapping[str, float]
     grid: GridOptions
     compensate: bool
+    volume: bool
+    poisson_ratio: float
     source: str
     toml: str
 
@@ -325,7 +335,7 @@ def parse_prepare_config(cfg: dict, source: str, *, names: Mapping[tuple[str, st
 
     fields: dict[str, Any] = {"source": source, "toml": config_toml(cfg)}
     for part in (_prepare_part, _input_part, _cleaning_part, _mesh_part, _skeleton_part, _network_part,
-                 _tables_part):
+                 _tables_part, _volume_part):
         fields.update(part(cfg, name))
     return PrepareConfig(**fields)
 
@@ -396,6 +406,12 @@ def _tables_part(cfg: dict, name) -> dict[str, Any]:
     grid = grid_options(n=t["n"], law=t["law"], lam_min=t["lam_min"], lam_max=t["lam_max"],
                         names={k: name("tables", k) for k in ("n", "law", "lam_min", "lam_max")})
     return {"grid": grid, "compensate": boolean(t["compensate"], name("tables", "compensate"))}
+
+
+def _volume_part(cfg: dict, name) -> dict[str, Any]:
+    v = cfg["volume"]
+    nu = number(v["poisson_ratio"], name("volume", "poisson_ratio"), lo=POISSON_RANGE[0], hi=POISSON_RANGE[1])
+    return {"volume": boolean(v["enabled"], name("volume", "enabled")), "poisson_ratio": nu}
 
 
 # -- stages -------------------------------------------------------------------------------
@@ -517,17 +533,42 @@ def _skeleton(clean, cfg: PrepareConfig, run: _Run) -> _Structure:
     return _Structure(net, "skeleton", list(sk.log))
 
 
-def _tables(mat: Material, net: SpringNetwork, cfg: PrepareConfig, run: _Run) -> StiffnessTables:
-    """Stiffness tables of the material, compensated for the network unless disabled."""
+def _volume(tables: StiffnessTables, net: SpringNetwork, cfg: PrepareConfig, run: _Run) -> VolumeSpec | None:
+    """The network's volume term (bulk modulus from the material), or None (disabled, or no tets)."""
+    if not cfg.volume:
+        run.warn("no volume term: the network is compressible (Poisson ratio ~1/4) and loses volume under "
+                 "load (docs/model.md, Part C2)")
+        return None
+    if net.tets is None:
+        run.warn("the skeleton structure has no tetrahedra, so it gets no volume term: it does not keep the "
+                 "organ's volume (use the tetra structure for that; docs/model.md, Part C2)")
+        return None
+    spec = bulk_modulus(tables, poisson=cfg.poisson_ratio,
+                        calibration_range=compensation.calibration_stretches(tables))
+    run.rep.step(f"volume term: bulk modulus {spec.bulk_modulus / 1e3:.4g} kPa (Poisson ratio {spec.poisson_ratio:g} "
+                 f"at the material's stiffest tangent, {spec.shear_modulus / 1e3:.4g} kPa at stretch "
+                 f"{spec.at_stretch:.3g})")
+    return spec
+
+
+def _tables(mat: Material, cfg: PrepareConfig, run: _Run) -> StiffnessTables:
+    """Stiffness tables of the material (uncompensated)."""
     g = cfg.grid
     tables = run.stage("tables", build_tables, mat, n=g.n, law=g.law, lam_min=g.lam_min, lam_max=g.lam_max)
     run.rep.step(f"tables: {tables.n} points on stretch {tables.lam_min:.3g}..{tables.lam_max:.3g} "
                  f"({run.timings['tables']:.2f} s)")
+    return tables
+
+
+def _compensated(tables: StiffnessTables, mat: Material, net: SpringNetwork, cfg: PrepareConfig,
+                 run: _Run) -> StiffnessTables:
+    """*tables* compensated for the network (with its volume term) unless disabled."""
     if not cfg.compensate:
         run.warn("no volumetric compensation: the raw network is several times softer than the tissue "
                  "(docs/model.md); compensate the asset later with 'esmm tables'")
         return tables
-    comp = run.stage("compensation", compensation.compensate, tables, net, material=mat, reporter=run.rep)
+    comp = run.stage("compensation", compensation.compensate, tables, net, material=mat, reporter=run.rep,
+                     volume=net.volume_term)
     run.rep.step(f"compensation: volume factor c = {comp.tables.volume_factor:.3f} and a stretch "
                  f"correction; virtual tensile test error {comp.summary()} "
                  f"({run.timings['compensation']:.1f} s)")
@@ -560,7 +601,7 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
             nodes: int | None = None, elements: int | None = None, structure: str | None = None,
             unit: str | None = None, label: int | None = None, keep_all: bool = False,
             body: int | None = None, material: str | None = None, density: float | None = None,
-            force: bool = False, compensate: bool | None = None, reporter=None,
+            force: bool = False, compensate: bool | None = None, volume: bool | None = None, reporter=None,
             argv: list[str] | None = None) -> PrepareResult:
     """Turn an organ surface into a spring-network asset.
 
@@ -598,6 +639,9 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
         Write the asset even when the mesh is below the quality floors.
     compensate : bool, optional
         Calibrate the volumetric compensation (default: the config's, true).
+    volume : bool, optional
+        Give the network its volume term (default: the config's, true; the tet
+        structure only).
     reporter
         Progress reporter (:mod:`esmm.pipeline.progress`).
     argv : list of str, optional
@@ -617,7 +661,7 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
     inp, out = asset_paths(input_path, output)
     cfg = prepare_config(config, size=size, nodes=nodes, elements=elements, structure=structure, unit=unit,
                          label=label, keep_all=keep_all, body=body, material=material, density=density,
-                         compensate=compensate)
+                         compensate=compensate, volume=volume)
     run = _Run(reporter)
     mat = _material(cfg, run)
     clean, cleaning = _surface(inp, cfg, run)
@@ -625,7 +669,9 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
         _skeleton(clean, cfg, run)
     net = shape.network
     run.rep.step(f"network: {net.summary()}, bandwidth {net.bandwidth()} ({run.timings['network']:.2f} s)")
-    tables = _tables(mat, net, cfg, run)
+    tables = _tables(mat, cfg, run)
+    net = dataclasses.replace(net, volume_term=_volume(tables, net, cfg, run))
+    tables = _compensated(tables, mat, net, cfg, run)
     net = _fix(net, cfg, run)
     _write(out, inp, net, mat, tables, shape, cleaning, cfg, run, argv)
     return PrepareResult(asset=out, xdmf=sidecar_path(out), network=net, quality=shape.quality,

@@ -368,3 +368,69 @@ def test_provenance_hashes_the_input(tmp_path):
     assert prov.input_sha256 == hashlib.sha256(src.read_bytes()).hexdigest()
     assert prov.input_path == str(src.resolve())
     assert isinstance(Provenance().packages, dict)
+
+
+# -- the optional /volume group (the volume term) -----------------------------------------
+
+@pytest.fixture()
+def volume_asset(tmp_path, network):
+    import dataclasses
+
+    from esmm.pipeline.network.volume import VolumeSpec
+
+    spec = VolumeSpec(2.5e5, "nodal", poisson_ratio=0.49, shear_modulus=5.0e3, at_stretch=1.3, rule="test rule")
+    net = dataclasses.replace(network, volume_term=spec)
+    return write_asset(tmp_path / "vol.h5", net, material=MATERIAL_TOML, tables=make_tables()), spec
+
+
+def test_volume_group_round_trip(volume_asset, network):
+    from esmm.pipeline.network.volume import nodal_volumes
+
+    path, spec = volume_asset
+    assert validate_asset(path) == []
+    a = read_asset(path)
+    assert a.network.volume_term == spec
+    assert a.summary()["volume_term"]["bulk_modulus_pa"] == 2.5e5
+    with h5py.File(path, "r") as f:
+        g = f["/volume"]
+        assert hdf5.attr_str(g.attrs["esmm_type"]) == "volume_term" and int(g.attrs["esmm_version"]) == 1
+        assert hdf5.attr_str(g["bulk_modulus"].attrs["units"]) == "Pa"
+        np.testing.assert_allclose(g["rest_volume"][()], nodal_volumes(network.points, network.tets), rtol=1e-15)
+        assert g["rest_volume"][()].sum() == pytest.approx(network.total_volume(), rel=1e-12)
+        assert int(f.attrs["esmm_version"]) == 1        # an optional group: the schema version is unchanged
+
+
+def test_asset_without_volume_group_reads_as_before(asset):
+    a = read_asset(asset)
+    assert a.network.volume_term is None and a.summary()["volume_term"] is None
+    with h5py.File(asset, "r") as f:
+        assert "/volume" not in f
+
+
+def test_edited_volume_group_is_caught(volume_asset):
+    path, _ = volume_asset
+    with h5py.File(path, "r+") as f:
+        v = f["/volume/rest_volume"][()]
+        v[3] *= 1.01
+        f["/volume/rest_volume"][...] = v
+        hdf5.seal(f)
+    problems = validate_asset(path)
+    assert any("/volume/rest_volume: differs" in p for p in problems)
+    with pytest.raises(AssetError, match="rest_volume"):
+        read_asset(path)
+    with h5py.File(path, "r+") as f:
+        f["/volume"].attrs["formulation"] = "hexahedra"
+        hdf5.seal(f)
+    assert any("formulation" in p for p in validate_asset(path))
+
+
+def test_volume_term_needs_tets(tmp_path):
+    import dataclasses
+
+    from esmm.pipeline.network.volume import VolumeSpec
+
+    pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1.0]]) * 0.01
+    net = network_from_skeleton(pts, [[0, 1], [0, 2], [0, 3], [1, 4], [2, 4], [3, 4]], volume=1e-7,
+                                surface_faces=[[0, 1, 2]])
+    with pytest.raises(InputError, match="tetrahedra"):
+        write_asset(tmp_path / "sk.h5", dataclasses.replace(net, volume_term=VolumeSpec(1e5)))

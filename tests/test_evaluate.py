@@ -10,6 +10,7 @@ import pytest
 from esmm.pipeline.discover import discover_and_save
 from esmm.pipeline.discover import synthetic as syn
 from esmm.pipeline.discover.evaluate import evaluate, load_fit
+from esmm.pipeline.discover.population import family
 from esmm.pipeline.errors import ConfigError, InputError
 from esmm.pipeline.tensile import read
 
@@ -119,3 +120,19 @@ def test_vhb_fit_on_fast_rate_predicts_slow_rate(shared_data, tmp_path):
     ev = evaluate(tmp_path / "fit", [read(folder / "lu_0d01_2d0.csv")])
     assert ev.after.nrmse < 0.5 * ev.before.nrmse
     assert np.isfinite(ev.after.max_abs)
+
+
+def test_discovered_elastic_law_predicts_a_new_file_from_discover_json_and_params_toml(tmp_path):
+    """A strain-energy term kept by a discovery travels: the saved model and its params.toml
+    (model "arruda-boyce+<term>") predict another tension-compression test."""
+    truth = syn.Truth("arruda-boyce+mooney", {**BASE, "c2": 15e3})
+    train = [read(p) for p in syn.write_set(tmp_path / "train", [syn.tension_compression(0.05, 0.8, 1.35)],
+                                            truth, seed=2)]
+    new = [read(p) for p in syn.write_set(tmp_path / "new", [syn.tension_compression(0.05, 0.85, 1.3)],
+                                          truth, seed=9)]
+    res = discover_and_save(train, out_dir=tmp_path / "fit", **FAST)
+    assert len(res.kept) == 1 and family(res.kept) == {"I2 term"}  # which I2 term a stretch range favours
+    assert res.final_model == f"arruda-boyce+{res.kept[0]}"
+    ev = evaluate(tmp_path / "fit", new)
+    assert ev.after.nrmse < 3 * NOISE and ev.after.nrmse < 0.5 * ev.before.nrmse
+    assert evaluate(tmp_path / "fit" / "params.toml", new).after.nrmse < 3 * NOISE

@@ -3,6 +3,7 @@ the cases and the command (docs/validate.md)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -27,8 +28,10 @@ from esmm.pipeline.materials.material import Material
 from esmm.pipeline.mesh.synthetic import box_tets
 from esmm.pipeline.network.springs import network_from_tets
 from esmm.pipeline.network.tables import build_tables
+from esmm.pipeline.network.volume import bulk_modulus as bulk_modulus_spec
 from esmm.pipeline.simulate.simulator import Simulator
 from esmm.pipeline.simulate.springterm import build_spring_term
+from esmm.pipeline.simulate.volumeterm import build_volume_term
 
 L = 0.01
 
@@ -281,13 +284,38 @@ def test_validate_network_runs_both_sides_and_reports(small_network, liver, tmp_
     assert "| shear |" in (tmp_path / "validation.md").read_text()
 
 
-def test_volume_term_on_is_one_flag_away(small_network, liver):
+def test_volume_term_follows_the_network(small_network, liver):
     net, tables = small_network
+    with_term = dataclasses.replace(net, volume_term=bulk_modulus_spec(tables))
     assert network_terms(net, tables, liver, volume_term="off") == ()
+    assert network_terms(net, tables, liver) == ()                 # auto: the network has none
+    assert network_terms(with_term, tables, liver, volume_term="off") == ()
+    (term,) = network_terms(with_term, tables, liver)              # auto: the network's own
+    assert term.bulk_modulus == with_term.volume_term.bulk_modulus
     with pytest.raises(ConfigError, match="volume_term"):
         network_terms(net, tables, liver, volume_term="on")
     with pytest.raises(ConfigError, match="volume_term"):
         network_terms(net, tables, liver, volume_term="maybe")
+
+
+def test_network_newton_with_the_volume_term_is_the_simulators_equilibrium(small_network):
+    net, tables = small_network
+    net = dataclasses.replace(net, volume_term=bulk_modulus_spec(tables))
+    anchor = np.flatnonzero(net.points[:, 0] < 1e-9)
+    g = np.array([0.0, 0.0, -9.80665])
+    case = LoadCase("gravity", "", net.points, net.tets, (Constraint.clamp("anchor", anchor),), "anchor",
+                    gravity=g, density=1.0)
+    free = solve_network(case, net, tables)
+    sol = solve_network(case, net, tables, terms=network_terms(net, tables, None))
+    vt = build_volume_term(net.points, net.tets, net.volume_term, lam_max=tables.lam_max)
+    sim = Simulator(build_spring_term(net, tables), net.points, net.mass, fixed=anchor, gravity=g, volume=vt)
+    sim.relax(rtol=1e-10, max_iter=2_000_000)
+    u_fire = sim.displacement()
+    umax = np.abs(u_fire).max()
+    assert np.abs(sol.displacement - u_fire).max() < 1e-4 * umax
+    # the term keeps the volume the springs alone lose
+    assert abs(sol.volume_ratio - 1) < 0.5 * abs(free.volume_ratio - 1)
+    assert sol.info["terms"] == ["springs", "VolumeElements"]
 
 
 def test_shear_case_states_its_conditions(block):

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 from esmm.pipeline.errors import ConfigError, EsmmError, InputError
-from esmm.pipeline.tensile import read
+from esmm.pipeline.tensile import NotATestError, read
 
 RAW = "time [s],displacement [mm],force [N]\n0,0,0\n1,1,1\n"
 GEOM = {"gauge_length": "10 mm", "area": "1 mm2"}
@@ -132,7 +132,7 @@ def test_binary_files(tmp_path):
 
 
 def test_unknown_column_names(tmp_path):
-    msg = refuse(tmp_path, "Kraft2,Weg2\n1,0\n")
+    msg = refuse(tmp_path, "Kraft2,Weg2\n1,0\n", error=NotATestError)  # no column names a test quantity
     assert "unknown column names 'Kraft2', 'Weg2' (header line 1)" in msg and "columns = [...]" in msg
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from esmm.pipeline.errors import InputError
 from esmm.pipeline.progress import ListReporter
-from esmm.pipeline.tensile import MODES, TensileTest, read
+from esmm.pipeline.tensile import MODES, NotATestError, TensileTest, read
 
 FIXTURES = Path(__file__).resolve().parent / "data" / "tensile"
 MU = 20e3
@@ -70,9 +70,19 @@ def test_a_table_of_specimen_measurements_is_refused_in_one_line(shared_data):
     tables = sorted((shared_data / "tensile").rglob("*-measurements.csv"))
     assert tables
     for f in tables:
-        with pytest.raises(InputError, match=r"unknown column names 'W', .*'G'.* needs a stretch or strain") as ei:
+        with pytest.raises(NotATestError, match=r"unknown column names 'W', .*'G'.*not a test record") as ei:
             read(f)
-        assert "\n" not in str(ei.value)
+        assert "\n" not in str(ei.value) and isinstance(ei.value, InputError)
+
+
+def test_cli_skips_a_table_that_is_not_a_test_among_several(run_cli, shared_data, tmp_path):
+    folder = shared_data / "tensile" / "foam_cyclic"
+    files = [folder / "new-heel-tension-3_1.csv", folder / "new-heel-tension-measurements.csv"]
+    code, stdout, stderr = run_cli("calibrate", *files, "--model", "arruda-boyce", "--starts", "1")
+    assert code == 0, stderr
+    assert "not a test record" in stderr and "skipped" in stderr
+    code, _, stderr = run_cli("calibrate", files[1])
+    assert code == 2 and "not a test record" in stderr
 
 
 def test_instron_bluehill_export_reads_as_written(shared_data):

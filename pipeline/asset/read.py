@@ -31,6 +31,7 @@ from .material import material_effects, material_from_toml, read_effects
 from .provenance import Provenance
 from .schema import ASSET_TYPE, ASSET_VERSION, CHECKSUM_ATTR, DATASETS, GROUPS, KNOWN_UNITS
 from .tables import read_tables
+from .volume import read_volume, volume_problems
 from .xdmf import check_sidecar, sidecar_path
 
 ADVICE = "re-create it with 'esmm prepare'"
@@ -91,6 +92,7 @@ class Asset:
             "bandwidth": net.bandwidth(),
             "material": _material_name(self.material_toml),
             "effects": None if not self.effects else _effects_summary(self.effects),
+            "volume_term": None if net.volume_term is None else net.volume_term.describe(),
             "tables": None if self.tables is None else {
                 "lam_min": self.tables.lam_min, "lam_max": self.tables.lam_max, "n": self.tables.n,
                 "volume_factor": getattr(self.tables, "volume_factor", 1.0),
@@ -347,7 +349,8 @@ def _shape_problems(f: h5py.File) -> list[str]:
     return out
 
 
-def _network(f: h5py.File) -> SpringNetwork:
+def _network(f: h5py.File, *, with_volume: bool = True) -> SpringNetwork:
+    """The spring network stored in *f* (with its volume term from ``/volume`` unless *with_volume* is False)."""
     return SpringNetwork(
         points=_arr(f, "/mesh/points", np.float64),
         springs=_arr(f, "/springs/pairs", np.int64),
@@ -363,6 +366,7 @@ def _network(f: h5py.File) -> SpringNetwork:
         structure=hdf5.attr_str(f["/mesh"].attrs.get("structure", "tetra")),
         fibre_frame=_arr(f, "/springs/fibre_frame", np.float64),
         density=float(f["/nodes"].attrs.get("density_kg_m3", 0.0)),
+        volume_term=read_volume(f) if with_volume else None,
     )
 
 
@@ -442,6 +446,8 @@ def read_asset(path: str | os.PathLike, *, verify: bool = True) -> Asset:
                 probs = _integrity_problems(f)
             if not probs:
                 probs = _shape_problems(f)
+            if not probs:
+                probs = volume_problems(f)
             if probs:
                 more = f" (and {len(probs) - 1} more; run 'esmm info' to list them)" if len(probs) > 1 else ""
                 raise AssetError(f"{p}: {probs[0]}{more}; {ADVICE}")
@@ -527,7 +533,7 @@ def validate_asset(path: str | os.PathLike) -> list[str]:
             problems += shapes
             if shapes:
                 return problems
-            problems += _network(f).problems()
+            problems += _network(f, with_volume=False).problems()
             if "/tables" in f:
                 try:
                     _tables(f)
@@ -539,6 +545,7 @@ def validate_asset(path: str | os.PathLike) -> list[str]:
                 except AssetError as exc:
                     problems.append(str(exc))
             problems += _effects_problems(f)
+            problems += volume_problems(f)
     except _DAMAGE as exc:
         if not _is_damage(exc):
             raise

@@ -10,15 +10,17 @@ import h5py
 from ..atomicio import atomic_path
 from ..errors import AssetError
 from ..network.tables import StiffnessTables
+from ..network.volume import VolumeSpec
 from ..progress import ensure
 from .hdf5 import seal
 from .material import write_material
 from .read import read_asset, validate_asset
 from .tables import write_per_spring, write_tables
+from .volume import write_volume
 
 
 def update_asset_tables(path: str | os.PathLike, tables: StiffnessTables, *, material=None,
-                        per_spring: bool = False, reporter=None) -> Path:
+                        per_spring: bool = False, volume: VolumeSpec | None = None, reporter=None) -> Path:
     """Replace the ``/tables`` group (and optionally ``/material``) of an asset, atomically.
 
     The asset is read and verified first (checksums); a new file is written
@@ -37,6 +39,9 @@ def update_asset_tables(path: str | os.PathLike, tables: StiffnessTables, *, mat
         Also replace ``/material`` (when the tables were built from another material).
     per_spring : bool
         Write the (s, n) per-spring stiffness table too.
+    volume : VolumeSpec, optional
+        Also replace ``/volume`` (a volume term sized for a new material; the
+        asset's tetrahedra carry it).
     reporter
         Progress reporter.
 
@@ -52,7 +57,9 @@ def update_asset_tables(path: str | os.PathLike, tables: StiffnessTables, *, mat
     rep = ensure(reporter)
     p = Path(path)
     asset = read_asset(p)
-    skip = {"tables"} | ({"material"} if material is not None else set())
+    skip = {"tables"} | ({"material"} if material is not None else set()) | ({"volume"} if volume else set())
+    if volume is not None and asset.network.tets is None:
+        raise AssetError(f"{p}: a volume term needs tetrahedra; this asset ({asset.network.structure}) has none")
     try:
         with atomic_path(p) as tmp:
             with h5py.File(p, "r") as src, h5py.File(tmp, "w") as dst:
@@ -63,6 +70,8 @@ def update_asset_tables(path: str | os.PathLike, tables: StiffnessTables, *, mat
                         src.copy(src[name], dst, name=name)
                 if material is not None:
                     write_material(dst, material)
+                if volume is not None:
+                    write_volume(dst, volume, asset.network.points, asset.network.tets)
                 g = dst.create_group("tables")
                 write_tables(g, tables)
                 if per_spring:

@@ -27,6 +27,7 @@ GROUPS: dict[str, tuple[str, int, bool]] = {
     "/material/effects/mullins": ("mullins_effect", 1, False),
     "/material/effects/damage": ("damage_effect", 1, False),
     "/tables": ("stiffness_tables", 1, False),   # asset/tables.py
+    "/volume": ("volume_term", 1, False),        # asset/volume.py: the network's volume elements
     "/quality": ("quality", 1, False),
     "/cleaning": ("cleaning", 1, False),
     "/provenance": ("provenance", 1, True),
@@ -57,6 +58,9 @@ DATASETS: dict[str, tuple[str, str, bool]] = {
     "/material/effects/damage/onset": ("1", "f", True),
     "/material/effects/damage/scale": ("1", "f", True),
     "/material/effects/damage/shape": ("1", "f", True),
+    "/volume/bulk_modulus": ("Pa", "f", True),
+    "/volume/rest_volume": ("m3", "f", True),
+    "/volume/shear_modulus": ("Pa", "f", False),
     "/quality/report": ("text", "OS", True),
     "/cleaning/report": ("text", "OS", True),
     "/provenance/config_toml": ("text", "OS", True),

@@ -18,6 +18,7 @@ from .material import write_material
 from .provenance import Provenance, collect_provenance, utc_now
 from .schema import ASSET_TYPE, ASSET_VERSION, GROUPS
 from .tables import write_tables
+from .volume import write_volume
 from .xdmf import dtype_for_indices, sidecar_path, xdmf_text
 
 VOLUME_RULES = {
@@ -130,7 +131,8 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
     path
         Target ``.h5`` file (folders are created).
     network : SpringNetwork
-        Checked with :meth:`SpringNetwork.validate` first.
+        Checked with :meth:`SpringNetwork.validate` first. Its ``volume_term``
+        (when not None) is written as ``/volume`` (asset/volume.py).
     material
         A ``Material`` (or its TOML text) for ``/material``; None to omit.
     tables : StiffnessTables, optional
@@ -162,6 +164,8 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
     if path.suffix.lower() not in (".h5", ".hdf5"):
         raise InputError(f"{path}: an asset file name must end in .h5 (or .hdf5)")
     network.validate()
+    if network.volume_term is not None and network.tets is None:
+        raise InputError("network: a volume term needs tetrahedra (the skeleton structure has none)")
     prov = provenance if provenance is not None else collect_provenance()
     try:
         with atomic_path(path) as tmp:
@@ -173,6 +177,8 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
                     write_material(f, material)
                 if tables is not None:
                     write_tables(f.create_group("tables"), tables)
+                if network.volume_term is not None:
+                    write_volume(f, network.volume_term, network.points, network.tets)
                 if quality is not None:
                     _report_group(f, "quality", quality, ("min_dihedral_deg", "n_tets", "n_nodes", "volume"),
                                   floors=quality_floors)

@@ -212,7 +212,10 @@ def _dask_client(target: Any, timeout: float = 15.0):
                           f"check the address and that 'dask scheduler' is running there") from None
 
 
-def _dask_reason(exc: BaseException) -> tuple[str, int]:
+def _dask_reason(exc: BaseException | None) -> tuple[str, int]:
+    if exc is None:
+        return ("worker died (the job was lost with its worker three times and not rerun; "
+                "see the Dask worker logs)"), 1
     name = type(exc).__name__
     if name == "KilledWorker":
         return ("worker died (the job's worker process ended every time it ran it; "
@@ -260,6 +263,11 @@ def _run_dask(tasks: list[Task], target: Any, on_event: OnEvent, logger: logging
                     continue
                 reported.add(i)
                 on_event(t, res)
+            elif fut.status not in ("error", "cancelled") and regather.get(i, 0) < 3:
+                # "lost" (or back to "pending"): its worker died and Dask reruns it; wait again.
+                regather[i] = regather.get(i, 0) + 1
+                logger.info("job %s: lost with its worker (%s), waiting for the rerun", t["name"], fut.status)
+                ac.add(fut)
             else:
                 reported.add(i)
                 try:

@@ -29,6 +29,7 @@ from typing import Any
 from ..config import load_toml
 from ..errors import ConfigError, EsmmError
 from ..materials import MODEL_NAMES, get_model
+from ..materials.composite import split_name
 from ..units import factor, parse_quantity
 from ..validate import choice, keys, number, number_text, table
 from .problem import check_parameter_names
@@ -39,11 +40,19 @@ LOSSES = ("linear", "soft_l1", "huber", "cauchy", "arctan")
 TABLE_KEYS = ("model", "loss", "starts", "seed", "weights", "fix", "stress_unit")
 
 
-def check_model(value: Any, name: str = "model") -> str:
-    """A registered model name (the message lists them)."""
-    if value not in MODEL_NAMES:
-        raise ConfigError(f"{name}: unknown model {value!r}; choose one of {', '.join(MODEL_NAMES)}",
+def check_model(value: Any, name: str = "model", *, terms: bool = True) -> str:
+    """A registered model name, or (*terms*) one plus strain-energy terms, ``esedf+i2exp`` (the message
+    lists the models)."""
+    base, extra = split_name(str(value)) if isinstance(value, str) else (value, ())
+    if base not in MODEL_NAMES or (extra and not terms):
+        more = " (plus strain-energy terms joined by '+')" if terms else ""
+        raise ConfigError(f"{name}: unknown model {value!r}; choose one of {', '.join(MODEL_NAMES)}{more}",
                           parameter=name)
+    if extra:
+        try:
+            get_model(value)
+        except ConfigError as exc:
+            raise ConfigError(f"{name}: {exc}", parameter=name) from None
     return value
 
 

@@ -196,7 +196,8 @@ class ParameterLayout:
     def _slots_of(self, p) -> list[Slot]:
         dirs = self.directions if (self.directions and getattr(p, "directional", False)) else [None]
         lo, hi = float(p.lower), float(p.upper)
-        if p.name == "N" and math.isfinite(self.model.max_I1(self.model.defaults())):
+        model = getattr(self.model, "base", self.model)
+        if p.name == "N" and p.name in model.parameter_names and math.isfinite(model.max_I1(model.defaults())):
             lo = max(lo, self._n_lower())
         log = (p.kind == "stress" and hi > 0) or (lo > 0 and hi / lo > 1e3)
         if log:
@@ -206,12 +207,16 @@ class ParameterLayout:
         return [Slot(p.name, d, p.kind, log, lo, hi) for d in dirs]
 
     def _n_lower(self) -> float:
-        """Smallest N with the chain not locked at the largest I1 in the data (AB family)."""
-        base = self.model.defaults()
+        """Smallest N with the chain not locked at the largest I1 in the data (AB family).
+
+        For a base model plus strain-energy terms, the base's own locking (a term such as
+        Gent's locks on its own parameter)."""
+        model = getattr(self.model, "base", self.model)
+        base = model.defaults()
         lo, hi = 1e-6, 1e6
         for _ in range(200):
             mid = math.sqrt(lo * hi)
-            if self.model.max_I1({**base, "N": mid}) > self.i1_max * (1 + 1e-6):
+            if model.max_I1({**base, "N": mid}) > self.i1_max * (1 + 1e-6):
                 hi = mid
             else:
                 lo = mid

@@ -93,7 +93,7 @@ def _residual_at_offsets(prob: Problem, z_full: np.ndarray, coefs) -> np.ndarray
             p, y = p[pos], y[pos]
         o = prob.factor[k] * (p - y) / r.scale
         out.append(np.where(np.isfinite(o), o, NAN_PENALTY))
-    return np.concatenate(out)
+    return np.concatenate(out + [prob.constraint_residual(z_full)])
 
 
 def _jacobian(prob: Problem, z_full: np.ndarray, coefs) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int]]]:
@@ -105,7 +105,9 @@ def _jacobian(prob: Problem, z_full: np.ndarray, coefs) -> tuple[np.ndarray, np.
         for k, r in enumerate(prob.records):
             if not prob.n_train[k] or coefs[k] is None:
                 continue
-            X = prob.offset_columns(k, r.fit_idx)
+            X = prob.free_offset_columns(k, r.fit_idx)
+            if X is None:
+                continue
             pos = prob.train[k]
             if pos is not None:
                 X = X[pos]
@@ -113,7 +115,8 @@ def _jacobian(prob: Problem, z_full: np.ndarray, coefs) -> tuple[np.ndarray, np.
             start = int(sum(prob.n_train[j] for j in range(k) if prob.n_train[j]))
             block[start:start + X.shape[0]] = prob.factor[k] * X / r.scale
             cols.append(block)
-            off_keys += [(k, j) for j in range(X.shape[1])]
+            first = prob.n_offset[k] - X.shape[1]  # a held offset read at rest is coefficient 0
+            off_keys += [(k, first + j) for j in range(X.shape[1])]
     return r0, np.concatenate(cols, axis=1), off_keys
 
 
@@ -162,10 +165,11 @@ def _slot_estimates(iv: _Intervals, prob: Problem, z_full: np.ndarray) -> None:
         grad = iv.unit_grad(i, v if s.log else 1.0)
         unit = {"stress": "Pa", "time": "s"}.get(s.kind, "")
         key = s.key if s.file is None else f"{s.key}[{prob.records[s.file].name}]"
-        if s.effect == "slack":
+        if s.effect in ("slack", "grip_slip"):
             r = prob.records[s.file]
             if r.gauge:
-                iv.add(f"slack.length[{r.name}]", grad * r.gauge, v * r.gauge, positive=False, unit="m")
+                what = "length" if s.effect == "slack" else f"length{s.name[4:]}"
+                iv.add(f"{s.effect}.{what}[{r.name}]", grad * r.gauge, v * r.gauge, positive=False, unit="m")
             iv.add(key, grad, v, positive=False)
             continue
         iv.add(key, grad, v, positive=s.log or s.kind == "stress", unit=unit)

@@ -30,13 +30,15 @@ import numpy as np
 from .. import __version__
 from ..errors import ConfigError, InputError
 from ..materials import get_model
-from ..materials.effects import MaterialEffects
+from ..materials.composite import split_name
+from ..materials.effects import ARTEFACTS, MaterialEffects
 from ..materials.material import load_material
 from ..progress import Reporter, ensure
 from ..tensile.data import TensileTest
 from .fitted import Fitted, effect_params, full_errors
 from .initialise import initialise
-from .model import Bounds, Problem, Spec, prepare, slack_applicable
+from .model import Bounds, Problem, Spec, spec_of_effects
+from .records import prepare, slack_applicable
 from .statistics import Errors
 
 JSON_SCHEMA = "esmm.evaluate/1"
@@ -76,7 +78,7 @@ class SavedFit:
 
     @property
     def effects(self) -> list[str]:
-        return [n for n, v in self.spec.items() if v]
+        return Spec.from_dict(self.spec).names()
 
 
 def load_fit(path: str | Path) -> SavedFit:
@@ -122,7 +124,8 @@ def load_fit(path: str | Path) -> SavedFit:
         params = {"params": dict(mat["params"])}
         if mat.get("directions"):
             params["directions"] = dict(mat["directions"])
-        return SavedFit(path=p, kind="calibrate", model=str(doc["model"]), spec={}, base=params,
+        base_name, terms = split_name(str(doc["model"]))
+        return SavedFit(path=p, kind="calibrate", model=base_name, spec={"terms": list(terms)}, base=params,
                         final={**params, "effects": {}},
                         directions=sorted(mat["directions"]) if mat.get("directions") else None)
     raise ConfigError(f"{p}: unknown schema {schema!r}; expected a discover.json or fit.json written by esmm")
@@ -139,9 +142,9 @@ def _from_material(p: Path) -> SavedFit:
         full = {d: mat.params_for(d) for d in mat.directions}
         params["directions"] = full
         dirs = sorted(full)
-    spec = {"viscoelastic": len(effects.viscoelastic.g) if effects.viscoelastic else 0,
-            "mullins": 3 if effects.mullins else 0, "damage": 3 if effects.damage else 0}
-    return SavedFit(path=p, kind="material", model=mat.model, spec=spec, base=params,
+    base_name, terms = split_name(mat.model)
+    spec = spec_of_effects(effects, terms).to_dict()
+    return SavedFit(path=p, kind="material", model=base_name, spec=spec, base=params,
                     final={**params, "effects": effects.to_dict()}, directions=dirs)
 
 
@@ -198,14 +201,17 @@ def evaluate(fit: SavedFit | str | Path, tests: list[TensileTest], *, reporter: 
     effects = MaterialEffects.from_dict(saved.final.get("effects"), where=f"{saved.path}: effects")
     warnings = _not_applied(spec, records)
     # before: the base model alone, no corrections
-    pb = Problem(m, records, Spec(), fixed=dict(saved.fixed), directions=saved.directions, bounds=bounds)
+    # (the base of a discovery is the plain base model; a calibrated composite law keeps its terms)
+    base_spec = Spec() if saved.kind == "discover" else Spec(terms=spec.terms)
+    pb = Problem(m, records, base_spec, fixed=dict(saved.fixed), directions=saved.directions, bounds=bounds,
+                 free_scales=True)
     before = full_errors(pb, pb.encode(_per_direction(saved.base)))
     # after: final material + effects; artefacts re-estimated per file
     pa = pb.derived(spec)
     za = _artefacts_refitted(pa, pa.encode(_per_direction(saved.final), effects))
     after = full_errors(pa, za)
     fitted = Fitted(spec, pa, za, {}, after)
-    artefacts = {n: effect_params(fitted, n) for n in ("slack", "sensor_offset") if getattr(spec, n)}
+    artefacts = {n: effect_params(fitted, n) for n in ARTEFACTS if spec.variant(n)}
     for w in warnings:
         rep.warn(w)
     rep.step(f"evaluated {saved.kind} fit of {saved.model} on {len(tests)} file(s): NRMSE "
@@ -251,7 +257,9 @@ def _artefacts_refitted(prob: Problem, z: np.ndarray) -> np.ndarray:
     """*z* with the per-file artefact parameters re-estimated, the material held."""
     own = [i for i, s in enumerate(prob.slots) if s.file is not None]
     if own:
-        z = initialise(prob, z, "slack")  # a grid first: the slack optimum is not found from zero
+        for name in ("specimen_scale", "grip_slip", "slack"):  # closed forms and a grid first:
+            if prob.spec.variant(name):  # the slack optimum, for one, is not found from zero
+                z = initialise(prob, z, name)
         z, _ = prob.solve(z, active=own)
     return z
 

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from ..materials.terms import TERMS
 from .estimates import Estimate
 from .initialise import extend_variant, initialise
 from .model import Problem, Spec, State
@@ -53,7 +54,7 @@ def fit_spec(spec: Spec, current: Fitted, *, init_from: Fitted | None = None) ->
     prob = current.problem.derived(spec)
     src = init_from or current
     z0 = prob.transfer(src.problem, src.z)
-    new = [n for n in spec.names() if not getattr(src.spec, n)]
+    new = [n for n in spec.names() if not src.spec.variant(n)]
     for n in new:
         z0 = initialise(prob, z0, n)
     # slots of a richer variant of an effect already present (another Prony term, beta)
@@ -67,20 +68,40 @@ def fit_spec(spec: Spec, current: Fitted, *, init_from: Fitted | None = None) ->
 
 
 def effect_params(f: Fitted, name: str) -> dict[str, Any]:
-    """The fitted parameters of effect *name* in *f* (values only; intervals in the final model)."""
+    """The fitted parameters of effect or term *name* in *f* (values only; intervals in the final model)."""
     st = f.state
+    if name in TERMS:
+        return {p.name: float(st.base[None][p.name]) for p in TERMS[name].parameters if p.name in st.base[None]}
     if name == "viscoelastic" and st.g is not None:
         return {"g": [float(v) for v in st.g], "tau": [float(v) for v in st.tau],
                 "g_inf": float(max(0.0, 1 - float(np.sum(st.g))))}
-    if name == "mullins" and st.mullins is not None:
-        return dict(zip(("r", "m", "beta"), map(float, st.mullins)))
-    if name == "damage" and st.damage is not None:
-        return dict(zip(("onset", "scale", "shape"), map(float, st.damage)))
-    if name == "slack" and st.slack is not None:
-        return _slack_params(f.problem, st)
+    simple = {"nonlinear_viscoelastic": (("kappa",), (st.kappa,) if f.spec.nonlinear_viscoelastic else None),
+              "mullins": (("r", "m", "beta"), st.mullins), "damage": (("onset", "scale", "shape"), st.damage),
+              "cyclic_softening": (("d_inf", "eta"), st.cyclic),
+              "permanent_set": (("fraction",), (st.set_fraction,) if f.spec.permanent_set else None)}
+    if name in simple:
+        keys, vals = simple[name]
+        return {} if vals is None else dict(zip(keys, map(float, vals)))
+    per_file = {"slack": _slack_params, "grip_slip": _slip_params, "specimen_scale": _scale_params}
+    if name in per_file and f.spec.variant(name):
+        return per_file[name](f.problem, st)
     if name == "sensor_offset":
         return _offset_params(f.problem, f.z)
     return {}
+
+
+def _slip_params(prob: Problem, st: State) -> dict[str, Any]:
+    out = {}
+    for k, r in enumerate(prob.records):
+        if st.slips and st.slips[k].size:
+            out[r.name] = [{"sample": int(e), "stretch": float(r.x[e]), "delta": float(d),
+                            "length_m": float(d) * r.gauge if r.gauge else None}
+                           for e, d in zip(r.slips, st.slips[k])]
+    return out
+
+
+def _scale_params(prob: Problem, st: State) -> dict[str, Any]:
+    return {r.name: {"specimen": r.specimen, "scale": float(st.scale[k])} for k, r in enumerate(prob.records)}
 
 
 def _slack_params(prob: Problem, st: State) -> dict[str, Any]:

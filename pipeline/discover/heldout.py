@@ -1,9 +1,11 @@
 """Held-out errors: which data a model is tested on without being fitted to them, and how.
 
 Held-out schemes, in order of preference (:func:`make_folds`): leave one
-loading-rate group out (several rates), leave one file out (several files of a
-loading mode), leave one cycle out (one file with several cycles), leave one of
-five consecutive blocks of every file out. A file is never held out if it is
+loading-rate group out (several rates); leave one of five consecutive blocks of
+every file out when the files are different specimens that each hold or unload
+after their first loading (the effects tested within each specimen); leave
+one file out (several files of a loading mode); leave one cycle out (one file
+with several cycles); leave one of five consecutive blocks of every file out. A file is never held out if it is
 the only one of its loading mode (that would test extrapolation between modes,
 not effects).
 """
@@ -18,11 +20,11 @@ import numpy as np
 
 from ..errors import FitError
 from .fitted import Fitted
-from .model import Record
+from .records import Record
 from .statistics import Errors, error_measures
 
 #: most folds of any held-out scheme
-MAX_FOLDS = 6
+MAX_FOLDS = 5
 
 
 @dataclass
@@ -39,11 +41,26 @@ def make_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
     still in the training files: predicting a mode never fitted tests the base
     model's extrapolation between modes, not the effects.
     """
-    for scheme in (_rate_folds, _file_folds, _cycle_folds):
+    for scheme in (_rate_folds, _specimen_blocks, _file_folds, _cycle_folds):
         got = scheme(records)
         if got is not None:
             return got
     return _block_folds(records)
+
+
+def _specimen_blocks(records: Sequence[Record]) -> tuple[str, list[Fold]] | None:
+    """Blocks within each file when the files are of different specimens and each goes on after its first loading.
+
+    Predicting a held-out specimen tests the specimen-to-specimen variation as
+    much as the effects; where every file holds or unloads after its first
+    loading, the effects can be tested within each specimen instead.
+    """
+    if len(records) < 2 or len({r.specimen for r in records}) < 2:
+        return None
+    if not all(_after_first_loading(r) for r in records):
+        return None
+    scheme, folds = _block_folds(records)
+    return scheme + " (the files are different specimens)", folds
 
 
 def _modes_kept(records: Sequence[Record], held: list[int]) -> bool:
@@ -105,18 +122,38 @@ def _cycle_folds(records: Sequence[Record]) -> tuple[str, list[Fold]] | None:
 
 
 def _block_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
-    """Leave one of five consecutive blocks of every file out."""
+    """Leave one of five consecutive blocks of every file out.
+
+    The first loading up to a record's largest stretch is what determines the
+    elastic law; where the record goes on after it (a hold, an unloading), the
+    blocks are cut from what follows and the first loading is always fitted:
+    holding it out would test the elastic law's extrapolation, not the effects.
+    """
     folds = []
+    after = [_after_first_loading(r) for r in records]
     for j in range(5):
         masks = {}
         for k, r in enumerate(records):
             n = r.test.n
-            edges = np.linspace(0, n, 6).round().astype(int)
+            a = after[k]
+            edges = (a + np.linspace(0, n - a, 6)).round().astype(int)
             mask = np.zeros(n, bool)
             mask[edges[j]:edges[j + 1]] = True
             masks[k] = mask
         folds.append(_block_fold(f"block {j + 1}/5", records, masks))
-    return ("leave one of 5 consecutive blocks out" + (" (of every file)" if len(records) > 1 else "")), folds
+    scheme = "leave one of 5 consecutive blocks out" + (" (of every file)" if len(records) > 1 else "")
+    if any(after):
+        scheme += ", the first loading always fitted"
+    return scheme, folds
+
+
+def _after_first_loading(r: Record) -> int:
+    """The first sample after the first loading to the record's largest stretch (0: the record is all first
+    loading, or the rest is too short to be cut in five blocks)."""
+    if not r.history:
+        return 0
+    k = int(np.argmax(r.cov.drive)) + 1
+    return k if r.test.n - k >= 50 else 0
 
 
 def _file_fold(name: str, records, held: list[int]) -> Fold:
@@ -147,29 +184,54 @@ def heldout(fitted: Fitted, folds: Sequence[Fold]) -> Errors:
     does); a held-out *block* keeps those fitted on the rest of its file.
     """
     prob = fitted.problem
-    per_file: dict[int, tuple[list, list]] = {}
+    per_file: dict[int, tuple[list, list, list]] = {}
     for fold in folds:
-        fp = prob.derived(train=fold.train)
-        excluded = {k for k, t in enumerate(fold.train) if t is not None and len(t) == 0}
-        active = [i for i, s in enumerate(fp.slots) if s.file is None or s.file not in excluded]
-        try:
-            z, _ = fp.solve(fitted.z.copy(), active=active, max_nfev=8 * (len(active) + 2), ftol=1e-5)
-        except FitError:
-            z = fitted.z.copy()
-        held_files = sorted(excluded)
-        if held_files:
-            # re-estimate the held-out files' own artefacts with the material fixed
-            fp.set_train([None if k in excluded else np.zeros(0, dtype=int) for k in range(len(fp.records))])
-            own = [i for i, s in enumerate(fp.slots) if s.file in excluded]
-            if own:
-                z, _ = fp.solve(z, active=own, max_nfev=10 * (len(own) + 2), ftol=1e-5)
+        z, fp = _fold_fit(fitted, fold)
         coefs = fp.offsets(z)
         for k, mask in enumerate(fold.test):
             if mask is None:
                 continue
             p = fp.full_prediction(k, z, coefs[k])
-            ys, ps = per_file.setdefault(k, ([], []))
+            idx, ys, ps = per_file.setdefault(k, ([], [], []))
+            idx.append(np.flatnonzero(mask))
             ys.append(fp.records[k].y[mask])
             ps.append(p[mask])
-    items = [(prob.records[k].name, np.concatenate(v[0]), np.concatenate(v[1])) for k, v in sorted(per_file.items())]
-    return error_measures(items)
+    samples = {}
+    for k, (idx, ys, ps) in per_file.items():
+        i = np.concatenate(idx)
+        order = np.argsort(i, kind="stable")
+        samples[k] = (i[order], np.concatenate(ys)[order], np.concatenate(ps)[order])
+    items = [(prob.records[k].name, v[1], v[2]) for k, v in sorted(samples.items())]
+    spans = [(float(np.min(prob.records[k].y)), float(np.max(prob.records[k].y))) for k in sorted(samples)]
+    out = error_measures(items, spans)
+    out.samples = samples
+    return out
+
+
+def _fold_fit(fitted: Fitted, fold: Fold):
+    """The whole model refitted on a fold's training samples (warm start), and that fold's problem.
+
+    A slot whose records are all held out (a held-out file's slack, slips,
+    specimen scale) is not fitted with the rest; it is re-estimated afterwards on
+    the held-out file with the material fixed, as ``esmm evaluate`` does.
+    """
+    fp = fitted.problem.derived(train=fold.train)
+    excluded = {k for k, t in enumerate(fold.train) if t is not None and len(t) == 0}
+
+    def own(s) -> bool:
+        return bool(s.records) and all(k in excluded for k in s.records)
+
+    active = [i for i, s in enumerate(fp.slots) if not own(s)]
+    try:
+        z, _ = fp.solve(fitted.z.copy(), active=active, max_nfev=5 * (len(active) + 2), ftol=1e-5)
+    except FitError:
+        z = fitted.z.copy()
+    if excluded:
+        fp.set_train([None if k in excluded else np.zeros(0, dtype=int) for k in range(len(fp.records))])
+        mine = [i for i, s in enumerate(fp.slots) if own(s)]
+        if mine:
+            try:
+                z, _ = fp.solve(z, active=mine, max_nfev=10 * (len(mine) + 2), ftol=1e-5)
+            except FitError:
+                pass
+    return z, fp

@@ -1,10 +1,13 @@
-"""Starting values of an effect's parameters, with everything else held.
+"""Starting values of an effect's or a strain-energy term's parameters, with everything else held.
 
 A least-squares fit of an effect started from zero strength rarely finds the
 optimum (the slack optimum, for one, is not found from zero): each effect's
 parameters are first set by a small grid search of the objective (Mullins,
-damage, slack) or, for the Prony series, by non-negative least squares over a
-dictionary of relaxation times, before the full fit frees everything.
+damage, cyclic softening, permanent set, stretch-dependent relaxation, slack,
+the strain-energy terms over decades of their modulus and their shape), in
+closed form (specimen scales, slips), or, for the Prony series, by
+non-negative least squares over a dictionary of relaxation times, before the
+full fit frees everything.
 """
 
 from __future__ import annotations
@@ -16,20 +19,122 @@ import numpy as np
 from scipy import optimize
 
 from ..materials.effects import qlv_stress
+from ..materials.loading import invariants
+from ..materials.terms import TERMS
 from .model import Problem
 
 
 def initialise(prob: Problem, z: np.ndarray, name: str) -> np.ndarray:
-    """Starting values of effect *name* in *z* with everything else held (grid search / NNLS)."""
-    if name == "viscoelastic":
-        return _init_prony(prob, z)
-    if name == "mullins":
-        return _init_mullins(prob, z)
-    if name == "damage":
-        return _init_damage(prob, z)
-    if name == "slack":
-        return _init_slack(prob, z)
-    return z
+    """Starting values of effect or term *name* in *z* with everything else held (grid search / NNLS)."""
+    if name in TERMS:
+        return _init_term(prob, z, name)
+    init = {"viscoelastic": _init_prony, "mullins": _init_mullins, "damage": _init_damage, "slack": _init_slack,
+            "nonlinear_viscoelastic": _init_kappa, "cyclic_softening": _init_cyclic,
+            "permanent_set": _init_set, "specimen_scale": _init_scales, "grip_slip": _init_slips}
+    return init[name](prob, z) if name in init else z
+
+
+def _init_kappa(prob: Problem, z: np.ndarray) -> np.ndarray:
+    """The strength's stretch dependence on a grid, each with its own Prony terms by NNLS."""
+    km = prob.bounds.kappa_max
+    best, zb = math.inf, z
+    for q in (-0.6, -0.4, -0.2, 0.0, 0.2, 0.4, 0.6):
+        zk = _set(prob, z, "nonlinear_viscoelastic", {"kappa": q * km})
+        zk, rnorm = _prony_nnls(prob, zk, q * km)
+        if rnorm < best:
+            best, zb = rnorm, zk
+    return zb
+
+
+def _init_cyclic(prob: Problem, z: np.ndarray) -> np.ndarray:
+    w = prob.bounds.w_ref
+    return _grid_search(prob, z, "cyclic_softening", ({"d_inf": d, "eta": math.log(e * w)}
+                                                      for d in (0.05, 0.15, 0.3) for e in (0.1, 1.0, 10.0, 100.0)))
+
+
+def _init_set(prob: Problem, z: np.ndarray) -> np.ndarray:
+    return _grid_search(prob, z, "permanent_set", ({"fraction": f} for f in (0.0, 0.05, 0.1, 0.2, 0.35, 0.5)))
+
+
+def _init_scales(prob: Problem, z: np.ndarray) -> np.ndarray:
+    """Each specimen's scale in closed form (least squares of its data on the current prediction),
+    normalised to a geometric mean of 1."""
+    st = prob.state(z)
+    idx = [i for i, s in enumerate(prob.slots) if s.effect == "specimen_scale"]
+    logs = []
+    for i in idx:
+        num = den = 0.0
+        for k in prob.slots[i].group:
+            r = prob.records[k]
+            p = prob.predict(k, st) / st.scale[k]
+            good = np.isfinite(p)
+            w = 1.0 / (r.fit_idx.size * r.scale**2)
+            num += w * float(p[good] @ r.y[r.fit_idx][good])
+            den += w * float(p[good] @ p[good])
+        logs.append(math.log(num / den) if num > 0 and den > 0 else 0.0)
+    z = z.copy()
+    if logs:
+        z[idx] = np.asarray(logs) - float(np.mean(logs))
+    return np.clip(z, prob.lower, prob.upper)
+
+
+def _init_slips(prob: Problem, z: np.ndarray) -> np.ndarray:
+    """Each slip's extension loss from its stress drop over the loading slope just before it."""
+    z = z.copy()
+    for i, s in enumerate(prob.slots):
+        if s.effect != "grip_slip":
+            continue
+        r = prob.records[s.file]
+        e = r.slips[int(s.name[5:-1])]
+        k = e
+        while k > 0 and r.y[k - 1] >= r.y[k]:
+            k -= 1  # top of the fall
+        k0 = max(0, k - 5)
+        slope = (r.y[k] - r.y[k0]) / (r.x[k] - r.x[k0]) if r.x[k] > r.x[k0] else 0.0
+        z[i] = (r.y[k] - r.y[e]) / slope if slope > 0 else 0.0
+    return np.clip(z, prob.lower, prob.upper)
+
+
+def term_grid(prob: Problem, name: str) -> tuple[float, list]:
+    """A secant stiffness of the data [Pa] and the data-derived values of term *name*'s shape parameter.
+
+    Exponential rates are set so that the exponent reaches 0.3 to 10 at the
+    largest invariant in the data; Gent's Jm from just above the largest
+    I1 - 3 to ten times it; the toe width from a tenth of the stretch span to all of it.
+    """
+    recs = prob.records
+    stiff = max(r.scale for r in recs) / prob.bounds.xi_span
+    i1 = max(float(np.nanmax(invariants(r.test.mode, r.x)[0])) for r in recs) - 3.0
+    i2 = max(float(np.nanmax(invariants(r.test.mode, r.x)[1])) for r in recs) - 3.0
+    shapes = {"i2exp_b": [q / max(i2, 1e-9) for q in (0.3, 1.0, 3.0, 10.0)],
+              "i1exp_b": [q / max(i1, 1e-9) for q in (0.3, 1.0, 3.0, 10.0)],
+              "gent_J": [i1 * q for q in (1.05, 1.5, 3.0, 10.0)],
+              "fexp_k2": [q / max((i1 / 3) ** 2, 1e-12) for q in (0.3, 1.0, 3.0, 10.0)],
+              "toe_delta": [prob.bounds.xi_span * q for q in (0.1, 0.25, 0.5, 1.0)]}
+    shape = TERMS[name].shape_parameter
+    return stiff, (shapes[shape] if shape else [None])
+
+
+def _init_term(prob: Problem, z: np.ndarray, name: str) -> np.ndarray:
+    """A strain-energy term: grid over decades of its modulus and over its shape parameter."""
+    term = TERMS[name]
+    stiff, shapes = term_grid(prob, name)
+    shape = term.shape_parameter
+    # from "off" (the current model: the start is never worse than it) to ten times the data's stiffness
+    grid = [{term.modulus: stiff * 10.0**e, **({shape: v} if shape else {})} for e in (-12, -4, -3, -2, -1, 0, 1)
+            for v in shapes]
+    return _grid_search_base(prob, z, grid)
+
+
+def _grid_search_base(prob: Problem, z: np.ndarray, grid) -> np.ndarray:
+    """*z* with the elastic-law values of least cost among *grid* (name -> SI value)."""
+    best, zb = math.inf, z
+    for values in grid:
+        zz = prob.set_base(z, {None: values, **{d: values for d in (prob.directions or [])}})
+        c = _cost(prob, zz)
+        if c < best:
+            best, zb = c, zz
+    return zb
 
 
 def _cost(prob: Problem, z: np.ndarray) -> float:
@@ -95,19 +200,25 @@ def _init_slack(prob: Problem, z: np.ndarray) -> np.ndarray:
     return z
 
 
-def _init_prony(prob: Problem, z: np.ndarray) -> np.ndarray:
+def _init_prony(prob: Problem, z: np.ndarray, kappa: float = 0.0) -> np.ndarray:
     """Prony starting values: non-negative least squares over a dictionary of relaxation times."""
+    return _prony_nnls(prob, z, kappa)[0]
+
+
+def _prony_nnls(prob: Problem, z: np.ndarray, kappa: float) -> tuple[np.ndarray, float]:
+    """*z* with the Prony terms of least squares over a dictionary of relaxation times (the relaxed part
+    scaled by exp(kappa (xi - 1))), and the residual norm of that fit."""
     b = prob.bounds
     n_terms = prob.spec.viscoelastic
     taus = np.geomspace(b.tau_min * 2, b.tau_max / 5, 14)
-    system = _relaxation_system(prob, z, taus)
+    system = _relaxation_system(prob, z, taus, kappa)
     if system is None:
-        return z
+        return z, math.inf
     A, yv = system
     try:
-        g, _ = optimize.nnls(A, yv, maxiter=50 * A.shape[1])
+        g, rnorm = optimize.nnls(A, yv, maxiter=50 * A.shape[1])
     except RuntimeError:
-        g = np.zeros(len(taus))
+        g, rnorm = np.zeros(len(taus)), math.inf
     chosen = [j for j in np.argsort(-g) if g[j] > 0][:n_terms]
     gs = [float(g[j]) for j in chosen]
     ts = [float(taus[j]) for j in chosen]
@@ -123,14 +234,17 @@ def _init_prony(prob: Problem, z: np.ndarray) -> np.ndarray:
     for j, u in enumerate(_stick_breaking(gs)):
         vals[f"u[{j}]"] = u
         vals[f"tau[{j}]"] = math.log(min(max(ts[j], b.tau_min * 1.01), b.tau_max * 0.99))
-    return _set(prob, z, "viscoelastic", vals)
+    return _set(prob, z, "viscoelastic", vals), float(rnorm)
 
 
-def _relaxation_system(prob: Problem, z: np.ndarray, taus: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+def _relaxation_system(prob: Problem, z: np.ndarray, taus: np.ndarray, kappa: float = 0.0,
+                       ) -> tuple[np.ndarray, np.ndarray] | None:
     """The weighted linear system (atoms, target) of one Prony term per relaxation time in *taus*.
 
-    Each atom is the relaxation of the softened elastic stress with one unit term;
-    the offset columns are projected out. None where no training record has time.
+    Each atom is the relaxation of the softened elastic stress with one unit term
+    (scaled by exp(kappa (ξ - 1)) for a stretch-dependent strength); the fitted
+    offset columns are projected out, a held offset taken off the data. None where
+    no training record has time.
     """
     st = prob.state(z)
     cols, target = [], []
@@ -138,14 +252,17 @@ def _relaxation_system(prob: Problem, z: np.ndarray, taus: np.ndarray) -> tuple[
         if not prob.n_train[k] or r.t is None:
             continue
         idx = r.fit_idx
-        pd = np.nan_to_num(prob.softened(k, st, idx))
+        sc = st.scale[k] if st.scale is not None else 1.0
+        pd = np.nan_to_num(prob.softened(k, st, idx)) * sc
         atoms = np.stack([qlv_stress(r.t[idx], pd, [1.0], [tau]) - pd for tau in taus], axis=1)
-        y = r.y[idx] - pd
+        if kappa:
+            atoms = atoms * np.exp(kappa * (prob.elastic(k, st)[2] - 1.0))[:, None]
+        y = r.y[idx] - pd - (prob.pinned[k] if prob.n_offset[k] and prob.pinned[k] is not None else 0.0)
         pos = prob.train[k]
         if pos is not None:
             atoms, y = atoms[pos], y[pos]
-        X = prob.offset_columns(k, idx)
-        if X is not None and prob.n_offset[k]:
+        X = prob.free_offset_columns(k, idx)
+        if X is not None:
             if pos is not None:
                 X = X[pos]
             Q, _ = np.linalg.qr(X)

@@ -1,4 +1,4 @@
-r"""The extended model: a hyperelastic base plus effects, and its least-squares fit.
+r"""The extended model: a hyperelastic base, strain-energy terms and effects, and its least-squares fit.
 
 The objective is the one of :func:`esmm.pipeline.calibrate.fit.fit_material`
 (docs/calibrate.md), so that a base model fitted here and there agree:
@@ -8,30 +8,30 @@ The objective is the one of :func:`esmm.pipeline.calibrate.fit.fit_material`
     r_{f,k} = \sqrt{w_f / n_f}\;\frac{\hat P_{f,k}(\theta, \phi, \psi_f) - P_{f,k}}{s_f},
     \qquad s_f = \max_k |P_{f,k}|,
 
-with θ the base parameters (laid out, bounded and log-transformed exactly as
-the calibrate fit does: :class:`esmm.pipeline.calibrate.problem.ParameterLayout`
-provides the slots, and the weights, scales and NaN penalty are those of
-:mod:`esmm.pipeline.calibrate.problem`), φ the material
-effects' parameters (shared by all files) and ψ_f the artefact parameters of
-file *f* (slack, load-cell offset and drift). The sum runs over the thinned
-fitting samples of each file (:func:`~esmm.pipeline.discover.covariates.thin`);
-reported errors use every sample.
+with θ the parameters of the elastic law (the base model's, laid out, bounded
+and log-transformed exactly as the calibrate fit does, plus those of the
+strain-energy terms of :mod:`esmm.pipeline.materials.terms` a discovery added),
+φ the material effects' parameters (shared by all files) and ψ_f the artefact
+parameters of file *f*. The sum runs over the thinned fitting samples of each
+file (:func:`~esmm.pipeline.discover.covariates.thin`); reported errors use
+every sample.
 
 Prediction of one file, in this order (docs/discover.md):
 
-1. slack: ``x_true = max(x / (1 + δ_f), 1)`` (tension tests only);
-2. ``P_e = nominal_stress(base, x_true)``;
-3. damage: ``P_e *= 1 - D(ξ_max)``; Mullins: ``P_e *= η(W, W_max)``;
-4. viscoelastic: ``P = QLV[P_e]``;
-5. a tension-only specimen (a test that never goes below its reference
-   state) cannot carry compression: ``P = max(P, 0)`` — it buckles;
-6. load-cell offset and drift: ``P + o_f + d_f (t - t_0)/T_f``. These enter
-   linearly and are eliminated in closed form (variable projection) at every
-   evaluation; their intervals come from the full Jacobian at the end.
+1. grip slip: ``x ← x - Σ_j δ_j [k ≥ k_j]`` (the extension lost at each slip);
+   slack: ``x_true = max(x / (1 + δ_f), 1)`` (tension tests only);
+2. permanent set: ``λ_s = 1 + s_p (max x_true - 1)``, elastic stretch ``x_true/λ_s``;
+3. ``P_e = nominal_stress(elastic law, x_true/λ_s) / λ_s``;
+4. damage ``× (1 - D(ξ_max))``, Mullins ``× η(W, W_max)``, cyclic softening ``× c(α)``;
+5. viscoelastic: ``P = QLV[P_e]`` (with κ: the relaxed part scaled by s(ξ));
+6. a tension-only specimen cannot carry compression: ``P = max(P, 0)``;
+7. per-specimen stress scale: ``× c_s`` (the scales' geometric mean is held at 1);
+8. load-cell offset and drift: ``+ o_f + d_f (t - t_0)/T_f`` — linear, eliminated
+   in closed form (variable projection) at every evaluation.
 
 The Jacobian is by forward differences, evaluated per block: a file's own
 parameters perturb only that file's residuals, and perturbing an effect
-parameter reuses the cached base stresses.
+parameter reuses the cached elastic stresses.
 """
 
 from __future__ import annotations
@@ -46,134 +46,124 @@ import numpy as np
 from scipy import optimize
 
 from ..blas import single_threaded_blas
-from ..calibrate.problem import NAN_PENALTY, layout_for, stress_scale
+from ..calibrate.problem import NAN_PENALTY, layout_for
 from ..errors import FitError
+from ..materials import get_model
+from ..materials.composite import composite_name
 from ..materials.effects import (
-    ARTEFACTS,
-    MATERIAL_EFFECTS,
+    CyclicSofteningEffect,
     DamageEffect,
     MaterialEffects,
     MullinsEffect,
+    PermanentSetEffect,
     ViscoelasticEffect,
+    accumulated_energy,
+    cyclic_factor,
     damage_factor,
     equivalent_stretch,
     mullins_factor,
     qlv_stress,
+    relaxation_strength,
+    set_stretch,
 )
 from ..materials.loading import energy_density, invariants, nominal_stress
-from ..tensile.data import TensileTest
-from .covariates import Covariates, covariates, thin
+from ..materials.terms import TERM_NAMES, TERMS
+from .records import (
+    Record,
+    drift_applicable,
+    fitting_view,
+    largest_span,
+    offset_applicable,
+    rest_reading,
+    slack_applicable,
+    slip_applicable,
+    specimen_groups,
+)
 
 #: variants of each effect: name -> allowed variant numbers (0 = off)
 VARIANTS = {
     "viscoelastic": (1, 2, 3),  # Prony terms
+    "nonlinear_viscoelastic": (1,),  # kappa (needs viscoelastic)
     "mullins": (2, 3),  # (r, m) or (r, m, beta)
     "damage": (3,),  # (onset, scale, shape)
+    "cyclic_softening": (2,),  # (d_inf, eta)
+    "permanent_set": (1,),  # fraction
     "slack": (1,),  # one slack length per file
     "sensor_offset": (1, 2),  # offset, or offset + linear drift, per file
+    "specimen_scale": (1,),  # one stress scale per specimen
+    "grip_slip": (1,),  # one extension loss per detected slip
 }
+#: every effect and artefact a discovery can add (the Spec's integer fields)
+EFFECTS: tuple[str, ...] = tuple(VARIANTS)
+#: every candidate: effects, artefacts and strain-energy terms
+CANDIDATES: tuple[str, ...] = EFFECTS + TERM_NAMES
 #: Prony weights are stick-broken fractions u_i in [0, U_MAX]
 U_MAX = 0.995
+#: weight of the row that holds the specimen scales' geometric mean at 1
+SCALE_CONSTRAINT = 100.0
 
 
 @dataclass(frozen=True)
 class Spec:
-    """Which effects a model has, and in which variant (0 = absent)."""
+    """Which effects and strain-energy terms a model has, and in which variant (0 = absent)."""
 
     viscoelastic: int = 0
+    nonlinear_viscoelastic: int = 0
     mullins: int = 0
     damage: int = 0
+    cyclic_softening: int = 0
+    permanent_set: int = 0
     slack: int = 0
     sensor_offset: int = 0
+    specimen_scale: int = 0
+    grip_slip: int = 0
+    terms: tuple[str, ...] = ()
+
+    def variant(self, name: str) -> int:
+        """The variant of effect or term *name* (0 = absent)."""
+        if name in TERMS:
+            return int(name in self.terms)
+        return int(getattr(self, name))
 
     def names(self) -> list[str]:
-        return [n for n in MATERIAL_EFFECTS + ARTEFACTS if getattr(self, n)]
+        """Effects present, then terms (library order)."""
+        return [n for n in EFFECTS if getattr(self, n)] + [t for t in TERM_NAMES if t in self.terms]
 
     def with_(self, name: str, variant: int) -> Spec:
-        return replace(self, **{name: int(variant)})
+        if name in TERMS:
+            terms = set(self.terms) | {name} if variant else set(self.terms) - {name}
+            return replace(self, terms=tuple(t for t in TERM_NAMES if t in terms))
+        out = replace(self, **{name: int(variant)})
+        if name == "nonlinear_viscoelastic" and variant and not out.viscoelastic:
+            out = replace(out, viscoelastic=1)
+        return out
 
     def variant_text(self, name: str) -> str:
-        v = getattr(self, name)
-        if name == "viscoelastic":
-            return f"{v} Prony term{'s' if v != 1 else ''}"
-        if name == "mullins":
-            return "r, m, beta" if v == 3 else "r, m (beta = 0)"
-        if name == "sensor_offset":
-            return "offset and drift" if v == 2 else "offset"
-        if name == "slack":
-            return "one slack length per file"
-        if name == "damage":
-            return "onset, scale, shape"
-        return str(v)
+        v = self.variant(name)
+        if name in TERMS:
+            return f"strain-energy term {TERMS[name].equation}"
+        return {
+            "viscoelastic": f"{v} Prony term{'s' if v != 1 else ''}",
+            "nonlinear_viscoelastic": "relaxed amount scaled by exp(kappa (xi - 1))",
+            "mullins": "r, m, beta" if v == 3 else "r, m (beta = 0)",
+            "sensor_offset": "offset and drift" if v == 2 else "offset",
+            "slack": "one slack length per file",
+            "damage": "onset, scale, shape",
+            "cyclic_softening": "d_inf, eta",
+            "permanent_set": "set fraction",
+            "specimen_scale": "one stress scale per specimen (geometric mean 1)",
+            "grip_slip": "one extension loss per detected slip",
+        }.get(name, str(v))
 
-    def to_dict(self) -> dict[str, int]:
-        return {n: getattr(self, n) for n in MATERIAL_EFFECTS + ARTEFACTS}
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {n: getattr(self, n) for n in EFFECTS}
+        d["terms"] = list(self.terms)
+        return d
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Spec:
-        return cls(**{n: int(d.get(n, 0)) for n in MATERIAL_EFFECTS + ARTEFACTS})
-
-
-# --------------------------------------------------------------------------- records
-@dataclass
-class Record:
-    """One test prepared for fitting: covariates, thinned indices, scales."""
-
-    test: TensileTest
-    cov: Covariates
-    fit_idx: np.ndarray  # (m,) thinned sample indices
-    weight: float = 1.0
-
-    def __post_init__(self):
-        t = self.test
-        self.x = np.asarray(t.stretch, float)
-        self.y = np.asarray(t.stress, float)
-        self.t = None if not self.cov.has_time else np.asarray(t.time, float)
-        self.scale = stress_scale(self.y)
-        self.range = float(np.ptp(self.y)) or self.scale
-        ref = 0.0 if t.mode == "simple_shear" else 1.0
-        x0 = float(np.min(self.x)) if t.mode != "simple_shear" else -1.0
-        #: a test that never goes below its reference state (tension only)
-        self.tension_only = t.mode != "simple_shear" and x0 >= ref - 1e-3 * (float(np.ptp(self.x)) or 1.0)
-        self.area = t.metadata.get("area")
-        self.gauge = t.metadata.get("gauge_length")
-        self.T = float(self.t[-1] - self.t[0]) if self.t is not None else 0.0
-
-    @property
-    def name(self) -> str:
-        return self.test.source.name
-
-    @property
-    def key(self) -> str | None:
-        return self.test.orientation
-
-    @property
-    def history(self) -> bool:
-        return self.cov.has_time
-
-
-def prepare(tests: Sequence[TensileTest], *, max_points: int = 600,
-            weights: Sequence[float] | None = None) -> list[Record]:
-    """Covariates and thinned fitting samples of every test."""
-    out = []
-    for i, t in enumerate(tests):
-        cov = covariates(t)
-        idx = thin(t, max_points, cov=cov)
-        out.append(Record(t, cov, idx, 1.0 if weights is None else float(weights[i])))
-    return out
-
-
-def view_test(rec: Record, idx: np.ndarray | None = None) -> TensileTest:
-    """A TensileTest restricted to *idx* (default: the fitting samples)."""
-    idx = rec.fit_idx if idx is None else idx
-    t = rec.test
-
-    def sub(a):
-        return None if a is None else np.asarray(a)[idx]
-
-    return TensileTest(source=t.source, mode=t.mode, stretch=sub(t.stretch), stress=sub(t.stress),
-                       time=sub(t.time), displacement=sub(t.displacement), force=sub(t.force),
-                       metadata=t.metadata)
+        terms = tuple(t for t in TERM_NAMES if t in set(d.get("terms") or ()))
+        return cls(**{n: int(d.get(n, 0)) for n in EFFECTS}, terms=terms)
 
 
 # --------------------------------------------------------------------------- slots
@@ -182,13 +172,14 @@ class Slot:
     """One optimiser coordinate."""
 
     name: str  # reported name, e.g. "mu", "tau[1]", "slack"
-    effect: str | None  # None: base parameter
-    file: int | None  # None: shared; else record index
+    effect: str | None  # None: a parameter of the elastic law
+    file: int | None  # None: shared; else the (first) record it belongs to
     log: bool
     lo: float
     hi: float
     kind: str = "dimensionless"  # "stress", "time", "dimensionless"
     direction: str | None = None
+    group: tuple[int, ...] = ()  # every record a per-specimen slot acts on
 
     @property
     def key(self) -> str:
@@ -196,6 +187,10 @@ class Slot:
         if self.direction:
             k += f"[{self.direction}]"
         return k
+
+    @property
+    def records(self) -> tuple[int, ...]:
+        return self.group or (() if self.file is None else (self.file,))
 
 
 @dataclass
@@ -205,21 +200,28 @@ class State:
     base: dict[str | None, dict[str, float]]
     g: np.ndarray | None = None
     tau: np.ndarray | None = None
+    kappa: float = 0.0
     mullins: tuple[float, float, float] | None = None  # (r, m, beta)
     damage: tuple[float, float, float] | None = None  # (onset, scale, shape)
+    cyclic: tuple[float, float] | None = None  # (d_inf, eta)
+    set_fraction: float = 0.0
     slack: np.ndarray | None = None  # (n_files,) relative slack delta = s / L0
-    offsets: list[np.ndarray] = field(default_factory=list)  # per file: [o] or [o, d] (Pa)
+    scale: np.ndarray | None = None  # (n_files,) specimen stress scale
+    slips: list[np.ndarray] = field(default_factory=list)  # per file: extension losses (stretch units)
 
     def material_effects(self) -> MaterialEffects:
-        v = m = d = None
+        v = m = d = c = p = None
         if self.g is not None:
-            v = ViscoelasticEffect(tuple(self.g), tuple(self.tau))
+            v = ViscoelasticEffect(tuple(self.g), tuple(self.tau), float(self.kappa))
         if self.mullins is not None:
-            r, mm, b = self.mullins
-            m = MullinsEffect(r, mm, b)
+            m = MullinsEffect(*self.mullins)
         if self.damage is not None:
             d = DamageEffect(*self.damage)
-        return MaterialEffects(v, m, d)
+        if self.cyclic is not None:
+            c = CyclicSofteningEffect(*self.cyclic)
+        if self.set_fraction > 0.0:
+            p = PermanentSetEffect(self.set_fraction)
+        return MaterialEffects(v, m, d, {}, c, p)
 
 
 class Bounds:
@@ -229,63 +231,89 @@ class Bounds:
         dts = [float(np.median(np.diff(r.t))) for r in records if r.t is not None and r.t.size > 1]
         Ts = [r.T for r in records if r.t is not None]
         self.tau_min = max(min(dts) * 0.5, 1e-4) if dts else 1e-3
-        self.tau_max = max(Ts) * 10.0 if Ts else 1e3
+        #: a relaxation time longer than the longest record is a linear trend over it (not identifiable)
+        self.tau_max = max(Ts) if Ts else 1e3
         self.w_ref = max(w_ref, 1e-12)  # largest base strain energy in the data [Pa]
-        xi = [float(np.max(r.cov.drive)) for r in records]
-        self.xi_max = max(xi) if xi else 1.0
+        self.xi_max = 1.0 + largest_span(records)
+        self._derive()
+
+    def _derive(self) -> None:
         self.xi_span = max(self.xi_max - 1.0, 1e-3)
+        #: |kappa (xi - 1)| <= 3 over the data: the relaxed amount changes by at most e^3 ~ 20 times
+        self.kappa_max = 3.0 / self.xi_span
 
     def to_dict(self) -> dict[str, float]:
-        return dict(tau_min=self.tau_min, tau_max=self.tau_max, w_ref=self.w_ref,
-                    xi_max=self.xi_max)
+        return dict(tau_min=self.tau_min, tau_max=self.tau_max, w_ref=self.w_ref, xi_max=self.xi_max)
 
     @classmethod
     def from_dict(cls, d: Mapping[str, float]) -> Bounds:
         b = cls.__new__(cls)
         b.tau_min, b.tau_max, b.w_ref = float(d["tau_min"]), float(d["tau_max"]), float(d["w_ref"])
         b.xi_max = float(d["xi_max"])
-        b.xi_span = max(b.xi_max - 1.0, 1e-3)
+        b._derive()
         return b
 
 
-def slack_applicable(rec: Record) -> bool:
-    """Slack is a tension-test artefact whose record starts at the reference state."""
-    if not rec.tension_only or rec.test.mode == "simple_shear":
-        return False
-    span = float(np.ptp(rec.x)) or 0.0
-    return span > 0 and float(rec.x[0]) - 1.0 <= 0.05 * span
+def effect_slots(spec: Spec, b: Bounds) -> list[Slot]:
+    """The shared (material) effect slots of *spec*, in a fixed order."""
+    slots: list[Slot] = []
+    for i in range(spec.viscoelastic):
+        slots.append(Slot(f"u[{i}]", "viscoelastic", None, False, 0.0, U_MAX))
+        slots.append(Slot(f"tau[{i}]", "viscoelastic", None, True, math.log(b.tau_min), math.log(b.tau_max), "time"))
+    if spec.nonlinear_viscoelastic:
+        slots.append(Slot("kappa", "nonlinear_viscoelastic", None, False, -b.kappa_max, b.kappa_max))
+    if spec.mullins:
+        slots.append(Slot("s", "mullins", None, False, 0.0, 0.99))  # s = 1/r
+        slots.append(Slot("m", "mullins", None, True, math.log(1e-5 * b.w_ref), math.log(10.0 * b.w_ref), "stress"))
+        if spec.mullins == 3:
+            slots.append(Slot("beta", "mullins", None, False, 0.0, 5.0))
+    if spec.damage:
+        slots.append(Slot("onset", "damage", None, False, 1.0, b.xi_max))
+        slots.append(Slot("scale", "damage", None, True, math.log(1e-3 * b.xi_span), math.log(10.0 * b.xi_span)))
+        slots.append(Slot("shape", "damage", None, False, 1.0, 8.0))
+    if spec.cyclic_softening:
+        slots.append(Slot("d_inf", "cyclic_softening", None, False, 0.0, 0.95))
+        slots.append(Slot("eta", "cyclic_softening", None, True, math.log(1e-3 * b.w_ref), math.log(1e3 * b.w_ref),
+                          "stress"))
+    if spec.permanent_set:
+        slots.append(Slot("fraction", "permanent_set", None, False, 0.0, 0.9))
+    return slots
 
 
-def offset_applicable(rec: Record) -> bool:
-    """A load-cell offset is separable where the data reach the reference state (P_model = 0)."""
-    ref = 0.0 if rec.test.mode == "simple_shear" else 1.0
-    span = float(np.ptp(rec.x)) or 1.0
-    return float(np.min(np.abs(rec.x - ref))) <= 0.05 * span
+def file_slots(spec: Spec, records: Sequence[Record], *, free_scales: bool = False) -> list[Slot]:
+    """The per-file (artefact) slots of *spec*: slack, slips, per-specimen scales.
 
-
-def drift_applicable(rec: Record) -> bool:
-    """A drift is separable from the material only where the zero-force state is seen early *and* late.
-
-    That is a test that starts and ends near its reference state (a load-unload
-    cycle, or a tension test whose slack specimen reads zero force at the end).
-    In a relaxation test the drift would be indistinguishable from slow relaxation.
+    Per-specimen scales need two specimens (one scale is the material's
+    modulus), unless *free_scales* (the material is held: each new file's scale
+    is its own, as ``esmm evaluate`` re-estimates it).
     """
-    if rec.t is None or rec.T <= 0:
-        return False
-    ref = 0.0 if rec.test.mode == "simple_shear" else 1.0
-    span = float(np.ptp(rec.x)) or 1.0
-    near = np.abs(rec.x - ref) <= 0.05 * span
-    tn = (rec.t - rec.t[0]) / rec.T
-    return bool(np.any(near & (tn <= 0.25)) and np.any(near & (tn >= 0.75)))
+    slots: list[Slot] = []
+    if spec.slack:
+        for k, r in enumerate(records):
+            if slack_applicable(r):
+                slots.append(Slot("slack", "slack", k, False, 0.0, max(0.5 * (float(np.max(r.x)) - 1.0), 1e-6)))
+    if spec.grip_slip:
+        for k, r in enumerate(records):
+            if slip_applicable(r):
+                for j, e in enumerate(r.slips):
+                    hi = max(float(r.x[e]) - 1.0, 1e-6)
+                    slots.append(Slot(f"slip[{j}]", "grip_slip", k, False, 0.0, hi))
+    if spec.specimen_scale:
+        groups = specimen_groups(records)
+        if len(groups) >= 2 or free_scales:
+            for g in groups:
+                slots.append(Slot("scale", "specimen_scale", g[0], True, math.log(0.1), math.log(10.0), group=tuple(g)))
+    return slots
 
 
 # --------------------------------------------------------------------------- problem
 class Problem:
-    """The least-squares problem of one model (base + effects) on some records.
+    """The least-squares problem of one model (elastic law + effects) on some records.
 
     Parameters
     ----------
     model : MaterialModel
+        The base model (the ESEDF); the strain-energy terms come from *spec*.
     records : sequence of Record
     spec : Spec
     fixed : mapping
@@ -297,63 +325,52 @@ class Problem:
         Per record: positions *within its fitting samples* that enter the
         objective (None: all). Records with an empty array are predicted (for
         their history) but do not count.
+    free_scales : bool
+        Every specimen's stress scale free, none held by the geometric-mean
+        constraint (for predicting new files with the material held).
     """
 
     def __init__(self, model, records: Sequence[Record], spec: Spec, *, fixed: Mapping[str, float],
-                 directions: list[str] | None, bounds: Bounds, train=None):
-        self.model = model
+                 directions: list[str] | None, bounds: Bounds, train=None, free_scales: bool = False):
+        self.base_model = model
+        self.model = get_model(composite_name(model.name, spec.terms)) if spec.terms else model
         self.records = list(records)
         self.spec = spec
         self.fixed = dict(fixed)
         self.directions = directions
         self.bounds = bounds
-        # the base parameters' slots: those of the calibrate fit on the fitting samples
-        self.layout = layout_for(model, [view_test(r) for r in self.records], fixed=self.fixed,
+        # the elastic law's slots: those of the calibrate fit on the fitting samples
+        self.layout = layout_for(self.model, [fitting_view(r) for r in self.records], fixed=self.fixed,
                                  directions=directions)
         slots = [Slot(s.name, None, None, s.log, s.lo, s.hi, s.kind, s.direction) for s in self.layout.slots]
         self.n_base = len(slots)
-        b = bounds
-        if spec.viscoelastic:
-            for i in range(spec.viscoelastic):
-                slots.append(Slot(f"u[{i}]", "viscoelastic", None, False, 0.0, U_MAX))
-                slots.append(Slot(f"tau[{i}]", "viscoelastic", None, True, math.log(b.tau_min),
-                                  math.log(b.tau_max), "time"))
-        if spec.mullins:
-            slots.append(Slot("s", "mullins", None, False, 0.0, 0.99))  # s = 1/r
-            slots.append(Slot("m", "mullins", None, True, math.log(1e-5 * b.w_ref),
-                              math.log(10.0 * b.w_ref), "stress"))
-            if spec.mullins == 3:
-                slots.append(Slot("beta", "mullins", None, False, 0.0, 5.0))
-        if spec.damage:
-            slots.append(Slot("onset", "damage", None, False, 1.0, b.xi_max))
-            slots.append(Slot("scale", "damage", None, True, math.log(1e-3 * b.xi_span),
-                              math.log(10.0 * b.xi_span)))
-            slots.append(Slot("shape", "damage", None, False, 1.0, 8.0))
+        slots += effect_slots(spec, bounds)
         self.n_shared = len(slots)
-        self.slack_files = []
-        if spec.slack:
-            for k, r in enumerate(self.records):
-                if slack_applicable(r):
-                    hi = max(0.5 * (float(np.max(r.x)) - 1.0), 1e-6)
-                    slots.append(Slot("slack", "slack", k, False, 0.0, hi))
-                    self.slack_files.append(k)
+        self.free_scales = free_scales
+        slots += file_slots(spec, self.records, free_scales=free_scales)
         self.slots = slots
         self.lower = np.array([s.lo for s in slots])
         self.upper = np.array([s.hi for s in slots])
         self.n_offset = [0] * len(self.records)
+        #: per record: the offset read at rest before loading (held, not fitted), or None
+        self.pinned: list[float | None] = [None] * len(self.records)
         if spec.sensor_offset:
             for k, r in enumerate(self.records):
                 if offset_applicable(r):
                     self.n_offset[k] = 2 if (spec.sensor_offset == 2 and drift_applicable(r)) else 1
+                    self.pinned[k] = rest_reading(r)
         self.set_train(train)
+        # the specimens whose scales the constraint holds: those with training samples now
+        self.scale_ref = [] if free_scales else [i for i, s in enumerate(slots) if s.effect == "specimen_scale"
+                                                 and any(self.n_train[k] for k in s.group)]
         self._cache: list[dict] = [dict() for _ in self.records]
         self.active = np.arange(len(slots))
         self.z_full = self.default_z()
 
     def derived(self, spec: Spec | None = None, *, train=None) -> Problem:
         """The problem of the same records, base and bounds with another *spec* and/or training set."""
-        return Problem(self.model, self.records, self.spec if spec is None else spec, fixed=self.fixed,
-                       directions=self.directions, bounds=self.bounds, train=train)
+        return Problem(self.base_model, self.records, self.spec if spec is None else spec, fixed=self.fixed,
+                       directions=self.directions, bounds=self.bounds, train=train, free_scales=self.free_scales)
 
     # ------------------------------------------------------------ layout
     def set_train(self, train) -> None:
@@ -368,15 +385,9 @@ class Problem:
         self._X = [self._design(k) for k in range(m)]
 
     def _design(self, k: int):
-        n_o = self.n_offset[k] if hasattr(self, "n_offset") else 0
-        if not n_o:
+        X = self.free_offset_columns(k, self.records[k].fit_idx) if hasattr(self, "n_offset") else None
+        if X is None:
             return None
-        r = self.records[k]
-        cols = [np.ones(r.fit_idx.size)]
-        if n_o == 2:
-            tt = r.t[r.fit_idx]
-            cols.append((tt - r.t[0]) / (r.T or 1.0))
-        X = np.stack(cols, axis=1)
         pos = self.train[k]
         return X if pos is None else X[pos]
 
@@ -384,28 +395,29 @@ class Problem:
         return [s.key if s.file is None else f"{s.key}[{self.records[s.file].name}]" for s in self.slots]
 
     def default_z(self) -> np.ndarray:
-        """A neutral starting vector: base defaults; effects nearly off."""
+        """A neutral starting vector: base defaults; effects nearly off; artefacts at zero."""
         z = np.empty(len(self.slots))
         z[: self.n_base] = self.layout.from_params({**self.model.defaults(), **self.fixed})
         b = self.bounds
+        n_ve = self.spec.viscoelastic
         for i, s in enumerate(self.slots[self.n_base:], start=self.n_base):
-            if s.effect == "viscoelastic":
+            if s.effect == "viscoelastic" and s.name.startswith("u"):
+                z[i] = 0.2
+            elif s.effect == "viscoelastic":
                 j = int(s.name[s.name.index("[") + 1:-1])
-                n = self.spec.viscoelastic
-                if s.name.startswith("u"):
-                    z[i] = 0.2
-                else:
-                    z[i] = math.log(b.tau_min) + (j + 1) / (n + 1) * (math.log(b.tau_max / 10) - math.log(b.tau_min))
+                z[i] = math.log(b.tau_min) + (j + 1) / (n_ve + 1) * (math.log(b.tau_max / 10) - math.log(b.tau_min))
             elif s.effect == "mullins":
                 z[i] = {"s": 0.3, "m": math.log(0.1 * b.w_ref), "beta": 0.0}[s.name]
             elif s.effect == "damage":
                 z[i] = {"onset": 1.0 + 0.7 * b.xi_span, "scale": math.log(0.2 * b.xi_span), "shape": 2.0}[s.name]
-            elif s.effect == "slack":
+            elif s.effect == "cyclic_softening":
+                z[i] = {"d_inf": 0.1, "eta": math.log(b.w_ref)}[s.name]
+            else:  # kappa, set fraction, slack, slips, log scales
                 z[i] = 0.0
         return np.clip(z, self.lower, self.upper)
 
     def set_base(self, z_full: np.ndarray, params: Mapping[str | None, Mapping[str, float]]) -> np.ndarray:
-        """Write base parameter values (per direction, SI) into *z_full*."""
+        """Write elastic-law parameter values (per direction, SI) into *z_full*."""
         z = z_full.copy()
         for i, s in enumerate(self.slots[: self.n_base]):
             src = params.get(s.direction) if s.direction else params.get(None)
@@ -417,28 +429,13 @@ class Problem:
 
     def encode(self, base: Mapping[str | None, Mapping[str, float]], effects: MaterialEffects | None = None,
                ) -> np.ndarray:
-        """Optimiser vector from base parameters (per direction, SI) and material effects.
+        """Optimiser vector from elastic-law parameters (per direction, SI) and material effects.
 
         Slots of effects absent from *effects* keep their neutral defaults;
         per-file artefact slots start at zero.
         """
         z = self.set_base(self.default_z(), base)
-        vals: dict[tuple[str, str], float] = {}
-        if effects is not None and effects.viscoelastic is not None:
-            rest = 1.0
-            for j, (g, tau) in enumerate(zip(effects.viscoelastic.g, effects.viscoelastic.tau)):
-                u = g / rest if rest > 0 else 0.0
-                rest -= g
-                vals[("viscoelastic", f"u[{j}]")] = u
-                vals[("viscoelastic", f"tau[{j}]")] = math.log(tau)
-        if effects is not None and effects.mullins is not None:
-            vals[("mullins", "s")] = 1.0 / effects.mullins.r
-            vals[("mullins", "m")] = math.log(effects.mullins.m)
-            vals[("mullins", "beta")] = effects.mullins.beta
-        if effects is not None and effects.damage is not None:
-            vals[("damage", "onset")] = effects.damage.onset
-            vals[("damage", "scale")] = math.log(effects.damage.scale)
-            vals[("damage", "shape")] = effects.damage.shape
+        vals = _effect_values(effects) if effects is not None else {}
         for i, s in enumerate(self.slots):
             if (s.effect, s.name) in vals:
                 z[i] = vals[(s.effect, s.name)]  # not clipped: a saved value stands as it is
@@ -458,63 +455,87 @@ class Problem:
         return np.clip(z, self.lower, self.upper)
 
     # ------------------------------------------------------------ decoding
+    def _shared(self, z_full: np.ndarray, effect: str) -> dict[str, float]:
+        return {s.name: float(z_full[i]) for i, s in enumerate(self.slots[self.n_base:self.n_shared], self.n_base)
+                if s.effect == effect}
+
     def state(self, z_full: np.ndarray) -> State:
-        per_dir = self.layout.to_params(z_full[: self.n_base])
-        st = State(base=per_dir)
-        sl = self.slots
-        if self.spec.viscoelastic:
-            n = self.spec.viscoelastic
-            us, taus = [], []
-            for i in range(self.n_base, self.n_shared):
-                if sl[i].effect == "viscoelastic":
-                    (us if sl[i].name.startswith("u") else taus).append(z_full[i])
+        st = State(base=self.layout.to_params(z_full[: self.n_base]))
+        sp = self.spec
+        if sp.viscoelastic:
+            v = self._shared(z_full, "viscoelastic")
             g, rest = [], 1.0
-            for u in us[:n]:
-                g.append(rest * u)
-                rest *= 1.0 - u
+            for j in range(sp.viscoelastic):
+                g.append(rest * v[f"u[{j}]"])
+                rest *= 1.0 - v[f"u[{j}]"]
             st.g = np.array(g)
-            st.tau = np.exp(np.array(taus[:n]))
-        if self.spec.mullins:
-            vals = {sl[i].name: z_full[i] for i in range(self.n_base, self.n_shared) if sl[i].effect == "mullins"}
-            s = max(vals["s"], 1e-12)
-            st.mullins = (1.0 / s, math.exp(vals["m"]), vals.get("beta", 0.0))
-        if self.spec.damage:
-            vals = {sl[i].name: z_full[i] for i in range(self.n_base, self.n_shared) if sl[i].effect == "damage"}
-            st.damage = (vals["onset"], math.exp(vals["scale"]), vals["shape"])
-        slack = np.zeros(len(self.records))
-        for i in range(self.n_shared, len(sl)):
-            if sl[i].effect == "slack":
-                slack[sl[i].file] = z_full[i]
-        st.slack = slack
+            st.tau = np.exp(np.array([v[f"tau[{j}]"] for j in range(sp.viscoelastic)]))
+        if sp.nonlinear_viscoelastic:
+            st.kappa = self._shared(z_full, "nonlinear_viscoelastic")["kappa"]
+        if sp.mullins:
+            v = self._shared(z_full, "mullins")
+            st.mullins = (1.0 / max(v["s"], 1e-12), math.exp(v["m"]), v.get("beta", 0.0))
+        if sp.damage:
+            v = self._shared(z_full, "damage")
+            st.damage = (v["onset"], math.exp(v["scale"]), v["shape"])
+        if sp.cyclic_softening:
+            v = self._shared(z_full, "cyclic_softening")
+            st.cyclic = (v["d_inf"], math.exp(v["eta"]))
+        if sp.permanent_set:
+            st.set_fraction = self._shared(z_full, "permanent_set")["fraction"]
+        self._file_state(st, z_full)
         return st
+
+    def _file_state(self, st: State, z_full: np.ndarray) -> None:
+        m = len(self.records)
+        st.slack, st.scale = np.zeros(m), np.ones(m)
+        st.slips = [np.zeros(len(r.slips)) if self.spec.grip_slip else np.zeros(0) for r in self.records]
+        for i in range(self.n_shared, len(self.slots)):
+            s = self.slots[i]
+            if s.effect == "slack":
+                st.slack[s.file] = z_full[i]
+            elif s.effect == "grip_slip":
+                st.slips[s.file][int(s.name[5:-1])] = z_full[i]
+            elif s.effect == "specimen_scale":
+                st.scale[list(s.group)] = math.exp(z_full[i])
 
     # ------------------------------------------------------------ forward model
     def _key(self, k: int, st: State):
         r = self.records[k]
         params = st.base[r.key if self.directions else None]
         delta = float(st.slack[k]) if st.slack is not None else 0.0
-        return (tuple(sorted(params.items())), delta), params, delta
+        slips = tuple(float(v) for v in st.slips[k]) if st.slips else ()
+        return (tuple(sorted(params.items())), delta, slips, st.set_fraction), params
 
-    def _compute_elastic(self, mode: str, params, xs: list[np.ndarray]):
-        """(P_e, W, ξ) for several stretch arrays of one mode and parameter set, in one call each."""
-        x = np.concatenate(xs) if len(xs) > 1 else xs[0]
+    def _x_true(self, k: int, st: State, idx: np.ndarray) -> np.ndarray:
+        """The specimen's stretch at samples *idx* after the slips and the slack."""
+        r = self.records[k]
+        x = r.x[idx]
+        if st.slips and st.slips[k].size and np.any(st.slips[k]):
+            for e, d in zip(r.slips, st.slips[k]):
+                x = x - d * (idx >= e)
+        delta = float(st.slack[k]) if st.slack is not None else 0.0
+        return np.maximum(x / (1.0 + delta), 1.0) if delta > 0.0 else x
+
+    def _compute_elastic(self, mode: str, params, xs: list[np.ndarray], set_fraction: float):
+        """(P_e, W, ξ) for several true-stretch arrays of one mode and parameter set, in one call each."""
+        lam_s = [set_stretch(np.maximum.accumulate(x), set_fraction) for x in xs] if set_fraction > 0 \
+            and mode != "simple_shear" else [None] * len(xs)
+        xe = [x if s is None else x / s for x, s in zip(xs, lam_s)]
+        x = np.concatenate(xe) if len(xe) > 1 else xe[0]
+        need_w = self.spec.mullins or self.spec.cyclic_softening
+        need_xi = self.spec.damage or self.spec.nonlinear_viscoelastic
         with np.errstate(all="ignore"):
             pe = np.asarray(nominal_stress(self.model, params, mode, x), float)
-            w = np.asarray(energy_density(self.model, params, mode, x), float) if self.spec.mullins else None
-            xi = None
-            if self.spec.damage:
-                i1, _ = invariants(mode, x)
-                xi = equivalent_stretch(i1)
+            w = np.asarray(energy_density(self.model, params, mode, x), float) if need_w else None
         cuts = np.cumsum([a.size for a in xs])[:-1]
 
         def split(a):
             return [None] * len(xs) if a is None else np.split(a, cuts)
 
-        return list(zip(split(pe), split(w), split(xi)))
-
-    def _x_true(self, k: int, delta: float, idx: np.ndarray) -> np.ndarray:
-        x = self.records[k].x[idx]
-        return np.maximum(x / (1.0 + delta), 1.0) if delta > 0.0 else x
+        pes = [p if s is None else p / s for p, s in zip(split(pe), lam_s)]
+        xis = [_xi(mode, xx) for xx in xs] if need_xi else [None] * len(xs)
+        return list(zip(pes, split(w), xis))
 
     def _remember(self, k: int, key, value) -> None:
         c = self._cache[k]
@@ -526,28 +547,30 @@ class Problem:
         """Compute the elastic responses of records *ks* missing from the cache, batched by mode."""
         groups: dict = {}
         for k in ks:
-            key, params, delta = self._key(k, st)
+            key, params = self._key(k, st)
             c = self._cache[k]
             if key in c:
                 c[key] = c.pop(key)  # most recently used
                 continue
             gk = (self.records[k].test.mode, key[0])
-            groups.setdefault(gk, (params, []))[1].append((k, key, delta))
+            groups.setdefault(gk, (params, []))[1].append((k, key))
         for (mode, _), (params, items) in groups.items():
-            xs = [self._x_true(k, delta, self.records[k].fit_idx) for k, key, delta in items]
-            for (k, key, _), val in zip(items, self._compute_elastic(mode, params, xs)):
+            xs = [self._x_true(k, st, self.records[k].fit_idx) for k, _ in items]
+            for (k, key), val in zip(items, self._compute_elastic(mode, params, xs, st.set_fraction)):
                 self._remember(k, key, val)
 
     def _elastic(self, k: int, st: State, idx: np.ndarray, use_cache: bool):
-        """(P_e, W, ξ) on samples *idx* of record k (after slack)."""
-        key, params, delta = self._key(k, st)
+        """(P_e, W, ξ) on samples *idx* of record k (after slips, slack and set)."""
         if use_cache:
+            key, _ = self._key(k, st)
             hit = self._cache[k].get(key)
             if hit is None:
                 self.prefetch(st, [k])
                 hit = self._cache[k][key]
             return hit
-        return self._compute_elastic(self.records[k].test.mode, params, [self._x_true(k, delta, idx)])[0]
+        _, params = self._key(k, st)
+        return self._compute_elastic(self.records[k].test.mode, params, [self._x_true(k, st, idx)],
+                                     st.set_fraction)[0]
 
     def predict(self, k: int, st: State, idx: np.ndarray | None = None, *, use_cache: bool = True) -> np.ndarray:
         """Model stress of record k on samples *idx* (default: its fitting samples), before offsets."""
@@ -556,26 +579,41 @@ class Problem:
             idx = r.fit_idx
         else:
             use_cache = False
-        p = self.softened(k, st, idx, use_cache=use_cache)
+        pe, w, xi = self._elastic(k, st, idx, use_cache)
+        p = self._softened(k, st, pe, w, xi)
         if st.g is not None and r.t is not None:
-            p = qlv_stress(r.t[idx], p, st.g, st.tau)
+            q = qlv_stress(r.t[idx], p, st.g, st.tau)
+            if st.kappa:
+                with np.errstate(invalid="ignore"):
+                    q = p - relaxation_strength(xi, st.kappa, float(np.sum(st.g))) * (p - q)
+            p = q
         if r.tension_only:
             p = np.maximum(p, 0.0)
-        return p
+        return p * st.scale[k] if st.scale is not None else p
 
-    def softened(self, k: int, st: State, idx: np.ndarray, *, use_cache: bool = True) -> np.ndarray:
-        """Elastic stress after slack, damage and Mullins softening (before relaxation)."""
+    def _softened(self, k: int, st: State, pe, w, xi) -> np.ndarray:
+        """Elastic stress after damage, Mullins and cyclic softening (before relaxation)."""
         r = self.records[k]
-        pe, w, xi = self._elastic(k, st, idx, use_cache)
         p = pe
         if st.damage is not None:
-            xm = np.maximum.accumulate(xi) if r.history else xi
-            p = p * damage_factor(xm, *st.damage)
-        if st.mullins is not None and r.history:
-            wm = np.maximum.accumulate(np.where(np.isfinite(w), w, np.inf))
+            p = p * damage_factor(np.maximum.accumulate(xi) if r.history else xi, *st.damage)
+        if r.history and (st.mullins is not None or st.cyclic is not None):
             with np.errstate(invalid="ignore"):
-                p = p * mullins_factor(w, wm, *st.mullins)
+                if st.mullins is not None:
+                    wm = np.maximum.accumulate(np.where(np.isfinite(w), w, np.inf))
+                    p = p * mullins_factor(w, wm, *st.mullins)
+                if st.cyclic is not None:
+                    p = p * cyclic_factor(accumulated_energy(w), *st.cyclic)
         return p
+
+    def elastic(self, k: int, st: State) -> tuple:
+        """(P_e, W, ξ) of record k on its fitting samples (W, ξ None where no effect needs them)."""
+        return self._elastic(k, st, self.records[k].fit_idx, True)
+
+    def softened(self, k: int, st: State, idx: np.ndarray, *, use_cache: bool = True) -> np.ndarray:
+        """Elastic stress after slips, slack, set and softening (before relaxation), on samples *idx*."""
+        pe, w, xi = self._elastic(k, st, idx, use_cache)
+        return self._softened(k, st, pe, w, xi)
 
     def add_offsets(self, k: int, pred: np.ndarray, coef: np.ndarray | None, idx: np.ndarray | None = None,
                     ) -> np.ndarray:
@@ -594,6 +632,7 @@ class Problem:
             self._X = saved
 
     def offset_columns(self, k: int, idx: np.ndarray) -> np.ndarray | None:
+        """Design of record k's offset (and drift, (t - t0)/T) on samples *idx*; None without an offset."""
         n_o = self.n_offset[k]
         if not n_o:
             return None
@@ -602,6 +641,16 @@ class Problem:
         if n_o == 2:
             cols.append((r.t[idx] - r.t[0]) / (r.T or 1.0))
         return np.stack(cols, axis=1)
+
+    def free_offset_columns(self, k: int, idx: np.ndarray) -> np.ndarray | None:
+        """The fitted columns of :meth:`offset_columns` (an offset read at rest is held; None if nothing is fitted)."""
+        X = self.offset_columns(k, idx)
+        if X is None or self.pinned[k] is None:
+            return X
+        return X[:, 1:] if X.shape[1] > 1 else None
+
+    def n_free_offsets(self, k: int) -> int:
+        return self.n_offset[k] - (1 if self.pinned[k] is not None and self.n_offset[k] else 0)
 
     def residual_block(self, k: int, st: State) -> tuple[np.ndarray, np.ndarray | None]:
         """Normalised residual block of record k (training samples) and its offset coefficients."""
@@ -614,16 +663,27 @@ class Problem:
         res = pred - y
         coef = None
         X = self._X[k]
+        pin = self.pinned[k] if self.n_offset[k] else None
+        if pin is not None:
+            res = res + pin
+            coef = np.array([pin] + [0.0] * (self.n_offset[k] - 1))
         if X is not None and res.size:
             good = np.isfinite(res)
             if good.sum() > X.shape[1]:
-                coef, *_ = np.linalg.lstsq(X[good], -res[good], rcond=None)
-                res = res + X @ coef
+                c, *_ = np.linalg.lstsq(X[good], -res[good], rcond=None)
+                res = res + X @ c
+                coef = c if pin is None else np.concatenate([[pin], c])
         out = self.factor[k] * res / r.scale
         bad = ~np.isfinite(out)
         if bad.any():
             out[bad] = NAN_PENALTY
         return out, coef
+
+    def constraint_residual(self, z_full: np.ndarray) -> np.ndarray:
+        """The row holding the specimen scales' geometric mean at 1 (empty without scales)."""
+        if len(self.scale_ref) < 2:
+            return np.zeros(0)
+        return np.array([SCALE_CONSTRAINT * float(np.mean(z_full[self.scale_ref]))])
 
     # ------------------------------------------------------------ objective
     def _full(self, z: np.ndarray) -> np.ndarray:
@@ -631,21 +691,25 @@ class Problem:
         zf[self.active] = z
         return zf
 
+    def _trained(self) -> list[int]:
+        return [k for k in range(len(self.records)) if self.n_train[k]]
+
     def residuals(self, z: np.ndarray) -> np.ndarray:
-        st = self.state(self._full(z))
-        self.prefetch(st, [k for k in range(len(self.records)) if self.n_train[k]])
+        zf = self._full(z)
+        st = self.state(zf)
+        self.prefetch(st, self._trained())
         blocks = [self.residual_block(k, st)[0] if self.n_train[k] else np.zeros(0) for k in range(len(self.records))]
-        return np.concatenate(blocks)
+        return np.concatenate(blocks + [self.constraint_residual(zf)])
 
     def jac(self, z: np.ndarray) -> np.ndarray:
         zf = self._full(z)
         st0 = self.state(zf)
-        self.prefetch(st0, [k for k in range(len(self.records)) if self.n_train[k]])
+        self.prefetch(st0, self._trained())
         base_blocks = [self.residual_block(k, st0)[0] if self.n_train[k] else np.zeros(0)
                        for k in range(len(self.records))]
         offs = np.concatenate([[0], np.cumsum([b.size for b in base_blocks])])
-        r0 = np.concatenate(base_blocks)
-        J = np.zeros((r0.size, len(self.active)))
+        n_c = self.constraint_residual(zf).size
+        J = np.zeros((int(offs[-1]) + n_c, len(self.active)))
         for c, i in enumerate(self.active):
             s = self.slots[i]
             h = 1e-6 * max(1.0, abs(zf[i]))
@@ -654,12 +718,12 @@ class Problem:
             zp = zf.copy()
             zp[i] += h
             stp = self.state(zp)
-            files = [k for k in range(len(self.records)) if self.n_train[k]] if s.file is None else [s.file]
+            files = [k for k in (s.records or self._trained()) if self.n_train[k]]
             self.prefetch(stp, files)
             for k in files:
-                if not self.n_train[k]:
-                    continue
                 J[offs[k]:offs[k + 1], c] = (self.residual_block(k, stp)[0] - base_blocks[k]) / h
+            if n_c and i in self.scale_ref:
+                J[-1, c] = SCALE_CONSTRAINT / len(self.scale_ref)
         return J
 
     def cost(self, z: np.ndarray) -> float:
@@ -715,5 +779,59 @@ class Problem:
         return out
 
     def n_params(self) -> int:
-        """Free parameters: active slots + offset coefficients of the training records."""
-        return int(len(self.active) + sum(n for k, n in enumerate(self.n_offset) if self.n_train[k]))
+        """Free parameters: active slots + offset coefficients of the training records - the scale constraint."""
+        k = int(len(self.active) + sum(self.n_free_offsets(j) for j in range(len(self.records)) if self.n_train[j]))
+        return k - (1 if len(self.scale_ref) >= 2 else 0)
+
+
+_XI_CACHE: dict = {}
+
+
+def _xi(mode: str, x: np.ndarray) -> np.ndarray:
+    """Uniaxial-equivalent stretch of *x* in *mode* (memoised: it depends on the kinematics only)."""
+    key = (mode, x.size, hash(x.tobytes()))
+    hit = _XI_CACHE.get(key)
+    if hit is None:
+        hit = equivalent_stretch(invariants(mode, x)[0])
+        if len(_XI_CACHE) > 256:
+            _XI_CACHE.clear()
+        _XI_CACHE[key] = hit
+    return hit
+
+
+def _effect_values(effects: MaterialEffects) -> dict[tuple[str, str], float]:
+    """Optimiser values of the slots of saved material *effects* (effect, slot name) -> value."""
+    vals: dict[tuple[str, str], float] = {}
+    v = effects.viscoelastic
+    if v is not None:
+        rest = 1.0
+        for j, (g, tau) in enumerate(zip(v.g, v.tau)):
+            vals[("viscoelastic", f"u[{j}]")] = g / rest if rest > 0 else 0.0
+            rest -= g
+            vals[("viscoelastic", f"tau[{j}]")] = math.log(tau)
+        vals[("nonlinear_viscoelastic", "kappa")] = v.kappa
+    if effects.mullins is not None:
+        m = effects.mullins
+        vals.update({("mullins", "s"): 1.0 / m.r, ("mullins", "m"): math.log(m.m), ("mullins", "beta"): m.beta})
+    if effects.damage is not None:
+        d = effects.damage
+        vals.update({("damage", "onset"): d.onset, ("damage", "scale"): math.log(d.scale),
+                     ("damage", "shape"): d.shape})
+    if effects.cyclic_softening is not None:
+        c = effects.cyclic_softening
+        vals.update({("cyclic_softening", "d_inf"): c.d_inf, ("cyclic_softening", "eta"): math.log(c.eta)})
+    if effects.permanent_set is not None:
+        vals[("permanent_set", "fraction")] = effects.permanent_set.fraction
+    return vals
+
+
+def spec_of_effects(effects: MaterialEffects, terms=()) -> Spec:
+    """The Spec of saved material *effects* (and strain-energy *terms*)."""
+    v = effects.viscoelastic
+    return Spec(viscoelastic=len(v.g) if v else 0, nonlinear_viscoelastic=int(bool(v and v.kappa)),
+                mullins=3 if effects.mullins else 0, damage=3 if effects.damage else 0,
+                cyclic_softening=2 if effects.cyclic_softening else 0,
+                permanent_set=int(effects.permanent_set is not None), terms=tuple(terms))
+
+
+__all__ = ["VARIANTS", "EFFECTS", "CANDIDATES", "Spec", "Slot", "State", "Bounds", "Problem", "spec_of_effects"]

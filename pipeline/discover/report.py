@@ -27,6 +27,7 @@ from ..atomicio import atomic_path, write_json, write_text
 from ..calibrate.report import display_stress_unit
 from ..materials.effects import ARTEFACTS, MATERIAL_EFFECTS, MaterialEffects
 from ..materials.material import Material
+from ..materials.terms import TERMS
 from .covariates import thin
 from .fitted import Fitted
 from .search import DiscoverResult, discover
@@ -40,6 +41,11 @@ _NICE = {
     "damage": "damage (irreversible softening past a stretch)",
     "slack": "slack (the specimen was not taut at zero displacement)",
     "sensor_offset": "a load-cell offset and drift",
+    "nonlinear_viscoelastic": "stretch-dependent relaxation",
+    "cyclic_softening": "softening from cycle to cycle (preconditioning)",
+    "permanent_set": "a residual strain (permanent set) that grows with the largest stretch",
+    "specimen_scale": "a stress scale per specimen (cross-section error or specimen-to-specimen variation)",
+    "grip_slip": "slips of the specimen in the grips",
 }
 
 
@@ -93,14 +99,22 @@ def result_to_dict(res: DiscoverResult) -> dict[str, Any]:
         "samples": int(sum(r.test.n for r in res.records)),
         "fitting_samples": int(sum(r.fit_idx.size for r in res.records)),
         "base": {"model": res.model, **_errors_doc(base), **_params_doc(base),
-                 "lag1": d0.lag1 if d0 else None, "runs_z": d0.runs_z if d0 else None},
+                 "lag1": d0.lag1 if d0 else None, "runs_z": d0.runs_z if d0 else None,
+                 "chi2_per_sample": d0.chi2 if d0 else None},
         "effects": list(res.kept),
+        "noise": {r.name: {"sd_Pa": r.sigma, "sd_of_range": r.sigma / r.range,
+                           "at_rest": (dict(zip(("mean_Pa", "sd_Pa", "samples"), r.preload()))
+                                       if r.preload() is not None else None)} for r in res.records},
+        "ruptures": res.cuts,
+        "slips": {r.name: [int(k) for k in r.slips] for r in res.records if r.slips},
+        "outcome": res.outcome,
         "final": {
-            "model": res.model, **_errors_doc(fin), **_params_doc(fin),
+            "model": res.final_model, "terms": res.terms, **_errors_doc(fin), **_params_doc(fin),
             "effects": res.material_effects.to_dict(),
             "artefacts": {n: res.candidates[n].params for n in res.kept if n in ARTEFACTS},
             "parameters": {e.key: e.to_dict() for e in fin.estimates},
             "lag1": dl.lag1 if dl else None, "runs_z": dl.runs_z if dl else None,
+            "chi2_per_sample": dl.chi2 if dl else None,
         },
         "candidates": [c.to_dict() for c in res.candidates.values()],
         "not_identifiable": list(res.not_identifiable),
@@ -119,9 +133,13 @@ def _pct(v: float | None) -> str:
     return "–" if v is None or not math.isfinite(v) else f"{100 * v:.2f} %"
 
 
+def _num(v: float | None, fmt: str = ".4g") -> str:
+    return "–" if v is None or not math.isfinite(v) else format(v, fmt)
+
+
 def _effect_sentence(res: DiscoverResult, name: str) -> str:
     me = res.material_effects
-    p = res.candidates[name].params
+    p = res.candidates[name].params or {}
     if name == "viscoelastic" and me.viscoelastic is not None:
         v = me.viscoelastic
         taus = ", ".join(f"{t:.3g} s" for t in v.tau)
@@ -141,6 +159,25 @@ def _effect_sentence(res: DiscoverResult, name: str) -> str:
                     f"stretch reached ({xm:.3g}) the stress is {100 * lost:.0f} % below the unsoftened curve")
         return (f"it is damaged irreversibly beyond a stretch of about {d.onset:.3g}: at the largest stretch "
                 f"reached ({xm:.3g}) the stress is {100 * lost:.0f} % below the undamaged curve")
+    if name in TERMS:
+        return f"its elastic law needs the strain-energy term {name} ({TERMS[name].equation}), for {TERMS[name].addresses}"
+    if name == "nonlinear_viscoelastic" and me.viscoelastic is not None:
+        k = me.viscoelastic.kappa
+        return (f"the amount that relaxes {'grows' if k > 0 else 'falls'} with stretch (kappa {k:.3g}: "
+                f"x{math.exp(k * (res.final.problem.bounds.xi_span)):.2g} over the stretches tested)")
+    if name == "cyclic_softening" and me.cyclic_softening is not None:
+        return (f"it softens from cycle to cycle at the same amplitude, up to {100 * me.cyclic_softening.d_inf:.0f} % "
+                "when cycled long enough (preconditioning)")
+    if name == "permanent_set" and me.permanent_set is not None:
+        return (f"it keeps a residual strain: after a stretch λ it is stress-free only at "
+                f"1 + {me.permanent_set.fraction:.3g}(λ - 1)")
+    if name == "specimen_scale":
+        f = sorted(v["scale"] for v in p.values())
+        return (f"the specimens differ in stiffness by factors {f[0]:.3g}–{f[-1]:.3g} (a cross-section measured "
+                "wrong or specimen-to-specimen variation); the material is their geometric mean")
+    if name == "grip_slip":
+        n = sum(len(v) for v in p.values())
+        return f"the specimen slipped in the grips {n} time(s); the stretch after each slip has been corrected"
     if name == "slack":
         mm = [v["length_m"] * 1e3 for v in p.values() if v.get("length_m") is not None]
         if mm:
@@ -162,6 +199,27 @@ def _effect_sentence(res: DiscoverResult, name: str) -> str:
     return _NICE.get(name, name)
 
 
+def _kinds_sentences(res: DiscoverResult) -> list[str]:
+    """What each kind of kept candidate means: artefacts corrected, material effects and terms travel."""
+    out = []
+    arte = [n for n in res.kept if n in ARTEFACTS]
+    mat = [n for n in res.kept if n in MATERIAL_EFFECTS + ("nonlinear_viscoelastic",)]
+    terms = res.terms
+    if arte:
+        out.append("The " + " and ".join(arte).replace("_", " ") + " correction" + ("s are" if len(arte) > 1 else " is")
+                   + " a flaw of the measurement, not of the material: it is removed from the data, "
+                   "and the material is fitted to the corrected data.")
+    if mat:
+        out.append("The " + ", ".join(mat).replace("_", " ") + (" effects are" if len(mat) > 1 else " effect is")
+                   + " part of the material and travel with it into params.toml"
+                   + (" (the elastic parameters are then the instantaneous response)" if "viscoelastic" in mat
+                      else "") + ".")
+    if terms:
+        out.append(f"The elastic law is now {res.final_model}: the ESEDF plus {', '.join(terms)}; its stiffness "
+                   "tables for the network follow from its energy as for the ESEDF.")
+    return out
+
+
 def plain_language(res: DiscoverResult) -> str:
     """A paragraph a lab technician can read."""
     b, f = res.base, res.final
@@ -171,35 +229,27 @@ def plain_language(res: DiscoverResult) -> str:
         f"error of {_pct(b.errors.nrmse)} of the measured stress range ({_pct(b.heldout.nrmse if b.heldout else None)} "
         f"on data held out of the fit: {res.scheme})."
     ]
+    for name, cut in res.cuts.items():
+        words.append(f"{name} ruptured at stretch {cut['stretch']:.4g}; the {cut['dropped']} samples after the "
+                     "rupture are not the material's response and were left out.")
     d0 = res.diagnoses[0] if res.diagnoses else None
     if d0 is not None:
         if d0.white:
-            words.append("Its residual looks like measurement noise (no trend, no pattern).")
+            words.append("Its residual is at the level of the measurement noise (estimated from the records "
+                         "themselves): nothing systematic is missing.")
         else:
-            words.append(f"Its residual is not random (neighbouring samples correlate at {d0.lag1:.2f}): "
-                         "the model misses something systematic.")
+            words.append(f"Its residual is {math.sqrt(max(d0.chi2, 0.0)):.3g} times the measurement noise and not "
+                         f"random (neighbouring samples correlate at {d0.lag1:.2f}): the model misses something "
+                         "systematic.")
     if res.kept:
         parts = [_effect_sentence(res, n) for n in res.kept]
         words.append("Adding what the data show — " + "; ".join(parts) + " — brings the error to "
                      f"{_pct(f.errors.nrmse)} ({_pct(f.heldout.nrmse if f.heldout else None)} held out).")
-        arte = [n for n in res.kept if n in ARTEFACTS]
-        mat = [n for n in res.kept if n in MATERIAL_EFFECTS]
-        if arte:
-            words.append("The " + " and ".join(arte).replace("_", " ") + " correction" + ("s are" if len(arte) > 1 else " is")
-                         + " a flaw of the measurement, not of the material: it is removed from the data, "
-                         "and the material is fitted to the corrected data.")
-        if mat:
-            words.append("The " + ", ".join(mat) + (" effects are" if len(mat) > 1 else " effect is")
-                         + " part of the material and travel with it into params.toml"
-                         + (" (the elastic parameters are then the instantaneous response)" if "viscoelastic" in mat
-                            else "") + ".")
-    else:
-        if d0 is not None and d0.white:
-            words.append("Nothing more to add: none of the candidate effects explains what is left, which is noise.")
-        else:
-            words.append("None of the candidate effects explains the remaining misfit well enough to keep it "
-                         "(on the fitted data and on held-out data); what is left is likely a limit of the base "
-                         "model's shape or of the data, not a missing effect from the list.")
+        words += _kinds_sentences(res)
+    elif d0 is not None and d0.white:
+        words.append("Nothing more to add: what is left is noise.")
+    if res.outcome:
+        words.append(res.outcome[0].upper() + res.outcome[1:])
     rejected = [n for n, c in res.candidates.items() if not c.kept and c.applicable and c.identifiable]
     if rejected:
         words.append("Tried and not kept: " + ", ".join(rejected).replace("_", " ") + ".")
@@ -224,8 +274,9 @@ def summary_lines(res: DiscoverResult) -> list[str]:
         f"max {f.errors.max_abs:.4g} Pa  held-out NRMSE {_pct(f.heldout.nrmse if f.heldout else None)}",
     ]
     for c in res.candidates.values():
-        da = "" if c.delta_aicc is None else f" ΔAICc {c.delta_aicc:+.1f}"
-        lines.append(f"  {'+' if c.kept else '-'} {c.name:<14}{da}: {c.reason}")
+        lines.append(f"  {'+' if c.kept else '-'} {c.name:<22} {c.reason}")
+    if res.outcome:
+        lines.append("  left: " + res.outcome)
     return lines
 
 
@@ -254,12 +305,15 @@ def markdown(res: DiscoverResult, *, plots: bool = True) -> str:
         n = e0["file"]
         L.append(f"| {n} | {_pct(e0['nrmse'])} | {_pct(e1['nrmse'])} | {_pct(hb.get(n, {}).get('nrmse'))} | "
                  f"{_pct(hf.get(n, {}).get('nrmse'))} |")
-    L += ["", "## Effects", "", "| effect | kind | kept | variant | ΔAICc | held-out NRMSE | first-order share | reason |",
-          "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    L += ["", "## Candidates", "", "Fitted Δχ²: the fit's improvement in noise variances (noise estimated from each "
+          "record alone); penalty ln N per parameter. Held-out z: the held-out improvement in standard errors "
+          "(needs 2). docs/discover.md section 3.", "",
+          "| candidate | kind | kept | variant | fitted Δχ² | noise BIC | held-out NRMSE | held-out z | ΔAICc | reason |",
+          "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for c in res.candidates.values():
-        da = "–" if c.delta_aicc is None else f"{c.delta_aicc:+.1f}"
-        L.append(f"| {c.name} | {c.kind} | {'yes' if c.kept else 'no'} | {c.variant or '–'} | {da} | "
-                 f"{_pct(c.heldout_nrmse)} | {100 * c.score:.1f} % | {c.reason} |")
+        L.append(f"| {c.name} | {c.kind} | {'yes' if c.kept else 'no'} | {c.variant or '–'} | {_num(c.dchi2)} | "
+                 f"{_num(c.dbic_noise, '+.1f')} | {_pct(c.heldout_nrmse)} | {_num(c.heldout_z, '+.1f')} | "
+                 f"{_num(c.delta_aicc, '+.1f')} | {c.reason} |")
     L += ["", "## Final parameters (95 % confidence intervals)", "", "| parameter | value | 95 % interval | unit |",
           "| --- | --- | --- | --- |"]
     for e in f.estimates:
@@ -267,10 +321,16 @@ def markdown(res: DiscoverResult, *, plots: bool = True) -> str:
         L.append(f"| {e.key} | {e.value:.6g}{flag} | [{e.lower:.4g}, {e.upper:.4g}] | {e.unit or '–'} |")
     for k, v in res.settings["fixed"].items():
         L.append(f"| {k} | {v:.6g} (held) | – | – |")
+    L += ["", "## Measurement noise (from each record alone)", "",
+          "| file | noise sd | of the range | at rest before loading |", "| --- | --- | --- | --- |"]
+    for r in res.records:
+        pre = r.preload()
+        L.append(f"| {r.name} | {r.sigma:.4g} Pa | {100 * r.sigma / r.range:.3g} % | "
+                 f"{'–' if pre is None else f'{pre[0]:.4g} ± {pre[1]:.3g} Pa ({pre[2]} samples)'} |")
     L += ["", "## Residual structure by round", ""]
     for i, d in enumerate(res.diagnoses, start=1):
-        L.append(f"Round {i}: lag-1 autocorrelation {d.lag1:.2f}, runs-test z {d.runs_z:.1f}"
-                 f"{' (looks like noise)' if d.white else ''}.")
+        L.append(f"Round {i}: {d.chi2:.3g} noise variances per sample, lag-1 autocorrelation {d.lag1:.2f}, "
+                 f"runs-test z {d.runs_z:.1f}{' (at the noise level)' if d.white else ''}.")
         for n in d.ranking:
             L.append(f"- {n}: {d.why.get(n, '')}")
         L.append("")
@@ -300,8 +360,10 @@ def params_toml(res: DiscoverResult, *, which: str = "final", stress_unit: str |
     me = res.material_effects if which == "final" else MaterialEffects()
     if me:
         meta["effects"] = me.to_toml_table(stress_unit=unit)
-    mat = Material(model=res.model, params=dict(st.base[None]), directions=directions,
-                   name=f"{res.model} {'with ' + ', '.join(me.names) if me else '(base)'} from esmm discover",
+    model = f.problem.model.name
+    mat = Material(model=model, params=dict(st.base[None]), directions=directions,
+                   name=f"{model}{' with ' + ', '.join(me.names) if me else ''} from esmm discover"
+                        + ("" if which == "final" else " (base model alone)"),
                    source="esmm calibrate --discover " + " ".join(r.name for r in res.records),
                    metadata=meta, stress_unit=unit)
     e = f.errors
@@ -329,9 +391,9 @@ def plot_residuals(path: str | Path, res: DiscoverResult, *, which: str = "base"
     unit, fac = display_stress_unit([r.scale for r in res.records])
     fig, ax = plt.subplots(2, 2, figsize=(13, 8.5), constrained_layout=True)
     seg_res = _draw_records(ax, res, f, fac, plt.get_cmap("tab10"))
-    ax[0, 0].set(xlabel="stretch λ (γ for shear)", ylabel=f"nominal stress [{unit}]",
-                 title=f"{'base ' + res.model if which == 'base' else 'final: +' + (', '.join(res.kept) or 'nothing')}: "
-                       f"data (dots) and model (lines)")
+    what = 'base ' + res.model if which == 'base' else 'final: +' + (', '.join(res.kept) or 'nothing')
+    ax[0, 0].set(xlabel="stretch λ (γ for shear)", ylabel=f"nominal stress [{unit}]")
+    ax[0, 0].set_title(f"{what}: data (dots) and model (lines)", fontsize=9 if len(what) > 40 else None, wrap=True)
     if len(res.records) <= 12:
         ax[0, 0].legend(fontsize=6, loc="best")
     ax[0, 1].axhline(0, color="k", lw=0.5)
@@ -388,51 +450,84 @@ def write_corrected(folder: str | Path, res: DiscoverResult) -> list[Path]:
     """Artefact-corrected copies of the raw files (time, displacement, force; or stretch, stress).
 
     Slack: the displacement is shifted so that zero is where the specimen
-    became taut, and the gauge length is the taut length (``L0 + s``).
+    became taut, and the gauge length is the taut length (``L0 + s``). Slips:
+    the extension lost at each slip is taken off the displacement from then on.
     Offset: the estimated offset and drift are subtracted from the force.
+    Specimen scale: the cross-section becomes ``c`` times the stated one (the
+    force is what was measured). A record cut at a rupture is written up to it.
     """
     folder = Path(folder)
-    f = res.final
     if not any(n in ARTEFACTS for n in res.kept):
         return []
+    f = res.final
     st = f.state
     coefs = f.problem.offsets(f.z)
-    out = []
-    for k, r in enumerate(res.records):
-        t = r.test
-        delta = float(st.slack[k]) if st.slack is not None else 0.0
-        X = f.problem.offset_columns(k, np.arange(t.n))
-        off = X @ coefs[k] if (X is not None and coefs[k] is not None) else np.zeros(t.n)
-        meta = [f"# corrected by esmm calibrate --discover from {t.source.name}"]
-        if t.force is not None and t.displacement is not None and r.gauge and r.area:
-            L0 = float(r.gauge)
-            s = delta * L0
-            force = t.force - off * r.area
-            disp = t.displacement - s
-            done = []
-            if "slack" in res.kept:
-                done.append(f"slack {s * 1e3:.4g} mm removed (gauge length is the taut length)")
-            if "sensor_offset" in res.kept:
-                done.append(f"load-cell offset {off[0] * r.area:+.4g} N"
-                            + (f" and drift {(off[-1] - off[0]) * r.area:+.4g} N over the test" if
-                               f.problem.n_offset[k] == 2 else "") + " removed")
-            meta += [f"# specimen: {t.specimen}", f"# gauge_length: {(L0 + s) * 1e3:.6g} mm",
-                     f"# area: {r.area * 1e6:.6g} mm2", f"# mode: {t.mode}",
-                     f"# notes: {'; '.join(done) or 'nothing to correct in this file'}"]
-            tt = t.time if t.time is not None else np.arange(t.n, dtype=float)
-            rows = ["time [s],displacement [mm],force [N]"]
-            rows += [f"{a:.6g},{b * 1e3:.6g},{c:.6g}" for a, b, c in zip(tt, disp, force)]
+    return [_write_one(folder, res, k, r, st, coefs[k]) for k, r in enumerate(res.records)]
+
+
+def _corrections(f: Fitted, k: int, st, coef) -> tuple[float, np.ndarray, np.ndarray, float]:
+    """(slack δ, stretch lost to slips per sample, offset per sample [Pa], scale) of record k."""
+    r = f.problem.records[k]
+    n = r.test.n
+    delta = float(st.slack[k]) if st.slack is not None else 0.0
+    lost = np.zeros(n)
+    if st.slips and st.slips[k].size:
+        for e, d in zip(r.slips, st.slips[k]):
+            lost[e:] += d
+    X = f.problem.offset_columns(k, np.arange(n))
+    off = X @ coef if (X is not None and coef is not None) else np.zeros(n)
+    scale = float(st.scale[k]) if st.scale is not None else 1.0
+    return delta, lost, off, scale
+
+
+def _write_one(folder: Path, res: DiscoverResult, k: int, r, st, coef) -> Path:
+    """The corrected copy of record k (see :func:`write_corrected`)."""
+    f = res.final
+    t = r.test
+    delta, lost, off, scale = _corrections(f, k, st, coef)
+    meta = [f"# corrected by esmm calibrate --discover from {t.source.name}"]
+    done = _done(res, f, k, r, delta, lost, off, scale)
+    if t.force is not None and t.displacement is not None and r.gauge and r.area:
+        L0 = float(r.gauge)
+        s = delta * L0
+        meta += [f"# specimen: {t.specimen}", f"# gauge_length: {(L0 + s) * 1e3:.6g} mm",
+                 f"# area: {r.area * scale * 1e6:.6g} mm2", f"# mode: {t.mode}",
+                 f"# notes: {'; '.join(done) or 'nothing to correct in this file'}"]
+        tt = t.time if t.time is not None else np.arange(t.n, dtype=float)
+        rows = ["time [s],displacement [mm],force [N]"]
+        rows += [f"{a:.6g},{b * 1e3:.6g},{c:.6g}" for a, b, c in
+                 zip(tt, t.displacement - lost * L0 - s, t.force - off * r.area)]
+    else:
+        x = (t.stretch - lost) / (1.0 + delta) if delta else t.stretch - lost
+        y = (t.stress - off) / scale
+        meta += [f"# specimen: {t.specimen}", f"# mode: {t.mode}",
+                 f"# notes: {'; '.join(done) or 'nothing to correct in this file'}"]
+        head = "shear strain,shear stress [Pa]" if t.mode == "simple_shear" else "stretch,nominal stress [Pa]"
+        if t.time is not None:
+            rows = ["time [s]," + head] + [f"{a:.6g},{b:.8g},{c:.6g}" for a, b, c in zip(t.time, x, y)]
         else:
-            x = t.stretch / (1.0 + delta) if delta else t.stretch
-            y = t.stress - off
-            meta += [f"# specimen: {t.specimen}", f"# mode: {t.mode}"]
-            head = "shear strain,shear stress [Pa]" if t.mode == "simple_shear" else "stretch,nominal stress [Pa]"
-            if t.time is not None:
-                rows = ["time [s]," + head] + [f"{a:.6g},{b:.8g},{c:.6g}" for a, b, c in zip(t.time, x, y)]
-            else:
-                rows = [head] + [f"{b:.8g},{c:.6g}" for b, c in zip(x, y)]
-        out.append(write_text(folder / f"{t.source.stem}.csv", "\n".join(meta + rows) + "\n"))
-    return out
+            rows = [head] + [f"{b:.8g},{c:.6g}" for b, c in zip(x, y)]
+    return write_text(folder / f"{t.source.stem}.csv", "\n".join(meta + rows) + "\n")
+
+
+def _done(res: DiscoverResult, f: Fitted, k: int, r, delta, lost, off, scale) -> list[str]:
+    """What was corrected in record k, in words."""
+    done = []
+    L0 = float(r.gauge) if r.gauge else None
+    if "slack" in res.kept and delta:
+        done.append(f"slack {delta * L0 * 1e3:.4g} mm removed (gauge length is the taut length)" if L0
+                    else f"slack {100 * delta:.3g} % of the stretch removed")
+    if "grip_slip" in res.kept and lost[-1] > 0:
+        done.append(f"{len(r.slips)} grip slip(s), {lost[-1] * (L0 * 1e3 if L0 else 1):.4g} "
+                    f"{'mm' if L0 else '(stretch)'} of extension in all, taken off")
+    if "sensor_offset" in res.kept and f.problem.n_offset[k]:
+        done.append(f"load-cell offset {off[0] * (r.area or 1):+.4g} {'N' if r.area else 'Pa'}"
+                    + (" and its drift" if f.problem.n_offset[k] == 2 else "") + " removed")
+    if "specimen_scale" in res.kept and scale != 1.0:
+        done.append(f"specimen stress scale {scale:.4g}: the cross-section is {scale:.4g} times the stated one")
+    if r.cut:
+        done.append(f"record ends at the rupture (stretch {r.cut['stretch']:.4g})")
+    return done
 
 
 def _remove_stale_corrected(folder: Path, res: DiscoverResult) -> None:

@@ -1,21 +1,25 @@
-"""Close the loop: fit the base model, diagnose, add effects greedily, report before and after.
+"""Close the loop: fit the base model, diagnose, add effects and strain-energy terms greedily, report.
 
 :func:`discover` is the library entry point of ``esmm calibrate --discover``.
 
 Procedure (docs/discover.md):
 
-1. Fit the base model (:func:`esmm.pipeline.calibrate.fit.fit_material`, on
-   the thinned fitting samples) and measure its error on every sample, and on
-   held-out data (:mod:`.heldout`).
-2. Diagnose the residual (:mod:`.diagnose`): size, serial correlation, runs,
-   covariates, and the first-order share of each candidate effect.
-3. For every candidate that the data can identify: fit each variant (base +
-   kept effects + candidate, all parameters free), take the best variant by
-   AICc, and if its AICc beats the current model by at least
-   ``aicc_threshold`` run the held-out check. An effect is kept only if both
-   the AICc and the held-out error say so; among those that pass, the one with
-   the lowest AICc is kept. Repeat with what is left, until nothing passes.
-4. Report errors before and after, on the fitting data and held out.
+1. Prepare the records (cut at ruptures, noise estimated from each record
+   alone, slips located) and fit the base model
+   (:func:`esmm.pipeline.calibrate.fit.fit_material`, on the thinned fitting
+   samples); measure its error on every sample and on held-out data
+   (:mod:`.heldout`).
+2. Diagnose the residual (:mod:`.diagnose`): size against the noise, serial
+   correlation, covariates, and each candidate's first-order gain.
+3. Every candidate the data can identify (:mod:`.identify`) whose first-order
+   gain can pay for one parameter is fitted (base + kept + candidate, all
+   parameters free) in each of its variants; those whose fitted improvement
+   pays for their parameters in noise units (:func:`~.statistics.noise_test`)
+   go, best first, to the held-out check (:func:`~.statistics.paired_heldout`);
+   the first that passes is kept. If none passes alone, pairs of the best
+   three are tried. Repeat with what is left.
+4. Report errors before and after, fitted and held out; and when the residual
+   left is still systematic, say where it is and what it follows.
 """
 
 from __future__ import annotations
@@ -34,8 +38,9 @@ from ..calibrate.fit import FitResult, fit_material
 from ..calibrate.problem import fibre_directions, file_weights
 from ..errors import ConfigError, FitError
 from ..materials import get_model
-from ..materials.effects import ARTEFACTS, EFFECT_NAMES, MATERIAL_EFFECTS, MaterialEffects
+from ..materials.effects import ARTEFACTS, MATERIAL_EFFECTS, MaterialEffects
 from ..materials.loading import energy_density
+from ..materials.terms import TERMS
 from ..progress import Reporter, ensure
 from ..tensile.data import TensileTest
 from ..validate import number
@@ -43,84 +48,75 @@ from .diagnose import Diagnosis, diagnose
 from .estimates import estimates
 from .fitted import Fitted, effect_params, finish, fit_spec
 from .heldout import Fold, heldout, make_folds
-from .model import (
-    VARIANTS,
-    Bounds,
-    Problem,
-    Record,
-    Spec,
-    offset_applicable,
-    prepare,
-    slack_applicable,
-    view_test,
+from .identify import identifiability
+from .model import CANDIDATES, VARIANTS, Bounds, Problem, Spec
+from .records import Record, fitting_view, prepare
+from .trials import (
+    HELDOUT_Z,
+    MIN_NOISE_UNITS,
+    Trial,
+    best_variant,
+    check_heldout,
+    compared,
 )
-from .statistics import information, n_effective
 
-#: default ΔAICc an effect must reach (Burnham & Anderson: > 10 = no support for the simpler model)
-AICC_THRESHOLD = -10.0
-#: default relative reduction of the held-out NRMSE an effect must reach
-MIN_HELDOUT_GAIN = 0.05
-#: candidates whose first-order signature explains less of the residual than this are not fitted
-MIN_SHARE = 0.005
+#: the most strain-energy terms fitted per round (the best by their first-order gain)
+TERMS_PER_ROUND = 3
+#: the most candidates checked on held-out data per round (the best by their fitted improvement)
+CHECKS_PER_ROUND = 5
+
+
+def kind_of(name: str) -> str:
+    """``material`` (travels with the material), ``artefact`` (corrected per test) or ``elastic`` (a term)."""
+    if name in TERMS:
+        return "elastic"
+    return "artefact" if name in ARTEFACTS else "material"
 
 
 # --------------------------------------------------------------------------- results
 @dataclass
 class Candidate:
-    """The verdict on one effect (last round it was tried in)."""
+    """The verdict on one candidate (last round it was tried in)."""
 
     name: str
-    kind: str  # "material" or "artefact"
+    kind: str  # "material", "artefact" or "elastic"
     round: int = 0
     variant: str = ""
     delta_aicc: float | None = None
     delta_bic: float | None = None
+    dbic_noise: float | None = None
+    dchi2: float | None = None
     heldout_nrmse: float | None = None
     heldout_gain: float | None = None
+    heldout_z: float | None = None
+    heldout_noise_units: float | None = None
     kept: bool = False
     identifiable: bool = True
     applicable: bool = True
     reason: str = ""
     score: float = 0.0
+    gain_chi2: float = 0.0
     params: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "name": self.name, "kind": self.kind, "round": self.round, "variant": self.variant,
-            "delta_aicc": self.delta_aicc, "delta_bic": self.delta_bic,
-            "heldout_nrmse": self.heldout_nrmse, "heldout_gain": self.heldout_gain,
+            "delta_aicc": self.delta_aicc, "delta_bic": self.delta_bic, "dbic_noise": self.dbic_noise,
+            "dchi2": self.dchi2, "heldout_nrmse": self.heldout_nrmse, "heldout_gain": self.heldout_gain,
+            "heldout_z": self.heldout_z, "heldout_noise_units": self.heldout_noise_units,
             "kept": self.kept, "identifiable": self.identifiable, "applicable": self.applicable,
-            "first_order_share": self.score, "reason": self.reason, "params": self.params,
+            "first_order_share": self.score, "first_order_chi2": self.gain_chi2, "reason": self.reason,
+            "params": self.params,
         }
-
-
-@dataclass
-class Trial:
-    """A candidate model of one round: the fit, its information and that of the current model."""
-
-    name: str
-    fit: Fitted
-    info: dict[str, float]
-    ref: dict[str, float]  # the current model's, on the candidate's effective sample sizes
-    nu: list[float]  # the candidate's effective sample sizes
-
-    @property
-    def d_aicc(self) -> float:
-        return self.info["aicc"] - self.ref["aicc"]
-
-    @property
-    def d_bic(self) -> float:
-        return self.info["bic"] - self.ref["bic"]
 
 
 @dataclass(frozen=True)
 class Criteria:
-    """When an effect is kept, and when the search stops (see :func:`discover`)."""
+    """When a candidate is kept, and when the search stops (see :func:`discover`)."""
 
-    aicc_threshold: float = AICC_THRESHOLD
-    min_heldout_gain: float = MIN_HELDOUT_GAIN
-    max_effects: int = 4
-    min_share: float = MIN_SHARE
+    heldout_z: float = HELDOUT_Z
+    min_noise_units: float = MIN_NOISE_UNITS
+    max_effects: int = 6
 
 
 @dataclass
@@ -132,6 +128,7 @@ class Search:
     folds: list[Fold]
     candidates: dict[str, Candidate]
     testable: list[str]
+    crit: Criteria
     kept: list[str] = field(default_factory=list)
     diagnoses: list[Diagnosis] = field(default_factory=list)
     upgrades: list[str] = field(default_factory=list)
@@ -159,71 +156,36 @@ class DiscoverResult:
     warnings: list[str] = field(default_factory=list)
     seconds: float = 0.0
     base_fit: Any = None  # the FitResult of the base model
+    outcome: str = ""  # what is left, in words (empty when the residual is noise)
 
     @property
     def material_effects(self) -> MaterialEffects:
         me = self.final.state.material_effects()
         iv = {e.key: [e.lower, e.upper] for e in self.final.estimates
-              if e.key.split(".")[0] in MATERIAL_EFFECTS}
-        return MaterialEffects(me.viscoelastic, me.mullins, me.damage, iv)
+              if e.key.split(".")[0] in MATERIAL_EFFECTS + ("nonlinear_viscoelastic",)}
+        return MaterialEffects(me.viscoelastic, me.mullins, me.damage, iv, me.cyclic_softening, me.permanent_set)
+
+    @property
+    def final_model(self) -> str:
+        """The name of the final elastic law (the base model plus the kept terms, ``esedf+i2exp``)."""
+        return self.final.problem.model.name
 
     @property
     def artefacts(self) -> list[str]:
         return [n for n in self.kept if n in ARTEFACTS]
 
+    @property
+    def terms(self) -> list[str]:
+        return [n for n in self.kept if n in TERMS]
+
+    @property
+    def cuts(self) -> dict[str, dict[str, Any]]:
+        """Records cut at a rupture: file name -> where and how much."""
+        return {r.name: r.cut for r in self.records if r.cut}
+
     def base_params(self, which: str = "final") -> dict[str | None, dict[str, float]]:
         f = self.final if which == "final" else self.base
         return f.state.base
-
-
-# --------------------------------------------------------------------------- identifiability
-def identifiability(records: Sequence[Record]) -> dict[str, tuple[bool, bool, str]]:
-    """Can the data show each effect? name -> (applicable, identifiable, reason)."""
-    out: dict[str, tuple[bool, bool, str]] = {}
-    timed = [r for r in records if r.history]
-    rates = sorted({v for r in timed for v in r.cov.rates()})
-    several_rates = len(rates) >= 2 and rates[-1] / max(rates[0], 1e-300) >= 1.5
-    unloading = any(r.cov.has_unloading for r in timed)
-    holds = any(r.cov.has_hold and float(np.nanmax(r.cov.hold_time)) >= 5 * float(np.median(np.diff(r.t)))
-                for r in timed)
-    below = any(np.any(r.cov.below_max > 0.02) for r in timed)
-    if not timed:
-        out["viscoelastic"] = (True, False, "not identifiable from these data: no time column, so no rate, "
-                               "hold or loading history")
-    elif not (several_rates or unloading or holds):
-        out["viscoelastic"] = (True, False, "not identifiable from these data: one monotonic ramp at one rate "
-                               f"({rates[0] if rates else float('nan'):.3g} /s) cannot separate a rate effect from "
-                               "the elastic curve; test at a second rate, or add an unloading or a hold")
-    else:
-        why = [w for w, ok in (("several rates", several_rates), ("unloading", unloading), ("holds", holds)) if ok]
-        out["viscoelastic"] = (True, True, "identifiable: " + ", ".join(why))
-    if not timed:
-        out["mullins"] = (True, False, "not identifiable from these data: without a time column the row order "
-                          "is not a loading history")
-    elif not below:
-        out["mullins"] = (True, False, "not identifiable from these data: every sample is on the primary "
-                          "loading path; Mullins softening shows only on unloading or reloading below a "
-                          "previous maximum")
-    else:
-        out["mullins"] = (True, True, "identifiable: unloading or reloading below a previous maximum")
-    spans = [float(r.cov.drive.max()) - 1.0 for r in records]
-    if max(spans, default=0.0) < 0.01:
-        out["damage"] = (True, False, "not identifiable from these data: the deformation stays below 1 %")
-    else:
-        out["damage"] = (True, True, "identifiable: the primary loading curve reaches "
-                         f"an equivalent stretch of {1 + max(spans):.3g}")
-    if any(slack_applicable(r) for r in records):
-        out["slack"] = (True, True, "applicable: tension tests from the undeformed state")
-    else:
-        out["slack"] = (False, False, "not applicable: slack is an artefact of tension tests that start "
-                        "from zero displacement; these data have none")
-    if any(offset_applicable(r) for r in records):
-        out["sensor_offset"] = (True, True, "applicable: the data pass through the undeformed state, where the "
-                                "true force is zero")
-    else:
-        out["sensor_offset"] = (True, False, "not identifiable from these data: no sample near the undeformed "
-                                "state, where the true force is known to be zero")
-    return out
 
 
 # --------------------------------------------------------------------------- the loop
@@ -238,11 +200,10 @@ def discover(
     n_starts: int = 4,
     seed: int = 0,
     max_points: int = 400,
-    candidates: Sequence[str] = EFFECT_NAMES,
-    aicc_threshold: float = AICC_THRESHOLD,
-    min_heldout_gain: float = MIN_HELDOUT_GAIN,
-    max_effects: int = 4,
-    min_share: float = MIN_SHARE,
+    candidates: Sequence[str] = CANDIDATES,
+    heldout_z: float = HELDOUT_Z,
+    min_noise_units: float = MIN_NOISE_UNITS,
+    max_effects: int = 6,
     reporter: Reporter | None = None,
 ) -> DiscoverResult:
     """Find what the base model misses in *tests*, add it, and report before and after.
@@ -266,23 +227,21 @@ def discover(
     max_points : int
         Fitting samples per file (thinned; errors use all samples).
     candidates : sequence of str
-        Effects to consider (names of :data:`~esmm.pipeline.materials.effects.EFFECT_NAMES`).
-    aicc_threshold : float
-        An effect must lower the AICc by at least this much (negative number).
-    min_heldout_gain : float
-        ... and lower the held-out NRMSE by at least this fraction.
+        Effects, artefacts and strain-energy terms to consider
+        (:data:`~esmm.pipeline.discover.model.CANDIDATES`).
+    heldout_z : float
+        A candidate must predict held-out data better by this many standard errors ...
+    min_noise_units : float
+        ... and by at least this many noise variances per held-out sample.
     max_effects : int
-        Stop after this many effects.
-    min_share : float
-        Candidates whose first-order signature explains less than this share
-        of the residual are rejected without a fit.
+        Stop after this many kept candidates.
     reporter : Reporter, optional
 
     Returns
     -------
     DiscoverResult
     """
-    criteria = Criteria(aicc_threshold, min_heldout_gain, max_effects, min_share)
+    criteria = Criteria(heldout_z, min_noise_units, max_effects)
     with single_threaded_blas():
         return _discover(tests, model=model, base=base, fixed=fixed, free=free, weights=weights, n_starts=n_starts,
                          seed=seed, max_points=max_points, candidates=candidates, criteria=criteria,
@@ -299,8 +258,12 @@ def _discover(tests, *, model, base, fixed, free, weights, n_starts, seed, max_p
     records = prepare(tests, max_points=max_points, weights=w)
     rep.step(f"discover: {len(tests)} file(s), {sum(t.n for t in tests)} samples, "
              f"{sum(r.fit_idx.size for r in records)} used for fitting")
+    for r in records:
+        if r.cut:
+            rep.step(f"{r.name}: ruptured at stretch {r.cut['stretch']:.4g} (t = {r.cut['time']:.4g} s); the "
+                     f"{r.cut['dropped']} samples after it are not the material's response and are left out")
     # 1. the base model, fitted on the thinned samples, and its held-out error
-    base_fit = fit_material([view_test(r) for r in records], model=model, n_starts=n_starts, seed=seed,
+    base_fit = fit_material([fitting_view(r) for r in records], model=model, n_starts=n_starts, seed=seed,
                             fixed=fixed, free=tuple(free), weights=w,
                             initial=dict(base.params) if base is not None else None)
     start = _base_model(records, base_fit, fixed, directions)
@@ -311,16 +274,18 @@ def _discover(tests, *, model, base, fixed, free, weights, n_starts, seed, max_p
     start.estimates = estimates(start.problem, start.z)
     rep.step(f"base {model}: RMSE {start.errors.rmse:.4g} Pa, NRMSE {start.errors.nrmse:.2%}, "
              f"held-out NRMSE {start.heldout.nrmse:.2%} ({scheme})")
-    # 2.-3. add effects, one per round, while one passes both tests
-    search = _start_search(start, folds, records, candidates)
+    # 2.-3. add candidates, one per round, while one passes both tests
+    search = _start_search(start, folds, records, candidates, criteria)
     rnd = 1
-    while _round(search, rnd, criteria, rep):
+    while _round(search, rnd, rep):
         rnd += 1
+    _backward(search, rep)
     _final_verdicts(search, records)
     result = _result(search, base_fit, scheme, t_start, settings={
-        "max_points": max_points, "criterion": "AICc", "aicc_threshold": criteria.aicc_threshold,
-        "min_heldout_gain": criteria.min_heldout_gain, "n_starts": n_starts, "seed": seed,
-        "candidates": list(candidates)})
+        "max_points": max_points, "criterion": "noise-referenced BIC, then held-out paired test",
+        "heldout_z": criteria.heldout_z, "min_noise_units": criteria.min_noise_units,
+        "max_effects": criteria.max_effects, "n_starts": n_starts, "seed": seed, "candidates": list(candidates),
+        "noise_sd": {r.name: r.sigma for r in records}})
     rep.step(f"discover: kept {', '.join(search.kept) or 'nothing'}; NRMSE {start.errors.nrmse:.2%} -> "
              f"{search.current.errors.nrmse:.2%}, held-out {start.heldout.nrmse:.2%} -> "
              f"{search.current.heldout.nrmse:.2%} ({result.seconds:.1f} s)")
@@ -330,13 +295,14 @@ def _discover(tests, *, model, base, fixed, free, weights, n_starts, seed, max_p
 def _check(tests, *, model, candidates, criteria: Criteria, max_points) -> None:
     if not tests:
         raise FitError("no tensile data to analyse; give at least one file")
-    check_model(model)
-    bad = [c for c in candidates if c not in EFFECT_NAMES]
+    check_model(model, terms=False)  # the terms are the discovery's candidates, not its base
+    bad = [c for c in candidates if c not in CANDIDATES]
     if bad:
-        raise ConfigError(f"candidates: unknown effect {bad[0]!r}; the effects are {', '.join(EFFECT_NAMES)}",
-                          parameter="candidates")
-    number(criteria.aicc_threshold, "aicc_threshold", hi=0.0, hi_open=True)
-    number(criteria.min_heldout_gain, "min_heldout_gain", lo=0.0, hi=1.0, hi_open=True)
+        raise ConfigError(f"candidates: unknown effect or term {bad[0]!r}; the candidates are "
+                          f"{', '.join(CANDIDATES)}", parameter="candidates")
+    number(criteria.heldout_z, "heldout_z", lo=0.0)
+    number(criteria.min_noise_units, "min_noise_units", lo=0.0)
+    number(criteria.max_effects, "max_effects", lo=0, integer=True)
     number(max_points, "max_points", lo=20, integer=True)
 
 
@@ -367,189 +333,306 @@ def _largest_energy(m, records: list[Record], base_params, directions) -> float:
     return w_ref
 
 
-def _start_search(start: Fitted, folds: list[Fold], records: list[Record], considered: Sequence[str]) -> Search:
-    """Every effect's candidate, with the reason it is not tried where the data cannot show it."""
+def _start_search(start: Fitted, folds: list[Fold], records: list[Record], considered: Sequence[str],
+                  crit: Criteria) -> Search:
+    """Every candidate, with the reason it is not tried where the data cannot show it."""
     ident = identifiability(records)
     cands: dict[str, Candidate] = {}
-    for n in EFFECT_NAMES:
+    for n in CANDIDATES:
         applicable, ok, why = ident[n]
-        c = Candidate(n, "material" if n in MATERIAL_EFFECTS else "artefact", identifiable=ok,
-                      applicable=applicable)
+        c = Candidate(n, kind_of(n), identifiable=ok, applicable=applicable)
         if n not in considered:
             c.reason = "not considered (excluded by the caller)"
         elif not applicable or not ok:
             c.reason = why
         cands[n] = c
     testable = [n for n in considered if ident[n][0] and ident[n][1]]
-    return Search(start, start, folds, cands, testable)
+    return Search(start, start, folds, cands, testable, crit)
 
 
 # --------------------------------------------------------------------------- one round
-def _round(s: Search, rnd: int, crit: Criteria, rep) -> bool:
-    """Diagnose, try every candidate (and richer variants of kept effects), keep the best that passes.
+def _remaining(s: Search) -> list[str]:
+    """Candidates still to try (not kept). Stretch-dependent relaxation brings relaxation with it."""
+    return [n for n in s.testable if n not in s.kept]
+
+
+def _round(s: Search, rnd: int, rep) -> bool:
+    """Diagnose, try every candidate (and richer variants of kept effects), keep the first that passes.
 
     Returns False when the search is over.
     """
-    remaining = [n for n in s.testable if n not in s.kept]
+    remaining = _remaining(s)
     diag = diagnose(s.current.problem, s.current.z, candidates=remaining, errors=s.current.errors)
     s.diagnoses.append(diag)
-    upgradable = [n for n in s.kept if getattr(s.current.spec, n) < max(VARIANTS[n])]
-    if (not remaining and not upgradable) or len(s.kept) >= crit.max_effects:
+    upgradable = [n for n in s.kept if n in VARIANTS and s.current.spec.variant(n) < max(VARIANTS[n])]
+    if (not remaining and not upgradable) or len(s.kept) >= s.crit.max_effects:
         return False
-    order = [x for x in diag.ranking if x in remaining] + [x for x in remaining if x not in diag.ranking]
+    order = _order(s, remaining, diag, rnd)
     with rep.task(f"round {rnd}: trying {', '.join(order + [u + ' (more terms)' for u in upgradable])}",
                   total=len(order) + len(upgradable)) as adv:
-        trials, singles = _try_candidates(s, order, diag, rnd, crit, adv)
-        trials += _try_upgrades(s, upgradable, crit, adv)
-    trials.sort(key=lambda t: t.d_aicc)
-    winner = _heldout_winner(s, trials, rnd, crit)
+        trials, singles = _try_candidates(s, order, rnd, adv)
+        trials += _try_upgrades(s, upgradable, adv)
+    trials.sort(key=lambda t: t.dbic)
+    _nested_after(trials, "nonlinear_viscoelastic", "viscoelastic")
+    winner = _heldout_winner(s, trials, rnd)
     for t in trials:  # candidates never reached by the held-out check this round
         c = s.candidates[t.name]
         if t.name != winner and t.name not in s.kept and c.reason.endswith("pending"):
-            c.reason = (f"AICc {t.d_aicc:+.1f}, but {winner} explained more in round {rnd}; "
-                        "tried again after it")
-    if winner is None and len(s.kept) + 2 <= crit.max_effects:
-        pair = _try_pairs(singles, s, crit)
+            c.reason = f"fitted improvement {-t.dbic:+.1f} (noise BIC), but {winner} was kept first in round {rnd}"
+    if winner is None and not diag.white and len(s.kept) + 2 <= s.crit.max_effects:
+        pair = _try_pairs(singles, s)
         if pair is not None:
             _keep_pair(s, pair, rnd, rep)
             return True
     if winner is None:
         return False
-    _keep(s, next(t.fit for t in trials if t.name == winner), winner, rnd, rep)
+    _keep(s, next(t for t in trials if t.name == winner), rnd, rep)
     return True
 
 
-def _try_candidates(s: Search, order: list[str], diag: Diagnosis, rnd: int, crit: Criteria, advance,
-                    ) -> tuple[list[Trial], dict[str, Trial]]:
-    """Fit every remaining candidate; those whose AICc passes go to the held-out check (the trials)."""
+def _nested_after(trials: list[Trial], rich: str, simple: str) -> None:
+    """Check the simpler of two nested candidates first: the richer one (which always fits at least as
+    well) is kept only when the simpler one does not pass."""
+    names = [t.name for t in trials]
+    if rich in names and simple in names and names.index(rich) < names.index(simple):
+        trials.insert(names.index(simple), trials.pop(names.index(rich)))
+
+
+def _order(s: Search, remaining: list[str], diag: Diagnosis, rnd: int) -> list[str]:
+    """Candidates to fit this round, best first-order gain first; those that cannot pay are not fitted.
+
+    A candidate whose first-order gain is below the Schwarz penalty of one
+    parameter (ln N) cannot pay for itself; of the strain-energy terms only the
+    :data:`TERMS_PER_ROUND` best are fitted (they overlap: the score test ranks them).
+    """
+    n_fit = sum(r.fit_idx.size for r in s.current.problem.records)
+    penalty = math.log(max(n_fit, 2))
+    order, n_terms = [], 0
+    for n in sorted(remaining, key=lambda n: -diag.gains.get(n, 0.0)):
+        c = s.candidates[n]
+        c.round, c.score, c.gain_chi2 = rnd, diag.scores.get(n, 0.0), diag.gains.get(n, 0.0)
+        if c.gain_chi2 < penalty:
+            _too_small(c, s.kept, rnd, penalty)
+            continue
+        if n in TERMS:
+            n_terms += 1
+            if n_terms > TERMS_PER_ROUND:
+                c.reason = (f"not fitted in round {rnd}: {TERMS_PER_ROUND} strain-energy terms with larger "
+                            "first-order gains were tried first")
+                continue
+        order.append(n)
+    return order
+
+
+def _try_candidates(s: Search, order: list[str], rnd: int, advance) -> tuple[list[Trial], dict[str, Trial]]:
+    """Fit every candidate of this round; those whose noise test passes go to the held-out check (the trials)."""
     trials: list[Trial] = []
-    singles: dict[str, Trial] = {}  # every candidate fitted this round
+    singles: dict[str, Trial] = {}
     for n in order:
         c = s.candidates[n]
-        c.round, c.score = rnd, diag.scores.get(n, 0.0)
-        if c.score < crit.min_share:
-            _too_small(c, s.kept, rnd, crit.min_share)
-            advance(1)
-            continue
-        t = _best_variant(n, VARIANTS[n], s.current, crit.aicc_threshold)
+        variants = VARIANTS.get(n, (1,))
+        t = best_variant(n, variants, s.current)
         advance(1)
         if t is None:
-            c.reason = "the fit with this effect failed"
+            c.reason = "the fit with this candidate failed"
             continue
         _record(c, t)
-        bad = _offset_inconsistent(t.fit) if n == "sensor_offset" else ""
-        if bad:
-            c.reason = "rejected: " + bad + "; the offset compensates for misfit instead of correcting the load cell"
-            continue
         singles[n] = t
-        if not math.isfinite(c.delta_aicc):
-            c.delta_aicc = None
-            c.reason = "rejected: the information criterion could not be computed for this fit"
-        elif c.delta_aicc > crit.aicc_threshold:
-            c.reason = (f"rejected: AICc {c.delta_aicc:+.1f} (needs {crit.aicc_threshold:+.0f} or less): "
-                        "the improvement does not pay for the extra parameters")
+        if not math.isfinite(t.dbic):
+            c.reason = "rejected: the fit's improvement could not be computed"
+        elif t.dbic >= 0:
+            c.reason = (f"rejected: its fitted improvement (Δχ² {t.noise['dchi2']:.1f} noise variances) does not pay "
+                        f"for its parameters (penalty {t.noise['penalty']:.1f}): it fits noise")
         else:
-            c.reason = f"AICc {c.delta_aicc:+.1f}; held-out check pending"
+            c.reason = f"fitted improvement Δχ² {t.noise['dchi2']:.4g} (penalty {t.noise['penalty']:.1f}); held-out check pending"
             trials.append(t)
     return trials, singles
 
 
-def _too_small(c: Candidate, kept: list[str], rnd: int, min_share: float) -> None:
-    """The verdict on a candidate whose first-order signature explains too little of the residual."""
-    why = (f"its first-order signature explains {100 * c.score:.2f} % of the residual "
-           f"(less than {100 * min_share:.1f} %)")
-    if c.delta_aicc is not None or c.reason.startswith("rejected:"):
-        # keep the verdict of the round in which it was fitted
-        c.reason = f"{c.reason.split('; in round')[0]}; in round {rnd}, after {', '.join(kept)}, {why}"
+def _too_small(c: Candidate, kept: list[str], rnd: int, penalty: float) -> None:
+    """The verdict on a candidate whose first-order gain cannot pay for one parameter."""
+    why = (f"its first-order signature would remove {c.gain_chi2:.3g} noise variances, less than the penalty of "
+           f"one parameter ({penalty:.1f})")
+    if c.dbic_noise is not None or c.reason.startswith("rejected:"):
+        c.reason = f"{c.reason.split('; in round')[0]}; in round {rnd}, after {', '.join(kept) or 'the base'}, {why}"
     else:
-        c.delta_aicc = c.delta_bic = c.heldout_nrmse = c.heldout_gain = None
         c.reason = f"rejected without a fit: {why}"
 
 
 def _record(c: Candidate, t: Trial) -> None:
-    """Write a fitted candidate's variant, information and parameters into its verdict."""
+    """Write a fitted candidate's variant, statistics and parameters into its verdict."""
     c.variant = t.fit.spec.variant_text(c.name)
-    c.delta_aicc = t.d_aicc
-    c.delta_bic = t.d_bic
+    c.delta_aicc = t.d_aicc if math.isfinite(t.d_aicc) else None
+    c.delta_bic = t.d_bic if math.isfinite(t.d_bic) else None
+    c.dbic_noise = t.dbic if math.isfinite(t.dbic) else None
+    c.dchi2 = t.noise["dchi2"]
     c.params = effect_params(t.fit, c.name)
-    c.heldout_nrmse = c.heldout_gain = None
+    c.heldout_nrmse = c.heldout_gain = c.heldout_z = c.heldout_noise_units = None
 
 
-def _try_upgrades(s: Search, upgradable: list[str], crit: Criteria, advance) -> list[Trial]:
-    """Richer variants (another Prony term, beta) of the kept effects whose AICc passes."""
+def _try_upgrades(s: Search, upgradable: list[str], advance) -> list[Trial]:
+    """Richer variants (another Prony term, beta, a drift) of the kept effects that pass the noise test."""
     trials = []
     for n in upgradable:
-        nxt = [v for v in VARIANTS[n] if v > getattr(s.current.spec, n)]
-        t = _best_variant(n, nxt, s.current, crit.aicc_threshold, upgrade=True)
+        nxt = [v for v in VARIANTS[n] if v > s.current.spec.variant(n)]
+        t = best_variant(n, nxt, s.current, upgrade=True)
         advance(1)
-        if t is not None and math.isfinite(t.d_aicc) and t.d_aicc <= crit.aicc_threshold:
+        if t is not None and math.isfinite(t.dbic) and t.dbic < 0:
             trials.append(t)
     return trials
 
 
-def _heldout_winner(s: Search, trials: list[Trial], rnd: int, crit: Criteria) -> str | None:
-    """The held-out check, best AICc first: the first trial that passes wins (None: none passes)."""
-    for t in trials:
-        f = t.fit
-        f.heldout = heldout(f, s.folds)
-        gain = s.gain(f)
+def _heldout_winner(s: Search, trials: list[Trial], rnd: int) -> str | None:
+    """The held-out check, best noise test first: the first trial that passes wins (None: none passes).
+
+    At most :data:`CHECKS_PER_ROUND` trials are checked (the held-out check refits every fold).
+    """
+    for t in trials[CHECKS_PER_ROUND:]:
+        c = s.candidates[t.name]
+        if t.name not in s.kept:
+            c.reason = (f"fitted improvement Δχ² {t.noise['dchi2']:.4g}, but not checked on held-out data in round "
+                        f"{rnd}: {CHECKS_PER_ROUND} candidates with larger fitted improvements were checked first")
+    for t in trials[:CHECKS_PER_ROUND]:
+        ok = check_heldout(t, s.current, s.folds, z=s.crit.heldout_z, noise_units=s.crit.min_noise_units)
+        h = t.heldout
         if t.name in s.kept:  # a variant upgrade of a kept effect
-            if gain >= crit.min_heldout_gain:
-                s.upgrades.append(f"round {rnd}: {t.name} extended to {f.spec.variant_text(t.name)} (AICc "
-                                  f"{t.d_aicc:+.1f}, held-out NRMSE {s.current.heldout.nrmse:.2%} -> "
-                                  f"{f.heldout.nrmse:.2%})")
+            if ok:
+                s.upgrades.append(f"round {rnd}: {t.name} extended to {t.fit.spec.variant_text(t.name)} (held-out "
+                                  f"NRMSE {s.current.heldout.nrmse:.2%} -> {t.fit.heldout.nrmse:.2%}, z {h['z']:.1f})")
                 return t.name
             continue
         c = s.candidates[t.name]
-        c.heldout_nrmse, c.heldout_gain = f.heldout.nrmse, gain
-        if gain < crit.min_heldout_gain:
-            c.reason = (f"rejected: AICc {t.d_aicc:+.1f} favours it but the held-out NRMSE goes "
-                        f"{s.current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%} ({-gain:+.1%}; needs "
-                        f"-{crit.min_heldout_gain:.0%} or better): it does not predict data it was not fitted to")
+        c.heldout_nrmse, c.heldout_gain = t.fit.heldout.nrmse, s.gain(t.fit)
+        c.heldout_z, c.heldout_noise_units = h["z"], h["noise_units"]
+        if not ok:
+            c.reason = (f"rejected: the fit improves (Δχ² {t.noise['dchi2']:.4g}) but it does not predict data it "
+                        f"was not fitted to: held-out NRMSE {s.current.heldout.nrmse:.2%} -> "
+                        f"{t.fit.heldout.nrmse:.2%}, sign test {h['z']:+.1f} and mean {h['z_mean']:+.1f} standard errors "
+                        f"(one needs {s.crit.heldout_z:g}, the mean at least 1), {h['noise_units']:+.3g} noise "
+                        f"variances per sample (needs {s.crit.min_noise_units:g})")
             continue
         return t.name
     return None
 
 
-def _keep(s: Search, f: Fitted, winner: str, rnd: int, rep) -> None:
-    """Make *f* (the current model plus *winner*) the current model."""
+def _keep(s: Search, t: Trial, rnd: int, rep) -> None:
+    """Make the trial's model (the current model plus its candidate) the current model."""
+    f, winner = t.fit, t.name
     if winner in s.kept:
         rep.step(s.upgrades[-1])
         s.current = f
         return
     c = s.candidates[winner]
     c.kept = True
-    kind = "corrected in the data" if winner in ARTEFACTS else "added to the material"
-    c.reason = (f"kept ({kind}) in round {rnd}: AICc {c.delta_aicc:+.1f}, held-out NRMSE "
-                f"{s.current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%}")
+    kind = {"artefact": "corrected in the data", "material": "added to the material",
+            "elastic": "added to the strain energy"}[c.kind]
+    c.reason = (f"kept ({kind}) in round {rnd}: fitted Δχ² {t.noise['dchi2']:.4g} noise variances; held-out NRMSE "
+                f"{s.current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%} (sign test {t.heldout['z']:.1f}, mean "
+                f"{t.heldout['z_mean']:.1f} standard errors)")
     rep.step(f"round {rnd}: kept {winner} ({c.variant}): NRMSE {s.current.errors.nrmse:.2%} -> "
              f"{f.errors.nrmse:.2%}, held-out {s.current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%}")
     s.kept.append(winner)
     s.current = f
+    _sync_kept(s, rnd)
+
+
+def _sync_kept(s: Search, rnd: int) -> None:
+    """Name what the current model holds without having been kept by name: the relaxation that
+    stretch-dependent relaxation brings with it."""
+    for n in s.current.spec.names():
+        if n not in s.kept:
+            c = s.candidates[n]
+            c.kept, c.variant = True, s.current.spec.variant_text(n)
+            c.reason = f"kept in round {rnd}: brought in by nonlinear_viscoelastic, which contains it"
+            s.kept.append(n)
+
+
+def _try_pairs(singles: dict[str, Trial], s: Search):
+    """When no single candidate passes and the residual is not noise, two at once (effects that mask
+    each other's signature: slack hiding a rate effect, specimen scales hiding a relaxation), among the
+    two whose held-out error improved most alone and the two that fitted best.
+
+    Returns ((a, b), trial) of the pair that passes both tests with the lowest held-out error, or None.
+    """
+    current = s.current
+    # the two that, alone, came closest to passing (best held-out gains) and the two that fitted best: a
+    # masked effect fits well but predicts badly until its partner is in the model
+    fitted = [n for n, t in singles.items() if math.isfinite(t.dbic) and t.dbic < 0]
+    by_gain = sorted((n for n in fitted if singles[n].heldout), key=lambda n: -singles[n].heldout["noise_units"])
+    by_fit = sorted(fitted, key=lambda n: singles[n].dbic)
+    pool = list(dict.fromkeys(by_gain[:2] + by_fit[:2]))
+    tried = []
+    for i in range(len(pool)):
+        for j in range(i + 1, len(pool)):
+            a, b = pool[i], pool[j]
+            spec = current.spec.with_(a, singles[a].fit.spec.variant(a)).with_(b, singles[b].fit.spec.variant(b))
+            try:
+                t = compared(f"{a}+{b}", fit_spec(spec, current), current)
+            except FitError:
+                continue
+            if math.isfinite(t.dbic) and t.dbic < 0:
+                tried.append(((a, b), t))
+    passed = [((a, b), t) for (a, b), t in tried
+              if check_heldout(t, current, s.folds, z=s.crit.heldout_z, noise_units=s.crit.min_noise_units)]
+    return min(passed, key=lambda p: p[1].fit.heldout.nrmse) if passed else None
 
 
 def _keep_pair(s: Search, pair, rnd: int, rep) -> None:
-    """Keep two effects that only passed together."""
-    (a, b), f, d_aicc = pair
+    """Keep two candidates that only passed together."""
+    (a, b), t = pair
+    f = t.fit
     for n, other in ((a, b), (b, a)):
         c = s.candidates[n]
         c.kept = True
         c.variant = f.spec.variant_text(n)
-        c.heldout_nrmse = f.heldout.nrmse
-        c.heldout_gain = s.gain(f)
+        c.heldout_nrmse, c.heldout_gain = f.heldout.nrmse, s.gain(f)
+        c.heldout_z, c.heldout_noise_units = t.heldout["z"], t.heldout["noise_units"]
         kind = "corrected in the data" if n in ARTEFACTS else "added to the material"
-        c.reason = (f"kept ({kind}) in round {rnd} together with {other}: neither alone passed, "
-                    f"together AICc {d_aicc:+.1f} and held-out NRMSE {s.current.heldout.nrmse:.2%} -> "
-                    f"{f.heldout.nrmse:.2%}")
+        c.reason = (f"kept ({kind}) in round {rnd} together with {other}: neither alone passed, together fitted "
+                    f"Δχ² {t.noise['dchi2']:.4g} and held-out NRMSE {s.current.heldout.nrmse:.2%} -> "
+                    f"{f.heldout.nrmse:.2%} ({t.heldout['z']:.1f} standard errors)")
     rep.step(f"round {rnd}: kept {a} and {b} together: NRMSE {s.current.errors.nrmse:.2%} -> "
              f"{f.errors.nrmse:.2%}, held-out {s.current.heldout.nrmse:.2%} -> {f.heldout.nrmse:.2%}")
     s.kept += [a, b]
     s.current = f
+    _sync_kept(s, rnd)
+
+
+def _backward(s: Search, rep) -> None:
+    """Backward elimination: a kept candidate that, given the others, no longer passes both tests goes.
+
+    The forward search adds one candidate at a time, and what was kept early
+    (or in a pair) may have been only a proxy for what came later. Each kept
+    candidate, latest first, is judged again against the model without it.
+    """
+    for name in list(reversed(s.kept)):
+        if len(s.kept) < 2 or (name == "viscoelastic" and "nonlinear_viscoelastic" in s.kept):
+            continue
+        spec = s.current.spec.with_(name, 0)
+        try:
+            reduced = fit_spec(spec, s.current)
+        except FitError:
+            continue
+        reduced.heldout = heldout(reduced, s.folds)
+        t = compared(name, s.current, reduced)
+        ok = t.dbic < 0 and check_heldout(t, reduced, s.folds, z=s.crit.heldout_z,
+                                          noise_units=s.crit.min_noise_units)
+        if ok:
+            continue
+        c = s.candidates[name]
+        c.kept = False
+        c.reason = (f"kept in round {c.round}, then removed: given {', '.join(n for n in s.kept if n != name)}, it "
+                    f"no longer predicts held-out data better (held-out NRMSE {reduced.heldout.nrmse:.2%} without "
+                    f"it, {s.current.heldout.nrmse:.2%} with it)")
+        rep.step(f"removed {name}: the others explain what it did")
+        s.kept.remove(name)
+        s.current = reduced
+        _sync_kept(s, c.round)
 
 
 # --------------------------------------------------------------------------- the outcome
 def _final_verdicts(s: Search, records: list[Record]) -> None:
-    """Final estimates, the kept effects' parameters and variants, and the confounds to warn about."""
+    """Final estimates, the kept candidates' parameters and variants, and the confounds to warn about."""
     s.current.estimates = estimates(s.current.problem, s.current.z)
     cands = s.candidates
     for n in s.kept:
@@ -566,118 +649,43 @@ def _final_verdicts(s: Search, records: list[Record]) -> None:
             "would tell them apart")
 
 
+def outcome(diag: Diagnosis, kept: list[str]) -> str:
+    """What is left after the search, in words: empty when it is noise, else where it is and what it follows."""
+    if diag.white:
+        return ""
+    st = diag.structure
+    n_all = max((v["samples"] for v in st.get("segments", {}).values()), default=0)
+    # the segment holding most of the residual, among those that are a part of the data, not all of it
+    segs = sorted(((k, v) for k, v in st.get("segments", {}).items() if v["samples"] < 0.9 * n_all or n_all == 0),
+                  key=lambda kv: -kv[1]["chi2_share"])
+    covs = sorted(st.get("covariates", {}).items(), key=lambda kv: -kv[1])
+    words = [f"What is left is systematic, not noise: {diag.chi2:.3g} noise variances per sample "
+             f"(lag-1 autocorrelation {diag.lag1:.2f})"]
+    if segs:
+        name, v = segs[0]
+        words.append(f"it is largest in the {name} segment ({100 * v['chi2_share']:.0f} % of it, data "
+                     f"{'above' if v['mean_noise_sd'] > 0 else 'below'} the model by {abs(v['mean_noise_sd']):.3g} "
+                     "noise standard deviations on average)")
+    if covs and covs[0][1] > 0:
+        words.append(f"it follows the {covs[0][0]} (R² {covs[0][1]:.2f} of binned means"
+                     + (f"; then the {covs[1][0]}, {covs[1][1]:.2f}" if len(covs) > 1 else "") + ")")
+    words.append("no candidate in the library explains it on held-out data"
+                 + (f" beyond {', '.join(kept)}" if kept else ""))
+    return "; ".join(words) + "."
+
+
 def _result(s: Search, base_fit: FitResult, scheme: str, t_start: float, *, settings: dict[str, Any],
             ) -> DiscoverResult:
     cur = s.current
     prob = cur.problem
-    not_ident = [n for n in EFFECT_NAMES if s.candidates[n].applicable and not s.candidates[n].identifiable]
+    not_ident = [n for n in CANDIDATES if s.candidates[n].applicable and not s.candidates[n].identifiable]
     warnings = [f"{e.key} is not identifiable from these data: 95 % interval [{e.lower:.4g}, {e.upper:.4g}]"
                 for e in cur.estimates if e.wide and e.key.split(".")[0] in MATERIAL_EFFECTS]
     settings = {**settings, "bounds": prob.bounds.to_dict(), "fixed": dict(prob.fixed), "directions": prob.directions}
     return DiscoverResult(
-        model=prob.model.name, records=prob.records, base=s.base, final=cur, kept=s.kept, candidates=s.candidates,
-        not_identifiable=not_ident, diagnoses=s.diagnoses, scheme=scheme, folds=[f.name for f in s.folds],
-        settings=settings, warnings=warnings, seconds=time.perf_counter() - t_start, base_fit=base_fit,
+        model=prob.base_model.name, records=prob.records, base=s.base, final=cur, kept=s.kept,
+        candidates=s.candidates, not_identifiable=not_ident, diagnoses=s.diagnoses, scheme=scheme,
+        folds=[f.name for f in s.folds], settings=settings, warnings=warnings,
+        seconds=time.perf_counter() - t_start, base_fit=base_fit,
+        outcome=outcome(s.diagnoses[-1], s.kept) if s.diagnoses else "",
     )
-
-
-# --------------------------------------------------------------------------- fitting candidates
-def _compared(name: str, f: Fitted, current: Fitted) -> Trial:
-    """*f* against *current*, both judged on *f*'s effective sample sizes.
-
-    The candidate's residual is the better estimate of the noise's correlation.
-    """
-    res = f.problem.fit_residuals(f.z)
-    nu = n_effective(res)
-    return Trial(name, f, information(res, nu, f.problem.n_params()), _information(current, nu), nu)
-
-
-def _information(f: Fitted, nu: list[float]) -> dict[str, float]:
-    return information(f.problem.fit_residuals(f.z), nu, f.problem.n_params())
-
-
-def _best_variant(name: str, variants, current: Fitted, aicc_threshold: float, *,
-                  upgrade: bool = False) -> Trial | None:
-    """Fit the variants of effect *name* in order; stop when one more term stops paying.
-
-    Returns the best variant by AICc (None if no fit succeeded).
-    """
-    best: Trial | None = None
-    prev: Trial | None = None
-    for v in variants:
-        try:
-            f = fit_spec(current.spec.with_(name, v), current, init_from=prev.fit if prev is not None else None)
-        except FitError:
-            break
-        t = _compared(name, f, current)
-        # the richer variant must beat the simpler one on the same footing
-        if prev is not None and t.info["aicc"] - _information(prev.fit, t.nu)["aicc"] > aicc_threshold:
-            break
-        if best is None or t.d_aicc < best.d_aicc:
-            best = t
-        if not upgrade and t.d_aicc > 0 and name != "viscoelastic":
-            break  # the simplest variant does not help at all: the richer ones will not either
-        prev = t
-    return best
-
-
-def _try_pairs(singles: dict[str, Trial], s: Search, crit: Criteria):
-    """When no single effect passes, try two at once (effects that only show together, e.g. slack
-    hiding a rate effect). Pairs among the three best single candidates by AICc.
-
-    Returns ((a, b), fit, ΔAICc) of the first pair (best AICc first) that passes both tests, or None.
-    """
-    current = s.current
-    pool = sorted((n for n, t in singles.items() if math.isfinite(t.d_aicc)), key=lambda n: singles[n].d_aicc)[:3]
-    tried = []
-    for i in range(len(pool)):
-        for j in range(i + 1, len(pool)):
-            a, b = pool[i], pool[j]
-            spec = current.spec.with_(a, getattr(singles[a].fit.spec, a)).with_(b, getattr(singles[b].fit.spec, b))
-            try:
-                t = _compared(f"{a}+{b}", fit_spec(spec, current), current)
-            except FitError:
-                continue
-            if math.isfinite(t.d_aicc) and t.d_aicc <= crit.aicc_threshold:
-                tried.append(((a, b), t.fit, t.d_aicc))
-    for (a, b), f, d in sorted(tried, key=lambda t: t[2]):
-        f.heldout = heldout(f, s.folds)
-        if s.gain(f) >= crit.min_heldout_gain:
-            return (a, b), f, d
-    return None
-
-
-def _noise_sd(y: np.ndarray) -> float:
-    """Robust standard deviation of white measurement noise (MAD of first differences / sqrt 2)."""
-    d = np.diff(np.asarray(y, float))
-    d = d[np.isfinite(d)]
-    if d.size < 3:
-        return 0.0
-    return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0))
-
-
-def _offset_inconsistent(f: Fitted) -> str:
-    """Why a fitted load-cell offset contradicts the force read before loading ('' if it does not).
-
-    Where a record starts at rest in the reference state, its first sample *is*
-    a reading of the offset (the true force is zero): the fitted offset at the
-    start must agree with it within 5 noise standard deviations (and 1 % of
-    the file's stress scale).
-    """
-    coefs = f.problem.offsets(f.z)
-    for k, r in enumerate(f.problem.records):
-        c = coefs[k]
-        if c is None:
-            continue
-        ref = 0.0 if r.test.mode == "simple_shear" else 1.0
-        span = float(np.ptp(r.x)) or 1.0
-        if abs(float(r.x[0]) - ref) > 1e-3 * span or not r.history:
-            continue
-        sd = _noise_sd(r.y)
-        tol = 5.0 * sd + 0.01 * r.scale
-        if abs(float(c[0]) - float(r.y[0])) > tol:
-            unit, fac = ("N", r.area) if r.area else ("Pa", 1.0)
-            return (f"in {r.name} it needs an offset of {float(c[0]) * fac:+.3g} {unit} at the start, but the "
-                    f"load cell read {float(r.y[0]) * fac:+.3g} {unit} there before loading (noise "
-                    f"{sd * fac:.2g} {unit})")
-    return ""

@@ -42,9 +42,12 @@ from scipy.special import erf
 from ..atomicio import write_text
 from ..errors import ConfigError
 from ..materials import get_model
+from ..materials.composite import split_name
+from ..materials.effects import equivalent_stretch
 from ..materials.loading import energy_density, nominal_stress
 
-__all__ = ["Protocol", "Truth", "load_unload", "cycles", "ramp_hold", "monotonic", "simulate",
+__all__ = ["Protocol", "Truth", "load_unload", "cycles", "repeated_cycles", "ramp_hold", "ramp_holds",
+           "tension_compression", "monotonic", "simulate",
            "write_csv", "write_set"]
 
 
@@ -113,6 +116,39 @@ def ramp_hold(rate: float, lam_hold: float, hold: float, *, dt: float | None = N
                  f"ramp at {rate:g} /s to {lam_hold:g}, hold {hold:g} s")
 
 
+def repeated_cycles(rate: float, lam_max: float, n: int, *, dt: float | None = None,
+                    name: str | None = None) -> Protocol:
+    """*n* load-unload cycles at *rate* to the same *lam_max* (preconditioning)."""
+    return cycles(rate, [lam_max] * n, dt=dt, name=name or f"repeat_{lam_max:g}x{n}")
+
+
+def tension_compression(rate: float, lam_min: float, lam_max: float, *, dt: float | None = None,
+                        name: str | None = None) -> Protocol:
+    """Stretch from 1 to *lam_max*, back through 1 to *lam_min* (compression), and back to 1, at *rate*."""
+    a, b = lam_max - 1.0, 1.0 - lam_min
+    T = [0.0, a / rate, 2 * a / rate, (2 * a + b) / rate, 2 * (a + b) / rate]
+    d = _dt(rate, 2 * (a + b), dt)
+    return _path(name or f"tc_{lam_min:g}_{lam_max:g}", T, [1, lam_max, 1, lam_min, 1], d,
+                 f"tension to {lam_max:g} and compression to {lam_min:g} at {rate:g} /s")
+
+
+def ramp_holds(rate: float, levels: Sequence[float], hold: float, *, dt: float | None = None,
+               name: str | None = None) -> Protocol:
+    """Ramps at *rate* to each stretch of *levels* in turn, each held for *hold* seconds."""
+    kt, kl, t, lam = [0.0], [1.0], 0.0, 1.0
+    for v in levels:
+        t += abs(v - lam) / rate
+        kt.append(t)
+        kl.append(v)
+        t += hold
+        kt.append(t)
+        kl.append(v)
+        lam = v
+    d = dt if dt is not None else max(min(t / 1500, hold / 300), 1e-3)
+    return _path(name or f"holds_{'_'.join(f'{v:g}' for v in levels)}", kt, kl, d,
+                 f"ramps at {rate:g} /s to {', '.join(f'{v:g}' for v in levels)}, each held {hold:g} s")
+
+
 def monotonic(rate: float, lam_max: float, *, dt: float | None = None, name: str | None = None) -> Protocol:
     """One monotonic ramp at *rate* to *lam_max* (e.g. to failure)."""
     T = (lam_max - 1.0) / rate
@@ -131,7 +167,7 @@ class Truth:
     params : dict
         Base parameters (SI). With ``viscoelastic`` they are the instantaneous response.
     viscoelastic : dict, optional
-        ``{"g": [...], "tau": [... s]}``.
+        ``{"g": [...], "tau": [... s]}``, optionally ``"kappa"`` (stretch-dependent relaxed amount).
     mullins : dict, optional
         ``{"r": > 1, "m": Pa, "beta": >= 0}``.
     damage : dict, optional
@@ -140,6 +176,13 @@ class Truth:
         Slack length [m]: the specimen becomes taut after this displacement.
     sensor_offset : dict, optional
         ``{"force": N, "drift": N/s}``.
+    cyclic_softening : dict, optional
+        ``{"d_inf": < 1, "eta": Pa}`` (softening with the accumulated |dW|).
+    permanent_set : dict, optional
+        ``{"fraction": < 1}`` (set stretch ``1 + fraction (lam_max - 1)``).
+    specimen_scale : float, optional
+        True cross-section / stated one (varied per file with ``vary``).
+    grip_slip : sequence of (time fraction, extension lost [m]), optional
     """
 
     model: str
@@ -150,9 +193,20 @@ class Truth:
     slack: float | None = None
     sensor_offset: dict[str, float] | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    cyclic_softening: dict[str, float] | None = None
+    permanent_set: dict[str, float] | None = None
+    specimen_scale: float | None = None
+    grip_slip: tuple[tuple[float, float], ...] | None = None
 
     def effects(self) -> list[str]:
-        return [n for n in ("viscoelastic", "mullins", "damage", "slack", "sensor_offset") if getattr(self, n)]
+        """The names a discovery should find: effects and artefacts present, and the strain-energy terms."""
+        names = [n for n in ("viscoelastic", "mullins", "damage", "cyclic_softening", "permanent_set", "slack",
+                             "sensor_offset", "specimen_scale", "grip_slip") if getattr(self, n)]
+        if self.viscoelastic and self.viscoelastic.get("kappa"):
+            names.append("nonlinear_viscoelastic")
+        if self.specimen_scale == 1.0:
+            names.remove("specimen_scale")
+        return names + list(split_name(self.model)[1])
 
 
 def prony_trapezoid(t: np.ndarray, p: np.ndarray, g: Sequence[float], tau: Sequence[float]) -> np.ndarray:
@@ -203,7 +257,7 @@ def prony_trapezoid(t: np.ndarray, p: np.ndarray, g: Sequence[float], tau: Seque
 
 
 def simulate(protocol: Protocol, truth: Truth, *, gauge_length: float = 0.03, area: float = 20e-6,
-             noise: float = 0.003, seed: int = 0) -> dict[str, np.ndarray]:
+             noise: float = 0.003, seed: int = 0, rest: int = 0) -> dict[str, np.ndarray]:
     """The machine channels of one test.
 
     Parameters
@@ -213,11 +267,14 @@ def simulate(protocol: Protocol, truth: Truth, *, gauge_length: float = 0.03, ar
     gauge_length : float
         Nominal gauge length [m] (the clamp distance at zero displacement).
     area : float
-        Cross-section [m2].
+        Cross-section [m2] as stated in the file (a ``specimen_scale`` c makes
+        the true one c times larger: the stress the file implies is c times the true).
     noise : float
         Standard deviation of the force noise as a fraction of the largest
         true force (white), plus quantisation: displacement 0.1 µm, force 0.1 mN.
     seed : int
+    rest : int
+        Samples recorded at rest before the crosshead moves.
 
     Returns
     -------
@@ -225,26 +282,12 @@ def simulate(protocol: Protocol, truth: Truth, *, gauge_length: float = 0.03, ar
     """
     m = get_model(truth.model)
     rng = np.random.default_rng(seed)
-    t = protocol.t
-    u = gauge_length * (protocol.lam - 1.0)
-    # slack: the specimen is longer than the clamp distance by `slack`; taut once u > slack
-    s = float(truth.slack or 0.0)
-    lam = np.maximum((gauge_length + u) / (gauge_length + s), 1.0)
-    p = np.asarray(nominal_stress(m, truth.params, "uniaxial", lam), float)
-    if truth.damage:
-        d = truth.damage
-        xm = np.maximum.accumulate(lam)
-        x = np.maximum(xm - d["onset"], 0.0) / d["scale"]
-        p = p * np.exp(-(x ** d.get("shape", 1.0)))
-    if truth.mullins:
-        mu = truth.mullins
-        W = np.asarray(energy_density(m, truth.params, "uniaxial", lam), float)
-        Wm = np.maximum.accumulate(W)
-        p = p * (1.0 - erf((Wm - W) / (mu["m"] + mu.get("beta", 0.0) * Wm)) / mu["r"])
-    if truth.viscoelastic:
-        p = prony_trapezoid(t, p, truth.viscoelastic["g"], truth.viscoelastic["tau"])
-    p = np.maximum(p, 0.0)  # a pulled strip buckles instead of carrying compression
-    f_true = p * area
+    t, lam_c = _with_rest(protocol, rest)
+    u = gauge_length * (lam_c - 1.0)
+    lam = _specimen_stretch(t, u, truth, gauge_length)
+    p = _material_stress(m, truth, t, lam)
+    p = np.maximum(p, 0.0) if np.min(lam_c) >= 1.0 else p  # a pulled strip buckles instead of carrying compression
+    f_true = p * area * float(truth.specimen_scale or 1.0)
     f = f_true.copy()
     if truth.sensor_offset:
         f = f + truth.sensor_offset.get("force", 0.0) + truth.sensor_offset.get("drift", 0.0) * (t - t[0])
@@ -252,6 +295,57 @@ def simulate(protocol: Protocol, truth: Truth, *, gauge_length: float = 0.03, ar
     f = np.round(f / 1e-4) * 1e-4
     u = np.round(u / 1e-7) * 1e-7
     return {"time": t, "displacement": u, "force": f, "true_force": f_true}
+
+
+def _with_rest(protocol: Protocol, rest: int) -> tuple[np.ndarray, np.ndarray]:
+    """Time and crosshead stretch with *rest* samples at stretch 1 before the protocol."""
+    t, lam = protocol.t, protocol.lam
+    if rest <= 0 or t.size < 2:
+        return t, lam
+    dt = float(t[1] - t[0])
+    return np.concatenate([np.arange(rest) * dt, t + rest * dt]), np.concatenate([np.ones(rest), lam])
+
+
+def _specimen_stretch(t: np.ndarray, u: np.ndarray, truth: Truth, gauge: float) -> np.ndarray:
+    """The specimen's stretch: extension lost at each grip slip, then slack (taut once u > slack)."""
+    for when, loss in truth.grip_slip or ():
+        u = u - loss * (t >= when * t[-1])
+    s = float(truth.slack or 0.0)
+    lam = (gauge + u) / (gauge + s)
+    return np.maximum(lam, 1.0) if s > 0 else lam
+
+
+def _material_stress(m, truth: Truth, t: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """Nominal stress of the hidden material along the stretch history *lam* (the generator's own physics)."""
+    lam_s = np.ones_like(lam)
+    if truth.permanent_set:
+        lam_s = 1.0 + truth.permanent_set["fraction"] * np.maximum(np.maximum.accumulate(lam) - 1.0, 0.0)
+    le = lam / lam_s
+    p = np.asarray(nominal_stress(m, truth.params, "uniaxial", le), float) / lam_s
+    W = np.asarray(energy_density(m, truth.params, "uniaxial", le), float)
+    if truth.damage:
+        d = truth.damage
+        xi = equivalent_stretch(lam * lam + 2.0 / lam)
+        x = np.maximum(np.maximum.accumulate(xi) - d["onset"], 0.0) / d["scale"]
+        p = p * np.exp(-(x ** d.get("shape", 1.0)))
+    if truth.mullins:
+        mu = truth.mullins
+        Wm = np.maximum.accumulate(W)
+        p = p * (1.0 - erf((Wm - W) / (mu["m"] + mu.get("beta", 0.0) * Wm)) / mu["r"])
+    if truth.cyclic_softening:
+        c = truth.cyclic_softening
+        alpha = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(W)))])
+        p = p * (1.0 - c["d_inf"] * (1.0 - np.exp(-alpha / c["eta"])))
+    if truth.viscoelastic:
+        v = truth.viscoelastic
+        q = prony_trapezoid(t, p, v["g"], v["tau"])
+        kappa = float(v.get("kappa", 0.0))
+        if kappa:
+            xi = np.maximum(lam, 1.0)  # uniaxial tension: the equivalent stretch is the stretch
+            s_k = np.minimum(np.exp(kappa * (xi - 1.0)), 1.0 / sum(v["g"]))
+            q = p - s_k * (p - q)
+        p = q
+    return p
 
 
 def write_csv(path: str | Path, channels: Mapping[str, np.ndarray], *, gauge_length: float, area: float,
@@ -303,7 +397,7 @@ def write_csv(path: str | Path, channels: Mapping[str, np.ndarray], *, gauge_len
 def write_set(folder: str | Path, protocols: Sequence[Protocol], truth: Truth, *, seed: int = 0,
               gauge_length: float = 0.03, area: float = 20e-6, noise: float = 0.003,
               styles: Sequence[str] = ("comments", "sidecar", "units_row"),
-              vary: Mapping[str, Sequence[float]] | None = None) -> list[Path]:
+              vary: Mapping[str, Sequence] | None = None, rest: int = 0) -> list[Path]:
     """Simulate and write one file per protocol; returns the CSV paths.
 
     Parameters
@@ -318,24 +412,42 @@ def write_set(folder: str | Path, protocols: Sequence[Protocol], truth: Truth, *
     styles : sequence of str
         File formats, cycled over the files.
     vary : mapping, optional
-        Per-file values of the artefacts, e.g. ``{"slack": [1e-3, 2e-3]}`` or
-        ``{"offset": [0.01, -0.02]}`` (force offsets [N]); cycled over files.
+        Per-file values of the artefacts, e.g. ``{"slack": [1e-3, 2e-3]}``,
+        ``{"offset": [0.01, -0.02]}`` (force offsets [N]), ``{"scale": [0.8, 1.25]}``
+        (specimen scales: every file is then its own specimen, unless ``"specimen"``
+        gives the ids) or ``{"slips": [((0.4, 2e-4),), ()]}``; cycled over files.
+    rest : int
+        Samples recorded at rest before each protocol starts.
     """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     out = []
     for i, pr in enumerate(protocols):
-        tr = truth
-        if vary:
-            kw = dict(vars(truth))
-            if "slack" in vary:
-                kw["slack"] = vary["slack"][i % len(vary["slack"])]
-            if "offset" in vary:
-                so = dict(truth.sensor_offset or {})
-                so["force"] = vary["offset"][i % len(vary["offset"])]
-                kw["sensor_offset"] = so
-            tr = Truth(**kw)
-        ch = simulate(pr, tr, gauge_length=gauge_length, area=area, noise=noise, seed=seed + i)
+        tr = _varied(truth, vary, i) if vary else truth
+        ch = simulate(pr, tr, gauge_length=gauge_length, area=area, noise=noise, seed=seed + i, rest=rest)
+        specimen = "synthetic"
+        if vary and "specimen" in vary:
+            specimen = str(vary["specimen"][i % len(vary["specimen"])])
+        elif vary and "scale" in vary:
+            specimen = f"specimen-{i + 1}"
         out.append(write_csv(folder / f"{pr.name}.csv", ch, gauge_length=gauge_length, area=area,
-                             style=styles[i % len(styles)], notes=pr.notes))
+                             style=styles[i % len(styles)], notes=pr.notes, specimen=specimen))
     return out
+
+
+def _varied(truth: Truth, vary: Mapping[str, Sequence], i: int) -> Truth:
+    """*truth* with file *i*'s values of the per-test quantities in *vary*."""
+    kw = dict(vars(truth))
+
+    def pick(key):
+        return vary[key][i % len(vary[key])]
+
+    if "slack" in vary:
+        kw["slack"] = pick("slack")
+    if "offset" in vary:
+        kw["sensor_offset"] = {**(truth.sensor_offset or {}), "force": pick("offset")}
+    if "scale" in vary:
+        kw["specimen_scale"] = pick("scale")
+    if "slips" in vary:
+        kw["grip_slip"] = pick("slips")
+    return Truth(**kw)

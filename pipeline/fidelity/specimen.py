@@ -10,15 +10,17 @@ cached). Its faces are exact planes, so the specimen cases grip whole faces.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import ConfigError, MeshingError
-from ..network.compensation import compensate
+from ..network.compensation import calibration_stretches, compensate
 from ..network.springs import network_from_tets
 from ..network.tables import build_tables
+from ..network.volume import bulk_modulus
 from ..progress import ensure
 
 __all__ = ["Specimen", "cube_specimen"]
@@ -35,7 +37,7 @@ class Specimen:
 
 
 def cube_specimen(material, *, side: float = 20e-3, size: float = 2.5e-3, compensated: bool = True,
-                  reporter=None) -> Specimen:
+                  volume: bool = True, reporter=None) -> Specimen:
     """A meshed cube with its spring network and the material's (compensated) tables.
 
     Parameters
@@ -47,6 +49,9 @@ def cube_specimen(material, *, side: float = 20e-3, size: float = 2.5e-3, compen
         Target element size [m] (at least 3 elements along an edge).
     compensated : bool
         Compensate the tables as ``esmm prepare`` does (default) or not.
+    volume : bool
+        Give the network the volume term ``esmm prepare`` gives it (default; the
+        compensation then runs with it) or none.
     """
     rep = ensure(reporter)
     for name, v in (("side", side), ("size", size)):
@@ -67,8 +72,10 @@ def cube_specimen(material, *, side: float = 20e-3, size: float = 2.5e-3, compen
     mesh.points, mesh.tets = points, tets
     net = network_from_tets(mesh, fibre_frame=None, reorder="rcm")
     tables = build_tables(material)
+    if volume:
+        net = dataclasses.replace(net, volume_term=bulk_modulus(tables, calibration_range=calibration_stretches(tables)))
     if compensated:
-        tables = compensate(tables, net, material=material, reporter=rep).tables
+        tables = compensate(tables, net, material=material, volume=net.volume_term, reporter=rep).tables
     label = f"cube {side * 1e3:g} mm, elements {size * 1e3:g} mm"
     rep.step(f"specimen: {label}: {net.n_nodes} nodes, {net.n_springs} springs, {net.n_tets} tets, "
              f"volume factor c = {tables.volume_factor:.4g}")

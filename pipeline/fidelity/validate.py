@@ -24,6 +24,7 @@ import numpy as np
 from ..asset import read_asset
 from ..atomicio import write_json, write_text
 from ..errors import ConfigError, SimulationError
+from ..network.volume import volume_elements
 from ..progress import ensure
 from ..simulate.grasper import plan_grasp
 from ..simulate.runsetup import fixed_nodes
@@ -47,11 +48,11 @@ from .network_solve import solve_network
 from .report import plot_case, table_markdown, write_fields
 from .specimen import cube_specimen
 
-__all__ = ["VOLUME_TERM", "LoadOptions", "ValidationReport", "network_terms", "validate_asset", "validate_network",
-           "validate_specimen"]
+__all__ = ["VOLUME_TERM", "LoadOptions", "ValidationReport", "network_terms", "resolved_volume_term", "validate_asset",
+           "validate_network", "validate_specimen"]
 
-#: ``volume_term`` values: the network with or without the volume term of issue 11.
-VOLUME_TERM = ("off", "on")
+#: ``volume_term`` values: the network with its volume term (issue 11, part B) if it has one, with it, without it.
+VOLUME_TERM = ("auto", "on", "off")
 #: Continuum elements by size: quadratic tetrahedra up to this many tets, MINI above (docs/validate.md §1).
 P2_MAX_TETS = 3000
 
@@ -76,6 +77,7 @@ class ValidationReport:
         What was validated (asset path or specimen).
     results : list of CaseResult
     volume_term : str
+        "on" or "off": whether the network ran with its volume term.
     files : dict
         Output files by kind (``json``, ``table``, per case ``png`` and ``xdmf``).
     info : dict
@@ -103,17 +105,32 @@ class ValidationReport:
                 "force_error": max((r.force_error for r in self.results), default=float("nan"))}
 
 
-def network_terms(network, tables, material, *, volume_term: str = "off") -> tuple:
+def network_terms(network, tables, material, *, volume_term: str = "auto") -> tuple:
     """The terms of the network's potential beside its springs (:func:`~.network_solve.solve_network`).
 
-    ``"on"`` adds the volume term (issue 11, part B) once it is in the build;
-    this is the one place that decides it.
+    The one place that decides them: ``"auto"`` takes the network's own volume
+    term (what ``esmm prepare`` stored in the asset's ``/volume``) when it has
+    one, ``"on"`` requires it, ``"off"`` leaves it out (the network as before
+    issue 11, part B; its tables are still the ones compensated with the term).
+
+    Returns
+    -------
+    tuple
+        ``()`` or ``(VolumeElements,)``.
     """
-    choice(volume_term, VOLUME_TERM, "volume_term")
-    if volume_term == "off":
+    if resolved_volume_term(network, volume_term) == "off":
         return ()
-    raise ConfigError("volume_term: the network's volume term is not in this build yet (issue 11, part B); "
-                      "use \"off\"", parameter="volume_term")
+    return (volume_elements(network.points, network.tets, network.volume_term),)
+
+
+def resolved_volume_term(network, volume_term: str) -> str:
+    """``"on"`` or ``"off"``: *volume_term* (:data:`VOLUME_TERM`) for *network*."""
+    choice(volume_term, VOLUME_TERM, "volume_term")
+    has = getattr(network, "volume_term", None) is not None and network.tets is not None
+    if volume_term == "on" and not has:
+        raise ConfigError("volume_term: this network has no volume term (an asset prepared without one, or with "
+                          "the skeleton structure); use off, or prepare the asset again with the volume term", parameter="volume_term")
+    return "on" if volume_term == "on" or (volume_term == "auto" and has) else "off"
 
 
 def _cases_for(network, names, loads: LoadOptions, reporter) -> list:
@@ -217,7 +234,7 @@ def _solve_case(case, network, tables, material, *, law, terms, bulk, element, m
 
 
 def validate_network(network, tables, material, *, cases=None, label: str = "network", loads: LoadOptions | None = None,
-                     volume_term: str = "off", law: str | None = None, element: str = "auto",
+                     volume_term: str = "auto", law: str | None = None, element: str = "auto",
                      bulk_ratio: float = DEFAULT_BULK_RATIO, out_dir=None, max_rounds: int = 10,
                      reporter=None) -> ValidationReport:
     """Validate *network* with *tables* against the continuum of *material*, case by case.
@@ -233,8 +250,8 @@ def validate_network(network, tables, material, *, cases=None, label: str = "net
         From :data:`~.cases.CASES`; default all.
     label : str
     loads : LoadOptions, optional
-    volume_term : {"off", "on"}
-        :func:`network_terms`.
+    volume_term : {"auto", "on", "off"}
+        :func:`network_terms` (the report records the resolved "on" or "off").
     law : {"secant", "energy"}, optional
         The network's force law (default: the tables').
     element : {"auto", "p2", "mini"}
@@ -266,6 +283,7 @@ def validate_network(network, tables, material, *, cases=None, label: str = "net
         raise ConfigError("cases: no case to run", parameter="cases")
     check_continuum(material)
     terms = network_terms(network, tables, material, volume_term=volume_term)
+    volume_term = resolved_volume_term(network, volume_term)
     element = choice(element, ("auto", "p2", "mini"), "element")
     if element == "auto":
         element = "p2" if network.n_tets <= P2_MAX_TETS else "mini"
@@ -315,7 +333,12 @@ def validate_asset(path, *, cases=None, **options) -> ValidationReport:
 
 def validate_specimen(material, *, side: float = 20e-3, size: float = 2.5e-3, cases=None, reporter=None,
                       **options) -> ValidationReport:
-    """:func:`validate_network` on the built-in cube (default cases: the specimen's)."""
-    spec = cube_specimen(material, side=side, size=size, reporter=reporter)
+    """:func:`validate_network` on the built-in cube (default cases: the specimen's).
+
+    The cube gets a volume term and tables compensated with it, as ``esmm prepare``
+    gives an asset, unless ``volume_term="off"`` (then neither).
+    """
+    volume = options.get("volume_term", "auto") != "off"
+    spec = cube_specimen(material, side=side, size=size, volume=volume, reporter=reporter)
     return validate_network(spec.network, spec.tables, material, label=f"specimen: {spec.label}",
                             cases=list(SPECIMEN_CASES) if cases is None else cases, reporter=reporter, **options)

@@ -1,6 +1,6 @@
 r"""Material effects beyond hyperelasticity, and the data object that carries them.
 
-Three *material* effects extend a hyperelastic base model with nominal stress
+Five *material* effects extend a hyperelastic base model with nominal stress
 :math:`P_e(\lambda)` (see docs/discover.md for the reasons behind each choice):
 
 ``viscoelastic`` — quasi-linear viscoelasticity (Fung, 1981)
@@ -47,8 +47,44 @@ Three *material* effects extend a hyperelastic base model with nominal stress
     tension) and :math:`\xi_{max}` its maximum so far. Unlike Mullins softening,
     damage also lowers the primary loading curve.
 
-Effects compose as :math:`P = \mathrm{QLV}[(1-D)\,\eta\,P_e]`: damage and
-Mullins softening act on the elastic response, which then relaxes.
+``viscoelastic`` with ``kappa`` — stretch-dependent relaxation (nonlinear viscoelasticity)
+    .. math::
+
+        P = P_e - s(\xi)\,\bigl(P_e - P_\text{QLV}\bigr),
+        \qquad s(\xi) = \min\!\left(e^{\kappa(\xi - 1)},\ 1/\textstyle\sum_i g_i\right),
+
+    the QLV relaxation of Fung with a *strength* that depends on the current
+    uniaxial-equivalent stretch ξ (κ = 0: QLV). The internal variables and the
+    relaxation times are those of QLV; only the amount that relaxes changes with
+    stretch — in tendon and ligament it falls with strain (Provenzano et al. 2001),
+    in elastomers such as VHB it grows. :func:`relaxation_strength`.
+
+``cyclic_softening`` — continuous damage from cycling (Miehe 1995)
+    .. math::
+
+        P = \bigl[1 - d_\infty\bigl(1 - e^{-\alpha/\eta_c}\bigr)\bigr]\,P_e,
+        \qquad \alpha(t) = \int_0^t \left|\frac{dW}{ds}\right| ds,
+
+    α the accumulated variation of the base strain energy: it keeps growing
+    while a specimen is cycled at a constant amplitude, which Mullins softening
+    (a function of :math:`W_{max}` only) cannot do. The softening saturates at
+    :math:`d_\infty` (preconditioning). :func:`cyclic_factor`.
+
+``permanent_set`` — residual strain that grows with the largest stretch
+    .. math::
+
+        \lambda_s = 1 + s_p\,(\lambda_{max} - 1),\qquad
+        P = P_e(\lambda/\lambda_s)/\lambda_s ,
+
+    the stress-free stretch :math:`\lambda_s` moves with the largest stretch
+    reached (multiplicative split, the set configuration incompressible, hence
+    the nominal-area factor :math:`1/\lambda_s`); below it a pulled strip is
+    slack (force 0). Stretch modes in tension only. :func:`set_stretch`.
+
+Effects compose as
+:math:`P = \mathrm{VE}\bigl[(1-D)\,\eta\,c\;P_e(\lambda/\lambda_s)/\lambda_s\bigr]`,
+c the cyclic-softening factor: damage and softening act on the elastic response
+at the elastic stretch, which then relaxes.
 
 :class:`MaterialEffects` is the plain data object that the discovery writes
 (``discover.json``, ``[material.effects.*]`` in ``params.toml``) and that the
@@ -83,16 +119,23 @@ __all__ = [
     "mullins_factor",
     "damage_factor",
     "equivalent_stretch",
+    "CyclicSofteningEffect",
+    "PermanentSetEffect",
+    "cyclic_factor",
+    "set_stretch",
+    "relaxation_strength",
 ]
 
 #: Effects that become part of the material.
-MATERIAL_EFFECTS = ("viscoelastic", "mullins", "damage")
+MATERIAL_EFFECTS = ("viscoelastic", "mullins", "damage", "cyclic_softening", "permanent_set")
 #: Effects that are measurement artefacts (corrected in the data, per test).
-ARTEFACTS = ("slack", "sensor_offset")
+ARTEFACTS = ("slack", "sensor_offset", "specimen_scale", "grip_slip")
 #: Every effect name used in the discovery's JSON.
 EFFECT_NAMES = MATERIAL_EFFECTS + ARTEFACTS
 
 SCHEMA = "esmm.material-effects/1"
+#: the composition written with the newer effects (the older string is kept when only QLV, Mullins, damage)
+COMPOSITION = "P = VE[(1 - D) * eta * c * P_e(lam/lam_s)/lam_s]"
 
 
 # --------------------------------------------------------------------------- kernels
@@ -240,6 +283,47 @@ def damage_factor(xi_max, onset: float, scale: float, shape: float):
     return np.exp(-(x**shape))
 
 
+def cyclic_factor(alpha, d_inf: float, eta: float):
+    """Remaining stress fraction after cyclic (continuous) softening, ``1 - d_inf (1 - exp(-alpha/eta))``.
+
+    Parameters
+    ----------
+    alpha : array_like, shape (n,)
+        Accumulated variation of the base strain energy, ``cumsum |dW|`` [Pa].
+    d_inf : float
+        Saturation softening, in [0, 1).
+    eta : float
+        Energy scale of the softening [Pa], > 0.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+    """
+    return 1.0 - d_inf * -np.expm1(-np.asarray(alpha, float) / eta)
+
+
+def accumulated_energy(W):
+    """α = accumulated |ΔW| along a history, starting at 0, shape of *W* (NaN steps count 0)."""
+    W = np.asarray(W, float)
+    d = np.abs(np.diff(W, prepend=W[:1]))
+    return np.cumsum(np.where(np.isfinite(d), d, 0.0))
+
+
+def set_stretch(lam_max, fraction: float):
+    """The stress-free (set) stretch ``1 + fraction (lam_max - 1)`` after the largest stretch *lam_max* (≥ 1)."""
+    return 1.0 + fraction * np.maximum(np.asarray(lam_max, float) - 1.0, 0.0)
+
+
+def relaxation_strength(xi, kappa: float, g_sum: float):
+    """Scale s(ξ) of the relaxed part, ``min(exp(kappa (xi - 1)), 1/sum g)``, shape of *xi*.
+
+    With ``P = P_e - s (P_e - P_QLV)`` the long-term fraction ``1 - s sum g`` stays in [0, 1].
+    """
+    cap = 1.0 / g_sum if g_sum > 0 else np.inf
+    with np.errstate(over="ignore"):
+        return np.minimum(np.exp(kappa * (np.asarray(xi, float) - 1.0)), cap)
+
+
 def equivalent_stretch(I1):
     """The uniaxial stretch λ ≥ 1 with ``λ² + 2/λ = I1`` (the damage driver ξ).
 
@@ -267,11 +351,14 @@ class ViscoelasticEffect:
 
     ``g[i]`` weight and ``tau[i]`` time of term *i*, sorted by ``tau``. The base
     material parameters are the instantaneous response (G(0) = 1); the
-    long-term response is ``g_inf`` times it.
+    long-term response is ``g_inf`` times it. ``kappa`` (default 0: Fung's QLV)
+    makes the relaxed amount depend on the uniaxial-equivalent stretch
+    (:func:`relaxation_strength`).
     """
 
     g: tuple[float, ...]
     tau: tuple[float, ...]
+    kappa: float = 0.0
 
     def __post_init__(self):
         g = tuple(float(v) for v in self.g)
@@ -282,6 +369,9 @@ class ViscoelasticEffect:
             raise ConfigError(f"viscoelastic effect: weights g must be >= 0 with sum <= 1, got {list(g)}")
         if any(not (v > 0.0 and math.isfinite(v)) for v in tau):
             raise ConfigError(f"viscoelastic effect: relaxation times tau must be positive seconds, got {list(tau)}")
+        if not math.isfinite(float(self.kappa)):
+            raise ConfigError(f"viscoelastic effect: kappa must be a finite number, got {self.kappa!r}")
+        object.__setattr__(self, "kappa", float(self.kappa))
         order = sorted(range(len(g)), key=lambda i: tau[i])
         object.__setattr__(self, "g", tuple(g[i] for i in order))
         object.__setattr__(self, "tau", tuple(tau[i] for i in order))
@@ -296,9 +386,16 @@ class ViscoelasticEffect:
         t = np.asarray(t, float)
         return self.g_inf + sum(gi * np.exp(-t / ti) for gi, ti in zip(self.g, self.tau))
 
-    def stress(self, t, pe):
-        """The QLV stress history for the elastic history *pe* (see :func:`qlv_stress`)."""
-        return qlv_stress(t, pe, np.array(self.g), np.array(self.tau))
+    def stress(self, t, pe, xi=None):
+        """The stress history for the elastic history *pe* (:func:`qlv_stress`; with ``kappa``
+        also the uniaxial-equivalent stretch *xi* of each sample, :func:`relaxation_strength`)."""
+        p = qlv_stress(t, pe, np.array(self.g), np.array(self.tau))
+        if self.kappa == 0.0:
+            return p
+        if xi is None:
+            raise ConfigError("viscoelastic effect: stretch-dependent relaxation needs the equivalent stretch xi")
+        pe = np.asarray(pe, float)
+        return pe - relaxation_strength(xi, self.kappa, sum(self.g)) * (pe - p)
 
 
 @dataclass(frozen=True)
@@ -347,6 +444,39 @@ class DamageEffect:
 
 
 @dataclass(frozen=True)
+class CyclicSofteningEffect:
+    """Continuous softening with the accumulated energy variation: ``d_inf`` in [0, 1), ``eta`` [Pa] > 0."""
+
+    d_inf: float
+    eta: float
+
+    def __post_init__(self):
+        if not (0.0 <= self.d_inf < 1.0):
+            raise ConfigError(f"cyclic_softening effect: d_inf must be in [0, 1), got {self.d_inf!r}")
+        if not (self.eta > 0.0 and math.isfinite(self.eta)):
+            raise ConfigError(f"cyclic_softening effect: eta must be a positive energy, got {self.eta!r}")
+
+    def factor(self, alpha):
+        """Remaining fraction for the accumulated energy variations *alpha* [Pa]."""
+        return cyclic_factor(alpha, self.d_inf, self.eta)
+
+
+@dataclass(frozen=True)
+class PermanentSetEffect:
+    """Residual strain: the set stretch is ``1 + fraction (lam_max - 1)``, ``fraction`` in [0, 1)."""
+
+    fraction: float
+
+    def __post_init__(self):
+        if not (0.0 <= self.fraction < 1.0):
+            raise ConfigError(f"permanent_set effect: fraction must be in [0, 1), got {self.fraction!r}")
+
+    def set_stretch(self, lam_max):
+        """λ_s after the largest stretches *lam_max*."""
+        return set_stretch(lam_max, self.fraction)
+
+
+@dataclass(frozen=True)
 class MaterialEffects:
     """The material effects kept by a discovery (each None when absent).
 
@@ -357,17 +487,22 @@ class MaterialEffects:
     damage : DamageEffect or None
     intervals : dict
         Optional 95 % intervals, ``{"viscoelastic.g[0]": [lo, hi], ...}`` (SI).
+    cyclic_softening : CyclicSofteningEffect or None
+    permanent_set : PermanentSetEffect or None
 
     Notes
     -----
-    Composition: ``P = QLV[(1 - D(ξ_max)) · η(W, W_max) · P_e(λ)]`` (module
-    docstring). :meth:`stress` evaluates it along a recorded history.
+    Composition: ``P = VE[(1 - D(ξ_max)) · η(W, W_max) · c(α) · P_e(λ/λ_s)/λ_s]`` (module
+    docstring). :meth:`stress` evaluates it along a recorded history, given the
+    elastic stress at the elastic stretch (the caller applies λ_s).
     """
 
     viscoelastic: ViscoelasticEffect | None = None
     mullins: MullinsEffect | None = None
     damage: DamageEffect | None = None
     intervals: dict[str, list[float]] = field(default_factory=dict)
+    cyclic_softening: CyclicSofteningEffect | None = None
+    permanent_set: PermanentSetEffect | None = None
 
     @property
     def names(self) -> list[str]:
@@ -385,8 +520,12 @@ class MaterialEffects:
                               "the previous elastic stress; advance with qlv_step")
         if self.mullins is not None:
             out["W_max"] = "largest strain energy density reached so far [Pa] (or the largest stretch)"
-        if self.damage is not None:
-            out["xi_max"] = "largest uniaxial-equivalent stretch reached so far"
+        if self.damage is not None or self.permanent_set is not None:
+            out["xi_max"] = "largest uniaxial-equivalent stretch reached so far (the set stretch follows from it)"
+        if self.cyclic_softening is not None:
+            out["alpha"] = "accumulated variation of the strain energy sum |dW| [Pa] and the previous W"
+        if self.viscoelastic is not None and self.viscoelastic.kappa:
+            out["prony_h"] += "; the relaxed part is scaled by relaxation_strength(xi, kappa, sum g)"
         return out
 
     def stress(self, t, pe, *, W=None, xi=None, history: bool = True):
@@ -399,12 +538,18 @@ class MaterialEffects:
         pe : array_like, shape (n,)
             Elastic stress of the base material [Pa].
         W : array_like, shape (n,), optional
-            Base strain energy [Pa] (needed for Mullins).
+            Base strain energy [Pa] (needed for Mullins and cyclic softening).
         xi : array_like, shape (n,), optional
-            Uniaxial-equivalent stretch (needed for damage).
+            Uniaxial-equivalent stretch (needed for damage and stretch-dependent relaxation).
         history : bool
             True: the samples are in loading order (maxima so far are running
             maxima). False: every sample is on the primary loading path.
+
+        Notes
+        -----
+        With ``permanent_set`` the caller gives *pe* and *W* at the elastic
+        stretch λ/λ_s, *pe* already divided by λ_s (:func:`set_stretch`): the set
+        changes the kinematics, which only the caller's model can evaluate.
         """
         p = np.asarray(pe, float).copy()
         if self.damage is not None:
@@ -417,20 +562,27 @@ class MaterialEffects:
                 raise ConfigError("mullins effect: the strain energy W is needed")
             W = np.asarray(W, float)
             p *= self.mullins.factor(W, np.maximum.accumulate(W))
+        if self.cyclic_softening is not None and history:
+            if W is None:
+                raise ConfigError("cyclic_softening effect: the strain energy W is needed")
+            p *= self.cyclic_softening.factor(accumulated_energy(W))
         if self.viscoelastic is not None:
             if t is None:
                 raise ConfigError("viscoelastic effect: the time of each sample is needed")
-            p = self.viscoelastic.stress(t, p)
+            p = self.viscoelastic.stress(t, p, xi)
         return p
 
     # ---------------------------------------------------------------- I/O
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict (schema ``esmm.material-effects/1``, SI units)."""
-        d: dict[str, Any] = {"schema": SCHEMA, "composition": "P = QLV[(1 - D) * eta * P_e]"}
+        new = self.cyclic_softening or self.permanent_set or (self.viscoelastic and self.viscoelastic.kappa)
+        d: dict[str, Any] = {"schema": SCHEMA, "composition": COMPOSITION if new else "P = QLV[(1 - D) * eta * P_e]"}
         if self.viscoelastic is not None:
             v = self.viscoelastic
             d["viscoelastic"] = {"g": list(v.g), "tau": list(v.tau), "g_inf": v.g_inf,
                                  "reference": "instantaneous", "unit_tau": "s"}
+            if v.kappa:
+                d["viscoelastic"]["kappa"] = v.kappa
         if self.mullins is not None:
             d["mullins"] = {"r": self.mullins.r, "m": self.mullins.m, "beta": self.mullins.beta,
                             "unit_m": "Pa", "energy": "base strain energy density W [Pa]"}
@@ -438,6 +590,12 @@ class MaterialEffects:
             d["damage"] = {"onset": self.damage.onset, "scale": self.damage.scale,
                            "shape": self.damage.shape,
                            "driver": "largest uniaxial-equivalent stretch so far"}
+        if self.cyclic_softening is not None:
+            d["cyclic_softening"] = {"d_inf": self.cyclic_softening.d_inf, "eta": self.cyclic_softening.eta,
+                                     "unit_eta": "Pa", "driver": "accumulated variation of W, sum |dW|"}
+        if self.permanent_set is not None:
+            d["permanent_set"] = {"fraction": self.permanent_set.fraction,
+                                  "driver": "largest stretch so far: lam_s = 1 + fraction (lam_max - 1)"}
         if self.intervals:
             d["intervals"] = {k: list(map(float, v)) for k, v in self.intervals.items()}
         return d
@@ -457,15 +615,21 @@ class MaterialEffects:
             )
         try:
             v = d.get("viscoelastic")
-            visco = ViscoelasticEffect(tuple(v["g"]), tuple(v["tau"])) if v else None
+            visco = ViscoelasticEffect(tuple(v["g"]), tuple(v["tau"]), float(v.get("kappa", 0.0))) if v else None
             mu = d.get("mullins")
             mull = MullinsEffect(float(mu["r"]), float(mu["m"]), float(mu.get("beta", 0.0))) if mu else None
             da = d.get("damage")
             dam = DamageEffect(float(da["onset"]), float(da["scale"]), float(da.get("shape", 1.0))) if da else None
+            cy = d.get("cyclic_softening")
+            cyc = CyclicSofteningEffect(float(cy["d_inf"]), float(cy["eta"])) if cy else None
+            ps = d.get("permanent_set")
+            pset = PermanentSetEffect(float(ps["fraction"])) if ps else None
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(f"{where}: incomplete or malformed effect entry ({exc}); see docs/discover.md") from None
-        intervals = {str(k): [float(a) for a in val] for k, val in (d.get("intervals") or {}).items()}
-        return cls(visco, mull, dam, intervals)
+        # strict JSON writes an unbounded side as null: lower -inf, upper +inf
+        intervals = {str(k): [(-math.inf, math.inf)[j] if a is None else float(a) for j, a in enumerate(val)]
+                     for k, val in (d.get("intervals") or {}).items()}
+        return cls(visco, mull, dam, intervals, cyc, pset)
 
     def to_toml_table(self, *, stress_unit: str = "Pa") -> dict[str, Any]:
         """The ``[material.effects]`` table: dimensional values as strings with units."""
@@ -477,6 +641,8 @@ class MaterialEffects:
                 "g": [float(x) for x in v.g],
                 "tau": [f"{x:.6g} s" for x in v.tau],
             }
+            if v.kappa:
+                t["viscoelastic"]["kappa"] = float(v.kappa)
         if self.mullins is not None:
             m = self.mullins
             t["mullins"] = {"r": float(m.r), "m": f"{from_si(m.m, stress_unit, 'stress'):.6g} {stress_unit}",
@@ -484,6 +650,12 @@ class MaterialEffects:
         if self.damage is not None:
             da = self.damage
             t["damage"] = {"onset": float(da.onset), "scale": float(da.scale), "shape": float(da.shape)}
+        if self.cyclic_softening is not None:
+            c = self.cyclic_softening
+            t["cyclic_softening"] = {"d_inf": float(c.d_inf),
+                                     "eta": f"{from_si(c.eta, stress_unit, 'stress'):.6g} {stress_unit}"}
+        if self.permanent_set is not None:
+            t["permanent_set"] = {"fraction": float(self.permanent_set.fraction)}
         return t
 
     @classmethod
@@ -521,11 +693,17 @@ class MaterialEffects:
             if ref != "instantaneous":
                 raise ConfigError(f"{where}.viscoelastic: reference must be \"instantaneous\", got {ref!r}")
             d["viscoelastic"] = {"g": [float(x) for x in v.get("g", [])],
-                                 "tau": [qty(x, "time", "viscoelastic.tau") for x in v.get("tau", [])]}
+                                 "tau": [qty(x, "time", "viscoelastic.tau") for x in v.get("tau", [])],
+                                 "kappa": v.get("kappa", 0.0)}
         if "mullins" in t:
             m = t["mullins"]
             d["mullins"] = {"r": m.get("r"), "m": qty(m.get("m"), "stress", "mullins.m"),
                             "beta": m.get("beta", 0.0)}
         if "damage" in t:
             d["damage"] = dict(t["damage"])
+        if "cyclic_softening" in t:
+            c = t["cyclic_softening"]
+            d["cyclic_softening"] = {"d_inf": c.get("d_inf"), "eta": qty(c.get("eta"), "stress", "cyclic_softening.eta")}
+        if "permanent_set" in t:
+            d["permanent_set"] = dict(t["permanent_set"])
         return cls.from_dict(d, where=where)

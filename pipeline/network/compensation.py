@@ -50,6 +50,7 @@ from ..progress import ensure
 from ..validate import number
 from . import compensation_policy as policy
 from .compensation_policy import DEFAULT_RADIUS_ELEMENTS, DEFAULT_RANGE, RADIUS_ELEMENTS_RANGE
+from .loadcases import virtual_shear_test
 from .tables import LAWS, StiffnessTables
 from .tensile_test import (
     Specimen,
@@ -58,12 +59,19 @@ from .tensile_test import (
     cylinder_specimen,
     virtual_tensile_test,
 )
+from .volume import VolumeSpec
 
 __all__ = ["Compensation", "CompensationResult", "calibrate_compensation", "compensate", "correction_on_grid",
            "specimen_for"]
 
-#: Small-strain stretch of the scalar calibration.
+#: Small-strain stretch (and amount of shear) of the scalar calibration.
 SMALL_STRAIN = 1e-4
+#: Amounts of simple shear the calibrated network is checked at (with the volume term).
+SHEAR_CHECK = (0.1, 0.2, 0.3, 0.4)
+#: The small-strain load cases of the scalar factor with the volume term, and their weights: the
+#: specimen's axial mode and its two shear planes weigh 1 : 2 : 2, the isotropic average of the
+#: five deviatoric modes of a transversely isotropic (cylinder) network (docs/model-tables.md §4b).
+SCALAR_CASES = (("tension", 1.0), ("xy", 2.0), ("xz", 2.0))
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,8 +88,9 @@ class CompensationResult:
     g : ndarray, shape (k,)
         :math:`g` at the knots.
     before, scalar, after : TensileResult
-        Tests without compensation (:math:`c = 1`; derived exactly from the
-        scalar run), with :math:`c` only, and with :math:`c` and :math:`g`.
+        Tests of the raw network (springs alone, :math:`c = 1`; without a
+        volume term derived exactly from the scalar run), with :math:`c` only,
+        and with :math:`c` and :math:`g` (both with the volume term, if any).
         Tension and compression points are concatenated (compression first).
     iterations : int
         Fixed-point iterations used.
@@ -89,6 +98,14 @@ class CompensationResult:
         True when the largest relative error is below ``tol``.
     specimen : dict
         :meth:`Specimen.describe`.
+    volume : dict or None
+        The volume term's :meth:`VolumeSpec.describe` (None: springs only).
+    small_strain : dict
+        The scalar calibration: ``factor``, ``balance`` (c over the tension
+        factor), the factor of each load case (``cases``) and their ``weights``.
+    checks : dict
+        Load cases the calibration was checked on but not fitted to
+        (``"shear_xz"``, ``"shear_xy"``: simple shear, errors per amount of shear).
     """
 
     law: str
@@ -101,6 +118,9 @@ class CompensationResult:
     iterations: int
     converged: bool
     specimen: dict[str, Any] = field(default_factory=dict)
+    volume: dict[str, Any] | None = None
+    small_strain: dict[str, Any] = field(default_factory=dict)
+    checks: dict[str, Any] = field(default_factory=dict)
 
     def record(self) -> dict[str, Any]:
         """JSON-serialisable summary (stored in ``tables.metadata["compensation"]``)."""
@@ -109,14 +129,18 @@ class CompensationResult:
 
         return {
             "method": "virtual uniaxial test on a gmsh cylinder (pipeline/network/compensation.py): "
-                      "scalar factor from a small-strain test, stretch-dependent correction by "
-                      "fixed-point iteration",
+                      "scalar factor from a small-strain test (with the volume term: the weighted geometric mean "
+                      "of small-strain tension and simple shear in two planes), stretch-dependent correction by "
+                      "fixed-point iteration on tension and compression",
             "law": self.law, "volume_factor": self.factor,
             "knots": self.knots.tolist(), "g": self.g.tolist(),
             "stretch_range": [float(self.after.stretch.min()), float(self.after.stretch.max())],
             "iterations": self.iterations, "converged": self.converged,
             "errors_before": errs(self.before), "errors_scalar": errs(self.scalar),
             "errors_after": errs(self.after), "specimen": self.specimen,
+            "volume_term": self.volume, "small_strain": self.small_strain, "checks": self.checks,
+            "volume_ratio_after": None if self.after.volume_ratio is None else
+            [float(self.after.volume_ratio.min()), float(self.after.volume_ratio.max())],
         }
 
 
@@ -162,7 +186,8 @@ def _stretches(end: float | None, spacing: float, *, tension: bool, tables: Stif
 def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: str | None = None,
                            material=None, tension: float | None = 1.3, compression: float | None = 0.9,
                            spacing: float = 0.02, tol: float = 0.01, max_iter: int = 8,
-                           rtol: float = 1e-8, reporter=None) -> tuple[StiffnessTables, CompensationResult]:
+                           rtol: float = 1e-8, volume: VolumeSpec | None = None, shear_check=SHEAR_CHECK,
+                           reporter=None) -> tuple[StiffnessTables, CompensationResult]:
     """Find the scalar factor and the stretch correction of *law* on *specimen*.
 
     Parameters
@@ -181,12 +206,19 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
     spacing : float
         Approximate stretch step between test points (= knots of g).
     tol : float
-        Stop when every relative stress error is below *tol*.
+        Stop when every relative stress error (against the target) is below *tol*.
     max_iter : int
         Fixed-point iterations at most; the best correction found is kept.
     rtol : float
         Equilibrium tolerance of the virtual tests (see
         :func:`~esmm.pipeline.network.tensile_test.virtual_tensile_test`).
+    volume : VolumeSpec, optional
+        The volume term the network will carry (:mod:`~esmm.pipeline.network.volume`);
+        every test then includes it, and the scalar factor balances two load
+        cases (uniaxial tension and simple shear, module doc).
+    shear_check : sequence of float, optional
+        Amounts of shear at which the calibrated network is checked against
+        the material (with *volume* and *material*; empty: no check).
 
     Returns
     -------
@@ -196,12 +228,7 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
     """
     rep = ensure(reporter)
     law = tables.check_law(law)
-    if not (isinstance(tol, float | int) and 0 < tol < 1):
-        raise ConfigError(f"tol: must be a fraction in (0, 1), got {tol!r}")
-    if not (isinstance(max_iter, int) and max_iter >= 1):
-        raise ConfigError(f"max_iter: must be a positive integer, got {max_iter!r}")
-    if not (isinstance(spacing, float | int) and 0 < spacing <= 0.5):
-        raise ConfigError(f"spacing: must be a stretch step in (0, 0.5], got {spacing!r}")
+    _check_options(tol, max_iter, spacing)
     lam_t = _stretches(tension, spacing, tension=True, tables=tables)
     lam_c = _stretches(compression, spacing, tension=False, tables=tables)
     if lam_t.size + lam_c.size == 0:
@@ -213,14 +240,14 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
             return continuum_stress(material, lam)
         return np.interp(lam, base.lam, base.material_stress[2])
 
-    # 1. scalar factor from a small-strain test
-    small = virtual_tensile_test(specimen, base, stretch=[1.0 + SMALL_STRAIN], law=law, material=material)
-    c = float(reference(np.array([1.0 + SMALL_STRAIN]))[0] / small.stress[0])
-    if not (math.isfinite(c) and c > 0):
-        raise ConfigError(f"specimen: small-strain network stress {small.stress[0]:.3g} Pa gives no "
-                          "usable compensation factor; check the tables and the specimen")
-    rep.step(f"compensation ({law}): scalar factor c = {c:.4f} from a small-strain test")
+    # 1. scalar factor from small-strain tests (tension; with the volume term also simple shear)
+    scalar = _scalar_factor(specimen, base, law, material, volume, reference)
+    c, balance = scalar["factor"], scalar["balance"]
+    rep.step(f"compensation ({law}): scalar factor c = {c:.4f} from small-strain "
+             + ", ".join(f"{k} {v:.4f}" for k, v in scalar["cases"].items()))
 
+    # 2. stretch correction by fixed-point iteration on the curve's shape: the target is the
+    # material's stress times the small-strain balance of the load cases.
     knots = np.concatenate([lam_c[::-1], [1.0], lam_t])
     g = np.ones_like(knots)
     best: tuple[float, np.ndarray, TensileResult] | None = None
@@ -233,7 +260,7 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
         for it in range(1, max_iter + 1):
             cur = base.with_compensation(c, correction={law: correction_on_grid(base, knots, g)})
             try:
-                res = _both_sides(specimen, cur, lam_t, lam_c, law, reference, guesses, rtol)
+                res = _both_sides(specimen, cur, lam_t, lam_c, law, reference, guesses, rtol, volume)
             except SimulationError as exc:
                 if best is None:
                     raise SimulationError(
@@ -245,15 +272,15 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
                 break
             if first is None:
                 first = res
-            err = res.max_abs_rel_error
+            ratio = balance * res.reference / res.stress          # target over network, per test stretch
+            err = float(np.max(np.abs(1.0 / ratio - 1.0)))
             if best is None or err < best[0]:
                 best = (err, g.copy(), res)
             advance(1)
-            rep.step(f"compensation ({law}) iteration {it}: max |error| {100 * err:.2f} %")
+            rep.step(f"compensation ({law}) iteration {it}: max |error| {100 * err:.2f} % (against the target)")
             if err <= tol:
                 converged = True
                 break
-            ratio = res.reference / res.stress
             nc = lam_c.size        # res: compression (1 -> end) then tension; knots ascending
             log_r = np.zeros_like(g)
             log_r[:nc] = np.log(ratio[:nc][::-1])
@@ -264,15 +291,87 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
             g = _limit_ends(knots, g, nc)
     assert best is not None and first is not None
     err, g_best, after = best
-    scalar = first                          # the first iteration ran with c and g = 1
-    before = _scaled(first, 1.0 / c, 1.0)   # stress is proportional to c under displacement control
-    result = CompensationResult(law=law, factor=c, knots=knots, g=g_best, before=before, scalar=scalar,
-                                after=after, iterations=it, converged=converged,
-                                specimen=specimen.describe())
+    before = _before(first, c, specimen, base, lam_t, lam_c, law, reference, rtol, volume)
+    checks = {}
+    if volume is not None and material is not None and len(shear_check):
+        done = base.with_compensation(c, correction={law: correction_on_grid(base, knots, g_best)})
+        for plane in ("xz", "xy"):
+            checks[f"shear_{plane}"] = _shear_record(virtual_shear_test(
+                specimen.network, done, gamma=shear_check, law=law, material=material, volume=volume,
+                plane=plane, rtol=rtol))
+    result = CompensationResult(law=law, factor=c, knots=knots, g=g_best, before=before, scalar=first,
+                                after=after, iterations=it, converged=converged, specimen=specimen.describe(),
+                                volume=None if volume is None else volume.describe(), small_strain=scalar,
+                                checks=checks)
     if not converged:
         rep.warn(f"compensation ({law}): stopped after {it} iterations at max |error| "
                  f"{100 * err:.2f} % (tolerance {100 * tol:.2g} %)")
     return _apply(tables, law, c, knots, g_best, result.record()), result
+
+
+def _check_options(tol, max_iter, spacing) -> None:
+    if not (isinstance(tol, float | int) and 0 < tol < 1):
+        raise ConfigError(f"tol: must be a fraction in (0, 1), got {tol!r}")
+    if not (isinstance(max_iter, int) and max_iter >= 1):
+        raise ConfigError(f"max_iter: must be a positive integer, got {max_iter!r}")
+    if not (isinstance(spacing, float | int) and 0 < spacing <= 0.5):
+        raise ConfigError(f"spacing: must be a stretch step in (0, 0.5], got {spacing!r}")
+
+
+def _scalar_factor(specimen, base, law, material, volume, reference) -> dict[str, Any]:
+    """The scalar factor c from small-strain tests, and the tension balance.
+
+    Springs only: ``c = P_cont / P_net`` in uniaxial tension (the network's
+    stress is proportional to c). With the volume term the network is
+    (nearly) incompressible and one modulus remains, the shear modulus; but a
+    cylinder's mesh is not isotropic (its edges favour the axis: the axial
+    mode is ~6 % stiffer and the xz shear ~5 % softer than the orientation
+    average). So c is the weighted geometric mean of the factors of uniaxial
+    tension along the axis and simple shear in the xy and xz planes,
+    :data:`SCALAR_CASES`: the isotropic average of the five deviatoric modes
+    (each factor is refined once, as the volume term does not scale with c).
+    The *balance* ``c / c_tension`` is the specimen's axial stress relative to
+    the material's at small strain; the stretch correction keeps it, so that g
+    holds the curve's shape only.
+    """
+    lam = np.array([1.0 + SMALL_STRAIN])
+
+    def factor(case, c):
+        t = base.with_compensation(c, correction={law: np.ones(base.n)})
+        if case == "tension":
+            r = virtual_tensile_test(specimen, t, stretch=lam, law=law, material=material, volume=volume)
+            return float(reference(lam)[0] / r.stress[0])
+        r = virtual_shear_test(specimen.network, t, gamma=[SMALL_STRAIN], law=law, material=material,
+                               volume=volume, plane=case)
+        # without a material: P_ab = mu gamma = (E/3) gamma = P_uniaxial(1 + eps) / 3 at gamma = eps
+        ref = r.reference[0] if material is not None else reference(lam)[0] / 3.0
+        return float(ref / r.stress[0])
+
+    cases = SCALAR_CASES if volume is not None else SCALAR_CASES[:1]
+    found = {}
+    for case, _ in cases:
+        c = factor(case, 1.0)
+        found[case] = c * factor(case, c) if volume is not None else c
+    weights = np.array([w for _, w in cases])
+    c = float(np.exp(np.sum(weights * np.log([found[k] for k, _ in cases])) / weights.sum()))
+    if not (math.isfinite(c) and c > 0):
+        raise ConfigError(f"specimen: small-strain network stresses give no usable compensation factor "
+                          f"({found}); check the tables and the specimen")
+    return {"factor": c, "balance": c / found["tension"], "cases": found,
+            "weights": {k: w for k, w in cases}}
+
+
+def _before(first, c, specimen, base, lam_t, lam_c, law, reference, rtol, volume) -> TensileResult:
+    """The raw network (springs alone, c = 1, g = 1): exact scaling of *first* without a volume term, else a run."""
+    if volume is None:
+        return _scaled(first, 1.0 / c, 1.0)      # stress is proportional to c under displacement control
+    return _both_sides(specimen, base, lam_t, lam_c, law, reference, {}, rtol, None)
+
+
+def _shear_record(r) -> dict[str, Any]:
+    """Plain data of a simple-shear check."""
+    return {"gamma": r.gamma.tolist(), "rel_error": r.rel_error.tolist(), "max_abs_rel_error": r.max_abs_rel_error,
+            "volume_ratio": r.volume_ratio.tolist(), "inverted": r.inverted.tolist()}
 
 
 def _apply(tables: StiffnessTables, law: str, factor: float, knots, g, record: dict[str, Any]) -> StiffnessTables:
@@ -344,7 +443,8 @@ def calibration_stretches(tables: StiffnessTables, calibration_range=None) -> tu
 
 
 def compensate(tables: StiffnessTables, network, *, material=None, calibration_range=None,
-               radius_elements: float | None = None, reporter=None) -> Compensation:
+               radius_elements: float | None = None, volume: VolumeSpec | None = None,
+               reporter=None) -> Compensation:
     """Calibrate the volumetric compensation of *tables* for their default law, or reuse a calibration.
 
     One virtual tensile test on a cylinder meshed like *network*
@@ -364,6 +464,9 @@ def compensate(tables: StiffnessTables, network, *, material=None, calibration_r
     radius_elements : float, optional
         Specimen radius in element sizes (default :data:`DEFAULT_RADIUS_ELEMENTS`,
         accepted :data:`RADIUS_ELEMENTS_RANGE`).
+    volume : VolumeSpec, optional
+        The volume term the asset carries (the calibration runs with it; its
+        parameters enter the cache key).
     reporter
         Progress reporter.
 
@@ -382,7 +485,7 @@ def compensate(tables: StiffnessTables, network, *, material=None, calibration_r
     lo, hi = calibration_stretches(tables, calibration_range)
     r = number(DEFAULT_RADIUS_ELEMENTS if radius_elements is None else radius_elements, "radius_elements",
                lo=RADIUS_ELEMENTS_RANGE[0], hi=RADIUS_ELEMENTS_RANGE[1])
-    key = policy.cache_key(tables, law, lo, hi, r)
+    key = policy.cache_key(tables, law, lo, hi, r, volume=None if volume is None else volume.describe())
     hit = policy.load(key)
     if hit is not None:
         record = dict(hit["record"], cache={"key": key, "hit": True})
@@ -390,7 +493,7 @@ def compensate(tables: StiffnessTables, network, *, material=None, calibration_r
         return Compensation(out, record, policy.cache_path(key))
     specimen = specimen_for(network, radius_elements=r, reporter=reporter)
     out, calib = calibrate_compensation(tables, specimen, law=law, material=material, tension=hi,
-                                        compression=lo, reporter=reporter)
+                                        compression=lo, volume=volume, reporter=reporter)
     record = calib.record()
     policy.store(key, factor=calib.factor, knots=calib.knots.tolist(), g=calib.g.tolist(),
                              record=record)
@@ -460,13 +563,13 @@ def _merge_record(tables: StiffnessTables, law: str, rec: dict[str, Any]) -> dic
     return merged
 
 
-def _both_sides(specimen, tables, lam_t, lam_c, law, reference, guesses, rtol) -> TensileResult:
+def _both_sides(specimen, tables, lam_t, lam_c, law, reference, guesses, rtol, volume=None) -> TensileResult:
     """Compression then tension tests; *guesses* (dict side -> path) is updated in place."""
     parts = []
     for side, lam in (("c", lam_c), ("t", lam_t)):
         if lam.size:
             r = virtual_tensile_test(specimen, tables, stretch=lam, law=law, rtol=rtol,
-                                     predictors=guesses.get(side), keep_path=True)
+                                     predictors=guesses.get(side), keep_path=True, volume=volume)
             guesses[side] = r.path
             parts.append(r)
     stretch = np.concatenate([p.stretch for p in parts])
@@ -475,7 +578,7 @@ def _both_sides(specimen, tables, lam_t, lam_c, law, reference, guesses, rtol) -
         lateral_stretch=np.concatenate([p.lateral_stretch for p in parts]),
         iterations=np.concatenate([p.iterations for p in parts]), law=law,
         volume_factor=tables.volume_factor, residual=max(p.residual for p in parts),
-        info=parts[0].info,
+        info=parts[0].info, volume_ratio=np.concatenate([p.volume_ratio for p in parts]),
     )
 
 
@@ -483,4 +586,4 @@ def _scaled(r: TensileResult, s: float, c: float) -> TensileResult:
     """*r* with the network stress multiplied by *s* and volume factor *c*."""
     return TensileResult(stretch=r.stretch, stress=r.stress * s, reference=r.reference,
                          lateral_stretch=r.lateral_stretch, iterations=r.iterations, law=r.law,
-                         volume_factor=c, residual=r.residual, info=r.info)
+                         volume_factor=c, residual=r.residual, info=r.info, volume_ratio=r.volume_ratio)

@@ -10,8 +10,9 @@ radius of a fixed number of elements, so it is geometrically similar for every
 organ, and the spring network's stress response is scale-free (forces ~ V/L0,
 areas ~ L0^2): the result depends on the material, the law, the grid, the
 calibration range, the specimen's radius in elements and the code, not on the
-organ. The code that computes it is part of the address, so an edited
-calibration never serves a stale result.
+organ. The volume term's bulk modulus and formulation are part of it too (the
+calibration runs with the term on). The code that computes it is part of the
+address, so an edited calibration never serves a stale result.
 
 Where: ``$ESMM_CACHE_DIR``, else ``$XDG_CACHE_HOME/esmm``, else
 ``~/.cache/esmm`` (subfolder ``compensation``), one JSON file per calibration.
@@ -39,7 +40,7 @@ DEFAULT_RADIUS_ELEMENTS = 4.0
 RADIUS_ELEMENTS_RANGE = (1.5, 20.0)
 
 #: The modules whose source decides a calibration's result (their bytes enter the key).
-CODE = ("compensation.py", "tensile_test.py", "tables.py", "forcelaw.py", "springs.py")
+CODE = ("compensation.py", "tensile_test.py", "tables.py", "forcelaw.py", "springs.py", "volume.py", "loadcases.py")
 
 
 def cache_dir() -> Path:
@@ -51,8 +52,13 @@ def cache_dir() -> Path:
     return Path(root) / "compensation"
 
 
-def cache_key(tables: StiffnessTables, law: str, lo: float, hi: float, radius_elements: float) -> str:
-    """Content address of a calibration of *law* on *tables* over stretches *lo* .. *hi*."""
+def cache_key(tables: StiffnessTables, law: str, lo: float, hi: float, radius_elements: float, *,
+              volume: dict[str, Any] | None = None) -> str:
+    """Content address of a calibration of *law* on *tables* over stretches *lo* .. *hi*.
+
+    *volume* is the volume term's description (``VolumeSpec.describe()``; None:
+    springs only): its bulk modulus and formulation change the result.
+    """
     code = hashlib.sha256()
     here = Path(__file__).resolve().parent
     for name in CODE:
@@ -63,6 +69,7 @@ def cache_key(tables: StiffnessTables, law: str, lo: float, hi: float, radius_el
         "lam": [repr(float(tables.lam_min)), repr(float(tables.lam_max))],
         "range": [repr(float(lo)), repr(float(hi))], "radius_elements": float(radius_elements),
         "esmm": __version__,
+        "volume": None if volume is None else {k: volume.get(k) for k in ("bulk_modulus_pa", "formulation")},
     }, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:32]
 

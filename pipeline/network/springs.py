@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -88,6 +89,9 @@ class SpringNetwork:
         Orthonormal rows: the fibre axes in mesh coordinates. ``cos2[:, a] = (frame[a] . d)**2``.
     density : float
         Tissue density used for the masses [kg/m3].
+    volume_term : VolumeSpec or None
+        The volume term the network carries (:mod:`esmm.pipeline.network.volume`:
+        bulk modulus and formulation, on ``tets``); None: springs alone.
     """
 
     points: np.ndarray
@@ -104,6 +108,7 @@ class SpringNetwork:
     structure: str = "tetra"
     fibre_frame: np.ndarray = field(default_factory=lambda: np.eye(3))
     density: float = DEFAULT_DENSITY
+    volume_term: Any = None        # a volume.VolumeSpec (that module builds on this one)
 
     def __post_init__(self) -> None:
         self.points = np.ascontiguousarray(np.asarray(self.points, dtype=np.float64).reshape(-1, 3))

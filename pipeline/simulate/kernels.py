@@ -17,7 +17,9 @@ and the steppers build:
   by, and the implicit mass-damping factor ``1 / (1 + alpha dt)``;
 * :class:`Nodes` ``(x, v, f, fext, inv_mass)``;
 * :class:`GraspKernel` ``(mode, nodes, offsets, stiffness, wp_t, wp_x)``;
-* :class:`FloorKernel` ``(on, normal, height, stick, mask, contact)``.
+* :class:`FloorKernel` ``(on, normal, height, stick, mask, contact)``;
+* :class:`VolumeKernel` ``(tets, s24, kq, dsum, q, tv, node_ptr, node_tet,
+  node_loc)``: the volume term's elements and scratch (None: no volume term).
 
 The entry points take these tuples; they unpack them once and hand plain arrays
 to the inlined helpers of the loops (an array taken out of a tuple is
@@ -76,10 +78,11 @@ contains no effect code and no branch for it, and the effects variant shares
 every other line. The force pass (:func:`_forces`) and the step loop
 (:func:`_steps`) are written once with ``prange`` and compiled twice, on one
 thread (``prange`` is ``range``; one chunk) and on numba's threads
-(:func:`twin`). A force term that joins later (a per-tetrahedron volume term)
-joins the same way: its own tuple (None when absent), its own chunk function
-adding its forces to the owned nodes and halo slots of a chunk, called next to
-:func:`chunk_forces`.
+(:func:`twin`). The volume term joins the same way: its own tuple
+(:class:`VolumeKernel`, None when absent: the spring-only variant contains no
+volume code), its passes called after :func:`chunk_forces` in the force pass,
+the step loop and FIRE (:func:`_volume_forces`: one chunk scatters over the
+tets; several chunks gather per node range, race-free, in four passes).
 
 Race-free threading
 -------------------
@@ -183,6 +186,26 @@ class Layout(NamedTuple):
     own_start: np.ndarray    #: (T+1,) per chunk, the range of the slots landing in its nodes
     own_slot: np.ndarray     #: the slots
     own_node: np.ndarray     #: the node each lands on
+
+
+class VolumeKernel(NamedTuple):
+    """The volume term (nodal-averaged volume penalty, docs/model.md Part C2) as the kernels read it.
+
+    ``None`` in place of it: no volume term (the spring-only variant, which
+    contains no volume code). Per node ``a``: ``J_a = s24[a] * sum_{t ni a} 6 V_t``
+    and ``q_a = kq (J_a - 1)`` (the pressure over 24); per tet the force on
+    node ``b`` is ``-(sum of its four q) d(6 V_t)/dx_b``.
+    """
+
+    tets: np.ndarray        #: (4, t) uint32, positively oriented
+    s24: np.ndarray         #: (n,) 1 / (24 V_a0)
+    kq: float               #: kappa / 24 [Pa]
+    dsum: np.ndarray        #: (n,) scratch: sum of 6 V_t over the node's tets
+    q: np.ndarray           #: (n,) scratch: kappa (J_a - 1) / 24
+    tv: np.ndarray          #: (t,) scratch of the threaded pass (6 V_t, then the tet's sum of q)
+    node_ptr: np.ndarray    #: (n + 1,) int64: the tets of node a are node_tet[node_ptr[a]:node_ptr[a+1]]
+    node_tet: np.ndarray    #: (4 t,) int64
+    node_loc: np.ndarray    #: (4 t,) int64: the node's place (0-3) in that tet
 
 
 def twin(fn, name: str):
@@ -498,11 +521,181 @@ def apply_halo(c, f, lay):
         f[a, 2] -= lay.hbuf[h, 2]
 
 
-def _forces(x, v, f, fext, sp, fx, lay):
-    """f = fext + spring forces (+ dashpots, + effects unless *fx* is None), chunked as *lay*."""
+# ---------------------------------------------------------------------------
+# the volume term (nodal-averaged volume penalty)
+# ---------------------------------------------------------------------------
+
+@njit(inline="always", **JIT_OPTIONS)
+def _tet_edges(x, tets, t):
+    """(i0, i1, i2, i3) of tet t and its edge vectors e1, e2, e3 from node i0 (nine floats)."""
+    i0 = tets[0, t]
+    i1 = tets[1, t]
+    i2 = tets[2, t]
+    i3 = tets[3, t]
+    ax = x[i1, 0] - x[i0, 0]
+    ay = x[i1, 1] - x[i0, 1]
+    az = x[i1, 2] - x[i0, 2]
+    bx = x[i2, 0] - x[i0, 0]
+    by = x[i2, 1] - x[i0, 1]
+    bz = x[i2, 2] - x[i0, 2]
+    cx = x[i3, 0] - x[i0, 0]
+    cy = x[i3, 1] - x[i0, 1]
+    cz = x[i3, 2] - x[i0, 2]
+    return i0, i1, i2, i3, ax, ay, az, bx, by, bz, cx, cy, cz
+
+
+@njit(**JIT_OPTIONS)
+def volume_forces_serial(x, f, vt):
+    """Add the volume term's forces to *f* (n, 3), one thread: scatter over the tets.
+
+    Three passes: the nodes' summed tet volumes (scatter), their pressures, the
+    forces (gather the four pressures, scatter the four gradients).
+    """
+    tets = vt.tets
+    s24 = vt.s24
+    kq = vt.kq
+    dsum = vt.dsum
+    q = vt.q
+    n = x.shape[0]
+    nt = tets.shape[1]
+    for a in range(n):
+        dsum[a] = 0.0
+    for t in range(nt):
+        i0, i1, i2, i3, ax, ay, az, bx, by, bz, cx, cy, cz = _tet_edges(x, tets, t)
+        d = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+        dsum[i0] += d
+        dsum[i1] += d
+        dsum[i2] += d
+        dsum[i3] += d
+    for a in range(n):
+        q[a] = kq * (dsum[a] * s24[a] - 1.0)
+    for t in range(nt):
+        i0, i1, i2, i3, ax, ay, az, bx, by, bz, cx, cy, cz = _tet_edges(x, tets, t)
+        qs = q[i0] + q[i1] + q[i2] + q[i3]
+        g1x = (by * cz - bz * cy) * qs       # d(6V)/dx1 = e2 x e3
+        g1y = (bz * cx - bx * cz) * qs
+        g1z = (bx * cy - by * cx) * qs
+        g2x = (cy * az - cz * ay) * qs       # d(6V)/dx2 = e3 x e1
+        g2y = (cz * ax - cx * az) * qs
+        g2z = (cx * ay - cy * ax) * qs
+        g3x = (ay * bz - az * by) * qs       # d(6V)/dx3 = e1 x e2
+        g3y = (az * bx - ax * bz) * qs
+        g3z = (ax * by - ay * bx) * qs
+        f[i1, 0] -= g1x
+        f[i1, 1] -= g1y
+        f[i1, 2] -= g1z
+        f[i2, 0] -= g2x
+        f[i2, 1] -= g2y
+        f[i2, 2] -= g2z
+        f[i3, 0] -= g3x
+        f[i3, 1] -= g3y
+        f[i3, 2] -= g3z
+        f[i0, 0] += g1x + g2x + g3x
+        f[i0, 1] += g1y + g2y + g3y
+        f[i0, 2] += g1z + g2z + g3z
+
+
+@njit(**JIT_OPTIONS)
+def volume_tet_pass(c, nchunk, x, vt, second):
+    """Threaded pass over the tets of chunk *c*: tv = 6 V_t (first) or the tet's sum of q (*second*)."""
+    tets = vt.tets
+    tv = vt.tv
+    q = vt.q
+    nt = tets.shape[1]
+    lo = c * nt // nchunk
+    hi = (c + 1) * nt // nchunk
+    if second:
+        for t in range(lo, hi):
+            tv[t] = q[tets[0, t]] + q[tets[1, t]] + q[tets[2, t]] + q[tets[3, t]]
+    else:
+        for t in range(lo, hi):
+            i0, i1, i2, i3, ax, ay, az, bx, by, bz, cx, cy, cz = _tet_edges(x, tets, t)
+            tv[t] = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
+
+
+@njit(**JIT_OPTIONS)
+def volume_node_pass(c, x, f, vt, lay, second):
+    """Threaded pass over the nodes of chunk *c* (the layout's node range), gathering from their tets.
+
+    First: the node's pressure q from its tets' 6 V_t; *second*: its force,
+    ``-sum over its tets of (their sum of q) d(6 V_t)/dx_a``.
+    """
+    tets = vt.tets
+    tv = vt.tv
+    ptr = vt.node_ptr
+    ntet = vt.node_tet
+    loc = vt.node_loc
+    for a in range(lay.node_start[c], lay.node_start[c + 1]):
+        if not second:
+            d = 0.0
+            for k in range(ptr[a], ptr[a + 1]):
+                d += tv[ntet[k]]
+            vt.q[a] = vt.kq * (d * vt.s24[a] - 1.0)
+            continue
+        fx0 = 0.0
+        fy0 = 0.0
+        fz0 = 0.0
+        for k in range(ptr[a], ptr[a + 1]):
+            t = ntet[k]
+            i0, i1, i2, i3, ax, ay, az, bx, by, bz, cx, cy, cz = _tet_edges(x, tets, t)
+            g1x = by * cz - bz * cy
+            g1y = bz * cx - bx * cz
+            g1z = bx * cy - by * cx
+            g2x = cy * az - cz * ay
+            g2y = cz * ax - cx * az
+            g2z = cx * ay - cy * ax
+            g3x = ay * bz - az * by
+            g3y = az * bx - ax * bz
+            g3z = ax * by - ay * bx
+            m = loc[k]
+            if m == 1:
+                gx, gy, gz = g1x, g1y, g1z
+            elif m == 2:
+                gx, gy, gz = g2x, g2y, g2z
+            elif m == 3:
+                gx, gy, gz = g3x, g3y, g3z
+            else:
+                gx, gy, gz = -(g1x + g2x + g3x), -(g1y + g2y + g3y), -(g1z + g2z + g3z)
+            qs = tv[t]
+            fx0 -= qs * gx
+            fy0 -= qs * gy
+            fz0 -= qs * gz
+        f[a, 0] += fx0
+        f[a, 1] += fy0
+        f[a, 2] += fz0
+
+
+@njit(inline="always", **JIT_OPTIONS)
+def _volume_forces(x, f, vt, lay):
+    """Add the volume term's forces to *f*: scattered on one chunk, else four gathering passes on the chunks.
+
+    Inlined into the force pass and the step loop, whose parallel variant runs
+    the passes' ``prange`` on numba's threads (a cached function calling a
+    separately compiled parallel one crashes numba when loaded from its cache,
+    so the passes live in the caller).
+    """
+    nchunk = lay.node_start.shape[0] - 1
+    if nchunk == 1:
+        volume_forces_serial(x, f, vt)
+    else:
+        for c in prange(nchunk):
+            volume_tet_pass(c, nchunk, x, vt, False)
+        for c in prange(nchunk):
+            volume_node_pass(c, x, f, vt, lay, False)
+        for c in prange(nchunk):
+            volume_tet_pass(c, nchunk, x, vt, True)
+        for c in prange(nchunk):
+            volume_node_pass(c, x, f, vt, lay, True)
+
+
+def _forces(x, v, f, fext, sp, fx, lay, vt=None):
+    """f = fext + spring forces (+ dashpots, + effects unless *fx* is None, + the volume term unless
+    *vt* is None), chunked as *lay*."""
     nchunk = lay.node_start.shape[0] - 1
     for c in prange(nchunk):
         chunk_forces(c, x, v, f, fext, sp, fx, lay)
+    if vt is not None:
+        _volume_forces(x, f, vt, lay)
     for c in prange(nchunk):
         apply_halo(c, f, lay)
 
@@ -723,7 +916,7 @@ def _integrate(c, lay, dt, x, v, f, inv_mass, vfac, fl_on, fl_n, fl_h, fl_stick,
 # the step loop (symplectic Euler), written once
 # ---------------------------------------------------------------------------
 
-def _steps(clock, nodes, sp, fx, grasp, floor, lay, rec):
+def _steps(clock, nodes, sp, fx, grasp, floor, lay, rec, vt=None):
     """Advance ``clock.n`` semi-implicit Euler steps.
 
     Step k (time ``t = t0 + (step0 + k) dt``): forces at (x, v); the force on
@@ -731,6 +924,7 @@ def _steps(clock, nodes, sp, fx, grasp, floor, lay, rec):
     dt v``. Nodes with ``inv_mass = 0`` keep ``v = 0`` (fixed) unless grasped in
     prescribed mode: those are put on the path at ``t + dt``. With effects, the
     springs' state advances by ``dt_first`` at the first step, then by dt.
+    The volume term (*vt*, None: none) adds its forces after the springs'.
     """
     nsteps, dt, t0, step0, dt_first, vfac = clock
     x, v, f, fext, inv_mass = nodes
@@ -748,6 +942,8 @@ def _steps(clock, nodes, sp, fx, grasp, floor, lay, rec):
                 prony_ab(fx.fxp, dt, fx.ab)
         for c in prange(nchunk):
             chunk_forces(c, x, v, f, fext, sp, fx, lay)
+        if vt is not None:
+            _volume_forces(x, f, vt, lay)
         if g_mode != GRASP_NONE:
             # The grasped nodes' halo contributions must be in before the force on the
             # grasper is read: apply all halos, read, then integrate.
@@ -839,7 +1035,7 @@ def _fire_move(n, dt, x, v, f, inv_mass, free, fl_on, fl_n, fl_h, fl_stick, fl_m
 
 
 @njit(**JIT_OPTIONS)
-def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, max_iter):
+def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, max_iter, vt=None):
     """FIRE minimisation (Bitzek et al. 2006) of the network energy under fext.
 
     Uses the dynamics' force pass (*sp* without dashpots; one-chunk *lay*) and a
@@ -857,7 +1053,8 @@ def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, m
     for a node in contact (``floor.contact[a]``, set by the last update) whose force
     presses into the floor the floor's reaction is taken off the force used
     by FIRE and by the convergence test (the normal part with "slip", all of it
-    with "stick": sticking friction carries any tangential load).
+    with "stick": sticking friction carries any tangential load). The volume
+    term (*vt*, None: none) adds its forces to the springs'.
     """
     x, v, f, fext, inv_mass = nodes
     g_mode, g_nodes, g_off, g_k, wp_t, wp_x = grasp
@@ -870,7 +1067,7 @@ def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, m
     resid = np.inf
     out = np.zeros(3)
     for it in range(max_iter):
-        forces_serial(x, v, f, fext, sp, fx, lay)
+        forces_serial(x, v, f, fext, sp, fx, lay, vt)
         if g_mode == GRASP_SPRING:
             _grasp_forces(f, x, g_mode, g_nodes, g_off, g_k, tip, out)
         if fl_on:

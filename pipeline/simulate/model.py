@@ -9,10 +9,11 @@
 * :class:`Control`: what the scene prescribes from outside: the grasper, and
   what it implies for the nodes (which are integrated, which the floor acts on).
 
-A :class:`ForceTerm` is one contribution to the nodal forces. The springs
-(:class:`~.springterm.SpringTerm`) are the only one today; a per-tetrahedron
-volume term joins the model's :attr:`Model.terms` with the same methods. A
-stepper (:mod:`.stepper`) advances a State under a Model and a Control.
+A :class:`ForceTerm` is one contribution to the nodal forces: the springs
+(:class:`~.springterm.SpringTerm`) and, when the asset has one and the scene
+keeps it, the volume term (:class:`~.volumeterm.VolumeTerm`), both in
+:attr:`Model.terms`. A stepper (:mod:`.stepper`) advances a State under a
+Model and a Control.
 """
 
 from __future__ import annotations
@@ -26,10 +27,11 @@ from ..errors import ConfigError, InputError
 from .effects import EffectState
 from .kernels import GRASP_NONE, GRASP_PRESCRIBED, GRASP_SPRING, FloorKernel, GraspKernel, tip_state
 from .springterm import SpringTerm
+from .volumeterm import VolumeTerm
 
 
 class ForceTerm(Protocol):
-    """One contribution to the nodal forces f(x, v) (springs today; a volume term next).
+    """One contribution to the nodal forces f(x, v) (the springs; the volume term).
 
     What the steppers need from a term:
 
@@ -41,10 +43,9 @@ class ForceTerm(Protocol):
     * ``damping_rows()``: the same for its damping matrix [N s/m];
     * ``state_rows(state, x, delta)``: rows added by its state (None if none).
 
-    An implicit stepper will add ``tangent_matvec(x, v, dx, out)`` (the
-    product of the term's tangent stiffness with a vector, for conjugate
-    gradients) or an assembled tangent; each term implements it for its own
-    elements.
+    * ``tangent(x, v=None)``: the term's tangent stiffness ``K = -df/dx`` at
+      *x*, a ``scipy.sparse.csr_matrix`` (3n, 3n), dofs in the order of
+      ``x.ravel()`` (the implicit stepper's interface; the volume term has it).
     """
 
     n_nodes: int
@@ -203,6 +204,9 @@ class Model:
     mass_damping : float
         Rayleigh mass-proportional coefficient alpha [1/s] (0: none).
     floor : Floor or None
+    volume : VolumeTerm or None
+        The volume term (nearly incompressible behaviour), when the asset has one
+        and the scene keeps it.
     """
 
     springs: SpringTerm
@@ -213,11 +217,12 @@ class Model:
     gravity: np.ndarray
     mass_damping: float = 0.0
     floor: Floor | None = None
+    volume: VolumeTerm | None = None
 
     @classmethod
     def build(cls, springs: SpringTerm, points: np.ndarray, mass: np.ndarray, *, fixed=(),
               gravity=(0.0, 0.0, 0.0), gravity_mass: np.ndarray | None = None, mass_damping: float = 0.0,
-              floor: Floor | None = None) -> Model:
+              floor: Floor | None = None, volume: VolumeTerm | None = None) -> Model:
         """Validate and assemble a model (*gravity_mass*: the masses gravity acts on, default *mass*).
 
         Raises
@@ -242,9 +247,11 @@ class Model:
             raise ConfigError(f"mass_damping: must be >= 0 1/s, got {mass_damping}", parameter="mass_damping")
         if floor is not None and not isinstance(floor, Floor):
             raise ConfigError("floor: expected a Floor or None", parameter="floor")
+        if volume is not None and volume.n_nodes != n:
+            raise InputError(f"volume term: {volume.n_nodes} nodes, the springs have {n}")
         gm = m if gravity_mass is None else np.asarray(gravity_mass, dtype=np.float64).reshape(n)
         return cls(springs=springs, rest=rest, mass=m, fext=np.ascontiguousarray(gm[:, None] * g[None, :]),
-                   fixed=fixed, gravity=g, mass_damping=float(mass_damping), floor=floor)
+                   fixed=fixed, gravity=g, mass_damping=float(mass_damping), floor=floor, volume=volume)
 
     @property
     def n_nodes(self) -> int:
@@ -253,7 +260,11 @@ class Model:
     @property
     def terms(self) -> tuple:
         """The force terms (:class:`ForceTerm`), in the order the step sums them."""
-        return (self.springs,)
+        return (self.springs,) if self.volume is None else (self.springs, self.volume)
+
+    def volume_kernel(self):
+        """The kernels' tuple of the volume term, or None without one."""
+        return None if self.volume is None else self.volume.kernel()
 
     @property
     def movable(self) -> np.ndarray:

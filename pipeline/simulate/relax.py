@@ -73,7 +73,7 @@ def relax(model: Model, state: State, control: Control, *, dt_critical: float, f
     nodes = Nodes(state.x, state.v, np.zeros_like(state.x), model.fext, control.inv_mass)
     it, res = fire_relax(nodes, free, springs.kernel(damped=False), fx, springs.layout(1), control.grasp_kernel(),
                          tip, control.floor_kernel(model, state), 0.2 * dt_critical, 0.9 * dt_critical,
-                         float(ftol), int(max_iter))
+                         float(ftol), int(max_iter), model.volume_kernel())
     state.v[:] = 0.0
     settle_effects(model, state)
     if it < 0 or not np.isfinite(res):

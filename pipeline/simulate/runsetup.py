@@ -4,8 +4,9 @@ Each function is one stage of :func:`~.run.simulate_network` before the
 frames run, reporting what it decided:
 
 * :func:`prepare_run`: the law, the fixed nodes, the spring term (with the
-  scene's material effects), the compiled kernels, mass scaling, the floor,
-  and the :class:`~.simulator.Simulator`;
+  scene's material effects), the volume term (when the asset has one and the
+  scene keeps it), the compiled kernels, mass scaling, the floor, and the
+  :class:`~.simulator.Simulator`;
 * :func:`settle_at_start`: the static equilibrium under gravity (``start =
   "equilibrium"``);
 * :func:`plan_grasper`: the grasper resolved on the network;
@@ -28,6 +29,7 @@ from .scene import Scene
 from .simulator import Simulator, warm_up
 from .springterm import build_spring_term
 from .stepper import StepSchedule, mass_scaling, stable_step
+from .volumeterm import VolumeTerm, build_volume_term, shape_change
 
 #: Below this many springs one thread is used ("auto"): the parallel pass's
 #: fork/join costs more than it saves (benchmarks/bench_simulate.py).
@@ -47,6 +49,7 @@ class RunSetup:
     schedule: StepSchedule | None = None
     threads: int = 1
     thread_timing: dict = field(default_factory=dict)
+    tets: np.ndarray | None = None      #: the network's tetrahedra (volume and inversion records)
 
 
 def threads_available() -> int:
@@ -80,24 +83,46 @@ def prepare_run(network, tables, scene: Scene, *, effects, reporter) -> RunSetup
     build_s = time.perf_counter() - t
     if springs.effects is not None:
         rep.step(f"material effects: {springs.effects.explain()}")
-    warm = warm_up(springs, threads=1)
+    volume = volume_term(network, tables, scene, rep)
+    warm = warm_up(springs, threads=1, volume=volume)
     if threads_available() > 1 and springs.n_springs >= AUTO_PARALLEL_MIN_SPRINGS:
-        warm += warm_up(springs, threads=threads_available())
+        warm += warm_up(springs, threads=threads_available(), volume=volume)
     free0 = np.ones(springs.n_nodes, bool)
     free0[fixed] = False
-    inertia, scaling = mass_scaling(springs, network.mass, free=free0, budget=scene.mass_scaling)
+    terms = [springs] if volume is None else [springs, volume]
+    inertia, scaling = mass_scaling(terms, network.mass, free=free0, budget=scene.mass_scaling)
     if scaling["nodes"]:
         rep.step(f"mass scaling: +{scaling['added_fraction'] * 100:.3g} % of the mass on {scaling['nodes']} "
                  f"light nodes (inertia only) raises the stable step {scaling['gain']:.3g}x")
     floor = None if scene.floor is None else Floor.under(network.points, scene.gravity, height=scene.floor.height,
                                                          friction=scene.floor.friction)
     sim = Simulator(springs, network.points, inertia, fixed=fixed, gravity=scene.gravity,
-                    mass_damping=scene.mass_damping, safety=scene.safety, gravity_mass=network.mass, floor=floor)
+                    mass_damping=scene.mass_damping, safety=scene.safety, gravity_mass=network.mass, floor=floor,
+                    volume=volume)
     if floor is not None:
         below = int(np.count_nonzero(floor.distance(network.points)[sim.free] < 0))
         rep.step(f"floor: {floor.friction}, plane {floor.height * 1e3:.4g} mm along up"
                  + (f"; {below} free nodes start below it and are put on it at the first step" if below else ""))
-    return RunSetup(sim=sim, law=law, fixed=fixed, scaling=scaling, build_s=build_s, warm_up_s=warm)
+    return RunSetup(sim=sim, law=law, fixed=fixed, scaling=scaling, build_s=build_s, warm_up_s=warm,
+                    tets=getattr(network, "tets", None))
+
+
+def volume_term(network, tables, scene: Scene, reporter) -> VolumeTerm | None:
+    """The network's volume term for this run (None: the asset has none, or the scene says ``volume = "none"``)."""
+    spec = getattr(network, "volume_term", None)
+    if spec is None:
+        if getattr(network, "tets", None) is not None:
+            reporter.step("no volume term in the asset: the network is compressible (Poisson ratio ~1/4); "
+                          "rebuild it with 'esmm prepare' to keep the organ's volume")
+        return None
+    if scene.volume == "none":
+        reporter.step("volume term switched off by the scene (volume = \"none\"): springs alone")
+        return None
+    vol = build_volume_term(network.points, network.tets, spec, lam_max=tables.lam_max)
+    nu = "" if spec.poisson_ratio is None else f", Poisson ratio {spec.poisson_ratio:g} at the stiffest state"
+    reporter.step(f"volume term: {spec.formulation} elements on {vol.n_tets} tets, bulk modulus "
+                  f"{spec.bulk_modulus / 1e3:.4g} kPa{nu}")
+    return vol
 
 
 def settle_at_start(run: RunSetup, scene: Scene, network, reporter) -> dict | None:
@@ -117,6 +142,7 @@ def settle_at_start(run: RunSetup, scene: Scene, network, reporter) -> dict | No
                  "starting from the closest state found")
     u = np.linalg.norm(sim.displacement(), axis=1).max()
     settle["max_displacement_m"] = float(u)
+    settle["shape"] = shape_change(network.points, getattr(network, "tets", None), sim.x, scene.gravity)
     gdir = scene.gravity / np.linalg.norm(scene.gravity)
     height = float(np.ptp(np.asarray(network.points) @ gdir))
     if sim.floor is not None:
@@ -128,8 +154,11 @@ def settle_at_start(run: RunSetup, scene: Scene, network, reporter) -> dict | No
                  + "only the fixed nodes hold the rest). Stiffen it (volumetric compensation: 'esmm tables ASSET "
                  "--compensate') or hold it elsewhere ([fixed])")
     fx = sim.model.springs.effects
-    rep.step(f"equilibrium under gravity: largest sag {u * 1e3:.3g} mm "
-             f"({settle.get('iterations', '?')} FIRE iterations, {settle['seconds']:.2g} s)"
+    shape = settle["shape"]
+    kept = "" if shape["volume_ratio"] is None else (
+        f", volume {100 * (shape['volume_ratio'] - 1):+.2g} %, {shape['inverted_tets']} inverted tets")
+    rep.step(f"equilibrium under gravity: largest sag {u * 1e3:.3g} mm, median {shape['sag_median_m'] * 1e3:.3g} mm"
+             f"{kept} ({settle.get('iterations', '?')} FIRE iterations, {settle['seconds']:.2g} s)"
              + ("; long-term (relaxed) response, history relaxed" if fx is not None and fx.n_terms else ""))
     return settle
 
@@ -176,7 +205,7 @@ def plan_steps(run: RunSetup, scene: Scene, plan: GraspPlan | None, reporter) ->
     springs = sim.model.springs
     # The grasper's coupling springs (mode "spring") enter the bound from the start.
     reserve = None if plan is None else plan.coupling_rows(sim.x, sim.mass)
-    table = stable_step(springs, sim.mass, free=sim.free, extra_stiffness=reserve, safety=scene.safety)
+    table = stable_step(sim.model.terms, sim.mass, free=sim.free, extra_stiffness=reserve, safety=scene.safety)
     adaptive = scene.step == "adaptive"
     schedule = StepSchedule(table=table, adaptive=adaptive, window=scene.window, reserve=reserve,
                             safety=scene.safety)

@@ -5,7 +5,7 @@ Every dimensional value carries its unit, as in every esmm config; the full
 schema with defaults is ``configs/scenes/default.toml`` and docs/simulate.md.
 Tables and keys::
 
-    [scene]       duration, frame_rate, gravity, gravity_unit, law, start, effects
+    [scene]       duration, frame_rate, gravity, gravity_unit, law, start, effects, volume
     [damping]     dashpot, velocity_decay
     [integrator]  safety, step, window, mass_scaling, threads, precision, max_steps
     [fixed]       kind = "asset" (keep the asset's fixed nodes) or a region
@@ -39,7 +39,7 @@ DEFAULT_SCENE = "default"
 JAW_RADIUS = 0.004
 
 _TABLES = {
-    "scene": {"duration", "frame_rate", "gravity", "gravity_unit", "law", "start", "effects"},
+    "scene": {"duration", "frame_rate", "gravity", "gravity_unit", "law", "start", "effects", "volume"},
     "damping": {"dashpot", "velocity_decay"},
     "integrator": {"safety", "threads", "precision", "max_steps", "step", "window", "mass_scaling"},
     "fixed": None,  # validated by esmm.pipeline.network.regions (plus kind = "asset")
@@ -53,6 +53,8 @@ _STIFFNESS_UNITS = {"n/m": 1.0, "n/mm": 1e3, "kn/m": 1e3}
 VIEWS = ("auto", "xy", "xz", "yz", "iso")
 LAWS = ("asset", "secant", "energy")
 EFFECTS = ("asset", "none")
+#: Use the asset's volume term (nearly incompressible network) or not (docs/model.md, Part C2).
+VOLUME = ("asset", "none")
 GRASP_MODES = ("prescribed", "spring")
 STARTS = ("equilibrium", "rest")
 STEPS = ("adaptive", "table")
@@ -153,6 +155,9 @@ class Scene:
     effects : {"asset", "none"}
         Apply the material effects stored in the asset (viscoelastic, Mullins,
         damage), or simulate the instantaneous elastic response alone.
+    volume : {"asset", "none"}
+        Apply the asset's volume term (nearly incompressible network, when the
+        asset has one), or the springs alone (for comparisons).
     dashpot : float
         Stiffness-proportional dashpot time beta [s] (0: none).
     velocity_decay : float or None
@@ -190,6 +195,7 @@ class Scene:
     law: str = "asset"
     start: str = "equilibrium"
     effects: str = "asset"
+    volume: str = "asset"
     dashpot: float = 0.0
     velocity_decay: float | None = 0.2
     safety: float = 0.9
@@ -216,7 +222,7 @@ class Scene:
         return max(1, int(math.ceil(self.duration * self.frame_rate - 1e-9)))
 
     def with_overrides(self, *, duration=None, threads=None, law: str | None = None,
-                       effects: str | None = None) -> Scene:
+                       effects: str | None = None, volume: str | None = None) -> Scene:
         """A copy with overrides applied (validated; a message names the parameter).
 
         *duration* is a number of seconds or a time with its unit (``"500 ms"``;
@@ -225,6 +231,8 @@ class Scene:
         out = self
         if effects is not None:
             out = replace(out, effects=choice(effects, EFFECTS, "effects"))
+        if volume is not None:
+            out = replace(out, volume=choice(volume, VOLUME, "volume"))
         if duration is not None:
             out = replace(out, duration=_seconds(duration, "duration"))
         if threads is not None:
@@ -244,6 +252,7 @@ class Scene:
                 f"{np.round(self.gravity, 3).tolist()} m/s2, law {self.law}, dashpot {self.dashpot * 1e3:g} ms, "
                 f"velocity decay {'none' if self.velocity_decay is None else f'{self.velocity_decay:g} s'}, {grasp}, "
                 f"material effects {'from the asset' if self.effects == 'asset' else 'off'}, "
+                f"volume term {'from the asset' if self.volume == 'asset' else 'off'}, "
                 + ("no floor" if self.floor is None else
                    f"floor at {self.floor.height if isinstance(self.floor.height, str) else f'{self.floor.height * 1e3:g} mm'}"
                    f" ({self.floor.friction})"))
@@ -371,6 +380,8 @@ def _scene_table(sc: dict) -> dict:
         kw["law"] = choice(sc["law"], LAWS, "[scene] law")
     if "effects" in sc:
         kw["effects"] = choice(sc["effects"], EFFECTS, "[scene] effects")
+    if "volume" in sc:
+        kw["volume"] = choice(sc["volume"], VOLUME, "[scene] volume")
     return kw
 
 

@@ -19,6 +19,7 @@ from .model import Control, Floor, Grasp, Model, State
 from .relax import relax, settle_effects
 from .springterm import SpringTerm
 from .stepper import DEFAULT_SAFETY, StepBound, Stepper, SymplecticEuler
+from .volumeterm import VolumeTerm, build_volume_term
 
 
 class Simulator:
@@ -51,6 +52,8 @@ class Simulator:
     stepper : Stepper, optional
         What advances the state (default: :class:`~.stepper.SymplecticEuler`
         with *safety* and *threads*).
+    volume : VolumeTerm, optional
+        The volume term (nearly incompressible behaviour), beside the springs.
 
     Attributes
     ----------
@@ -65,9 +68,9 @@ class Simulator:
     def __init__(self, springs: SpringTerm, points: np.ndarray, mass: np.ndarray, *, fixed=(),
                  gravity=(0.0, 0.0, 0.0), mass_damping: float = 0.0, dt: float | None = None,
                  safety: float = DEFAULT_SAFETY, threads: int = 1, gravity_mass: np.ndarray | None = None,
-                 floor: Floor | None = None, stepper: Stepper | None = None):
+                 floor: Floor | None = None, stepper: Stepper | None = None, volume: VolumeTerm | None = None):
         self.model = Model.build(springs, points, mass, fixed=fixed, gravity=gravity, gravity_mass=gravity_mass,
-                                 mass_damping=mass_damping, floor=floor)
+                                 mass_damping=mass_damping, floor=floor, volume=volume)
         self.state = State.at_rest(self.model)
         self.stepper = SymplecticEuler(safety=float(safety), threads=max(1, int(threads))) if stepper is None \
             else stepper
@@ -201,7 +204,7 @@ class Simulator:
 
     # -- evaluations -------------------------------------------------------------
     def forces(self) -> np.ndarray:
-        """Total nodal forces (springs, dashpots, gravity) at the current state, shape (n, 3) [N].
+        """Total nodal forces (springs, dashpots, volume term, gravity) at the current state, shape (n, 3) [N].
 
         With material effects: the force the next step would use (the state
         advanced to the current time, not committed).
@@ -209,9 +212,11 @@ class Simulator:
         st = self.state
         springs = self.model.springs
         if st.effects is None:
-            return springs.forces(st.x, st.v, fext=self.model.fext)
-        return springs.forces(st.x, st.v, fext=self.model.fext, state=st.effects, mode=K.FX_PEEK,
-                              dt=max(0.0, st.t - st.effects.t))
+            f = springs.forces(st.x, st.v, fext=self.model.fext)
+        else:
+            f = springs.forces(st.x, st.v, fext=self.model.fext, state=st.effects, mode=K.FX_PEEK,
+                               dt=max(0.0, st.t - st.effects.t))
+        return f if self.model.volume is None else f + self.model.volume.forces(st.x)
 
     def grasper_force(self) -> np.ndarray:
         """Force of the tissue on the grasper at the current state, shape (3,) [N] (zeros if open)."""
@@ -231,18 +236,39 @@ class Simulator:
         return -float(np.sum(self.model.fext * self.state.x))
 
 
-def warm_up(springs: SpringTerm, *, threads: int = 1) -> float:
-    """Compile (or load from cache) the step loop on a 2-node problem; return the seconds spent."""
+def warm_up(springs: SpringTerm, *, threads: int = 1, volume: VolumeTerm | None = None) -> float:
+    """Compile (or load from cache) the step loop on a small problem; return the seconds spent.
+
+    With *volume*: the variants of the step loop and of FIRE with a volume term,
+    on one tetrahedron.
+    """
     t = time.perf_counter()
-    x = np.array([[0.0, 0, 0], [1.0, 0, 0]])
-    sub = SpringTerm(n_nodes=2, ij=np.array([[0], [1]], np.uint32), order=np.zeros(1, np.int64),
-                     sd=np.zeros((springs.sd.shape[0], 1), springs.sd.dtype), tab=springs.tab[:2].copy(),
-                     lam_min=springs.lam_min, inv_h=springs.inv_h, law=springs.law, kappa=np.zeros(1),
-                     rest_tangent=np.zeros(1), dashpot=springs.dashpot, effects=springs.effects)
-    sub.sd[0, 0] = 1.0
-    sim = Simulator(sub, x, np.ones(2), fixed=[0], dt=1e-3, threads=threads)
+    if volume is None:
+        x = np.array([[0.0, 0, 0], [1.0, 0, 0]])
+        sim = Simulator(_tiny_springs(springs, [[0], [1]]), x, np.ones(2), fixed=[0], dt=1e-3, threads=threads)
+    else:
+        x = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+        sub = _tiny_springs(springs, [[0, 0, 0, 1, 1, 2], [1, 2, 3, 2, 3, 3]])
+        vol = build_volume_term(x, np.array([[0, 1, 2, 3]]), volume.spec, lam_max=volume.lam_max)
+        sim = Simulator(sub, x, np.ones(4), fixed=[0], dt=1e-6, threads=threads, volume=vol, gravity=(0, 0, -1.0))
+        try:
+            sim.relax(rtol=1e30, max_iter=1)
+        except SimulationError:       # only the compilation matters here
+            pass
     sim.advance(1)
     sim.attach(Grasp(nodes=np.array([1]), offsets=np.zeros((1, 3)), wp_t=np.array([0.0, 1.0]),
                      wp_x=np.array([[1.0, 0, 0], [1.0, 0, 0]])))
     sim.advance(1)
     return time.perf_counter() - t
+
+
+def _tiny_springs(springs: SpringTerm, ij) -> SpringTerm:
+    """Springs *ij* (2, s) of zero weight with the kernel variant of *springs* (layout, law, dashpots, effects)."""
+    ij = np.asarray(ij, np.uint32)
+    s = ij.shape[1]
+    sub = SpringTerm(n_nodes=int(ij.max()) + 1, ij=ij, order=np.arange(s, dtype=np.int64),
+                     sd=np.zeros((springs.sd.shape[0], s), springs.sd.dtype), tab=springs.tab[:2].copy(),
+                     lam_min=springs.lam_min, inv_h=springs.inv_h, law=springs.law, kappa=np.zeros(s),
+                     rest_tangent=np.zeros(s), dashpot=springs.dashpot, effects=springs.effects)
+    sub.sd[0] = 1.0
+    return sub

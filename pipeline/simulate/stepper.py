@@ -246,7 +246,7 @@ class SymplecticEuler:
         nodes = Nodes(state.x, state.v, self._f, model.fext, control.inv_mass)
         run = steps_serial if threads == 1 else steps_parallel
         run(clock, nodes, springs.kernel(), fx, control.grasp_kernel(), control.floor_kernel(model, state),
-            springs.layout(threads), rec)
+            springs.layout(threads), rec, model.volume_kernel())
         if fxs is not None:
             fxs.t = state.t0 + (state.steps + nsteps - 1) * state.dt
         state.steps += nsteps

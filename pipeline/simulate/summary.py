@@ -18,6 +18,7 @@ from .frames import FrameLog, RangeCheck
 from .grasper import GraspPlan
 from .runsetup import RunSetup
 from .scene import Scene
+from .volumeterm import shape_change
 
 
 @dataclass
@@ -102,6 +103,7 @@ class SimulationSummary:
     floor: FloorSummary | None
     grasper: GrasperSummary | None
     video: VideoSummary | None = None
+    volume: dict | None = None
 
     @property
     def effect_names(self) -> list[str]:
@@ -154,7 +156,17 @@ def summarize(run: RunSetup, scene: Scene, log: FrameLog, range_check: RangeChec
             target_node=plan.target, held_nodes=int(plan.nodes.size), mode=plan.spec.mode,
             direction=plan.direction.tolist(), max_force_N=log.max_force_norm,
             force_at_max_N=log.max_force.tolist()),
+        volume=_volume_summary(run, scene),
     )
+
+
+def _volume_summary(run: RunSetup, scene: Scene) -> dict:
+    """The volume term used (or why none) and the organ's shape at the end: volume, inverted tets, sag."""
+    sim = run.sim
+    vol = sim.model.volume
+    tets = run.tets if vol is None else vol.elements.tets
+    return {"term": None if vol is None else vol.spec.describe(), "scene": scene.volume,
+            "final": shape_change(sim.rest, tets, sim.x, scene.gravity)}
 
 
 def _floor_summary(sim, scene: Scene, log: FrameLog) -> FloorSummary | None:

@@ -1,6 +1,6 @@
 """Tensile-test files: reading (``read``) and the :class:`TensileTest` object."""
 
 from .data import MODES, TensileTest
-from .reader import read
+from .reader import NotATestError, read
 
-__all__ = ["MODES", "TensileTest", "read"]
+__all__ = ["MODES", "NotATestError", "TensileTest", "read"]

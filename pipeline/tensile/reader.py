@@ -768,6 +768,10 @@ def _plan(label: str, layout: _Layout, md: M.Metadata, cols: list[_Column], by_q
     return plan
 
 
+class NotATestError(InputError):
+    """A text table none of whose columns names a test quantity: another kind of file, not a test."""
+
+
 def _require_columns(label: str, mode: str, cols: list[_Column], x_col, s_col, d_col, f_col,
                      hdr_line: str) -> None:
     """Refuse a file that has neither the processed nor the raw column of x or of stress."""
@@ -783,6 +787,13 @@ def _require_columns(label: str, mode: str, cols: list[_Column], x_col, s_col, d
     found = ", ".join(f"'{c.header}'" for c in cols if c.header) or "none named"
     unknown = [c for c in cols if c.quantity is None]
     side = M.sidecar_path(Path(label)).name
+    if unknown and len(unknown) == len(cols):
+        names = ", ".join(f"'{c.header}'" for c in unknown if c.header)
+        raise NotATestError(
+            f"{label}: unknown column names {names}{hdr_line}: none names a quantity of a tensile test, so this "
+            "is not a test record (a table of specimen measurements?); leave it out, or rename the columns (time, "
+            "displacement, force, stretch, strain, stress, ...) or give columns = [...] in the sidecar "
+            f"{M.sidecar_path(Path(label)).name}")
     if unknown:
         names = ", ".join(f"'{c.header}'" for c in unknown if c.header)
         raise InputError(

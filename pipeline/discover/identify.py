@@ -1,0 +1,160 @@
+"""What the data can show: the identifiability rule of every candidate (docs/discover.md, section 6).
+
+:func:`identifiability` says, per candidate, whether it applies to these data
+at all and whether the data can tell it from the rest of the model, with the
+reason in words. Candidates that fail are reported, never fitted.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from ..materials.terms import TERMS
+from .model import CANDIDATES
+from .records import (
+    Record,
+    largest_span,
+    offset_applicable,
+    repeated_cycles,
+    scale_applicable,
+    set_applicable,
+    slack_applicable,
+    slip_applicable,
+    strain_softening,
+    stretch_levels,
+)
+
+Verdict = tuple[bool, bool, str]  # (applicable, identifiable, reason)
+
+
+def identifiability(records: Sequence[Record]) -> dict[str, Verdict]:
+    """Can the data show each candidate? name -> (applicable, identifiable, reason)."""
+    out: dict[str, Verdict] = {}
+    out["viscoelastic"] = _viscoelastic(records)
+    out["nonlinear_viscoelastic"] = _nonlinear(records, out["viscoelastic"])
+    out["mullins"] = _mullins(records)
+    out["damage"] = _damage(records)
+    out["cyclic_softening"] = _cyclic(records)
+    out["permanent_set"] = _set(records, out["viscoelastic"])
+    out.update(_artefacts(records))
+    for n, t in TERMS.items():
+        out[n] = (True, True, f"a strain-energy term ({t.addresses}); identifiable from the shape of the "
+                  "stress-stretch curves")
+    assert set(out) == set(CANDIDATES)
+    return out
+
+
+def _rate_groups(records: Sequence[Record]) -> list[float]:
+    """The distinct loading rates of the timed records (within a factor 1.5 of each other: one)."""
+    rates = sorted({v for r in records if r.history for v in r.cov.rates()})
+    groups: list[float] = []
+    for v in rates:
+        if not groups or v / groups[-1] >= 1.5:
+            groups.append(v)
+    return groups
+
+
+def _viscoelastic(records: Sequence[Record]) -> Verdict:
+    timed = [r for r in records if r.history]
+    if not timed:
+        return (True, False, "not identifiable from these data: no time column, so no rate, hold or loading history")
+    rates = _rate_groups(timed)
+    several_rates = len(rates) >= 2
+    unloading = any(r.cov.has_unloading for r in timed)
+    holds = any(r.cov.has_hold and float(np.nanmax(r.cov.hold_time)) >= 5 * float(np.median(np.diff(r.t)))
+                for r in timed)
+    if not (several_rates or unloading or holds):
+        return (True, False, "not identifiable from these data: one monotonic ramp at one rate "
+                f"({rates[0] if rates else float('nan'):.3g} /s) cannot separate a rate effect from the elastic "
+                "curve; test at a second rate, or add an unloading or a hold")
+    why = [w for w, ok in (("several rates", several_rates), ("unloading", unloading), ("holds", holds)) if ok]
+    return (True, True, "identifiable: " + ", ".join(why))
+
+
+def _nonlinear(records: Sequence[Record], ve: Verdict) -> Verdict:
+    if not ve[1]:
+        return (True, False, "not identifiable from these data: relaxation itself is not (" + ve[2] + ")")
+    levels = stretch_levels(records)
+    if levels < 2:
+        return (True, False, "not identifiable from these data: the records turn or hold at one stretch level only; "
+                "a stretch-dependent relaxation needs holds or cycles at two levels or more")
+    return (True, True, f"identifiable once relaxation is in the model: the records turn or hold at {levels} "
+            "stretch levels")
+
+
+def _mullins(records: Sequence[Record]) -> Verdict:
+    timed = [r for r in records if r.history]
+    if not timed:
+        return (True, False, "not identifiable from these data: without a time column the row order is not a "
+                "loading history")
+    if not any(np.any(r.cov.below_max > 0.02) for r in timed):
+        return (True, False, "not identifiable from these data: every sample is on the primary loading path; "
+                "Mullins softening shows only on unloading or reloading below a previous maximum")
+    return (True, True, "identifiable: unloading or reloading below a previous maximum")
+
+
+def _damage(records: Sequence[Record]) -> Verdict:
+    """Damage lowers the curve past an onset, for good: on a first loading alone that is a softer elastic law
+    (the library's terms make any stable shape), unless the curve turns down (strain softening)."""
+    if largest_span(records) < 0.01:
+        return (True, False, "not identifiable from these data: the deformation stays below 1 %")
+    below = any(r.history and np.any(r.cov.below_max > 0.02) for r in records)
+    down = [r.name for r in records if r.history and strain_softening(r)]
+    if below:
+        return (True, True, "identifiable: unloading or reloading below a previous maximum shows what is lost for good")
+    if down:
+        return (True, True, f"identifiable: the stress falls while the stretch still increases ({', '.join(down)}), "
+                "which no stable elastic law does")
+    return (True, False, "not identifiable from these data: on a first loading alone, damage is a softer elastic "
+            "law; it shows on unloading and reloading below a previous maximum, or as a falling stress at "
+            "increasing stretch")
+
+
+def _cyclic(records: Sequence[Record]) -> Verdict:
+    if any(repeated_cycles(r) for r in records):
+        return (True, True, "identifiable: cycles repeated to the same maximum")
+    return (True, False, "not identifiable from these data: no two cycles reach the same maximum, so softening "
+            "from cycle to cycle cannot be told from Mullins softening or the elastic law")
+
+
+def _set(records: Sequence[Record], ve: Verdict) -> Verdict:
+    if any(set_applicable(r) for r in records):
+        if ve[1] and len(_rate_groups(records)) < 2:
+            return (True, False, "not identifiable from these data: at one loading rate a residual strain cannot be "
+                    "told from slow viscoelastic recovery (the specimen may recover given time); test at a second "
+                    "rate, or wait at zero force before reloading")
+        return (True, True, "identifiable: tension records unload back towards the reference state")
+    return (True, False, "not identifiable from these data: no tension record with time unloads back towards its "
+            "reference state, where a residual strain would show")
+
+
+def _artefacts(records: Sequence[Record]) -> dict[str, Verdict]:
+    machine = any(r.history for r in records)
+    processed = ("not applicable: artefacts are corrected on machine records (with a time column); a curve "
+                 "without time has been processed already (digitised or averaged)")
+    out: dict[str, Verdict] = {}
+    if any(slack_applicable(r) for r in records):
+        out["slack"] = (True, True, "applicable: tension tests from the undeformed state")
+    else:
+        out["slack"] = (False, False, processed if not machine else "not applicable: slack is an artefact of "
+                        "tension tests that start from zero displacement; these data have none")
+    if any(offset_applicable(r) for r in records):
+        out["sensor_offset"] = (True, True, "applicable: the data pass through the undeformed state, where the "
+                                "true force is zero")
+    else:
+        out["sensor_offset"] = (machine, False, processed if not machine else "not identifiable from these data: "
+                                "no sample near the undeformed state, where the true force is known to be zero")
+    if machine and scale_applicable([r for r in records if r.history]):
+        out["specimen_scale"] = (True, True, "applicable: several specimens (files with different specimen ids)")
+    else:
+        out["specimen_scale"] = (False, False, processed if not machine else "not applicable: one specimen; its "
+                                 "stress scale is the material's modulus")
+    if any(slip_applicable(r) for r in records):
+        n = sum(len(r.slips) for r in records)
+        out["grip_slip"] = (True, True, f"applicable: {n} sudden drop(s) of stress during loading")
+    else:
+        out["grip_slip"] = (False, False, processed if not machine else "not applicable: no sudden drop of stress "
+                            "during loading")
+    return out

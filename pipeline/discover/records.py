@@ -1,0 +1,318 @@
+"""The tests of a discovery prepared for fitting, and what each can show.
+
+:func:`prepare` turns every :class:`~esmm.pipeline.tensile.TensileTest` into a
+:class:`Record`: the record is cut at a rupture (what follows a break is not
+the material's response), its measurement noise is estimated without a model
+(:func:`~esmm.pipeline.discover.covariates.noise_sd`), grip slips are located,
+the covariates computed and the fitting samples chosen.
+
+The applicability rules of the artefacts (docs/discover.md) live here:
+artefacts are corrected on *machine records* only — files with a time column,
+as a testing machine writes them. A curve without time (digitised from a
+paper, averaged over specimens: Treloar's, Budday's) has been processed
+already; its offsets, slack and slips are not in it any more, or cannot be
+told from the material law.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..calibrate.problem import stress_scale
+from ..tensile.data import TensileTest
+from .covariates import Covariates, covariates, noise_sd, rupture_index, slip_events, thin
+
+
+def reference(mode: str) -> float:
+    """The reference state of a mode's loading variable (stretch 1, shear 0)."""
+    return 0.0 if mode == "simple_shear" else 1.0
+
+
+@dataclass
+class Record:
+    """One test prepared for fitting: covariates, thinned indices, scales, noise.
+
+    Attributes
+    ----------
+    test : TensileTest
+        The test as used (cut at a rupture).
+    cov : Covariates
+    fit_idx : ndarray of int, shape (m,)
+        Thinned fitting samples.
+    weight : float
+    cut : dict
+        ``{"index", "stretch", "time", "dropped"}`` when the record was cut at a rupture, else empty.
+    """
+
+    test: TensileTest
+    cov: Covariates
+    fit_idx: np.ndarray
+    weight: float = 1.0
+    cut: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self):
+        t = self.test
+        self.x = np.asarray(t.stretch, float)
+        self.y = np.asarray(t.stress, float)
+        self.t = None if not self.cov.has_time else np.asarray(t.time, float)
+        self.scale = stress_scale(self.y)
+        self.range = float(np.ptp(self.y)) or self.scale
+        ref = reference(t.mode)
+        x0 = float(np.min(self.x)) if t.mode != "simple_shear" else -1.0
+        #: a test that never goes below its reference state (tension only)
+        self.tension_only = t.mode != "simple_shear" and x0 >= ref - 1e-3 * (float(np.ptp(self.x)) or 1.0)
+        self.area = t.metadata.get("area")
+        self.gauge = t.metadata.get("gauge_length")
+        self.T = float(self.t[-1] - self.t[0]) if self.t is not None else 0.0
+        #: white measurement noise of the stress [Pa], from the record alone
+        self.sigma = noise_sd(self.y)
+        #: samples where the grip slipped (the stretch is shifted from each on)
+        self.slips = slip_events(self.x, self.y, self.cov.direction) if self.history and self.tension_only else []
+
+    @property
+    def name(self) -> str:
+        return self.test.source.name
+
+    @property
+    def key(self) -> str | None:
+        return self.test.orientation
+
+    @property
+    def history(self) -> bool:
+        return self.cov.has_time
+
+    @property
+    def specimen(self) -> str:
+        """The specimen id (metadata ``specimen``, else the file stem): files of one specimen share its scale."""
+        return str(self.test.specimen or self.test.source.stem)
+
+    def preload(self) -> tuple[float, float, int] | None:
+        """(mean, standard deviation, count) of the stress read at rest before loading, or None.
+
+        The samples at the start whose stretch has not left its first value (a
+        machine record that starts before the crosshead moves): their stress is
+        the load cell's reading at zero force plus noise.
+        """
+        if not self.history or self.x.size < 3:
+            return None
+        tol = 1e-9 * (float(np.ptp(self.x)) or 1.0)
+        moved = np.flatnonzero(np.abs(self.x - self.x[0]) > tol)
+        n = int(moved[0]) if moved.size else self.x.size
+        if n < 2:
+            return float(self.y[0]), self.sigma, 1
+        seg = self.y[:n]
+        return float(np.mean(seg)), float(np.std(seg, ddof=1)), n
+
+
+def prepare(tests: Sequence[TensileTest], *, max_points: int = 600,
+            weights: Sequence[float] | None = None) -> list[Record]:
+    """Records of *tests*: cut at ruptures, covariates, thinned fitting samples, noise."""
+    out = []
+    for i, t in enumerate(tests):
+        t, cut = cut_at_rupture(t)
+        cov = covariates(t)
+        idx = thin(t, max_points, cov=cov)
+        out.append(Record(t, cov, idx, 1.0 if weights is None else float(weights[i]), cut))
+    return out
+
+
+def cut_at_rupture(t: TensileTest) -> tuple[TensileTest, dict[str, Any]]:
+    """*t* without the samples from its rupture on (:func:`~.covariates.rupture_index`), and what was cut."""
+    if t.time is None or t.mode == "simple_shear":
+        return t, {}
+    k = rupture_index(t.stretch, t.stress, noise_sd(t.stress))
+    if k is None or k < 10:
+        return t, {}
+    cut = {"index": int(k), "stretch": float(t.stretch[k]), "time": float(t.time[k]),
+           "stress_before": float(np.max(t.stress[:k])), "dropped": int(t.n - k)}
+    return view_test(t, np.arange(k)), cut
+
+
+def view_test(test: TensileTest, idx: np.ndarray) -> TensileTest:
+    """A TensileTest restricted to the samples *idx*."""
+    def sub(a):
+        return None if a is None else np.asarray(a)[idx]
+
+    return TensileTest(source=test.source, mode=test.mode, stretch=sub(test.stretch), stress=sub(test.stress),
+                       time=sub(test.time), displacement=sub(test.displacement), force=sub(test.force),
+                       metadata=test.metadata)
+
+
+def fitting_view(rec: Record, idx: np.ndarray | None = None) -> TensileTest:
+    """The record's test restricted to *idx* (default: its fitting samples)."""
+    return view_test(rec.test, rec.fit_idx if idx is None else idx)
+
+
+# --------------------------------------------------------------------------- applicability
+def machine_record(rec: Record) -> bool:
+    """A record as a testing machine writes it (with time): the only kind whose artefacts are corrected."""
+    return rec.history
+
+
+def slack_applicable(rec: Record) -> bool:
+    """Slack is a tension-test artefact of a machine record that starts at the reference state."""
+    if not machine_record(rec) or not rec.tension_only or rec.test.mode == "simple_shear":
+        return False
+    span = float(np.ptp(rec.x)) or 0.0
+    return span > 0 and float(rec.x[0]) - 1.0 <= 0.05 * span
+
+
+def offset_applicable(rec: Record) -> bool:
+    """A load-cell offset is separable in a machine record that reaches the reference state (P_model = 0)."""
+    if not machine_record(rec):
+        return False
+    ref = reference(rec.test.mode)
+    span = float(np.ptp(rec.x)) or 1.0
+    return float(np.min(np.abs(rec.x - ref))) <= 0.05 * span
+
+
+def drift_applicable(rec: Record) -> bool:
+    """A drift is separable from the material where the zero-force state is seen early *and* late,
+    or where the stress rises during a long hold.
+
+    The first is a test that starts and ends near its reference state (a
+    load-unload cycle, or a tension test whose slack specimen reads zero force at
+    the end). In a relaxation test a falling drift would be indistinguishable
+    from slow relaxation; but no material effect of the library raises the
+    stress at a held stretch (relaxation only lowers it), so a hold whose stress
+    rises is evidence of a drift (:func:`rising_hold`).
+    """
+    if rec.t is None or rec.T <= 0:
+        return False
+    ref = reference(rec.test.mode)
+    span = float(np.ptp(rec.x)) or 1.0
+    near = np.abs(rec.x - ref) <= 0.05 * span
+    tn = (rec.t - rec.t[0]) / rec.T
+    return bool(np.any(near & (tn <= 0.25)) and np.any(near & (tn >= 0.75))) or rising_hold(rec)
+
+
+def rising_hold(rec: Record) -> bool:
+    """A hold lasting a quarter of the record or more, whose stress rises over its second half
+    by more than 5 noise standard deviations (of |stress|: away from zero)."""
+    if rec.t is None or rec.T <= 0:
+        return False
+    d = rec.cov.direction
+    for s0, e0 in _holds(d):
+        if rec.t[e0 - 1] - rec.t[s0] < 0.25 * rec.T or e0 - s0 < 8:
+            continue
+        mid = (s0 + e0) // 2
+        tt, yy = rec.t[mid:e0], np.abs(rec.y[mid:e0])
+        slope = np.polyfit(tt - tt[0], yy, 1)[0]
+        if slope * (tt[-1] - tt[0]) > 5.0 * rec.sigma:
+            return True
+    return False
+
+
+def _holds(direction: np.ndarray) -> list[tuple[int, int]]:
+    """(start, stop) of the runs where the stretch is held."""
+    return [(a, b) for a, b, v in _runs_of(direction) if v == 0]
+
+
+def rest_reading(rec: Record) -> float | None:
+    """The stress the load cell read at rest in the reference state before loading (its offset), or None.
+
+    A machine record whose first sample is at the reference state (stretch 1,
+    shear 0) starts at zero true force: what the load cell reads there, averaged
+    over the samples before the crosshead moves, *is* its offset. It is held,
+    not fitted, so an offset can never absorb misfit.
+    """
+    pre = rec.preload()
+    span = float(np.ptp(rec.x)) or 1.0
+    if pre is None or abs(float(rec.x[0]) - reference(rec.test.mode)) > 1e-3 * span:
+        return None
+    return pre[0]
+
+
+def slip_applicable(rec: Record) -> bool:
+    """Grip slip is corrected where the record shows one (:func:`~.covariates.slip_events`)."""
+    return machine_record(rec) and bool(rec.slips)
+
+
+def specimen_groups(records: Sequence[Record]) -> list[list[int]]:
+    """Record indices grouped by specimen (files of one specimen share a stress scale), in first-seen order."""
+    groups: dict[str, list[int]] = {}
+    for k, r in enumerate(records):
+        groups.setdefault(r.specimen, []).append(k)
+    return list(groups.values())
+
+
+def scale_applicable(records: Sequence[Record]) -> bool:
+    """A per-specimen stress scale needs at least two specimens (one scale is the material's modulus)."""
+    return len(specimen_groups(records)) >= 2
+
+
+def set_applicable(rec: Record) -> bool:
+    """Permanent set shows in a tension record (stretch mode) that unloads towards its reference state."""
+    if not rec.history or not rec.tension_only or rec.test.mode == "simple_shear" or not rec.cov.has_unloading:
+        return False
+    span = float(np.ptp(rec.x)) or 1.0
+    after_peak = rec.x[int(np.argmax(rec.x)):]
+    return float(np.min(after_peak)) - 1.0 <= 0.5 * span
+
+
+def strain_softening(rec: Record) -> bool:
+    """While the stretch increases on its first loading, the stress falls more than 10 noise standard
+    deviations below its maximum so far and does not come back: a descending branch that no stable
+    elastic law makes (a softening only damage explains)."""
+    if not rec.tension_only:
+        return False
+    d = rec.cov.direction
+    for s0, e0 in [(a, b) for a, b, v in _runs_of(d) if v > 0]:
+        y = rec.y[s0:e0]
+        top = np.maximum.accumulate(y)
+        later = np.maximum.accumulate(y[::-1])[::-1]
+        if np.any((y < top - 10.0 * rec.sigma) & (later < top)):
+            return True
+    return False
+
+
+def _runs_of(a: np.ndarray) -> list[tuple[int, int, int]]:
+    edges = np.flatnonzero(np.diff(a)) + 1
+    starts = np.concatenate([[0], edges])
+    stops = np.concatenate([edges, [a.size]])
+    return [(int(x), int(y), int(a[x])) for x, y in zip(starts, stops)]
+
+
+def repeated_cycles(rec: Record) -> bool:
+    """At least two loading cycles of a timed record reach the same maximum (within 2 % of the span)."""
+    if not rec.history or rec.cov.n_cycles < 2:
+        return False
+    span = float(np.ptp(rec.cov.drive)) or 1.0
+    peaks = np.array([float(np.max(rec.cov.drive[rec.cov.cycle == c])) for c in range(rec.cov.n_cycles)])
+    d = np.abs(peaks[:, None] - peaks[None, :]) <= 0.02 * span
+    return bool(np.any(d.sum(axis=1) >= 2))
+
+
+def stretch_levels(records: Sequence[Record]) -> int:
+    """Distinct levels (within 10 % of the largest span) of the stretch at which the timed records turn or hold."""
+    vals = []
+    for r in records:
+        if not r.history:
+            continue
+        d = r.cov.direction
+        turns = np.flatnonzero(np.diff(d) != 0)
+        vals += [float(r.cov.drive[k]) for k in turns] + [float(np.max(r.cov.drive))]
+    if not vals:
+        return 0
+    span = max(float(np.max(r.cov.drive)) - 1.0 for r in records) or 1.0
+    levels: list[float] = []
+    for v in sorted(vals):
+        if v - 1.0 < 0.1 * span:
+            continue
+        if not levels or v - levels[-1] > 0.1 * span:
+            levels.append(v)
+    return len(levels)
+
+
+def largest_span(records: Sequence[Record]) -> float:
+    """The largest equivalent-stretch excursion ξ - 1 of any record (at least 1e-3)."""
+    return max([float(np.max(r.cov.drive)) - 1.0 for r in records] + [1e-3])
+
+
+__all__ = ["Record", "prepare", "view_test", "fitting_view", "cut_at_rupture", "reference", "machine_record",
+           "slack_applicable", "offset_applicable", "drift_applicable", "rest_reading", "slip_applicable", "specimen_groups",
+           "scale_applicable", "set_applicable", "strain_softening", "repeated_cycles", "stretch_levels", "largest_span"]

@@ -1,0 +1,415 @@
+r"""Strain-energy terms a discovery may add to a base model (the elastic-law library).
+
+Each term is a pure function of the invariants :math:`I_1, I_2` of
+:math:`\mathbf C` (incompressible, :math:`I_3 = 1`) with its first and second
+derivatives, written out below and checked against finite differences in
+tests/test_materials_terms.py. A composite model
+(:mod:`esmm.pipeline.materials.composite`) is a base model plus terms,
+
+.. math::
+
+    W = W_\text{base}(I_1, I_2) + \sum_j W_j(I_1, I_2),
+
+so the stiffness tables of the network, :math:`\mu_e = 2W/(\lambda-1)^2`, follow
+from the sum as from any model. Every term vanishes in the reference state
+(:math:`W_j(3, 3) = 0`) and has non-negative coefficients; which residual
+structure each addresses is in :data:`TERMS` (``addresses``) and in
+docs/discover.md. The library follows the model-discovery literature
+(constitutive artificial neural networks, Linka & Kuhl 2023; EUCLID, Flaschel et
+al. 2021): invariant-based terms, linear in a modulus, with at most one
+nonlinear shape parameter each.
+
+``mooney`` — Mooney-Rivlin :math:`I_2` term
+    :math:`W = C_2 (I_2 - 3)`; :math:`W_2 = C_2`.
+    Adds the :math:`I_2` dependence that makes uniaxial tension softer,
+    compression stiffer than an :math:`I_1`-only model (tension-compression
+    asymmetry), and equibiaxial/pure-shear responses distinct.
+
+``i2exp`` — exponential in :math:`I_2` (the term CANNs select for brain)
+    :math:`W = \frac{a}{2b}\left[e^{b(I_2-3)} - 1\right]`;
+    :math:`W_2 = \tfrac a2 e^{b(I_2-3)}`, :math:`W_{22} = \tfrac{ab}2 e^{b(I_2-3)}`.
+    In uniaxial compression :math:`I_2` grows faster than :math:`I_1`
+    (:math:`I_2 - 3 = 3\varepsilon^2 - 4\varepsilon^3 + \ldots`,
+    :math:`I_1 - 3 = 3\varepsilon^2 - 2\varepsilon^3 + \ldots`), so a stiffening
+    :math:`I_2` term stiffens compression more than tension.
+
+``i1exp`` — exponential in :math:`I_1` (Demiray 1972)
+    :math:`W = \frac{a}{2b}\left[e^{b(I_1-3)} - 1\right]`;
+    :math:`W_1 = \tfrac a2 e^{b(I_1-3)}`, :math:`W_{11} = \tfrac{ab}2 e^{b(I_1-3)}`.
+    Exponential stiffening of soft tissue.
+
+``yeoh`` — cubic term of Yeoh (1993)
+    :math:`W = c_3 (I_1 - 3)^3`; :math:`W_1 = 3c_3(I_1-3)^2`, :math:`W_{11} = 6c_3(I_1-3)`.
+    A late upturn (rubber at large stretch) the quadratic ESEDF term cannot follow.
+
+``gent`` — limiting chain extensibility (Gent 1996)
+    :math:`W = -\frac{\mu_g J_m}{2}\ln\left(1 - \frac{I_1-3}{J_m}\right)`;
+    :math:`W_1 = \frac{\mu_g}{2}\left(1 - \frac{I_1-3}{J_m}\right)^{-1}`,
+    :math:`W_{11} = \frac{\mu_g}{2J_m}\left(1 - \frac{I_1-3}{J_m}\right)^{-2}`; locks at
+    :math:`I_1 = 3 + J_m`.
+
+``i2log`` — Gent-Thomas logarithmic :math:`I_2` term (Gent & Thomas 1958)
+    :math:`W = \frac{3\mu_l}{2}\ln\frac{I_2}{3}`; :math:`W_2 = \frac{3\mu_l}{2I_2}`,
+    :math:`W_{22} = -\frac{3\mu_l}{2I_2^2}`. Its stiffness *decreases* with
+    deformation: a concave loading curve (foams, filled rubbers at moderate
+    stretch). Not polyconvex; the Drucker check of the fit says where it is stable.
+
+``fibreexp`` — exponential isotropized fibres (Holzapfel et al. 2000)
+    :math:`W = \frac{k_1}{2k_2}\left[e^{k_2(\bar I_4-1)^2} - 1\right]`,
+    :math:`\bar I_4 = I_1/3` (the ESEDF's isotropized fibre invariant);
+    with :math:`q = \bar I_4 - 1`: :math:`W_1 = \tfrac{k_1}{3} q\,e^{k_2q^2}`,
+    :math:`W_{11} = \tfrac{k_1}{9}(1 + 2k_2q^2)e^{k_2q^2}`. Exponential fibre stiffening.
+
+``toe`` — fibre recruitment (a toe region; after Shearer 2015, Hamedzadeh et al. 2018)
+    Fibres of modulus :math:`E_t` straighten at stretches spread uniformly over
+    :math:`[1, 1+\delta]`, in the uniaxial-equivalent stretch :math:`\xi \ge 1`
+    (:math:`\xi^2 + 2/\xi = I_1`, ξ = λ in uniaxial tension):
+
+    .. math::
+
+        W = E_t\begin{cases} \dfrac{(\xi-1)^3}{6\delta} & \xi \le 1+\delta \\[4pt]
+            \dfrac{(\xi-1-\delta/2)^2}{2} + \dfrac{\delta^2}{24} & \xi > 1+\delta \end{cases}
+
+    so the fibre stress :math:`W'(\xi)` rises quadratically over the toe and
+    linearly (slope :math:`E_t`) once every fibre is straight (C² at
+    :math:`1+\delta`). With :math:`d\xi/dI_1 = \xi^2/(2(\xi^3-1))`:
+    :math:`W_1 = W'(\xi)\,\xi^2/(2(\xi^3-1))` and
+    :math:`W_{11} = [W''\xi^2/(2(\xi^3-1)) - W'(\xi^4+2\xi)/(2(\xi^3-1)^2)]\,\xi^2/(2(\xi^3-1))`,
+    evaluated in forms without 0/0 near ξ = 1 (:math:`W_{11}` grows as
+    :math:`(I_1-3)^{-1/2}` there while the stress tangent stays finite; it is set
+    to 0 at :math:`I_1 = 3` exactly, where the toe's tangent is 0).
+
+Parameter names carry the term's prefix, so they never clash with a base
+model's (``c2``, ``i2exp_a``, ``i2exp_b``, ...).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from .base import Parameter
+from .effects import equivalent_stretch
+
+__all__ = ["Term", "TERMS", "TERM_NAMES", "get_term"]
+
+
+@dataclass(frozen=True)
+class Term:
+    """One strain-energy term: its parameters and pure functions of (I1, I2).
+
+    Attributes
+    ----------
+    name : str
+        Registry name (no ``+``, ``-`` or ``_``: it is part of composite model names).
+    parameters : tuple of Parameter
+        Its parameters; exactly one ``stress`` parameter (the modulus, in which W is linear).
+    equation : str
+        Plain text, for reports.
+    energy, dW, d2W : callable
+        ``f(I1, I2, **params)`` -> W; (W1, W2); (W11, W12, W22) [Pa].
+    max_I1 : callable or None
+        ``f(**params)`` -> the I1 where W locks (None: never).
+    addresses : str
+        The residual structure it can explain (for reports and docs).
+    """
+
+    name: str
+    parameters: tuple[Parameter, ...]
+    equation: str
+    energy: Callable
+    dW: Callable
+    d2W: Callable
+    addresses: str
+    max_I1: Callable | None = None
+
+    @property
+    def modulus(self) -> str:
+        """The name of its (single) stress parameter."""
+        return next(p.name for p in self.parameters if p.kind == "stress")
+
+    @property
+    def shape_parameter(self) -> str | None:
+        """The name of its dimensionless shape parameter (None for one-parameter terms)."""
+        return next((p.name for p in self.parameters if p.kind != "stress"), None)
+
+
+def _z(I1, I2):
+    return np.zeros(np.broadcast_shapes(np.shape(I1), np.shape(I2)))
+
+
+# --------------------------------------------------------------------------- mooney
+def mooney_energy(I1, I2, c2):
+    """W = c2 (I2 - 3) [Pa]."""
+    return c2 * (np.asarray(I2, float) - 3.0) + _z(I1, I2)
+
+
+def mooney_dW(I1, I2, c2):
+    """(W1, W2) = (0, c2)."""
+    z = _z(I1, I2)
+    return z, z + c2
+
+
+def mooney_d2W(I1, I2, c2):
+    """(W11, W12, W22) = 0."""
+    z = _z(I1, I2)
+    return z, z, z
+
+
+# --------------------------------------------------------------------------- exponentials
+def _expm1_over(b, x):
+    """(exp(b x) - 1) / b, accurate for small b x; inf when b x overflows."""
+    with np.errstate(over="ignore"):
+        return np.expm1(b * x) / b
+
+
+def i2exp_energy(I1, I2, i2exp_a, i2exp_b):
+    """W = a/(2b) [exp(b (I2 - 3)) - 1] [Pa]."""
+    return 0.5 * i2exp_a * _expm1_over(i2exp_b, np.asarray(I2, float) - 3.0) + _z(I1, I2)
+
+
+def i2exp_dW(I1, I2, i2exp_a, i2exp_b):
+    """(W1, W2) = (0, a/2 exp(b (I2 - 3)))."""
+    with np.errstate(over="ignore"):
+        e = np.exp(i2exp_b * (np.asarray(I2, float) - 3.0))
+    z = _z(I1, I2)
+    return z, z + 0.5 * i2exp_a * e
+
+
+def i2exp_d2W(I1, I2, i2exp_a, i2exp_b):
+    """(W11, W12, W22) = (0, 0, a b/2 exp(b (I2 - 3)))."""
+    with np.errstate(over="ignore"):
+        e = np.exp(i2exp_b * (np.asarray(I2, float) - 3.0))
+    z = _z(I1, I2)
+    return z, z, z + 0.5 * i2exp_a * i2exp_b * e
+
+
+def i1exp_energy(I1, I2, i1exp_a, i1exp_b):
+    """W = a/(2b) [exp(b (I1 - 3)) - 1] [Pa]."""
+    return 0.5 * i1exp_a * _expm1_over(i1exp_b, np.asarray(I1, float) - 3.0) + _z(I1, I2)
+
+
+def i1exp_dW(I1, I2, i1exp_a, i1exp_b):
+    """(W1, W2) = (a/2 exp(b (I1 - 3)), 0)."""
+    with np.errstate(over="ignore"):
+        e = np.exp(i1exp_b * (np.asarray(I1, float) - 3.0))
+    z = _z(I1, I2)
+    return z + 0.5 * i1exp_a * e, z
+
+
+def i1exp_d2W(I1, I2, i1exp_a, i1exp_b):
+    """(W11, W12, W22) = (a b/2 exp(b (I1 - 3)), 0, 0)."""
+    with np.errstate(over="ignore"):
+        e = np.exp(i1exp_b * (np.asarray(I1, float) - 3.0))
+    z = _z(I1, I2)
+    return z + 0.5 * i1exp_a * i1exp_b * e, z, z
+
+
+# --------------------------------------------------------------------------- yeoh
+def yeoh_energy(I1, I2, c3):
+    """W = c3 (I1 - 3)^3 [Pa]."""
+    u = np.asarray(I1, float) - 3.0
+    return c3 * u**3 + _z(I1, I2)
+
+
+def yeoh_dW(I1, I2, c3):
+    """(W1, W2) = (3 c3 (I1 - 3)^2, 0)."""
+    u = np.asarray(I1, float) - 3.0
+    z = _z(I1, I2)
+    return z + 3.0 * c3 * u * u, z
+
+
+def yeoh_d2W(I1, I2, c3):
+    """(W11, W12, W22) = (6 c3 (I1 - 3), 0, 0)."""
+    u = np.asarray(I1, float) - 3.0
+    z = _z(I1, I2)
+    return z + 6.0 * c3 * u, z, z
+
+
+# --------------------------------------------------------------------------- gent
+def _gent_room(I1, J):
+    """1 - (I1 - 3)/J, NaN at or beyond locking."""
+    r = 1.0 - (np.asarray(I1, float) - 3.0) / J
+    return np.where(r > 0.0, r, np.nan)
+
+
+def gent_energy(I1, I2, gent_mu, gent_J):
+    """W = -(mu J / 2) ln(1 - (I1 - 3)/J) [Pa]; NaN beyond locking (I1 >= 3 + J)."""
+    u = np.asarray(I1, float) - 3.0
+    with np.errstate(invalid="ignore"):
+        w = -0.5 * gent_mu * gent_J * np.log1p(-u / gent_J)
+    return np.where(u < gent_J, w, np.nan) + _z(I1, I2)
+
+
+def gent_dW(I1, I2, gent_mu, gent_J):
+    """(W1, W2) = (mu / (2 (1 - (I1 - 3)/J)), 0)."""
+    z = _z(I1, I2)
+    return z + 0.5 * gent_mu / _gent_room(I1, gent_J), z
+
+
+def gent_d2W(I1, I2, gent_mu, gent_J):
+    """(W11, W12, W22) = (mu / (2 J (1 - (I1 - 3)/J)^2), 0, 0)."""
+    z = _z(I1, I2)
+    r = _gent_room(I1, gent_J)
+    return z + 0.5 * gent_mu / (gent_J * r * r), z, z
+
+
+def gent_max_I1(gent_mu, gent_J):
+    """Locking at I1 = 3 + J (when the modulus is positive)."""
+    return 3.0 + gent_J if gent_mu > 0.0 else np.inf
+
+
+# --------------------------------------------------------------------------- i2log
+def i2log_energy(I1, I2, i2log_mu):
+    """W = (3 mu / 2) ln(I2 / 3) [Pa]."""
+    v = np.asarray(I2, float) - 3.0
+    return 1.5 * i2log_mu * np.log1p(v / 3.0) + _z(I1, I2)
+
+
+def i2log_dW(I1, I2, i2log_mu):
+    """(W1, W2) = (0, 3 mu / (2 I2))."""
+    z = _z(I1, I2)
+    return z, z + 1.5 * i2log_mu / np.asarray(I2, float)
+
+
+def i2log_d2W(I1, I2, i2log_mu):
+    """(W11, W12, W22) = (0, 0, -3 mu / (2 I2^2))."""
+    z = _z(I1, I2)
+    i2 = np.asarray(I2, float)
+    return z, z, z - 1.5 * i2log_mu / (i2 * i2)
+
+
+# --------------------------------------------------------------------------- fibreexp
+def fibreexp_energy(I1, I2, fexp_k1, fexp_k2):
+    """W = k1/(2 k2) [exp(k2 q^2) - 1], q = I1/3 - 1 [Pa]."""
+    q = (np.asarray(I1, float) - 3.0) / 3.0
+    return 0.5 * fexp_k1 * _expm1_over(fexp_k2, q * q) + _z(I1, I2)
+
+
+def fibreexp_dW(I1, I2, fexp_k1, fexp_k2):
+    """(W1, W2) = (k1 q exp(k2 q^2) / 3, 0)."""
+    q = (np.asarray(I1, float) - 3.0) / 3.0
+    with np.errstate(over="ignore"):
+        e = np.exp(fexp_k2 * q * q)
+    z = _z(I1, I2)
+    return z + fexp_k1 * q * e / 3.0, z
+
+
+def fibreexp_d2W(I1, I2, fexp_k1, fexp_k2):
+    """(W11, W12, W22) = (k1 (1 + 2 k2 q^2) exp(k2 q^2) / 9, 0, 0)."""
+    q = (np.asarray(I1, float) - 3.0) / 3.0
+    with np.errstate(over="ignore"):
+        e = np.exp(fexp_k2 * q * q)
+    z = _z(I1, I2)
+    return z + fexp_k1 * (1.0 + 2.0 * fexp_k2 * q * q) * e / 9.0, z, z
+
+
+# --------------------------------------------------------------------------- toe
+def _xi_u(I1):
+    """(ξ, u = ξ - 1, s = ξ² + ξ + 1) of the uniaxial-equivalent stretch.
+
+    u from the identity (ξ - 1)²(ξ + 2) = ξ (I1 - 3), which keeps its relative
+    precision as ξ → 1 (ξ - 1 itself would cancel).
+    """
+    I1 = np.asarray(I1, float)
+    xi = equivalent_stretch(I1)
+    u = np.sqrt(xi * np.maximum(I1 - 3.0, 0.0) / (xi + 2.0))
+    return xi, u, xi * xi + xi + 1.0
+
+
+def toe_energy(I1, I2, toe_E, toe_delta):
+    """W = E (ξ-1)³/(6δ) on the toe, E[(ξ-1-δ/2)²/2 + δ²/24] beyond [Pa] (module docstring)."""
+    _, u, _ = _xi_u(I1)
+    d = toe_delta
+    w = np.where(u <= d, u**3 / (6.0 * d), 0.5 * (u - 0.5 * d) ** 2 + d * d / 24.0)
+    return toe_E * w + _z(I1, I2)
+
+
+def _toe_g(u, E, d):
+    """W'(ξ) and W''(ξ) of the toe law."""
+    g = np.where(u <= d, E * u * u / (2.0 * d), E * (u - 0.5 * d))
+    gp = np.where(u <= d, E * u / d, E)
+    return g, gp
+
+
+def toe_dW(I1, I2, toe_E, toe_delta):
+    """(W1, W2) = (W'(ξ) ξ²/(2(ξ³-1)), 0), with ξ³ - 1 = u (ξ² + ξ + 1)."""
+    xi, u, s = _xi_u(I1)
+    d = toe_delta
+    # on the toe W' = E u²/(2δ): W1 = E u ξ²/(4 δ s), no 0/0 at u = 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        beyond = toe_E * (u - 0.5 * d) * xi * xi / (2.0 * u * s)
+    w1 = np.where(u <= d, toe_E * u * xi * xi / (4.0 * d * s), beyond)
+    return w1 + _z(I1, I2), _z(I1, I2)
+
+
+def toe_d2W(I1, I2, toe_E, toe_delta):
+    """(W11, W12, W22) = ([W'' h + W' h'] h, 0, 0), h = dξ/dI1 = ξ²/(2 u s), h' = -(ξ⁴ + 2ξ)/(2 u² s²)."""
+    xi, u, s = _xi_u(I1)
+    d, E = toe_delta, toe_E
+    g, gp = _toe_g(u, E, d)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        h = xi * xi / (2.0 * u * s)
+        # on the toe: W'' h + W' h' = E ξ²/(2 δ s) - E (ξ⁴ + 2ξ)/(4 δ s²), both finite at u = 0
+        inner_toe = E * xi * xi / (2.0 * d * s) - E * (xi**4 + 2.0 * xi) / (4.0 * d * s * s)
+        inner_lin = gp * h - g * (xi**4 + 2.0 * xi) / (2.0 * u * u * s * s)
+        w11 = np.where(u <= d, inner_toe, inner_lin) * h
+    w11 = np.where(u > 0.0, w11, 0.0)
+    z = _z(I1, I2)
+    return w11 + z, z, z
+
+
+# --------------------------------------------------------------------------- registry
+def _stress(name: str, default: float, what: str) -> Parameter:
+    return Parameter(name, "stress", default, 0.0, 1.0e11, what)
+
+
+def _shape(name: str, default: float, lo: float, hi: float, what: str) -> Parameter:
+    return Parameter(name, "dimensionless", default, lo, hi, what)
+
+
+#: name -> Term (one entry per term; see the module docstring for each equation)
+TERMS: dict[str, Term] = {
+    t.name: t for t in (
+        Term("mooney", (_stress("c2", 1.0e3, "Mooney-Rivlin I2 modulus C2"),),
+             "c2*(I2-3)", mooney_energy, mooney_dW, mooney_d2W,
+             "I2 dependence: tension-compression asymmetry, distinct equibiaxial and pure-shear responses"),
+        Term("i2exp", (_stress("i2exp_a", 1.0e3, "I2 exponential modulus a"),
+                       _shape("i2exp_b", 1.0, 1e-3, 1e3, "I2 exponential rate b")),
+             "a/(2b)*(exp(b*(I2-3))-1)", i2exp_energy, i2exp_dW, i2exp_d2W,
+             "stiffening in I2: compression stiffer than tension (brain tissue)"),
+        Term("i1exp", (_stress("i1exp_a", 1.0e3, "I1 exponential modulus a"),
+                       _shape("i1exp_b", 1.0, 1e-3, 1e3, "I1 exponential rate b")),
+             "a/(2b)*(exp(b*(I1-3))-1)", i1exp_energy, i1exp_dW, i1exp_d2W,
+             "exponential stiffening in I1 (soft tissue)"),
+        Term("yeoh", (_stress("c3", 1.0e2, "Yeoh cubic modulus c3"),),
+             "c3*(I1-3)^3", yeoh_energy, yeoh_dW, yeoh_d2W,
+             "a late upturn at large stretch"),
+        Term("gent", (_stress("gent_mu", 1.0e3, "Gent modulus"),
+                      _shape("gent_J", 10.0, 1e-2, 1e4, "Gent locking parameter Jm (locks at I1 = 3 + Jm)")),
+             "-(mu*J/2)*ln(1-(I1-3)/J)", gent_energy, gent_dW, gent_d2W,
+             "stiffening towards a limiting stretch (chain extensibility)", max_I1=gent_max_I1),
+        Term("i2log", (_stress("i2log_mu", 1.0e3, "Gent-Thomas log(I2) modulus"),),
+             "(3*mu/2)*ln(I2/3)", i2log_energy, i2log_dW, i2log_d2W,
+             "a concave loading curve (stiffness falling with stretch)"),
+        Term("fibreexp", (_stress("fexp_k1", 1.0e3, "exponential fibre modulus k1"),
+                          _shape("fexp_k2", 1.0, 1e-3, 1e4, "exponential fibre rate k2")),
+             "k1/(2k2)*(exp(k2*(I1/3-1)^2)-1)", fibreexp_energy, fibreexp_dW, fibreexp_d2W,
+             "exponential fibre stiffening (isotropized fibres)"),
+        Term("toe", (_stress("toe_E", 1.0e6, "modulus of the recruited fibres"),
+                     _shape("toe_delta", 0.02, 1e-4, 2.0, "width of the recruitment (toe) in stretch")),
+             "E*{(xi-1)^3/(6d) on the toe; (xi-1-d/2)^2/2 + d^2/24 beyond}, xi^2 + 2/xi = I1",
+             toe_energy, toe_dW, toe_d2W,
+             "a toe region: fibres straightening one after another, then a linear region"),
+    )
+}
+
+#: the term names, in library order
+TERM_NAMES: tuple[str, ...] = tuple(TERMS)
+
+
+def get_term(name: str) -> Term:
+    """The term registered as *name*; KeyError if unknown (the composite model turns it into a ConfigError)."""
+    return TERMS[name]

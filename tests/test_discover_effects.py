@@ -1,0 +1,147 @@
+"""The discovery's building blocks beyond the loop: the new material effects and their record, what a
+record shows (noise, ruptures, slips, a reading at rest), and the two selection statistics."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from esmm.pipeline.discover import synthetic as syn
+from esmm.pipeline.discover.covariates import noise_sd
+from esmm.pipeline.discover.records import prepare, rest_reading
+from esmm.pipeline.discover.statistics import autocorrelation_time, noise_test, paired_heldout
+from esmm.pipeline.errors import ConfigError
+from esmm.pipeline.materials.effects import (
+    CyclicSofteningEffect,
+    MaterialEffects,
+    PermanentSetEffect,
+    ViscoelasticEffect,
+    accumulated_energy,
+    cyclic_factor,
+    qlv_stress,
+    relaxation_strength,
+    set_stretch,
+)
+from esmm.pipeline.tensile import read
+
+BASE = {"mu": 20e3, "N": 4.0}
+
+
+# --------------------------------------------------------------------------- effects
+def test_cyclic_softening_grows_with_cycles_and_saturates():
+    W = np.tile(np.concatenate([np.linspace(0, 100, 50), np.linspace(100, 0, 50)]), 6)
+    alpha = accumulated_energy(W)
+    assert alpha[-1] == pytest.approx(6 * 200, rel=1e-2)
+    f = cyclic_factor(alpha, 0.3, 150.0)
+    peaks = f[49::100]
+    assert np.all(np.diff(peaks) < 0) and peaks[-1] > 0.7 - 1e-9  # softer every cycle, never beyond d_inf
+    assert cyclic_factor(np.array([0.0]), 0.3, 150.0)[0] == 1.0
+
+
+def test_set_stretch_and_relaxation_strength():
+    np.testing.assert_allclose(set_stretch(np.array([1.0, 1.5, 3.0]), 0.2), [1.0, 1.1, 1.4])
+    s = relaxation_strength(np.array([1.0, 1.1, 1.5]), -2.0, 0.5)
+    np.testing.assert_allclose(s, np.exp(-2.0 * np.array([0.0, 0.1, 0.5])))
+    assert relaxation_strength(np.array([2.0]), 5.0, 0.5)[0] == pytest.approx(2.0)  # capped at 1 / sum g
+
+
+def test_stretch_dependent_relaxation_reduces_to_qlv_and_scales_the_relaxed_part():
+    t = np.linspace(0, 20, 401)
+    lam = np.minimum(1 + 0.1 * t, 1.5)
+    pe = 1e4 * (lam - 1)
+    qlv = qlv_stress(t, pe, [0.4], [3.0])
+    np.testing.assert_allclose(ViscoelasticEffect((0.4,), (3.0,)).stress(t, pe), qlv)
+    v = ViscoelasticEffect((0.4,), (3.0,), kappa=-1.0)
+    p = v.stress(t, pe, xi=lam)
+    np.testing.assert_allclose(pe - p, np.exp(-(lam - 1)) * (pe - qlv), rtol=1e-12, atol=1e-9)
+    with pytest.raises(ConfigError, match="xi"):
+        v.stress(t, pe)
+
+
+def test_material_effects_record_new_fields_round_trip_and_old_records_read():
+    me = MaterialEffects(ViscoelasticEffect((0.3,), (2.0,), kappa=-4.0), None, None, {},
+                         CyclicSofteningEffect(0.2, 150.0), PermanentSetEffect(0.1))
+    assert MaterialEffects.from_dict(json.loads(json.dumps(me.to_dict()))) == me
+    back = MaterialEffects.from_toml_table(me.to_toml_table(stress_unit="kPa"), stress_unit="kPa")
+    assert back.cyclic_softening.eta == pytest.approx(150.0) and back.viscoelastic.kappa == -4.0
+    assert {"prony_h", "xi_max", "alpha"} == set(me.state_variables())
+    # a record written before these effects existed reads unchanged (no kappa, the old composition)
+    old = {"schema": "esmm.material-effects/1", "composition": "P = QLV[(1 - D) * eta * P_e]",
+           "viscoelastic": {"g": [0.4], "tau": [3.0], "g_inf": 0.6}, "intervals": {"viscoelastic.g[0]": [0.3, None]}}
+    got = MaterialEffects.from_dict(old)
+    assert got.viscoelastic.kappa == 0.0 and got.names == ["viscoelastic"]
+    assert got.intervals["viscoelastic.g[0]"][1] == np.inf
+    assert MaterialEffects(ViscoelasticEffect((0.4,), (3.0,))).to_dict()["composition"] == old["composition"]
+    with pytest.raises(ConfigError, match="d_inf"):
+        CyclicSofteningEffect(1.2, 1.0)
+
+
+# --------------------------------------------------------------------------- records
+def test_noise_estimate_is_model_free():
+    rng = np.random.default_rng(0)
+    t = np.linspace(0, 10, 5000)
+    signal = 1e4 * (np.sin(t) + 0.3 * t**2)  # smooth, large
+    assert noise_sd(signal + 7.0 * rng.standard_normal(t.size)) == pytest.approx(7.0, rel=0.05)
+    assert noise_sd(np.round(signal, -1)) > 0  # quantised: the quantisation noise, not zero
+
+
+def _records(tmp_path, protocols, truth, **kw):
+    paths = syn.write_set(tmp_path, protocols, truth, seed=1, **kw)
+    return prepare([read(p) for p in paths])
+
+
+def test_rupture_is_cut_and_slips_are_found(tmp_path):
+    truth = syn.Truth("arruda-boyce", BASE, grip_slip=((0.5, 1.5e-3),))
+    pr = syn.monotonic(0.05, 1.8, name="ramp")
+    [rec] = _records(tmp_path / "slip", [pr], truth, noise=0.002)
+    assert len(rec.slips) == 1 and abs(rec.x[rec.slips[0]] - 1.4) < 0.02
+    assert not rec.cut
+    # a break: write the same ramp with the force falling to zero for its last 20 %
+    ch = syn.simulate(pr, syn.Truth("arruda-boyce", BASE), noise=0.002)
+    k = int(0.8 * ch["force"].size)
+    ch["force"][k:] = 0.001 * ch["force"][k:]
+    path = syn.write_csv(tmp_path / "broken.csv", ch, gauge_length=0.03, area=20e-6)
+    [rec] = prepare([read(path)])
+    assert rec.cut and abs(rec.cut["index"] - k) <= 1 and rec.test.n == rec.cut["index"]
+
+
+def test_reading_at_rest_is_the_offset(tmp_path):
+    truth = syn.Truth("arruda-boyce", BASE, sensor_offset={"force": 0.02})
+    [rec] = _records(tmp_path, [syn.load_unload(0.05, 1.4)], truth, rest=30, noise=0.002)
+    assert rest_reading(rec) * 20e-6 == pytest.approx(0.02, abs=3e-4)
+
+
+# --------------------------------------------------------------------------- statistics
+def test_autocorrelation_time_of_an_ar1_series():
+    rng = np.random.default_rng(2)
+    phi, n = 0.8, 200_000
+    e = rng.standard_normal(n)
+    x = np.empty(n)
+    x[0] = e[0]
+    for i in range(1, n):
+        x[i] = phi * x[i - 1] + e[i]
+    assert autocorrelation_time(x) == pytest.approx((1 + phi) / (1 - phi), rel=0.1)
+    assert autocorrelation_time(rng.standard_normal(10_000)) == pytest.approx(1.0, abs=0.2)
+
+
+def test_noise_test_penalises_parameters_not_samples():
+    rng = np.random.default_rng(3)
+    r0 = [rng.standard_normal(400)]
+    same = noise_test(r0, [0.999 * r0[0]], [1.0], 2)  # fitting noise: Δχ² ~ 1, penalty 2 ln 400
+    assert same["dbic"] > 0
+    better = noise_test([r0[0] + 3.0], r0, [1.0], 2)  # a systematic misfit of 3 σ removed
+    assert better["dbic"] < 0 and better["dchi2"] == pytest.approx(400 * 9, rel=0.1)
+
+
+def test_paired_heldout_sign_and_mean():
+    rng = np.random.default_rng(4)
+    y = rng.standard_normal(2000)
+    p0 = y + 0.5 + 0.1 * rng.standard_normal(2000)  # biased
+    p1 = y + 0.1 * rng.standard_normal(2000)  # unbiased
+    good = paired_heldout([(y, p0, p1, 10.0, 0.1)])
+    assert good["z"] > 5 and good["z_mean"] > 5 and good["noise_units"] > 10
+    bad = paired_heldout([(y, p1, p0, 10.0, 0.1)])
+    assert bad["z"] < -5 and bad["noise_units"] < 0
+    same = paired_heldout([(y, p1, p1 + 1e-6, 10.0, 0.1)])
+    assert same["decided"] == 0 and same["z"] == 0.0  # predictions indistinguishable at the noise level
