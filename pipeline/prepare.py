@@ -516,7 +516,8 @@ def _tetra(clean, cfg: PrepareConfig, run: _Run, *, force: bool, name: str) -> _
             run.warn(f"quality below floor (written anyway, forced): {pr}")
     else:
         raise QualityError(f"{name}: mesh quality below the floors: {'; '.join(problems)}; "
-                           "try another mesh size or node count, or force the write")
+                           "try another mesh size or node count, lower the floor in the config's [quality] "
+                           "table, or force the write")
     net = run.stage("network", network_from_tets, mesh, density=cfg.density, fibre_frame=cfg.fibre_frame,
                     reorder=cfg.reorder, reporter=run.rep)
     return _Structure(net, mesh.path, list(mesh.log), quality, passed, floors)

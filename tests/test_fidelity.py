@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 from esmm.cli.main import main
-from esmm.pipeline.errors import ConfigError
+from esmm.pipeline.errors import ConfigError, SimulationError
 from esmm.pipeline.fidelity.cases import (
     Constraint,
     Floor,
@@ -115,6 +115,55 @@ def test_continuum_simple_shear_matches_analytic(block, liver, gamma):
     assert np.abs(sol.displacement - U).max() < 1e-8 * gamma * L
 
 
+def test_condensed_mini_solves_the_whole_system(block, liver):
+    """The MINI system with its bubbles condensed element by element gives the whole LU's answer."""
+    import felupe as fem
+    from esmm.pipeline.fidelity.continuum import _CondensedMini, _discretise, _lu_solve
+
+    case = uniaxial_case(*block, stretch=1.1)
+    field, solid, _, mask, _, ncells = _discretise(fem, case, liver, bulk_modulus(liver), "mini")
+    dof1 = np.flatnonzero(~np.concatenate([mask.ravel(), np.zeros(field.fieldsizes[1] * 2, bool)]))
+    A = solid.assemble.matrix(field).tocsr()[dof1][:, dof1]
+    b = np.cos(np.arange(A.shape[0]))
+    solver = _CondensedMini(dof1, case.n_nodes, ncells)
+    x = solver(A, b)
+    assert solver.count == 1 and np.abs(A @ x - b).max() < 1e-10 * abs(A).max() * np.abs(x).max()
+    assert np.abs(x - _lu_solve(A, b)).max() < 1e-6 * np.abs(x).max()
+
+
+@pytest.mark.parametrize("element", ["p2", "mini"])
+def test_continuum_warm_start_reaches_the_same_equilibrium(block, liver, element):
+    """Started from the solution of another stretch, the solve ends where a solve from rest does."""
+    cold = solve_continuum(uniaxial_case(*block, stretch=1.2), liver, element=element)
+    first = solve_continuum(uniaxial_case(*block, stretch=1.1), liver, element=element)
+    warm = solve_continuum(uniaxial_case(*block, stretch=1.2), liver, element=element, start=first, steps=1)
+    assert warm.info["warm_start"] and not cold.info["warm_start"]
+    assert np.abs(warm.displacement - cold.displacement).max() < 1e-6 * np.abs(cold.displacement).max()
+    assert warm.reactions["top"] == pytest.approx(cold.reactions["top"], rel=1e-6)
+
+
+def test_continuum_gives_up_after_its_iteration_budget(block, liver):
+    with pytest.raises(SimulationError, match="Newton iterations"):
+        solve_continuum(uniaxial_case(*block, stretch=1.2), liver, element="mini", budget=2)
+
+
+def test_a_case_without_equilibrium_is_reported_and_the_others_run(small_network, liver, monkeypatch):
+    import esmm.pipeline.fidelity.validate as V
+
+    real = V.solve_continuum
+
+    def fails_on_tension(case, *args, **kw):
+        if case.name == "tension":
+            raise SimulationError("continuum reference: no equilibrium (test)")
+        return real(case, *args, **kw)
+
+    monkeypatch.setattr(V, "solve_continuum", fails_on_tension)
+    net, tables = small_network
+    rep = validate_network(net, tables, liver, cases=["tension", "shear"], element="p2")
+    assert [r.case.name for r in rep.results] == ["shear"]
+    assert "tension" in rep.info["failed"] and "| tension | no equilibrium:" in rep.table()
+
+
 def test_continuum_prints_nothing(block, liver, capsys):
     solve_continuum(uniaxial_case(*block, stretch=1.1), liver, steps=2)
     out = capsys.readouterr()
@@ -181,6 +230,46 @@ def test_network_newton_is_the_simulators_equilibrium(small_network):
     assert np.abs(sol.displacement - u_fire).max() < 1e-4 * umax
     # the anchor carries the weight
     assert sol.reactions["anchor"] == pytest.approx(net.mass.sum() * g, rel=1e-8)
+
+
+def test_network_warm_start_reaches_the_same_equilibrium(small_network):
+    """From the equilibrium without a pin, with gravity on, to the one with a pin: as a solve from rest."""
+    net, tables = small_network
+    anchor = np.flatnonzero(net.points[:, 0] < 1e-9)
+    g = np.array([0.0, 0.0, -9.80665])
+    free_end = np.flatnonzero(net.points[:, 0] > 0.04 - 1e-9)
+    base = LoadCase("gravity", "", net.points, net.tets, (Constraint.clamp("anchor", anchor),), "anchor",
+                    gravity=g, density=1.0)
+    pinned = LoadCase("gravity", "", net.points, net.tets, (Constraint.clamp("anchor", anchor),
+                      Constraint.clamp("end", free_end)), "anchor", gravity=g, density=1.0)
+    first = solve_network(base, net, tables)
+    assert np.abs(first.displacement[free_end]).max() > 1e-3          # the end sags; the pin lifts it back
+    warm = solve_network(pinned, net, tables, start=first, steps=2)
+    cold = solve_network(pinned, net, tables)
+    assert warm.info["warm_start"]
+    assert np.abs(warm.displacement - cold.displacement).max() < 1e-6 * np.abs(first.displacement).max()
+
+
+def test_floor_contact_is_found_along_the_load_path(small_network):
+    """A cantilever sagging onto a floor just below it: the nodes that touch are pinned where they touch,
+    none ends below the floor, and the pins hold (the tip sags less than without the floor)."""
+    from esmm.pipeline.fidelity.validate import _on_the_floor
+    from esmm.pipeline.progress import ensure
+
+    net, tables = small_network
+    anchor = np.flatnonzero(net.points[:, 0] < 1e-9)
+    g = np.array([0.0, 0.0, -9.80665])
+    free = LoadCase("gravity", "", net.points, net.tets, (Constraint.clamp("anchor", anchor),), "anchor",
+                    gravity=g, density=1.0)
+    sag = -solve_network(free, net, tables).displacement[:, 2].min()
+    floor = Floor(np.array([0.0, 0.0, 1.0]), -0.3 * sag)
+    case = LoadCase("gravity", "", net.points, net.tets, (Constraint.clamp("anchor", anchor),), "anchor",
+                    gravity=g, density=1.0, floor=floor)
+    sol, pins = _on_the_floor(case, lambda c, start: solve_network(c, net, tables, start=start, steps=1), 6,
+                              ensure(None))
+    z = net.points[:, 2] + sol.displacement[:, 2]
+    assert pins > 0 and sol.info["floor_pins"] == pins
+    assert z.min() >= floor.height - 1e-9 and -sol.displacement[:, 2].min() < 0.9 * sag
 
 
 def test_validate_network_runs_both_sides_and_reports(small_network, liver, tmp_path):

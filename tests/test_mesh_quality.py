@@ -159,3 +159,27 @@ def test_slivers_are_relocated_above_the_floor():
     # boundary vertices move in their tangent plane only: the volume changes to second order
     assert tet_volumes(q, t).sum() == pytest.approx(tet_volumes(p, t).sum(), rel=1e-4)
     assert np.all(tet_volumes(q, t) > 0)
+
+
+def test_boundary_sliver_is_relocated_in_the_face():
+    """A sliver made by sliding a vertex of a flat face towards its neighbour: the vertex slides back in
+    the face (the boundary and the volume do not change) and every angle ends above the floor."""
+    from esmm.pipeline.mesh.quality import QUALITY_FLOORS, tet_measures
+    from esmm.pipeline.mesh.slivers import SLIVER_TARGET_DEG, improve_slivers
+    from esmm.pipeline.mesh.synthetic import box_tets
+    from esmm.pipeline.network.springs import boundary_faces, tet_volumes
+
+    assert SLIVER_TARGET_DEG == QUALITY_FLOORS["min_dihedral_deg"] >= 10.0
+    b = box_tets(3, 3, 3, (0.03, 0.03, 0.03))
+    t = b.tets.copy()
+    neg = tet_volumes(b.points, t) < 0
+    t[neg, 2], t[neg, 3] = t[neg, 3], t[neg, 2].copy()
+    p = b.points.copy()
+    v = int(np.flatnonzero(np.all(np.isclose(p, [0.0, 0.01, 0.01]), axis=1))[0])   # on the face x = 0
+    p[v, 1] += 0.0085                          # towards its neighbour in the face
+    before = tet_measures(p, t)["min_dihedral_deg"].min()
+    assert before < SLIVER_TARGET_DEG and np.all(tet_volumes(p, t) > 0)
+    q, info = improve_slivers(p, t, boundary_faces(t))
+    assert tet_measures(q, t)["min_dihedral_deg"].min() >= SLIVER_TARGET_DEG and info["below_after"] == 0
+    assert q[v, 0] == pytest.approx(0.0, abs=1e-12)          # stayed in its face
+    assert tet_volumes(q, t).sum() == pytest.approx(0.03 ** 3, rel=1e-12)

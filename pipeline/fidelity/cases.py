@@ -31,7 +31,7 @@ from ..errors import ConfigError
 from ..network.springs import tet_volumes
 
 __all__ = ["CASES", "SPECIMEN_CASES", "ORGAN_CASES", "Constraint", "LoadCase", "Floor", "end_faces",
-           "oriented", "uniaxial_case", "shear_case", "gravity_case", "lift_case", "with_floor_pins"]
+           "oriented", "uniaxial_case", "shear_case", "gravity_case", "lift_case", "with_floor_pins", "at_load"]
 
 SPECIMEN_CASES = ("tension", "compression", "shear")
 ORGAN_CASES = ("gravity", "lift")
@@ -318,18 +318,34 @@ def lift_case(points, tets, *, scene, fixed, grasped, lift, density: float, weig
                     density=float(density), floor=floor, load={"lift_m": lift.tolist(), "weight_N": float(weight)})
 
 
-def with_floor_pins(case: LoadCase, nodes) -> LoadCase:
-    """*case* with *nodes* pinned on its floor: each at the point of the plane under its rest position.
+def with_floor_pins(case: LoadCase, nodes, positions=None) -> LoadCase:
+    """*case* with *nodes* pinned on its floor: each at the point of the plane under *positions*.
 
     A pin holds a node's tangential position (sticking friction) at the plane
-    (no penetration). Nodes already in another group are skipped.
+    (no penetration). *positions* (k, 3) default to the nodes' rest positions;
+    pins keep their place when the case is given more. Nodes already in
+    another group are skipped.
     """
     if case.floor is None:
         return case
+    nodes = np.asarray(nodes, dtype=np.int64)
+    at = case.points[nodes] if positions is None else np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     taken = np.concatenate([c.nodes for c in case.constraints if c.name != "floor"])
-    nodes = np.setdiff1d(np.asarray(nodes, dtype=np.int64), taken)
+    keep = ~np.isin(nodes, taken)
+    nodes, at = nodes[keep], at[keep]
     n, h = case.floor.normal, case.floor.height
-    drop = -((case.points[nodes] @ n) - h)[:, None] * n[None, :]
+    target = at - ((at @ n) - h)[:, None] * n[None, :]
+    old = [c for c in case.constraints if c.name == "floor"]
+    if old:
+        fresh = ~np.isin(nodes, old[0].nodes)
+        nodes = np.concatenate([old[0].nodes, nodes[fresh]])
+        target = np.vstack([case.points[old[0].nodes] + old[0].displacement, target[fresh]])
     others = tuple(c for c in case.constraints if c.name != "floor")
-    cons = others + ((Constraint.clamp("floor", nodes, drop),) if nodes.size else ())
+    cons = others + ((Constraint.clamp("floor", nodes, target - case.points[nodes]),) if nodes.size else ())
     return replace(case, constraints=_check_disjoint(cons))
+
+
+def at_load(case: LoadCase, t: float) -> LoadCase:
+    """*case* at load factor *t*: gravity and the prescribed displacements scaled (floor pins kept)."""
+    cons = tuple(c if c.name == "floor" else replace(c, displacement=t * c.displacement) for c in case.constraints)
+    return replace(case, gravity=t * np.asarray(case.gravity, dtype=np.float64), constraints=cons)

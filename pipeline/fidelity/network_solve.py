@@ -63,32 +63,38 @@ class SpringPotential:
 class _Problem:
     """The potential of the terms and gravity at load factor t, on the free degrees of freedom."""
 
-    def __init__(self, case: LoadCase, terms, mass):
+    def __init__(self, case: LoadCase, terms, mass, start: Solution | None = None):
         self.terms = terms
         self.X = np.asarray(case.points, dtype=np.float64)
         self.fg = np.asarray(mass, dtype=np.float64)[:, None] * np.asarray(case.gravity)[None, :]
         self.mask, self.u = case.prescribed()
         self.free = ~self.mask.ravel()
         self.t = 0.0
+        # The path: from rest (gravity off) or from *start* (gravity on, prescribed values where they are).
+        self.g0, self.u0 = (0.0, np.zeros_like(self.u)) if start is None else (1.0, start.displacement)
+
+    def scale(self, t: float) -> float:
+        """Gravity's factor at load factor *t*."""
+        return self.g0 + t * (1.0 - self.g0)
 
     def energy(self, x) -> float:
-        return sum(term.energy(x) for term in self.terms) - self.t * float(np.sum(self.fg * x))
+        return sum(term.energy(x) for term in self.terms) - self.scale(self.t) * float(np.sum(self.fg * x))
 
     def forces(self, x) -> np.ndarray:
         """Total force on every node (terms + gravity), shape (n, 3) [N]."""
-        return sum(term.forces(x) for term in self.terms) + self.t * self.fg
+        return sum(term.forces(x) for term in self.terms) + self.scale(self.t) * self.fg
 
     def tangent(self, x):
         return sum(term.tangent(x) for term in self.terms).tocsr()
 
     def residual_scale(self, x) -> float:
-        return max(float(np.abs(self.forces(x) - self.t * self.fg).max()), float(np.abs(self.t * self.fg).max()),
-                   1e-300)
+        g = self.scale(self.t) * self.fg
+        return max(float(np.abs(self.forces(x) - g).max()), float(np.abs(g).max()), 1e-300)
 
     def at(self, x, t: float) -> np.ndarray:
         """*x* with the prescribed components at load factor *t*."""
         out = x.copy()
-        out[self.mask] = (self.X + t * self.u)[self.mask]
+        out[self.mask] = (self.X + self.u0 + t * (self.u - self.u0))[self.mask]
         return out
 
 
@@ -144,7 +150,7 @@ def _predict(pb: _Problem, x, t_new: float):
         return xn
     free = pb.free
     K = pb.tangent(x)
-    g = -(pb.forces(x) + (t_new - pb.t) * pb.fg).ravel()[free] + K[free][:, ~free] @ dp[~free]
+    g = -(pb.forces(x) + (pb.scale(t_new) - pb.scale(pb.t)) * pb.fg).ravel()[free] + K[free][:, ~free] @ dp[~free]
     d = _direction(K[free][:, free], g)
     if d is None:
         return xn
@@ -154,7 +160,8 @@ def _predict(pb: _Problem, x, t_new: float):
 
 
 def solve_network(case: LoadCase, network, tables, *, law: str | None = None, terms=(), steps: int = 8,
-                  rtol: float = 1e-9, max_iter: int = 40, max_cuts: int = 12, reporter=None) -> Solution:
+                  rtol: float = 1e-9, max_iter: int = 40, max_cuts: int = 12, start: Solution | None = None,
+                  reporter=None) -> Solution:
     """Static equilibrium of *network* under *case* (Newton on the potential, load stepping).
 
     Parameters
@@ -174,6 +181,11 @@ def solve_network(case: LoadCase, network, tables, *, law: str | None = None, te
     rtol : float
         Converged when the largest free residual force is below *rtol* times
         the largest term or gravity force.
+    start : Solution, optional
+        A network solution of the same case with fewer constraints (a
+        previous round of the floor's active set): the solve starts there
+        with gravity on and moves the prescribed values from where they are
+        to the case's.
 
     Returns
     -------
@@ -187,8 +199,8 @@ def solve_network(case: LoadCase, network, tables, *, law: str | None = None, te
     rep = ensure(reporter)
     t_start = time.perf_counter()
     springs = SpringPotential(network, tables, law=law)
-    pb = _Problem(case, (springs, *terms), network.mass)
-    x = pb.X.copy()
+    pb = _Problem(case, (springs, *terms), network.mass, start)
+    x = pb.X + pb.u0
     t, dt, cuts, iterations, done = 0.0, 1.0 / max(1, int(steps)), 0, 0, 0
     with rep.task(f"network {case.name} ({network.n_springs} springs)", total=1.0) as advance:
         while t < 1.0 - 1e-12:
@@ -217,5 +229,5 @@ def solve_network(case: LoadCase, network, tables, *, law: str | None = None, te
                     info={"law": springs.law, "volume_factor": float(tables.volume_factor),
                           "terms": ["springs"] + [type(tm).__name__ for tm in terms], "load_steps": done,
                           "step_cuts": cuts, "newton_iterations": iterations,
-                          "seconds": time.perf_counter() - t_start})
+                          "warm_start": start is not None, "seconds": time.perf_counter() - t_start})
 

@@ -32,6 +32,9 @@ class Solution:
         quadrature points; network: its deformed/rest volume).
     info : dict
         Solver figures (load steps, iterations, seconds, bulk modulus, ...).
+    state : object, optional
+        The solver's own state, to start another solve of the same mesh from
+        (continuum: the values of its fields).
     """
 
     solver: str
@@ -40,6 +43,7 @@ class Solution:
     volume_ratio: float
     element_J: np.ndarray
     info: dict = field(default_factory=dict)
+    state: object = None
 
     @property
     def inverted(self) -> int:

@@ -21,12 +21,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .quality import tet_measures
+from .quality import QUALITY_FLOORS, tet_measures
 
 __all__ = ["SLIVER_TARGET_DEG", "improve_slivers"]
 
-#: The smallest dihedral angle aimed at [deg] (the quality floor, docs/prepare.md §4).
-SLIVER_TARGET_DEG = 10.0
+#: The smallest dihedral angle aimed at [deg]: the quality floor (docs/prepare.md §4).
+SLIVER_TARGET_DEG = QUALITY_FLOORS["min_dihedral_deg"]
 _STEPS = (0.3, 0.1, 0.03)
 
 
