@@ -51,7 +51,7 @@ def add_parser(sub) -> None:
                         "load-cell offset), add what the data support and report the error before and after "
                         "(docs/discover.md)")
     p.add_argument("--by", choices=["specimen", "folder"], help="batch: fit each group of files on its own")
-    p.add_argument("--jobs", type=int, default=None, metavar="N",
+    p.add_argument("--jobs", type=int, default=None, metavar="N", dest="workers",
                    help="batch: local worker processes (default: all cores)")
     p.add_argument("--scheduler", metavar="ADDR", default=None,
                    help="batch: 'local' (default: a pool of --jobs processes), 'serial', or the address of a "
@@ -144,7 +144,7 @@ def run_batch(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]
     if not args.out:
         raise ConfigError("--by: give --out DIR; each group's outputs, the cache and the batch log go there")
     summary = calibrate_batch(args.files, out_dir=args.out, by=args.by, read_kwargs={"overrides": overrides},
-                              fit_kwargs=fit_kwargs, scheduler=args.scheduler, workers=args.jobs,
+                              fit_kwargs=fit_kwargs, scheduler=args.scheduler, workers=args.workers,
                               force=args.redo, reporter=ui)
     ui.info(summary.table())
     if args.json:

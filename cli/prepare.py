@@ -38,7 +38,7 @@ def add_parser(sub) -> None:
     b = p.add_argument_group("batch (several inputs, or --out)")
     b.add_argument("--out", metavar="DIR",
                    help="folder for the assets (<stem>.h5 each), the batch log, the summary and the cache")
-    b.add_argument("--jobs", type=int, default=None, metavar="N", help="local worker processes (default: all cores)")
+    b.add_argument("--jobs", type=int, default=None, metavar="N", dest="workers", help="local worker processes (default: all cores)")
     b.add_argument("--scheduler", metavar="ADDR", default=None,
                    help="'local' (default), 'serial', or a Dask scheduler address, e.g. tcp://10.0.0.5:8786")
     b.add_argument("--redo", action="store_true",
@@ -128,12 +128,12 @@ def run(args, ui) -> int:
         from esmm.pipeline.batch.prepare import prepare_batch
 
         summary = prepare_batch(args.inputs, out_dir=args.out, options=options, argv=argv,
-                                scheduler=args.scheduler, workers=args.jobs, force=args.redo, reporter=ui)
+                                scheduler=args.scheduler, workers=args.workers, force=args.redo, reporter=ui)
         ui.info(summary.table())
         ui.info(f"assets in {summary.out_dir}; batch-summary.csv and "
                 f"{summary.log_path.name if summary.log_path else 'the batch log'} there too")
         return summary.exit_code
-    if args.redo or args.scheduler or args.jobs:
+    if args.redo or args.scheduler or args.workers:
         raise ConfigError("--redo, --scheduler and --jobs apply to a batch: give --out DIR")
     try:
         result = prepare(args.inputs[0], output=args.output, reporter=ui, argv=argv, **options)

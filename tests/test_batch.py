@@ -161,8 +161,19 @@ def test_parse_scheduler(text, kind):
 
 @pytest.mark.parametrize("bad", ["http://x", "tcp:/x:1", "cluster please", 42])
 def test_parse_scheduler_refuses(bad):
-    with pytest.raises(ConfigError, match="--scheduler"):
+    with pytest.raises(ConfigError, match="^scheduler: ") as info:
         parse_scheduler(bad)
+    assert info.value.parameter == "scheduler"
+
+
+@pytest.mark.parametrize("args, flag", [(["--scheduler", "http://x"], "--scheduler: "), (["--jobs", "0"], "--jobs: ")])
+def test_cli_names_the_flag_of_a_bad_batch_option(tmp_path, capsys, args, flag):
+    from esmm.cli.main import main
+
+    code = main(["calibrate", "--by", "specimen", *map(str, _brain("cortex")), "--out", str(tmp_path / "o"), *args])
+    err = capsys.readouterr().err
+    assert code == 2 and flag in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
 
 
 def test_refuses_duplicate_names_and_bad_worker_counts(tmp_path):
@@ -524,6 +535,6 @@ def test_unreachable_dask_scheduler_is_a_config_error(tmp_path):
     with socket.socket() as sock:  # a port nobody listens on
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
-    with pytest.raises(ConfigError, match=f"--scheduler tcp://127.0.0.1:{port}: cannot connect"):
+    with pytest.raises(ConfigError, match=f"scheduler: cannot connect to a Dask scheduler at tcp://127.0.0.1:{port}"):
         run_jobs(write_jobs(tmp_path, ["a"]), out_dir=tmp_path / "o", scheduler=f"tcp://127.0.0.1:{port}",
                  connect_timeout=3)

@@ -74,22 +74,23 @@ def parse_scheduler(scheduler: Any) -> tuple[str, Any]:
             return "dask", s
         if re.match(r"^[A-Za-z0-9_.\-]+:\d+$", s):  # host:port
             return "dask", f"tcp://{s}"
-        raise ConfigError(f"--scheduler: {scheduler!r} is not 'local', 'serial' or a Dask scheduler address "
-                          f"such as tcp://10.0.0.5:8786")
+        raise ConfigError(f"scheduler: {scheduler!r} is not 'local', 'serial' or a Dask scheduler address "
+                          f"such as tcp://10.0.0.5:8786", parameter="scheduler")
     try:
         from distributed import Client
     except ImportError:  # pragma: no cover - dask is a dependency
         Client = ()  # type: ignore[assignment]
     if Client and isinstance(scheduler, Client):
         return "dask", scheduler
-    raise ConfigError(f"--scheduler: expected an address or a dask Client, got {type(scheduler).__name__}")
+    raise ConfigError(f"scheduler: expected an address or a dask Client, got {type(scheduler).__name__}",
+                      parameter="scheduler")
 
 
 def _check_workers(workers: int | None) -> int | None:
     if workers is None:
         return None
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ConfigError(f"--jobs/workers: expected a whole number >= 1, got {workers!r}")
+        raise ConfigError(f"workers: expected a whole number >= 1, got {workers!r}", parameter="workers")
     return workers
 
 
@@ -204,12 +205,13 @@ def _dask_client(target: Any, timeout: float = 15.0):
     try:
         from distributed import Client
     except ImportError:  # pragma: no cover - dask is a dependency
-        raise ConfigError("--scheduler: dask.distributed is not installed; pip install 'dask[distributed]'") from None
+        raise ConfigError("scheduler: dask.distributed is not installed; pip install 'dask[distributed]'",
+                          parameter="scheduler") from None
     try:
         return Client(target, timeout=f"{float(timeout)}s", set_as_default=False), True
     except (OSError, TimeoutError) as exc:
-        raise ConfigError(f"--scheduler {target}: cannot connect to a Dask scheduler ({one_line(str(exc), 160)}); "
-                          f"check the address and that 'dask scheduler' is running there") from None
+        raise ConfigError(f"scheduler: cannot connect to a Dask scheduler at {target} ({one_line(str(exc), 160)}); "
+                          f"check the address and that 'dask scheduler' is running there", parameter="scheduler") from None
 
 
 def _dask_reason(exc: BaseException | None) -> tuple[str, int]:

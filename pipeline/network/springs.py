@@ -521,7 +521,7 @@ def network_from_tets(mesh, *, density: float = DEFAULT_DENSITY, fibre_frame=Non
     degenerate = np.abs(vt) <= tiny
     if np.any(degenerate):
         raise MeshingError(f"{int(degenerate.sum())} of {tets.shape[0]} tetrahedra have zero volume; "
-                           f"remesh (a smaller --size or the repair path)")
+                           f"remesh it (a smaller element size, or the surface repair first)")
     neg = vt < 0
     if np.any(neg):
         tets = tets.copy()
