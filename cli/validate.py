@@ -56,7 +56,7 @@ def run(args, ui) -> int:
     from pathlib import Path
 
     from esmm.pipeline.atomicio import json_text, write_json
-    from esmm.pipeline.errors import ConfigError
+    from esmm.pipeline.errors import ConfigError, SimulationError
     from esmm.pipeline.fidelity.validate import LoadOptions, validate_asset, validate_specimen
     from esmm.pipeline.materials.material import load_material
 
@@ -79,4 +79,10 @@ def run(args, ui) -> int:
     elif args.json:
         write_json(args.json, rep.figures())
     ui.info(f"outputs: {out}")
+    failed = rep.info.get("failed", {})
+    if failed:  # the other cases are reported and written; the run is not a complete validation
+        ui.error(f"{len(failed)} case(s) without an equilibrium ({', '.join(failed)}): see the table above; "
+                 f"the table gives each solver's reason; another continuum element (--element) or a lighter "
+                 f"scene (--scene) may converge")
+        return SimulationError.exit_code
     return 0

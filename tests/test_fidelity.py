@@ -339,6 +339,19 @@ def test_cli_validates_the_specimen(tmp_path, capsys):
     assert "| tension |" in capsys.readouterr().out
 
 
+@pytest.mark.slow
+def test_cli_exit_status_says_a_case_found_no_equilibrium(tmp_path, capsys, monkeypatch):
+    import esmm.pipeline.fidelity.validate as V
+
+    def no_equilibrium(case, *args, **kw):
+        raise SimulationError("continuum reference: no equilibrium (test)")
+
+    monkeypatch.setattr(V, "solve_continuum", no_equilibrium)
+    code = main(["validate", "--specimen", "--size", "5", "--cases", "shear", "--out", str(tmp_path / "val")])
+    err = capsys.readouterr().err
+    assert code == SimulationError.exit_code and "without an equilibrium (shear)" in err and "Traceback" not in err
+
+
 def test_cli_needs_an_asset_or_the_specimen(capsys):
     assert main(["validate"]) == 2
     assert "--specimen" in capsys.readouterr().err
