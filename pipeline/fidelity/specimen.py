@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError, MeshingError
+from ..mesh.gmsh_model import gmsh_model, tetrahedra
 from ..network.compensation import calibration_stretches, compensate
 from ..network.springs import network_from_tets
 from ..network.tables import build_tables
@@ -84,15 +85,7 @@ def cube_specimen(material, *, side: float = 20e-3, size: float = 2.5e-3, compen
 
 def _gmsh_cube(side: float, size: float) -> tuple[np.ndarray, np.ndarray]:
     """Points [m] and tetrahedra of a cube [0, side]^3 (gmsh Delaunay + Netgen, in mm inside gmsh)."""
-    import gmsh
-
-    own = not gmsh.isInitialized()
-    if own:
-        gmsh.initialize(interruptible=False)
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.option.setNumber("General.Verbosity", 1)
-        gmsh.model.add(f"esmm_cube_{id(object())}")
+    with gmsh_model("the specimen cube") as gmsh:
         s = side * 1e3
         gmsh.model.occ.addBox(0.0, 0.0, 0.0, s, s, s)
         gmsh.model.occ.synchronize()
@@ -100,22 +93,8 @@ def _gmsh_cube(side: float, size: float) -> tuple[np.ndarray, np.ndarray]:
                            ("Algorithm", 5), ("Algorithm3D", 1), ("Optimize", 1), ("OptimizeNetgen", 1)):
             gmsh.option.setNumber(f"Mesh.{key}", value)
         gmsh.model.mesh.generate(3)
-        tags, coords, _ = gmsh.model.mesh.getNodes()
-        _, node_tags = gmsh.model.mesh.getElementsByType(4)
-    except Exception as exc:
-        raise MeshingError(f"gmsh failed to mesh the specimen cube ({exc}); try another size") from None
-    finally:
-        try:
-            gmsh.model.remove()
-        except Exception:  # pragma: no cover
-            pass
-        if own:
-            gmsh.finalize()
-    pts = np.asarray(coords, dtype=np.float64).reshape(-1, 3) * 1e-3
-    tags = np.asarray(tags, dtype=np.int64)
-    index = np.full(int(tags.max()) + 1, -1, np.int64)
-    index[tags] = np.arange(tags.size)
-    tets = index[np.asarray(node_tags, dtype=np.int64)].reshape(-1, 4)
+        pts, tets = tetrahedra(gmsh)
+    pts = pts * 1e-3
     if tets.shape[0] == 0:
         raise MeshingError("gmsh made no tetrahedra for the specimen cube; try another size")
     used = np.unique(tets)

@@ -34,6 +34,7 @@ import scipy.sparse.linalg as spl
 
 from ..errors import ConfigError, MeshingError, SimulationError
 from ..materials.loading import nominal_stress
+from ..mesh.gmsh_model import gmsh_model, tetrahedra
 from ..progress import ensure
 from . import forcelaw
 from .springs import network_from_tets, tet_volumes
@@ -160,16 +161,7 @@ def cylinder_specimen(*, radius: float = 5e-3, length: float = 20e-3, size: floa
 
 def _gmsh_cylinder(radius: float, length: float, size: float, algorithm: int):
     """Tetrahedra of a cylinder with nodes at the bottom centre and at (R, 0, 0)."""
-    import gmsh
-
-    own = not gmsh.isInitialized()
-    if own:
-        gmsh.initialize(interruptible=False)
-    name = f"esmm_specimen_{id(object())}"
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.option.setNumber("General.Verbosity", 1)
-        gmsh.model.add(name)
+    with gmsh_model("the specimen") as gmsh:
         occ = gmsh.model.occ
         vol = occ.addCylinder(0.0, 0.0, 0.0, 0.0, 0.0, length, radius)
         centre = occ.addPoint(0.0, 0.0, 0.0)
@@ -189,25 +181,7 @@ def _gmsh_cylinder(radius: float, length: float, size: float, algorithm: int):
         gmsh.option.setNumber("Mesh.Algorithm3D", int(algorithm))
         gmsh.option.setNumber("Mesh.Optimize", 1)
         gmsh.model.mesh.generate(3)
-        tags, coords, _ = gmsh.model.mesh.getNodes()
-        _, node_tags = gmsh.model.mesh.getElementsByType(4)
-    except Exception as exc:
-        if isinstance(exc, MeshingError):
-            raise
-        raise MeshingError(f"gmsh failed to mesh the specimen ({exc}); try another size") from None
-    finally:
-        try:
-            gmsh.model.remove()
-        except Exception:  # pragma: no cover
-            pass
-        if own:
-            gmsh.finalize()
-    pts = np.asarray(coords, dtype=np.float64).reshape(-1, 3)
-    tags = np.asarray(tags, dtype=np.int64)
-    index = np.full(int(tags.max()) + 1, -1, np.int64)
-    index[tags] = np.arange(tags.size)
-    tets = index[np.asarray(node_tags, dtype=np.int64)].reshape(-1, 4)
-    return pts, tets
+        return tetrahedra(gmsh)
 
 
 # ---------------------------------------------------------------------------
