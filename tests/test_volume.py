@@ -65,6 +65,22 @@ def test_tangent_is_minus_force_jacobian(block, form):
 
 
 @pytest.mark.parametrize("form", ["nodal", "tet"])
+@pytest.mark.parametrize("definite", [False, True])
+def test_matrix_free_product_is_the_tangent(block, form, definite):
+    el = volume_elements(block.points, block.tets, VolumeSpec(2.0e5, form))
+    x = deformed(block)
+    K = el.tangent(x, definite=definite)
+    product = el.tangent_operator(x, definite=definite)
+    rng = np.random.default_rng(5)
+    for _ in range(4):
+        p = rng.standard_normal(x.size)
+        y = K @ p
+        np.testing.assert_allclose(product(p), y, rtol=0, atol=1e-12 * np.abs(y).max())
+    # the definite part differs from the full tangent by the pressures' geometric part
+    assert abs(el.tangent(x, definite=not definite) - K).max() > 1e-6 * abs(K).max()
+
+
+@pytest.mark.parametrize("form", ["nodal", "tet"])
 def test_no_net_force_or_torque_and_rigid_motions_free(block, form):
     el = volume_elements(block.points, block.tets, VolumeSpec(2.0e5, form))
     x = deformed(block)

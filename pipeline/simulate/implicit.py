@@ -424,12 +424,16 @@ class BackwardEuler:
 
     def _operator(self, model, state, x, h, dt_fx, mass_dof, coupling, fixed_dof):
         """Newton's matrix at x as a product ``p -> A p`` (zero on fixed dofs)."""
-        Kt = self._tangent(model, state, x, dt_fx, definite=self.definite)
-        C = model.springs.damping_matrix(x) if model.springs.damped else None
+        sp = model.springs
+        Kt = sp.tangent(x, state=state.effects, dt=dt_fx, definite=self.definite)
+        others = [_product(term, x, self.definite) for term in model.terms if term is not sp]
+        C = sp.damping_matrix(x) if sp.damped else None
         diag = mass_dof if coupling is None else mass_dof + coupling
 
         def matvec(p):
             y = Kt @ p + diag * p
+            for product in others:
+                y += product(p)
             if C is not None:
                 y += (C @ p) / h
             y[fixed_dof] = 0.0
@@ -593,6 +597,15 @@ class BackwardEuler:
             self._last = (g_, t1, F1, drift)
         else:
             self._last = None
+
+
+def _product(term, x: np.ndarray, definite: bool):
+    """``p -> K p`` of a term's tangent at x: its matrix-free product when it has one (the volume
+    term: its matrix couples nodes two tets apart), else its sparse matrix's."""
+    op = getattr(term, "tangent_operator", None)
+    if op is not None:
+        return op(x, definite=definite)
+    return term.tangent(x, definite=definite).__matmul__
 
 
 @dataclass(frozen=True)

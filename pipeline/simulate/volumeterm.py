@@ -108,6 +108,10 @@ class VolumeTerm:
         """
         return self.elements.tangent(np.asarray(x, dtype=np.float64), definite=definite)
 
+    def tangent_operator(self, x: np.ndarray, *, definite: bool = False):
+        """``p -> K p`` for :meth:`tangent`'s K at *x*, without forming it (the Newton iteration's products)."""
+        return self.elements.tangent_operator(np.asarray(x, dtype=np.float64), definite=definite)
+
     def jacobians(self, x: np.ndarray) -> np.ndarray:
         """Nodal volume ratios ``J_a``, shape (n,)."""
         return self.elements.jacobians(x)
