@@ -352,9 +352,9 @@ def implicit_accuracy(hist_implicit: Path, hist_explicit: Path, lift_end: float,
 
 
 def bench_implicit(*, duration: float = 3.0, sizes=("100k",), steps: int = 3) -> dict:
-    """Real-time factors of the default scene on the bundled liver (paper and fine presets), implicit and
-    explicit in one run, and the implicit run's accuracy against the explicit one over the lift; the
-    implicit step at 100 k springs (500 k on request: its factorization took over an hour and 10 GB on
+    """Real-time factors of the default and the interactive scene (the default on a frictionless bed,
+    docs/simulate.md §9) on the bundled liver (paper and fine presets), implicit and explicit in one
+    run, and the implicit run's accuracy against the explicit one over the lift; the implicit step at 100 k springs (500 k on request: its factorization took over an hour and 10 GB on
     this machine, so ``make bench`` leaves it out); the memory traffic per step."""
     import os
 
@@ -365,13 +365,19 @@ def bench_implicit(*, duration: float = 3.0, sizes=("100k",), steps: int = 3) ->
     out: dict = {"load_average_at_start": os.getloadavg()}
     base = load_scene("default").with_overrides(duration=duration)
     lift_end = base.grasper.waypoints[-1].time
+    interactive = load_scene("interactive").with_overrides(duration=duration)
+    variants = (("paper", "paper", base), ("paper_interactive", "paper", interactive), ("fine", "fine", base),
+                ("fine_interactive", "fine", interactive))
     with tempfile.TemporaryDirectory() as d:
-        for preset in ("paper", "fine"):
-            asset = _liver_asset(preset, Path(d))
+        assets = {}
+        for key, preset, scene in variants:
+            if preset not in assets:
+                assets[preset] = _liver_asset(preset, Path(d))
+            asset = assets[preset]
             row, hist = {}, {}
             for method in ("implicit", "explicit"):
-                res = simulate_network(asset.network, asset.tables, base.with_overrides(method=method),
-                                       Path(d) / f"{preset}-{method}")
+                res = simulate_network(asset.network, asset.tables, scene.with_overrides(method=method),
+                                       Path(d) / f"{key}-{method}")
                 row[method] = _run_figures(res.summary)
                 row[method]["load_average_after"] = os.getloadavg()
                 hist[method] = res.history
@@ -381,7 +387,7 @@ def bench_implicit(*, duration: float = 3.0, sizes=("100k",), steps: int = 3) ->
                                                           imp["dt_max_s"])
             term = build_spring_term(asset.network, asset.tables)
             row["traffic"] = implicit_traffic(imp["integrator"], term.n_springs, term.pattern.nnz)
-            out[preset] = row
+            out[key] = row
     out["sizes"] = {}
     for name in sizes:
         try:

@@ -36,8 +36,8 @@ say "7/9 prepare: an InVesalius-style liver surface (TotalSegmentator liver, 3 m
 say "8/9 validate: the network (with its volume term) against a felupe continuum, a 20 mm cube in tension, compression, shear"
 "$ESMM" validate --specimen --size 4 --out "$OUT/validate-specimen" --json "$OUT/validate-specimen/validate.json"
 
-say "9/9 simulate: the liver under gravity and a scripted grasper, rendered off-screen (try --method implicit: backward Euler, grasper force at 1 kHz)"
-"$ESMM" simulate "$OUT/liver.h5" --video "$OUT/liver.mp4" --out "$OUT/liver-sim"
+say "9/9 simulate: the liver under gravity and a scripted grasper, implicit (backward Euler at the frame step, grasper force at 1 kHz), rendered off-screen"
+"$ESMM" simulate "$OUT/liver.h5" --scene interactive --video "$OUT/liver.mp4" --out "$OUT/liver-sim"
 RTF=$(python3 - "$OUT/liver-sim/summary.json" <<'PY'
 import json, sys
 s = json.load(open(sys.argv[1]))

@@ -138,6 +138,35 @@ def test_scene_from_file_and_overrides(tmp_path):
         load_scene("no-such-scene").source  # noqa: B018
 
 
+def test_interactive_scene_is_the_default_solved_implicitly_on_a_slippery_bed():
+    a, b = load_scene("default"), load_scene("interactive")
+    changed = {f for f in a.__dataclass_fields__ if repr(getattr(a, f)) != repr(getattr(b, f))}
+    assert changed == {"method", "floor", "source"}
+    assert (b.method, b.floor.friction, b.floor.height) == ("implicit", "slip", a.floor.height)
+
+
+def test_scene_base_overrides_key_by_key_and_refuses_loops(tmp_path):
+    parent = tmp_path / "parent.toml"
+    parent.write_text('base = "default"\n[scene]\nduration = "1 s"\n[fixed]\nwidth_fraction = 0.1\n', encoding="utf-8")
+    child = tmp_path / "sub" / "child.toml"
+    child.parent.mkdir()
+    child.write_text('base = "../parent.toml"\n[damping]\ndashpot = "1 ms"\n'
+                     '[fixed]\nkind = "band"\naxis = [1, 0, 0]\nend = "max"\nwidth = "5 mm"\n', encoding="utf-8")
+    d, p, c = load_scene("default"), load_scene(str(parent)), load_scene(str(child))
+    assert (p.duration, p.fixed.width_fraction, p.dashpot) == (1.0, 0.1, d.dashpot)
+    assert p.fixed.axis is not None and p.velocity_decay == d.velocity_decay and p.grasper == d.grasper
+    assert (c.duration, c.dashpot, c.fixed.width, c.fixed.width_fraction) == (1.0, 0.001, pytest.approx(0.005), None)
+    loop = tmp_path / "loop.toml"
+    loop.write_text('base = "loop.toml"\n', encoding="utf-8")
+    with pytest.raises(ConfigError, match="loops") as exc:
+        load_scene(str(loop))
+    assert "\n" not in str(exc.value)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("base = 3\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match="base: expected a scene name"):
+        load_scene(str(bad))
+
+
 def test_unknown_bundled_scene_lists_choices():
     with pytest.raises(ConfigError, match="choose one of .*default"):
         load_scene("nonesuch")

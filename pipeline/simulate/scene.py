@@ -18,6 +18,11 @@ Tables and keys::
                   grasp_time, release_time, waypoints
     [video]       width, height, colormap, view, zoom, show_fixed, show_edges
 
+A scene may start from another one: a top-level ``base = "default"`` (a
+bundled name or a path, relative to the file) takes that scene and overrides
+it key by key, table by table (a ``[fixed]`` table that names its ``kind``
+replaces the base's region whole; ``[grasper] waypoints`` are replaced whole).
+
 Unknown tables or keys are errors (a typo must not be ignored silently).
 """
 
@@ -25,6 +30,7 @@ from __future__ import annotations
 
 import math
 import re
+from pathlib import Path
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -571,6 +577,37 @@ def _video(vd: dict) -> VideoSpec:
 
 
 def load_scene(name_or_path=None) -> Scene:
-    """Load a scene by bundled name (default ``"default"``) or path to a TOML file."""
-    data, source = load_config("scenes", DEFAULT_SCENE if name_or_path is None else name_or_path)
+    """Load a scene by bundled name (default ``"default"``) or path to a TOML file (module doc: ``base``)."""
+    data, source = _load_with_base(DEFAULT_SCENE if name_or_path is None else name_or_path, ())
     return scene_from_dict(data, source=source)
+
+
+#: Scenes a chain of ``base`` keys may pass through.
+MAX_BASES = 8
+
+
+def _load_with_base(name_or_path, chain: tuple) -> tuple[dict, str]:
+    """The scene table of *name_or_path* with its ``base`` chain merged in, and its source."""
+    data, source = load_config("scenes", name_or_path)
+    if "base" not in data:
+        return data, source
+    base = data.pop("base")
+    if not isinstance(base, str) or not base:
+        raise ConfigError(f"{source}: base: expected a scene name or a path to a .toml file, got {base!r}")
+    if source in chain or len(chain) >= MAX_BASES:
+        raise ConfigError(f"{source}: base: the chain of bases {' -> '.join(chain + (source,))} loops or is "
+                          f"longer than {MAX_BASES}; end it with a scene that has no base")
+    if not source.startswith("bundled:") and (base.endswith(".toml") or "/" in base):
+        base = str((Path(source).parent / base))
+    merged, _ = _load_with_base(base, chain + (source,))
+    for table, keys_ in data.items():
+        if isinstance(keys_, dict) and isinstance(merged.get(table), dict) and not _replaces(table, keys_):
+            merged[table] = {**merged[table], **keys_}
+        else:
+            merged[table] = keys_
+    return merged, source
+
+
+def _replaces(table: str, keys_: dict) -> bool:
+    """Whether an overriding table replaces the base's whole (a region of another kind)."""
+    return table == "fixed" and "kind" in keys_
