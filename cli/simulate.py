@@ -12,9 +12,10 @@ outputs (in --out DIR, default ASSET-sim/ beside the asset):
   summary.json               time step, stability bound, timings, real-time factor
   --video OUT.mp4            off-screen rendering (no display or GPU needed)
 
-scenes: 'default' (bundled: the organ rests on its bed, the lowest 15 % held; a grasper
-lifts the free edge 20 mm in 1 s, holds, releases at 2 s) or a TOML file; see
-docs/simulate.md for the schema.
+scenes: 'default' (bundled: the organ lies on a sticking bed, its lowest 5 % held; a grasper
+lifts the free edge 20 mm in 1 s, holds, releases at 2 s; explicit stepper), 'interactive'
+(the default on a frictionless bed, implicit: grasper force at 1 kHz) or a TOML file, which
+may start from a bundled one (base = "default"); see docs/simulate.md for the schema.
 
 material effects: an asset made from a discovery's params.toml carries its kept effects
 (viscoelastic, Mullins, damage; 'esmm info' lists them); they are applied per spring
@@ -23,6 +24,7 @@ unless --effects none (or [scene] effects = "none").
 examples:
   esmm simulate liver.h5
   esmm simulate liver.h5 --video liver.mp4 --duration 2
+  esmm simulate liver.h5 --scene interactive
   esmm simulate liver.h5 --scene myscene.toml --law energy --threads 2 --out runs/a
 """
 
