@@ -124,8 +124,8 @@ class Constraints:
     Each row m acts on node ``node[m]`` along the unit vector ``e[m]`` (3,):
     a hard constraint (compliance 0: the dof does not move in the Newton
     update) or a coupling spring (compliance ``1/k``). ``W = P^-1 J^T`` is
-    cached per node (three columns, the solves of the unit vectors) until the
-    factor changes.
+    cached per row (node and direction: one solve each) until the factor
+    changes.
 
     Parameters
     ----------
@@ -146,20 +146,26 @@ class Constraints:
     solve_s: float = 0.0        #: seconds spent in the preconditioner's solves
     columns_s: float = 0.0      #: seconds spent computing the columns of W
 
-    def columns(self, nodes) -> None:
-        """Compute (once per factor) the three columns ``P^-1 e_{3a+c}`` of every node in *nodes*."""
-        new = [int(a) for a in np.unique(np.asarray(nodes, dtype=np.int64)) if int(a) not in self._cols]
+    def columns(self, node: np.ndarray, e: np.ndarray) -> None:
+        """Compute (once per factor) the column ``P^-1 J_m^T`` of every row (*node* (c,), unit *e* (c, 3)):
+        one solve per row (a slip contact's normal row: one, not three)."""
+        new, seen = [], set()
+        for a, d in zip(np.asarray(node, dtype=np.int64), np.asarray(e, dtype=np.float64).reshape(-1, 3)):
+            key = (int(a), d.tobytes())
+            if key not in self._cols and key not in seen:
+                seen.add(key)
+                new.append((key, int(a), d))
         if not new:
             return
-        E = np.zeros((3 * self.n, 3 * len(new)))
-        for q, a in enumerate(new):
-            E[3 * a:3 * a + 3, 3 * q:3 * q + 3] = np.eye(3)
+        E = np.zeros((3 * self.n, len(new)))
+        for q, (_, a, d) in enumerate(new):
+            E[3 * a:3 * a + 3, q] = d
         t = time.perf_counter()
         X = self.factor.solve(E)
         self.columns_s += time.perf_counter() - t
-        self.solves += 3 * len(new)
-        for q, a in enumerate(new):
-            self._cols[a] = np.ascontiguousarray(X[:, 3 * q:3 * q + 3])
+        self.solves += len(new)
+        for q, (key, _, _) in enumerate(new):
+            self._cols[key] = np.ascontiguousarray(X[:, q])
 
     def set_rows(self, node: np.ndarray, e: np.ndarray, comp: np.ndarray) -> None:
         """Use rows (*node* (c,), unit *e* (c, 3), compliance *comp* (c,)); builds W and the capacitance inverse."""
@@ -170,10 +176,10 @@ class Constraints:
         if c == 0:
             self.W, self.cap_inv = None, None
             return
-        self.columns(self.node)
+        self.columns(self.node, self.e)
         W = np.empty((3 * self.n, c))
         for m in range(c):
-            W[:, m] = self._cols[int(self.node[m])] @ self.e[m]
+            W[:, m] = self._cols[(int(self.node[m]), self.e[m].tobytes())]
         self.W = W
         cap = self.gather(W) + np.diag(self.comp)
         cap = 0.5 * (cap + cap.T)
