@@ -279,8 +279,10 @@ def bench_demo(tables_unused=None) -> dict:
 
 
 LIVER = REPO / "data" / "meshes" / "ts_liver_3mm_closed.stl"
-#: Kuhn boxes of the implicit step's size rows
-IMPLICIT_SIZES = {"100k": 24, "500k": 41}
+#: Kuhn boxes of the implicit step's size rows: (cells per side, preconditioner). "500k" with the
+#: reused factor did not finish factoring in an hour (10 GB); "500k-jacobi" needs no factorization.
+IMPLICIT_SIZES = {"100k": (24, "factor"), "500k": (41, "factor"), "100k-jacobi": (24, "jacobi"),
+                  "500k-jacobi": (41, "jacobi")}
 
 
 def _liver_asset(preset: str, folder: Path):
@@ -351,7 +353,7 @@ def implicit_accuracy(hist_implicit: Path, hist_explicit: Path, lift_end: float,
             "displacement_within_5pct": bool(du <= 0.05 * umax)}
 
 
-def bench_implicit(*, duration: float = 3.0, sizes=("100k",), steps: int = 3) -> dict:
+def bench_implicit(*, duration: float = 3.0, sizes=("100k", "500k-jacobi"), steps: int = 3) -> dict:
     """Real-time factors of the default and the interactive scene (the default on a frictionless bed,
     docs/simulate.md §9) on the bundled liver (paper and fine presets), implicit and explicit in one
     run, and the implicit run's accuracy against the explicit one over the lift; the implicit step at
@@ -392,16 +394,16 @@ def bench_implicit(*, duration: float = 3.0, sizes=("100k",), steps: int = 3) ->
     out["sizes"] = {}
     for name in sizes:
         try:
-            out["sizes"][name] = _implicit_box(IMPLICIT_SIZES[name], steps)
+            out["sizes"][name] = _implicit_box(*IMPLICIT_SIZES[name], steps)
         except Exception as exc:  # 500k may not fit or take too long: report, keep the rest
             out["sizes"][name] = {"error": f"{type(exc).__name__}: {exc}"}
         out["sizes"][name]["load_average_after"] = os.getloadavg()
     return out
 
 
-def _implicit_box(n: int, steps: int) -> dict:
+def _implicit_box(n: int, preconditioner: str, steps: int) -> dict:
     """Implicit steps of 1/30 s on a Kuhn box of n cells per side, gravity, the base fixed: the first
-    factorization and the median wall time per step."""
+    factorization (none with "jacobi") and the median wall time per step."""
     from esmm.pipeline.network.springs import network_from_tets
     from esmm.pipeline.simulate.implicit import BackwardEuler
     from esmm.pipeline.simulate.simulator import Simulator
@@ -410,7 +412,7 @@ def _implicit_box(n: int, steps: int) -> dict:
     net = network_from_tets(box_tets(n))
     term = build_spring_term(net, _tables(), dashpot=5e-4)
     fixed = np.flatnonzero(net.points[:, 2] < 1e-9)
-    stepper = BackwardEuler()
+    stepper = BackwardEuler(preconditioner=preconditioner)
     sim = Simulator(term, net.points, net.mass, fixed=fixed, gravity=(0, 0, -9.81), mass_damping=1 / 0.15,
                     stepper=stepper)
     t = time.perf_counter()
@@ -429,7 +431,7 @@ def _implicit_box(n: int, steps: int) -> dict:
 
 
 def run(*, parts=("sizes", "effects", "volume", "demo", "implicit"), sizes=None, repeats: int = 5,
-        threads: int | None = None, implicit_sizes=("100k",)) -> dict:
+        threads: int | None = None, implicit_sizes=("100k", "500k-jacobi")) -> dict:
     """The benchmark's figures; ``make bench`` runs everything (see :func:`main` for a quick subset).
 
     Parameters
@@ -441,7 +443,7 @@ def run(*, parts=("sizes", "effects", "volume", "demo", "implicit"), sizes=None,
     threads : int, optional
         Threads for the multi-thread rows (default: all numba has; 1 skips them).
     implicit_sizes : subset of :data:`IMPLICIT_SIZES` keys
-        Kuhn boxes of the implicit step (500k: over an hour and 10 GB here).
+        Kuhn boxes of the implicit step (500k with the factor: over an hour and 10 GB here).
     """
     import numba
 
@@ -502,8 +504,9 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", default=None, help=f"networks to time, any of {', '.join(SIZES)} (default: all)")
     ap.add_argument("--repeats", type=int, default=5, help="timed repeats per figure (default 5)")
     ap.add_argument("--threads", type=int, default=None, help="threads of the multi-thread rows (1: none)")
-    ap.add_argument("--implicit-sizes", default="100k",
-                    help="Kuhn boxes of the implicit step, any of 100k, 500k (500k: over an hour, 10 GB)")
+    ap.add_argument("--implicit-sizes", default="100k,500k-jacobi",
+                    help=f"Kuhn boxes of the implicit step, any of {', '.join(IMPLICIT_SIZES)} "
+                         "(500k with the factor: over an hour, 10 GB)")
     args = ap.parse_args(argv)
     parts = tuple(p.strip() for p in args.parts.split(",") if p.strip())
     sizes = None if args.sizes is None else [s.strip() for s in args.sizes.split(",") if s.strip()]
