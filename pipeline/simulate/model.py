@@ -45,7 +45,10 @@ class ForceTerm(Protocol):
     * ``tangent(x, v=None, *, definite=False)``: its tangent stiffness
       ``K = -df/dx`` at *x*, a ``scipy.sparse.csr_matrix`` (3n, 3n), dof order
       ``x.ravel()``; *definite*: a positive semi-definite part of it (the
-      implicit stepper, :mod:`.implicit`, sums it over the terms for Newton's matrix).
+      implicit stepper, :mod:`.implicit`, sums it over the terms for Newton's matrix);
+    * optionally ``tangent_operator(x, *, definite=False)``: the product
+      ``p -> K p`` without forming K (the implicit stepper's conjugate gradients
+      use it when a term has it: the volume term, whose K is dense two tets wide).
     """
 
     n_nodes: int

@@ -30,8 +30,8 @@ from __future__ import annotations
 
 import math
 import re
-from pathlib import Path
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -597,14 +597,14 @@ def _load_with_base(name_or_path, chain: tuple) -> tuple[dict, str]:
     if source in chain or len(chain) >= MAX_BASES:
         raise ConfigError(f"{source}: base: the chain of bases {' -> '.join(chain + (source,))} loops or is "
                           f"longer than {MAX_BASES}; end it with a scene that has no base")
-    if not source.startswith("bundled:") and (base.endswith(".toml") or "/" in base):
-        base = str((Path(source).parent / base))
+    if not source.startswith("bundled:") and (base.endswith(".toml") or "/" in base or "\\" in base):
+        base = str(Path(source).parent / base)
     merged, _ = _load_with_base(base, chain + (source,))
-    for table, keys_ in data.items():
-        if isinstance(keys_, dict) and isinstance(merged.get(table), dict) and not _replaces(table, keys_):
-            merged[table] = {**merged[table], **keys_}
+    for name, keys_ in data.items():
+        if isinstance(keys_, dict) and isinstance(merged.get(name), dict) and not _replaces(name, keys_):
+            merged[name] = {**merged[name], **keys_}
         else:
-            merged[table] = keys_
+            merged[name] = keys_
     return merged, source
 
 
