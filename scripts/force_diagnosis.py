@@ -11,6 +11,14 @@ figure on stdout):
 * ``radius``: the cube's cases at the validation loads (1.2, 0.9, 0.3) with the
   compensation calibrated on a cylinder of ``--radius`` element sizes instead of
   the default 4;
+* ``shear-loss``: an experiment (not what ``esmm prepare`` does): the default
+  compensation's g multiplied by the calibration cylinder's own finite-strain
+  loss in simple shear (its recorded shear checks, xy and xz, over their
+  small-strain values, geometric mean with the small-strain factor's weights
+  1 : 2 : 2, tension's loss 1), placed at the principal stretch
+  ``gamma/2 + sqrt(1 + gamma^2/4)`` and at its inverse; then the cube's cases,
+  or with ``--asset A.h5 --out B.h5`` a copy of an asset with those tables (to
+  ``esmm validate B.h5``);
 * ``timing``: the network side of ``esmm validate ASSET`` (``--cases``, volume
   term on), its LU ordered the old way (minimum degree) and the new (COLAMD),
   in one process: seconds and the largest displacement difference.
@@ -20,15 +28,17 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import time
 
 import numpy as np
 from esmm.pipeline.asset import read_asset
+from esmm.pipeline.asset.rewrite import update_asset_tables
 from esmm.pipeline.fidelity import network_solve
 from esmm.pipeline.fidelity import validate as fv
 from esmm.pipeline.fidelity.specimen import cube_specimen
 from esmm.pipeline.materials.material import load_material
-from esmm.pipeline.network.compensation import compensate
+from esmm.pipeline.network.compensation import compensate, correction_on_grid
 from esmm.pipeline.progress import ensure
 
 
@@ -54,6 +64,36 @@ def radius(args, material):
                       volume=spec.network.volume_term)
     r = fv.validate_network(spec.network, comp.tables, material, cases=list(fv.SPECIMEN_CASES), volume_term="on")
     _rows(r, part="radius", radius_elements=args.radius, size_mm=args.sizes[0])
+
+
+def _shear_loss_tables(tables):
+    """*tables* with g times the inverse of the cylinder's isotropic-average finite-strain shear loss."""
+    law = tables.default_law
+    rec = tables.metadata["compensation"]["laws"][law]
+    knots, g, c = np.array(rec["knots"]), np.array(rec["g"]), rec["volume_factor"]
+    small = rec["small_strain"]["cases"]
+    gam = np.array(rec["checks"]["shear_xy"]["gamma"])
+    xy = (1 + np.array(rec["checks"]["shear_xy"]["rel_error"])) / (c / small["xy"])
+    xz = (1 + np.array(rec["checks"]["shear_xz"]["rel_error"])) / (c / small["xz"])
+    loss = np.exp((2 * np.log(xy) + 2 * np.log(xz)) / 5)
+    lam1 = gam / 2 + np.sqrt(1 + gam ** 2 / 4)
+    hk = np.log(np.concatenate([1 / lam1[::-1], [1.0], lam1]))
+    hv = np.log(np.concatenate([1 / loss[::-1], [1.0], 1 / loss]))
+    base = tables.with_compensation(c, correction={law: np.ones(tables.n)})
+    g2 = g * np.exp(np.interp(np.log(knots), hk, hv))
+    print(json.dumps(dict(part="shear-loss", gamma=gam.tolist(), loss=loss.tolist(), at=lam1.tolist())), flush=True)
+    return base.with_compensation(c, correction={law: correction_on_grid(base, knots, g2)})
+
+
+def shear_loss(args, material):
+    if args.asset:
+        shutil.copy(args.asset, args.out)
+        update_asset_tables(args.out, _shear_loss_tables(read_asset(args.asset).tables))
+        return
+    spec = cube_specimen(material, size=args.sizes[0] * 1e-3, volume=True)
+    r = fv.validate_network(spec.network, _shear_loss_tables(spec.tables), material,
+                            cases=list(fv.SPECIMEN_CASES), volume_term="on")
+    _rows(r, part="shear-loss", size_mm=args.sizes[0])
 
 
 def timing(args, _material):
@@ -82,15 +122,16 @@ def timing(args, _material):
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("part", choices=("strain", "radius", "timing"))
+    p.add_argument("part", choices=("strain", "radius", "shear-loss", "timing"))
     p.add_argument("--eps", type=float, default=0.005)
     p.add_argument("--sizes", type=float, nargs="+", default=[4.0], help="element sizes, mm")
     p.add_argument("--terms", nargs="+", default=["on", "off"])
     p.add_argument("--radius", type=float, default=6.0, help="calibration cylinder radius, element sizes")
-    p.add_argument("--asset", help="timing: the asset")
+    p.add_argument("--asset", help="timing, shear-loss: the asset")
+    p.add_argument("--out", help="shear-loss: the asset copy to write")
     p.add_argument("--cases", nargs="+", default=["lift"])
     args = p.parse_args()
-    {"strain": strain, "radius": radius, "timing": timing}[args.part](args, load_material("porcine_liver_paper"))
+    {"strain": strain, "radius": radius, "shear-loss": shear_loss, "timing": timing}[args.part](args, load_material("porcine_liver_paper"))
 
 
 if __name__ == "__main__":
