@@ -30,11 +30,10 @@ import math
 import time
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spl
 
 from ..errors import SimulationError
 from ..network import forcelaw
+from ..network.newton import descent_direction, lu_ordering
 from ..network.springs import tet_volumes
 from ..progress import ensure
 from .cases import LoadCase
@@ -70,6 +69,9 @@ class _Problem:
         self.mask, self.u = case.prescribed()
         self.free = ~self.mask.ravel()
         self.t = 0.0
+        # SuperLU's ordering: COLAMD once a volume term couples second neighbours (lu_ordering).
+        self.ordering = lu_ordering(len(terms) > 1)
+        self.factorizations = 0
         # The path: from rest (gravity off) or from *start* (gravity on, prescribed values where they are).
         self.g0, self.u0 = (0.0, np.zeros_like(self.u)) if start is None else (1.0, start.displacement)
 
@@ -87,6 +89,11 @@ class _Problem:
     def tangent(self, x):
         return sum(term.tangent(x) for term in self.terms).tocsr()
 
+    def direction(self, K, g):
+        """Newton direction ``-K^-1 g`` (K shifted towards positive definite when needed) or None."""
+        self.factorizations += 1
+        return descent_direction(K, g, ordering=self.ordering)[0]
+
     def residual_scale(self, x) -> float:
         g = self.scale(self.t) * self.fg
         return max(float(np.abs(self.forces(x) - g).max()), float(np.abs(g).max()), 1e-300)
@@ -96,22 +103,6 @@ class _Problem:
         out = x.copy()
         out[self.mask] = (self.X + self.u0 + t * (self.u - self.u0))[self.mask]
         return out
-
-
-def _direction(K, g):
-    """Newton direction ``-K^-1 g``; K shifted towards positive definite when needed (or None)."""
-    scale = float(np.mean(np.abs(K.diagonal()))) or 1.0
-    shift = 0.0
-    for _ in range(8):
-        A = K if shift == 0.0 else K + shift * sp.identity(K.shape[0], format="csc")
-        try:
-            d = -spl.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True}).solve(g)
-        except RuntimeError:
-            d = None
-        if d is not None and np.all(np.isfinite(d)) and float(g @ d) < 0:
-            return d
-        shift = 1e-4 * scale if shift == 0.0 else shift * 10.0
-    return None
 
 
 def _newton(pb: _Problem, x, rtol: float, max_iter: int):
@@ -124,7 +115,7 @@ def _newton(pb: _Problem, x, rtol: float, max_iter: int):
             return False, x, it
         if g.size == 0 or float(np.abs(g).max()) <= rtol * pb.residual_scale(x):
             return True, x, it - 1
-        d = _direction(pb.tangent(x)[free][:, free], g)
+        d = pb.direction(pb.tangent(x)[free][:, free], g)
         if d is None:
             return False, x, it
         a, slope = 1.0, float(g @ d)
@@ -151,7 +142,7 @@ def _predict(pb: _Problem, x, t_new: float):
     free = pb.free
     K = pb.tangent(x)
     g = -(pb.forces(x) + (pb.scale(t_new) - pb.scale(pb.t)) * pb.fg).ravel()[free] + K[free][:, ~free] @ dp[~free]
-    d = _direction(K[free][:, free], g)
+    d = pb.direction(K[free][:, free], g)
     if d is None:
         return xn
     out = xn.ravel()
@@ -229,5 +220,6 @@ def solve_network(case: LoadCase, network, tables, *, law: str | None = None, te
                     info={"law": springs.law, "volume_factor": float(tables.volume_factor),
                           "terms": ["springs"] + [type(tm).__name__ for tm in terms], "load_steps": done,
                           "step_cuts": cuts, "newton_iterations": iterations,
+                          "factorizations": pb.factorizations,
                           "warm_start": start is not None, "seconds": time.perf_counter() - t_start})
 

@@ -40,7 +40,8 @@ DEFAULT_RADIUS_ELEMENTS = 4.0
 RADIUS_ELEMENTS_RANGE = (1.5, 20.0)
 
 #: The modules whose source decides a calibration's result (their bytes enter the key).
-CODE = ("compensation.py", "tensile_test.py", "tables.py", "forcelaw.py", "springs.py", "volume.py", "loadcases.py")
+CODE = ("compensation.py", "tensile_test.py", "tables.py", "forcelaw.py", "springs.py", "volume.py", "loadcases.py",
+        "newton.py")
 
 
 def cache_dir() -> Path:
