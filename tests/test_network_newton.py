@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 import scipy.sparse as sp
-
 from esmm.pipeline.network.newton import descent_direction, lu_ordering
 
 
