@@ -264,6 +264,9 @@ def _run_dask(tasks: list[Task], target: Any, on_event: OnEvent, logger: logging
                     on_event(t, _failed(t, reason, code))
                     continue
                 reported.add(i)
+                # Let go of the result: a worker that dies later holding it must not make Dask run
+                # the job again (a rerun after the report rewrote its outputs behind its cache record).
+                fut.release()
                 on_event(t, res)
             elif fut.status not in ("error", "cancelled") and regather.get(i, 0) < 3:
                 # "lost" (or back to "pending"): its worker died and Dask reruns it; wait again.
