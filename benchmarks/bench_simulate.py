@@ -356,9 +356,10 @@ def implicit_accuracy(hist_implicit: Path, hist_explicit: Path, lift_end: float,
 def bench_implicit(*, duration: float = 3.0, sizes=("100k", "500k-jacobi"), steps: int = 3) -> dict:
     """Real-time factors of the default and the interactive scene (the default on a frictionless bed,
     docs/simulate.md §9) on the bundled liver (paper and fine presets), implicit and explicit in one
-    run, and the implicit run's accuracy against the explicit one over the lift; the implicit step at
-    100 k springs (500 k on request: its factorization took over an hour and 10 GB on this machine, so
-    ``make bench`` leaves it out); the memory traffic per step."""
+    run, and the implicit run's accuracy against the explicit one over the lift; the implicit step on
+    the Kuhn boxes of *sizes* (:data:`IMPLICIT_SIZES`: 100 k with the factor, 500 k with the Jacobi
+    preconditioner; 500 k with the factor only on request, its factorization took over an hour and
+    10 GB here); the memory traffic per step."""
     import os
 
     from esmm.pipeline.simulate.run import simulate_network

@@ -32,6 +32,8 @@ SHARED = ROOT.parent / "shared" / "data" / "meshes"
 ORGANS = {"ts_liver": ROOT / "data" / "meshes" / "ts_liver_3mm_closed.stl", "sofa_liver": SHARED / "sofa_liver.stl",
           "kidney": SHARED / "openhelp_Kidney_left.stl", "spleen": SHARED / "openhelp_Spleen.stl"}
 KEYS = ("springs", "nodes", "steps", "stepping_wall_s", "real_time_factor")
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from bench_simulate import implicit_accuracy  # noqa: E402
 
 
 def _esmm(*args) -> None:
@@ -40,9 +42,6 @@ def _esmm(*args) -> None:
 
 def organ(surface: Path, work: Path) -> dict:
     """Prepare, run both steppers in the interactive scene, compare."""
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    from bench_simulate import implicit_accuracy
-
     asset = work / "organ.h5"
     _esmm("prepare", surface, "--config", "paper", "-o", asset)
     row = {}

@@ -351,8 +351,10 @@ class VolumeElements:
         """
         x = self._x(points)
         A = self.averaging()
+        if "AT" not in self._cache:
+            self._cache["AT"] = A.T.tocsr()
+        AT = self._cache["AT"]
         G = self.gradient_matrix(x)
-        AT = A.T.tocsr()
         w = self.bulk_modulus / self.rest_volume
         Kg = None if definite else self._geometric(x, AT @ self.pressures(x)).tocsr()
 
