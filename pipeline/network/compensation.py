@@ -39,7 +39,7 @@ of calibrations (:mod:`~esmm.pipeline.network.compensation_policy`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +49,7 @@ from ..errors import ConfigError, SimulationError
 from ..progress import ensure
 from ..validate import number
 from . import compensation_policy as policy
+from . import stretch_fit
 from .compensation_policy import DEFAULT_RADIUS_ELEMENTS, DEFAULT_RANGE, RADIUS_ELEMENTS_RANGE
 from .loadcases import virtual_shear_test
 from .tables import LAWS, StiffnessTables
@@ -72,6 +73,12 @@ SHEAR_CHECK = (0.1, 0.2, 0.3, 0.4)
 #: specimen's axial mode and its two shear planes weigh 1 : 2 : 2, the isotropic average of the
 #: five deviatoric modes of a transversely isotropic (cylinder) network (docs/model-tables.md §4b).
 SCALAR_CASES = (("tension", 1.0), ("xy", 2.0), ("xz", 2.0))
+#: The load cases the stretch correction is fitted on with the volume term (without it: the first two).
+JOINT_CASES = ("tension", "compression", "shear_xy", "shear_xz")
+#: Largest change of log g at a knot in one step of the joint fit (a trust region: g moves by 25 % at most).
+MAX_STEP = math.log(1.25)
+#: Evaluations of the joint fit at most (each runs the axial test and two shear tests).
+JOINT_MAX_ITER = 24
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,8 +111,11 @@ class CompensationResult:
         The scalar calibration: ``factor``, ``balance`` (c over the tension
         factor), the factor of each load case (``cases``) and their ``weights``.
     checks : dict
-        Load cases the calibration was checked on but not fitted to
-        (``"shear_xz"``, ``"shear_xy"``: simple shear, errors per amount of shear).
+        Simple shear of the calibrated network (``"shear_xz"``, ``"shear_xy"``:
+        errors per amount of shear; with the volume term).
+    fitted_on : list of str
+        The load cases g was fitted on (:data:`JOINT_CASES`, or its first two:
+        the axial test alone).
     """
 
     law: str
@@ -121,6 +131,7 @@ class CompensationResult:
     volume: dict[str, Any] | None = None
     small_strain: dict[str, Any] = field(default_factory=dict)
     checks: dict[str, Any] = field(default_factory=dict)
+    fitted_on: list[str] = field(default_factory=list)
 
     def record(self) -> dict[str, Any]:
         """JSON-serialisable summary (stored in ``tables.metadata["compensation"]``)."""
@@ -128,10 +139,13 @@ class CompensationResult:
             return {"max_abs_rel_error": r.max_abs_rel_error, "rms_rel_error": r.rms_rel_error}
 
         return {
-            "method": "virtual uniaxial test on a gmsh cylinder (pipeline/network/compensation.py): "
+            "method": "virtual load tests on a gmsh cylinder (pipeline/network/compensation.py): "
                       "scalar factor from a small-strain test (with the volume term: the weighted geometric mean "
-                      "of small-strain tension and simple shear in two planes), stretch-dependent correction by "
-                      "fixed-point iteration on tension and compression",
+                      "of small-strain tension and simple shear in two planes), stretch-dependent correction "
+                      + ("by Gauss-Newton on power shares over tension, compression and simple shear in two planes "
+                         "(pipeline/network/stretch_fit.py)" if len(self.fitted_on) > 2 else
+                         "by fixed-point iteration on tension and compression"),
+            "fitted_on": self.fitted_on,
             "law": self.law, "volume_factor": self.factor,
             "knots": self.knots.tolist(), "g": self.g.tolist(),
             "stretch_range": [float(self.after.stretch.min()), float(self.after.stretch.max())],
@@ -242,71 +256,202 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
 
     # 1. scalar factor from small-strain tests (tension; with the volume term also simple shear)
     scalar = _scalar_factor(specimen, base, law, material, volume, reference)
-    c, balance = scalar["factor"], scalar["balance"]
+    c = scalar["factor"]
     rep.step(f"compensation ({law}): scalar factor c = {c:.4f} from small-strain "
              + ", ".join(f"{k} {v:.4f}" for k, v in scalar["cases"].items()))
 
-    # 2. stretch correction by fixed-point iteration on the curve's shape: the target is the
-    # material's stress times the small-strain balance of the load cases.
+    # 2. stretch correction on the curve's shape: the target is the material's stress times the
+    # small-strain balance of each load case. With the volume term and a material, g is fitted on
+    # tension, compression and simple shear together; otherwise on the axial test alone.
     knots = np.concatenate([lam_c[::-1], [1.0], lam_t])
-    g = np.ones_like(knots)
-    best: tuple[float, np.ndarray, TensileResult] | None = None
-    first: TensileResult | None = None
-    converged = False
-    it = 0
+    joint = volume is not None and material is not None and len(shear_check) > 0
+    fit = _fit_joint if joint else _fit_axial
+    run = _Run(specimen, base, c, scalar, knots, lam_t, lam_c, law, material, reference, rtol, volume,
+               np.asarray(shear_check, dtype=np.float64), tol, max_iter, rep)
+    knots, g_best, err, after, first, it, converged, shear = fit(run)
+    before = _before(first, c, specimen, base, lam_t, lam_c, law, reference, rtol, volume)
+    checks = {f"shear_{plane}": _shear_record(r) for plane, r in shear.items()}
+    result = CompensationResult(law=law, factor=c, knots=knots, g=g_best, before=before, scalar=first,
+                                after=after, iterations=it, converged=converged, specimen=specimen.describe(),
+                                volume=None if volume is None else volume.describe(), small_strain=scalar,
+                                checks=checks, fitted_on=list(JOINT_CASES if joint else JOINT_CASES[:2]))
+    if not converged:
+        rep.warn(f"compensation ({law}): stopped after {it} iterations at max |error| "
+                 f"{100 * err:.2f} % (tolerance {100 * tol:.2g} %)")
+    return _apply(tables, law, c, knots, g_best, result.record()), result
+
+
+@dataclass(frozen=True, eq=False)
+class _Run:
+    """What a fit of g works on (the arguments of :func:`calibrate_compensation`, resolved)."""
+
+    specimen: Specimen
+    base: StiffnessTables
+    c: float
+    scalar: dict[str, Any]
+    knots: np.ndarray
+    lam_t: np.ndarray
+    lam_c: np.ndarray
+    law: str
+    material: Any
+    reference: Any
+    rtol: float
+    volume: VolumeSpec | None
+    shear: np.ndarray
+    tol: float
+    max_iter: int
+    rep: Any
+
+    def tables(self, g: np.ndarray) -> StiffnessTables:
+        return self.base.with_compensation(self.c, correction={self.law: correction_on_grid(self.base, self.knots, g)})
+
+    def failed(self, it: int, exc: Exception, first: bool) -> None:
+        """Raise when nothing was found yet, else warn that the best correction so far is kept."""
+        if first:
+            raise SimulationError(f"compensation ({self.law}): the virtual tensile test failed before any "
+                                  f"correction ({exc}); narrow the calibration range") from None
+        self.rep.warn(f"compensation ({self.law}): iteration {it} found no equilibrium (the corrected network "
+                      "loses stability); keeping the best correction so far. A smaller compression range avoids this")
+
+
+def _fit_axial(run: _Run, guesses: dict[str, np.ndarray] | None = None):
+    """g by the fixed-point iteration on the axial test alone (module doc, step 2).
+
+    *guesses* (side -> equilibrium path) is updated in place: the next tests start from it.
+    """
+    g = np.ones_like(run.knots)
+    best, first, converged, it = None, None, False, 0
     history: dict[str, np.ndarray] = {}
-    guesses: dict[str, np.ndarray] = {}
-    with rep.task(f"compensation ({law} law)", total=max_iter) as advance:
-        for it in range(1, max_iter + 1):
-            cur = base.with_compensation(c, correction={law: correction_on_grid(base, knots, g)})
+    guesses = {} if guesses is None else guesses
+    nc = run.lam_c.size        # res: compression (1 -> end) then tension; knots ascending
+    with run.rep.task(f"compensation ({run.law} law)", total=run.max_iter) as advance:
+        for it in range(1, run.max_iter + 1):
             try:
-                res = _both_sides(specimen, cur, lam_t, lam_c, law, reference, guesses, rtol, volume)
+                res = _both_sides(run.specimen, run.tables(g), run.lam_t, run.lam_c, run.law, run.reference,
+                                  guesses, run.rtol, run.volume)
             except SimulationError as exc:
-                if best is None:
-                    raise SimulationError(
-                        f"compensation ({law}): the virtual tensile test failed before any "
-                        f"correction ({exc}); narrow the calibration range") from None
-                rep.warn(f"compensation ({law}): iteration {it} found no equilibrium (the corrected "
-                         "network loses stability); keeping the best correction so far. A smaller "
-                         "compression range avoids this")
+                run.failed(it, exc, best is None)
                 break
-            if first is None:
-                first = res
-            ratio = balance * res.reference / res.stress          # target over network, per test stretch
+            first = res if first is None else first
+            ratio = run.scalar["balance"] * res.reference / res.stress      # target over network
             err = float(np.max(np.abs(1.0 / ratio - 1.0)))
             if best is None or err < best[0]:
                 best = (err, g.copy(), res)
             advance(1)
-            rep.step(f"compensation ({law}) iteration {it}: max |error| {100 * err:.2f} % (against the target)")
-            if err <= tol:
+            run.rep.step(f"compensation ({run.law}) iteration {it}: max |error| {100 * err:.2f} % (against the target)")
+            if err <= run.tol:
                 converged = True
                 break
-            nc = lam_c.size        # res: compression (1 -> end) then tension; knots ascending
             log_r = np.zeros_like(g)
             log_r[:nc] = np.log(ratio[:nc][::-1])
             log_r[nc + 1:] = np.log(ratio[nc:])
             if not np.all(np.isfinite(log_r)):
                 break
-            g = _update(g, log_r, history)
-            g = _limit_ends(knots, g, nc)
-    assert best is not None and first is not None
+            g = _limit_ends(run.knots, _update(g, log_r, history), nc)
     err, g_best, after = best
-    before = _before(first, c, specimen, base, lam_t, lam_c, law, reference, rtol, volume)
-    checks = {}
-    if volume is not None and material is not None and len(shear_check):
-        done = base.with_compensation(c, correction={law: correction_on_grid(base, knots, g_best)})
-        for plane in ("xz", "xy"):
-            checks[f"shear_{plane}"] = _shear_record(virtual_shear_test(
-                specimen.network, done, gamma=shear_check, law=law, material=material, volume=volume,
-                plane=plane, rtol=rtol))
-    result = CompensationResult(law=law, factor=c, knots=knots, g=g_best, before=before, scalar=first,
-                                after=after, iterations=it, converged=converged, specimen=specimen.describe(),
-                                volume=None if volume is None else volume.describe(), small_strain=scalar,
-                                checks=checks)
-    if not converged:
-        rep.warn(f"compensation ({law}): stopped after {it} iterations at max |error| "
-                 f"{100 * err:.2f} % (tolerance {100 * tol:.2g} %)")
-    return _apply(tables, law, c, knots, g_best, result.record()), result
+    return run.knots, g_best, err, after, first, it, converged, {}
+
+
+@dataclass(frozen=True, eq=False)
+class _JointTests:
+    """The load cases of the joint fit at one g: results, log errors y, Jacobian J, weights w."""
+
+    axial: TensileResult
+    shear: dict[str, Any]
+    y: np.ndarray
+    J: np.ndarray
+    w: np.ndarray
+
+    @property
+    def objective(self) -> float:
+        """Weighted RMS of the log errors."""
+        return float(np.sqrt(np.sum(self.w * self.y ** 2) / np.sum(self.w)))
+
+    @property
+    def max_error(self) -> float:
+        return float(np.max(np.abs(np.exp(-self.y) - 1.0)))
+
+
+def _joint_tests(run: _Run, g: np.ndarray, guesses: dict) -> _JointTests:
+    """Run tension, compression and simple shear (xy, xz) at *g*; rows of the fit (:mod:`.stretch_fit`)."""
+    tables = run.tables(g)
+    ax = _both_sides(run.specimen, tables, run.lam_t, run.lam_c, run.law, run.reference, guesses, run.rtol,
+                     run.volume)
+    nc = run.lam_c.size
+    path = np.concatenate([guesses[k] for k in ("c", "t") if k in guesses])
+    modes = ["compression"] * nc + ["tension"] * run.lam_t.size
+    y = [np.log(run.scalar["balance"] * ax.reference / ax.stress)]
+    w = [stretch_fit.test_weights(m, a) for m, a in (("compression", ax.stretch[:nc]), ("tension", ax.stretch[nc:]))]
+    J = [stretch_fit.power_shares(x, run.specimen.network, tables, run.law, stretch_fit.velocity_gradient(m, a),
+                                  run.knots) for x, m, a in zip(path, modes, ax.stretch, strict=True)]
+    shear = {}
+    for plane in ("xy", "xz"):
+        r = virtual_shear_test(run.specimen.network, tables, gamma=run.shear, law=run.law, material=run.material,
+                               volume=run.volume, plane=plane, rtol=run.rtol)
+        shear[plane] = r
+        y.append(np.log(run.c / run.scalar["cases"][plane] * r.reference / r.stress))
+        w.append(stretch_fit.test_weights(plane, r.gamma))
+        J += [stretch_fit.power_shares(x, run.specimen.network, tables, run.law,
+                                       stretch_fit.velocity_gradient(plane, a), run.knots)
+              for x, a in zip(r.path, r.gamma, strict=True)]
+    return _JointTests(ax, shear, np.concatenate(y), np.asarray(J), np.concatenate(w))
+
+
+def _fit_joint(run: _Run):
+    """g by Gauss-Newton on tension, compression and simple shear together (:mod:`.stretch_fit`).
+
+    Starts from the axial fixed point (:func:`_fit_axial`: cheap, and close,
+    since tension and compression already hold much of the fit's weight).
+    Levenberg-Marquardt: a step that lowers the weighted RMS log error by 1 %
+    is kept and the damping divided by 3; one that finds no equilibrium or
+    does not is dropped and the damping multiplied by 4. The fit is
+    stationary (converged) after three dropped steps in a row or when every
+    test is within ``tol`` of its target; it stops after :data:`JOINT_MAX_ITER`
+    evaluations at most.
+    """
+    guesses: dict[str, np.ndarray] = {}
+    _, g_axial, _, _, first, it0, _, _ = _fit_axial(run, guesses)
+    run, g_best = _shear_knots(run, g_axial)
+    held = int(np.flatnonzero(run.knots == 1.0)[0])
+    best = _joint_tests(run, g_best, guesses)     # the axial fit's g ran without failing: this succeeds
+    damping, dropped, it = stretch_fit.DAMPING, 0, 1
+    with run.rep.task(f"compensation ({run.law} law, tension, compression and shear)", total=JOINT_MAX_ITER) as advance:
+        while it < JOINT_MAX_ITER and best.max_error > run.tol and dropped < 3:
+            step = stretch_fit.gauss_newton_step(best.J, best.y, best.w, held, damping=damping)
+            g = _limit_ends(run.knots, g_best * np.exp(np.clip(step, -MAX_STEP, MAX_STEP)), held)
+            it += 1
+            try:
+                ev = _joint_tests(run, g, guesses)
+            except SimulationError:
+                ev = None
+            advance(1)
+            if ev is not None and np.all(np.isfinite(ev.y)) and ev.objective < 0.99 * best.objective:
+                best, g_best, damping, dropped = ev, g, max(damping / 3.0, 1e-3), 0
+            else:
+                damping, dropped = damping * 4.0, dropped + 1
+            run.rep.step(f"compensation ({run.law}) joint iteration {it}: weighted RMS error "
+                         f"{100 * best.objective:.2f} %, max {100 * best.max_error:.2f} % (tension, compression, "
+                         "shear; against the targets)")
+    converged = dropped >= 3 or best.max_error <= run.tol
+    return run.knots, g_best, best.max_error, best.axial, first, it0 + it, converged, best.shear
+
+
+def _shear_knots(run: _Run, g: np.ndarray) -> tuple[_Run, np.ndarray]:
+    """Knots below the compression end down to the largest shear's compressive principal stretch.
+
+    Simple shear gamma compresses springs down to ``1 / (gamma/2 + sqrt(1 + gamma^2/4))``
+    (0.82 at 0.4), beyond the axial test's end (0.9): without knots there, g would be
+    held constant below the end and the shear tests would pull on the end knot,
+    which the compression test also needs. g starts there at its end value.
+    """
+    gmax = float(run.shear.max())
+    low = max(1.0 / (gmax / 2 + math.sqrt(1 + gmax ** 2 / 4)), run.base.lam_min + 2 * run.base.dlam)
+    end, step = run.knots[0], (run.knots[1] - run.knots[0]) if run.knots.size > 1 else 0.02
+    extra = end - step * np.arange(1, int(math.ceil((end - low) / step - 1e-9)) + 1)
+    extra = extra[::-1]
+    if extra.size == 0:
+        return run, g
+    return replace(run, knots=np.concatenate([extra, run.knots])), np.concatenate([np.full(extra.size, g[0]), g])
 
 
 def _check_options(tol, max_iter, spacing) -> None:

@@ -41,7 +41,7 @@ RADIUS_ELEMENTS_RANGE = (1.5, 20.0)
 
 #: The modules whose source decides a calibration's result (their bytes enter the key).
 CODE = ("compensation.py", "tensile_test.py", "tables.py", "forcelaw.py", "springs.py", "volume.py", "loadcases.py",
-        "newton.py")
+        "newton.py", "stretch_fit.py")
 
 
 def cache_dir() -> Path:

@@ -75,6 +75,8 @@ class HomogeneousResult:
         [m3].
     points : ndarray, shape (n, 3)
         Positions at the last deformation.
+    path : ndarray, shape (m, n, 3)
+        Positions at every deformation.
     """
 
     F: np.ndarray
@@ -85,6 +87,7 @@ class HomogeneousResult:
     iterations: np.ndarray
     rest_volume: float
     points: np.ndarray
+    path: np.ndarray | None = None
 
 
 def homogeneous_test(network, tables: StiffnessTables, deformations, *, law: str | None = None,
@@ -130,7 +133,7 @@ def homogeneous_test(network, tables: StiffnessTables, deformations, *, law: str
     size = float(np.ptp(X, axis=0).max())
     x = X.copy()
     F_prev = np.eye(3)
-    out: dict[str, list] = {k: [] for k in ("energy", "stress", "volume_ratio", "inverted", "iterations")}
+    out: dict[str, list] = {k: [] for k in ("energy", "stress", "volume_ratio", "inverted", "iterations", "path")}
     for F in Fs:
         x, its = _walk(x, X, F_prev, F, pot, free, bnd, size, rtol, max_iter, substeps)
         F_prev = F
@@ -140,9 +143,11 @@ def homogeneous_test(network, tables: StiffnessTables, deformations, *, law: str
         out["volume_ratio"].append(float(tet_volumes(x, network.tets).sum()) / V0)
         out["inverted"].append(inverted_tets(x, network.tets))
         out["iterations"].append(its)
+        out["path"].append(x)
     return HomogeneousResult(F=np.asarray(Fs), energy=np.asarray(out["energy"]), stress=np.asarray(out["stress"]),
                              volume_ratio=np.asarray(out["volume_ratio"]), inverted=np.asarray(out["inverted"]),
-                             iterations=np.asarray(out["iterations"]), rest_volume=V0, points=x)
+                             iterations=np.asarray(out["iterations"]), rest_volume=V0, points=x,
+                             path=np.asarray(out["path"]))
 
 
 def _walk(x, X, F0, F1, pot, free, bnd, size, rtol, max_iter, substeps):
@@ -184,6 +189,8 @@ class ShearResult:
     volume_ratio : ndarray, shape (m,)
     inverted : ndarray of int, shape (m,)
     info : dict
+    path : ndarray, shape (m, n, 3) or None
+        Positions at every amount of shear.
     """
 
     gamma: np.ndarray
@@ -194,6 +201,7 @@ class ShearResult:
     volume_ratio: np.ndarray
     inverted: np.ndarray
     info: dict[str, Any] = field(default_factory=dict)
+    path: np.ndarray | None = None
 
     @property
     def rel_error(self) -> np.ndarray:
@@ -244,4 +252,4 @@ def virtual_shear_test(network, tables: StiffnessTables, *, gamma=None, law: str
     return ShearResult(gamma=g, stress=res.stress[:, a, b], reference=ref, energy=res.energy, energy_reference=eref,
                        volume_ratio=res.volume_ratio, inverted=res.inverted,
                        info={"nodes": int(network.n_nodes), "boundary_nodes": int(boundary_nodes(network).size),
-                             "plane": plane})
+                             "plane": plane}, path=res.path)

@@ -1,0 +1,82 @@
+"""The joint fit of the stretch correction (pipeline/network/stretch_fit.py): basis, sensitivities, step."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from esmm.pipeline.network import stretch_fit as sf
+from esmm.pipeline.network.loadcases import homogeneous_test, shear_deformation
+from esmm.pipeline.network.springs import network_from_tets
+from esmm.pipeline.network.tables import build_tables
+
+KNOTS = np.array([0.9, 0.95, 1.0, 1.05, 1.1, 1.15, 1.2, 1.25, 1.3])   # uniform, like the calibration's
+
+
+class _Mesh:
+    def __init__(self, points, tets):
+        self.points, self.tets = points, tets
+
+
+def _cube(h=2e-3, seed=1):
+    """One jittered cube of 6 Kuhn tets: every node is on the boundary, so a prescribed ``F`` is exactly affine."""
+    c = np.array([[(b >> 2) & 1, (b >> 1) & 1, b & 1] for b in range(8)], float) * h
+    c += np.random.default_rng(seed).uniform(-0.1 * h, 0.1 * h, c.shape)
+    kuhn = [(0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7)]
+    return network_from_tets(_Mesh(c, np.array(kuhn)), reorder=None, fibre_frame=None)
+
+
+def test_hat_basis_is_a_partition_of_unity_constant_beyond_the_ends():
+    lam = np.array([0.7, 0.9, 0.97, 1.0, 1.12, 1.3, 1.5])
+    B = sf.hat_basis(lam, KNOTS)
+    assert np.allclose(B.sum(axis=1), 1.0)
+    assert B[0, 0] == 1.0 and B[-1, -1] == 1.0          # beyond the ends: the end knot
+    assert np.allclose(B @ KNOTS, np.clip(lam, KNOTS[0], KNOTS[-1]))   # linear interpolation reproduces x
+
+
+def test_weights_follow_the_equivalent_strain():
+    # simple shear gamma has the von Mises equivalent Hencky strain 2/sqrt(3) asinh(gamma/2)
+    assert sf.equivalent_strain("xz", 0.3) == pytest.approx(2 / np.sqrt(3) * np.arcsinh(0.15))
+    assert sf.equivalent_strain("compression", 0.9) == pytest.approx(-np.log(0.9))
+    w = sf.test_weights("xy", [0.1, 0.2])
+    assert w.sum() == pytest.approx(2.0 * sf.equivalent_strain("xy", 0.2))
+    assert sf.test_weights("tension", [1.1]).sum() == pytest.approx(np.log(1.1))
+
+
+@pytest.mark.parametrize("mode,amount", [("xz", 0.3), ("xy", 0.2), ("tension", 1.2), ("compression", 0.92)])
+def test_power_shares_are_the_reaction_power_sensitivity_of_an_affine_network(liver, mode, amount):
+    """Against finite differences: the network has no interior node, so the envelope argument is exact."""
+    net = _cube()
+    base = build_tables(liver).with_compensation(6.0)
+    B = sf.hat_basis(base.lam, KNOTS)
+    L = sf.velocity_gradient(mode, amount)
+    if mode in ("tension", "compression"):
+        F = np.diag([amount ** -0.5, amount ** -0.5, amount])
+    else:
+        F = shear_deformation(amount, mode)
+
+    def power(log_g):
+        t = base.with_compensation(6.0, correction={base.default_law: np.exp(B @ log_g)})
+        r = homogeneous_test(net, t, [F], law="secant")
+        return float(np.sum(r.stress[0] * (L @ F)))     # P : dF/dt per unit volume (negative in compression)
+
+    x = F @ net.points.T
+    J = sf.power_shares(x.T, net, base, "secant", L, KNOTS)
+    assert J.sum() == pytest.approx(1.0, abs=1e-12)
+    h = 1e-4
+    fd = np.array([(np.log(abs(power(h * e))) - np.log(abs(power(-h * e)))) / (2 * h) for e in np.eye(KNOTS.size)])
+    assert np.abs(fd - J).max() < 2e-3, (fd, J)
+    assert np.abs(J).max() > 0.1                        # a test that can fail: the springs load some knots
+
+
+def test_gauss_newton_steps_reach_a_consistent_solution_and_hold_the_knot_at_one():
+    rng = np.random.default_rng(0)
+    J = sf.hat_basis(rng.uniform(0.85, 1.35, (40,)), KNOTS)
+    truth = 0.3 * (KNOTS - 1.0)                         # linear in lambda: the smoothing does not bias it
+    y = J @ truth
+    held = int(np.flatnonzero(KNOTS == 1.0)[0])
+    x = np.zeros(KNOTS.size)
+    for _ in range(200):
+        step = sf.gauss_newton_step(J, y - J @ x, np.ones(y.size), held)
+        assert step[held] == 0.0
+        x += step
+    assert np.abs(x - truth).max() < 1e-4
