@@ -570,7 +570,7 @@ def _compensated(tables: StiffnessTables, mat: Material, net: SpringNetwork, cfg
     comp = run.stage("compensation", compensation.compensate, tables, net, material=mat, reporter=run.rep,
                      volume=net.volume_term)
     run.rep.step(f"compensation: volume factor c = {comp.tables.volume_factor:.3f} and a stretch "
-                 f"correction; virtual tensile test error {comp.summary()} "
+                 f"correction; error of the virtual tests (uniaxial max; shear max) {comp.summary()} "
                  f"({run.timings['compensation']:.1f} s)")
     return comp.tables
 

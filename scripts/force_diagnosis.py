@@ -11,7 +11,8 @@ figure on stdout):
 * ``radius``: the cube's cases at the validation loads (1.2, 0.9, 0.3) with the
   compensation calibrated on a cylinder of ``--radius`` element sizes instead of
   the default 4;
-* ``shear-loss``: an experiment (not what ``esmm prepare`` does): the default
+* ``shear-loss``: an experiment on the axial-only correction of before commit 689fbfe (not what
+  ``esmm prepare`` does; on a joint-fit asset it corrects twice): the
   compensation's g multiplied by the calibration cylinder's own finite-strain
   loss in simple shear (its recorded shear checks, xy and xz, over their
   small-strain values, geometric mean with the small-strain factor's weights

@@ -564,11 +564,13 @@ class Compensation:
     reused: Path | None = None
 
     def summary(self) -> str:
-        """The virtual tensile test's error, one line (``93.5 % raw -> 0.51 %``)."""
+        """The virtual tests' errors, one line (``93.5 % raw -> 0.51 %``; with the shear it was fitted on)."""
         after = 100 * self.record["errors_after"]["max_abs_rel_error"]
+        shear = "".join(f", {k.replace('_', ' ')} {100 * v['max_abs_rel_error']:.1f} %"
+                        for k, v in sorted(self.record.get("checks", {}).items()))
         if self.reused is not None:
-            return f"{after:.2f} % (calibration reused from {self.reused})"
-        return f"{100 * self.record['errors_before']['max_abs_rel_error']:.1f} % raw -> {after:.2f} %"
+            return f"{after:.2f} %{shear} (calibration reused from {self.reused})"
+        return f"{100 * self.record['errors_before']['max_abs_rel_error']:.1f} % raw -> {after:.2f} %{shear}"
 
 
 def calibration_stretches(tables: StiffnessTables, calibration_range=None) -> tuple[float, float]:
