@@ -378,7 +378,7 @@ def _joint_tests(run: _Run, g: np.ndarray, guesses: dict) -> _JointTests:
     ax = _both_sides(run.specimen, tables, run.lam_t, run.lam_c, run.law, run.reference, guesses, run.rtol,
                      run.volume)
     nc = run.lam_c.size
-    path = np.concatenate([guesses[k] for k in ("c", "t") if k in guesses])
+    path = np.concatenate([guesses[k] for k in ("c", "t") if k in guesses])   # before the shear tests add theirs
     modes = ["compression"] * nc + ["tension"] * run.lam_t.size
     y = [np.log(run.scalar["balance"] * ax.reference / ax.stress)]
     w = [stretch_fit.test_weights(m, a) for m, a in (("compression", ax.stretch[:nc]), ("tension", ax.stretch[nc:]))]
@@ -387,7 +387,8 @@ def _joint_tests(run: _Run, g: np.ndarray, guesses: dict) -> _JointTests:
     shear = {}
     for plane in ("xy", "xz"):
         r = virtual_shear_test(run.specimen.network, tables, gamma=run.shear, law=run.law, material=run.material,
-                               volume=run.volume, plane=plane, rtol=run.rtol)
+                               volume=run.volume, plane=plane, rtol=run.rtol, predictors=guesses.get(plane))
+        guesses[plane] = r.path
         shear[plane] = r
         y.append(np.log(run.c / run.scalar["cases"][plane] * r.reference / r.stress))
         w.append(stretch_fit.test_weights(plane, r.gamma))

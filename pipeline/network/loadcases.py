@@ -92,7 +92,7 @@ class HomogeneousResult:
 
 def homogeneous_test(network, tables: StiffnessTables, deformations, *, law: str | None = None,
                      volume: VolumeSpec | None = None, rtol: float = 1e-9, max_iter: int = 40,
-                     substeps: int = 4) -> HomogeneousResult:
+                     substeps: int = 4, predictors=None) -> HomogeneousResult:
     """Prescribe ``x = F X`` on the boundary nodes of *network*, relax the interior, measure.
 
     Parameters
@@ -111,6 +111,10 @@ def homogeneous_test(network, tables: StiffnessTables, deformations, *, law: str
         :func:`~esmm.pipeline.network.tensile_test.virtual_tensile_test`).
     substeps : int
         Linear steps in F between two deformations (halved on failure, 12 times at most).
+    predictors : array_like, shape (m, n, 3), optional
+        Positions to start Newton's method from at each deformation (e.g. the
+        ``path`` of a test with slightly different tables); the boundary is
+        reset to ``F X``. Where Newton fails from one, the walk in F takes over.
 
     Raises
     ------
@@ -134,8 +138,17 @@ def homogeneous_test(network, tables: StiffnessTables, deformations, *, law: str
     x = X.copy()
     F_prev = np.eye(3)
     out: dict[str, list] = {k: [] for k in ("energy", "stress", "volume_ratio", "inverted", "iterations", "path")}
-    for F in Fs:
-        x, its = _walk(x, X, F_prev, F, pot, free, bnd, size, rtol, max_iter, substeps)
+    if predictors is not None and np.shape(predictors) != (len(Fs), *X.shape):
+        raise ConfigError(f"predictors: need shape ({len(Fs)}, {X.shape[0]}, 3), got {np.shape(predictors)}")
+    for k, F in enumerate(Fs):
+        ok = False
+        if predictors is not None:
+            guess = np.array(predictors[k], dtype=np.float64)
+            guess[bnd] = X[bnd] @ F.T
+            ok, xg, its, _ = _newton(guess, pot, free, size, rtol, max_iter)
+            x = xg if ok else x
+        if not ok:
+            x, its = _walk(x, X, F_prev, F, pot, free, bnd, size, rtol, max_iter, substeps)
         F_prev = F
         r = -pot.forces(x)[bnd]                      # reactions holding the boundary
         out["energy"].append(pot.energy(x))
@@ -219,7 +232,8 @@ class ShearResult:
 
 
 def virtual_shear_test(network, tables: StiffnessTables, *, gamma=None, law: str | None = None, material=None,
-                       volume: VolumeSpec | None = None, plane: str = "xz", rtol: float = 1e-9) -> ShearResult:
+                       volume: VolumeSpec | None = None, plane: str = "xz", rtol: float = 1e-9,
+                       predictors=None) -> ShearResult:
     """Simple shear ``x = X + gamma z e_x`` (*plane* "xz") prescribed on the whole boundary of *network*.
 
     Parameters
@@ -234,6 +248,8 @@ def virtual_shear_test(network, tables: StiffnessTables, *, gamma=None, law: str
     volume : VolumeSpec, optional
     plane : {"xz", "xy", "yz"}
         The moving and the gradient axis (mesh frame); ``stress`` is ``P_ab``.
+    predictors : array_like, shape (m, n, 3), optional
+        Starting positions per amount of shear (:func:`homogeneous_test`).
     """
     if plane not in PLANES:
         raise ConfigError(f"plane: unknown {plane!r}; use one of {', '.join(PLANES)}")
@@ -242,7 +258,7 @@ def virtual_shear_test(network, tables: StiffnessTables, *, gamma=None, law: str
     if g.size == 0 or not np.all(np.isfinite(g)) or np.any(np.diff(np.concatenate([[0.0], g])) <= 0):
         raise ConfigError("gamma: need increasing positive amounts of shear")
     res = homogeneous_test(network, tables, [shear_deformation(v, plane) for v in g], law=law, volume=volume,
-                           rtol=rtol)
+                           rtol=rtol, predictors=predictors)
     if material is not None:
         params = material.params_for(None if material.is_isotropic else "z")
         ref = np.asarray(nominal_stress(material.model_obj, params, "simple_shear", g), dtype=np.float64)
