@@ -152,3 +152,28 @@ def test_shear_test_from_predictors_finds_the_same_equilibrium_in_fewer_iteratio
     assert r_warm.iterations.sum() < r_cold.iterations.sum()
     with pytest.raises(ConfigError, match="predictors"):
         virtual_shear_test(net, other, gamma=gam, predictors=first.path[:2])
+
+
+@pytest.mark.slow
+def test_the_joint_fit_falls_back_to_the_axial_fit_when_shear_finds_no_equilibrium(liver, tables, monkeypatch):
+    import esmm.pipeline.network.compensation as comp
+    from esmm.pipeline.errors import SimulationError
+    from esmm.pipeline.network.tensile_test import cylinder_specimen
+    from esmm.pipeline.network.volume import bulk_modulus
+    from esmm.pipeline.progress import ListReporter
+
+    small_strain_only = comp.virtual_shear_test
+
+    def no_equilibrium(*args, gamma, **kw):          # the scalar factor's small-strain shear still runs
+        if max(gamma) > 10 * comp.SMALL_STRAIN:
+            raise SimulationError("homogeneous test: no equilibrium (test)")
+        return small_strain_only(*args, gamma=gamma, **kw)
+
+    monkeypatch.setattr(comp, "virtual_shear_test", no_equilibrium)
+    rep = ListReporter()
+    spec = cylinder_specimen(radius=5e-3, length=20e-3, size=2.5e-3)
+    _, res = comp.calibrate_compensation(tables, spec, law="secant", material=liver, tension=1.3, compression=0.9,
+                                         volume=bulk_modulus(tables), reporter=rep)
+    assert res.fitted_on == list(comp.JOINT_CASES[:2]) and res.checks == {}
+    assert res.knots.min() == pytest.approx(0.9)
+    assert any("simple-shear tests found no equilibrium" in w for w in rep.warnings)

@@ -25,6 +25,11 @@ is matched worse the further it is stretched (docs/model-tables.md).
    constant beyond them. It
    converges because the axial force at specimen stretch :math:`\lambda` comes
    mostly from springs near the axis, whose stretch is :math:`\lambda`.
+   With a volume term (and a material), g is then refitted on tension,
+   compression and simple shear in two planes together, by Levenberg-Marquardt
+   on the springs' power shares (:mod:`.stretch_fit`, docs/model.md C2.4): fitted
+   on the axial test alone it leaves the network soft in shear and in bulkier
+   meshes at finite strain.
 
 Both are properties of the mesh (element shape statistics and size relative to
 the specimen) and of the law; the record stored in the tables' metadata says
@@ -231,8 +236,9 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
         every test then includes it, and the scalar factor balances two load
         cases (uniaxial tension and simple shear, module doc).
     shear_check : sequence of float, optional
-        Amounts of shear at which the calibrated network is checked against
-        the material (with *volume* and *material*; empty: no check).
+        Amounts of simple shear (xy and xz planes) the stretch correction is
+        fitted on together with tension and compression, when *volume* and
+        *material* are given (:mod:`.stretch_fit`; empty: the axial test alone).
 
     Returns
     -------
@@ -265,20 +271,35 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
     # tension, compression and simple shear together; otherwise on the axial test alone.
     knots = np.concatenate([lam_c[::-1], [1.0], lam_t])
     joint = volume is not None and material is not None and len(shear_check) > 0
-    fit = _fit_joint if joint else _fit_axial
+    fit = _fit_joint if joint else _fit_axial        # the joint fit falls back to the axial one (it warns)
     run = _Run(specimen, base, c, scalar, knots, lam_t, lam_c, law, material, reference, rtol, volume,
                np.asarray(shear_check, dtype=np.float64), tol, max_iter, rep)
-    knots, g_best, err, after, first, it, converged, shear = fit(run)
-    before = _before(first, c, specimen, base, lam_t, lam_c, law, reference, rtol, volume)
-    checks = {f"shear_{plane}": _shear_record(r) for plane, r in shear.items()}
-    result = CompensationResult(law=law, factor=c, knots=knots, g=g_best, before=before, scalar=first,
-                                after=after, iterations=it, converged=converged, specimen=specimen.describe(),
-                                volume=None if volume is None else volume.describe(), small_strain=scalar,
-                                checks=checks, fitted_on=list(JOINT_CASES if joint else JOINT_CASES[:2]))
-    if not converged:
-        rep.warn(f"compensation ({law}): stopped after {it} iterations at max |error| "
-                 f"{100 * err:.2f} % (tolerance {100 * tol:.2g} %)")
-    return _apply(tables, law, c, knots, g_best, result.record()), result
+    f = fit(run)
+    before = _before(f.first, c, specimen, base, lam_t, lam_c, law, reference, rtol, volume)
+    checks = {f"shear_{plane}": _shear_record(r) for plane, r in f.shear.items()}
+    result = CompensationResult(law=law, factor=c, knots=f.knots, g=f.g, before=before, scalar=f.first,
+                                after=f.after, iterations=f.iterations, converged=f.converged,
+                                specimen=specimen.describe(), volume=None if volume is None else volume.describe(),
+                                small_strain=scalar, checks=checks, fitted_on=list(f.fitted_on))
+    if not f.converged:
+        rep.warn(f"compensation ({law}): stopped after {f.iterations} iterations at max |error| "
+                 f"{100 * f.err:.2f} % (tolerance {100 * tol:.2g} %)")
+    return _apply(tables, law, c, f.knots, f.g, result.record()), result
+
+
+@dataclass(frozen=True, eq=False)
+class _Fit:
+    """What a fit of g returns to :func:`calibrate_compensation`."""
+
+    knots: np.ndarray
+    g: np.ndarray
+    err: float
+    after: TensileResult
+    first: TensileResult
+    iterations: int
+    converged: bool
+    shear: dict[str, Any]
+    fitted_on: tuple[str, ...]
 
 
 @dataclass(frozen=True, eq=False)
@@ -349,7 +370,7 @@ def _fit_axial(run: _Run, guesses: dict[str, np.ndarray] | None = None):
                 break
             g = _limit_ends(run.knots, _update(g, log_r, history), nc)
     err, g_best, after = best
-    return run.knots, g_best, err, after, first, it, converged, {}
+    return _Fit(run.knots, g_best, err, after, first, it, converged, {}, JOINT_CASES[:2])
 
 
 @dataclass(frozen=True, eq=False)
@@ -411,10 +432,15 @@ def _fit_joint(run: _Run):
     evaluations at most.
     """
     guesses: dict[str, np.ndarray] = {}
-    _, g_axial, _, _, first, it0, _, _ = _fit_axial(run, guesses)
-    run, g_best = _shear_knots(run, g_axial)
+    axial = _fit_axial(run, guesses)
+    run, g_best = _shear_knots(run, axial.g)
     held = int(np.flatnonzero(run.knots == 1.0)[0])
-    best = _joint_tests(run, g_best, guesses)     # the axial fit's g ran without failing: this succeeds
+    try:
+        best = _joint_tests(run, g_best, guesses)
+    except SimulationError as exc:
+        run.rep.warn(f"compensation ({run.law}): the simple-shear tests found no equilibrium ({exc}); "
+                     "the stretch correction is fitted on tension and compression only")
+        return axial
     damping, dropped, it = stretch_fit.DAMPING, 0, 1
     with run.rep.task(f"compensation ({run.law} law, tension, compression and shear)", total=JOINT_MAX_ITER) as advance:
         while it < JOINT_MAX_ITER and best.max_error > run.tol and dropped < 3:
@@ -434,7 +460,8 @@ def _fit_joint(run: _Run):
                          f"{100 * best.objective:.2f} %, max {100 * best.max_error:.2f} % (tension, compression, "
                          "shear; against the targets)")
     converged = dropped >= 3 or best.max_error <= run.tol
-    return run.knots, g_best, best.max_error, best.axial, first, it0 + it, converged, best.shear
+    return _Fit(run.knots, g_best, best.max_error, best.axial, axial.first, axial.iterations + it, converged,
+                best.shear, JOINT_CASES)
 
 
 def _shear_knots(run: _Run, g: np.ndarray) -> tuple[_Run, np.ndarray]:
