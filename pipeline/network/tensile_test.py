@@ -129,7 +129,11 @@ def cylinder_specimen(*, radius: float = 5e-3, length: float = 20e-3, size: floa
     est_nodes = math.pi * radius**2 * length / size**3 * 1.2
     if est_nodes > 2e5:
         raise ConfigError(f"size: {size:g} m would give about {est_nodes:.0f} nodes; use a larger size")
-    points, tets = _gmsh_cylinder(radius, length, size, algorithm)
+    # Meshed in units of the element size, then scaled: cylinders of the same shape in elements are
+    # then similar (gmsh's tolerances are absolute), so the scale-free calibration does not depend on
+    # the organ's element size (the compensation's cache key holds none).
+    points, tets = _gmsh_cylinder(radius / size, length / size, 1.0, algorithm)
+    points = points * size
     if tets.shape[0] == 0:
         raise MeshingError(f"gmsh made no tetrahedra for a cylinder R={radius:g} m, H={length:g} m "
                            f"at size {size:g} m; try another size")
