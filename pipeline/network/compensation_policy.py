@@ -3,11 +3,12 @@
 The defaults (calibration range, specimen radius) live here, in a module that
 imports nothing heavy, so that the command line can show them in its help.
 
-A calibration (one virtual tensile test per mesh, tens of seconds) is stored
-under a content address: everything its result depends on. The calibration
-specimen is meshed with the organ's median spring length as element size and a
-radius of a fixed number of elements, so it is geometrically similar for every
-organ, and the spring network's stress response is scale-free (forces ~ V/L0,
+A calibration (virtual tension, compression and shear tests on a cylinder; half a
+minute to three minutes) is stored under a content address: everything its result
+depends on. The calibration specimen is meshed in units of the organ's median
+spring length and a radius of a fixed number of elements, then scaled, so it is
+the same mesh, geometrically similar, for every organ, and the spring network's
+stress response is scale-free (forces ~ V/L0,
 areas ~ L0^2): the result depends on the material, the law, the grid, the
 calibration range, the specimen's radius in elements and the code, not on the
 organ. The volume term's bulk modulus and formulation are part of it too (the
