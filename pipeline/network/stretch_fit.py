@@ -45,8 +45,8 @@ strain ranges, not a count of test points.
 :math:`y = \log(\text{target}/\text{network})`, with a second-difference
 smoothing :math:`D` (weight :math:`\nu`: the normal matrix's mean diagonal) that
 keeps knots few springs load from oscillating (with :math:`\nu` a thousand times
-smaller, the first step put alternating +23 % / -32 % on neighbouring knots and
-the next tensile test found no equilibrium); the knot at
+smaller and :math:`\mu` 0.1, the first step put +25 % and -32 % on neighbouring
+knots and the next tensile test found no equilibrium); the knot at
 :math:`\lambda = 1` is held (:math:`g(1) = 1`: the scalar factor owns small
 strain).
 """
