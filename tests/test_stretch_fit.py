@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from esmm.pipeline.mesh.synthetic import box_tets
 from esmm.pipeline.network import stretch_fit as sf
 from esmm.pipeline.network.loadcases import homogeneous_test, shear_deformation
 from esmm.pipeline.network.springs import network_from_tets
@@ -12,17 +13,12 @@ from esmm.pipeline.network.tables import build_tables
 KNOTS = np.array([0.9, 0.95, 1.0, 1.05, 1.1, 1.15, 1.2, 1.25, 1.3])   # uniform, like the calibration's
 
 
-class _Mesh:
-    def __init__(self, points, tets):
-        self.points, self.tets = points, tets
-
-
-def _cube(h=2e-3, seed=1):
-    """One jittered cube of 6 Kuhn tets: every node is on the boundary, so a prescribed ``F`` is exactly affine."""
-    c = np.array([[(b >> 2) & 1, (b >> 1) & 1, b & 1] for b in range(8)], float) * h
-    c += np.random.default_rng(seed).uniform(-0.1 * h, 0.1 * h, c.shape)
-    kuhn = [(0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7)]
-    return network_from_tets(_Mesh(c, np.array(kuhn)), reorder=None, fibre_frame=None)
+def _block(n=3, h=2e-3, seed=0):
+    """An n^3 box of Kuhn tets (:func:`box_tets`), nodes jittered by 15 % of h. n = 1: every node is on
+    the boundary, so a prescribed ``F`` is exactly affine; n = 3: interior nodes relax, so a predictor matters."""
+    box = box_tets(n, n, n, (n * h,) * 3)
+    box.points = box.points + np.random.default_rng(seed).uniform(-0.15 * h, 0.15 * h, box.points.shape)
+    return network_from_tets(box, reorder=None, fibre_frame=None)
 
 
 def test_hat_basis_is_a_partition_of_unity_constant_beyond_the_ends():
@@ -45,7 +41,7 @@ def test_weights_follow_the_equivalent_strain():
 @pytest.mark.parametrize("mode,amount", [("xz", 0.3), ("xy", 0.2), ("tension", 1.2), ("compression", 0.92)])
 def test_power_shares_are_the_reaction_power_sensitivity_of_an_affine_network(liver, mode, amount):
     """Against finite differences: the network has no interior node, so the envelope argument is exact."""
-    net = _cube()
+    net = _block(n=1, seed=1)
     base = build_tables(liver).with_compensation(6.0)
     B = sf.hat_basis(base.lam, KNOTS)
     L = sf.velocity_gradient(mode, amount)
@@ -114,22 +110,6 @@ def test_the_joint_fit_lowers_the_shear_error_the_axial_fit_leaves(liver, tables
     assert after < 0.5 * before, (before, after)      # measured: 9.3 % -> 2.0 %
     rec = joint.metadata["compensation"]["laws"]["secant"]
     assert rec["fitted_on"] == list(JOINT_CASES) and set(rec["checks"]) == {"shear_xy", "shear_xz"}
-
-
-def _block(n=3, h=2e-3, seed=0):
-    """An n^3 block of jittered Kuhn cubes: interior nodes relax, so a predictor matters."""
-    rng = np.random.default_rng(seed)
-    g = np.arange(n + 1) * h
-    pts = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
-    pts = pts + rng.uniform(-0.15 * h, 0.15 * h, pts.shape)
-    kuhn = [(0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7)]
-    tets = []
-    for i in range(n):
-        for j in range(n):
-            for k in range(n):
-                c = [((i + (b >> 2 & 1)) * (n + 1) + j + (b >> 1 & 1)) * (n + 1) + k + (b & 1) for b in range(8)]
-                tets += [[c[a] for a in t] for t in kuhn]
-    return network_from_tets(_Mesh(pts, np.array(tets)), reorder=None, fibre_frame=None)
 
 
 def test_shear_test_from_predictors_finds_the_same_equilibrium_in_fewer_iterations(liver):
