@@ -80,6 +80,25 @@ def test_matrix_free_product_is_the_tangent(block, form, definite):
     assert abs(el.tangent(x, definite=not definite) - K).max() > 1e-6 * abs(K).max()
 
 
+def test_tangent_bound_is_above_the_nodal_tangent_with_the_tets_sparsity(block):
+    """The per-tet Gauss-Newton matrix the implicit stepper factors (docs/simulate.md §2b): above the nodal
+    term's definite tangent (Cauchy-Schwarz: the difference is positive semi-definite, and strictly larger
+    somewhere), equal to it for the per-tet formulation, and coupling only nodes of a common tet."""
+    x = deformed(block)
+    nodal = volume_elements(block.points, block.tets, VolumeSpec(2.0e5, "nodal"))
+    tet = volume_elements(block.points, block.tets, VolumeSpec(2.0e5, "tet"))
+    K, B = nodal.tangent(x, definite=True), nodal.tangent_bound(x)
+    np.testing.assert_allclose(B.toarray(), tet.tangent(x, definite=True).toarray(), rtol=0, atol=1e-12 * abs(B).max())
+    ev = np.linalg.eigvalsh((B - K).toarray())
+    assert ev.min() > -1e-10 * ev.max() and ev.max() > 0.1 * np.linalg.eigvalsh(B.toarray()).max()
+    n = block.points.shape[0]
+    pairs = set(map(tuple, np.concatenate([block.tets[:, [i, j]] for i in range(4) for j in range(4)])))
+    Bc = B.tocoo()
+    assert {(int(r) // 3, int(c) // 3) for r, c in zip(Bc.row, Bc.col)} <= pairs
+    Kc = K.tocoo()
+    assert len({(int(r) // 3, int(c) // 3) for r, c in zip(Kc.row, Kc.col)} - pairs) > n     # K reaches further
+
+
 @pytest.mark.parametrize("form", ["nodal", "tet"])
 def test_no_net_force_or_torque_and_rigid_motions_free(block, form):
     el = volume_elements(block.points, block.tets, VolumeSpec(2.0e5, form))

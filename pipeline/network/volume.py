@@ -364,6 +364,29 @@ class VolumeElements:
 
         return product
 
+    def tangent_bound(self, points) -> sp.csr_matrix:
+        r"""A sparser matrix above the definite tangent: the per-tet Gauss-Newton matrix (3n, 3n) CSR [N/m].
+
+        .. math::
+
+            K_{tet} = \sum_t \frac{\kappa}{V_{t,0}} \nabla V_t \nabla V_t^T
+            \;\succeq\; K = \sum_a \frac{\kappa}{V_{a,0}} \nabla V_a \nabla V_a^T
+
+        for the nodal formulation (:math:`V_a = \sum_{t \ni a} V_t/4`,
+        :math:`V_{a,0} = \sum_{t \ni a} V_{t,0}/4`): by Cauchy-Schwarz,
+        :math:`(\sum_{t \ni a} \delta V_t/4)^2 \le V_{a,0} \sum_{t \ni a}
+        \delta V_t^2/(4 V_{t,0})`, and summing over the nodes counts each tet's
+        :math:`\delta V_t^2/V_{t,0}` once. Its node blocks couple only the
+        nodes of a tet (K's reach every node two tets away), so its sparse
+        factor has about a third of the fill (docs/simulate.md §2b). For the
+        per-tet formulation it is K itself.
+        """
+        x = self._x(points)
+        if "rest_tet_volume" not in self._cache:
+            self._cache["rest_tet_volume"] = tet_volumes(self._cache["rest_points"], self.tets)
+        G = self.gradient_matrix(x)
+        return (G.T @ sp.diags(self.bulk_modulus / self._cache["rest_tet_volume"]) @ G).tocsr()
+
     def _geometric(self, x: np.ndarray, pbar: np.ndarray) -> sp.coo_matrix:
         """``sum_t pbar_t d2 V_t / dx2`` as a sparse (3n, 3n) matrix (off-diagonal node blocks only).
 

@@ -13,7 +13,9 @@ into a :class:`VolumeTerm`, a :class:`~.model.ForceTerm` beside the springs:
   geometric part, :meth:`~esmm.pipeline.network.volume.VolumeElements.stiffness_rows`);
 * :meth:`VolumeTerm.tangent` is its exact tangent stiffness
   :math:`K = -\partial \mathbf f/\partial \mathbf x` (sparse, symmetric) for
-  an implicit stepper.
+  an implicit stepper, :meth:`VolumeTerm.tangent_operator` its product and
+  :meth:`VolumeTerm.tangent_bound` a sparser matrix above it (the stepper's
+  preconditioner).
 
 Only the nodal formulation is compiled (the per-tet one locks; it exists in the
 network module for the measurement that shows it).
@@ -111,6 +113,12 @@ class VolumeTerm:
     def tangent_operator(self, x: np.ndarray, *, definite: bool = False):
         """``p -> K p`` for :meth:`tangent`'s K at *x*, without forming it (the Newton iteration's products)."""
         return self.elements.tangent_operator(np.asarray(x, dtype=np.float64), definite=definite)
+
+    def tangent_bound(self, x: np.ndarray) -> sp.csr_matrix:
+        """A matrix above the definite tangent with the sparsity of the tets (the per-tet Gauss-Newton
+        matrix, :meth:`~esmm.pipeline.network.volume.VolumeElements.tangent_bound`): what the implicit
+        stepper factors as its preconditioner."""
+        return self.elements.tangent_bound(np.asarray(x, dtype=np.float64))
 
     def jacobians(self, x: np.ndarray) -> np.ndarray:
         """Nodal volume ratios ``J_a``, shape (n,)."""
