@@ -18,9 +18,9 @@ one the floor would have to pull is let go). Newton's matrix is
 :math:`A = M/h^2 + (\alpha M + C)/h + K(\mathbf x)` with
 :math:`K = \sum_{terms} K_{term}` (each term's ``tangent``) and :math:`C` the
 dashpots' damping matrix; each Newton update is solved by conjugate gradients
-preconditioned with a sparse factorization of :math:`A` (with the volume
-term's per-tet bound in place of its nodal tangent: a third of the fill)
-taken at an earlier state and reused for as long as it keeps the iterations
+preconditioned with a sparse factorization of :math:`A` (or, as chosen, of
+:math:`A` with the volume term's per-tet bound in place of its nodal tangent:
+a third of the fill) taken at an earlier state and reused for as long as it keeps the iterations
 few (then refactored at the current state). Constraints join through the capacitance matrix
 (:class:`~.linsolve.Constraints`), so the factor does not change with the
 grasp or the contacts. Unconditionally stable for a linear network; the
@@ -51,6 +51,7 @@ from ..errors import ConfigError
 from . import kernels as K
 from .linsolve import Constraints, SparseFactor, node_ordering, pcg
 from .model import Control, Model, State
+from .scene import FACTORS
 from .stepper import StepBound
 
 #: Default step of the deformation solve: one frame at 30 frames/s [s].
@@ -58,7 +59,6 @@ DEFAULT_STEP = 1.0 / 30.0
 #: Default rate of the grasper force [Hz] (a haptic device's loop).
 HAPTIC_RATE = 1000.0
 PRECONDITIONERS = ("factor", "fresh", "jacobi")
-FACTOR_MATRICES = ("bound", "exact")
 
 
 @dataclass
@@ -123,15 +123,15 @@ class BackwardEuler:
         whatever the compression).
     single : bool
         Factor in float32 (faster solves; the factor is a preconditioner).
-    factor_matrix : {"bound", "exact"}
-        What the reused factor is taken of. "bound" (default): Newton's matrix
-        with each term's ``tangent_bound`` where it has one (the volume term:
-        per-tet instead of nodal, a matrix above its tangent with the sparsity
-        of the tets); measured on the fine liver: fill 17.3 M -> 5.0 M,
-        factorization 1.55 -> 0.27 s, solve 19 -> 7 ms, real-time factor
-        0.060 -> 0.130 with the same accuracy against explicit
-        (docs/simulate.md §2b). "exact": Newton's matrix itself.
-        The "fresh" preconditioner always factors the exact matrix.
+    factor_matrix : {"exact", "bound"}
+        What the reused factor is taken of. "exact" (default): Newton's matrix
+        itself. "bound": with each term's ``tangent_bound`` where it has one
+        (the volume term: per-tet instead of nodal, a matrix above its tangent
+        with the sparsity of the tets): a third of the fill and faster solves,
+        but more conjugate-gradient iterations. Measured over the interactive
+        scene (3 s, one run): fine liver fill 17.3 M -> 5.0 M, 1.84x faster;
+        paper liver 1.46x slower (docs/simulate.md §2b). The "fresh"
+        preconditioner always factors the exact matrix.
     threads : int
         Kept for the :class:`~.simulator.Simulator` interface (the implicit step runs on one thread).
     """
@@ -148,7 +148,7 @@ class BackwardEuler:
     haptic_drift: bool = True
     definite: bool = True
     single: bool = True
-    factor_matrix: str = "bound"
+    factor_matrix: str = "exact"
     threads: int = 1
     stats: ImplicitStats = field(default_factory=ImplicitStats)
     _factor: SparseFactor | None = field(default=None, repr=False)
@@ -166,8 +166,8 @@ class BackwardEuler:
         if self.preconditioner not in PRECONDITIONERS:
             raise ConfigError(f"preconditioner: {self.preconditioner!r} is not one of {', '.join(PRECONDITIONERS)}",
                               parameter="preconditioner")
-        if self.factor_matrix not in FACTOR_MATRICES:
-            raise ConfigError(f"factor_matrix: {self.factor_matrix!r} is not one of {', '.join(FACTOR_MATRICES)}",
+        if self.factor_matrix not in FACTORS:
+            raise ConfigError(f"factor_matrix: {self.factor_matrix!r} is not one of {', '.join(FACTORS)}",
                               parameter="factor_matrix")
         if not (math.isfinite(self.haptic_rate) and self.haptic_rate > 0):
             raise ConfigError(f"haptic_rate: must be positive, got {self.haptic_rate}", parameter="haptic_rate")
@@ -181,7 +181,8 @@ class BackwardEuler:
         """The statistics so far (JSON-ready), solves with the current factor included."""
         self.stats.solves = self._solves_before + (0 if self._cons is None else self._cons.solves)
         return {"method": "implicit", "preconditioner": self.preconditioner, "step_s": self.step,
-                "haptic_rate_hz": self.haptic_rate, "rtol": self.rtol, **self.stats.as_dict()}
+                "haptic_rate_hz": self.haptic_rate, "rtol": self.rtol, "factor_matrix": self.factor_matrix,
+                **self.stats.as_dict()}
 
     def ticks_per_step(self, dt: float) -> int:
         """Grasper force samples per step of *dt*: ``ceil(dt * haptic_rate)`` (spacing <= 1/haptic_rate)."""

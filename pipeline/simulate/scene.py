@@ -7,7 +7,7 @@ Tables and keys::
 
     [scene]       duration, frame_rate, gravity, gravity_unit, law, start, effects, volume
     [damping]     dashpot, velocity_decay
-    [integrator]  method, implicit_step, haptic_rate, newton_tol (implicit); safety, step, window,
+    [integrator]  method, implicit_step, haptic_rate, newton_tol, factor (implicit); safety, step, window,
                   mass_scaling (explicit); threads, precision, max_steps
     [fixed]       kind = "asset" (keep the asset's fixed nodes) or a region
                   table as in prepare configs (band / box / nearest / none);
@@ -48,7 +48,7 @@ JAW_RADIUS = 0.004
 _TABLES = {
     "scene": {"duration", "frame_rate", "gravity", "gravity_unit", "law", "start", "effects", "volume"},
     "damping": {"dashpot", "velocity_decay"},
-    "integrator": {"method", "implicit_step", "haptic_rate", "newton_tol", "safety", "threads", "precision",
+    "integrator": {"method", "implicit_step", "haptic_rate", "newton_tol", "factor", "safety", "threads", "precision",
                    "max_steps", "step", "window", "mass_scaling"},
     "fixed": None,  # validated by esmm.pipeline.network.regions (plus kind = "asset")
     "grasper": {"enabled", "target", "radius", "mode", "stiffness", "direction", "grasp_time",
@@ -70,6 +70,8 @@ PRECISIONS = ("float64", "float32")
 FRICTIONS = ("stick", "slip")
 DIRECTIONS = ("away", "up")
 METHODS = ("implicit", "explicit")
+#: What the implicit stepper's reused factor is taken of (docs/simulate.md §2b).
+FACTORS = ("exact", "bound")
 
 
 @dataclass(frozen=True)
@@ -183,6 +185,10 @@ class Scene:
     newton_tol : float
         Implicit: the largest residual force on a node after a step, as a
         fraction of the largest nodal weight.
+    factor : {"exact", "bound"}
+        Implicit: what the reused factor is taken of, Newton's matrix itself or
+        with the volume term's per-tet bound (a third of the fill: faster on
+        large meshes, slower on small ones; docs/simulate.md §2b).
     safety : float
         Explicit: fraction of the critical time step used.
     step : {"adaptive", "table"}
@@ -223,6 +229,7 @@ class Scene:
     implicit_step: Any = "frame"
     haptic_rate: float = 1000.0
     newton_tol: float = 0.01
+    factor: str = "exact"
     safety: float = 0.9
     step: str = "adaptive"
     window: float = 0.05
@@ -443,6 +450,8 @@ def _integrator(it: dict) -> dict:
         kw["haptic_rate"] = number(it["haptic_rate"], "[integrator] haptic_rate", lo=1.0, hi=100_000.0)
     if "newton_tol" in it:
         kw["newton_tol"] = number(it["newton_tol"], "[integrator] newton_tol", lo=0.0, hi=0.5, lo_open=True)
+    if "factor" in it:
+        kw["factor"] = choice(it["factor"], FACTORS, "[integrator] factor")
     if "safety" in it:
         kw["safety"] = number(it["safety"], "[integrator] safety", lo=0.0, hi=1.0, lo_open=True)
     if "threads" in it:
