@@ -364,7 +364,7 @@ def test_scene_integrator_keys():
     assert scene_from_dict({}).solve_step == pytest.approx(1 / 30)
     with pytest.raises(Exception, match="method"):
         scene_from_dict({"integrator": {"method": "rk4"}})
-    assert scene_from_dict({}).factor == "exact"
-    assert scene_from_dict({"integrator": {"factor": "bound"}}).factor == "bound"
+    assert scene_from_dict({}).factor == "bound"
+    assert scene_from_dict({"integrator": {"factor": "exact"}}).factor == "exact"
     with pytest.raises(Exception, match=r"\[integrator\] factor"):
         scene_from_dict({"integrator": {"factor": "cholesky"}})
