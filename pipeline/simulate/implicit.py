@@ -20,8 +20,9 @@ one the floor would have to pull is let go). Newton's matrix is
 dashpots' damping matrix; each Newton update is solved by conjugate gradients
 preconditioned with a sparse factorization of :math:`A` with the volume
 term's per-tet bound in place of its nodal tangent (a third of the fill; or
-of :math:`A` itself, ``factor_matrix``) taken at an earlier state and reused for as long as it keeps the iterations
-few (then refactored at the current state). Constraints join through the capacitance matrix
+of :math:`A` itself, ``factor_matrix``), taken at an earlier state and
+reused for as long as it keeps the iterations few (then refactored at the
+current state). Constraints join through the capacitance matrix
 (:class:`~.linsolve.Constraints`), so the factor does not change with the
 grasp or the contacts. Unconditionally stable for a linear network; the
 Newton iteration (with backtracking) carries it through the tables'
@@ -34,8 +35,8 @@ model, :math:`\mathbf F(t_n + \tau) = \mathbf F_n - S\,(\mathbf p(t_n + \tau) -
 \mathbf p(t_n)) + \tfrac{\tau}{h}\mathbf D_n`, with :math:`S` the Schur
 complement of the factored matrix on the patch's translation (from the
 capacitance matrix, no extra solve; with the volume term's bound in it, a
-little stiffer than :math:`A`'s) and :math:`\mathbf D_n` the part of the last step's
-change that the tip's motion did not explain.
+little stiffer than :math:`A`'s) and :math:`\mathbf D_n` the part of the
+last step's change that the tip's motion did not explain.
 """
 
 from __future__ import annotations
