@@ -341,7 +341,7 @@ def test_effects_state_advances_with_the_implicit_step(slab):
 
 def test_run_records_the_grasper_force_at_1khz(tmp_path, slab):
     sc = scene_from_dict({"scene": {"duration": "0.3 s", "frame_rate": 30, "gravity": [0, 0, -9.81]},
-                          "integrator": {"method": "implicit", "haptic_rate": 1000},
+                          "integrator": {"method": "implicit", "haptic_rate": 1000, "factor": "exact"},
                           "grasper": {"radius": "8 mm", "release_time": "0.2 s",
                                       "waypoints": [{"time": "0 s", "distance": "0 mm"},
                                                     {"time": "0.1 s", "distance": "2 mm"}]}}, source="t")
@@ -349,6 +349,7 @@ def test_run_records_the_grasper_force_at_1khz(tmp_path, slab):
     s = res.summary
     assert s.method == "implicit" and s.steps == 9 and s.dt_max_s == pytest.approx(1 / 30)
     assert s.integrator["factorizations"] >= 1 and s.integrator["haptic_rate_hz"] == 1000
+    assert s.integrator["factor_matrix"] == "exact"             # the scene's [integrator] factor reaches it
     with History(res.history) as h:
         t, f = h.forces()
     assert np.diff(t).max() <= 1e-3 + 1e-12 and t[-1] > 0.19
