@@ -132,8 +132,8 @@ class BackwardEuler:
         conjugate-gradient iterations. "exact": Newton's matrix itself.
         Measured over the interactive scene (3 s, medians of 3-5 runs each):
         the bound is 1.58x faster on the fine liver (fill 17.3 M -> 5.0 M),
-        1.05-1.22x on three paper-preset organs and 0.92x on the spleen
-        (docs/simulate.md §2b). The "fresh" preconditioner always factors the
+        1.05-1.22x on three paper-preset organs, 0.92x on the spleen and
+        0.86x on the OpenHELP liver (docs/simulate.md §2b). The "fresh" preconditioner always factors the
         exact matrix.
     threads : int
         Kept for the :class:`~.simulator.Simulator` interface (the implicit step runs on one thread).

@@ -187,8 +187,8 @@ class Scene:
         fraction of the largest nodal weight.
     factor : {"bound", "exact"}
         Implicit: what the reused factor is taken of, Newton's matrix with the
-        volume term's per-tet bound in it (a third of the fill; 1.05-1.58x
-        faster on four organs of five, 0.92x on the fifth) or Newton's matrix
+        volume term's per-tet bound in it (a third of the fill; 1.58x faster on
+        the fine liver, 0.86-1.22x on five smaller organs) or Newton's matrix
         itself (docs/simulate.md §2b).
     safety : float
         Explicit: fraction of the critical time step used.
