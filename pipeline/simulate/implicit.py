@@ -476,11 +476,17 @@ class BackwardEuler:
 
         return matvec
 
+    def factored(self, model: Model) -> str:
+        """What the factor is taken of on *model*: "bound" (a term's ``tangent_bound`` in it: with
+        ``factor_matrix`` "bound", the reused factor and a term that has one) or "exact"."""
+        bounded = self.factor_matrix == "bound" and self.preconditioner == "factor" and any(
+            getattr(t, "tangent_bound", None) is not None for t in model.terms if t is not model.springs)
+        return "bound" if bounded else "exact"
+
     def _system_matrix(self, model, state, x, h, dt_fx):
-        """The factored matrix: ``M/h^2 + (alpha M + C)/h + K(x)`` (definite springs; the terms' bounds with
-        ``factor_matrix`` "bound" and the reused factor), identity on fixed dofs."""
-        bound = self.factor_matrix == "bound" and self.preconditioner == "factor"
-        A = self._tangent(model, state, x, dt_fx, definite=self.definite, bound=bound)
+        """The factored matrix: ``M/h^2 + (alpha M + C)/h + K(x)`` (definite springs; the terms' bounds
+        where :meth:`factored` says so), identity on fixed dofs."""
+        A = self._tangent(model, state, x, dt_fx, definite=self.definite, bound=self.factored(model) == "bound")
         if model.springs.damped:
             A = A + model.springs.damping_matrix(x) / h
         mass_dof = np.repeat(model.mass * (1.0 / (h * h) + model.mass_damping / h), 3)

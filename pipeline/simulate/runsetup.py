@@ -37,6 +37,8 @@ from .volumeterm import VolumeTerm, build_volume_term, shape_change
 #: Below this many springs one thread is used ("auto"): the parallel pass's
 #: fork/join costs more than it saves (benchmarks/bench_simulate.py).
 AUTO_PARALLEL_MIN_SPRINGS = 20_000
+#: What the implicit stepper factored, in words (:meth:`~.implicit.BackwardEuler.factored`).
+FACTORED = {"bound": "the volume term's per-tet bound in it", "exact": "Newton's matrix"}
 
 
 @dataclass
@@ -257,15 +259,9 @@ def _plan_implicit(run: RunSetup, scene: Scene, table, reporter) -> None:
     run.schedule = schedule
     run.prefactor_s = sim.stepper.prepare(sim.model, sim.state, sim.control)
     st = sim.stepper.stats
+    factored = FACTORED[sim.stepper.factored(sim.model)]
     reporter.step(f"{springs.n_springs} springs, {springs.n_nodes} nodes ({run.fixed.size} fixed), law {run.law}; "
                   f"implicit (backward Euler), step {sim.dt * 1e3:.4g} ms ({spf} per frame; the explicit bound "
                   f"would be {table.dt_critical * 1e6:.4g} us), grasper force at {scene.haptic_rate:g} Hz; "
-                  f"factored in {run.prefactor_s:.2g} s (fill {st.factor_nnz / 1e6:.3g} M, {_factor_kind(sim)})")
+                  f"factored in {run.prefactor_s:.2g} s (fill {st.factor_nnz / 1e6:.3g} M, {factored})")
 
-
-def _factor_kind(sim) -> str:
-    """What the implicit stepper factored, in words (the volume term's bound only where there is one)."""
-    st = sim.stepper
-    bounded = st.preconditioner == "factor" and st.factor_matrix == "bound" and any(
-        getattr(t, "tangent_bound", None) is not None for t in sim.model.terms if t is not sim.model.springs)
-    return "the volume term's per-tet bound in it" if bounded else "Newton's matrix"
