@@ -14,7 +14,8 @@ One step of :math:`h` from :math:`(\mathbf x_n, \mathbf v_n)` solves for
 with their dashpots and material effects), subject to the fixed nodes, the
 prescribed grasp (held nodes on the tip's path at :math:`t_{n+1}`) and the
 floor's contacts (active set: a node that crosses the plane is held on it;
-one the floor would have to pull is let go). Newton's matrix is
+one the floor would have to pull is let go, on a sticking floor after sliding
+on it within the step, :class:`Slides`). Newton's matrix is
 :math:`A = M/h^2 + (\alpha M + C)/h + K(\mathbf x)` with
 :math:`K = \sum_{terms} K_{term}` (each term's ``tangent``) and :math:`C` the
 dashpots' damping matrix; each Newton update is solved by conjugate gradients
@@ -75,6 +76,7 @@ class ImplicitStats:
     factor_nnz: int = 0             #: fill of the last factor
     unconverged: int = 0            #: steps that ended above the tolerance
     contact_changes: int = 0        #: nodes added to or released from the floor's contact set
+    slides: int = 0                 #: sticking contacts let slide within a step (the floor pulled them)
     max_newton: int = 0
     backtracks: int = 0
 
@@ -111,13 +113,13 @@ class BackwardEuler:
     haptic_drift : bool
         Extrapolate the last step's unexplained change between solves (module doc).
     contact_rounds : int or None
-        Times a step is solved again after the floor let go of nodes. None
+        Times a step is solved again after its contacts changed. None
         (default): once on a frictionless floor (a node the lift peels off
         leaves in the step it is let go, not a step later: measured on a slab
-        lifted off its bed, displacement error against explicit 6.6 % -> 0.7 %),
-        never on a sticking one (there the re-solve cycles between holding and
-        letting go: measured on the paper liver, force error 18 % -> 37 %;
-        docs/simulate.md §2b).
+        lifted off its bed, displacement error against explicit 6.6 % -> 0.7 %);
+        twice on a sticking one (a pulled node slides, then stops or leaves,
+        :class:`Slides`: grasper force against explicit on the paper liver
+        29 % -> 2.7 %; docs/simulate.md §2b).
     definite : bool
         Newton's matrix with each spring block made positive semi-definite
         (negative axial and geometric stiffness dropped: a descent direction
@@ -162,6 +164,7 @@ class BackwardEuler:
     _solves_before: int = field(default=0, repr=False)
     _stale: bool = field(default=False, repr=False)
     _excess: int = field(default=0, repr=False)
+    _slides: Slides | None = field(default=None, repr=False)
 
     def __post_init__(self):
         if not (math.isfinite(self.step) and self.step > 0):
@@ -226,6 +229,7 @@ class BackwardEuler:
             fmask[g_.nodes] = False
         floor = model.floor
         contact = (state.contact > 0) & fmask if floor is not None else np.zeros(model.n_nodes, bool)
+        self._slides = Slides.none(model.n_nodes)
         dt_fx = self._dt_fx(state, h)
         if self.preconditioner == "factor" and (self._factor is None or self._factor_h != h or self._stale):
             self._refactor(model, state, x0, dt_fx)
@@ -276,13 +280,12 @@ class BackwardEuler:
                 x, g, norm, moved = self._newton(model, state, control, x, x0, v0, h, dt_fx, g, norm, contact,
                                                  mass_dof, coupling, fixed_dof)
                 it += 1
-            released = self._released(g, contact, floor)
-            if released.any():
-                contact &= ~released
-                st.contact_changes += int(released.sum())
+            changed = self._contact_update(floor, g, x, contact, final=rounds == extra)
+            if changed:
                 self._set_rows(model, control, contact, h)
+                _, g = self._residual(model, state, control, x, x0, v0, h, dt_fx)
                 norm = self._norm(g, control, contact, floor)
-            if not released.any() or rounds == extra:
+            if not changed or rounds == extra:
                 break
         if norm > tol and moved > xtol:
             st.unconverged += 1
@@ -314,10 +317,41 @@ class BackwardEuler:
         return x, g, new, float(np.sqrt(np.einsum("ij,ij->i", dx.reshape(-1, 3), dx.reshape(-1, 3)).max()))
 
     def _contact_rounds(self, floor) -> int:
-        """Re-solves after releases this step: as set, or by the floor's friction (class doc)."""
+        """Re-solves after releases this step: as set, or by the floor (class doc): one on a
+        frictionless floor (let go), two on a sticking one (let slide, then let go)."""
         if self.contact_rounds is not None:
             return int(self.contact_rounds)
-        return 1 if floor is not None and floor.friction == "slip" else 0
+        if floor is None:
+            return 0
+        return 2 if floor.friction == "stick" else 1
+
+    def _contact_update(self, floor, g: np.ndarray, x: np.ndarray, contact: np.ndarray, *, final: bool) -> bool:
+        """The floor's contacts after a solve (*contact* in place; *x* too where a slide stops); whether
+        they changed. ``lam = g . n`` is the floor's reaction on a node (> 0: it pushes). A contact it
+        would have to pull leaves it, except on a sticking floor (:class:`Slides`)."""
+        if floor is None or not contact.any():
+            return False
+        lam = g @ floor.normal
+        if floor.friction == "stick":
+            leave, changed, started = self._slides.update(lam, x, contact, final=final)
+            self.stats.slides += started
+        else:
+            leave = contact & (lam < 0.0)
+            changed = bool(leave.any())
+        contact &= ~leave
+        self.stats.contact_changes += int(leave.sum())
+        return changed
+
+    def _holds(self, contact: np.ndarray, floor) -> tuple[np.ndarray, np.ndarray]:
+        """(held in place, held along the normal only): the floor's contacts by its friction and the
+        step's slides."""
+        none = np.zeros_like(contact)
+        if floor is None or not contact.any():
+            return none, none
+        if floor.friction == "stick":
+            slide = contact & self._slides.sliding
+            return contact & ~slide, slide
+        return none, contact
 
     def _refactor_pays(self) -> bool:
         """Whether the conjugate-gradient iterations lost to the factor's age (beyond one per Newton
@@ -387,29 +421,19 @@ class BackwardEuler:
         sp = model.springs
         return 1e-3 * float(np.median(sp.rest_tangent / sp.sd[0].astype(np.float64)))
 
-    @staticmethod
-    def _norm(g: np.ndarray, control: Control, contact: np.ndarray, floor) -> float:
+    def _norm(self, g: np.ndarray, control: Control, contact: np.ndarray, floor) -> float:
         """The largest residual force on a node that no constraint holds [N]."""
         r = g.copy()
         gr = control.grasp
         if gr is not None and gr.mode == "prescribed":
             r[gr.nodes] = 0.0
-        if contact.any():
-            if floor.friction == "stick":
-                r[contact] = 0.0
-            else:
-                nrm = floor.normal
-                r[contact] -= (r[contact] @ nrm)[:, None] * nrm
+        held, normal = self._holds(contact, floor)
+        if held.any():
+            r[held] = 0.0
+        if normal.any():
+            nrm = floor.normal
+            r[normal] -= (r[normal] @ nrm)[:, None] * nrm
         return float(np.sqrt(np.einsum("ij,ij->i", r, r)).max()) if r.size else 0.0
-
-    @staticmethod
-    def _released(g: np.ndarray, contact: np.ndarray, floor) -> np.ndarray:
-        """Contact nodes the floor would have to pull (its force on them, g, points into it)."""
-        out = np.zeros_like(contact)
-        if floor is None or not contact.any():
-            return out
-        out[contact] = g[contact] @ floor.normal < 0.0
-        return out
 
     @staticmethod
     def _on_floor(floor, x0: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -525,17 +549,16 @@ class BackwardEuler:
                     nodes.append(a)
                     es.append(eye[d])
                     comp.append(c)
-        if contact.any():
-            for a in np.flatnonzero(contact):
-                if model.floor.friction == "stick":
-                    for d in range(3):
-                        nodes.append(a)
-                        es.append(eye[d])
-                        comp.append(0.0)
-                else:
-                    nodes.append(a)
-                    es.append(model.floor.normal)
-                    comp.append(0.0)
+        held, normal = self._holds(contact, model.floor)
+        for a in np.flatnonzero(held):
+            for d in range(3):
+                nodes.append(a)
+                es.append(eye[d])
+                comp.append(0.0)
+        for a in np.flatnonzero(normal):
+            nodes.append(a)
+            es.append(model.floor.normal)
+            comp.append(0.0)
         self._cons.set_rows(np.array(nodes, np.int64), np.array(es).reshape(-1, 3), np.array(comp))
 
     def _preconditioner(self, model, state, x, h, dt_fx, mass_dof, coupling, fixed_dof, contact, control):
@@ -552,17 +575,16 @@ class BackwardEuler:
         g_ = control.grasp
         if g_ is not None and g_.mode == "prescribed":
             hold.reshape(-1, 3)[g_.nodes] = True
-        stick = model.floor is not None and model.floor.friction == "stick"
-        if contact.any() and stick:
-            hold.reshape(-1, 3)[contact] = True
+        held, normal = self._holds(contact, model.floor)
+        hold.reshape(-1, 3)[held] = True
 
         def apply(r):
             z = r / d
             z[hold] = 0.0
-            if contact.any() and not stick:
+            if normal.any():
                 zz = z.reshape(-1, 3)
                 nrm = model.floor.normal
-                zz[contact] -= (zz[contact] @ nrm)[:, None] * nrm
+                zz[normal] -= (zz[normal] @ nrm)[:, None] * nrm
             return z
 
         return apply
@@ -640,6 +662,61 @@ class BackwardEuler:
             self._last = (g_, t1, F1, drift)
         else:
             self._last = None
+
+
+@dataclass
+class Slides:
+    """A sticking floor's contacts within one implicit step (docs/simulate.md §2b, Floor).
+
+    The explicit stepper lets go of a held node the moment the floor would pull it and holds it
+    again where it is back on the plane: where a lift peels the organ off its bed, such nodes
+    creep along the floor at no normal force. Backward Euler's step is too long to follow that
+    creep, and holding them until the step's end makes the peel line chatter (a node let go,
+    landed a step later, pulled again). So within a step, after each solve (``lam`` the floor's
+    reaction, > 0 where it pushes):
+
+    * a held node the floor pulls slides on it (held along the normal only; once per step);
+    * a sliding node it pushes again sticks where its reaction, taken as linear along the slide,
+      is zero (``s = lam0 / (lam0 - lam)`` of the way from where it was held); Newton restarts
+      from the whole field taken back by the mean ``s`` (its linear response), the node there;
+    * a sliding node it still pulls leaves the floor.
+
+    The final check of a step (no solve follows) lets pulled sliding nodes go and moves no node.
+    """
+
+    sliding: np.ndarray                 #: (n,) held along the normal only
+    slid: np.ndarray                    #: (n,) has slid this step
+    lam0: np.ndarray                    #: (n,) the reaction when its slide began (< 0) [N]
+    x0: np.ndarray                      #: (n, 3) where it was held then [m]
+    field0: np.ndarray | None = None    #: (n, 3) every node then [m]
+
+    @classmethod
+    def none(cls, n: int) -> Slides:
+        return cls(np.zeros(n, bool), np.zeros(n, bool), np.zeros(n), np.zeros((n, 3)))
+
+    def update(self, lam: np.ndarray, x: np.ndarray, contact: np.ndarray, *, final: bool):
+        """The rule above after a solve (*x* moved in place where slides stop): (contacts to let go,
+        whether anything changed, slides begun)."""
+        pulled = contact & (lam < 0.0)
+        leave = pulled & self.sliding
+        stop = contact & self.sliding & ~pulled
+        start = pulled & ~self.slid
+        self.sliding &= ~leave
+        if final:
+            return leave, bool(leave.any()), 0
+        if stop.any():
+            s = self.lam0[stop] / (self.lam0[stop] - lam[stop])
+            x_stop = self.x0[stop] + s[:, None] * (x[stop] - self.x0[stop])
+            x[:] = self.field0 + float(np.mean(s)) * (x - self.field0)
+            x[stop] = x_stop
+            self.sliding &= ~stop
+        if start.any():
+            self.lam0[start] = lam[start]
+            self.x0[start] = x[start]
+            self.field0 = x.copy()
+            self.sliding |= start
+            self.slid |= start
+        return leave, bool(leave.any() or stop.any() or start.any()), int(start.sum())
 
 
 def _product(term, x: np.ndarray, definite: bool):
