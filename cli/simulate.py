@@ -13,8 +13,8 @@ outputs (in --out DIR, default ASSET-sim/ beside the asset):
   --video OUT.mp4            off-screen rendering (no display or GPU needed)
 
 scenes: 'default' (bundled: the organ lies on a sticking bed, its lowest 5 % held; a grasper
-lifts the free edge 20 mm in 1 s, holds, releases at 2 s; explicit stepper), 'interactive'
-(the default on a frictionless bed, implicit: grasper force at 1 kHz) or a TOML file, which
+lifts the free edge 20 mm in 1 s, holds, releases at 2 s; implicit stepper, grasper force at
+1 kHz), 'interactive' (the default on a frictionless bed) or a TOML file, which
 may start from a bundled one (base = "default"); see docs/simulate.md for the schema.
 
 material effects: an asset made from a discovery's params.toml carries its kept effects
@@ -50,9 +50,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="apply the asset's material effects (default, when it has any) or none "
                         "(instantaneous elastic response only); overrides the scene")
     p.add_argument("--method", choices=("implicit", "explicit"), default=None,
-                   help="integrator: explicit (symplectic Euler under the stiffest spring's bound; the default scene's) "
-                        "or implicit (backward Euler, stable at the frame step, grasper force at 1 kHz); "
-                        "overrides the scene")
+                   help="integrator: implicit (backward Euler, stable at the frame step, grasper force at 1 kHz; "
+                        "the default scene's) or explicit (symplectic Euler under the stiffest spring's bound; "
+                        "the accuracy reference); overrides the scene")
     p.add_argument("--out", metavar="DIR", default=None, help="output folder (default: ASSET-sim/)")
     p.set_defaults(func=run)
     return p

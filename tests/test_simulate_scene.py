@@ -138,10 +138,11 @@ def test_scene_from_file_and_overrides(tmp_path):
         load_scene("no-such-scene").source  # noqa: B018
 
 
-def test_interactive_scene_is_the_default_solved_implicitly_on_a_slippery_bed():
+def test_interactive_scene_is_the_default_on_a_slippery_bed_both_solved_implicitly():
     a, b = load_scene("default"), load_scene("interactive")
     changed = {f for f in a.__dataclass_fields__ if repr(getattr(a, f)) != repr(getattr(b, f))}
-    assert changed == {"method", "floor", "source"}
+    assert changed == {"floor", "source"}
+    assert (a.method, a.floor.friction) == ("implicit", "stick")
     assert (b.method, b.floor.friction, b.floor.height) == ("implicit", "slip", a.floor.height)
 
 

@@ -259,9 +259,9 @@ class BackwardEuler:
         return x
 
     def _converge(self, model, state, control, x, x0, v0, h, dt_fx, contact, fixed_dof):
-        """Newton's iteration from *x* until the residual or the update is small (module doc); the
-        floor then lets go of the nodes it would have to pull (*contact* updated in place; with
-        ``contact_rounds`` > 0 the step is solved again without them)."""
+        """Newton's iteration from *x* until the residual or the update is small (module doc); then the
+        floor's contacts are updated (:meth:`_contact_update`, *contact* in place) and, while
+        ``contact_rounds`` allow, the step is solved again with them."""
         st = self.stats
         floor = model.floor
         tol = self.rtol * self._force_scale(model)
@@ -328,11 +328,12 @@ class BackwardEuler:
     def _contact_update(self, floor, g: np.ndarray, x: np.ndarray, contact: np.ndarray, *, final: bool) -> bool:
         """The floor's contacts after a solve (*contact* in place; *x* too where a slide stops); whether
         they changed. ``lam = g . n`` is the floor's reaction on a node (> 0: it pushes). A contact it
-        would have to pull leaves it, except on a sticking floor (:class:`Slides`)."""
+        would have to pull leaves it, except on a sticking floor where the step is solved again
+        (:class:`Slides`; with ``contact_rounds`` 0 it leaves at the step's end, the rule before them)."""
         if floor is None or not contact.any():
             return False
         lam = g @ floor.normal
-        if floor.friction == "stick":
+        if floor.friction == "stick" and self._contact_rounds(floor) > 0:
             leave, changed, started = self._slides.update(lam, x, contact, final=final)
             self.stats.slides += started
         else:
@@ -681,7 +682,8 @@ class Slides:
       from the whole field taken back by the mean ``s`` (its linear response), the node there;
     * a sliding node it still pulls leaves the floor.
 
-    The final check of a step (no solve follows) lets pulled sliding nodes go and moves no node.
+    The final check of a step (no solve follows) lets pulled sliding nodes go and moves no node;
+    a held node pulled then stays held (it slides in the next step).
     """
 
     sliding: np.ndarray                 #: (n,) held along the normal only

@@ -55,6 +55,7 @@ class RunSetup:
     threads: int = 1
     thread_timing: dict = field(default_factory=dict)
     prefactor_s: float = 0.0   #: the implicit stepper's first factorization, before t = 0 [s]
+    start_inertia: np.ndarray | None = None   #: FIRE's masses for the start, if not the stepper's
     tets: np.ndarray | None = None      #: the network's tetrahedra (volume and inversion records)
 
 
@@ -97,8 +98,14 @@ def prepare_run(network, tables, scene: Scene, *, effects, reporter) -> RunSetup
     free0 = np.ones(springs.n_nodes, bool)
     free0[fixed] = False
     terms = [springs] if volume is None else [springs, volume]
-    # The implicit step is not bounded by the light nodes: their true inertia is kept.
-    inertia, scaling = mass_scaling(terms, network.mass, free=free0, budget=0.0 if implicit else scene.mass_scaling)
+    # The implicit step is not bounded by the light nodes: their true inertia is kept. The start's
+    # equilibrium is the explicit run's whatever the stepper (FIRE on its masses: on a sticking floor
+    # the equilibrium depends on FIRE's path)
+    scaled, scaling = mass_scaling(terms, network.mass, free=free0, budget=scene.mass_scaling)
+    inertia, start_inertia = scaled, None
+    if implicit:
+        start_inertia = scaled
+        inertia, scaling = mass_scaling(terms, network.mass, free=free0, budget=0.0)
     if scaling["nodes"]:
         rep.step(f"mass scaling: +{scaling['added_fraction'] * 100:.3g} % of the mass on {scaling['nodes']} "
                  f"light nodes (inertia only) raises the stable step {scaling['gain']:.3g}x")
@@ -115,7 +122,7 @@ def prepare_run(network, tables, scene: Scene, *, effects, reporter) -> RunSetup
         rep.step(f"floor: {floor.friction}, plane {floor.height * 1e3:.4g} mm along up"
                  + (f"; {below} free nodes start below it and are put on it at the first step" if below else ""))
     return RunSetup(sim=sim, law=law, fixed=fixed, scaling=scaling, build_s=build_s, warm_up_s=warm,
-                    tets=getattr(network, "tets", None))
+                    tets=getattr(network, "tets", None), start_inertia=start_inertia)
 
 
 def volume_term(network, tables, scene: Scene, reporter) -> VolumeTerm | None:
@@ -143,7 +150,7 @@ def settle_at_start(run: RunSetup, scene: Scene, network, reporter) -> dict | No
         return None
     t = time.perf_counter()
     try:
-        info = sim.relax(rtol=1e-4, max_iter=400_000)
+        info = sim.relax(rtol=1e-4, max_iter=400_000, inertia=run.start_inertia)
         settle = {**info, "seconds": time.perf_counter() - t, "converged": True}
     except SimulationError as exc:
         if "diverged" in str(exc):

@@ -174,9 +174,10 @@ class Scene:
     velocity_decay : float or None
         Time constant tau of the mass-proportional damping [s] (None: none).
     method : {"explicit", "implicit"}
-        The integrator: the explicit symplectic Euler bounded by the stiffest
-        spring (the default: the faster on a CPU today), or backward Euler with
-        Newton and a reused factorization (:mod:`.implicit`; stable at the frame step).
+        The integrator: backward Euler with Newton and a reused factorization
+        (:mod:`.implicit`; stable at the frame step; the default: the faster on
+        both livers and both beds, docs/simulate.md §9), or the explicit
+        symplectic Euler bounded by the stiffest spring (the accuracy reference).
     implicit_step : "frame" or float
         Step of the implicit solve: one frame (1 / frame_rate), or a time [s].
     haptic_rate : float
@@ -226,7 +227,7 @@ class Scene:
     volume: str = "asset"
     dashpot: float = 0.0
     velocity_decay: float | None = 0.2
-    method: str = "explicit"
+    method: str = "implicit"
     implicit_step: Any = "frame"
     haptic_rate: float = 1000.0
     newton_tol: float = 0.01

@@ -9,6 +9,8 @@ the pieces that own them.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 
 import numpy as np
@@ -185,16 +187,23 @@ class Simulator:
         """
         return self.stepper.advance(self.model, self.state, self.control, nsteps, record=record)
 
-    def relax(self, *, ftol: float | None = None, rtol: float = 1e-8, max_iter: int = 200_000) -> dict:
+    def relax(self, *, ftol: float | None = None, rtol: float = 1e-8, max_iter: int = 200_000,
+              inertia: np.ndarray | None = None) -> dict:
         """Static equilibrium under gravity (and a held grasp) with FIRE: :func:`.relax.relax`.
 
         FIRE's molecular-dynamics step is the explicit stability bound (also
-        when the stepper is implicit and has none).
+        when the stepper is implicit and has none). *inertia*: FIRE's node
+        masses instead of the model's (its path, and so the equilibrium it finds
+        on a sticking floor, depends on them).
         """
-        dtc = self.bound.dt_critical
+        model, control = self.model, self.control
+        if inertia is not None:
+            model = dataclasses.replace(model, mass=np.ascontiguousarray(inertia, dtype=np.float64))
+            control = Control.of(model, control.grasp)
+        dtc = self.bound.dt_critical if inertia is None else math.inf
         if not np.isfinite(dtc):
-            dtc = SymplecticEuler().bound(self.model, self.control).dt_critical
-        return relax(self.model, self.state, self.control, dt_critical=dtc, ftol=ftol, rtol=rtol, max_iter=max_iter)
+            dtc = SymplecticEuler().bound(model, control).dt_critical
+        return relax(model, self.state, control, dt_critical=dtc, ftol=ftol, rtol=rtol, max_iter=max_iter)
 
     def settle_effects(self) -> None:
         """Take the current configuration as long held (:func:`.relax.settle_effects`)."""
