@@ -258,7 +258,7 @@ def test_implicit_matches_the_explicit_reference_on_a_sticking_bed(slab):
     (:class:`Slides`). Holding them to the step's end instead erred 7.2 % in force here (and 29 % on
     the paper liver, docs/simulate.md §2b). The displacement is not held to 5 % on this slab: the
     peeled corner leaves the bed a step before the explicit one's (9 % of the largest displacement
-    at 1/30 s, 4 % at 1/240 s; on the livers 0.5-1.1 %)."""
+    at 1/30 s, 4 % at 1/240 s; on the livers 0.3-0.9 %)."""
     tables = make_tables(mu0=2.0e4)
     fl = Floor.under(slab.points, (0, 0, -9.81), friction="stick")
     dt = stable_step(build_spring_term(slab, tables, dashpot=2e-4), slab.mass).dt

@@ -317,8 +317,8 @@ class BackwardEuler:
         return x, g, new, float(np.sqrt(np.einsum("ij,ij->i", dx.reshape(-1, 3), dx.reshape(-1, 3)).max()))
 
     def _contact_rounds(self, floor) -> int:
-        """Re-solves after releases this step: as set, or by the floor (class doc): one on a
-        frictionless floor (let go), two on a sticking one (let slide, then let go)."""
+        """Re-solves after the contacts changed within a step: as set, or by the floor (class doc):
+        one on a frictionless floor (let go), two on a sticking one (slide, then stop or let go)."""
         if self.contact_rounds is not None:
             return int(self.contact_rounds)
         if floor is None:
