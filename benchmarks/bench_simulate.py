@@ -263,7 +263,7 @@ def bench_demo(tables_unused=None) -> dict:
         prepare(src, output=Path(d) / "liver.h5")
         out["prepare_s"] = time.perf_counter() - t
         asset = read_asset(Path(d) / "liver.h5")
-        base = load_scene("default").with_overrides(duration=1.0)
+        base = load_scene("default").with_overrides(duration=1.0, method="explicit")   # its step modes
         for mode in ("adaptive", "table"):
             sc = replace(base, step=mode)
             res = simulate_network(asset.network, asset.tables, sc, Path(d) / mode)
