@@ -20,6 +20,7 @@ from esmm.pipeline.mesh.synthetic import box_tets
 from esmm.pipeline.network.forcelaw import tangent_stiffness
 from esmm.pipeline.network.springs import network_from_tets
 from esmm.pipeline.network.tables import StiffnessTables
+from esmm.pipeline.progress import ListReporter
 from esmm.pipeline.simulate import kernels as K
 from esmm.pipeline.simulate.history import History
 from esmm.pipeline.simulate.implicit import BackwardEuler, Slides
@@ -427,6 +428,17 @@ def test_the_start_on_a_sticking_floor_does_not_depend_on_the_stepper(tmp_path, 
     assert scaled["explicit"] > 0 and scaled["implicit"] == 0      # the two steppers' masses differ
     assert np.abs(starts["explicit"]).max() > 1e-5                  # it sagged onto the floor
     np.testing.assert_array_equal(starts["implicit"], starts["explicit"])
+
+
+def test_threads_asked_of_the_implicit_stepper_are_reported_unused(tmp_path, slab):
+    rep = ListReporter()
+    sc = scene_from_dict({"scene": {"duration": "0.05 s", "gravity": [0, 0, -9.81]},
+                          "integrator": {"method": "implicit", "threads": 2}}, source="t")
+    simulate_network(slab, make_tables(), sc, tmp_path / "two", reporter=rep)
+    assert any("threads = 2 is not used" in w for w in rep.warnings)
+    rep1 = ListReporter()
+    simulate_network(slab, make_tables(), sc.with_overrides(threads=1), tmp_path / "one", reporter=rep1)
+    assert not any("threads" in w for w in rep1.warnings)
 
 
 def test_scene_integrator_keys():

@@ -263,6 +263,9 @@ def _plan_implicit(run: RunSetup, scene: Scene, table, reporter) -> None:
     sim.set_time_step(frame_dt / spf, bound=schedule.bound(sim.model, sim.state, sim.control, None), t0=0.0)
     run.threads, run.thread_timing = 1, {}
     sim.threads = 1
+    if isinstance(scene.threads, int) and scene.threads > 1:
+        reporter.warn(f"[integrator] threads = {scene.threads} is not used: the implicit stepper runs on one "
+                      "thread (method = \"explicit\" uses them)")
     run.schedule = schedule
     run.prefactor_s = sim.stepper.prepare(sim.model, sim.state, sim.control)
     st = sim.stepper.stats
