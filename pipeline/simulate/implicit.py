@@ -280,10 +280,11 @@ class BackwardEuler:
                 x, g, norm, moved = self._newton(model, state, control, x, x0, v0, h, dt_fx, g, norm, contact,
                                                  mass_dof, coupling, fixed_dof)
                 it += 1
-            changed = self._contact_update(floor, g, x, contact, final=rounds == extra)
+            changed, moved = self._contact_update(floor, g, x, contact, final=rounds == extra)
             if changed:
                 self._set_rows(model, control, contact, h)
-                _, g = self._residual(model, state, control, x, x0, v0, h, dt_fx)
+                if moved:
+                    _, g = self._residual(model, state, control, x, x0, v0, h, dt_fx)
                 norm = self._norm(g, control, contact, floor)
             if not changed or rounds == extra:
                 break
@@ -325,23 +326,26 @@ class BackwardEuler:
             return 0
         return 2 if floor.friction == "stick" else 1
 
-    def _contact_update(self, floor, g: np.ndarray, x: np.ndarray, contact: np.ndarray, *, final: bool) -> bool:
+    def _contact_update(self, floor, g: np.ndarray, x: np.ndarray, contact: np.ndarray, *,
+                        final: bool) -> tuple[bool, bool]:
         """The floor's contacts after a solve (*contact* in place; *x* too where a slide stops); whether
-        they changed. ``lam = g . n`` is the floor's reaction on a node (> 0: it pushes). A contact it
+        they changed, and whether *x* moved. ``lam = g . n`` is the floor's reaction on a node (> 0: it pushes). A contact it
         would have to pull leaves it, except on a sticking floor where the step is solved again
         (:class:`Slides`; with ``contact_rounds`` 0 it leaves at the step's end, the rule before them)."""
         if floor is None or not contact.any():
-            return False
+            return False, False
         lam = g @ floor.normal
+        moved = False
         if floor.friction == "stick" and self._contact_rounds(floor) > 0:
             leave, changed, started = self._slides.update(lam, x, contact, final=final)
             self.stats.slides += started
+            moved = self._slides.moved
         else:
             leave = contact & (lam < 0.0)
             changed = bool(leave.any())
         contact &= ~leave
         self.stats.contact_changes += int(leave.sum())
-        return changed
+        return changed, moved
 
     def _holds(self, contact: np.ndarray, floor) -> tuple[np.ndarray, np.ndarray]:
         """(held in place, held along the normal only): the floor's contacts by its friction and the
@@ -691,6 +695,7 @@ class Slides:
     lam0: np.ndarray                    #: (n,) the reaction when its slide began (< 0) [N]
     x0: np.ndarray                      #: (n, 3) where it was held then [m]
     field0: np.ndarray | None = None    #: (n, 3) every node then [m]
+    moved: bool = False                 #: the last update moved nodes (slides stopped)
 
     @classmethod
     def none(cls, n: int) -> Slides:
@@ -704,6 +709,7 @@ class Slides:
         stop = contact & self.sliding & ~pulled
         start = pulled & ~self.slid
         self.sliding &= ~leave
+        self.moved = bool(stop.any()) and not final
         if final:
             return leave, bool(leave.any()), 0
         if stop.any():

@@ -10,7 +10,6 @@ the pieces that own them.
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 
 import numpy as np
@@ -196,12 +195,11 @@ class Simulator:
         masses instead of the model's (its path, and so the equilibrium it finds
         on a sticking floor, depends on them).
         """
-        model, control = self.model, self.control
+        model, control, dtc = self.model, self.control, self.bound.dt_critical
         if inertia is not None:
             model = dataclasses.replace(model, mass=np.ascontiguousarray(inertia, dtype=np.float64))
             control = Control.of(model, control.grasp)
-        dtc = self.bound.dt_critical if inertia is None else math.inf
-        if not np.isfinite(dtc):
+        if inertia is not None or not np.isfinite(dtc):
             dtc = SymplecticEuler().bound(model, control).dt_critical
         return relax(model, self.state, control, dt_critical=dtc, ftol=ftol, rtol=rtol, max_iter=max_iter)
 
