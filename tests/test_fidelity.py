@@ -131,6 +131,39 @@ def test_condensed_mini_solves_the_whole_system(block, liver):
     assert np.abs(x - _lu_solve(A, b)).max() < 1e-6 * np.abs(x).max()
 
 
+def test_p2_factorization_in_node_order_is_the_lu(block, liver):
+    """The P2 system's LDLᵀ in nested-dissection order gives the LU's answer, with less fill than its COLAMD."""
+    import felupe as fem
+    import scipy.sparse.linalg as spl
+    from esmm.pipeline.fidelity.continuum import _discretise, _lu_solve, _NodeDissection
+
+    case = shear_case(*block, gamma=0.2)
+    field, solid, _, mask, _, _ = _discretise(fem, case, liver, bulk_modulus(liver), "p2")
+    dof1 = np.flatnonzero(~mask.ravel())
+    A = solid.assemble.matrix(field).tocsr()[dof1][:, dof1]
+    b = np.cos(np.arange(A.shape[0]))
+    solver = _NodeDissection(dof1)
+    x = solver(A, b)
+    assert solver.count == 1 and solver.fallbacks == 0
+    assert np.abs(x - _lu_solve(A, b)).max() < 1e-8 * np.abs(x).max()
+    p = solver.perm
+    assert np.array_equal(np.sort(p), np.arange(A.shape[0]))
+    ours = spl.splu(A[p][:, p].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    colamd = spl.splu(A.tocsc(), permc_spec="COLAMD")
+    assert ours.L.nnz + ours.U.nnz < colamd.L.nnz + colamd.U.nnz
+
+
+def test_p2_factorization_falls_back_to_the_lu_on_a_tiny_pivot():
+    """An indefinite matrix whose diagonal pivots grow without bound is solved by the LU instead."""
+    import scipy.sparse as sp
+    from esmm.pipeline.fidelity.continuum import _NodeDissection
+
+    A = sp.bmat([[1e-17 * sp.identity(3), sp.identity(3)], [sp.identity(3), None]]).tocsr()
+    solver = _NodeDissection(np.arange(6))
+    x = solver(A, np.arange(6.0))
+    assert solver.fallbacks == 1 and np.allclose(x, [3, 4, 5, 0, 1, 2])
+
+
 @pytest.mark.parametrize("element", ["p2", "mini"])
 def test_continuum_warm_start_reaches_the_same_equilibrium(block, liver, element):
     """Started from the solution of another stretch, the solve ends where a solve from rest does."""
@@ -162,6 +195,27 @@ def test_a_case_without_equilibrium_is_reported_and_the_others_run(small_network
     rep = validate_network(net, tables, liver, cases=["tension", "shear"], element="p2")
     assert [r.case.name for r in rep.results] == ["shear"]
     assert "tension" in rep.info["failed"] and "| tension | no equilibrium:" in rep.table()
+
+
+def test_auto_element_solves_with_mini_a_case_p2_finds_no_equilibrium_for(small_network, liver, monkeypatch):
+    import esmm.pipeline.fidelity.validate as V
+
+    real, tried = V.solve_continuum, []
+
+    def p2_fails_on_tension(case, *args, element, **kw):
+        tried.append((case.name, element))
+        if case.name == "tension" and element == "p2":
+            raise SimulationError("continuum reference: no equilibrium (test)")
+        return real(case, *args, element=element, **kw)
+
+    monkeypatch.setattr(V, "solve_continuum", p2_fails_on_tension)
+    net, tables = small_network
+    rep = validate_network(net, tables, liver, cases=["tension", "shear"])
+    assert tried == [("tension", "p2"), ("tension", "mini"), ("shear", "p2")]
+    tension, shear = rep.results
+    assert tension.continuum.info["element"] == "mini" and "p2: " in tension.continuum.info["element_fallback"]
+    assert "element_fallback" not in shear.continuum.info
+    assert "| tension (mini) |" in rep.table() and "| shear |" in rep.table() and not rep.info["failed"]
 
 
 def test_continuum_prints_nothing(block, liver, capsys):
