@@ -33,6 +33,7 @@ import numpy as np
 
 from ..errors import ConfigError, SimulationError
 from ..progress import ensure
+from ..simulate.linsolve import node_ordering
 from .cases import LoadCase
 from .material import IsochoricMaterial, bulk_modulus
 from .solution import Solution
@@ -304,8 +305,6 @@ class _NodeDissection:
 
     def _order(self, A) -> np.ndarray:
         import scipy.sparse as sp
-
-        from ..simulate.linsolve import node_ordering
 
         n = int(self.dof1.max()) // 3 + 1
         C = A.tocoo()            # node_ordering reads each node's first row: put every block's columns there
