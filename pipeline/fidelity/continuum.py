@@ -218,7 +218,8 @@ def solve_continuum(case: LoadCase, material, *, bulk: float | None = None, elem
     return _solution(case, solid, body, stepper.field, members, K, {
         "bulk_modulus_Pa": K, "element": element, "elements": ELEMENTS[element], "dofs": ndof,
         "load_steps": done_steps, "step_cuts": cuts, "newton_iterations": stepper.iterations,
-        "factorisations": stepper.factorisations, "lu_fallbacks": int(getattr(stepper.solver, "fallbacks", 0)), "warm_start": start is not None,
+        "factorisations": stepper.factorisations, "lu_fallbacks": int(getattr(stepper.solver, "fallbacks", 0)),
+        "warm_start": start is not None,
         "seconds": time.perf_counter() - t_start})
 
 

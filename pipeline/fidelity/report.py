@@ -33,7 +33,9 @@ def table_rows(results) -> list[list[str]]:
     """The table's cells: one row per case (percentages, mm)."""
     rows = []
     for r in results:
-        name = f"{r.case.name} ({r.continuum.info['element']})" if "element_fallback" in r.continuum.info else r.case.name
+        name = r.case.name                      # marked with its element if P2 found no equilibrium
+        if "element_fallback" in r.continuum.info:
+            name += f" ({r.continuum.info['element']})"
         rows.append([name, _pct(r.l2_error), _pct(r.max_error), _pct(r.force_error),
                      _pct(r.continuum.volume_ratio - 1), _pct(r.network.volume_ratio - 1),
                      f"{r.continuum.inverted} / {r.network.inverted}", f"{r.max_displacement_m * 1e3:.3g} mm"])
