@@ -44,7 +44,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         "has one (auto, default)")
     p.add_argument("--law", choices=("secant", "energy"), default=None, help="network force law (the tables')")
     p.add_argument("--element", choices=("auto", "p2", "mini"), default="auto",
-                   help="continuum element: quadratic tets (p2) or MINI; auto by size")
+                   help="continuum element: quadratic tets (p2, the reference) or MINI (first order); "
+                        "auto: p2 up to a size (docs/validate.md section 1), MINI above it and for a case p2 "
+                        "cannot solve")
     p.add_argument("--scene", metavar="C", default=None, help="scene of the organ cases (default 'default')")
     p.add_argument("--json", metavar="OUT.json", default=None, help="also write the figures there ('-': stdout)")
     p.add_argument("--out", metavar="DIR", default=None, help="output folder")
