@@ -226,9 +226,8 @@ def _solve_case(case, network, tables, material, *, law, terms, bulk, elements, 
 
     if case.floor is None:
         nw = solve_network(case, network, tables, law=law, terms=terms, reporter=rep)
-        fe = _first_of(elements, lambda el: solve_continuum(case, material, bulk=bulk, element=el, reporter=rep),
-                       case, rep)
-        pins = 0
+        fe, pins = _first_of(elements, lambda el: (solve_continuum(case, material, bulk=bulk, element=el,
+                                                                   reporter=rep), 0), case, rep)
     else:
         nw, pins_n = _on_the_floor(case, net, max_rounds, rep)
         fe, pins_c = _first_of(elements, lambda el: _on_the_floor(case, fem(el), max_rounds, rep), case, rep)
@@ -241,7 +240,8 @@ def _solve_case(case, network, tables, material, *, law, terms, bulk, elements, 
 
 
 def _first_of(elements, solve, case, rep):
-    """``solve(element)`` with the first of *elements* whose continuum finds an equilibrium.
+    """``solve(element)`` (a ``(Solution, pins)`` pair) with the first of *elements* whose continuum finds
+    an equilibrium.
 
     A solution from a later element records why in its ``info["element_fallback"]``.
     """
@@ -254,7 +254,7 @@ def _first_of(elements, solve, case, rep):
             reason = f"{element}: {exc}"
     out = solve(elements[-1])
     if len(elements) > 1:
-        (out[0] if isinstance(out, tuple) else out).info["element_fallback"] = reason
+        out[0].info["element_fallback"] = reason
     return out
 
 
