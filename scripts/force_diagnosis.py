@@ -21,7 +21,8 @@ figure on stdout):
   or with ``--asset A.h5 --out B.h5`` a copy of an asset with those tables (to
   ``esmm validate B.h5``);
 * ``timing``: the network side of ``esmm validate ASSET`` (``--cases``, volume
-  term on), its LU ordered the old way (minimum degree) and the new (COLAMD),
+  term on), its tangent factored the old way (the LU with COLAMD) and the new
+  (the LDLᵀ in node order, :func:`esmm.pipeline.network.newton.free_order`),
   in one process: seconds and the largest displacement difference.
 """
 
@@ -101,11 +102,11 @@ def timing(args, _material):
     a = read_asset(args.asset)
     rep = ensure(None)
     terms = fv.network_terms(a.network, a.tables, a.material, volume_term="on")
-    new = network_solve.lu_ordering
+    new = network_solve.free_order
     for name in args.cases:
         u = []
-        for label, order in (("minimum degree", lambda _v: "MMD_AT_PLUS_A"), ("colamd", new)):
-            network_solve.lu_ordering = order
+        for label, order in (("colamd", lambda _K, _free: None), ("node order", new)):
+            network_solve.free_order = order
             case = fv._cases_for(a.network, [name], fv.LoadOptions(), rep)[0]
             t = time.perf_counter()
             if case.floor is None:
@@ -116,7 +117,7 @@ def timing(args, _material):
             u.append(s.displacement)
             print(json.dumps(dict(part="timing", case=name, ordering=label, seconds=time.perf_counter() - t)),
                   flush=True)
-        network_solve.lu_ordering = new
+        network_solve.free_order = new
         print(json.dumps(dict(part="timing", case=name, max_difference_m=float(np.abs(u[0] - u[1]).max()))),
               flush=True)
 

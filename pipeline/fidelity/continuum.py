@@ -32,8 +32,8 @@ from io import StringIO
 import numpy as np
 
 from ..errors import ConfigError, SimulationError
+from ..network.newton import OrderedFactor, at_round_off, ldlt, node_ordering
 from ..progress import ensure
-from ..simulate.linsolve import node_ordering
 from .cases import LoadCase
 from .material import IsochoricMaterial, bulk_modulus
 from .solution import Solution
@@ -292,8 +292,8 @@ class _NodeDissection:
     """The P2 system (displacements only: P0 pressure and volume ratio condensed, symmetric) by an LDLᵀ.
 
     SuperLU without pivoting in symmetric mode on the matrix permuted by
-    METIS nested dissection of its node graph (the simulator's
-    :func:`~esmm.pipeline.simulate.linsolve.node_ordering`, computed once: the
+    METIS nested dissection of its node graph
+    (:func:`~esmm.pipeline.network.newton.node_ordering`, computed once: the
     pattern stays). On the kidney's lift (21 279 unknowns) 0.7 s and 14.8 M
     entries against 3.6 s and 37 M for the LU with COLAMD (docs/validate.md
     §1). No pivoting is exact for a positive definite matrix, which a stable
@@ -316,24 +316,16 @@ class _NodeDissection:
         return p[p >= 0]
 
     def __call__(self, A, b):
-        import scipy.sparse.linalg as spl
-
         self.count += 1
         b = np.asarray(b, dtype=np.float64).ravel()
         if self.perm is None:
             self.perm = self._order(A)
-        p = self.perm
         A = A.tocsr()
-        x = np.empty_like(b)
         try:
-            lu = spl.splu(A[p][:, p].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0,
-                          options={"SymmetricMode": True})
-            x[p] = lu.solve(b[p])
+            x = OrderedFactor(self.perm, ldlt(A, self.perm)).solve(b)
         except RuntimeError:   # a zero pivot
-            x[:] = np.nan
-        ok = bool(np.all(np.isfinite(x))) and float(np.abs(A @ x - b).max()) <= 1e-9 * float(
-            np.abs(b).max() + abs(A).max() * np.abs(x).max())
-        if not ok:
+            x = np.full_like(b, np.nan)
+        if not at_round_off(A, x, b):
             self.fallbacks += 1
             return _lu_solve(A, b)
         return x

@@ -33,7 +33,7 @@ import numpy as np
 
 from ..errors import SimulationError
 from ..network import forcelaw
-from ..network.newton import descent_direction, lu_ordering
+from ..network.newton import descent_direction, free_order
 from ..network.springs import tet_volumes
 from ..progress import ensure
 from .cases import LoadCase
@@ -69,8 +69,7 @@ class _Problem:
         self.mask, self.u = case.prescribed()
         self.free = ~self.mask.ravel()
         self.t = 0.0
-        # SuperLU's ordering: COLAMD once a volume term couples second neighbours (lu_ordering).
-        self.ordering = lu_ordering(len(terms) > 1)
+        self.order = None                 # of the free dofs, from the first tangent (the pattern stays)
         self.factorizations = 0
         # The path: from rest (gravity off) or from *start* (gravity on, prescribed values where they are).
         self.g0, self.u0 = (0.0, np.zeros_like(self.u)) if start is None else (1.0, start.displacement)
@@ -90,9 +89,11 @@ class _Problem:
         return sum(term.tangent(x) for term in self.terms).tocsr()
 
     def direction(self, K, g):
-        """Newton direction ``-K^-1 g`` (K shifted towards positive definite when needed) or None."""
+        """Newton direction ``-K_ff^-1 g`` of the whole tangent *K* (shifted towards positive definite when needed) or None."""
         self.factorizations += 1
-        return descent_direction(K, g, ordering=self.ordering)[0]
+        if self.order is None:
+            self.order = free_order(K, self.free)
+        return descent_direction(K[self.free][:, self.free], g, order=self.order)[0]
 
     def residual_scale(self, x) -> float:
         g = self.scale(self.t) * self.fg
@@ -115,7 +116,7 @@ def _newton(pb: _Problem, x, rtol: float, max_iter: int):
             return False, x, it
         if g.size == 0 or float(np.abs(g).max()) <= rtol * pb.residual_scale(x):
             return True, x, it - 1
-        d = pb.direction(pb.tangent(x)[free][:, free], g)
+        d = pb.direction(pb.tangent(x), g)
         if d is None:
             return False, x, it
         a, slope = 1.0, float(g @ d)
@@ -142,7 +143,7 @@ def _predict(pb: _Problem, x, t_new: float):
     free = pb.free
     K = pb.tangent(x)
     g = -(pb.forces(x) + (pb.scale(t_new) - pb.scale(pb.t)) * pb.fg).ravel()[free] + K[free][:, ~free] @ dp[~free]
-    d = pb.direction(K[free][:, free], g)
+    d = pb.direction(K, g)
     if d is None:
         return xn
     out = xn.ravel()

@@ -35,7 +35,7 @@ from ..materials.loading import nominal_stress
 from ..mesh.gmsh_model import gmsh_model, tetrahedra
 from ..progress import ensure
 from . import forcelaw
-from .newton import descent_direction, lu_ordering
+from .newton import descent_direction, free_order
 from .springs import network_from_tets, tet_volumes
 from .tables import StiffnessTables
 from .volume import VolumeElements, VolumeSpec, volume_elements
@@ -441,7 +441,7 @@ class Potential:
     tables: StiffnessTables
     law: str
     volume: VolumeElements | None = None
-    factor: dict = field(default_factory=dict, repr=False)     #: a kept factorization (see :func:`_newton`)
+    factor: dict = field(default_factory=dict, repr=False)     #: a kept factorization and dof order (:func:`_newton`)
 
     def energy(self, x: np.ndarray) -> float:
         e = forcelaw.spring_energy(x, self.network, self.tables, law=self.law)
@@ -468,6 +468,14 @@ class Potential:
         return max(float(np.max(np.abs(mags))), floor, 1e-300)
 
 
+def _order(pot: Potential, K, free) -> np.ndarray:
+    """The free tangent's fill-reducing order (:func:`~.newton.free_order`), kept in ``pot.factor`` per *free*."""
+    kept = pot.factor.get("order")
+    if kept is None or not np.array_equal(kept[0], free):
+        kept = pot.factor["order"] = (np.array(free, copy=True), free_order(K, free))
+    return kept[1]
+
+
 def _newton(x, pot: Potential, free, H, rtol, max_iter):
     """Newton's method on the potential, from *x*: (converged, x, iterations, residual).
 
@@ -483,7 +491,6 @@ def _newton(x, pot: Potential, free, H, rtol, max_iter):
     if not math.isfinite(E):
         return False, x, 0, math.inf
     res = math.inf
-    ordering = lu_ordering(pot.volume is not None)
     frozen = None                                  # residual before a step taken with a kept factorization
     for it in range(1, max_iter + 1):
         g = -pot.forces(x).ravel()[free]
@@ -502,7 +509,8 @@ def _newton(x, pot: Potential, free, H, rtol, max_iter):
             else:
                 d = None
         if d is None:
-            d, lu = descent_direction(pot.tangent(x)[free][:, free].tocsc(), g, ordering=ordering)
+            K = pot.tangent(x)
+            d, lu = descent_direction(K[free][:, free].tocsc(), g, order=_order(pot, K, free))
             if d is None:
                 return False, x, it, res
             if pot.volume is not None:

@@ -50,8 +50,9 @@ import numpy as np
 import scipy.sparse as sps
 
 from ..errors import ConfigError
+from ..network.newton import node_ordering
 from . import kernels as K
-from .linsolve import Constraints, SparseFactor, node_ordering, pcg
+from .linsolve import Constraints, SparseFactor, pcg
 from .model import Control, Model, State
 from .scene import FACTORS
 from .stepper import StepBound

@@ -1,10 +1,10 @@
 r"""Sparse linear algebra of the implicit stepper: a reused factorization, constraints, conjugate gradients.
 
-* :func:`node_ordering`: a fill-reducing order of the nodes (METIS nested
-  dissection on the node graph of a 3x3-block matrix), expanded to the dofs;
 * :class:`SparseFactor`: an :math:`LDL^T`-type factorization of a symmetric
-  matrix in that order (SuperLU without pivoting, symmetric mode), used as the
-  Newton iteration's preconditioner for many steps;
+  matrix in a nested-dissection order (:mod:`esmm.pipeline.network.newton`'s
+  :func:`~esmm.pipeline.network.newton.node_ordering` and
+  :func:`~esmm.pipeline.network.newton.ldlt`), used as the Newton iteration's
+  preconditioner for many steps;
 * :class:`Constraints`: dofs held by hard constraints (prescribed grasp, floor
   contacts: a node, or its normal component) or by stiff coupling springs
   (the grasper in mode "spring"), joined to the factor by the capacitance
@@ -24,38 +24,9 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sps
 
 from ..errors import SimulationError
-
-
-def node_ordering(A) -> np.ndarray:
-    """Fill-reducing dof permutation of *A* (3n, 3n) with 3x3 blocks: METIS nested dissection of its node graph.
-
-    Returns
-    -------
-    ndarray, shape (3n,), int64
-        ``perm`` such that ``A[perm][:, perm]`` is factored with little fill.
-    """
-    import pymetis
-
-    A = sps.csr_matrix(A)
-    n = A.shape[0] // 3
-    rows = A[0::3].tocsr()                          # node a's first row holds every block column
-    nodes = rows.indices // 3
-    rid = np.repeat(np.arange(n), np.diff(rows.indptr))
-    key = np.unique(rid.astype(np.int64) * n + nodes)
-    r, c = key // n, key % n
-    keep = r != c
-    r, c = r[keep], c[keep]
-    xadj = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=n))]).astype(np.int64)
-    if c.size == 0:
-        order = np.arange(n)
-    else:
-        graph = pymetis.CSRAdjacency(xadj, c.astype(np.int64))
-        perm, _ = pymetis.nested_dissection(adjacency=graph)      # row i of A' is row perm[i] of A
-        order = np.asarray(perm, dtype=np.int64)
-    return (3 * order[:, None] + np.arange(3)).ravel()
+from ..network.newton import ldlt, node_ordering
 
 
 @dataclass(eq=False)
@@ -92,18 +63,15 @@ class SparseFactor:
         *single*: factor and solve in float32 (measured on the fine liver: solves
         1.6x faster, relative residual ~3e-4: a preconditioner, not a solver).
         """
-        from scipy.sparse.linalg import splu
-
         t = time.perf_counter()
         perm = node_ordering(A) if perm is None else perm
         dtype = np.float32 if single else np.float64
-        B = sps.csr_matrix(A)[perm][:, perm].tocsc().astype(dtype)
         try:
-            lu = splu(B, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+            lu = ldlt(A, perm, dtype=dtype)
         except RuntimeError as exc:            # an exactly singular pivot
             raise SimulationError(f"the implicit step's matrix could not be factored ({exc}); "
                                   "check the asset's masses and fixed nodes") from None
-        return cls(perm=perm, lu=lu, seconds=time.perf_counter() - t, nnz=int(lu.nnz + B.shape[0]) // 2,
+        return cls(perm=perm, lu=lu, seconds=time.perf_counter() - t, nnz=int(lu.nnz + A.shape[0]) // 2,
                    dtype=dtype)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
