@@ -4,7 +4,10 @@ The discovery solves many small least-squares problems (a few thousand rows,
 a dozen columns). For these, OpenBLAS threads cost more than they save, and on
 a machine whose cores are busy they cost a great deal (an SVD of a 4400 x 13
 Jacobian took 0.14 s with two threads on a loaded 2-core machine and 3 ms with
-one). :func:`single_threaded_blas` sets the thread count of every OpenBLAS
+one). The implicit stepper's conjugate gradients and sparse triangular
+solves are as small: on the fine liver under load its dot products took 1.4
+ms each with two threads and 10 µs with one (docs/simulate.md §8).
+:func:`single_threaded_blas` sets the thread count of every OpenBLAS
 loaded in the process to 1 for the duration of a ``with`` block and restores
 it after, using ``threadpoolctl`` when it is installed and the libraries'
 own ``*_set_num_threads`` entry points otherwise. It does nothing where neither
@@ -52,15 +55,29 @@ def _handles() -> list[tuple]:
     return out
 
 
+_CONTROLLER: list = []
+
+
+def _controller():
+    """threadpoolctl's controller of the libraries loaded so far (made once: 1 ms, then 10 µs a block), or None."""
+    if not _CONTROLLER:
+        try:
+            from threadpoolctl import ThreadpoolController  # type: ignore[import-not-found]
+        except ImportError:
+            _CONTROLLER.append(None)
+        else:
+            import scipy.sparse.linalg  # noqa: F401 - scipy's OpenBLAS (SuperLU's) loaded before the controller looks
+
+            _CONTROLLER.append(ThreadpoolController())
+    return _CONTROLLER[0]
+
+
 @contextlib.contextmanager
 def single_threaded_blas() -> Iterator[None]:
     """Context manager: OpenBLAS uses one thread inside the block."""
-    try:
-        from threadpoolctl import threadpool_limits  # type: ignore[import-not-found]
-    except ImportError:
-        threadpool_limits = None
-    if threadpool_limits is not None:
-        with threadpool_limits(limits=1, user_api="blas"):
+    controller = _controller()
+    if controller is not None:
+        with controller.limit(limits=1, user_api="blas"):
             yield
         return
     saved = []

@@ -14,6 +14,7 @@ import time
 
 import numpy as np
 
+from ..blas import single_threaded_blas
 from ..errors import ConfigError, SimulationError
 from . import kernels as K
 from .model import Control, Floor, Grasp, Model, State
@@ -182,9 +183,12 @@ class Simulator:
         """Run *nsteps* steps; return the force on the grasper at each step, shape (nsteps, 3) [N].
 
         The force is the one the tissue (with its weight) exerts on the grasper
-        (what a haptic device renders); zeros when nothing is grasped.
+        (what a haptic device renders); zeros when nothing is grasped. OpenBLAS
+        runs on one thread meanwhile: the implicit stepper's vector and
+        triangular-solve operations are too small to share (docs/simulate.md §8).
         """
-        return self.stepper.advance(self.model, self.state, self.control, nsteps, record=record)
+        with single_threaded_blas():
+            return self.stepper.advance(self.model, self.state, self.control, nsteps, record=record)
 
     def relax(self, *, ftol: float | None = None, rtol: float = 1e-8, max_iter: int = 200_000,
               inertia: np.ndarray | None = None) -> dict:
