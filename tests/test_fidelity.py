@@ -409,3 +409,29 @@ def test_cli_exit_status_says_a_case_found_no_equilibrium(tmp_path, capsys, monk
 def test_cli_needs_an_asset_or_the_specimen(capsys):
     assert main(["validate"]) == 2
     assert "--specimen" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("stretch", [1.3, 1.36])
+def test_continuum_reports_how_near_locking_it_goes(block, liver, stretch):
+    """Homogeneous uniaxial: Ī1 = λ² + 2/λ at every point (to the penalty's volume change, as the stress
+    test's 5e-3); the locking share is its way from 3 to 3N."""
+    case = uniaxial_case(*block, stretch=stretch)
+    sol = solve_continuum(case, liver, element="p2")
+    share = (stretch ** 2 + 2.0 / stretch - 3.0) / (3.0 * liver.params_for(None)["N"] - 3.0)
+    assert sol.info["locking_share"] == pytest.approx(share, rel=2e-3)
+    assert sol.info["cells_near_locking"] == (case.tets.shape[0] if share >= 0.99 else 0)
+
+
+@pytest.mark.parametrize("stretch", [1.2, 1.36])
+def test_validate_warns_when_the_continuum_nears_locking(small_network, liver, stretch):
+    from esmm.pipeline.fidelity.validate import LoadOptions
+    from esmm.pipeline.progress import ListReporter
+
+    net, tables = small_network
+    rep = ListReporter()
+    out = validate_network(net, tables, liver, cases=["tension"], loads=LoadOptions(tension=stretch), element="p2",
+                           reporter=rep)
+    share = (stretch ** 2 + 2.0 / stretch - 3.0) / (3.0 * liver.params_for(None)["N"] - 3.0)   # 0.33, 0.994
+    assert out.results[0].figures()["continuum"]["locking_share"] == pytest.approx(share, rel=2e-3)
+    near = [w for w in rep.warnings if "locking" in w]
+    assert bool(near) == (share >= 0.99)

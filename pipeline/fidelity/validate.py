@@ -42,7 +42,7 @@ from .cases import (
     with_floor_pins,
 )
 from .compare import CaseResult, compare
-from .continuum import solve_continuum
+from .continuum import NEAR_LOCKING, solve_continuum
 from .material import DEFAULT_BULK_RATIO, bulk_modulus, check_continuum
 from .network_solve import solve_network
 from .report import plot_case, table_markdown, write_fields
@@ -234,6 +234,11 @@ def _solve_case(case, network, tables, material, *, law, terms, bulk, elements, 
         pins = max(pins_n, pins_c)
         rep.step(f"{case.name}: {pins_c} continuum and {pins_n} network nodes on the floor")
     res = compare(case, fe, nw, pins=pins)
+    if fe.info.get("cells_near_locking"):
+        rep.warn(f"{case.name}: the continuum comes within {100 * (1 - NEAR_LOCKING):.0f} % of the material's "
+                 f"locking in {fe.info['cells_near_locking']} cell(s) (largest share of the way "
+                 f"{fe.info['locking_share']:.4f}): its stiffness there has no bound, so its reaction force depends "
+                 "on the mesh; read the force error as the case's, not the network's alone (docs/validate.md §4)")
     rep.step(f"{case.name}: L2 error {100 * res.l2_error:.2f} %, max {100 * res.max_error:.2f} %, force "
              f"{100 * res.force_error:.2f} % (largest continuum displacement {res.max_displacement_m * 1e3:.3g} mm)")
     return res
