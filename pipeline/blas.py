@@ -6,7 +6,7 @@ a machine whose cores are busy they cost a great deal (an SVD of a 4400 x 13
 Jacobian took 0.14 s with two threads on a loaded 2-core machine and 3 ms with
 one). The implicit stepper's conjugate gradients and sparse triangular
 solves are as small: on the fine liver under load its dot products took 1.4
-ms each with two threads and 10 µs with one (docs/simulate.md §8).
+ms each with two threads and 10 µs with one (docs/simulate.md §2b).
 :func:`single_threaded_blas` sets the thread count of every OpenBLAS
 loaded in the process to 1 for the duration of a ``with`` block and restores
 it after, using ``threadpoolctl`` when it is installed and the libraries'
