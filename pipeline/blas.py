@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import functools
 from collections.abc import Iterator
 
 _NAMES = (
@@ -55,21 +56,16 @@ def _handles() -> list[tuple]:
     return out
 
 
-_CONTROLLER: list = []
-
-
+@functools.cache
 def _controller():
     """threadpoolctl's controller of the libraries loaded so far (made once: 1 ms, then 10 µs a block), or None."""
-    if not _CONTROLLER:
-        try:
-            from threadpoolctl import ThreadpoolController  # type: ignore[import-not-found]
-        except ImportError:
-            _CONTROLLER.append(None)
-        else:
-            import scipy.sparse.linalg  # noqa: F401 - scipy's OpenBLAS (SuperLU's) loaded before the controller looks
+    try:
+        from threadpoolctl import ThreadpoolController  # type: ignore[import-not-found]
+    except ImportError:
+        return None
+    import scipy.sparse.linalg  # noqa: F401 - scipy's OpenBLAS (SuperLU's) loaded before the controller looks
 
-            _CONTROLLER.append(ThreadpoolController())
-    return _CONTROLLER[0]
+    return ThreadpoolController()
 
 
 @contextlib.contextmanager

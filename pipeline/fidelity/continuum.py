@@ -32,7 +32,7 @@ from io import StringIO
 import numpy as np
 
 from ..errors import ConfigError, SimulationError
-from ..network.newton import OrderedFactor, at_round_off, ldlt, node_ordering
+from ..network.newton import OrderedFactor, node_ordering, ordered_solve
 from ..progress import ensure
 from .cases import LoadCase
 from .material import IsochoricMaterial, bulk_modulus
@@ -317,17 +317,12 @@ class _NodeDissection:
 
     def __call__(self, A, b):
         self.count += 1
-        b = np.asarray(b, dtype=np.float64).ravel()
         if self.perm is None:
             self.perm = self._order(A)
-        A = A.tocsr()
-        try:
-            x = OrderedFactor(self.perm, ldlt(A, self.perm)).solve(b)
-        except RuntimeError:   # a zero pivot
-            x = np.full_like(b, np.nan)
-        if not at_round_off(A, x, b):
-            self.fallbacks += 1
-            return _lu_solve(A, b)
+        x, fac = ordered_solve(A.tocsr(), np.asarray(b, dtype=np.float64).ravel(), self.perm)
+        if x is None:
+            raise RuntimeError("the P2 system is exactly singular")
+        self.fallbacks += not isinstance(fac, OrderedFactor)
         return x
 
 
@@ -413,13 +408,12 @@ def _max_i1(material) -> float:
     return float(material.model_obj.max_I1(material.params_for(None)))
 
 
-def _locking(F: np.ndarray, i1_lock: float) -> dict:
-    """How far the field *F* (3, 3, q, c) goes towards locking: the largest share of the way from rest to the
-    locking invariant over the quadrature points, and the cells with a point at :data:`NEAR_LOCKING` or beyond;
-    {} for a material that does not lock."""
+def _locking(F: np.ndarray, J: np.ndarray, i1_lock: float) -> dict:
+    """How far the field *F* (3, 3, q, c), of determinant *J* (q, c), goes towards locking: the largest share of
+    the way from rest to the locking invariant over the quadrature points, and the cells with a point at
+    :data:`NEAR_LOCKING` or beyond; {} for a material that does not lock."""
     if not np.isfinite(i1_lock):
         return {}
-    J = np.linalg.det(np.moveaxis(F, (0, 1), (-2, -1)))
     share = (np.einsum("ij...,ij...->...", F, F) / np.cbrt(J) ** 2 - 3.0) / (i1_lock - 3.0)    # (q, c)
     return {"locking_share": float(np.max(share)),
             "cells_near_locking": int(np.count_nonzero(np.any(share >= NEAR_LOCKING, axis=0)))}
@@ -437,5 +431,5 @@ def _solution(case: LoadCase, solid, body, field, members, K: float, i1_lock: fl
     dV = field.region.dV
     return Solution(solver="continuum", displacement=field[0].values[:n].copy(), reactions=reactions,
                     volume_ratio=float((J * dV).sum() / dV.sum()), element_J=J.min(axis=0),
-                    info={**info, **_locking(F, i1_lock)},
+                    info={**info, **_locking(F, J, i1_lock)},
                     state=solid.checkpoint())

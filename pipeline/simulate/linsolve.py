@@ -26,19 +26,18 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import SimulationError
-from ..network.newton import ldlt, node_ordering
+from ..network.newton import OrderedFactor, ldlt, node_ordering
 
 
 @dataclass(eq=False)
-class SparseFactor:
+class SparseFactor(OrderedFactor):
     """A symmetric matrix factored once, in a nested-dissection order, for many solves.
 
     SuperLU (scipy) on the permuted matrix with the natural column order, no
     pivoting and symmetric mode: for a symmetric positive definite matrix
     (the stepper's is one) an :math:`LDL^T` factorization (``U = D L^T``),
-    solved by SuperLU's supernodal sweeps. Its solves with many right-hand
-    sides at once slow down steeply (measured: 3 columns 1.8x one, 12 columns
-    100x), so :meth:`solve` takes at most three at a time.
+    solved by SuperLU's supernodal sweeps (:class:`OrderedFactor`'s ``solve``,
+    at most three right-hand sides at a time).
 
     Attributes
     ----------
@@ -49,12 +48,8 @@ class SparseFactor:
         Nonzeros of L (fill).
     """
 
-    perm: np.ndarray
-    lu: object
-    seconds: float
-    nnz: int
-
-    dtype: type = np.float64
+    seconds: float = 0.0
+    nnz: int = 0
 
     @classmethod
     def of(cls, A, perm: np.ndarray | None = None, *, single: bool = False) -> SparseFactor:
@@ -71,18 +66,8 @@ class SparseFactor:
         except RuntimeError as exc:            # an exactly singular pivot
             raise SimulationError(f"the implicit step's matrix could not be factored ({exc}); "
                                   "check the asset's masses and fixed nodes") from None
-        return cls(perm=perm, lu=lu, seconds=time.perf_counter() - t, nnz=int(lu.nnz + A.shape[0]) // 2,
-                   dtype=dtype)
-
-    def solve(self, b: np.ndarray) -> np.ndarray:
-        """``A^-1 b`` for *b* of shape (N,) or (N, k)."""
-        out = np.empty_like(b, dtype=np.float64)
-        if b.ndim == 1:
-            out[self.perm] = self.lu.solve(np.ascontiguousarray(b[self.perm], dtype=self.dtype))
-            return out
-        for c in range(0, b.shape[1], 3):
-            out[self.perm, c:c + 3] = self.lu.solve(np.ascontiguousarray(b[self.perm, c:c + 3], dtype=self.dtype))
-        return out
+        return cls(perm=perm, lu=lu, dtype=dtype, seconds=time.perf_counter() - t,
+                   nnz=int(lu.nnz + A.shape[0]) // 2)
 
 
 @dataclass(eq=False)
