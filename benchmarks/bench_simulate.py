@@ -316,11 +316,14 @@ def implicit_traffic(stats: dict, springs: int, nnz_tangent: int) -> dict:
     steps = max(1, stats["steps"])
     solves = stats["solves"] / steps
     newton = stats["newton"] / steps
+    quasi = stats.get("quasi_newton", 0) / steps
     cg = stats["cg"] / steps
     factor = 2 * 8 * 2 * stats["factor_nnz"]
-    b = solves * factor + cg * 12 * nnz_tangent + newton * (2 * 50 * springs + 12 * nnz_tangent)
-    return {"solves_per_step": solves, "newton_per_step": newton, "cg_per_step": cg,
-            "bytes_per_solve": factor, "bytes_per_step": b}
+    # a quasi-Newton iteration: its solve (counted in solves) and one or two force passes, no tangent
+    b = (solves * factor + cg * 12 * nnz_tangent + newton * (2 * 50 * springs + 12 * nnz_tangent)
+         + quasi * 2 * 50 * springs)
+    return {"solves_per_step": solves, "newton_per_step": newton, "quasi_newton_per_step": quasi,
+            "cg_per_step": cg, "bytes_per_solve": factor, "bytes_per_step": b}
 
 
 def implicit_accuracy(hist_implicit: Path, hist_explicit: Path, lift_end: float, frame_dt: float) -> dict:
@@ -356,7 +359,8 @@ def implicit_accuracy(hist_implicit: Path, hist_explicit: Path, lift_end: float,
 def bench_implicit(*, duration: float = 3.0, sizes=("100k", "500k-jacobi"), steps: int = 3) -> dict:
     """Real-time factors of the default and the interactive scene (the default on a frictionless bed,
     docs/simulate.md §9) on the bundled liver (paper and fine presets), implicit and explicit in one
-    run, and the implicit run's accuracy against the explicit one over the lift; the implicit step on
+    run, the implicit stepper with its other iteration (Newton or quasi-Newton) and, on the interactive
+    scene, its other factor, each run's accuracy against the explicit one over the lift; the implicit step on
     the Kuhn boxes of *sizes* (:data:`IMPLICIT_SIZES`: 100 k with the factor, 500 k with the Jacobi
     preconditioner; 500 k with the factor only on request, its factorization took over an hour and
     10 GB here); the memory traffic per step."""
@@ -388,6 +392,13 @@ def bench_implicit(*, duration: float = 3.0, sizes=("100k", "500k-jacobi"), step
                 hist[method] = res.history
             imp, exp = row["implicit"], row["explicit"]
             row["speedup_implicit_over_explicit"] = exp["stepping_wall_s"] / imp["stepping_wall_s"]
+            other = "newton" if scene.iteration == "quasi-newton" else "quasi-newton"   # the other iteration
+            res = simulate_network(asset.network, asset.tables, replace(scene, method="implicit", iteration=other),
+                                   Path(d) / f"{key}-{other}")
+            row[f"implicit_{other}"] = _run_figures(res.summary)
+            row[f"speedup_{scene.iteration}_over_{other}"] = (row[f"implicit_{other}"]["stepping_wall_s"]
+                                                              / imp["stepping_wall_s"])
+            row[f"accuracy_{other}"] = implicit_accuracy(res.history, hist["explicit"], lift_end, imp["dt_max_s"])
             if key.endswith("_interactive"):      # the other [integrator] factor, in the same run
                 other = "exact" if scene.factor == "bound" else "bound"
                 res = simulate_network(asset.network, asset.tables,

@@ -60,6 +60,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 def run(args, ui) -> int:
     from esmm.pipeline.simulate.run import simulate
+    from esmm.pipeline.simulate.summary import iterations_per_step
 
     res = simulate(args.asset, scene=args.scene, out_dir=args.out, video=args.video,
                    duration=args.duration, threads=args.threads, law=args.law, effects=args.effects,
@@ -68,7 +69,7 @@ def run(args, ui) -> int:
     if s.method == "implicit":
         it = s.integrator
         ui.info(f"simulated {s.simulated_s:g} s: {s.springs} springs, implicit, {s.steps} steps of "
-                f"{s.dt_max_s * 1e3:.4g} ms ({it['newton'] / max(1, it['steps']):.3g} Newton iterations per step, "
+                f"{s.dt_max_s * 1e3:.4g} ms ({iterations_per_step(it)} per step, "
                 f"{it['factorizations']} factorizations), grasper force at {it['haptic_rate_hz']:g} Hz, "
                 f"real-time factor {s.real_time_factor:.3g}")
     else:

@@ -112,7 +112,7 @@ def prepare_run(network, tables, scene: Scene, *, effects, reporter) -> RunSetup
     floor = None if scene.floor is None else Floor.under(network.points, scene.gravity, height=scene.floor.height,
                                                          friction=scene.floor.friction)
     stepper = BackwardEuler(step=scene.solve_step, rtol=scene.newton_tol, haptic_rate=scene.haptic_rate,
-                            factor_matrix=scene.factor) \
+                            factor_matrix=scene.factor, iteration=scene.iteration) \
         if implicit else None
     sim = Simulator(springs, network.points, inertia, fixed=fixed, gravity=scene.gravity,
                     mass_damping=scene.mass_damping, safety=scene.safety, gravity_mass=network.mass, floor=floor,

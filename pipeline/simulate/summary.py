@@ -125,10 +125,19 @@ class SimulationSummary:
                 f"{self.real_time_factor:.3g}, {self.method}, ")
         it = self.integrator
         if self.method == "implicit" and it:
-            return line + (f"{self.steps} steps of {self.dt_max_s * 1e3:.4g} ms, {it['newton'] / max(1, it['steps']):.3g} "
-                           f"Newton iterations and {it['solves'] / max(1, it['steps']):.3g} solves per step, "
+            return line + (f"{self.steps} steps of {self.dt_max_s * 1e3:.4g} ms, {iterations_per_step(it)} and "
+                           f"{it['solves'] / max(1, it['steps']):.3g} solves per step, "
                            f"{it['factorizations']} factorizations; grasper force at {it['haptic_rate_hz']:g} Hz)")
         return line + f"{self.ns_per_spring_step:.3g} ns per spring per step)"
+
+
+def iterations_per_step(stats: dict) -> str:
+    """The implicit stepper's iterations per step, in words: "2.1 quasi-Newton + 0.3 Newton iterations"."""
+    steps = max(1, stats["steps"])
+    newton = f"{stats['newton'] / steps:.3g} Newton iterations"
+    if not stats.get("quasi_newton"):
+        return newton
+    return f"{stats['quasi_newton'] / steps:.3g} quasi-Newton + {newton}"
 
 
 def summarize(run: RunSetup, scene: Scene, log: FrameLog, range_check: RangeCheck, *,
