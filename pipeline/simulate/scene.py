@@ -195,8 +195,8 @@ class Scene:
         itself (docs/simulate.md §2b).
     iteration : {"quasi-newton", "newton"}
         Implicit: how each step's solve iterates, L-BFGS with the reused factor
-        (Newton taking over a solve it does not finish; 1.7-3.3x faster on five
-        organs at the same accuracy) or Newton with conjugate gradients
+        (Newton taking over a solve it does not finish; 1.7-2.3x faster on five
+        organs, within the same accuracy) or Newton with conjugate gradients
         (docs/simulate.md §2b).
     safety : float
         Explicit: fraction of the critical time step used.
