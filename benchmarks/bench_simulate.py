@@ -365,7 +365,6 @@ def bench_implicit(*, duration: float = 3.0, sizes=("100k", "500k-jacobi"), step
     preconditioner; 500 k with the factor only on request, its factorization took over an hour and
     10 GB here); the memory traffic per step."""
     import os
-    from dataclasses import replace
 
     from esmm.pipeline.simulate.run import simulate_network
     from esmm.pipeline.simulate.scene import load_scene
@@ -392,22 +391,12 @@ def bench_implicit(*, duration: float = 3.0, sizes=("100k", "500k-jacobi"), step
                 hist[method] = res.history
             imp, exp = row["implicit"], row["explicit"]
             row["speedup_implicit_over_explicit"] = exp["stepping_wall_s"] / imp["stepping_wall_s"]
+            run = (asset, scene, Path(d) / key, hist["explicit"], lift_end, imp)
             other = "newton" if scene.iteration == "quasi-newton" else "quasi-newton"   # the other iteration
-            res = simulate_network(asset.network, asset.tables, replace(scene, method="implicit", iteration=other),
-                                   Path(d) / f"{key}-{other}")
-            row[f"implicit_{other}"] = _run_figures(res.summary)
-            row[f"speedup_{scene.iteration}_over_{other}"] = (row[f"implicit_{other}"]["stepping_wall_s"]
-                                                              / imp["stepping_wall_s"])
-            row[f"accuracy_{other}"] = implicit_accuracy(res.history, hist["explicit"], lift_end, imp["dt_max_s"])
+            row.update(_implicit_variant(*run, other, scene.iteration, iteration=other))
             if key.endswith("_interactive"):      # the other [integrator] factor, in the same run
                 other = "exact" if scene.factor == "bound" else "bound"
-                res = simulate_network(asset.network, asset.tables,
-                                       replace(scene, method="implicit", factor=other), Path(d) / f"{key}-{other}")
-                row[f"implicit_{other}_factor"] = _run_figures(res.summary)
-                row[f"speedup_{scene.factor}_over_{other}_factor"] = (
-                    row[f"implicit_{other}_factor"]["stepping_wall_s"] / imp["stepping_wall_s"])
-                row[f"accuracy_{other}_factor"] = implicit_accuracy(res.history, hist["explicit"], lift_end,
-                                                                    imp["dt_max_s"])
+                row.update(_implicit_variant(*run, f"{other}_factor", scene.factor, factor=other))
             row["accuracy_over_lift"] = implicit_accuracy(hist["implicit"], hist["explicit"], lift_end,
                                                           imp["dt_max_s"])
             term = build_spring_term(asset.network, asset.tables)
@@ -421,6 +410,22 @@ def bench_implicit(*, duration: float = 3.0, sizes=("100k", "500k-jacobi"), step
             out["sizes"][name] = {"error": f"{type(exc).__name__}: {exc}"}
         out["sizes"][name]["load_average_after"] = os.getloadavg()
     return out
+
+
+def _implicit_variant(asset, scene, out: Path, explicit_history, lift_end: float, figures: dict, label: str,
+                      own: str, **change) -> dict:
+    """The implicit run of *scene* with *change* (another iteration or factor), in the same run as the
+    scene's own implicit run (its *figures*, named *own*): its figures, the speed-up and its accuracy."""
+    from dataclasses import replace
+
+    from esmm.pipeline.simulate.run import simulate_network
+
+    res = simulate_network(asset.network, asset.tables, replace(scene, method="implicit", **change),
+                           out.with_name(f"{out.name}-{label}"))
+    mine = _run_figures(res.summary)
+    return {f"implicit_{label}": mine,
+            f"speedup_{own}_over_{label}": mine["stepping_wall_s"] / figures["stepping_wall_s"],
+            f"accuracy_{label}": implicit_accuracy(res.history, explicit_history, lift_end, figures["dt_max_s"])}
 
 
 def _implicit_box(n: int, preconditioner: str, steps: int) -> dict:

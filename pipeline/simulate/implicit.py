@@ -343,8 +343,8 @@ class BackwardEuler:
         return x
 
     def _begin_solve(self, norm: float) -> None:
-        """A new solve (a step, or a re-solve after the contacts changed) from a residual of *norm*."""
-        self._pairs.clear()
+        """A new solve (a step, or a re-solve after the contacts changed) from a residual of *norm*; its
+        constraint rows were just set, which forgot the last solve's pairs (:meth:`_set_rows`)."""
         self._qn = {"its": 0, "start": norm, "best": None, "newton": False}
 
     def _iterate(self, model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, mass_dof, coupling, fixed_dof):
@@ -364,9 +364,7 @@ class BackwardEuler:
 
     def _quasi_newton(self, model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, fixed_dof):
         """One L-BFGS iteration (:mod:`.quasinewton`): a solve with the factor, the secant's step."""
-        if self._stale:
-            self._refactor(model, state, x, dt_fx)
-            self._set_rows(model, control, contact, h)
+        self._renew_factor(model, state, control, x, dt_fx, contact, h)
         b = -g.ravel()
         cons = self._cons
 
@@ -403,9 +401,7 @@ class BackwardEuler:
     def _newton(self, model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, mass_dof, coupling, fixed_dof):
         """One Newton iteration from x (residual g, |g| = norm): the update's solve and its line search."""
         st = self.stats
-        if self.preconditioner == "fresh" or (self._stale and self.preconditioner == "factor"):
-            self._refactor(model, state, x, dt_fx)
-            self._set_rows(model, control, contact, h)
+        self._renew_factor(model, state, control, x, dt_fx, contact, h)
         precond = self._preconditioner(model, state, x, h, dt_fx, mass_dof, coupling, fixed_dof, contact, control)
         b = -g.ravel()
         b[fixed_dof] = 0.0
@@ -646,6 +642,13 @@ class BackwardEuler:
         self._cons = Constraints(fac, model.n_nodes)
         self._stale = False
         self._excess = 0
+
+    def _renew_factor(self, model, state, control, x, dt_fx, contact, h) -> None:
+        """Factor at *x* (with the constraint rows again) when the factor is stale, or at every
+        iteration with the "fresh" preconditioner."""
+        if self.preconditioner == "fresh" or (self._stale and self.preconditioner == "factor"):
+            self._refactor(model, state, x, dt_fx)
+            self._set_rows(model, control, contact, h)
 
     def _set_rows(self, model: Model, control: Control, contact: np.ndarray, h: float) -> None:
         """Constraint rows of the grasp (hard, or coupling springs) and the floor's contacts (the
