@@ -176,12 +176,12 @@ def test_gravity_keeps_the_volume_within_one_percent_with_the_term_and_not_witho
 
 @pytest.mark.slow
 @pytest.mark.parametrize("factor_matrix,iteration", [("bound", "quasi-newton"), ("exact", "quasi-newton"),
-                                                     ("bound", "newton")])
+                                                     ("mixed", "quasi-newton"), ("bound", "newton")])
 def test_implicit_stepper_takes_the_volume_term_at_the_frame_step(box, tables, factor_matrix, iteration):
     """The implicit stepper sums every term's forces and tangent (docs/simulate.md §2b): with the volume
     term it is stable at 1/30 s, settles on the same equilibrium as FIRE and keeps the volume within 1 %,
-    whether its preconditioner factors the volume term's per-tet bound (the default) or its tangent, and
-    whether its solves iterate by quasi-Newton (the default) or Newton."""
+    whether its preconditioner factors the volume term's per-tet bound (the default), its tangent or the
+    saddle point of its parts, and whether its solves iterate by quasi-Newton (the default) or Newton."""
     from esmm.pipeline.simulate.implicit import BackwardEuler
 
     vol = build_volume_term(box.points, box.tets, bulk_modulus(tables), lam_max=tables.lam_max)
@@ -210,16 +210,47 @@ def test_implicit_stepper_takes_the_volume_term_at_the_frame_step(box, tables, f
 
 def test_implicit_factor_of_the_volume_bound_has_less_fill(box, tables):
     """The reused factor with the volume term's per-tet bound (default) has less fill than the factor of
-    Newton's matrix itself (whose volume blocks reach two tets away), on the same state."""
+    Newton's matrix itself (whose volume blocks reach two tets away), on the same state; the saddle point
+    of its parts (the "mixed" factor, Newton's matrix too) lies between."""
     from esmm.pipeline.simulate.implicit import BackwardEuler
 
     vol = build_volume_term(box.points, box.tets, bulk_modulus(tables), lam_max=tables.lam_max)
     springs = build_spring_term(box, tables)
     fill = {}
-    for fm in ("bound", "exact"):
+    for fm in ("bound", "exact", "mixed"):
         stepper = BackwardEuler(step=1 / 30, factor_matrix=fm)
         sim = Simulator(springs, box.points, box.mass, fixed=np.arange(4), volume=vol, stepper=stepper)
         sim.set_time_step(1 / 30, bound=stepper.bound(sim.model, sim.control), t0=0.0)
         stepper.prepare(sim.model, sim.state, sim.control)
         fill[fm] = stepper.report()["factor_nnz"]
     assert fill["bound"] < 0.8 * fill["exact"]
+    assert fill["bound"] < fill["mixed"] < fill["exact"]
+
+
+@pytest.mark.parametrize("single", [False, True])
+def test_mixed_factor_solves_newtons_matrix(box, vol, tables, single):
+    """The saddle-point factor of ``A + B^T diag(w) B`` (the springs' matrix and the volume term's parts, at
+    a shaken state, fixed dofs' columns of B zero) solves that matrix: to round-off in float64, to the
+    float32 factor's ~1e-4 (a preconditioner) in float32; one and three right-hand sides; the parts of
+    one term or of two (stacked rows, each node's next to its dofs)."""
+    from esmm.pipeline.simulate.linsolve import MixedFactor
+
+    x = shaken(box)
+    springs = build_spring_term(box, tables)
+    free = np.ones(3 * box.n_nodes)
+    free[:12] = 0.0                                   # four fixed nodes: identity rows
+    Fd = sp.diags(free)
+    A = (Fd @ springs.tangent(x, definite=True) @ Fd + sp.diags(0.5 * free + (1 - free))).tocsr()
+    B, w = vol.tangent_parts(x)
+    B = (B @ Fd).tocsr()
+    K = (A + B.T @ sp.diags(w) @ B).tocsr()
+    assert abs(K - (A + Fd @ vol.tangent(x, definite=True) @ Fd)).max() < 1e-9 * abs(K).max()
+    rng = np.random.default_rng(3)
+    b = rng.standard_normal((3 * box.n_nodes, 3))
+    tol = 1e-3 if single else 1e-10
+    stacked = (sp.vstack([B, B]).tocsr(), np.concatenate([0.25 * w, 0.75 * w]))    # two terms' parts
+    for fac in (MixedFactor.of_parts(A, B, w, single=single), MixedFactor.of_parts(A, *stacked, single=single)):
+        for rhs in (b[:, 0], b):
+            y = fac.solve(rhs)
+            assert y.shape == rhs.shape
+            assert np.linalg.norm(K @ y - rhs) <= tol * np.linalg.norm(rhs)

@@ -326,14 +326,26 @@ class VolumeElements:
         without the pressures' geometric part (Newton's matrix of the implicit stepper).
         """
         x = self._x(points)
-        A = self.averaging()
-        B = (A @ self.gradient_matrix(x)).tocsr()            # (m, 3n): gradients of the element volumes
-        D = sp.diags(self.bulk_modulus / self.rest_volume)
-        K = (B.T @ D @ B).tocsr()
+        B, w = self.gauss_newton_parts(x)
+        K = (B.T @ sp.diags(w) @ B).tocsr()
         if definite:
             return K
-        pbar = A.T @ self.pressures(x)
+        pbar = self.averaging().T @ self.pressures(x)
         return (K + self._geometric(x, pbar)).tocsr()
+
+    def gauss_newton_parts(self, points) -> tuple[sp.csr_matrix, np.ndarray]:
+        r"""The definite tangent's factors: ``(B, w)`` with :math:`K = B^T \operatorname{diag}(w) B`.
+
+        :math:`B = A G` (m, 3n) holds the gradients of the element volumes
+        :math:`\nabla V_e` (nodal formulation: row a reaches the nodes of the
+        tets around node a) and :math:`w_e = \kappa / V_{e,0}` [Pa/m3]. K
+        couples nodes two tets apart; B only nodes one tet apart, so the
+        saddle-point matrix ``[[A_s, B^T], [B, -diag(1/w)]]`` holds K with the
+        sparsity of the tets (the implicit stepper's "mixed" factor).
+        """
+        x = self._x(points)
+        B = (self.averaging() @ self.gradient_matrix(x)).tocsr()
+        return B, self.bulk_modulus / self.rest_volume
 
     def tangent_operator(self, points, *, definite: bool = False):
         """The product ``p -> K p`` of :meth:`tangent` at *points* without forming K.

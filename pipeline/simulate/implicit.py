@@ -55,7 +55,7 @@ import scipy.sparse as sps
 from ..errors import ConfigError
 from ..network.newton import node_ordering
 from . import kernels as K
-from .linsolve import Constraints, SparseFactor, pcg
+from .linsolve import Constraints, MixedFactor, SparseFactor, mixed_ordering, pcg
 from .model import Control, Model, State
 from .quasinewton import MEMORY, LBFGSMemory, secant_step
 from .scene import FACTORS, ITERATIONS
@@ -155,16 +155,19 @@ class BackwardEuler:
         whatever the compression).
     single : bool
         Factor in float32 (faster solves; the factor is a preconditioner).
-    factor_matrix : {"bound", "exact"}
+    factor_matrix : {"bound", "exact", "mixed"}
         What the reused factor is taken of. "bound" (default): Newton's matrix
         with each term's ``tangent_bound`` where it has one (the volume term:
         per-tet instead of nodal, a matrix above its tangent with the sparsity
         of the tets): a third of the fill and faster solves, but more
         conjugate-gradient iterations. "exact": Newton's matrix itself.
+        "mixed": Newton's matrix too, with each term's ``tangent_parts`` as a
+        saddle point (:class:`~.linsolve.MixedFactor`; about half the exact fill).
         Measured over the interactive scene (3 s, medians of 3-5 runs each):
         the bound is 1.58x faster on the fine liver (fill 17.3 M -> 5.0 M),
         1.05-1.22x on three paper-preset organs, 0.92x on the spleen and
-        0.86x on the OpenHELP liver (docs/simulate.md §2b). The "fresh" preconditioner always factors the
+        0.86x on the OpenHELP liver; the mixed factor 0.6-1.2x the bound's
+        speed (docs/simulate.md §2b). The "fresh" preconditioner always factors the
         exact matrix.
     threads : int
         Kept for the :class:`~.simulator.Simulator` interface (the implicit step runs on one thread).
@@ -578,13 +581,14 @@ class BackwardEuler:
 
     # -- matrices ------------------------------------------------------------------
     def _tangent(self, model: Model, state: State, x: np.ndarray, dt_fx: float, *, definite: bool,
-                 bound: bool = False):
+                 bound: bool = False, skip: tuple = ()):
         """Sum of the terms' tangent stiffness at x (CSR (3n, 3n)); the springs' with their effect state.
-        *bound*: each term's ``tangent_bound`` instead where it has one (a sparser matrix above it)."""
+        *bound*: each term's ``tangent_bound`` instead where it has one (a sparser matrix above it);
+        the terms in *skip* left out."""
         sp = model.springs
         Kt = sp.tangent(x, state=state.effects, dt=dt_fx, definite=definite)
         for term in model.terms:
-            if term is not sp:
+            if term is not sp and not any(term is k for k in skip):
                 upper = getattr(term, "tangent_bound", None) if bound else None
                 Kt = Kt + (upper(x) if upper is not None else term.tangent(x, definite=definite))
         return Kt
@@ -609,16 +613,20 @@ class BackwardEuler:
         return matvec
 
     def factored(self, model: Model) -> str:
-        """What the factor is taken of on *model*: "bound" (a term's ``tangent_bound`` in it: with
-        ``factor_matrix`` "bound", the reused factor and a term that has one) or "exact"."""
-        bounded = self.factor_matrix == "bound" and self.preconditioner == "factor" and any(
-            getattr(t, "tangent_bound", None) is not None for t in model.terms if t is not model.springs)
-        return "bound" if bounded else "exact"
+        """What the factor is taken of on *model*: with the reused factor and ``factor_matrix`` "mixed"
+        or "bound", that, where a term has ``tangent_parts`` (mixed) or ``tangent_bound`` (bound);
+        else "exact"."""
+        if self.preconditioner != "factor" or self.factor_matrix == "exact":
+            return "exact"
+        attr = "tangent_parts" if self.factor_matrix == "mixed" else "tangent_bound"
+        has = any(getattr(t, attr, None) is not None for t in model.terms if t is not model.springs)
+        return self.factor_matrix if has else "exact"
 
-    def _system_matrix(self, model, state, x, h, dt_fx):
+    def _system_matrix(self, model, state, x, h, dt_fx, *, skip: tuple = ()):
         """The factored matrix: ``M/h^2 + (alpha M + C)/h + K(x)`` (definite springs; the terms' bounds
-        where :meth:`factored` says so), identity on fixed dofs."""
-        A = self._tangent(model, state, x, dt_fx, definite=self.definite, bound=self.factored(model) == "bound")
+        where :meth:`factored` says so; without the terms in *skip*), identity on fixed dofs."""
+        A = self._tangent(model, state, x, dt_fx, definite=self.definite, bound=self.factored(model) == "bound",
+                          skip=skip)
         if model.springs.damped:
             A = A + model.springs.damping_matrix(x) / h
         mass_dof = np.repeat(model.mass * (1.0 / (h * h) + model.mass_damping / h), 3)
@@ -626,12 +634,28 @@ class BackwardEuler:
         D = sps.diags(mov)
         return (D @ A @ D + sps.diags(mass_dof * mov + (1.0 - mov))).tocsr()
 
+    def _mixed_factor(self, model, state, x, h, dt_fx) -> MixedFactor:
+        """Newton's matrix factored from its parts (:class:`~.linsolve.MixedFactor`): the system matrix
+        without the terms that have ``tangent_parts``, and their ``B^T diag(w) B`` (fixed dofs' columns
+        of B zero)."""
+        parts = [t for t in model.terms if t is not model.springs and getattr(t, "tangent_parts", None) is not None]
+        A = self._system_matrix(model, state, x, h, dt_fx, skip=tuple(parts))
+        Bs, ws = zip(*(t.tangent_parts(x) for t in parts))
+        B = sps.vstack(Bs).tocsr() @ sps.diags(np.repeat(model.movable, 3).astype(np.float64))
+        w = np.concatenate(ws)
+        if self._perm is None or self._perm.size != A.shape[0] + B.shape[0]:
+            self._perm = mixed_ordering(A, B)
+        return MixedFactor.of_parts(A, B, w, self._perm, single=self.single)
+
     def _refactor(self, model: Model, state: State, x: np.ndarray, dt_fx: float) -> None:
         h = state.dt
-        A = self._system_matrix(model, state, x, h, dt_fx)
-        if self._perm is None or self._perm.size != A.shape[0]:
-            self._perm = node_ordering(A)
-        fac = SparseFactor.of(A, self._perm, single=self.single)
+        if self.factored(model) == "mixed":
+            fac = self._mixed_factor(model, state, x, h, dt_fx)
+        else:
+            A = self._system_matrix(model, state, x, h, dt_fx)
+            if self._perm is None or self._perm.size != A.shape[0]:
+                self._perm = node_ordering(A)
+            fac = SparseFactor.of(A, self._perm, single=self.single)
         st = self.stats
         st.factorizations += 1
         st.factor_s += fac.seconds

@@ -38,7 +38,8 @@ from .volumeterm import VolumeTerm, build_volume_term, shape_change
 #: fork/join costs more than it saves (benchmarks/bench_simulate.py).
 AUTO_PARALLEL_MIN_SPRINGS = 20_000
 #: What the implicit stepper factored, in words (:meth:`~.implicit.BackwardEuler.factored`).
-FACTORED = {"bound": "the volume term's per-tet bound in it", "exact": "Newton's matrix"}
+FACTORED = {"bound": "the volume term's per-tet bound in it", "exact": "Newton's matrix",
+            "mixed": "Newton's matrix from its parts, the volume term's as a saddle point"}
 
 
 @dataclass

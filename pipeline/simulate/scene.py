@@ -71,7 +71,7 @@ FRICTIONS = ("stick", "slip")
 DIRECTIONS = ("away", "up")
 METHODS = ("implicit", "explicit")
 #: What the implicit stepper's reused factor is taken of (docs/simulate.md §2b).
-FACTORS = ("bound", "exact")
+FACTORS = ("bound", "exact", "mixed")
 #: How the implicit stepper iterates each solve (docs/simulate.md §2b).
 ITERATIONS = ("quasi-newton", "newton")
 
@@ -188,11 +188,13 @@ class Scene:
     newton_tol : float
         Implicit: the largest residual force on a node after a step, as a
         fraction of the largest nodal weight.
-    factor : {"bound", "exact"}
+    factor : {"bound", "exact", "mixed"}
         Implicit: what the reused factor is taken of, Newton's matrix with the
         volume term's per-tet bound in it (a third of the fill; 1.58x faster on
-        the fine liver, 0.86-1.22x on five smaller organs) or Newton's matrix
-        itself (docs/simulate.md §2b).
+        the fine liver, 0.86-1.22x on five smaller organs), Newton's matrix
+        itself, or Newton's matrix as the saddle point of the springs' matrix
+        and the volume term's parts (about half the exact fill; 0.6-1.2x the
+        bound's speed, docs/simulate.md §2b).
     iteration : {"quasi-newton", "newton"}
         Implicit: how each step's solve iterates, L-BFGS with the reused factor
         (Newton taking over a solve it does not finish; 1.7-2.3x faster on five

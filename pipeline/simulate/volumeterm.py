@@ -120,6 +120,12 @@ class VolumeTerm:
         stepper factors as its preconditioner."""
         return self.elements.tangent_bound(np.asarray(x, dtype=np.float64))
 
+    def tangent_parts(self, x: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+        """``(B, w)`` with the definite tangent ``B^T diag(w) B``; row a of B is node a's volume
+        (:meth:`~esmm.pipeline.network.volume.VolumeElements.gauss_newton_parts`): what the implicit
+        stepper's "mixed" factor holds beside the springs."""
+        return self.elements.gauss_newton_parts(np.asarray(x, dtype=np.float64))
+
     def jacobians(self, x: np.ndarray) -> np.ndarray:
         """Nodal volume ratios ``J_a``, shape (n,)."""
         return self.elements.jacobians(x)
