@@ -64,13 +64,19 @@ class SparseFactor(OrderedFactor):
         t = time.perf_counter()
         perm = node_ordering(A) if perm is None else perm
         dtype = np.float32 if single else np.float64
-        try:
-            lu = ldlt(A, perm, dtype=dtype)
-        except RuntimeError as exc:            # an exactly singular pivot
-            raise SimulationError(f"the implicit step's matrix could not be factored ({exc}); "
-                                  "check the asset's masses and fixed nodes") from None
+        lu = _factor(A, perm, dtype)
         return cls(perm=perm, lu=lu, dtype=dtype, seconds=time.perf_counter() - t,
                    nnz=int(lu.nnz + A.shape[0]) // 2)
+
+
+def _factor(A, perm: np.ndarray, dtype):
+    """:func:`~esmm.pipeline.network.newton.ldlt` of the stepper's matrix; an exactly singular pivot
+    is the asset's fault (SimulationError)."""
+    try:
+        return ldlt(A, perm, dtype=dtype)
+    except RuntimeError as exc:
+        raise SimulationError(f"the implicit step's matrix could not be factored ({exc}); "
+                              "check the asset's masses and fixed nodes") from None
 
 
 @dataclass(eq=False)
@@ -116,11 +122,7 @@ class MixedFactor(SparseFactor):
         K = saddle_point(A, B, w)
         perm = mixed_ordering(A, B) if perm is None else perm
         dtype = np.float32 if single else np.float64
-        try:
-            lu = ldlt(K, perm, dtype=dtype)
-        except RuntimeError as exc:
-            raise SimulationError(f"the implicit step's matrix could not be factored ({exc}); "
-                                  "check the asset's masses and fixed nodes") from None
+        lu = _factor(K, perm, dtype)
         return cls(perm=perm, lu=lu, dtype=dtype, seconds=time.perf_counter() - t,
                    nnz=int(lu.nnz + K.shape[0]) // 2, n_dof=n_dof)
 
