@@ -66,9 +66,11 @@ DEFAULT_STEP = 1.0 / 30.0
 #: Default rate of the grasper force [Hz] (a haptic device's loop).
 HAPTIC_RATE = 1000.0
 PRECONDITIONERS = ("factor", "fresh", "jacobi")
-#: Quasi-Newton iterations of one solve before Newton's iteration takes over: about the solves of
-#: one Newton iteration with its conjugate gradients (6.5-9 measured; docs/simulate.md §2b).
-QN_SWITCH = 8
+#: Quasi-Newton iterations of one solve before Newton's iteration takes over. A solve handed over
+#: costs 30-40 solves on the organs (its Newton iterations' conjugate gradients), so a few more
+#: quasi-Newton iterations pay where they finish it: 12 was 1.0-1.35x faster than 8 on five organs
+#: and both scenes, within the same accuracy, 0.85x on a box falling from rest (docs/simulate.md §2b).
+QN_SWITCH = 12
 #: A quasi-Newton solve whose residual grew this many times above its start hands over to Newton.
 QN_DIVERGE = 4.0
 #: Quasi-Newton iterations of a step not counted as the factor's age (:meth:`BackwardEuler._refactor_pays`
