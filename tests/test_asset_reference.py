@@ -59,10 +59,8 @@ def _same(key: str, recorded: dict, written: dict, made: Path) -> bool:
     if recorded.get("sha256") is None or {**recorded, "sha256": ""} != {**written, "sha256": ""}:
         return False
     with h5py.File(REFERENCE, "r") as ref, h5py.File(made, "r") as new:
-        a, b = ref[key][()], new[key][()]
-    if not (np.issubdtype(np.asarray(a).dtype, np.floating) and np.asarray(a).shape == np.asarray(b).shape):
-        return False
-    return bool(np.allclose(b, a, rtol=1e-12, atol=0.0) and np.array_equal(np.isnan(a), np.isnan(b)))
+        a, b = ref[key][()], new[key][()]                 # the same dtype and shape (checked above)
+    return bool(np.issubdtype(a.dtype, np.floating) and np.allclose(b, a, rtol=1e-12, atol=0.0, equal_nan=True))
 
 
 def test_the_writer_still_writes_the_same_v1_file(tmp_path):
