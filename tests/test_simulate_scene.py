@@ -726,3 +726,28 @@ def test_simulate_network_with_a_floor_counts_contacts(tmp_path, slab):
     assert s.floor.friction == "stick" and s.floor.height_m == 0.0
     assert s.floor.contact_nodes_max == bottom and s.floor.min_distance_m >= -1e-9
     assert json.loads((tmp_path / "summary.json").read_text())["floor"]["height_spec"] == "auto"
+
+
+def test_fire_in_chunks_takes_the_path_of_one_call_and_reports_its_progress(monkeypatch):
+    """FIRE on a sticking floor (a path-dependent equilibrium), run in chunks of 7 iterations for the
+    progress display: bit for bit the state and iteration count of one uninterrupted call."""
+    from esmm.pipeline.progress import ListReporter
+    from esmm.pipeline.simulate import relax as R
+    from esmm.pipeline.simulate.model import Floor
+
+    net = _cube(3, 0.02)
+
+    def settle(chunk):
+        monkeypatch.setattr(R, "CHUNK", chunk)
+        fl = Floor(normal=[0, 0, 1], height=0.0, friction="stick")
+        sim = _sim(net, floor=fl, gravity=(3.0, 0, -9.81))
+        rep = ListReporter()
+        return sim, sim.relax(rtol=1e-9, reporter=rep), rep
+
+    one, info1, _ = settle(10**9)
+    chunked, info7, rep = settle(7)
+    assert info1["iterations"] > 50                       # many chunks
+    assert info7 == info1
+    np.testing.assert_array_equal(chunked.x, one.x)
+    np.testing.assert_array_equal(chunked.contact, one.contact)
+    assert rep.tasks == ["equilibrium under gravity (FIRE)"]

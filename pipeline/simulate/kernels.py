@@ -1035,7 +1035,7 @@ def _fire_move(n, dt, x, v, f, inv_mass, free, fl_on, fl_n, fl_h, fl_stick, fl_m
 
 
 @njit(**JIT_OPTIONS)
-def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, max_iter, vt=None):
+def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, max_iter, fs, vt=None):
     """FIRE minimisation (Bitzek et al. 2006) of the network energy under fext.
 
     Uses the dynamics' force pass (*sp* without dashpots; one-chunk *lay*) and a
@@ -1046,6 +1046,13 @@ def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, m
     non-finite. With effects (*fx* not None) their long-term force (mode
     ``FX_RELAXED``, state unchanged) is used. Standard parameters: N_min 5,
     f_inc 1.1, f_dec 0.5, alpha_start 0.1, f_alpha 0.99.
+
+    Resumable: *fs* (float64, 4) holds FIRE's own state ``[alpha, dt,
+    steps since P < 0, started]``; a call with ``started == 0`` starts afresh
+    (velocities zeroed), one with ``started == 1`` goes on from *fs* and the
+    nodes' velocities, so that calls of *max_iter* iterations each take
+    exactly the path of one long call (the caller reports progress between
+    them).
 
     With ``floor.on`` the rigid floor of :func:`_integrate_range_floor` constrains
     the nodes with ``floor.mask``: each MD update puts the nodes that end below
@@ -1060,10 +1067,12 @@ def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, m
     g_mode, g_nodes, g_off, g_k, wp_t, wp_x = grasp
     fl_on, fl_n, fl_h, fl_stick, fl_mask, contact = floor
     n = x.shape[0]
-    alpha = 0.1
-    dt = dt0
-    since_neg = 0
-    v[:, :] = 0.0
+    if fs[3] == 0.0:
+        fs[0], fs[1], fs[2], fs[3] = 0.1, dt0, 0.0, 1.0
+        v[:, :] = 0.0
+    alpha = fs[0]
+    dt = fs[1]
+    since_neg = int(fs[2])
     resid = np.inf
     out = np.zeros(3)
     for it in range(max_iter):
@@ -1076,6 +1085,7 @@ def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, m
         if not np.isfinite(resid):
             return -1, resid
         if resid < ftol:
+            fs[0], fs[1], fs[2] = alpha, dt, since_neg
             return it, resid
         if P > 0.0:
             vn = np.sqrt(vn2)
@@ -1095,6 +1105,7 @@ def fire_relax(nodes, free, sp, fx, lay, grasp, tip, floor, dt0, dt_max, ftol, m
             alpha = 0.1
             v[:, :] = 0.0
         _fire_move(n, dt, x, v, f, inv_mass, free, fl_on, fl_n, fl_h, fl_stick, fl_mask, contact)
+    fs[0], fs[1], fs[2] = alpha, dt, since_neg
     return max_iter, resid
 
 

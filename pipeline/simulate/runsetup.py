@@ -151,7 +151,7 @@ def settle_at_start(run: RunSetup, scene: Scene, network, reporter) -> dict | No
         return None
     t = time.perf_counter()
     try:
-        info = sim.relax(rtol=1e-4, max_iter=400_000, inertia=run.start_inertia)
+        info = sim.relax(rtol=1e-4, max_iter=400_000, inertia=run.start_inertia, reporter=rep)
         settle = {**info, "seconds": time.perf_counter() - t, "converged": True}
     except SimulationError as exc:
         if "diverged" in str(exc):

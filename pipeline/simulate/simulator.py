@@ -16,6 +16,7 @@ import numpy as np
 
 from ..blas import single_threaded_blas
 from ..errors import ConfigError, SimulationError
+from ..progress import Reporter
 from . import kernels as K
 from .model import Control, Floor, Grasp, Model, State
 from .relax import relax, settle_effects
@@ -191,13 +192,13 @@ class Simulator:
             return self.stepper.advance(self.model, self.state, self.control, nsteps, record=record)
 
     def relax(self, *, ftol: float | None = None, rtol: float = 1e-8, max_iter: int = 200_000,
-              inertia: np.ndarray | None = None) -> dict:
+              inertia: np.ndarray | None = None, reporter: Reporter | None = None) -> dict:
         """Static equilibrium under gravity (and a held grasp) with FIRE: :func:`.relax.relax`.
 
         FIRE's molecular-dynamics step is the explicit stability bound (also
         when the stepper is implicit and has none). *inertia*: FIRE's node
         masses instead of the model's (its path, and so the equilibrium it finds
-        on a sticking floor, depends on them).
+        on a sticking floor, depends on them). *reporter*: shown FIRE's progress.
         """
         model, control, dtc = self.model, self.control, self.bound.dt_critical
         if inertia is not None:
@@ -205,7 +206,8 @@ class Simulator:
             control = Control.of(model, control.grasp)
         if inertia is not None or not np.isfinite(dtc):
             dtc = SymplecticEuler().bound(model, control).dt_critical
-        return relax(model, self.state, control, dt_critical=dtc, ftol=ftol, rtol=rtol, max_iter=max_iter)
+        return relax(model, self.state, control, dt_critical=dtc, ftol=ftol, rtol=rtol, max_iter=max_iter,
+                     reporter=reporter)
 
     def settle_effects(self) -> None:
         """Take the current configuration as long held (:func:`.relax.settle_effects`)."""
