@@ -10,7 +10,7 @@ them, the batch runner and the command line on top::
     calibrate           asset
     materials   <-      network
     tensile             mesh
-    ground: errors, progress, atomicio, blas, interrupts, units, config, validate
+    ground: errors, progress, atomicio, blas, interrupts, cache, units, config, validate
 
 Checked from the source text (no import is run):
 
@@ -36,6 +36,7 @@ TOPS = {"cli": "esmm.cli", "pipeline": "esmm.pipeline"}
 
 #: The ground: small modules every package may use. Among themselves they import downwards only.
 GROUND = {"pipeline": set(), "errors": set(), "progress": set(), "atomicio": set(), "blas": set(), "interrupts": set(),
+          "cache": set(),
           "units": {"errors"}, "config": {"errors"}, "validate": {"errors", "units"}}
 
 #: package -> the packages (above the ground) it may import.

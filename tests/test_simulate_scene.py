@@ -751,3 +751,51 @@ def test_fire_in_chunks_takes_the_path_of_one_call_and_reports_its_progress(monk
     np.testing.assert_array_equal(chunked.x, one.x)
     np.testing.assert_array_equal(chunked.contact, one.contact)
     assert rep.tasks == ["equilibrium under gravity (FIRE)"]
+
+
+def test_a_settled_equilibrium_is_taken_from_the_cache_only_for_the_same_inputs(tmp_path, monkeypatch):
+    """The second settle of the same scene takes the stored state (bit for bit FIRE's, FIRE not run);
+    another gravity is a miss; an unreadable entry is a miss that is computed and stored again."""
+    from esmm.pipeline.simulate import relax as R
+    from esmm.pipeline.simulate.model import Floor
+
+    net = _cube(3, 0.02)
+
+    def settle(gravity=(3.0, 0, -9.81)):
+        sim = _sim(net, floor=Floor(normal=[0, 0, 1], height=0.0, friction="stick"), gravity=gravity)
+        return sim, sim.relax(rtol=1e-9, cache=tmp_path)
+
+    first, info = settle()
+    assert info["cached"] is False and len(list(tmp_path.glob("*.npz"))) == 1
+    real = R.fire_relax
+    monkeypatch.setattr(R, "fire_relax", lambda *a: pytest.fail("FIRE ran on a cached equilibrium"))
+    again, info2 = settle()
+    assert info2 == {**info, "cached": True}
+    np.testing.assert_array_equal(again.x, first.x)
+    np.testing.assert_array_equal(again.contact, first.contact)
+    assert np.abs(again.v).max() == 0.0
+    monkeypatch.setattr(R, "fire_relax", real)
+    other, info3 = settle(gravity=(0.0, 3.0, -9.81))
+    assert info3["cached"] is False and len(list(tmp_path.glob("*.npz"))) == 2
+    assert np.abs(other.x - first.x).max() > 1e-6
+    for entry in tmp_path.glob("*.npz"):
+        entry.write_bytes(b"not an npz")
+    spoiled, info4 = settle()
+    assert info4["cached"] is False                                    # computed again ...
+    np.testing.assert_array_equal(spoiled.x, first.x)
+    assert settle()[1]["cached"] is True                               # ... and stored again
+
+
+def test_the_cache_digest_tells_apart_types_shapes_and_dtypes():
+    from esmm.pipeline.cache import digest
+
+    a = np.arange(6, dtype=np.float64)
+    assert digest(a) == digest(a.copy())
+    assert digest(a) != digest(a.reshape(2, 3))
+    assert digest(a) != digest(a.astype(np.float32))
+    assert digest(1) != digest(1.0) != digest(True)
+    assert digest("a") != digest(b"a")
+    assert digest((1, 2), 3) != digest(1, (2, 3))
+    assert digest({"a": 1, "b": None}) == digest({"b": None, "a": 1})
+    with pytest.raises(TypeError):
+        digest(object())

@@ -23,12 +23,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from .. import __version__
 from ..atomicio import write_json
+from ..cache import folder
 
 if TYPE_CHECKING:  # annotations only: this module stays light to import
     from .tables import StiffnessTables
@@ -46,12 +46,8 @@ CODE = ("compensation.py", "tensile_test.py", "tables.py", "forcelaw.py", "sprin
 
 
 def cache_dir() -> Path:
-    """The folder of cached calibrations (see the module docstring)."""
-    root = os.environ.get("ESMM_CACHE_DIR")
-    if not root:
-        xdg = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-        root = os.path.join(xdg, "esmm")
-    return Path(root) / "compensation"
+    """The folder of cached calibrations (see the module docstring; the root: :func:`esmm.pipeline.cache.root`)."""
+    return folder("compensation")
 
 
 def cache_key(tables: StiffnessTables, law: str, lo: float, hi: float, radius_elements: float, *,

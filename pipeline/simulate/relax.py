@@ -11,9 +11,13 @@ far), after which the history is taken as relaxed there (:func:`settle_effects`)
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
+from .. import __version__
+from ..atomicio import atomic_path
+from ..cache import digest
 from ..errors import SimulationError
 from ..progress import Reporter, ensure
 from . import kernels as K
@@ -37,7 +41,8 @@ def settle_effects(model: Model, state: State) -> None:
 
 
 def relax(model: Model, state: State, control: Control, *, dt_critical: float, ftol: float | None = None,
-          rtol: float = 1e-8, max_iter: int = 200_000, reporter: Reporter | None = None) -> dict:
+          rtol: float = 1e-8, max_iter: int = 200_000, reporter: Reporter | None = None,
+          cache: Path | None = None) -> dict:
     """Move *state* to static equilibrium under gravity (and a held grasp, at its current tip).
 
     Parameters
@@ -58,10 +63,17 @@ def relax(model: Model, state: State, control: Control, *, dt_critical: float, f
         Shown a task whose progress is the residual's way down to *ftol*
         (log scale), advanced every :data:`CHUNK` iterations; the path is
         the same as without it.
+    cache : Path, optional
+        A folder of converged equilibria (:mod:`esmm.pipeline.cache`) named
+        by the digest of everything FIRE is given (state, model, control,
+        steps, tolerance) and of its code: the same inputs a second time
+        take the stored state instead of FIRE's iterations, which is what
+        FIRE would find again (it is deterministic: serial, one chunk).
 
     Returns
     -------
-    dict with ``iterations``, ``residual`` [N], ``ftol`` [N].
+    dict with ``iterations``, ``residual`` [N], ``ftol`` [N] and ``cached``
+    (taken from *cache*).
 
     Raises
     ------
@@ -83,17 +95,25 @@ def relax(model: Model, state: State, control: Control, *, dt_critical: float, f
     nodes = Nodes(state.x, state.v, np.zeros_like(state.x), model.fext, control.inv_mass)
     args = (nodes, free, springs.kernel(damped=False), fx, springs.layout(1), control.grasp_kernel(), tip,
             control.floor_kernel(model, state), 0.2 * dt_critical, 0.9 * dt_critical, float(ftol))
-    with ensure(reporter).task("equilibrium under gravity (FIRE)", total=1.0) as advance:
-        it, res = _fire_chunks(args, int(max_iter), model.volume_kernel(), float(ftol), advance)
+    vt = model.volume_kernel()
+    key = None if cache is None else digest(_code(), args, int(max_iter), vt)
+    info = None if key is None else _load(cache, key, state)
+    if info is None:
+        with ensure(reporter).task("equilibrium under gravity (FIRE)", total=1.0) as advance:
+            it, res = _fire_chunks(args, int(max_iter), vt, float(ftol), advance)
+        info = {"iterations": int(it), "residual": float(res), "ftol": float(ftol), "cached": False}
+        if 0 <= it and res < ftol and key is not None:
+            _store(cache, key, state, info)
     state.v[:] = 0.0
     settle_effects(model, state)
+    it, res = info["iterations"], info["residual"]
     if it < 0 or not np.isfinite(res):
         raise SimulationError("quasi-static relaxation diverged (non-finite forces); check the asset")
     if res >= ftol:
         raise SimulationError(
             f"quasi-static relaxation did not converge in {max_iter} iterations "
             f"(residual {res:.3g} N > {ftol:.3g} N); raise max_iter or the tolerance")
-    return {"iterations": int(it), "residual": float(res), "ftol": float(ftol)}
+    return info
 
 
 def _fire_chunks(args: tuple, max_iter: int, vt, ftol: float, advance) -> tuple[int, float]:
@@ -117,3 +137,38 @@ def _fire_chunks(args: tuple, max_iter: int, vt, ftol: float, advance) -> tuple[
             if share > shown:
                 advance(share - shown)
                 shown = share
+
+
+def _code() -> tuple:
+    """What of the code decides FIRE's result: its kernels' and this module's source, the versions."""
+    import numba
+
+    here = Path(__file__).resolve().parent
+    return (__version__, np.__version__, numba.__version__,
+            *((here / name).read_bytes() for name in ("kernels.py", "relax.py")))
+
+
+def _load(cache: Path, key: str, state: State) -> dict | None:
+    """The stored equilibrium *key* put into *state* (x, contacts); its record, or None (a miss: missing,
+    unreadable or not of this state's shape)."""
+    try:
+        with np.load(cache / f"{key}.npz", allow_pickle=False) as z:
+            x, contact = z["x"], z["contact"]
+            info = {"iterations": int(z["iterations"]), "residual": float(z["residual"]), "ftol": float(z["ftol"])}
+    except (OSError, KeyError, ValueError):
+        return None
+    if x.shape != state.x.shape or contact.shape != state.contact.shape:
+        return None
+    state.x[:] = x
+    state.contact[:] = contact
+    return {**info, "cached": True}
+
+
+def _store(cache: Path, key: str, state: State, info: dict) -> None:
+    """Keep a converged equilibrium under *key*; a cache that cannot be written only costs time."""
+    try:
+        with atomic_path(cache / f"{key}.npz") as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, x=state.x, contact=state.contact, iterations=info["iterations"],
+                     residual=info["residual"], ftol=info["ftol"])
+    except OSError:
+        pass

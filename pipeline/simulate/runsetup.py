@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import cache
 from ..errors import SimulationError
 from ..network.regions import select_fixed
 from .grasper import GraspPlan, plan_grasp
@@ -151,7 +152,8 @@ def settle_at_start(run: RunSetup, scene: Scene, network, reporter) -> dict | No
         return None
     t = time.perf_counter()
     try:
-        info = sim.relax(rtol=1e-4, max_iter=400_000, inertia=run.start_inertia, reporter=rep)
+        info = sim.relax(rtol=1e-4, max_iter=400_000, inertia=run.start_inertia, reporter=rep,
+                         cache=cache.folder("settle"))
         settle = {**info, "seconds": time.perf_counter() - t, "converged": True}
     except SimulationError as exc:
         if "diverged" in str(exc):
@@ -177,7 +179,9 @@ def settle_at_start(run: RunSetup, scene: Scene, network, reporter) -> dict | No
     kept = "" if shape["volume_ratio"] is None else (
         f", volume {100 * (shape['volume_ratio'] - 1):+.2g} %, {shape['inverted_tets']} inverted tets")
     rep.step(f"equilibrium under gravity: largest sag {u * 1e3:.3g} mm, median {shape['sag_median_m'] * 1e3:.3g} mm"
-             f"{kept} ({settle.get('iterations', '?')} FIRE iterations, {settle['seconds']:.2g} s)"
+             f"{kept} ({settle.get('iterations', '?')} FIRE iterations, "
+             + ("taken from the cache of equilibria found before" if settle.get("cached") else
+                f"{settle['seconds']:.2g} s") + ")"
              + ("; long-term (relaxed) response, history relaxed" if fx is not None and fx.n_terms else ""))
     return settle
 

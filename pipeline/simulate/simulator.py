@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -192,13 +193,14 @@ class Simulator:
             return self.stepper.advance(self.model, self.state, self.control, nsteps, record=record)
 
     def relax(self, *, ftol: float | None = None, rtol: float = 1e-8, max_iter: int = 200_000,
-              inertia: np.ndarray | None = None, reporter: Reporter | None = None) -> dict:
+              inertia: np.ndarray | None = None, reporter: Reporter | None = None, cache: Path | None = None) -> dict:
         """Static equilibrium under gravity (and a held grasp) with FIRE: :func:`.relax.relax`.
 
         FIRE's molecular-dynamics step is the explicit stability bound (also
         when the stepper is implicit and has none). *inertia*: FIRE's node
         masses instead of the model's (its path, and so the equilibrium it finds
-        on a sticking floor, depends on them). *reporter*: shown FIRE's progress.
+        on a sticking floor, depends on them). *reporter*: shown FIRE's progress;
+        *cache*: a folder of equilibria found before (:func:`.relax.relax`).
         """
         model, control, dtc = self.model, self.control, self.bound.dt_critical
         if inertia is not None:
@@ -207,7 +209,7 @@ class Simulator:
         if inertia is not None or not np.isfinite(dtc):
             dtc = SymplecticEuler().bound(model, control).dt_critical
         return relax(model, self.state, control, dt_critical=dtc, ftol=ftol, rtol=rtol, max_iter=max_iter,
-                     reporter=reporter)
+                     reporter=reporter, cache=cache)
 
     def settle_effects(self) -> None:
         """Take the current configuration as long held (:func:`.relax.settle_effects`)."""
