@@ -43,7 +43,7 @@ def run(args, ui) -> int:
 
     saved = load_fit(args.fit)
     overrides = metadata_overrides(args)
-    tests = [read(p, overrides=overrides) for p in args.files]
+    tests = [read(p, overrides=overrides, reporter=ui) for p in args.files]
     ev = evaluate(saved, tests, reporter=ui)
     for line in summary_lines(ev):
         ui.info(line)

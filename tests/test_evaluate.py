@@ -136,3 +136,21 @@ def test_discovered_elastic_law_predicts_a_new_file_from_discover_json_and_param
     ev = evaluate(tmp_path / "fit", new)
     assert ev.after.nrmse < 3 * NOISE and ev.after.nrmse < 0.5 * ev.before.nrmse
     assert evaluate(tmp_path / "fit" / "params.toml", new).after.nrmse < 3 * NOISE
+
+
+def test_cli_evaluate_shows_the_readers_warnings(run_cli, tmp_path):
+    """A derived stress column that disagrees with force / area is warned about by evaluate, as by calibrate."""
+    from esmm.pipeline.calibrate.fit import fit_material
+    from esmm.pipeline.calibrate.report import write_outputs
+
+    lam = np.linspace(1.0, 1.5, 20)
+    p = 20e3 * (lam - lam**-2)
+    fitted = tmp_path / "fitted.csv"
+    fitted.write_text("stretch,stress [Pa]\n" + "".join(f"{a:.17g},{b:.17g}\n" for a, b in zip(lam, p)))
+    write_outputs(tmp_path / "cal", fit_material([read(fitted)], model="arruda-boyce", n_starts=2), [read(fitted)])
+    new = tmp_path / "new.csv"   # the machine's 'Tensile stress' used a 10 % smaller area
+    new.write_text("# gauge_length: 30 mm\n# area: 20 mm2\nTime (s),Extension (mm),Load (N),Tensile stress (kPa)\n"
+                   + "".join(f"{i},{(a - 1) * 30:.17g},{b * 20e-6:.17g},{b / 0.9e3:.17g}\n" for i, (a, b) in enumerate(zip(lam, p))))
+    code, stdout, stderr = run_cli("evaluate", tmp_path / "cal", new)
+    assert code == 0, stderr
+    assert "'Tensile stress': the stress computed from the raw channels" in stderr

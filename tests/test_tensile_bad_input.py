@@ -245,3 +245,23 @@ def test_encoding_statements_that_contradict_the_file(tmp_path):
 def test_absurd_true_strain(tmp_path):
     msg = refuse(tmp_path, "true strain,stress [kPa]\n0,0\n1000,1\n")
     assert "line 3: gives a stretch that is not finite" in msg
+
+
+def test_thousands_separators_in_a_semicolon_file(tmp_path):
+    # '1.234,56' made ',' look like the delimiter ("the header has 1 columns but the data row has 3")
+    rows = "".join(f"{i},5;{1000 * i + 234},56\n".replace("34,", ".234,") for i in range(1, 6))
+    msg = refuse(tmp_path, "Dehnung (%);Spannung (Pa)\n0,0;0,00\n" + rows.replace("234.234", "234"))
+    assert "numbers mix '.'" in msg and "thousands separators" in msg
+
+
+def test_the_encoding_hint_of_a_western_file(tmp_path):
+    # a latin-1/cp1252 file with µm or °C: the hint was Shift-JIS (which decodes those bytes as half-width kana)
+    msg = refuse(tmp_path, "Time (s);Extension (µm);Load (N)\n0;0;0\n1;2;3\n".encode("latin-1"))
+    assert "cp1252" in msg and "Shift-JIS" not in msg
+    msg = refuse(tmp_path, "時間 (s),変位 (mm),荷重 (N)\n0,0,0\n1,2,3\n".encode("shift_jis"))
+    assert "Shift-JIS" in msg
+
+
+def test_an_ambiguous_decimal_comma_in_the_files_geometry(tmp_path):
+    msg = refuse(tmp_path, "# gauge_length: 1,500 mm\n# area: 2 mm2\n" + RAW)
+    assert "line 1: gauge_length: '1,500 mm' is ambiguous" in msg and '"1.500 mm" or "1500 mm"' in msg

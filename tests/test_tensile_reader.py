@@ -741,3 +741,62 @@ def test_units_compared_by_meaning_not_spelling(tmp_path):
 def test_no_header_with_trailing_delimiter(tmp_path):
     p = write(tmp_path, "t.csv", "1,0,\n1.1,1,\n", sidecar='columns = ["stretch", "stress"]\nunits = ["", "Pa"]\n')
     np.testing.assert_allclose(read(p).stress, [0, 1])
+
+
+# ---------------------------------------------------------------------------
+# exports of other labs' machines (adversarial review: cases that were misread or refused)
+
+
+def test_a_label_and_a_number_in_the_preamble_is_not_the_first_data_row(tmp_path):
+    """Bluehill's numeric specimen label, a Shimadzu 'Batch,1' line: text then a number, above the header."""
+    rows = "".join(f'"{i}","{0.3 * i}","{0.02 * i}"\r\n' for i in range(5))
+    bluehill = ('Specimen properties : Specimen label,"1"\r\nSpecimen properties : Length,"30.00000",mm\r\n'
+                'Specimen properties : Width,"10.00000",mm\r\nSpecimen properties : Thickness,"2.00000",mm\r\n\r\n'
+                "Time,Extension,Load\r\n(s),(mm),(N)\r\n" + rows)
+    t = read(write(tmp_path, "b.csv", bluehill))
+    assert t.metadata["specimen"] == "1" and t.metadata["header_row"] == 6
+    np.testing.assert_allclose(t.stretch, 1 + 0.3 * np.arange(5) / 30)
+    np.testing.assert_allclose(t.stress, 0.02 * np.arange(5) / 20e-6)
+    shimadzu = "Test Speed,5,mm/min\nBatch,1\nSample No,3\n\nTime,Force,Stroke\nsec,N,mm\n0,0,0\n1,0.02,0.3\n2,0.04,0.6\n"
+    t = read(write(tmp_path, "s.csv", shimadzu), overrides={"gauge_length": "30 mm", "area": "20 mm2"})
+    assert t.metadata["header_row"] == 5 and t.metadata["preamble"][1] == "Batch,1"
+    np.testing.assert_allclose(t.stretch, [1.0, 1.01, 1.02])
+    two = "Specimen,4\n\nstretch,stress [kPa]\n1.0,0\n1.2,5\n"   # as wide as the data, but a header follows
+    np.testing.assert_allclose(read(write(tmp_path, "k.csv", two)).stress, [0, 5e3])
+
+
+def test_decimal_comma_in_the_files_own_geometry(tmp_path):
+    """A European Bluehill export writes its specimen properties with the file's decimal comma."""
+    text = ('Specimen properties : Length;"30,00000";mm\r\nSpecimen properties : Width;"10,00000";mm\r\n'
+            'Specimen properties : Thickness;"2,00000";mm\r\n\r\nTime;Extension;Load\r\n(s);(mm);(N)\r\n'
+            '"0,0";"0,0";"0,0"\r\n"1,0";"0,3";"0,02"\r\n')
+    t = read(write(tmp_path, "eu.csv", text))
+    assert t.metadata["gauge_length"] == pytest.approx(0.03) and t.metadata["area"] == pytest.approx(20e-6)
+    np.testing.assert_allclose(t.stretch, [1.0, 1.01])
+    t = read(write(tmp_path, "c.csv", "# gauge_length: 30,5 mm\n# area: 20 mm2\nt [s];displacement [mm];force [N]\n0;0;0\n1;0,305;0,02\n"))
+    assert t.metadata["gauge_length"] == pytest.approx(0.0305)
+
+
+def test_units_row_with_the_unit_of_an_unknown_channel(tmp_path):
+    for unit in ("°C", "N/tex", "count", "mm/min"):
+        text = f"Time,Extension,Load,Other\ns,mm,N,{unit}\n0,0,0,1\n1,0.3,0.02,1\n"
+        t = read(write(tmp_path, "u.csv", text), overrides={"gauge_length": "30 mm", "area": "20 mm2"})
+        assert t.metadata["units_row"] == 2 and t.metadata["units"] == ["s", "mm", "N", unit]
+        np.testing.assert_allclose(t.stress, [0, 1e3])
+
+
+def test_rows_of_bare_delimiters_are_blank(tmp_path):
+    """Excel leaves ';;' where rows were cleared, at the end and in between."""
+    t = read(write(tmp_path, "t.csv", "stretch;stress [kPa]\n1,0;0\n;\n1,5;2,5\n;;\n;;\n"))
+    np.testing.assert_allclose(t.stress, [0.0, 2500.0])
+    assert t.metadata["last_data_row"] == 4
+
+
+def test_the_step_names_the_columns_used_and_the_true_stress_conversion(tmp_path):
+    rep = ListReporter()
+    read(write(tmp_path, "t.csv", "Time (s),Extension (mm),Load (N),Tensile extension (mm)\n0,0,0,0\n1,1,1,1\n"),
+         overrides={"gauge_length": "10 mm", "area": "1 mm2"}, reporter=rep)
+    assert "from displacement / gauge_length, column 2 'Extension'" in rep.steps[-1]
+    assert "from force / area, column 3 'Load'" in rep.steps[-1]
+    read(write(tmp_path, "s.csv", "stretch,true stress [kPa]\n1,0\n1.1,1\n"), reporter=rep)
+    assert "true stress / stretch, incompressible), column 2 'true stress'" in rep.steps[-1]

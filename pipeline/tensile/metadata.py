@@ -305,10 +305,28 @@ def encoding_value(e: Entry) -> str:
     return name
 
 
+_DECIMAL_COMMA = re.compile(r"^\s*([-+]?\d+),(\d+)(\s*[^\d.,].*)?$", re.S)
+
+
+def _decimal_comma(e: Entry) -> Any:
+    """A file's own value written with a decimal comma (``30,5 mm``, Bluehill's ``"30,00000",mm`` in a
+    European export) with a decimal point; three digits after the comma are ambiguous and refused."""
+    m = _DECIMAL_COMMA.match(e.value) if e.level == COMMENT and isinstance(e.value, str) else None
+    if m is None:
+        return e.value
+    whole, frac, unit = m.group(1), m.group(2), (m.group(3) or "").strip()
+    if len(frac) == 3:
+        raise e.error(
+            f"{e.where}: {e.value!r} is ambiguous (a decimal comma, or a thousands separator?); write it "
+            f"with a decimal point and no grouping, e.g. \"{whole}.{frac} {unit}\" or \"{whole}{frac} {unit}\""
+        )
+    return f"{whole}.{frac} {unit}".strip()
+
+
 def length_value(e: Entry, kind: str = "length") -> float:
-    """A positive dimensional value in SI (``"30 mm" -> 0.03``)."""
+    """A positive dimensional value in SI (``"30 mm" -> 0.03``; in the file's own lines also ``"30,5 mm"``)."""
     try:
-        v = _units.parse_quantity(e.value, kind, where=e.where)
+        v = _units.parse_quantity(_decimal_comma(e), kind, where=e.where)
     except InputError as exc:
         raise e.error(str(exc)) from None
     if not (v > 0 and math.isfinite(v)):

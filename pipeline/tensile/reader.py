@@ -43,7 +43,9 @@ _DELIMITERS = ("\t", ";", "|", ",")
 _DELIM_NAME = {"\t": "tab", ";": "';'", ",": "','", "|": "'|'"}
 _QUOTED = re.compile(r'"[^"]*"')
 _EXCEL_SEP = re.compile(r'^\s*"?sep=(.)"?\s*$', re.I)
-_NUMBER = re.compile(r"^[-+]?(?:\d+(?:[.,]\d*)?|[.,]\d+)(?:[eE][-+]?\d+)?$|^[-+]?(?:nan|inf|infinity)$", re.I)
+_NUMBER = re.compile(r"^[-+]?(?:\d+(?:[.,]\d*)?|[.,]\d+)(?:[eE][-+]?\d+)?$|^[-+]?(?:nan|inf|infinity)$"
+                     # with thousands separators (1.234,5 or 1,234.5): a number, refused as such by _decimal
+                     r"|^[-+]?\d{1,3}(?:\.\d{3})+,\d*$|^[-+]?\d{1,3}(?:,\d{3})+\.\d*$", re.I)
 _ENCODING_COMMENT = re.compile(rb"^[ \t]*#+[ \t]*(?:encoding|charset)[ \t]*[:=][ \t]*[\"']?([A-Za-z0-9_.\-]+)", re.M | re.I)
 _CONTENT = re.compile(rb"[^ \t\r\n\x00\x1a\xef\xbb\xbf\xff\xfe]")
 _CONTROL_BYTES = bytes(c for c in range(32) if c not in (9, 10, 12, 13, 26))
@@ -256,13 +258,16 @@ def _suggest_encoding(raw: bytes) -> str:
             return " (its header reads as Chinese GBK: encoding = \"gbk\"?)"
     except UnicodeDecodeError:
         pass
-    for enc, what in (("shift_jis", "Japanese Shift-JIS"), ("cp1252", "Windows Western cp1252")):
-        try:
-            head.decode(enc)
-            return f" (it may be {what})"
-        except UnicodeDecodeError:
-            continue
-    return ""
+    try:  # Shift-JIS decodes most single Latin-1 bytes (µ ° ²) as half-width katakana: ask for kana or kanji
+        if re.search("[\u3040-\u30ff\u4e00-\u9fff]", head.decode("shift_jis")):
+            return " (it may be Japanese Shift-JIS)"
+    except UnicodeDecodeError:
+        pass
+    try:
+        head.decode("cp1252")
+        return " (it may be Windows Western cp1252)"
+    except UnicodeDecodeError:
+        return ""
 
 
 # ---------------------------------------------------------------------------
@@ -299,8 +304,18 @@ def _numeric_row(cells: list[str]) -> bool:
     return sum(_is_number(c) for c in nonempty) * 2 >= len(nonempty)
 
 
-def _units_row(cells: list[str]) -> bool:
-    return any(C.clean_cell(c) for c in cells) and all(C.is_unit_cell(c) for c in cells)
+def _units_row(cells: list[str], *, under_header: bool = False) -> bool:
+    """A units row: every cell a unit (``(s),(mm),(N)``); under a header line, also a row with the unit
+    of an unused channel that esmm does not know (``s,mm,N,°C``): no numbers, no spaces inside a cell,
+    and most cells known units."""
+    filled = [C.clean_cell(c) for c in cells if C.clean_cell(c)]
+    if not filled:
+        return False
+    known = sum(C.is_unit_cell(c) for c in filled)
+    if known == len(filled):
+        return all(C.is_unit_cell(c) for c in cells)
+    return (under_header and known * 2 > len(filled)
+            and not any(_is_number(c) or len(c.split()) > 1 for c in filled))
 
 
 def _detect_delimiter(sample: list[str], label: str) -> str:
@@ -348,14 +363,14 @@ def _layout(lines: list[str], label: str, delimiter: str | None) -> _Layout:
     j = len(head) - 1
     if j >= 0:
         cells = _split(head[j][1], delim)
-        if _units_row(cells):
+        if _units_row(cells, under_header=j >= 1):
             units = (head[j][0], cells)
             j -= 1
     if j >= 0:
         header = (head[j][0], _split(head[j][1], delim))
     head_end = header[0] if header else (units[0] if units else first + 1)
     top = [(i, lines[i - 1]) for i in range(1, head_end) if lines[i - 1].lstrip().startswith("#")]
-    data_lines, linenos = _data_rows(lines, first)
+    data_lines, linenos = _data_rows(lines, first, delim)
     return _Layout(
         delimiter=delim,
         top_comments=top,
@@ -380,29 +395,37 @@ def _excel_separator(lines: list[str], delimiter: str | None) -> tuple[list[str]
     return lines, delimiter
 
 
-def _last_rows(lines: list[str], label: str) -> list[str]:
-    """The last 50 non-blank, non-comment lines (where the delimiter is looked for), in file order."""
+def _tail(lines: list[str]) -> list[str]:
+    """The last 50 non-blank, non-comment lines, in file order."""
     tail: list[str] = []
     for ln in reversed(lines):
         if not _skip(ln):
             tail.append(ln)
             if len(tail) == 50:
                 break
+    return tail[::-1]
+
+
+def _last_rows(lines: list[str], label: str) -> list[str]:
+    """The last 50 non-blank, non-comment lines (where the delimiter is looked for), in file order."""
+    tail = _tail(lines)
     if not tail:
         raise InputError(
             f"{label}: no numeric rows (only comments or blank lines); export the test data with one row per sample"
         )
-    return tail[::-1]
+    return tail
 
 
 def _head(lines: list[str], delim: str, label: str) -> tuple[list[tuple[int, str]], int]:
     """The text lines (line number, text) before the first numeric row, and that row's index."""
     head: list[tuple[int, str]] = []   # non-blank, non-comment lines before the first numeric row
+    counts = [_filled(_split(ln, delim)) for ln in _tail(lines)]
+    width = max(set(counts), key=counts.count) if counts else 0   # filled cells of a typical data row
     for i, ln in enumerate(lines):
         if _skip(ln):
             continue
         cells = _split(ln, delim)
-        if _numeric_row(cells):
+        if _numeric_row(cells) and not _labelled_value(cells, lines, i, delim, width):
             return head, i
         if any(C.clean_cell(c) for c in cells):  # a row of bare delimiters is blank
             head.append((i + 1, ln))
@@ -416,15 +439,35 @@ def _head(lines: list[str], delim: str, label: str) -> tuple[list[tuple[int, str
     )
 
 
-def _data_rows(lines: list[str], first: int) -> tuple[list[str], list[int]]:
-    """The data rows from index *first* on (comments and blank lines dropped), and their line numbers."""
+def _filled(cells: list[str]) -> int:
+    return sum(1 for c in cells if c.strip().strip('"').strip())
+
+
+def _labelled_value(cells: list[str], lines: list[str], i: int, delim: str, width: int) -> bool:
+    """A preamble line that counts as a numeric row: a label and a number (``Batch,1``, Bluehill's
+    ``Specimen properties : Specimen label,"1"``), narrower than the data rows (*width* filled cells)
+    or followed by a text line (the header, more preamble)."""
+    first = next((c for c in cells if c.strip().strip('"').strip()), "")
+    if _is_number(first):
+        return False
+    if _filled(cells) < width:
+        return True
+    nxt = next((lines[j] for j in range(i + 1, len(lines)) if not _skip(lines[j])), None)
+    return nxt is not None and not _numeric_row(_split(nxt, delim))
+
+
+def _data_rows(lines: list[str], first: int, delim: str) -> tuple[list[str], list[int]]:
+    """The data rows from index *first* on (comments, blank lines and rows of bare delimiters, which
+    Excel leaves where rows were cleared, dropped), and their line numbers."""
+    bare = re.compile(r'[ \t"' + re.escape(delim) + r"]*")
     region = lines[first:]
-    while region and not region[-1].strip():
+    while region and bare.fullmatch(region[-1]):
         region.pop()
     joined = "\n".join(region)
-    if "#" not in joined and "\n\n" not in joined and _BLANK_LINE.search(joined) is None:
+    if ("#" not in joined and "\n\n" not in joined and _BLANK_LINE.search(joined) is None
+            and re.search(r'\n[ \t"' + re.escape(delim) + r"]*(?:\n|$)", joined) is None):
         return region, list(range(first + 1, first + 1 + len(region)))
-    pairs = [(i, ln) for i, ln in enumerate(region, first + 1) if not _skip(ln)]
+    pairs = [(i, ln) for i, ln in enumerate(region, first + 1) if not (_skip(ln) or bare.fullmatch(ln))]
     return [ln for _, ln in pairs], [i for i, _ in pairs]
 
 
@@ -958,9 +1001,11 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
     metadata = _metadata(md, geo, plan, layout, cols, used, factors, enc, decimal, linenos, warnings)
     metadata.update(stretch_from=x_from, stress_from=s_from, raw=plan.x_col is None or plan.s_col is None,
                     n_rows=int(len(x)), cross_checks=checks, column_notes=notes, **meta_extra)
-    rep.step(
-        f"read {label}: {len(x)} rows, {plan.mode}, {plan.x_name} {np.min(x):.4g}..{np.max(x):.4g}, "
-        f"stress {np.min(stress):.4g}..{np.max(stress):.4g} Pa"
+    x_c, s_c = plan.x_col or plan.d_col, plan.s_col or plan.f_col
+    rep.step(  # the columns used and the conversions made (specs/tensile-data.md: say which, say so)
+        f"read {label}: {len(x)} rows, {plan.mode}; {plan.x_name} {np.min(x):.4g}..{np.max(x):.4g} from {x_from}, "
+        f"column {x_c.index + 1} '{x_c.header or x_c.quantity}'; stress {np.min(stress):.4g}..{np.max(stress):.4g} "
+        f"Pa from {s_from}, column {s_c.index + 1} '{s_c.header or s_c.quantity}'"
     )
     return TensileTest(
         source=p,
