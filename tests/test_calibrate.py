@@ -190,3 +190,24 @@ def test_calibrate_config_file_and_overrides(tmp_path):
     assert info.value.parameter == "fixed"
     with pytest.raises(ConfigError, match="^fixed: mu: '3' has no unit"):
         load_calibrate_config(None, model="arruda-boyce", fixed={"mu": "3"})
+
+
+def test_cli_outputs_say_which_columns_were_used_and_the_true_stress_conversion(run_cli, tmp_path):
+    """specs/tensile-data.md: true stress is converted to nominal (P = sigma / lambda) and the outputs say so,
+    with the columns used and the reader's warnings."""
+    lam = np.linspace(1.0, 1.6, 25)
+    mu = 50e3
+    sigma = mu * (lam**2 - 1 / lam)                    # neo-Hookean true stress in uniaxial tension [Pa]
+    src = tmp_path / "true.csv"
+    src.write_text("Time (s),Stretch,Cauchy stress (kPa)\n"
+                   + "".join(f"{i},{a:.6f},{s / 1e3:.6f}\n" for i, (a, s) in enumerate(zip(lam, sigma))))
+    code, out, err = run_cli("calibrate", src, "--model", "arruda-boyce", "--starts", "2", "--out", tmp_path / "fit")
+    assert code == 0, err
+    doc = json.loads((tmp_path / "fit" / "fit.json").read_text())
+    (how,) = doc["inputs"]
+    assert "true stress" in how["stress_from"] and "stretch" in how["stress_from"]
+    assert {c["header"] for c in how["used_columns"].values()} >= {"Stretch", "Cauchy stress"}
+    report = (tmp_path / "fit" / "report.md").read_text()
+    assert "## How each file was read" in report and "nominal stress = true stress / stretch" in report
+    # the conversion itself: the fit sees nominal stress, sigma / lambda
+    np.testing.assert_allclose(read(src).stress, sigma / lam, rtol=1e-5)

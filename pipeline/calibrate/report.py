@@ -64,12 +64,37 @@ def result_to_dict(result: FitResult, tests: Sequence[TensileTest]) -> dict[str,
             "per_file": [vars(f) for f in result.files],
         },
         "files": [str(t.source) for t in tests],
+        "inputs": [how_read(t) for t in tests],
         "specimens": sorted({t.specimen for t in tests}),
         "warnings": list(result.warnings),
         "correlation": {"keys": result.free_keys, "matrix": np.round(result.correlation, 6).tolist()},
         "drucker": result.drucker,
         "seconds": result.seconds,
     }
+
+
+def how_read(test: TensileTest) -> dict[str, Any]:
+    """How the reader took *test* from its file: the columns used (index, header, unit, factor to SI),
+    where stretch and stress came from (and the conversions made, e.g. true to nominal stress), the
+    cross-checks against derived columns and the reader's warnings (specs/tensile-data.md: say which
+    columns were used, say so in the outputs)."""
+    md = test.metadata
+    return {"file": str(test.source), "stretch_from": md.get("stretch_from"), "stress_from": md.get("stress_from"),
+            "used_columns": md.get("used_columns", {}), "cross_checks": md.get("cross_checks", {}),
+            "warnings": list(md.get("warnings", []))}
+
+
+def _inputs_section(tests: Sequence[TensileTest]) -> list[str]:
+    lines = ["", "## How each file was read", "", "| file | stretch from | stress from | columns used |",
+             "| --- | --- | --- | --- |"]
+    for t in tests:
+        h = how_read(t)
+        cols = ", ".join(f"{c['index']} '{c['header'] or q}'" + (f" [{c['unit']}]" if c.get("unit") else "")
+                         for q, c in h["used_columns"].items())
+        lines.append(f"| {Path(t.source).name} | {h['stretch_from'] or '–'} | {h['stress_from'] or '–'} | "
+                     f"{cols or '–'} |")
+    notes = [f"- {w}" for t in tests for w in how_read(t)["warnings"]]     # each names its file
+    return lines + (["", "Reader warnings:", ""] + notes if notes else [])
 
 
 def params_toml(result: FitResult, tests: Sequence[TensileTest], *, name: str | None = None) -> str:
@@ -163,6 +188,7 @@ def markdown_report(result: FitResult, tests: Sequence[TensileTest], *, plot_nam
             f"| {Path(fe.path).name} | {fe.mode} | {fe.orientation or '–'} | {fe.n} | "
             f"{fe.rmse / sfac:.4g} | {fe.nrmse:.2%} | {fe.r2:.4f} | {fe.max_abs / sfac:.4g} |"
         )
+    lines += _inputs_section(tests)
     if result.warnings:
         lines += ["", "## Warnings", ""] + [f"- {w}" for w in result.warnings]
     if result.drucker:
