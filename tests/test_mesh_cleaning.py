@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from esmm.pipeline.errors import ConfigError, MeshingError
+from esmm.pipeline.errors import ConfigError, InputError, MeshingError
 from esmm.pipeline.mesh import cleaning
 from esmm.pipeline.mesh.cleaning import (
     CleaningOptions,
@@ -248,3 +248,58 @@ def test_shared_sofa_liver(shared_data):
     assert report.step("orient")["faces_flipped"] == raw.n_faces - 12  # inward normals
     assert out.is_closed()
     assert out.volume() == pytest.approx(1.477e-3, rel=0.02)
+
+
+# ------------------------------------------------------------- other organ shapes
+def _marching_cubes_tube(radius_mm=4.0, length_mm=60.0, voxel_mm=0.5) -> Surface:
+    """A vessel-like closed tube as a mask export gives it (marching cubes, small voxels), in m."""
+    from skimage.measure import marching_cubes
+
+    x = np.arange(-length_mm / 2 - 3, length_mm / 2 + 3 + voxel_mm / 2, voxel_mm)
+    y = np.arange(-radius_mm - 2, radius_mm + 2 + voxel_mm / 2, voxel_mm)
+    X, Y, Z = np.meshgrid(x, y, y, indexing="ij")
+    mask = ((Y ** 2 + Z ** 2 <= radius_mm ** 2) & (np.abs(X) <= length_mm / 2)).astype(np.uint8) * 255
+    v, f, _, _ = marching_cubes(mask, 127, spacing=(voxel_mm,) * 3)
+    s = Surface(v * 1e-3, f.astype(np.int64))
+    return s if s.volume() > 0 else Surface(s.points, s.faces[:, ::-1])
+
+
+def test_thin_vessel_survives_decimation_and_repair():
+    """pymeshfix runs in mm: in m its absolute tolerances deleted a 0.5 mm-voxel vessel
+    (8 mm across) whole ("nothing is left after repair")."""
+    raw = _marching_cubes_tube()
+    out, report = clean_surface(raw, options=CleaningOptions(target_faces=raw.n_faces // 2))
+    assert out.is_closed()
+    assert abs(report.relative_volume_change) < 0.02
+    assert report.step("repair")["faces_after"] >= 0.9 * report.step("repair")["faces_before"]
+    assert out.extent() == pytest.approx(raw.extent(), rel=0.02)
+
+
+def _hollow(inner_r=0.035, outer_r=0.04):
+    """A hollow ball (bladder-like wall): an outward outer sphere and an inward inner one."""
+    a, b = sphere(outer_r, 3), sphere(inner_r, 3)
+    return Surface(np.vstack([a.points, b.points]), np.vstack([a.faces, b.faces[:, ::-1] + a.n_points])), a, b
+
+
+@pytest.mark.parametrize("keep", ["largest", "all"])
+def test_hollow_organ_is_refused_not_filled(keep):
+    s, a, b = _hollow()
+    with pytest.raises(InputError, match=r"^body: .*body 1 .* lies inside body 0 .*hollow.*give body 0") as e:
+        clean_surface(s, options=CleaningOptions(keep=keep, smooth_iterations=0))
+    assert e.value.parameter == "body" and "\n" not in str(e.value)
+    assert ("fill the cavity" in str(e.value)) == (keep == "largest")
+
+
+def test_hollow_organ_filled_on_purpose_and_small_void_filled():
+    s, a, b = _hollow()
+    out, _ = clean_surface(s, options=CleaningOptions(body=0, smooth_iterations=0))  # the user's choice
+    assert out.volume() == pytest.approx(a.volume(), rel=1e-3)
+    s, a, b = _hollow(inner_r=0.015)  # a void of 5 % (an unlabelled vessel): filled as before
+    out, report = clean_surface(s, options=CleaningOptions(smooth_iterations=0))
+    assert out.volume() == pytest.approx(a.volume(), rel=1e-3) and len(report.bodies_dropped) == 1
+
+
+def test_disjoint_bodies_are_not_taken_for_a_cavity():
+    s, a, b = two_bodies()
+    out, _ = clean_surface(s, options=CleaningOptions(keep="all", smooth_iterations=0))
+    assert out.volume() == pytest.approx(a.volume() + b.volume(), rel=1e-6)

@@ -152,6 +152,23 @@ def test_bad_config_file_names_file_and_key(run_cli, tmp_path, monkeypatch, sphe
     assert sorted(os.listdir(tmp_path)) == ["c.toml"]
 
 
+
+def test_hollow_organ_is_refused_with_the_body_flag(run_cli, tmp_path, monkeypatch):
+    """A hollow organ (outer wall + inner cavity surface in one STL) is not filled silently."""
+    from esmm.pipeline.mesh.readers import write_stl
+    from esmm.pipeline.mesh.surface import Surface
+
+    monkeypatch.chdir(tmp_path)
+    a, b = icosphere(0.03, 3), icosphere(0.025, 3)
+    wall = Surface(np.vstack([a.points, b.points]), np.vstack([a.faces, b.faces[:, ::-1] + a.n_points]))
+    write_stl(wall, tmp_path / "bladder.stl", unit="mm")
+    rc, out, err = run_cli("prepare", "bladder.stl", "-o", "bladder.h5")
+    lines = [ln for ln in err.splitlines() if ln.startswith("esmm: error:")]
+    assert rc == 2 and len(lines) == 1 and "Traceback" not in err
+    assert lines[0].startswith("esmm: error: --body: bladder.stl") and "hollow" in lines[0]
+    assert sorted(os.listdir(tmp_path)) == ["bladder.stl"]
+
+
 # -- esmm info -------------------------------------------------------------------------------
 
 @pytest.fixture()

@@ -39,7 +39,7 @@ from scipy.sparse.csgraph import connected_components
 from ..errors import MeshingError
 from ..progress import ensure
 from ..validate import number
-from .cleaning import keep_largest, orient_outward
+from .cleaning import decimate, keep_largest, meshfix, meshfix_arrays, orient_outward
 from .surface import Surface
 
 #: Surface vertices kept when ``n_surface`` is not given, and the fewest that may be asked for.
@@ -210,20 +210,13 @@ def skeleton_structure(surface: Surface, *, n_surface: int | None = None, k: int
 
 # ------------------------------------------------------------------ helpers
 def _decimate(surface: Surface, n_vertices: int) -> Surface:
-    import fast_simplification
-    import pymeshfix
-
     if surface.n_points <= n_vertices:
         return surface.compact()
     target_faces = 2 * n_vertices  # closed surface: F = 2V - 4 + 4g
-    p, f = fast_simplification.simplify(surface.points, surface.faces.astype(np.int32), target_count=target_faces)
-    tm = pymeshfix.PyTMesh()
-    tm.set_quiet(True)
-    tm.load_array(np.asarray(p, np.float64), np.asarray(f, np.int32))
+    tm = meshfix(*decimate(surface.points, surface.faces, target_faces))
     tm.fill_small_boundaries(0, True)
     tm.clean(10, 3)
-    v, f = tm.return_arrays()
-    v, f, _ = keep_largest(np.asarray(v, np.float64), np.asarray(f, np.int64))
+    v, f, _ = keep_largest(*meshfix_arrays(tm))
     f, *_ = orient_outward(v, f)
     out = Surface(v, f, surface.source).compact()
     if not out.is_closed():

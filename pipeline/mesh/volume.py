@@ -33,7 +33,7 @@ import numpy as np
 from ..errors import ConfigError, MeshingError
 from ..progress import ensure
 from ..validate import number
-from .cleaning import face_components, keep_largest, orient_outward
+from .cleaning import face_components, keep_largest, meshfix, meshfix_arrays, orient_outward
 from .gmsh_worker import GmshFailure, GmshTimeout, run_worker
 from .readers import boundary_of_tets
 from .slivers import SLIVER_TARGET_DEG, improve_slivers
@@ -402,19 +402,13 @@ def restore_volume(points: np.ndarray, tets: np.ndarray, boundary_faces: np.ndar
 
 def _repair_for_gmsh(surface: Surface) -> Surface:
     """Stronger pymeshfix repair (joins, removes intersecting triangles, fills)."""
-    import pymeshfix
-
-    tm = pymeshfix.PyTMesh()
-    tm.set_quiet(True)
-    tm.load_array(surface.points, surface.faces.astype(np.int32))
+    tm = meshfix(surface.points, surface.faces)  # in mm: its tolerances are absolute
     tm.fill_small_boundaries(0, True)
     tm.clean(20, 5)
     tm.strong_degeneracy_removal(3)
     tm.strong_intersection_removal(10)
     tm.fill_small_boundaries(0, True)
-    v, f = tm.return_arrays()
-    v = np.asarray(v, np.float64)
-    f = np.asarray(f, np.int64)
+    v, f = meshfix_arrays(tm)
     if f.shape[0] == 0:
         raise MeshingError("nothing left after repair")
     v, f, _ = keep_largest(v, f)
