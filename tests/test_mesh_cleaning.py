@@ -160,7 +160,7 @@ def test_volume_guard_reduces_smoothing_then_refuses(monkeypatch):
     monkeypatch.setattr(cleaning, "_smooth", shrinking)
     rep = ListReporter()
     out, report = clean_surface(sphere(nsub=3), options=CleaningOptions(smooth_iterations=8), reporter=rep)
-    assert calls == [8, 4, 2, 1]  # halved until 0 iterations (which skips smoothing)
+    assert calls == [8, 4, 2]  # halved until 0 iterations (which skips smoothing), never 1
     assert report.smooth_iterations_used == 0
     assert abs(report.relative_volume_change) < 0.02
     assert any("retrying" in w for w in rep.warnings)
@@ -175,7 +175,7 @@ def test_volume_guard_reduces_smoothing_then_refuses(monkeypatch):
     monkeypatch.setattr(fast_simplification, "simplify",
                         lambda p, f, **kw: shrink_everything(np.asarray(p), np.asarray(f), **kw))
     with pytest.raises(MeshingError, match="more than 2 %"):
-        clean_surface(sphere(0.04, 4), options=CleaningOptions(target_faces=1000, smooth_iterations=1))
+        clean_surface(sphere(0.04, 4), options=CleaningOptions(target_faces=1000, smooth_iterations=2))
 
 
 # ----------------------------------------------------------- InVesalius-like input
@@ -303,3 +303,17 @@ def test_disjoint_bodies_are_not_taken_for_a_cavity():
     s, a, b = two_bodies()
     out, _ = clean_surface(s, options=CleaningOptions(keep="all", smooth_iterations=0))
     assert out.volume() == pytest.approx(a.volume() + b.volume(), rel=1e-6)
+
+
+def test_smoothing_never_tries_one_iteration():
+    """VTK's windowed-sinc filter of one iteration finds no offset, writes so to stderr itself and
+    collapses the surface (a 50 mm sphere to 7 mm): the volume guard's schedule skips it and a config
+    asking for it is refused."""
+    schedule = [20]
+    while schedule[-1]:
+        schedule.append(cleaning._fewer(schedule[-1]))
+    assert schedule == [20, 10, 5, 2, 0]
+    with pytest.raises(ConfigError, match=r"^smooth_iterations: 1 is not a smoothing"):
+        CleaningOptions(smooth_iterations=1).validate()
+    s = sphere(0.05, 3)
+    assert np.abs(cleaning._smooth(s.points, s.faces, 2, 0.1)).max() == pytest.approx(0.05, rel=0.01)

@@ -140,6 +140,10 @@ class CleaningOptions:
         if self.body is not None:
             number(self.body, name("body"), lo=0, integer=True)
         number(self.smooth_iterations, name("smooth_iterations"), lo=0, integer=True)
+        if self.smooth_iterations == 1:
+            raise ConfigError(f"{name('smooth_iterations')}: 1 is not a smoothing (VTK's windowed-sinc filter "
+                              "collapses the surface with one iteration); give 0 or at least 2",
+                              parameter=name("smooth_iterations"))
         number(self.smooth_passband, name("smooth_passband"), lo=0.0, hi=2.0, lo_open=True, hi_open=True)
         if self.target_faces is not None:
             number(self.target_faces, name("target_faces"), lo=MIN_TARGET_FACES, integer=True)
@@ -429,6 +433,8 @@ def _compact(points: np.ndarray, faces: np.ndarray):
 
 
 def _smooth(points: np.ndarray, faces: np.ndarray, iterations: int, passband: float) -> np.ndarray:
+    """VTK's windowed-sinc smoothing; never with one iteration (:func:`_fewer`), where the filter writes
+    "An optimal offset ... could not be found" straight to stderr and collapses the surface."""
     import vtk
     from vtk.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray, vtk_to_numpy
 
@@ -684,9 +690,9 @@ def clean_surface(surface: Surface, *, options: CleaningOptions | None = None,
                 f"{MAX_VOLUME_CHANGE * 100:g} % ({'; '.join(tried)}); give a larger target_faces "
                 f"or check the input surface"
             )
-        rep.warn(f"{where}: volume changed {change * 100:+.2f} % with {iters} smoothing iterations; "
-                 f"retrying with {iters // 2}")
-        iters //= 2
+        iters = _fewer(iters)
+        rep.warn(f"{where}: volume changed {change * 100:+.2f} % with {tried[-1].split(':')[0]}; "
+                 f"retrying with {iters}")
     out = Surface(p_out, f_out, surface.source)
     if not out.is_closed():
         raise MeshingError(
@@ -700,6 +706,13 @@ def clean_surface(surface: Surface, *, options: CleaningOptions | None = None,
     rep.step(f"cleaned: {out.n_points} points, {out.n_faces} faces, volume {report.volume_after * 1e6:.1f} mL "
              f"({report.relative_volume_change * 100:+.2f} % of the kept body)")
     return out.with_source(f"cleaned ({iters} smoothing iterations)"), report
+
+
+def _fewer(iters: int) -> int:
+    """The next smoothing tried when the volume moved: half, but never 1 (VTK's windowed-sinc filter of
+    one iteration finds no offset and collapses the surface: a sphere of 50 mm to 7 mm)."""
+    half = iters // 2
+    return half if half >= 2 else 0
 
 
 def _refuse_cavities(where, pts, fcs, lab, rank, kept, dropped, vols, opts) -> None:
