@@ -55,8 +55,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def run(args, ui) -> int:
+    import math
     from pathlib import Path
 
+    from esmm.cli.outputs import check_out_dir, check_out_file
     from esmm.pipeline.atomicio import json_text, write_json
     from esmm.pipeline.errors import ConfigError, SimulationError
     from esmm.pipeline.fidelity.validate import LoadOptions, validate_asset, validate_specimen
@@ -64,23 +66,31 @@ def run(args, ui) -> int:
 
     if (args.asset is None) == (not args.specimen):
         raise ConfigError("give an ASSET.h5 or --specimen (one of them)")
+    for flag, mm in (("--side", args.side), ("--size", args.size)):
+        if not (math.isfinite(mm) and mm > 0):
+            raise ConfigError(f"{flag}: expected a positive length in mm, got {mm:g}")
+    if args.json not in (None, "-"):
+        check_out_file(args.json, "--json", "validation.json")
     opts = {"cases": args.cases, "volume_term": args.volume_term, "law": args.law, "element": args.element,
             "loads": LoadOptions(scene=args.scene), "reporter": ui}
     if args.specimen:
         out = Path(args.out) if args.out else Path("specimen-validate")
+        check_out_dir(out, "--out")
         rep = validate_specimen(load_material(args.material), side=args.side * 1e-3, size=args.size * 1e-3,
                                 out_dir=out, **opts)
     else:
         out = Path(args.out) if args.out else Path(args.asset).with_name(Path(args.asset).stem + "-validate")
+        check_out_dir(out, "--out")
         rep = validate_asset(args.asset, out_dir=out, **opts)
-    ui.info(f"validated {rep.label} (volume term {rep.volume_term}, continuum element {rep.info['element']}, "
-            f"{rep.info['seconds']:.3g} s)")
-    ui.info(rep.table())
+    say = ui.step if args.json == "-" else ui.info    # with --json -, stdout is the JSON alone
+    say(f"validated {rep.label} (volume term {rep.volume_term}, continuum element {rep.info['element']}, "
+        f"{rep.info['seconds']:.3g} s)")
+    say(rep.table())
     if args.json == "-":
-        ui.info(json_text(rep.figures()))
+        ui.info(json_text(rep.figures()).rstrip("\n"))
     elif args.json:
         write_json(args.json, rep.figures())
-    ui.info(f"outputs: {out}")
+    say(f"outputs: {out}")
     failed = rep.info.get("failed", {})
     if failed:  # the other cases are reported and written; the run is not a complete validation
         ui.error(f"{len(failed)} case(s) without an equilibrium ({', '.join(failed)}): see the table above; "

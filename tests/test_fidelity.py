@@ -411,6 +411,35 @@ def test_cli_needs_an_asset_or_the_specimen(capsys):
     assert "--specimen" in capsys.readouterr().err
 
 
+def test_cli_json_to_stdout_is_the_json_alone(tmp_path, capsys):
+    """--json -: stdout parses as JSON (the table and the paths go to stderr)."""
+    code = main(["validate", "--specimen", "--size", "5", "--cases", "tension", "--out", str(tmp_path / "v"),
+                 "--json", "-"])
+    out, err = capsys.readouterr()
+    assert code == 0
+    assert [c["case"] for c in json.loads(out)["cases"]] == ["tension"]
+    assert "| tension |" in err and "outputs:" in err
+
+
+def test_cli_refuses_bad_sizes_and_outputs_before_any_solve(tmp_path, capsys):
+    """--side/--size are in mm (the message too); --out a file, --json a folder: refused up front."""
+    assert main(["validate", "--specimen", "--size", "-1"]) == 2
+    err = capsys.readouterr().err
+    assert "--size: expected a positive length in mm, got -1" in err and "metres" not in err
+    assert main(["validate", "--specimen", "--side", "0"]) == 2
+    assert "--side: expected a positive length in mm" in capsys.readouterr().err
+    (tmp_path / "file").write_text("keep")
+    assert main(["validate", "--specimen", "--size", "5", "--cases", "tension", "--out", str(tmp_path / "file")]) == 2
+    err = capsys.readouterr().err
+    assert "--out: " in err and "is a file" in err and "Traceback" not in err
+    assert (tmp_path / "file").read_text() == "keep"
+    out = tmp_path / "val"
+    assert main(["validate", "--specimen", "--size", "5", "--cases", "tension", "--out", str(out),
+                 "--json", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "--json: " in err and "is a folder" in err and not out.exists()
+
+
 @pytest.mark.parametrize("stretch", [1.3, 1.36])
 def test_continuum_reports_how_near_locking_it_goes(block, liver, stretch):
     """Homogeneous uniaxial: Ī1 = λ² + 2/λ at every point (to the penalty's volume change, as the stress
@@ -435,3 +464,34 @@ def test_validate_warns_when_the_continuum_nears_locking(small_network, liver, s
     assert out.results[0].figures()["continuum"]["locking_share"] == pytest.approx(share, rel=2e-3)
     near = [w for w in rep.warnings if "locking" in w]
     assert bool(near) == (share >= 0.99)
+
+
+def test_a_solve_from_a_lighter_load_level_ramps_the_body_force_from_there(small_network, liver, monkeypatch):
+    """From the solution at half the gravity (the floor's load level k-1) to the whole gravity (level k):
+    both solvers' body force goes 0.5 -> 0.75 -> 1 over two steps (before: at 1 from the first step, an
+    increment no halving could shrink), and they end where a solve from rest does."""
+    from esmm.pipeline.fidelity import continuum as C
+    from esmm.pipeline.fidelity import network_solve as N
+    from esmm.pipeline.fidelity.cases import at_load
+    from esmm.pipeline.fidelity.solution import start_scale
+
+    net, tables = small_network
+    anchor = np.flatnonzero(net.points[:, 0] < 1e-9)
+    case = LoadCase("gravity", "", net.points, net.tets, (Constraint.clamp("anchor", anchor),), "anchor",
+                    gravity=np.array([0.0, 0.0, -9.80665]), density=1000.0)
+    half_c = solve_continuum(at_load(case, 0.5), liver, element="mini")
+    half_n = solve_network(at_load(case, 0.5), net, tables)
+    assert start_scale(half_c, case.gravity) == pytest.approx(0.5) == start_scale(half_n, case.gravity)
+    assert start_scale(None, case.gravity) == 0.0 and start_scale(half_c, at_load(case, 0.5).gravity) == 1.0
+    scales = []
+    real_step = C._Stepper.step
+    monkeypatch.setattr(C._Stepper, "step", lambda self, scale, ext0: scales.append(scale) or real_step(self, scale, ext0))
+    warm = solve_continuum(case, liver, element="mini", start=half_c, steps=2)
+    assert scales == pytest.approx([0.75, 1.0])
+    cold = solve_continuum(case, liver, element="mini")
+    assert np.abs(warm.displacement - cold.displacement).max() < 1e-6 * np.abs(cold.displacement).max()
+    seen = []
+    real_scale = N._Problem.scale
+    monkeypatch.setattr(N._Problem, "scale", lambda self, t: seen.append(real_scale(self, t)) or seen[-1])
+    solve_network(case, net, tables, start=half_n, steps=2)
+    assert min(seen) == pytest.approx(0.75) and max(seen) == pytest.approx(1.0)   # before: 1 throughout

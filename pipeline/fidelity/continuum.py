@@ -36,7 +36,7 @@ from ..network.newton import OrderedFactor, node_ordering, ordered_solve
 from ..progress import ensure
 from .cases import LoadCase
 from .material import IsochoricMaterial, bulk_modulus
-from .solution import Solution
+from .solution import Solution, start_scale
 
 __all__ = ["ELEMENTS", "quadratic_tets", "solve_continuum"]
 
@@ -189,7 +189,7 @@ def solve_continuum(case: LoadCase, material, *, bulk: float | None = None, elem
     ndof = int(np.sum(field.fieldsizes))
     dof0 = np.flatnonzero(mask.ravel())
     dof1 = np.setdiff1d(np.arange(ndof), dof0)
-    path = _LoadPath(solid, dof0, u_full.ravel()[dof0], start)
+    path = _LoadPath(solid, dof0, u_full.ravel()[dof0], start, start_scale(start, case.gravity))
     body = fem.SolidBodyForce(field, values=case.density * np.asarray(case.gravity, dtype=np.float64),
                               scale=path.body(0.0))
     stepper = _Stepper(fem, solid, body, dof0, dof1, _Check(_force_scale(case, material, mask, u_full), rtol),
@@ -228,15 +228,16 @@ _QUICK = 4
 
 
 class _LoadPath:
-    """Body-force scale and prescribed values at load factor t: from the start state to the case's."""
+    """Body-force scale and prescribed values at load factor t: from the start state to the case's
+    (the body force from the start's share *s0* of it, :func:`~.solution.start_scale`)."""
 
-    def __init__(self, solid, dof0, target, start: Solution | None):
+    def __init__(self, solid, dof0, target, start: Solution | None, s0: float):
         self.target = np.asarray(target, dtype=np.float64)
         if start is None or start.state is None:
             self.s0, self.u0 = 0.0, np.zeros_like(self.target)
             return
         solid.restore(start.state)
-        self.s0 = 1.0
+        self.s0 = s0
         self.u0 = np.concatenate([f.values.ravel() for f in solid.field.fields])[dof0]
 
     def body(self, t: float) -> float:
@@ -263,8 +264,11 @@ class _Stepper:
         """Equilibrium at body-force *scale* and prescribed values *ext0*; ``(converged, iterations)``."""
         saved = self.solid.checkpoint()
         self.body._update_scale(scale)
+        before = self.factorisations
         ok, field, its = _newton(self.fem, self.field, self.solid, self.body, self.dof0, self.dof1, ext0,
                                  self.check, self.max_iter, self.solver, self.residual)
+        if hasattr(self.solver, "count"):    # one solve per iteration: what an attempt felupe gave up on
+            its = self.factorisations - before  # (an exception) made, not max_iter, counts in the budget
         self.iterations += its
         if ok:
             self.field = field
@@ -432,4 +436,4 @@ def _solution(case: LoadCase, solid, body, field, members, K: float, i1_lock: fl
     return Solution(solver="continuum", displacement=field[0].values[:n].copy(), reactions=reactions,
                     volume_ratio=float((J * dV).sum() / dV.sum()), element_J=J.min(axis=0),
                     info={**info, **_locking(F, J, i1_lock)},
-                    state=solid.checkpoint())
+                    state=solid.checkpoint(), gravity=np.asarray(case.gravity, dtype=np.float64).copy())

@@ -37,7 +37,7 @@ from ..network.newton import descent_direction, free_order
 from ..network.springs import tet_volumes
 from ..progress import ensure
 from .cases import LoadCase
-from .solution import Solution
+from .solution import Solution, start_scale
 
 __all__ = ["SpringPotential", "solve_network"]
 
@@ -71,8 +71,9 @@ class _Problem:
         self.t = 0.0
         self.order = None                 # of the free dofs, from the first tangent (the pattern stays)
         self.factorizations = 0
-        # The path: from rest (gravity off) or from *start* (gravity on, prescribed values where they are).
-        self.g0, self.u0 = (0.0, np.zeros_like(self.u)) if start is None else (1.0, start.displacement)
+        # The path: from rest (gravity off) or from *start* (its gravity, prescribed values where they are).
+        self.g0 = start_scale(start, case.gravity)
+        self.u0 = np.zeros_like(self.u) if start is None else start.displacement
 
     def scale(self, t: float) -> float:
         """Gravity's factor at load factor *t*."""
@@ -217,7 +218,9 @@ def solve_network(case: LoadCase, network, tables, *, law: str | None = None, te
     reactions = {c.name: f[c.nodes].sum(axis=0) for c in case.constraints}
     V = tet_volumes(case.points, case.tets)
     J = tet_volumes(x, case.tets) / V
-    return Solution(solver="network", displacement=x - pb.X, reactions=reactions, volume_ratio=float(np.sum(J * V) / np.sum(V)), element_J=J,
+    return Solution(solver="network", displacement=x - pb.X, reactions=reactions,
+                    volume_ratio=float(np.sum(J * V) / np.sum(V)), element_J=J,
+                    gravity=np.asarray(case.gravity, dtype=np.float64).copy(),
                     info={"law": springs.law, "volume_factor": float(tables.volume_factor),
                           "terms": ["springs"] + [type(tm).__name__ for tm in terms], "load_steps": done,
                           "step_cuts": cuts, "newton_iterations": iterations,
