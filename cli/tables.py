@@ -84,6 +84,8 @@ def _grid(args, old) -> dict:
     lo = hi = None
     if args.stretch_range is not None:
         lo, hi = (number_text(v, "stretch_range") for v in args.stretch_range)
+        if not 0 < lo < 1 < hi:
+            raise ConfigError(f"stretch_range: need 0 < LO < 1 < HI, got {lo:g} {hi:g}", parameter="stretch_range")
     elif old is not None and args.material is None:
         lo, hi = old.lam_min, old.lam_max
     return {"lam_min": lo, "lam_max": hi, **({} if n is None else {"n": n})}
@@ -204,7 +206,17 @@ def run(args, ui) -> int:
     asset = read_asset(args.asset)
     material = _material(args, asset)
     law = args.law or (asset.tables.default_law if asset.tables is not None else "secant")
-    tables = build_tables(material, law=law, **_grid(args, asset.tables))
+    if args.radius_elements is not None and not args.compensate:
+        raise ConfigError("radius_elements: only used by the virtual tensile test; add --compensate or remove it",
+                          parameter="radius_elements")
+    grid = _grid(args, asset.tables)
+    try:
+        tables = build_tables(material, law=law, **grid)
+    except ConfigError as exc:   # the library names its grid "lam_min/lam_max"; here it is --stretch-range
+        prefix = "lam_min/lam_max:"
+        if args.stretch_range is None or not str(exc).startswith(prefix):
+            raise
+        raise ConfigError("stretch_range:" + str(exc)[len(prefix):], parameter="stretch_range") from None
     tables, carried = _carry(tables, asset.tables, args, ui)
     volume, resized = _volume(tables, asset, args, ui)
     comp = None

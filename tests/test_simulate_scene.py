@@ -17,7 +17,7 @@ from esmm.pipeline.progress import ListReporter
 from esmm.pipeline.simulate.grasper import plan_grasp, vertex_normals
 from esmm.pipeline.simulate.history import History, HistoryWriter
 from esmm.pipeline.simulate.run import simulate_network
-from esmm.pipeline.simulate.scene import Scene, load_scene, scene_from_dict
+from esmm.pipeline.simulate.scene import FloorSpec, Scene, load_scene, scene_from_dict
 
 
 def stiff_tables(mu0=2.0e5):
@@ -81,6 +81,7 @@ def test_band_axis_up_follows_gravity():
     ({"scene": {"durations": "3 s"}}, "unknown key"),
     ({"scen": {}}, "unknown table"),
     ({"scene": {"frame_rate": 0}}, "frame_rate"),
+    ({"scene": {"duration": "0.5 s", "frame_rate": 0.01}}, r"\[scene\] frame_rate: 0.01 frames/s leaves no whole frame"),
     ({"scene": {"gravity": [0, 0]}}, "3 numbers"),
     ({"scene": {"gravity_unit": "ft/s2"}}, "gravity_unit"),
     ({"scene": {"law": "hooke"}}, "law"),
@@ -173,6 +174,17 @@ def test_unknown_bundled_scene_lists_choices():
         load_scene("nonesuch")
 
 
+def test_a_base_that_cannot_be_read_names_the_scene_and_its_base_key(tmp_path):
+    """A wrong ``base`` says which file names it, not only "no scenes preset named ..."."""
+    child = tmp_path / "child.toml"
+    child.write_text('base = "defualt"\n', encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"child\.toml: base = 'defualt': no scenes preset named 'defualt'"):
+        load_scene(str(child))
+    child.write_text('base = "gone.toml"\n', encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"child\.toml: base = 'gone.toml': .*gone\.toml: no such file"):
+        load_scene(str(child))
+
+
 # ---------------------------------------------------------------------------
 # grasper planning
 # ---------------------------------------------------------------------------
@@ -219,6 +231,56 @@ def test_grasp_plan_target_point_up_and_implicit_start(slab):
     np.testing.assert_allclose(plan.offsets, [[0, 0, 0], [0, 0, 0.004]])
     with pytest.raises(ConfigError, match="needs gravity"):
         plan_grasp(spec, slab.points, slab.surface_faces, slab.fixed, np.zeros(3))
+
+
+def test_grasp_target_far_outside_the_organ_is_refused(slab):
+    """A point in another frame or unit (1 m off) is refused, not moved to some surface node."""
+    def spec(target):
+        return scene_from_dict({"grasper": {"target": target, "direction": "up"}}).grasper
+
+    g = np.array([0, 0, -9.81])
+    with pytest.raises(ConfigError, match=r"\[grasper\] target: .* mm outside the organ \(x 0\.\.60, y 0\.\.30"):
+        plan_grasp(spec(["1000 mm", "0 mm", "0 mm"]), slab.points, slab.surface_faces, slab.fixed, g)
+    with pytest.raises(ConfigError, match="outside the organ"):     # metres written as millimetres
+        plan_grasp(spec(["0.03 mm", "0.015 mm", "-60 mm"]), slab.points, slab.surface_faces, slab.fixed, g)
+    # Near the surface (5 mm above the top) or inside: the nearest free surface node, as documented.
+    plan = plan_grasp(spec(["30 mm", "15 mm", "20 mm"]), slab.points, slab.surface_faces, slab.fixed, g)
+    np.testing.assert_allclose(slab.points[plan.target], [0.03, 0.015, 0.015])
+
+
+def _prepared(slab, scene_dict):
+    from esmm.pipeline.simulate.runsetup import prepare_run
+
+    rep = ListReporter()
+    sc = scene_from_dict({"scene": {"duration": "0.1 s", "start": "rest"}, "integrator": {"threads": 1,
+                          "method": "explicit"}, **scene_dict}, source="test")
+    return prepare_run(slab, stiff_tables(), sc, effects=None, reporter=rep), sc, rep
+
+
+def test_a_floor_above_the_organ_is_refused_and_one_through_it_warns(slab):
+    """The slab spans z 0..15 mm: a plane at 20 mm would start it inside the floor; at 5 mm it crushes a part."""
+    with pytest.raises(ConfigError, match=r"\[floor\] height: the plane at 20 mm along up is above the whole organ"):
+        _prepared(slab, {"floor": {"height": "20 mm"}, "grasper": {"enabled": False}})
+    _, _, rep = _prepared(slab, {"floor": {"height": "5 mm"}, "grasper": {"enabled": False}})
+    assert any(w.startswith("[floor] height: ") and "start below the plane at 5 mm" in w for w in rep.warnings)
+    _, _, rep = _prepared(slab, {"floor": {"height": "auto"}, "grasper": {"enabled": False}})
+    assert rep.warnings == [] and any(m.startswith("floor: stick, plane 0 mm") for m in rep.steps)
+
+
+def test_a_grasper_path_below_the_floor_warns(slab):
+    """The held nodes are exempt from the floor: a path into it drags them through the bed; the run says so."""
+    from esmm.pipeline.simulate.runsetup import plan_grasper
+
+    def warnings(distance):
+        run, sc, rep = _prepared(slab, {"floor": {}, "grasper": {
+            "target": ["60 mm", "15 mm", "15 mm"], "direction": "up", "release_time": "never",
+            "waypoints": [{"time": "0 s", "distance": "0 mm"}, {"time": "0.05 s", "distance": distance}]}})
+        plan_grasper(run, sc, slab, rep)
+        return [w for w in rep.warnings if w.startswith("[grasper] waypoints")]
+
+    assert warnings("10 mm") == [] and warnings("-10 mm") == []      # the top 15 mm above the floor
+    (w,) = warnings("-25 mm")
+    assert "the tip 10 mm below the floor (at 0.05 s" in w
 
 
 def test_vertex_normals_of_a_box_point_outward(slab):
@@ -457,6 +519,32 @@ def test_cli_end_to_end_on_an_asset(run_cli, tmp_path, slab):
     assert code == 2 and "holds no" in err and "Traceback" not in err
 
 
+def test_cli_refuses_unusable_outputs_up_front_and_drops_a_stale_force_plot(run_cli, tmp_path, slab):
+    """--out a file, --video a folder: refused before the run; a run without a grasper into the folder of
+    one with a grasper does not leave that run's grasper_force.png beside its own outputs."""
+    from esmm.pipeline.asset import write_asset
+
+    asset = write_asset(tmp_path / "slab.h5", slab, tables=stiff_tables())
+    (tmp_path / "file").write_text("keep")
+    code, _, err = run_cli("simulate", asset, "--out", tmp_path / "file")
+    assert code == 2 and "--out: " in err and "is a file" in err and "Traceback" not in err
+    assert (tmp_path / "file").read_text() == "keep"
+    (tmp_path / "v.mp4").mkdir()
+    code, _, err = run_cli("simulate", asset, "--out", tmp_path / "run", "--video", tmp_path / "v.mp4")
+    assert code == 2 and "--video: " in err and "is a folder" in err and not (tmp_path / "run").exists()
+    base = ('[scene]\nduration = "0.1 s"\ngravity = [0, 0, 0]\nstart = "rest"\n'
+            '[integrator]\nthreads = 1\nmethod = "explicit"\n')
+    with_grasper, without = tmp_path / "g.toml", tmp_path / "n.toml"
+    with_grasper.write_text(base + '[grasper]\nwaypoints = [{time = "0 s", distance = "0 mm"}, '
+                            '{time = "0.05 s", distance = "1 mm"}]\n', encoding="utf-8")
+    without.write_text(base + "[grasper]\nenabled = false\n", encoding="utf-8")
+    assert run_cli("simulate", asset, "--scene", with_grasper, "--out", tmp_path / "run")[0] == 0
+    assert (tmp_path / "run" / "grasper_force.png").is_file()
+    code, out, err = run_cli("simulate", asset, "--scene", without, "--out", tmp_path / "run")
+    assert code == 0, err
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["history.h5", "history.xdmf", "summary.json"]
+
+
 def test_start_at_equilibrium_has_no_transient(tmp_path, slab):
     """Started at the equilibrium under gravity, nothing moves without the grasper."""
     out = {}
@@ -539,6 +627,7 @@ def test_fit_camera_keeps_every_frame_inside_the_box():
 
 def test_floor_scene_keys():
     assert scene_from_dict({}).floor is None
+    assert scene_from_dict({"floor": {}}).floor == FloorSpec()       # "[floor]" alone: present, so on
     assert scene_from_dict({"floor": {"enabled": False, "height": "3 mm"}}).floor is None
     sc = scene_from_dict({"floor": {"height": "-20 mm", "friction": "slip"}})
     assert sc.floor.height == pytest.approx(-0.020) and sc.floor.friction == "slip"

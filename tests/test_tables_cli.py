@@ -76,7 +76,11 @@ def test_errors_leave_the_asset_untouched(run_cli, asset, tmp_path):
     code, _, err = run_cli("tables", asset, "--points", "many")
     assert code == 2 and "--points" in err
     code, _, err = run_cli("tables", asset, "--stretch-range", "0.5", "1.2")
-    assert code == 2 and "lam_min" in err
+    assert code == 2 and "--stretch-range: grid [0.5, 1.2] leaves" in err and "lam_min" not in err
+    code, _, err = run_cli("tables", asset, "--stretch-range", "1.3", "0.9")     # the ends swapped
+    assert code == 2 and "--stretch-range: need 0 < LO < 1 < HI" in err and "lam_min" not in err
+    code, _, err = run_cli("tables", asset, "--specimen-elements", "100")   # without --compensate: unused
+    assert code == 2 and "--specimen-elements" in err and "--compensate" in err
     code, _, err = run_cli("tables", asset, "--material", "no_such_material")
     assert code == 2 and "no_such_material" in err
     code, _, err = run_cli("tables", tmp_path / "missing.h5")

@@ -19,6 +19,10 @@ from ..errors import ConfigError
 from .model import Grasp
 from .scene import JAW_RADIUS, GrasperSpec
 
+#: A target point farther outside the organ's bounding box than this fraction of its largest extent is
+#: refused (a point in another frame or unit), not silently moved to the nearest surface node.
+TARGET_REACH = 0.25
+
 
 @dataclass(frozen=True)
 class GraspPlan:
@@ -112,7 +116,8 @@ def plan_grasp(spec: GrasperSpec, points: np.ndarray, surface_faces: np.ndarray,
     Raises
     ------
     ConfigError
-        No free surface node, or ``direction = "up"`` without gravity.
+        No free surface node, a target point far outside the organ (:data:`TARGET_REACH`), or
+        ``direction = "up"`` without gravity.
     """
     p = np.asarray(points, dtype=np.float64)
     faces = np.asarray(surface_faces, dtype=np.int64).reshape(-1, 3)
@@ -154,7 +159,15 @@ def _target_node(spec: GrasperSpec, p: np.ndarray, cand: np.ndarray, fixed: np.n
         else:
             d = np.linalg.norm(p[cand] - p.mean(axis=0), axis=1)
         return int(cand[np.argmax(d)])
-    d = np.linalg.norm(p[cand] - np.asarray(spec.target), axis=1)
+    t = np.asarray(spec.target, dtype=np.float64)
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    outside = float(np.linalg.norm(np.maximum(0.0, np.maximum(lo - t, t - hi))))
+    if outside > TARGET_REACH * float((hi - lo).max()):
+        span = ", ".join(f"{a} {lo[k] * 1e3:.4g}..{hi[k] * 1e3:.4g}" for k, a in enumerate("xyz"))
+        raise ConfigError(f"[grasper] target: {np.round(t * 1e3, 4).tolist()} mm is {outside * 1e3:.4g} mm outside "
+                          f"the organ ({span} mm in the asset's coordinates); give a point on or near its "
+                          "surface (with its unit, e.g. \"220 mm\"), or \"auto\"")
+    d = np.linalg.norm(p[cand] - t, axis=1)
     return int(cand[np.argmin(d)])
 
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import cache
-from ..errors import SimulationError
+from ..errors import ConfigError, SimulationError
 from ..network.regions import select_fixed
 from .grasper import GraspPlan, plan_grasp
 from .implicit import BackwardEuler, ImplicitSchedule
@@ -120,11 +120,43 @@ def prepare_run(network, tables, scene: Scene, *, effects, reporter) -> RunSetup
                     mass_damping=scene.mass_damping, safety=scene.safety, gravity_mass=network.mass, floor=floor,
                     stepper=stepper, volume=volume)
     if floor is not None:
-        below = int(np.count_nonzero(floor.distance(network.points)[sim.free] < 0))
-        rep.step(f"floor: {floor.friction}, plane {floor.height * 1e3:.4g} mm along up"
-                 + (f"; {below} free nodes start below it and are put on it at the first step" if below else ""))
+        _check_floor(floor, np.asarray(network.points)[sim.free], rep)
     return RunSetup(sim=sim, law=law, fixed=fixed, scaling=scaling, build_s=build_s, warm_up_s=warm,
                     tets=getattr(network, "tets", None), start_inertia=start_inertia)
+
+
+def _check_floor(floor: Floor, free_points: np.ndarray, reporter) -> None:
+    """Refuse a floor above the whole organ; warn about free nodes that start below it (they are put on it).
+
+    Raises
+    ------
+    ConfigError
+        ``[floor] height`` puts the plane at or above every free node (the organ would start inside it).
+    """
+    d = floor.distance(free_points)
+    h = floor.height * 1e3
+    if d.size and d.max() <= 0:
+        raise ConfigError(f"[floor] height: the plane at {h:.4g} mm along up is above the whole organ (its free "
+                          f"nodes are at {h + d.min() * 1e3:.4g}..{h + d.max() * 1e3:.4g} mm along up): it would "
+                          "start inside the floor; give a height below its lowest node, or \"auto\"")
+    below = int(np.count_nonzero(d < 0))
+    reporter.step(f"floor: {floor.friction}, plane {h:.4g} mm along up")
+    if below:
+        reporter.warn(f"[floor] height: {below} of {d.size} free nodes start below the plane at {h:.4g} mm along "
+                      f"up (the deepest {-d.min() * 1e3:.3g} mm) and are put on it at the first step, which "
+                      "crushes that part of the organ; \"auto\" puts the plane under its lowest node")
+
+
+def _check_path_above_floor(plan: GraspPlan, floor: Floor | None, x: np.ndarray, reporter) -> None:
+    """Warn when the grasper's path takes its tip below the floor (the held nodes are exempt from it)."""
+    if floor is None:
+        return
+    d = floor.distance(np.asarray(x[plan.target]) + plan.offsets)
+    k = int(np.argmin(d))
+    if d[k] < 0:
+        reporter.warn(f"[grasper] waypoints: the path takes the tip {-d[k] * 1e3:.3g} mm below the floor (at "
+                      f"{plan.times[k]:g} s, from the grasp point's place at the start): the held nodes are exempt "
+                      "from the floor and go through it; keep the path above it")
 
 
 def volume_term(network, tables, scene: Scene, reporter) -> VolumeTerm | None:
@@ -193,6 +225,7 @@ def plan_grasper(run: RunSetup, scene: Scene, network, reporter) -> GraspPlan | 
     plan = plan_grasp(scene.grasper, run.sim.x, network.surface_faces, run.fixed, scene.gravity,
                       springs=network.springs)
     reporter.step(plan.describe())
+    _check_path_above_floor(plan, run.sim.floor, run.sim.x, reporter)
     return plan
 
 

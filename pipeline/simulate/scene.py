@@ -405,13 +405,18 @@ def scene_from_dict(data: dict, *, source: str = "<dict>") -> Scene:
     kw.update(_integrator(_section(data, "integrator")))
     if "fixed" in data:
         kw["fixed"] = _fixed(_section(data, "fixed"), _default_gravity(kw))
-    kw["floor"] = _floor(_section(data, "floor"), _default_gravity(kw))
+    kw["floor"] = _floor(_section(data, "floor"), _default_gravity(kw), present="floor" in data)
     gr = _section(data, "grasper")
     if "enabled" in gr:
         boolean(gr["enabled"], "[grasper] enabled")
     kw["grasper"] = None if gr.get("enabled", True) is False else _grasper(gr)
     kw["video"] = _video(_section(data, "video"))
     scene = Scene(**kw)
+    if scene.duration * scene.frame_rate < 1.0 - 1e-9:
+        # One frame would be run (n_frames is at least 1): 1 / frame_rate of simulated time, not the duration.
+        raise ConfigError(f"[scene] frame_rate: {scene.frame_rate:g} frames/s leaves no whole frame in the duration "
+                          f"({scene.duration:g} s; a frame is {1.0 / scene.frame_rate:g} s); give at least "
+                          f"{1.0 / scene.duration:g} frames/s or a longer duration")
     if scene.grasper is not None:
         _check_grasper_times(scene.grasper, scene.duration, "[grasper]")
     return scene
@@ -498,10 +503,11 @@ def _fixed(fx: dict, gravity: np.ndarray):
     return region_from_config(fx, where="[fixed]")
 
 
-def _floor(fl: dict, gravity: np.ndarray) -> FloorSpec | None:
+def _floor(fl: dict, gravity: np.ndarray, *, present: bool) -> FloorSpec | None:
+    """The ``[floor]`` table: absent, no floor; present (even empty, ``[floor]`` alone) without ``enabled``: on."""
     if "enabled" in fl:
         boolean(fl["enabled"], "[floor] enabled")
-    if fl.get("enabled", bool(fl)) is not True:
+    if fl.get("enabled", present) is not True:
         return None
     h = fl.get("height", "auto")
     if h != "auto":
@@ -609,9 +615,18 @@ def load_scene(name_or_path=None) -> Scene:
 MAX_BASES = 8
 
 
-def _load_with_base(name_or_path, chain: tuple) -> tuple[dict, str]:
-    """The scene table of *name_or_path* with its ``base`` chain merged in, and its source."""
-    data, source = load_config("scenes", name_or_path)
+def _load_with_base(name_or_path, chain: tuple, referrer: str | None = None) -> tuple[dict, str]:
+    """The scene table of *name_or_path* with its ``base`` chain merged in, and its source.
+
+    *referrer* is ``"FILE: base = 'NAME'"`` when *name_or_path* is another scene's base (it starts the
+    message of a base that cannot be read, so that the user knows which file names it).
+    """
+    try:
+        data, source = load_config("scenes", name_or_path)
+    except ConfigError as exc:
+        if referrer is None:
+            raise
+        raise ConfigError(f"{referrer}: {exc}") from None
     if "base" not in data:
         return data, source
     base = data.pop("base")
@@ -620,9 +635,10 @@ def _load_with_base(name_or_path, chain: tuple) -> tuple[dict, str]:
     if source in chain or len(chain) >= MAX_BASES:
         raise ConfigError(f"{source}: base: the chain of bases {' -> '.join(chain + (source,))} loops or is "
                           f"longer than {MAX_BASES}; end it with a scene that has no base")
+    resolved = base
     if not source.startswith("bundled:") and (base.endswith(".toml") or "/" in base or "\\" in base):
-        base = str(Path(source).parent / base)
-    merged, _ = _load_with_base(base, chain + (source,))
+        resolved = str(Path(source).parent / base)
+    merged, _ = _load_with_base(resolved, chain + (source,), referrer=f"{source}: base = {base!r}")
     for name, keys_ in data.items():
         if isinstance(keys_, dict) and isinstance(merged.get(name), dict) and not _replaces(name, keys_):
             merged[name] = {**merged[name], **keys_}
