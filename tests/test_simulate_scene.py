@@ -888,3 +888,17 @@ def test_the_cache_digest_tells_apart_types_shapes_and_dtypes():
     assert digest({"a": 1, "b": None}) == digest({"b": None, "a": 1})
     with pytest.raises(TypeError):
         digest(object())
+
+
+def test_a_video_that_fails_leaves_this_runs_outputs_whole(tmp_path, slab, monkeypatch):
+    """Stopped or failed while rendering: the history, plot and summary are this run's (the summary is
+    written before the video), not a new history beside an earlier run's summary."""
+    from esmm.pipeline.simulate import run as R
+
+    (tmp_path / "summary.json").write_text('{"stale": true}')           # an earlier run's
+    monkeypatch.setattr(R, "_render", lambda *a: (_ for _ in ()).throw(KeyboardInterrupt()))
+    with pytest.raises(KeyboardInterrupt):
+        simulate_network(slab, stiff_tables(), short_scene(), tmp_path, video=tmp_path / "run.mp4", asset_label="slab")
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert "stale" not in s and s["springs"] == slab.n_springs and s.get("video") is None
+    assert not (tmp_path / "run.mp4").exists()

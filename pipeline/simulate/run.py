@@ -93,9 +93,12 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video=None, repo
         writer.set_attrs(summary=summary.to_dict())
     rep.step(summary.describe())
     force_png = None if plan is None else plot_forces(hist_path, out / "grasper_force.png", plan=plan)
+    # The run's summary before the video, so that a video stopped or failed leaves this run's outputs
+    # whole (history, plot, summary; no video), never a history beside an earlier run's summary.
+    summary_path = write_json(out / "summary.json", summary.to_dict())
     if video is not None:
         summary.video = _render(hist_path, video, scene, rep)
-    summary_path = write_json(out / "summary.json", summary.to_dict())
+        summary_path = write_json(out / "summary.json", summary.to_dict())
     return SimulationResult(out_dir=out, history=hist_path, xdmf=hist_path.with_suffix(".xdmf"),
                             force_plot=force_png, summary_path=summary_path, summary=summary,
                             video=None if video is None else Path(video))
