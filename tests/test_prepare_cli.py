@@ -152,7 +152,6 @@ def test_bad_config_file_names_file_and_key(run_cli, tmp_path, monkeypatch, sphe
     assert sorted(os.listdir(tmp_path)) == ["c.toml"]
 
 
-
 def test_hollow_organ_is_refused_with_the_body_flag(run_cli, tmp_path, monkeypatch):
     """A hollow organ (outer wall + inner cavity surface in one STL) is not filled silently."""
     from esmm.pipeline.mesh.readers import write_stl
