@@ -59,14 +59,11 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def run(args, ui) -> int:
-    from pathlib import Path
-
     from esmm.cli.outputs import check_out_dir, check_out_file
-    from esmm.pipeline.simulate.run import simulate
+    from esmm.pipeline.simulate.run import default_out_dir, simulate
     from esmm.pipeline.simulate.summary import iterations_per_step
 
-    check_out_dir(args.out if args.out is not None else
-                  Path(args.asset).with_name(Path(args.asset).stem + "-sim"), "--out")
+    check_out_dir(args.out if args.out is not None else default_out_dir(args.asset), "--out")
     if args.video is not None:
         check_out_file(args.video, "--video", "run.mp4")
     res = simulate(args.asset, scene=args.scene, out_dir=args.out, video=args.video,
@@ -86,10 +83,6 @@ def run(args, ui) -> int:
     if s.effects:
         ui.info("material effects: " + ", ".join(s.effect_names))
     ui.info(f"history: {res.xdmf}")
-    stale = Path(res.out_dir) / "grasper_force.png"
-    if res.force_plot is None and stale.is_file():  # a previous run's, with a grasper: not this run's force
-        stale.unlink()
-        ui.step(f"removed {stale} of an earlier run (this scene has no grasper)")
     if res.force_plot is not None:
         ui.info(f"grasper force: {res.force_plot} (max {s.grasper.max_force_N if s.grasper else 0.0:.3g} N)")
     if res.video is not None:

@@ -93,6 +93,10 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video=None, repo
         writer.set_attrs(summary=summary.to_dict())
     rep.step(summary.describe())
     force_png = None if plan is None else plot_forces(hist_path, out / "grasper_force.png", plan=plan)
+    stale = out / "grasper_force.png"
+    if force_png is None and stale.is_file():   # an earlier run's, with a grasper: not this run's force
+        stale.unlink()
+        rep.step(f"removed {stale} of an earlier run (this scene has no grasper)")
     # The run's summary before the video, so that a video stopped or failed leaves this run's outputs
     # whole (history, plot, summary; no video), never a history beside an earlier run's summary.
     summary_path = write_json(out / "summary.json", summary.to_dict())
@@ -102,6 +106,11 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video=None, repo
     return SimulationResult(out_dir=out, history=hist_path, xdmf=hist_path.with_suffix(".xdmf"),
                             force_plot=force_png, summary_path=summary_path, summary=summary,
                             video=None if video is None else Path(video))
+
+
+def default_out_dir(asset_path) -> Path:
+    """Where :func:`simulate` writes when no folder is given: ``<asset stem>-sim`` beside the asset."""
+    return Path(asset_path).with_name(Path(asset_path).stem + "-sim")
 
 
 def _frame_spec(network, scene: Scene, plan: GraspPlan | None) -> FrameSpec:
@@ -185,7 +194,7 @@ def simulate(asset_path, *, scene=None, out_dir=None, video=None, duration=None,
     sc = sc.with_overrides(duration=duration, threads=threads, law=law, effects=effects, method=method)
     network, tables, label, fx = read_asset_for_simulation(asset_path, with_effects=True)
     if out_dir is None:
-        out_dir = Path(asset_path).with_name(Path(asset_path).stem + "-sim")
+        out_dir = default_out_dir(asset_path)
     if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:
         raise ConfigError(f"video: {video} should end in .mp4 (or .mkv, .mov, .avi)", parameter="video")
     return simulate_network(network, tables, sc, out_dir, video=video, reporter=reporter,
