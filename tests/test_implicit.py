@@ -451,15 +451,20 @@ def test_threads_asked_of_the_implicit_stepper_are_reported_unused(tmp_path, sla
 
 
 def test_quasi_newton_hands_a_solve_it_does_not_finish_to_newton(slab, reference, monkeypatch):
-    """A solve the quasi-Newton iteration has not finished after QN_SWITCH iterations goes on with Newton's
-    iteration from its best iterate: with the switch after one iteration every solve that needs more is
-    handed over, and the lift still follows the explicit reference."""
+    """A solve the quasi-Newton iteration has not finished after QN_SWITCH iterations (before any hand-over
+    was measured; then after the hand-overs' mean cost) goes on with Newton's iteration from its best
+    iterate: with the first switch after one iteration solves are handed over, and the lift still
+    follows the explicit reference."""
     monkeypatch.setattr(implicit, "QN_SWITCH", 1)
     tables, (te, Fe, Xe, _) = reference
     ti, Fi, Xi, sim = lift(slab, tables, BackwardEuler())
     st = sim.stepper.stats
     assert st.fallbacks > 0 and st.newton > 0 and st.quasi_newton > 0
     assert st.unconverged == 0
+    # after the first hand-over a solve gets as many quasi-Newton iterations as a hand-over has cost
+    # (the break-even rule): here every Newton iteration and its conjugate gradients were a hand-over's
+    assert sim.stepper._switch_after() == pytest.approx((st.cg + st.newton) / st.fallbacks)
+    assert sim.stepper._switch_after() > 1
     u_e = Xe - slab.points
     assert np.abs(Xi - Xe).max() <= 0.05 * np.linalg.norm(u_e, axis=2).max()
 

@@ -66,10 +66,10 @@ DEFAULT_STEP = 1.0 / 30.0
 #: Default rate of the grasper force [Hz] (a haptic device's loop).
 HAPTIC_RATE = 1000.0
 PRECONDITIONERS = ("factor", "fresh", "jacobi")
-#: Quasi-Newton iterations of one solve before Newton's iteration takes over. A solve handed over
-#: costs 30-40 solves on the organs (its Newton iterations' conjugate gradients), so a few more
-#: quasi-Newton iterations pay where they finish it: 12 was 1.0-1.35x faster than 8 on five organs
-#: and both scenes, within the same accuracy, 0.85x on a box falling from rest (docs/simulate.md §2b).
+#: Quasi-Newton iterations of one solve before Newton's iteration takes over, until a hand-over's
+#: cost has been measured (:meth:`BackwardEuler._switch_after`: then that cost, the break-even rule).
+#: 12 was 1.0-1.35x faster than 8 on five organs and both scenes, within the same accuracy
+#: (docs/simulate.md §2b).
 QN_SWITCH = 12
 #: A quasi-Newton solve whose residual grew this many times above its start hands over to Newton.
 QN_DIVERGE = 4.0
@@ -122,8 +122,9 @@ class BackwardEuler:
         How each solve iterates. "quasi-newton" (default): L-BFGS with the
         reused factor as its first inverse (:mod:`.quasinewton`; one solve
         per iteration), Newton's iteration taking over a solve that has not
-        converged after :data:`QN_SWITCH` iterations or whose residual grew
-        :data:`QN_DIVERGE` times; "newton": Newton with conjugate gradients
+        converged after as many iterations as a hand-over has cost so far
+        (:meth:`_switch_after`) or whose residual grew :data:`QN_DIVERGE`
+        times; "newton": Newton with conjugate gradients
         (also what a preconditioner other than "factor" gets).
         1.7-2.3x faster on five organs, within the same accuracy against the
         explicit reference (docs/simulate.md §2b).
@@ -204,6 +205,7 @@ class BackwardEuler:
     _pairs: LBFGSMemory | None = field(default=None, repr=False)
     _qn: dict = field(default_factory=dict, repr=False)       #: this solve's quasi-Newton record
     _qn_step: int = field(default=0, repr=False)              #: this step's quasi-Newton iterations
+    _handover: list = field(default_factory=lambda: [0, 0], repr=False)  #: hand-overs' cost, and their count
 
     def __post_init__(self):
         if self.iteration not in ITERATIONS:
@@ -334,6 +336,7 @@ class BackwardEuler:
                 x, g, norm, moved = self._iterate(model, state, control, x, x0, v0, h, dt_fx, g, norm, contact,
                                                   mass_dof, coupling, fixed_dof)
                 it += 1
+            self._end_solve()
             changed, moved = self._contact_update(floor, g, x, contact, final=rounds == extra)
             if changed:
                 self._set_rows(model, control, contact, h)
@@ -350,7 +353,27 @@ class BackwardEuler:
     def _begin_solve(self, norm: float) -> None:
         """A new solve (a step, or a re-solve after the contacts changed) from a residual of *norm*; its
         constraint rows were just set, which forgot the last solve's pairs (:meth:`_set_rows`)."""
-        self._qn = {"its": 0, "start": norm, "best": None, "newton": False}
+        self._qn = {"its": 0, "start": norm, "best": None, "newton": False, "cost0": 0}
+
+    def _end_solve(self) -> None:
+        """Record what the solve's Newton iterations cost, if it was handed over (:meth:`_switch_after`)."""
+        qn = self._qn
+        if qn.get("newton"):
+            self._handover[0] += self.stats.cg + self.stats.newton - qn["cost0"]
+            self._handover[1] += 1
+
+    def _switch_after(self) -> float:
+        """Quasi-Newton iterations a solve gets before Newton's iteration takes over: what a hand-over
+        has cost so far, on average, in solves and force passes (its conjugate-gradient iterations, each
+        a solve and a product, and its Newton iterations, each a tangent and a line search), an
+        iteration of either costing about a solve; :data:`QN_SWITCH` until one has been measured.
+
+        The break-even rule of renting against buying (the ski-rental problem; Karlin et al. 1988):
+        going on until what the quasi-Newton iterations cost equals the hand-over's cost is never
+        more than twice what the better of the two would have cost, whichever it is.
+        """
+        cost, count = self._handover
+        return cost / count if count else QN_SWITCH
 
     def _iterate(self, model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, mass_dof, coupling, fixed_dof):
         """One iteration of the solve: quasi-Newton while it converges, else Newton from its best iterate;
@@ -359,9 +382,10 @@ class BackwardEuler:
         if self._quasi and not qn["newton"]:
             if qn["best"] is None or norm < qn["best"][0]:
                 qn["best"] = (norm, x, g)
-            if qn["its"] < QN_SWITCH and norm <= QN_DIVERGE * qn["start"]:
+            if qn["its"] < self._switch_after() and norm <= QN_DIVERGE * qn["start"]:
                 return self._quasi_newton(model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, fixed_dof)
             qn["newton"] = True                         # hand over, once per solve
+            qn["cost0"] = self.stats.cg + self.stats.newton
             self.stats.fallbacks += 1
             norm, x, g = qn["best"]
         return self._newton(model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, mass_dof, coupling,
