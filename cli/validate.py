@@ -33,9 +33,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("asset", metavar="ASSET.h5", nargs="?", default=None, help="asset written by 'esmm prepare'")
     p.add_argument("--specimen", action="store_true",
                    help="validate on the built-in specimen (a meshed cube) instead of an asset")
-    p.add_argument("--side", metavar="MM", type=float, default=20.0, help="specimen cube edge in mm (20)")
-    p.add_argument("--size", metavar="MM", type=float, default=2.5, help="specimen element size in mm (2.5)")
-    p.add_argument("--material", metavar="FILE_OR_NAME", default="porcine_liver_paper",
+    p.add_argument("--side", metavar="MM", type=float, default=None, help="specimen cube edge in mm (20)")
+    p.add_argument("--size", metavar="MM", type=float, default=None, help="specimen element size in mm (2.5)")
+    p.add_argument("--material", metavar="FILE_OR_NAME", default=None,
                    help="specimen material: preset name or TOML file (default porcine_liver_paper)")
     p.add_argument("--cases", metavar="CASE", nargs="+", default=None,
                    help="tension, compression, shear, gravity, lift")
@@ -54,6 +54,26 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
+#: The built-in specimen's defaults (mm; a material preset), used when --specimen is given without them.
+SPECIMEN = {"side": 20.0, "size": 2.5, "material": "porcine_liver_paper"}
+
+
+def _check_kind_options(args) -> None:
+    """Refuse options of the other kind of run: they would be ignored without a word."""
+    from esmm.pipeline.errors import ConfigError
+
+    if not args.specimen:
+        given = [f for f, v in (("--side", args.side), ("--size", args.size), ("--material", args.material))
+                 if v is not None]
+        if given:
+            raise ConfigError(f"{', '.join(given)}: describe the built-in specimen (--specimen), not used with "
+                              f"an ASSET (its mesh and material are in the asset); drop them or validate "
+                              f"--specimen instead")
+    elif args.scene is not None:
+        raise ConfigError("--scene: sets the organ cases' scene, not used with --specimen; drop it or give an "
+                          "ASSET.h5")
+
+
 def run(args, ui) -> int:
     import math
     from pathlib import Path
@@ -66,8 +86,9 @@ def run(args, ui) -> int:
 
     if (args.asset is None) == (not args.specimen):
         raise ConfigError("give an ASSET.h5 or --specimen (one of them)")
+    _check_kind_options(args)
     for flag, mm in (("--side", args.side), ("--size", args.size)):
-        if not (math.isfinite(mm) and mm > 0):
+        if mm is not None and not (math.isfinite(mm) and mm > 0):
             raise ConfigError(f"{flag}: expected a positive length in mm, got {mm:g}")
     if args.json not in (None, "-"):
         check_out_file(args.json, "--json", "validation.json")
@@ -76,7 +97,8 @@ def run(args, ui) -> int:
     if args.specimen:
         out = Path(args.out) if args.out else Path("specimen-validate")
         check_out_dir(out, "--out")
-        rep = validate_specimen(load_material(args.material), side=args.side * 1e-3, size=args.size * 1e-3,
+        rep = validate_specimen(load_material(args.material or SPECIMEN["material"]),
+                                side=(args.side or SPECIMEN["side"]) * 1e-3, size=(args.size or SPECIMEN["size"]) * 1e-3,
                                 out_dir=out, **opts)
     else:
         out = Path(args.out) if args.out else Path(args.asset).with_name(Path(args.asset).stem + "-validate")

@@ -50,6 +50,26 @@ def atomic_path(target: str | os.PathLike, *, suffix: str | None = None) -> Iter
         raise
 
 
+@contextlib.contextmanager
+def output_folder(path: str | os.PathLike) -> Iterator[Path]:
+    """Create the folder *path* (and its missing parents) for a run's outputs; if the run fails, remove
+    the folders this call created that are still empty, so that a refused input leaves nothing behind."""
+    path = Path(path)
+    created = []
+    p = path.absolute()
+    while not p.exists():
+        created.append(p)
+        p = p.parent
+    path.mkdir(parents=True, exist_ok=True)
+    try:
+        yield path
+    except BaseException:
+        for d in created:                  # deepest first
+            with contextlib.suppress(OSError):
+                d.rmdir()                  # only if empty
+        raise
+
+
 def _umask() -> int:
     mask = os.umask(0o022)
     os.umask(mask)

@@ -411,6 +411,17 @@ def test_cli_needs_an_asset_or_the_specimen(capsys):
     assert "--specimen" in capsys.readouterr().err
 
 
+def test_cli_refuses_the_other_kinds_options(tmp_path, capsys):
+    """The specimen's --size/--side/--material with an ASSET, and --scene with --specimen, would be ignored
+    without a word: refused in one line, before the asset is even read."""
+    assert main(["validate", str(tmp_path / "liver.h5"), "--size", "4", "--material", "x"]) == 2
+    err = capsys.readouterr().err
+    assert "--size, --material: describe the built-in specimen (--specimen), not used with an ASSET" in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert main(["validate", "--specimen", "--scene", "interactive"]) == 2
+    assert "--scene: sets the organ cases' scene, not used with --specimen" in capsys.readouterr().err
+
+
 def test_cli_json_to_stdout_is_the_json_alone(tmp_path, capsys):
     """--json -: stdout parses as JSON (the table and the paths go to stderr)."""
     code = main(["validate", "--specimen", "--size", "5", "--cases", "tension", "--out", str(tmp_path / "v"),

@@ -248,6 +248,31 @@ def test_grasp_target_far_outside_the_organ_is_refused(slab):
     np.testing.assert_allclose(slab.points[plan.target], [0.03, 0.015, 0.015])
 
 
+def test_a_grasp_radius_that_holds_the_whole_organ_is_refused(slab):
+    """A radius that reaches every free surface node would carry the organ whole (1.7 kN on the liver):
+    refused, naming the farthest node's distance; one just below it holds a patch."""
+    g = np.array([0, 0, -9.81])
+    spec = scene_from_dict({"grasper": {"radius": "1 m", "direction": "up"}}).grasper
+    with pytest.raises(ConfigError, match=r"\[grasper\] radius: 1000 mm holds every free surface node .* give a "
+                                          r"radius below"):
+        plan_grasp(spec, slab.points, slab.surface_faces, slab.fixed, g)
+    ok = scene_from_dict({"grasper": {"radius": "20 mm", "direction": "up"}}).grasper
+    plan = plan_grasp(ok, slab.points, slab.surface_faces, slab.fixed, g)
+    assert 1 < plan.nodes.size < np.setdiff1d(np.unique(slab.surface_faces), slab.fixed).size
+
+
+def test_waypoints_after_the_end_of_the_run_warn(slab):
+    from esmm.pipeline.simulate.runsetup import plan_grasper
+
+    run, sc, rep = _prepared(slab, {"grasper": {"waypoints": [{"time": "0.05 s", "distance": "1 mm"},
+                                                               {"time": "0.5 s", "distance": "2 mm"}]}})
+    plan_grasper(run, sc, slab, rep)
+    assert any("1 of them come after the end of the run (0.1 s; the first at 0.5 s)" in w for w in rep.warnings)
+    run, sc, rep = _prepared(slab, {"grasper": {"waypoints": [{"time": "0.05 s", "distance": "1 mm"}]}})
+    plan_grasper(run, sc, slab, rep)
+    assert not any("after the end" in w for w in rep.warnings)
+
+
 def _prepared(slab, scene_dict):
     from esmm.pipeline.simulate.runsetup import prepare_run
 
@@ -443,6 +468,21 @@ def test_too_many_steps_refused(tmp_path, slab):
     sc = scene_from_dict({"scene": {"duration": "10 s"}, "integrator": {"max_steps": 1000, "method": "explicit"}})
     with pytest.raises(SimulationError, match="max_steps"):
         simulate_network(slab, stiff_tables(), sc, tmp_path)
+
+
+def test_a_refused_scene_leaves_no_output_folder(tmp_path, slab):
+    """Nothing half-written: a scene refused before the first step leaves no (empty) --out folder behind,
+    and an existing folder with an earlier run's files is left as it was."""
+    sc = scene_from_dict({"grasper": {"target": ["1000 mm", "0 mm", "0 mm"], "direction": "up"}})
+    out = tmp_path / "runs" / "a"
+    with pytest.raises(ConfigError, match="outside the organ"):
+        simulate_network(slab, stiff_tables(), sc, out)
+    assert not (tmp_path / "runs").exists()
+    out.mkdir(parents=True)
+    (out / "summary.json").write_text("{}")
+    with pytest.raises(ConfigError, match="outside the organ"):
+        simulate_network(slab, stiff_tables(), sc, out)
+    assert (out / "summary.json").read_text() == "{}"
 
 
 def test_unstable_run_is_reported(tmp_path, slab, monkeypatch):

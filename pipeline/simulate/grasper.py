@@ -116,8 +116,8 @@ def plan_grasp(spec: GrasperSpec, points: np.ndarray, surface_faces: np.ndarray,
     Raises
     ------
     ConfigError
-        No free surface node, a target point far outside the organ (:data:`TARGET_REACH`), or
-        ``direction = "up"`` without gravity.
+        No free surface node, a target point far outside the organ (:data:`TARGET_REACH`), a radius
+        that holds every free surface node, or ``direction = "up"`` without gravity.
     """
     p = np.asarray(points, dtype=np.float64)
     faces = np.asarray(surface_faces, dtype=np.int64).reshape(-1, 3)
@@ -135,6 +135,7 @@ def plan_grasp(spec: GrasperSpec, points: np.ndarray, surface_faces: np.ndarray,
     radius = _grasp_radius(spec, p, target, springs)
     near = cKDTree(p[cand]).query_ball_point(p[target], r=radius)
     nodes = np.union1d(cand[np.asarray(near, dtype=np.int64)], [target]).astype(np.int64)
+    _check_patch(nodes, cand, p, target, radius)
     normal = vertex_normals(p, faces)[target]
     if not np.any(normal):
         normal = p[target] - p.mean(axis=0)
@@ -149,6 +150,15 @@ def plan_grasp(spec: GrasperSpec, points: np.ndarray, surface_faces: np.ndarray,
     return GraspPlan(target=target, nodes=nodes, direction=direction, normal=normal,
                      times=np.asarray(times, dtype=np.float64), offsets=np.asarray(offs, dtype=np.float64),
                      spec=spec, radius=float(radius))
+
+
+def _check_patch(nodes: np.ndarray, cand: np.ndarray, p: np.ndarray, target: int, radius: float) -> None:
+    """Refuse a grasp radius that holds every free surface node: the grasper would carry the organ whole."""
+    if cand.size > 1 and nodes.size == cand.size:
+        far = float(np.linalg.norm(p[cand] - p[target], axis=1).max())
+        raise ConfigError(f"[grasper] radius: {radius * 1e3:.4g} mm holds every free surface node of the organ "
+                          f"({cand.size}; the farthest is {far * 1e3:.4g} mm from the grasp point), so the grasper "
+                          f"would carry it whole; give a radius below {far * 1e3:.4g} mm (a grasper holds a patch)")
 
 
 def _target_node(spec: GrasperSpec, p: np.ndarray, cand: np.ndarray, fixed: np.ndarray) -> int:

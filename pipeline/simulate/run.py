@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..asset import read_asset
-from ..atomicio import write_json
+from ..atomicio import output_folder, write_json
 from ..errors import AssetError, ConfigError
 from ..progress import ensure
 from .frames import FrameSpec, RangeCheck, run_frames
@@ -73,8 +73,12 @@ def simulate_network(network, tables, scene: Scene, out_dir, *, video=None, repo
         Too many steps, or the run became unstable.
     """
     rep = ensure(reporter)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    with output_folder(out_dir) as out:
+        return _run_into(out, network, tables, scene, video, rep, asset_label, effects)
+
+
+def _run_into(out: Path, network, tables, scene: Scene, video, rep, asset_label: str, effects) -> SimulationResult:
+    """:func:`simulate_network` in the folder *out*, which exists."""
     run = prepare_run(network, tables, scene, effects=effects, reporter=rep)
     settle = settle_at_start(run, scene, network, rep)
     plan = plan_grasper(run, scene, network, rep)

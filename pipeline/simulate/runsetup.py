@@ -226,6 +226,11 @@ def plan_grasper(run: RunSetup, scene: Scene, network, reporter) -> GraspPlan | 
                       springs=network.springs)
     reporter.step(plan.describe())
     _check_path_above_floor(plan, run.sim.floor, run.sim.x, reporter)
+    late = plan.times[plan.times > scene.duration * (1 + 1e-9)]
+    if late.size:
+        reporter.warn(f"[grasper] waypoints: {late.size} of them come after the end of the run ({scene.duration:g} s; "
+                      f"the first at {late[0]:g} s): the tip follows the path up to the end only; lengthen the "
+                      "duration or drop them")
     return plan
 
 
