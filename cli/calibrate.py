@@ -100,7 +100,18 @@ def read_tests(paths, overrides, ui) -> list:
     return tests
 
 
+def check_outputs(args) -> None:
+    """Refuse, before reading and fitting, an --out or --json path that could not be written at the end."""
+    from esmm.cli.outputs import check_out_dir, check_out_file
+
+    if args.out:
+        check_out_dir(args.out, "--out")
+    if args.json:
+        check_out_file(args.json, "--json", "fit.json")
+
+
 def run(args, ui) -> int:
+    check_outputs(args)
     overrides = metadata_overrides(args)
     fit_kwargs = _config(args).fit_kwargs()
     if args.discover:

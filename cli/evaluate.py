@@ -37,10 +37,13 @@ def add_parser(sub) -> None:
 
 
 def run(args, ui) -> int:
+    from esmm.cli.outputs import check_out_file
     from esmm.pipeline.atomicio import write_json
     from esmm.pipeline.discover.evaluate import evaluate, load_fit, summary_lines
     from esmm.pipeline.tensile import read
 
+    if args.json:
+        check_out_file(args.json, "--json", "eval.json")
     saved = load_fit(args.fit)
     overrides = metadata_overrides(args)
     tests = [read(p, overrides=overrides, reporter=ui) for p in args.files]

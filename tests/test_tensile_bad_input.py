@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 from esmm.pipeline.errors import ConfigError, EsmmError, InputError
 from esmm.pipeline.tensile import NotATestError, read
@@ -265,3 +266,62 @@ def test_the_encoding_hint_of_a_western_file(tmp_path):
 def test_an_ambiguous_decimal_comma_in_the_files_geometry(tmp_path):
     msg = refuse(tmp_path, "# gauge_length: 1,500 mm\n# area: 2 mm2\n" + RAW)
     assert "line 1: gauge_length: '1,500 mm' is ambiguous" in msg and '"1.500 mm" or "1500 mm"' in msg
+
+
+# ---------------------------------------------------------------------------
+# second adversarial sweep
+
+
+def _ramp(n=30):
+    lam = np.linspace(1.0, 1.5, n)
+    return np.arange(n) * 0.5, (lam - 1) * 10.0, 20e3 * (lam - lam**-2) * 1e-6
+
+
+def _raw(t, d, f) -> str:
+    return "time [s],displacement [mm],force [N]\n" + "".join(f"{a:g},{b:.6f},{c:.8f}\n" for a, b, c in zip(t, d, f))
+
+
+def test_header_repeated_mid_file_is_refused_as_several_tests(tmp_path):
+    t, d, f = _ramp()
+    text = _raw(t, d, f)
+    msg = refuse(tmp_path, text + text, overrides=GEOM)
+    assert "line 32 repeats the header of line 1" in msg and "one file per test" in msg
+
+
+def test_compression_positive_channel_is_refused(tmp_path):
+    t, d, f = _ramp()
+    msg = refuse(tmp_path, _raw(t, d, -f), overrides=GEOM)
+    assert "opposite sign to the deformation" in msg and "column 3 'force'" in msg and "change its sign" in msg
+    lam = np.linspace(1.0, 1.5, 30)
+    text = "strain [%],stress [kPa]\n" + "".join(f"{(x - 1) * 100:.3f},{-(x - x**-2) * 20:.5f}\n" for x in lam)
+    assert "the stress column is recorded compression-positive" in refuse(tmp_path, text)
+    # both channels negative is a consistent compression test, and a load-cell offset is no sign error
+    assert read(_write(tmp_path, "c.csv", _raw(t, -d, -f)), overrides=GEOM).stretch.min() < 1
+    assert read(_write(tmp_path, "o.csv", _raw(t, d, f - 0.3 * f.max())), overrides=GEOM).n == 30
+
+
+def test_dead_load_channel_is_refused(tmp_path):
+    t, d, f = _ramp()
+    msg = refuse(tmp_path, _raw(t, d, 0 * f), overrides=GEOM)
+    assert "column 3 'force'" in msg and "0 Pa on every row (30 rows)" in msg and "load cell" in msg
+
+
+def _write(folder: Path, name: str, text: str) -> Path:
+    p = folder / name
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+@pytest.mark.parametrize("option,target", [("--out", "a_file.txt"), ("--out", "a_file.txt/sub"),
+                                           ("--json", "folder"), ("--json", "a_file.txt/fit.json")])
+def test_calibrate_refuses_an_unwritable_output_before_fitting(tmp_path, run_cli, option, target):
+    t, d, f = _ramp()
+    data = _write(tmp_path, "ok.csv", _raw(t, d, f))
+    (tmp_path / "a_file.txt").write_text("keep\n")
+    (tmp_path / "folder").mkdir()
+    before = sorted(str(p) for p in tmp_path.rglob("*"))
+    code, out, err = run_cli("calibrate", data, "--gauge-length", "10 mm", "--area", "1 mm2", "--starts", "1",
+                             option, tmp_path / target)
+    assert code == 2 and "Traceback" not in err and "fitting" not in err + out
+    assert err.strip().count("\n") == 0 and option in err
+    assert sorted(str(p) for p in tmp_path.rglob("*")) == before

@@ -800,3 +800,40 @@ def test_the_step_names_the_columns_used_and_the_true_stress_conversion(tmp_path
     assert "from force / area, column 3 'Load'" in rep.steps[-1]
     read(write(tmp_path, "s.csv", "stretch,true stress [kPa]\n1,0\n1.1,1\n"), reporter=rep)
     assert "true stress / stretch, incompressible), column 2 'true stress'" in rep.steps[-1]
+
+
+# ---------------------------------------------------------------------------
+# exports of the second adversarial sweep (clock times, a results block after the data)
+
+
+def _clock(seconds: float, *, comma: bool = False) -> str:
+    h, rest = divmod(seconds, 3600.0)
+    m, s = divmod(rest, 60.0)
+    text = f"{int(h):02d}:{int(m):02d}:{s:06.3f}"
+    return text.replace(".", ",") if comma else text
+
+
+@pytest.mark.parametrize("delim,comma", [(",", False), (";", True)])
+def test_clock_time_column_is_read_in_seconds(tmp_path, delim, comma):
+    t, lam, p = truth()
+    t = t * 700.0  # past a minute and an hour: 0 .. 1400 s
+    rows = [delim.join([_clock(a, comma=comma), f"{b:.6f}", f"{c:.4f}"]) for a, b, c in zip(t, lam, p)]
+    text = delim.join(["time", "stretch", "stress [Pa]"]) + "\n" + "\n".join(rows) + "\n"
+    if comma:
+        text = "\n".join(r if i == 0 else r.replace(".", ",") for i, r in enumerate(text.split("\n")))
+    test = read(write(tmp_path, "clock.csv", text))
+    np.testing.assert_allclose(test.time, t, atol=1e-3)
+    np.testing.assert_allclose(test.stretch, lam, rtol=1e-6)
+    assert test.metadata["time_format"] == "hh:mm:ss"
+
+
+def test_results_block_after_the_data_is_set_aside(tmp_path):
+    t, lam, p = truth()
+    rows = "".join(f"{a:.2f},{b:.6f},{c:.4f}\n" for a, b, c in zip(t, lam, p))
+    block = "\nResults\nMaximum stress,Modulus,Strain at break\n(Pa),(Pa),(%)\n12.5,0.3,40\n"
+    rep = ListReporter()
+    test = read(write(tmp_path, "tail.csv", "time [s],stretch,stress [Pa]\n" + rows + block), reporter=rep)
+    assert test.n == len(t)
+    np.testing.assert_allclose(test.stress, p, atol=1e-4)
+    assert test.metadata["trailer"][0] == "Results" and len(test.metadata["trailer"]) == 4
+    assert any("lines 24-27 after the data" in w for w in rep.warnings)

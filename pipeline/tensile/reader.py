@@ -124,6 +124,10 @@ def read(
         if d != layout.delimiter:
             layout = _layout(lines, label, d)
     warnings: list[str] = []
+    if layout.trailer:
+        (first, text), last = layout.trailer[0], layout.trailer[-1][0]
+        warnings.append(f"{label}: lines {first}-{last} after the data (a results summary?) not read as data, "
+                        f"starting {text.strip()[:60]!r}")
     return _assemble(p, label, layout, md, enc_used, warnings, rep)
 
 
@@ -285,6 +289,7 @@ class _Layout:
     n_fields: int                              # fields of the first data row
     preamble: list[str]                        # text lines above the header
     preamble_cells: list[tuple[int, list[str]]]  # the same as (line number, cells): machine header lines
+    trailer: list[tuple[int, str]]             # a results block after the data (line number, text): not read
 
 
 def _split(line: str, delim: str) -> list[str]:
@@ -371,6 +376,7 @@ def _layout(lines: list[str], label: str, delimiter: str | None) -> _Layout:
     head_end = header[0] if header else (units[0] if units else first + 1)
     top = [(i, lines[i - 1]) for i in range(1, head_end) if lines[i - 1].lstrip().startswith("#")]
     data_lines, linenos = _data_rows(lines, first, delim)
+    data_lines, linenos, trailer = _trailer(data_lines, linenos, delim, header)
     return _Layout(
         delimiter=delim,
         top_comments=top,
@@ -381,6 +387,7 @@ def _layout(lines: list[str], label: str, delimiter: str | None) -> _Layout:
         n_fields=len(_split(data_lines[0], delim)),
         preamble=[ln.strip() for _, ln in head[: max(j, 0)]],
         preamble_cells=[(i, _split(ln, delim)) for i, ln in head[: max(j, 0)]],
+        trailer=trailer,
     )
 
 
@@ -469,6 +476,34 @@ def _data_rows(lines: list[str], first: int, delim: str) -> tuple[list[str], lis
         return region, list(range(first + 1, first + 1 + len(region)))
     pairs = [(i, ln) for i, ln in enumerate(region, first + 1) if not (_skip(ln) or bare.fullmatch(ln))]
     return [ln for _, ln in pairs], [i for i, _ in pairs]
+
+
+#: Most lines of a results block after the data (``Max load,12.3``, ``Modulus,0.3``) that is set aside.
+TRAILER_MAX_LINES = 30
+
+
+def _trailer(data: list[str], linenos: list[int], delim: str, header: tuple[int, list[str]] | None):
+    """Split off a results block that machine software writes after the data: it follows a blank
+    line, starts with a row that is text or narrower than the data, is short, and does not repeat
+    the header (that would be a second test). Returns (data rows, their line numbers, the block)."""
+    width = _filled(_split(data[0], delim))
+    for k in range(max(1, len(data) - TRAILER_MAX_LINES), len(data)):
+        if linenos[k] - linenos[k - 1] < 2:   # not after a blank (or comment) line
+            continue
+        cells = _split(data[k], delim)
+        if _numeric_row(cells) and _filled(cells) == width:
+            continue
+        block = data[k:]
+        if header and any(_repeats_header(ln, delim, header) for ln in block):
+            break
+        return data[:k], linenos[:k], list(zip(linenos[k:], block))
+    return data, linenos, []
+
+
+def _repeats_header(line: str, delim: str, header: tuple[int, list[str]]) -> bool:
+    cells = [C.clean_cell(c) for c in _split(line, delim)]
+    want = [C.clean_cell(c) for c in header[1]]
+    return [c for c in cells if c] == [c for c in want if c]
 
 
 # ---------------------------------------------------------------------------
@@ -613,21 +648,42 @@ def _need_unit(col: _Column, label: str, md: M.Metadata) -> float:
 # numbers
 
 
-def _parse(layout: _Layout, cols: list[_Column], decimal: str, label: str) -> np.ndarray:
-    """The used columns as floats, shape (n_rows, len(cols)); exact error location on failure."""
+_CLOCK = re.compile(r"^\s*\"?\s*(\d+):([0-5]?\d):([0-5]?\d(?:[.,]\d*)?)\s*\"?\s*$")
+
+
+def _clock_seconds(cell: str) -> float:
+    """``"01:02:03.5"`` (hours:minutes:seconds, a clock time or an elapsed time) in seconds."""
+    m = _CLOCK.match(cell)
+    if m is None:
+        raise ValueError(f"not a clock time: {cell!r}")
+    h, mi, sec = m.groups()
+    return int(h) * 3600.0 + int(mi) * 60.0 + float(sec.replace(",", "."))
+
+
+def _clock_columns(layout: _Layout, cols: list[_Column]) -> frozenset[int]:
+    """The time columns written as hh:mm:ss(.sss) (their first data cell is): read as seconds."""
+    first = _split(layout.data_lines[0], layout.delimiter)
+    return frozenset(c.index for c in cols if c.quantity == "time" and c.index < len(first)
+                     and _CLOCK.match(first[c.index]))
+
+
+def _parse(layout: _Layout, cols: list[_Column], decimal: str, label: str, *,
+           clock: frozenset[int] = frozenset()) -> np.ndarray:
+    """The used columns as floats, shape (n_rows, len(cols)); exact error location on failure.
+    Columns of *clock* hold hh:mm:ss(.sss) times and are read in seconds."""
     lines, delim = layout.data_lines, layout.delimiter
     use = [c.index for c in cols]
     if not (decimal == "," and delim == ","):
         src = [ln.replace(",", ".") for ln in lines] if decimal == "," else lines
         try:
-            arr = np.loadtxt(src, delimiter=delim, quotechar='"', usecols=use, ndmin=2,
-                             comments=None, dtype=np.float64, encoding=None)
+            arr = np.loadtxt(src, delimiter=delim, quotechar='"', usecols=use, ndmin=2, comments=None,
+                             dtype=np.float64, encoding=None, converters=dict.fromkeys(clock, _clock_seconds))
         except (ValueError, IndexError):
             arr = None
     else:
         arr = None
     if arr is None:
-        arr = _parse_slow(layout, cols, decimal, label)
+        arr = _parse_slow(layout, cols, decimal, label, clock=clock)
     bad = ~np.isfinite(arr)
     if bad.any():
         r, k = np.argwhere(bad)[0]
@@ -639,7 +695,8 @@ def _parse(layout: _Layout, cols: list[_Column], decimal: str, label: str) -> np
     return arr
 
 
-def _parse_slow(layout: _Layout, cols: list[_Column], decimal: str, label: str) -> np.ndarray:
+def _parse_slow(layout: _Layout, cols: list[_Column], decimal: str, label: str, *,
+                clock: frozenset[int] = frozenset()) -> np.ndarray:
     delim = layout.delimiter
     need = max(c.index for c in cols) + 1
     out = np.empty((len(layout.data_lines), len(cols)))
@@ -653,9 +710,15 @@ def _parse_slow(layout: _Layout, cols: list[_Column], decimal: str, label: str) 
         for k, c in enumerate(cols):
             cell = row[c.index].strip()
             try:
-                out[r, k] = float(cell.replace(",", ".") if decimal == "," else cell)
+                if c.index in clock:
+                    out[r, k] = _clock_seconds(cell)
+                else:
+                    out[r, k] = float(cell.replace(",", ".") if decimal == "," else cell)
             except ValueError:
+                _refuse_repeated_header(layout, r, label)
                 what = "is empty" if not cell else f"has text {cell!r}"
+                if c.index in clock:
+                    what += " (the column holds hh:mm:ss times)"
                 if decimal == "." and re.fullmatch(r"[-+]?\d*,\d+", cell):
                     what += " (a decimal comma where the file uses '.'?)"
                 raise InputError(
@@ -663,6 +726,16 @@ def _parse_slow(layout: _Layout, cols: list[_Column], decimal: str, label: str) 
                     f"fix or delete that row (or comment it out with #)"
                 ) from None
     return out
+
+
+def _refuse_repeated_header(layout: _Layout, r: int, label: str) -> None:
+    """A data row that repeats the header: several records joined, or an export's page break."""
+    if layout.header and _repeats_header(layout.data_lines[r], layout.delimiter, layout.header):
+        raise InputError(
+            f"{label}: line {layout.data_linenos[r]} repeats the header of line {layout.header[0]} (a second "
+            f"test, or a page break of the export?); a file holds one test: split it into one file per test, "
+            f"or delete the repeated header line"
+        )
 
 
 def _decimal(layout: _Layout, cols: list[_Column], md: M.Metadata, label: str) -> str:
@@ -879,7 +952,7 @@ def _time(t_col: _Column, t: np.ndarray | None, factor: float, linenos: list[int
     back = np.flatnonzero(np.diff(t) < 0)
     if back.size:
         i = back[0] + 1
-        u = t_col.unit
+        u = t_col.unit or "s"
         raise InputError(
             f"{t_col.where(label)}, line {linenos[i]}: time goes backwards ({t[i] / factor:g} {u} after "
             f"{t[i - 1] / factor:g} {u} on line {linenos[i - 1]}); a file must hold one test in time order - "
@@ -939,6 +1012,30 @@ def _stretch_and_stress(plan: _Plan, col_of: dict[str, np.ndarray], disp, force,
     return x, x_from, stress, s_from
 
 
+def _check_response(plan: _Plan, x: np.ndarray, stress: np.ndarray, linenos: list[int], label: str) -> None:
+    """Refuse a stress that cannot be a response to the deformation: one value on every row (a dead
+    load channel), or the opposite sign to it on most rows away from the reference state (tension
+    with compressive stress: a channel recorded compression-positive)."""
+    col = plan.s_col or plan.f_col
+    if len(stress) > 2 and np.ptp(stress) == 0:  # (of two rows, the fitter refuses too few samples)
+        raise InputError(
+            f"{col.where(label)}: the stress is {stress[0]:.4g} Pa on every row ({len(stress)} rows): the load "
+            f"channel recorded nothing; check the column and the load cell, and export the test again"
+        )
+    dx = x - (0.0 if plan.mode == "simple_shear" else 1.0)
+    loaded = (np.abs(dx) > 0.05 * np.max(np.abs(dx))) & (np.abs(stress) > 0.05 * np.max(np.abs(stress)))
+    opposite = loaded & (np.sign(dx) != np.sign(stress))
+    n, bad = int(loaded.sum()), int(opposite.sum())
+    if n >= 3 and bad * 2 > n:
+        i = int(np.flatnonzero(opposite)[0])
+        which = "the stress column" if plan.s_col is not None else "the force (or the displacement) column"
+        raise InputError(
+            f"{col.where(label)}, line {linenos[i]}: {plan.x_name} {x[i]:.4g} with stress {stress[i]:.4g} Pa; on "
+            f"{bad} of {n} loaded rows the stress has the opposite sign to the deformation (tension must give "
+            f"positive stress): {which} is recorded compression-positive; change its sign and read again"
+        )
+
+
 #: Largest relative disagreement (of the column's range) between the stress (or strain) computed
 #: from the raw channels and a derived column of the same file before a warning is given.
 CROSS_CHECK_TOLERANCE = 0.01
@@ -972,22 +1069,26 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
     geo = M.geometry(md, label=label)
     plan = _plan(label, layout, md, cols, by_q, geo)
     used = _used(plan)
-    factors = {k: _need_unit(c, label, md) for k, c in used.items()}
+    clock = _clock_columns(layout, list(used.values()))
+    factors = {k: 1.0 if c.index in clock else _need_unit(c, label, md) for k, c in used.items()}
     order = list(used)
     decimal = _decimal(layout, [used[k] for k in order], md, label)
-    arr = _parse(layout, [used[k] for k in order], decimal, label)
+    arr = _parse(layout, [used[k] for k in order], decimal, label, clock=clock)
     col_of = {k: arr[:, i] * factors[k] for i, k in enumerate(order)}
     linenos = layout.data_linenos
     meta_extra: dict[str, Any] = {}
     time = _time(plan.t_col, col_of.get("time"), factors.get("time", 1.0), linenos, label)
     if time is not None:
         meta_extra["time_start"] = float(col_of["time"][0])
+        if plan.t_col.index in clock:
+            meta_extra["time_format"] = "hh:mm:ss"
     disp = col_of.get("displacement")
     if disp is not None and plan.d_col.absolute:
         meta_extra["displacement_start"] = float(disp[0])
         disp = disp - disp[0]
     force = col_of.get("force")
     x, x_from, stress, s_from = _stretch_and_stress(plan, col_of, disp, force, geo, linenos, label)
+    _check_response(plan, x, stress, linenos, label)
     checks = _cross_check(plan, col_of, x, stress, label, warnings)
     for c in cols:
         if c.quantity is None and c.header:
@@ -1064,5 +1165,6 @@ def _metadata(md: M.Metadata, geo: M.Geometry, plan: _Plan, layout: _Layout, col
         "sources": {k: md.source(k) for k in md.entries},
         "extra": dict(md.extra),
         "preamble": layout.preamble,
+        "trailer": [text.strip() for _, text in layout.trailer],
         "warnings": list(warnings),
     }
