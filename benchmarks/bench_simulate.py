@@ -395,7 +395,7 @@ def bench_implicit(*, duration: float = 3.0, sizes=("100k", "500k-jacobi"), step
             other = "newton" if scene.iteration == "quasi-newton" else "quasi-newton"   # the other iteration
             row.update(_implicit_variant(*run, other, scene.iteration, iteration=other))
             if key.endswith("_interactive"):      # the other [integrator] factor, in the same run
-                other = "exact" if scene.factor == "bound" else "bound"
+                other = "mixed" if scene.factor == "bound" else "bound"   # the haptic-margin choice (§2b)
                 row.update(_implicit_variant(*run, f"{other}_factor", scene.factor, factor=other))
             row["accuracy_over_lift"] = implicit_accuracy(hist["implicit"], hist["explicit"], lift_end,
                                                           imp["dt_max_s"])

@@ -370,7 +370,8 @@ class BackwardEuler:
 
         The break-even rule of renting against buying (the ski-rental problem; Karlin et al. 1988):
         going on until what the quasi-Newton iterations cost equals the hand-over's cost is never
-        more than twice what the better of the two would have cost, whichever it is.
+        more than twice what the better of the two would have cost, whichever it is (where a hand-over
+        costs the same whenever it is made and that cost is known; here it is the run's estimate).
         """
         cost, count = self._handover
         return cost / count if count else QN_SWITCH
