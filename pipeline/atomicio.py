@@ -50,6 +50,22 @@ def atomic_path(target: str | os.PathLike, *, suffix: str | None = None) -> Iter
         raise
 
 
+def unwritable_folder(path: str | os.PathLike) -> str | None:
+    """Why the folder *path* could not be created or written, as the end of a message (None: it can):
+    it is a file, lies under a file, or its nearest existing folder is not writable."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        return f"{p} is a file, not a folder; give a folder (it is created if missing)"
+    anc = p.absolute()
+    while not anc.exists():
+        anc = anc.parent
+    if not anc.is_dir():
+        return f"{p} cannot be created, {anc} is a file; give a folder"
+    if not os.access(anc, os.W_OK | os.X_OK):
+        return f"cannot write in {anc}; give a writable folder"
+    return None
+
+
 @contextlib.contextmanager
 def output_folder(path: str | os.PathLike) -> Iterator[Path]:
     """Create the folder *path* (and its missing parents) for a run's outputs; if the run fails, remove

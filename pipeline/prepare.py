@@ -34,6 +34,7 @@ from .asset.material import material_effects
 from .asset.provenance import collect_provenance
 from .asset.write import write_asset
 from .asset.xdmf import sidecar_path
+from .atomicio import unwritable_folder
 from .errors import ConfigError, InputError, QualityError
 from .materials.material import Material, load_material
 from .mesh.cleaning import CleaningOptions, CleaningReport, clean_surface
@@ -70,7 +71,7 @@ DEFAULT_MATERIAL = "porcine_liver_paper"
 DEFAULTS: dict[str, dict[str, Any]] = {
     "prepare": {"structure": "tetra", "material": DEFAULT_MATERIAL, "density": "1060 kg/m3",
                 "reorder": "rcm"},
-    "input": {"unit": "mm", "label": None},
+    "input": {"unit": None, "label": None},
     "cleaning": {"keep": "largest", "body": None, "smooth_iterations": 20, "smooth_passband": 0.1,
                  "target_faces": None, "target_edge": None},
     "mesh": {"size": None, "nodes": None, "elements": None, "timeout": "120 s"},
@@ -105,8 +106,8 @@ class PrepareConfig:
         Tissue density [kg/m3].
     reorder : {"rcm", "morton"} or None
         Node numbering.
-    unit : str
-        Length unit of the input file.
+    unit : str or None
+        Length unit of the input file; None: mm, or a NIfTI header's own unit.
     label : int or None
         Label to extract from a mask input.
     cleaning : CleaningOptions
@@ -141,7 +142,7 @@ class PrepareConfig:
     material: str
     density: float
     reorder: str | None
-    unit: str
+    unit: str | None
     label: int | None
     cleaning: CleaningOptions
     target: MeshTarget
@@ -358,12 +359,17 @@ def _prepare_part(cfg: dict, name) -> dict[str, Any]:
 def _input_part(cfg: dict, name) -> dict[str, Any]:
     unit, label = cfg["input"]["unit"], cfg["input"]["label"]
     where = name("input", "unit")
+    if unit is None:
+        return {"unit": None, "label": _label(label, name)}
     if not isinstance(unit, str):
         raise ConfigError(f"{where}: {unit!r} is not a length unit (mm, cm, m)", parameter=where)
     with _as_config_error(where):
         factor(unit, "length", where=where)
-    return {"unit": unit,
-            "label": None if label is None else number(label, name("input", "label"), lo=0, integer=True)}
+    return {"unit": unit, "label": _label(label, name)}
+
+
+def _label(label, name) -> int | None:
+    return None if label is None else number(label, name("input", "label"), lo=0, integer=True)
 
 
 def _cleaning_part(cfg: dict, name) -> dict[str, Any]:
@@ -465,7 +471,8 @@ def asset_paths(input_path: str | os.PathLike, output: str | os.PathLike | None)
     InputError
         The input is missing or a folder.
     ConfigError
-        The output does not end in ``.h5`` or is the input (parameter ``output``).
+        The output does not end in ``.h5``, is the input, is a folder (or its
+        sidecar is), or cannot be written (parameter ``output``).
     """
     inp = Path(input_path)
     if not inp.exists():
@@ -477,7 +484,20 @@ def asset_paths(input_path: str | os.PathLike, output: str | os.PathLike | None)
         raise ConfigError(f"output: {out}: the asset file name must end in .h5", parameter="output")
     if out.resolve() == inp.resolve():
         raise ConfigError(f"output: {out}: would overwrite the input; choose another name", parameter="output")
+    _check_writable(out)
     return inp, out
+
+
+def _check_writable(out: Path) -> None:
+    """Refuse, before any work, an asset path that cannot be written: a folder, under a file, not writable."""
+    if out.is_dir():
+        raise ConfigError(f"output: {out} is a folder; give the asset's file name in it", parameter="output")
+    if sidecar_path(out).is_dir():
+        raise ConfigError(f"output: {out}: its ParaView sidecar {sidecar_path(out)} is a folder; "
+                          "give another name", parameter="output")
+    problem = unwritable_folder(out.parent)
+    if problem:
+        raise ConfigError(f"output: {out} cannot be written: {problem}", parameter="output")
 
 
 def _material(cfg: PrepareConfig, run: _Run) -> Material:
@@ -624,7 +644,8 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
         with one remeshing pass if off by more than 20 %.
     structure : {"tetra", "skeleton"}, optional
     unit : str, optional
-        Length unit of the input file (mm, cm, m).
+        Length unit of the input file (mm, cm, m); default mm, or a NIfTI
+        header's own unit (a unit given wins over the header).
     label : int, optional
         Label to extract from a mask input.
     keep_all : bool

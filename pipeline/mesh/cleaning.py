@@ -279,15 +279,21 @@ def _boundary_loops(n_points: int, faces: np.ndarray):
 
 
 def face_components(n_points: int, faces: np.ndarray) -> tuple[int, np.ndarray]:
-    """Connected bodies (through shared vertices): (count, body id per face)."""
-    if faces.shape[0] == 0:
+    """Connected bodies (through shared edges): (count, body id per face).
+
+    Two closed bodies touching at one vertex (a bow tie, as marching cubes
+    makes where two blobs of a mask meet at a voxel corner) are two bodies;
+    through shared vertices they were one, which the repair then cut in two.
+    """
+    m = faces.shape[0]
+    if m == 0:
         return 0, np.zeros(0, np.int64)
-    r = np.concatenate([faces[:, 0], faces[:, 1]])
-    c = np.concatenate([faces[:, 1], faces[:, 2]])
-    g = sparse.coo_matrix((np.ones(r.size, np.int8), (r, c)), shape=(n_points, n_points))
+    e = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, edge = np.unique(e[:, 0] * np.int64(n_points) + e[:, 1], return_inverse=True)
+    f = np.repeat(np.arange(m), 3)
+    g = sparse.coo_matrix((np.ones(f.size, np.int8), (f, m + edge.ravel())), shape=(m + edge.max() + 1,) * 2)
     _, lab = connected_components(g, directed=False)
-    fl = lab[faces[:, 0]]
-    uniq, inv = np.unique(fl, return_inverse=True)
+    uniq, inv = np.unique(lab[:m], return_inverse=True)
     return int(uniq.size), inv.astype(np.int64)
 
 
@@ -645,6 +651,7 @@ def clean_surface(surface: Surface, *, options: CleaningOptions | None = None,
            bodies_dropped=[(int(nf[k]), float(vols[k])) for k in dropped],
            body_volumes=[float(vols[k]) for k in rank], body_faces=[int(nf[k]) for k in rank])
     _refuse_cavities(where, pts, fcs, lab, rank, kept, dropped, vols, opts)
+    _refuse_soup(where, int(nf[kept].sum()), fcs.shape[0], n_bodies)
     if dropped and vols[dropped].max() > 0.1 * vols[kept].sum():
         rep.warn(f"{where}: dropped a second body of {vols[dropped].max() * 1e6:.3g} mL "
                  f"(kept {vols[kept].sum() * 1e6:.3g} mL); use keep='all' or body=N to choose")
@@ -743,6 +750,16 @@ def _refuse_cavities(where, pts, fcs, lab, rank, kept, dropped, vols, opts) -> N
                    f"{vols[outer] / (vols[outer] - vols[inner]):.3g})")
         raise InputError(f"body: {where}: {what}; {act}; give body {index[outer]} to keep the outer "
                          f"surface filled on purpose, or export a solid organ", parameter="body")
+
+
+def _refuse_soup(where, n_kept: int, n_faces: int, n_bodies: int) -> None:
+    """Pieces of fewer than 4 triangles (a tetrahedron's) close no volume: the triangles share no edges."""
+    if n_kept >= 4 or n_bodies < 2:
+        return
+    raise MeshingError(
+        f"{where}: its {n_faces} triangles make {n_bodies} separate pieces and the largest has {n_kept}: "
+        f"neighbouring triangles do not share their corners (not merged within {MERGE_TOLERANCE:g} of the "
+        f"extent), so no closed body can be made; export the surface with merged (welded) vertices")
 
 
 def _target_faces(opts: CleaningOptions, area: float) -> int:
