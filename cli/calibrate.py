@@ -162,7 +162,19 @@ def run_batch(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]
         write_json(args.json, batch_document(summary, by=args.by))
     ui.info(f"outputs in {summary.out_dir}: one folder per group, summary.csv (parameters), "
             f"batch-summary.csv, {summary.log_path.name if summary.log_path else 'the batch log'}")
+    report_batch_problems(summary, ui)
     return summary.exit_code
+
+
+def report_batch_problems(summary, ui) -> None:
+    """A batch that did not complete ends with one error line (and, with -q, one per failed job)."""
+    if summary.exit_code == 0:
+        return
+    if ui.verbosity < 0:  # the warnings and the table were not shown
+        for o in summary.outcomes:
+            if o.status == "failed":  # an unreadable file's reason starts with its path already
+                ui.error(o.reason if o.summary.get("unreadable") else f"{o.name}: {o.reason}")
+    ui.error(summary.problem_line())
 
 
 def run_discover(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) -> int:

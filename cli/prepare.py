@@ -48,7 +48,8 @@ def add_parser(sub) -> None:
     p.add_argument("--nodes", metavar="N", help="target number of mesh nodes")
     p.add_argument("--elements", metavar="N", help="target number of tetrahedra")
     p.add_argument("--structure", metavar="S", help="tetra (default) or skeleton")
-    p.add_argument("--unit", metavar="U", help="length unit of the input file: mm (default), cm or m")
+    p.add_argument("--unit", metavar="U", help="length unit of the input file: mm (default), cm or m; "
+                   "given, it wins over a NIfTI mask's header unit (used by default)")
     p.add_argument("--label", metavar="N", help="label to extract from a mask input")
     p.add_argument("--keep-all", action="store_true", help="keep every body (default: the largest)")
     p.add_argument("--body", metavar="N", help="keep body N (0 = largest, by volume)")
@@ -120,18 +121,25 @@ def run(args, ui) -> int:
 
     options = _options(args)
     argv = ["esmm", *getattr(args, "_argv", [])]
-    if len(args.inputs) > 1 or args.out:
+    if len(args.inputs) > 1 or args.out is not None:
         if args.output:
             raise ConfigError("-o names one asset; for several inputs give --out DIR")
-        if not args.out:
+        if args.out is None:
             raise ConfigError(f"{len(args.inputs)} inputs: give --out DIR for their assets")
+        from esmm.cli.calibrate import report_batch_problems
+        from esmm.cli.outputs import check_out_dir
         from esmm.pipeline.batch.prepare import prepare_batch
+
+        if not args.out.strip():
+            raise ConfigError("--out: empty folder name; give the folder for the assets")
+        check_out_dir(args.out, "--out")
 
         summary = prepare_batch(args.inputs, out_dir=args.out, options=options, argv=argv,
                                 scheduler=args.scheduler, workers=args.workers, force=args.redo, reporter=ui)
         ui.info(summary.table())
         ui.info(f"assets in {summary.out_dir}; batch-summary.csv and "
                 f"{summary.log_path.name if summary.log_path else 'the batch log'} there too")
+        report_batch_problems(summary, ui)
         return summary.exit_code
     if args.redo or args.scheduler or args.workers:
         raise ConfigError("--redo, --scheduler and --jobs apply to a batch: give --out DIR")

@@ -151,14 +151,17 @@ def _compensate(tables, asset, material, volume, args, ui):
 def _summary(args, material, tables, carried: bool, comp) -> dict:
     from esmm.pipeline.network.tables import LAWS
 
-    mu = tables.mu_e([1.0, 1.1, 1.3 if tables.lam_max >= 1.3 else tables.lam_max])[2]
+    # mu_e at 1 and at 1.1, or at the grid's end when the grid stops short of 1.1 (the table
+    # holds nothing beyond it: a value "at 1.1" would be the end's, mislabelled).
+    lam2 = 1.1 if tables.lam_max >= 1.1 else tables.lam_max
+    mu = tables.mu_e([1.0, lam2, 1.3 if tables.lam_max >= 1.3 else tables.lam_max])[2]
     summary = {
         "asset": str(args.asset), "material": getattr(material, "name", ""),
         "grid": {"lam_min": tables.lam_min, "lam_max": tables.lam_max, "n": tables.n, "dlam": tables.dlam},
         "default_law": tables.default_law, "volume_factor": tables.volume_factor,
         "corrected_laws": [lw for lw in LAWS if tables.is_corrected(lw)],
         "compensation_kept": carried, "per_spring": bool(args.per_spring),
-        "mu_e_MPa": {"1.0": mu[0] / 1e6, "1.1": mu[1] / 1e6},
+        "mu_e_MPa": {"1.0": mu[0] / 1e6, ("1.1" if lam2 == 1.1 else f"{lam2:.6g}"): mu[1] / 1e6},
     }
     if comp is not None:
         rec = comp.record
@@ -176,6 +179,8 @@ def _summary(args, material, tables, carried: bool, comp) -> dict:
 
 def _text(summary: dict, tables, n_springs: int) -> list[str]:
     mu = summary["mu_e_MPa"]
+    at2 = next(k for k in mu if k != "1.0")
+    end = "" if at2 == "1.1" else " (the grid's end)"
     comp_text = ("none" if tables.volume_factor == 1.0 and not summary["corrected_laws"] else
                  f"c = {tables.volume_factor:.4g}, stretch correction for "
                  f"{', '.join(summary['corrected_laws']) or 'no law'}"
@@ -183,7 +188,7 @@ def _text(summary: dict, tables, n_springs: int) -> list[str]:
     lines = [f"{summary['asset']}: tables rewritten",
              f"  material     {summary['material']}",
              f"  grid         stretch {tables.lam_min:.4g} .. {tables.lam_max:.4g}, {tables.n} points",
-             f"  mu_e         {mu['1.0']:.5g} MPa at 1 (small-strain E), {mu['1.1']:.5g} MPa at 1.1",
+             f"  mu_e         {mu['1.0']:.5g} MPa at 1 (small-strain E), {mu[at2]:.5g} MPa at {at2}{end}",
              f"  law          {tables.default_law} (default)",
              f"  compensation {comp_text}"]
     c = summary.get("compensation")
@@ -192,6 +197,7 @@ def _text(summary: dict, tables, n_springs: int) -> list[str]:
                      f"{c['stretch_range'][1]:.3g}: max |stress error| {100 * c['max_error_before']:.1f} % "
                      f"uncompensated, {100 * c['max_error_scalar_only']:.1f} % with c only, "
                      f"{100 * c['max_error_after']:.2f} % compensated"
+                     + ("" if c["converged"] else " (NOT converged)")
                      + (f" (calibration reused from {c['reused_from']})" if c["reused_from"] else ""))
     if summary["per_spring"]:
         lines.append(f"  per-spring   /tables/k_per_spring ({n_springs} x {tables.n})")
@@ -209,6 +215,11 @@ def run(args, ui) -> int:
     if args.radius_elements is not None and not args.compensate:
         raise ConfigError("radius_elements: only used by the virtual tensile test; add --compensate or remove it",
                           parameter="radius_elements")
+    if (args.calibration_range is not None and not args.compensate
+            and not (args.material is not None and asset.network.volume_term is not None)):
+        raise ConfigError("calibration_range: only used by the virtual tensile test (and to re-size the asset's "
+                          "volume term for a new --material); add --compensate or remove it",
+                          parameter="calibration_range")
     grid = _grid(args, asset.tables)
     try:
         tables = build_tables(material, law=law, **grid)
@@ -223,6 +234,11 @@ def run(args, ui) -> int:
     if args.compensate:
         comp = _compensate(tables, asset, material, volume, args, ui)
         tables, carried = comp.tables, False
+        if comp.reused is not None and not comp.record.get("converged", True):
+            # calibrated earlier (its warning then is not repeated by the library): say it again
+            ui.warn(f"the reused compensation did not converge (max |stress error| "
+                    f"{100 * comp.record['errors_after']['max_abs_rel_error']:.2f} %); try a narrower "
+                    f"--calibration-range")
     meta = dict(tables.metadata)
     meta["written_by"] = {"command": ["esmm", *getattr(args, "_argv", [])],
                           "utc": datetime.now(UTC).isoformat(timespec="seconds")}

@@ -434,3 +434,29 @@ def test_volume_term_needs_tets(tmp_path):
                                 surface_faces=[[0, 1, 2]])
     with pytest.raises(InputError, match="tetrahedra"):
         write_asset(tmp_path / "sk.h5", dataclasses.replace(net, volume_term=VolumeSpec(1e5)))
+
+
+@pytest.mark.parametrize("version", [1.5, True, "1", np.array([1, 2])])
+def test_root_schema_version_must_be_a_whole_number(asset, version, run_cli):
+    """A float 1.5 (or True) passed for schema version 1 and the asset for valid (adversarial sweep)."""
+    with h5py.File(asset, "r+") as f:
+        f.attrs["esmm_version"] = version
+        hdf5.seal(f)
+    with pytest.raises(AssetError, match="is not a schema version; re-create it"):
+        read_asset(asset)
+    code, _out, err = run_cli("info", asset)
+    assert code == 2 and "is not a schema version" in err and "Traceback" not in err
+
+
+def test_a_simulation_history_is_named_as_such(tmp_path, run_cli):
+    """'esmm info history.h5' said only "not an esmm asset"; it now says what the file is and what to give."""
+    hist = tmp_path / "history.h5"
+    with h5py.File(hist, "w") as f:
+        f.attrs["esmm_type"] = "simulation_history"
+        f.attrs["esmm_version"] = 1
+    code, _out, err = run_cli("info", hist)
+    lines = [ln for ln in err.splitlines() if ln.startswith("esmm: error:")]
+    assert code == 2 and len(lines) == 1
+    assert "simulation history" in lines[0] and "'esmm prepare'" in lines[0]
+    with pytest.raises(AssetError, match="simulation history .*; give the .h5 written by 'esmm prepare'$"):
+        read_asset(hist)

@@ -538,3 +538,97 @@ def test_unreachable_dask_scheduler_is_a_config_error(tmp_path):
     with pytest.raises(ConfigError, match=f"scheduler: cannot connect to a Dask scheduler at tcp://127.0.0.1:{port}"):
         run_jobs(write_jobs(tmp_path, ["a"]), out_dir=tmp_path / "o", scheduler=f"tcp://127.0.0.1:{port}",
                  connect_timeout=3)
+
+
+# ----------------------------------------------------------------------------- adversarial sweep (batch inputs)
+UNIAXIAL = "# mode: uniaxial\nstretch,nominal stress [MPa]\n1.1,0.1\n1.2,0.18\n1.4,0.3\n1.8,0.45\n2.2,0.6\n"
+
+
+def test_calibrate_jobs_skip_what_a_wildcard_picks_up_beside_the_data(tmp_path):
+    """`--by folder lab/*` picked up sidecars, measurement tables and editor backups as failed
+    files (exit 5); a byte-identical copy doubled a test's weight in its group without a word."""
+    from esmm.pipeline.batch.calibrate import calibrate_jobs
+    from esmm.pipeline.progress import ListReporter
+
+    d = tmp_path / "lab"
+    d.mkdir()
+    (d / "t1.csv").write_text(UNIAXIAL)
+    (d / "t1.toml").write_text('specimen = "s1"\n')              # its sidecar: read with it
+    (d / "stray.toml").write_text("[calibrate]\nstarts = 2\n")    # a TOML without data
+    (d / "t1.csv~").write_text(UNIAXIAL)                          # editor backups and locks
+    (d / ".t1.csv.swp").write_bytes(b"b0VIM 8.2\0\0")
+    (d / ".~lock.t1.csv#").write_text(",user,host,01.01.2026;")
+    (d / "t1.csv.bak").write_text(UNIAXIAL)
+    (d / "measurements.csv").write_text("W,H,G\n10,2,30\n")       # not a test record
+    (d / "t2.csv").write_text(UNIAXIAL)                           # same bytes as t1.csv, no sidecar
+    (d / "t2-copy.csv").write_text(UNIAXIAL)                      # same bytes as t2.csv: said, kept
+    rep = ListReporter()
+    files = sorted(d.iterdir())
+    jobs = calibrate_jobs(files, by="folder", out_dir=tmp_path / "o", reporter=rep)
+    assert [(j.name, j.error) for j in jobs] == [("lab", None)]
+    assert [Path(p).name for p in jobs[0].key_inputs] == ["t1.csv", "t2-copy.csv", "t2.csv", "t1.toml"]
+    text = "\n".join(rep.warnings)
+    for name in ("stray.toml", "t1.csv~", ".t1.csv.swp", ".~lock.t1.csv#", "t1.csv.bak", "measurements.csv"):
+        assert name in text, name
+    assert "t2.csv: the same bytes as" in text and "t1.toml" not in text
+    with pytest.raises(InputError, match="none of the 2 file"):
+        calibrate_jobs([d / "measurements.csv", d / "stray.toml"], by="folder", out_dir=tmp_path / "o")
+
+
+def test_group_names_avoid_the_batch_files_failed_rows_and_keep_unicode(tmp_path):
+    """A specimen called summary.csv made a folder where the table goes (a traceback at the end); an
+    unreadable path equal to a group name aborted the whole batch; non-ASCII ids lost their letters."""
+    from esmm.pipeline.batch.calibrate import calibrate_jobs, group_names, safe_name
+
+    names = group_names(["summary.csv", "Batch-Summary.csv", "Leber-ß", "肝臓", "肝臓/"], "specimen")
+    assert names == {"summary.csv": "summary.csv-2", "Batch-Summary.csv": "Batch-Summary.csv-2",
+                     "Leber-ß": "Leber-ß", "肝臓": "肝臓", "肝臓/": "肝臓-2"}
+    assert len(safe_name("肝" * 200).encode()) <= 120
+    a = tmp_path / "a"
+    a.mkdir()
+    (a / "t.csv").write_text(UNIAXIAL)
+    cwd = os.getcwd()
+    os.chdir(tmp_path)
+    try:  # "a" is both a folder given as a file (failed row) and the group of a/t.csv
+        jobs = calibrate_jobs(["a", "a/t.csv"], by="folder", out_dir=tmp_path / "o")
+    finally:
+        os.chdir(cwd)
+    assert sorted((j.name, j.error is None) for j in jobs) == sorted([("a", True), (str(a), False)])
+
+
+def test_a_fit_error_names_the_files_of_its_group(tmp_path):
+    """'1 samples cannot determine 2 parameters' did not say which file."""
+    from esmm.pipeline.batch.calibrate import fit_group
+
+    f = tmp_path / "r1.csv"
+    f.write_text("# mode: uniaxial\nstretch,nominal stress [MPa]\n1.1,0.1\n")
+    with pytest.raises(FitError, match=r"^r1\.csv: 1 samples"):
+        fit_group([str(f)], str(tmp_path / "o"), "g", {}, {"model": "arruda-boyce", "n_starts": 1})
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_batch_ctrl_c_and_quiet_failures_end_with_an_error_line(tmp_path, run_cli, monkeypatch):
+    """Ctrl-C printed "calibrating: ... done" and no error line; with -q a failed batch printed nothing."""
+    import esmm.pipeline.batch.calibrate as bcal
+
+    good, bad = tmp_path / "g" / "t.csv", tmp_path / "b" / "t.csv"
+    for p in (good, bad):
+        p.parent.mkdir()
+    good.write_text(UNIAXIAL)
+    bad.write_text("# mode: uniaxial\nstretch,nominal stress [MPa]\n1.1,0.1\n")
+    common = ["calibrate", "--by", "folder", good, bad, "--model", "arruda-boyce", "--starts", "1",
+              "--scheduler", "serial"]
+    code, out, err = run_cli("-q", *common, "--out", tmp_path / "o1")
+    errors = [ln for ln in err.splitlines() if ln.startswith("esmm: error: ")]
+    assert code == 5 and out == ""
+    assert errors[0].startswith("esmm: error: b: t.csv: 1 samples") and "1 of 2 job(s) failed: b" in errors[-1]
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(bcal, "fit_group", interrupted)
+    code, out, err = run_cli(*common, "--out", tmp_path / "o2")
+    errors = [ln for ln in err.splitlines() if ln.startswith("esmm: error: ")]
+    assert code == 130 and "done" not in err
+    assert len(errors) == 1 and errors[0].startswith("esmm: error: interrupted: 2 of 2 job(s) not finished")
+    assert not list((tmp_path / "o2").rglob(".*.tmp-*")) and not (tmp_path / "o2" / "g").exists()

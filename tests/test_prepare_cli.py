@@ -143,6 +143,25 @@ def test_bad_prepare_input(run_cli, tmp_path, monkeypatch, sphere_stl, args, cod
     assert os.listdir(tmp_path) == []
 
 
+@pytest.mark.parametrize("make, output, match", [
+    ("dir:organ.h5", "organ.h5", "organ.h5 is a folder"),
+    ("file:notes", "notes/organ.h5", "cannot be written"),
+    ("file:notes", "notes/deeper/organ.h5", "notes is a file"),
+    ("dir:organ.xdmf", "organ.h5", "ParaView sidecar organ.xdmf is a folder"),
+])
+def test_unwritable_output_is_refused_before_any_work(run_cli, tmp_path, monkeypatch, sphere_stl, make,
+                                                      output, match):
+    """Found at the end of the run before (after meshing and compensation, minutes on a real organ)."""
+    monkeypatch.chdir(tmp_path)
+    kind, name = make.split(":")
+    (tmp_path / name).mkdir() if kind == "dir" else (tmp_path / name).write_text("x")
+    rc, out, err = run_cli("prepare", sphere_stl, "-o", output)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert rc == 2 and len(lines) == 1 and lines[0].startswith("esmm: error: --output: "), err
+    assert match in lines[0]
+    assert sorted(os.listdir(tmp_path)) == [name]
+
+
 def test_bad_config_file_names_file_and_key(run_cli, tmp_path, monkeypatch, sphere_stl):
     monkeypatch.chdir(tmp_path)
     cfg = tmp_path / "c.toml"
@@ -292,3 +311,15 @@ def test_prepare_skeleton_structure(run_cli, tmp_path, sphere_stl):
     assert net.volume.sum() == pytest.approx(v, rel=1e-9)
     assert net.total_mass() == pytest.approx(1060 * v, rel=1e-9)
     np.testing.assert_allclose(net.volume_weight, net.volume_weight[0], rtol=1e-12)  # p = 2
+
+
+def test_batch_out_empty_or_a_file_is_refused_before_any_work(run_cli, tmp_path):
+    """Adversarial sweep: --out "" ran a single prepare into the current folder; --out FILE failed
+    with "cannot create the output folder (File exists)" and no flag."""
+    surface = tmp_path / "organ.stl"
+    surface.write_text("solid x\nendsolid x\n")
+    code, _out, err = run_cli("prepare", surface, "--out", "")
+    assert code == 2 and "esmm: error: --out: empty" in err
+    code, _out, err = run_cli("prepare", surface, "--out", surface)
+    assert code == 2 and "esmm: error: --out:" in err and "is a file" in err
+    assert not (tmp_path / "organ.h5").exists() and not list(tmp_path.glob("esmm-batch-*"))

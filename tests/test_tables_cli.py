@@ -118,3 +118,18 @@ def test_compensate_then_switch_law_keeps_it(run_cli, asset):
     code, out, err = run_cli("tables", asset, "--points", "300")
     assert code == 0 and "dropped" in err
     assert read_asset(asset).tables.volume_factor == 1.0
+
+
+def test_mu_e_is_labelled_at_the_grid_end_and_calibration_range_needs_a_use(run_cli, asset):
+    """Adversarial sweep: a grid ending at 1.05 printed a value "at 1.1" (the end's, clamped);
+    --calibration-range without --compensate was silently ignored."""
+    code, out, err = run_cli("tables", asset, "--stretch-range", "0.8", "1.05")
+    assert code == 0, err
+    assert "at 1.1" not in out and "(the grid's end)" in out
+    code, out, err = run_cli("tables", asset, "--stretch-range", "0.8", "1.05", "--json")
+    assert code == 0 and "1.1" not in json.loads(out)["mu_e_MPa"]
+    before = asset.read_bytes()
+    code, out, err = run_cli("tables", asset, "--calibration-range", "0.9", "1.2")
+    errors = [ln for ln in err.splitlines() if ln.startswith("esmm: error:")]
+    assert code == 2 and len(errors) == 1 and errors[0].startswith("esmm: error: --calibration-range: only used")
+    assert asset.read_bytes() == before

@@ -198,13 +198,24 @@ def _looks_hdf5(path: Path) -> bool:
     return head == b"\x89HDF\r\n\x1a\n"
 
 
+#: Other files esmm writes in HDF5 (root ``esmm_type``): what they are, for the message on them.
+OTHER_ESMM_FILES = {"simulation_history": "a simulation history written by 'esmm simulate' (open its .xdmf "
+                                          "in ParaView)"}
+
+
 def _root_problems(f: h5py.File) -> list[str]:
+    """Problems of the root (type, schema version); each message says what to do."""
     kind = hdf5.attr_str(f.attrs.get("esmm_type"))
+    if kind in OTHER_ESMM_FILES:
+        return [f"not an asset but {OTHER_ESMM_FILES[kind]}; give the .h5 written by 'esmm prepare'"]
     if kind != ASSET_TYPE:
-        return [f"not an esmm asset (root esmm_type is {kind or 'missing'!r}, expected {ASSET_TYPE!r})"]
-    version = hdf5.attr_int(f.attrs.get("esmm_version"))
-    if version < 1:
-        return [f"root esmm_version {f.attrs.get('esmm_version')!r} is not a schema version"]
+        return [f"not an esmm asset (root esmm_type is {kind or 'missing'!r}, expected {ASSET_TYPE!r}); "
+                f"give the .h5 written by 'esmm prepare'"]
+    raw = f.attrs.get("esmm_version")
+    version = hdf5.attr_int(raw)
+    whole = raw is not None and np.asarray(raw).shape == () and np.asarray(raw).dtype.kind in "iu"
+    if version < 1 or not whole:  # 1.5 or True would otherwise pass for version 1
+        return [f"root esmm_version {hdf5.attr_str(raw) or 'missing'!r} is not a schema version; {ADVICE}"]
     if version > ASSET_VERSION:
         return [f"asset schema version {version} is newer than this esmm reads ({ASSET_VERSION}); "
                 f"upgrade esmm"]
@@ -439,9 +450,10 @@ def read_asset(path: str | os.PathLike, *, verify: bool = True) -> Asset:
     f = _open(p)
     try:
         with f:
-            probs = _root_problems(f)
-            if not probs:
-                probs = _schema_problems(f)[0]
+            root = _root_problems(f)
+            if root:  # the message carries its own advice
+                raise AssetError(f"{p}: {root[0]}")
+            probs = _schema_problems(f)[0]
             if not probs and verify:
                 probs = _integrity_problems(f)
             if not probs:

@@ -23,6 +23,7 @@ import math
 import os
 import re
 import statistics
+import unicodedata
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -30,23 +31,45 @@ from typing import Any
 from ..atomicio import write_text
 from ..calibrate.fit import fit_material
 from ..calibrate.report import write_outputs
-from ..errors import ConfigError, EsmmError
+from ..errors import ConfigError, EsmmError, InputError
 from ..progress import Reporter, ensure
-from ..tensile import read
+from ..tensile import NotATestError, read
 from ..validate import choice
-from .jobs import BatchSummary, Job, JobOutput
-from .runner import run_jobs
+from .cache import CACHE_DIR
+from .jobs import BatchSummary, Job, JobOutput, sha256_file
+from .runner import SUMMARY_NAME, run_jobs
 
 GROUP_BY = ("specimen", "folder")
 KIND = "calibrate"
 #: Name of the parameters table in the batch folder.
 PARAMS_TABLE = "summary.csv"
 
+#: Names in the batch folder that no group folder may take (compared case-insensitively).
+RESERVED_NAMES = (PARAMS_TABLE, SUMMARY_NAME, CACHE_DIR)
+
+#: Longest group folder name, in UTF-8 bytes (file systems allow 255).
+_MAX_NAME_BYTES = 120
+
+#: Files a wildcard picks up beside the data that are copies or locks of editors and tools:
+#: ``x.csv~``, ``#x.csv#``, ``.#x.csv``, ``.~lock.x.csv#`` (LibreOffice), ``.x.csv.swp`` (vim),
+#: ``x.csv.bak``, ``x.csv.orig``, ``x.csv.old``.
+_BACKUP = re.compile(r"(^\.#|^\.~lock\.|[~#]$|\.(bak|orig|old|swp|swo|swn|swx)$)", re.IGNORECASE)
+
 
 def safe_name(text: str) -> str:
-    """A file-system-safe folder name for a group (letters, digits, ``-_.``)."""
-    s = re.sub(r"[^A-Za-z0-9_.\-]+", "_", str(text)).strip("._")
-    return s[:120] or "group"
+    """A file-system-safe folder name for a group (letters of any script, digits, ``-_.``).
+
+    At most 120 UTF-8 bytes; ``"group"`` when nothing is left.
+    """
+    s = re.sub(r"[^\w.\-]+", "_", unicodedata.normalize("NFC", str(text))).strip("._")
+    while len(s.encode("utf-8")) > _MAX_NAME_BYTES:
+        s = s[:-1]
+    return s.rstrip("._") or "group"
+
+
+def backup_file(path: str | os.PathLike) -> bool:
+    """Whether *path* is named like an editor backup, swap or lock file (not test data)."""
+    return _BACKUP.search(Path(path).name) is not None
 
 
 def group_names(keys: Sequence[str], by: str) -> dict[str, str]:
@@ -73,13 +96,15 @@ def group_names(keys: Sequence[str], by: str) -> dict[str, str]:
             out.update(zip(ks, names if len(names) == len(ks) else [base] * len(ks)))
     else:
         out = {k: safe_name(k) for k in keys}
-    taken: set[str] = set()
-    for k in keys:  # any clash left: suffixes, in input order
+    # Any clash left (also with the batch's own files, and names that differ only in case, which
+    # are one folder on macOS and Windows): suffixes, in input order.
+    taken: set[str] = {n.casefold() for n in RESERVED_NAMES}
+    for k in keys:
         name, n = out[k], 2
-        while name in taken:
+        while name.casefold() in taken:
             name, n = f"{out[k]}-{n}", n + 1
         out[k] = name
-        taken.add(name)
+        taken.add(name.casefold())
     return out
 
 
@@ -104,7 +129,15 @@ def fit_group(files: Sequence[str], out_dir: str, name: str, read_kwargs: Mappin
         interval, kind), ``rmse``/``nrmse``/``r2``, ``files``, ``warnings``.
     """
     tests = [read(p, **dict(read_kwargs)) for p in files]
-    result = fit_material(tests, **dict(fit_kwargs))
+    try:
+        result = fit_material(tests, **dict(fit_kwargs))
+    except EsmmError as exc:  # name the files where the fit's own message does not
+        msg = str(exc)
+        shown = [Path(p).name for p in files]
+        if not any(n in msg for n in shown):
+            listed = ", ".join(shown[:3]) + (f" and {len(shown) - 3} more" if len(shown) > 3 else "")
+            raise type(exc)(f"{listed}: {msg}") from None
+        raise
     written = write_outputs(Path(out_dir) / name, result, tests, name=name)
     summary = {
         "model": result.model,
@@ -151,32 +184,92 @@ def calibrate_jobs(files: Sequence[str | os.PathLike], *, by: str = "specimen",
     fit_kwargs = {k: v for k, v in dict(fit_kwargs or {}).items() if k != "reporter"}
     if "free" in fit_kwargs and fit_kwargs["free"] is not None:
         fit_kwargs["free"] = list(fit_kwargs["free"])
-    jobs: list[Job] = []
-    groups: dict[str, list[str]] = {}
-    seen: set[str] = set()
-    for f in files:
-        p = str(Path(f).resolve())
-        if p in seen:
-            continue
-        seen.add(p)
-        try:
-            t = read(p, **read_kwargs)
-        except ConfigError:
-            raise
-        except EsmmError as exc:
-            jobs.append(Job.failed(str(f), KIND, str(exc), exit_code=exc.exit_code,
-                                   summary={"unreadable": True, "files": [p]}))
-            rep.warn(f"skipped: {exc}")
-            continue
-        key = t.specimen if by == "specimen" else str(Path(p).parent)
-        groups.setdefault(key, []).append(p)
+    groups, failed, skipped, n_files = _sort_files(files, by, read_kwargs, rep)
+    if not groups and not failed:
+        why = f" ({skipped[0]})" if skipped else ""
+        raise InputError(f"none of the {n_files} file(s) is a test record{why}; give the tests' CSV files")
     names = group_names(list(groups), by)
+    jobs = _failed_jobs(failed, {n.casefold() for n in names.values()})
     for key, paths in groups.items():
         name = names[key]
         config = {"by": by, "group": key, "read": read_kwargs, "fit": fit_kwargs}
         jobs.append(Job(name=name, kind=KIND, fn=fit_group,
                         args=(paths, str(Path(out_dir).resolve()), name, read_kwargs, fit_kwargs),
                         key_inputs=[*paths, *map(str, sidecars(paths))], config=config))
+    return jobs
+
+
+def _sort_files(files, by: str, read_kwargs: dict, rep: Reporter):
+    """Read every file once: (groups: key -> paths, failed: (as given, path, error), skipped: messages,
+    the number of distinct files). Editor backups, stray TOML files and measurement tables a wildcard
+    picks up are skipped with a warning; the sidecar of a file given too is read with it."""
+    groups: dict[str, list[str]] = {}
+    digests: dict[str, dict[str, str]] = {}  # group -> sha256 -> first file with those bytes
+    failed: list[tuple[str, str, EsmmError]] = []
+    skipped: list[str] = []
+    resolved = [str(Path(f).resolve()) for f in files]
+    side_of_given = {str(Path(r).with_suffix(".toml")) for r in resolved if Path(r).suffix.lower() != ".toml"}
+    seen: set[str] = set()
+    for f, p in zip(files, resolved):
+        sidecar = p in side_of_given and Path(p).is_file()   # of a file given too: read with it (and keys it)
+        if p in seen or sidecar:
+            seen.add(p)
+            continue
+        seen.add(p)
+        try:
+            t = _read_one(f, p, read_kwargs)
+        except ConfigError:            # the reader's options: every file would fail alike
+            raise
+        except _Skip as why:
+            skipped.append(str(why))
+            rep.warn(skipped[-1])
+            continue
+        except EsmmError as exc:
+            failed.append((str(f), p, exc))
+            rep.warn(f"skipped: {exc}")
+            continue
+        key = t.specimen if by == "specimen" else str(Path(p).parent)
+        try:  # the same bytes with the same sidecar (or none): one test given twice
+            digest = ":".join(sha256_file(x) for x in [p, *sidecars([p])])
+        except EsmmError as exc:  # gone or unreadable since it was read
+            failed.append((str(f), p, exc))
+            continue
+        first = digests.setdefault(key, {}).setdefault(digest, p)
+        if first != p:  # kept (the user may mean it) but said: it doubles that test's weight in the fit
+            rep.warn(f"{f}: the same bytes as {first} in one group (a copy?); both are fitted, which doubles "
+                     f"that test's weight - remove one if it is a copy")
+        groups.setdefault(key, []).append(p)
+    return groups, failed, skipped, len(seen)
+
+
+class _Skip(Exception):
+    """A file a wildcard picked up that is not test data (the message says which and why)."""
+
+
+def _read_one(shown, p: str, read_kwargs: dict):
+    """The test in file *p* (given as *shown*); :class:`_Skip` for a file that is not test data."""
+    if backup_file(p):
+        raise _Skip(f"{shown}: named like an editor backup or lock file, not test data - skipped")
+    if Path(p).suffix.lower() == ".toml" and Path(p).is_file():
+        raise _Skip(f"{shown}: a TOML file without a data file of the same stem among the files, not test "
+                    f"data - skipped")
+    try:
+        return read(p, **read_kwargs)
+    except NotATestError as exc:  # a measurements table picked up by a wildcard (as without --by)
+        raise _Skip(f"{exc} - skipped") from None
+
+
+def _failed_jobs(failed, taken: set[str]) -> list[Job]:
+    """A failed job per unreadable file, named by the path given; never by a group's name (*taken*,
+    case-folded), since it writes nothing."""
+    jobs = []
+    for shown, p, exc in failed:
+        name, n = shown, 2
+        while name.casefold() in taken:
+            name, n = (p if n == 2 else f"{p}-{n - 1}"), n + 1
+        taken.add(name.casefold())
+        jobs.append(Job.failed(name, KIND, str(exc), exit_code=exc.exit_code,
+                               summary={"unreadable": True, "files": [p]}))
     return jobs
 
 

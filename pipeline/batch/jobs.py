@@ -41,6 +41,9 @@ EXIT_OK, EXIT_FAILED, EXIT_INTERRUPTED = 0, 5, 130
 
 _CHUNK = 1 << 20
 
+#: The status table of a batch, in its output folder (written by the runner).
+SUMMARY_CSV = "batch-summary.csv"
+
 
 def sha256_file(path: str | os.PathLike) -> str:
     """SHA-256 (hex) of a file's bytes.
@@ -360,6 +363,22 @@ class BatchSummary:
         if self.n_interrupted:
             parts.append(f"{self.n_interrupted} interrupted")
         return f"{len(self.outcomes)} job(s): {', '.join(parts)} in {self.seconds:.1f} s"
+
+    def problem_line(self) -> str:
+        """One line on what went wrong ("" when every job is done or cached): the failed jobs, or the
+        interruption and what to do."""
+        failed = [o.name for o in self.outcomes if o.status == "failed"]
+        names = ", ".join(failed[:5]) + (f" and {len(failed) - 5} more" if len(failed) > 5 else "")
+        if self.interrupted:
+            stopped = sum(o.status == "interrupted" for o in self.outcomes)
+            kept = self.n_done + self.n_cached
+            return (f"interrupted: {stopped} of {len(self.outcomes)} job(s) not finished, {kept} complete and "
+                    f"kept{f', {len(failed)} failed' if failed else ''}; run the same command again to do "
+                    f"only what is missing")
+        if failed:
+            return (f"{len(failed)} of {len(self.outcomes)} job(s) failed: {names}; the others are complete "
+                    f"(the reasons are in {SUMMARY_CSV} and the batch log)")
+        return ""
 
     def table(self, fmt: str = "text") -> str:
         """The summary table: one row per job (name, status, seconds, reason).

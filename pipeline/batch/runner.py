@@ -43,12 +43,21 @@ from ..atomicio import write_text
 from ..errors import ConfigError, EsmmError
 from ..progress import Reporter, ensure
 from . import cache as _cache
-from .jobs import BatchSummary, Job, JobOutcome, _canonical, cache_key, code_version, input_digests
+from .jobs import (
+    SUMMARY_CSV,
+    BatchSummary,
+    Job,
+    JobOutcome,
+    _canonical,
+    cache_key,
+    code_version,
+    input_digests,
+)
 from .local import LocalPool, available_cpus
 from .worker import execute, execute_blob, one_line
 
 #: Name of the CSV table of the last batch in the output folder.
-SUMMARY_NAME = "batch-summary.csv"
+SUMMARY_NAME = SUMMARY_CSV
 
 _DASK_ADDRESS = re.compile(r"^(tcp|tls|ucx|ws|wss|inproc)://\S+$")
 _counter = itertools.count()
@@ -450,9 +459,11 @@ def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any 
 
             if tasks:
                 where = desc if kind != "local" else f"{min(n_workers, len(tasks))} local process(es)"
-                with _sigterm_as_interrupt(), rep.task(f"{title}: {len(tasks)} job(s) on {where}",
-                                                       total=len(tasks)) as advance:
-                    try:
+                # The interruption is caught outside the progress task, so that the task ends as
+                # stopped (not "done") in the reporter.
+                try:
+                    with _sigterm_as_interrupt(), rep.task(f"{title}: {len(tasks)} job(s) on {where}",
+                                                           total=len(tasks)) as advance:
                         if kind == "serial":
                             _run_serial(tasks, on_event)
                         elif kind == "local":
@@ -460,13 +471,13 @@ def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any 
                         else:
                             addr = _run_dask(tasks, target, on_event, logger, connect_timeout)
                             summary.scheduler = f"dask {addr}"
-                    except KeyboardInterrupt:
-                        summary.interrupted = True
-                        logger.warning("batch interrupted (Ctrl-C or SIGTERM): queued jobs not started")
-                        if kind != "dask" and not lock.unsupported:
-                            late = _cache.sweep_temp(out)
-                            if late:
-                                logger.info("removed %d temporary file(s) of stopped jobs", len(late))
+                except KeyboardInterrupt:
+                    summary.interrupted = True
+                    logger.warning("batch interrupted (Ctrl-C or SIGTERM): queued jobs not started")
+                    if kind != "dask" and not lock.unsupported:
+                        late = _cache.sweep_temp(out)
+                        if late:
+                            logger.info("removed %d temporary file(s) of stopped jobs", len(late))
         except KeyboardInterrupt:  # during planning
             summary.interrupted = True
             logger.warning("batch interrupted before any job ran")
