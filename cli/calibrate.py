@@ -83,10 +83,17 @@ def _config(args):
 
 
 def read_tests(paths, overrides, ui) -> list:
-    """Read every file; of several, one that is not a test record at all (a measurements table picked up
-    by a wildcard) is skipped with a warning. A single such file, or any other problem, is an error."""
+    """Read every file; of several, what a wildcard picks up beside the records (sidecars of files given
+    too, other TOML files, editor backups, measurement tables) is skipped with a warning. A single such
+    file, or any other problem, is an error."""
     from esmm.pipeline.tensile import NotATestError, read
+    from esmm.pipeline.tensile.files import record_files
 
+    if len(paths) > 1:
+        records, skipped, _ = record_files(paths)
+        for msg in skipped:
+            ui.warn(msg)
+        paths = [given for given, _ in records]
     tests = []
     for p in paths:
         try:

@@ -575,6 +575,27 @@ def test_calibrate_jobs_skip_what_a_wildcard_picks_up_beside_the_data(tmp_path):
         calibrate_jobs([d / "measurements.csv", d / "stray.toml"], by="folder", out_dir=tmp_path / "o")
 
 
+def test_one_fit_over_a_wildcard_skips_the_same_files_as_the_batch(tmp_path, capsys):
+    """`esmm calibrate lab/*` (one fit, no --by) failed on the sidecar TOML the wildcard matched (exit 2):
+    the same rule as the batch's now (esmm.pipeline.tensile.files), with one warning per file set aside."""
+    from esmm.cli.main import main
+
+    d = tmp_path / "lab"
+    d.mkdir()
+    (d / "t1.csv").write_text(UNIAXIAL)
+    (d / "t1.toml").write_text('specimen = "s1"\n')
+    (d / "stray.toml").write_text("[calibrate]\nstarts = 2\n")
+    (d / "t1.csv~").write_text(UNIAXIAL)
+    (d / "t2.csv").write_text(UNIAXIAL.replace("0.6", "0.61"))
+    code = main(["calibrate", *map(str, sorted(d.iterdir())), "--out", str(tmp_path / "o"), "--starts", "2"])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "stray.toml: a TOML file without a data file" in err and "t1.csv~: named like an editor backup" in err
+    assert "t1.toml: " not in err                  # the sidecar is read with its file, not set aside
+    fit = json.loads((tmp_path / "o" / "fit.json").read_text())
+    assert len(fit["inputs"]) == 2
+
+
 def test_group_names_avoid_the_batch_files_failed_rows_and_keep_unicode(tmp_path):
     """A specimen called summary.csv made a folder where the table goes (a traceback at the end); an
     unreadable path equal to a group name aborted the whole batch; non-ASCII ids lost their letters."""

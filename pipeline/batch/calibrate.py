@@ -34,6 +34,7 @@ from ..calibrate.report import write_outputs
 from ..errors import ConfigError, EsmmError, InputError
 from ..progress import Reporter, ensure
 from ..tensile import NotATestError, read
+from ..tensile.files import record_files
 from ..validate import choice
 from .cache import CACHE_DIR
 from .jobs import BatchSummary, Job, JobOutput, sha256_file
@@ -50,12 +51,6 @@ RESERVED_NAMES = (PARAMS_TABLE, SUMMARY_NAME, CACHE_DIR)
 #: Longest group folder name, in UTF-8 bytes (file systems allow 255).
 _MAX_NAME_BYTES = 120
 
-#: Files a wildcard picks up beside the data that are copies or locks of editors and tools:
-#: ``x.csv~``, ``#x.csv#``, ``.#x.csv``, ``.~lock.x.csv#`` (LibreOffice), ``.x.csv.swp`` (vim),
-#: ``x.csv.bak``, ``x.csv.orig``, ``x.csv.old``.
-_BACKUP = re.compile(r"(^\.#|^\.~lock\.|[~#]$|\.(bak|orig|old|swp|swo|swn|swx)$)", re.IGNORECASE)
-
-
 def safe_name(text: str) -> str:
     """A file-system-safe folder name for a group (letters of any script, digits, ``-_.``).
 
@@ -65,11 +60,6 @@ def safe_name(text: str) -> str:
     while len(s.encode("utf-8")) > _MAX_NAME_BYTES:
         s = s[:-1]
     return s.rstrip("._") or "group"
-
-
-def backup_file(path: str | os.PathLike) -> bool:
-    """Whether *path* is named like an editor backup, swap or lock file (not test data)."""
-    return _BACKUP.search(Path(path).name) is not None
 
 
 def group_names(keys: Sequence[str], by: str) -> dict[str, str]:
@@ -200,63 +190,40 @@ def calibrate_jobs(files: Sequence[str | os.PathLike], *, by: str = "specimen",
 
 
 def _sort_files(files, by: str, read_kwargs: dict, rep: Reporter):
-    """Read every file once: (groups: key -> paths, failed: (as given, path, error), skipped: messages,
-    the number of distinct files). Editor backups, stray TOML files and measurement tables a wildcard
-    picks up are skipped with a warning; the sidecar of a file given too is read with it."""
+    """Read every record once: (groups: key -> paths, failed: (as given, path, error), skipped: messages,
+    the number of distinct files). What a wildcard picks up beside the records is skipped with a
+    warning (:func:`esmm.pipeline.tensile.files.record_files`, and measurement tables)."""
     groups: dict[str, list[str]] = {}
     digests: dict[str, dict[str, str]] = {}  # group -> sha256 -> first file with those bytes
     failed: list[tuple[str, str, EsmmError]] = []
-    skipped: list[str] = []
-    resolved = [str(Path(f).resolve()) for f in files]
-    side_of_given = {str(Path(r).with_suffix(".toml")) for r in resolved if Path(r).suffix.lower() != ".toml"}
-    seen: set[str] = set()
-    for f, p in zip(files, resolved):
-        sidecar = p in side_of_given and Path(p).is_file()   # of a file given too: read with it (and keys it)
-        if p in seen or sidecar:
-            seen.add(p)
-            continue
-        seen.add(p)
+    records, skipped, n_files = record_files(files)
+    for msg in skipped:
+        rep.warn(msg)
+    for f, p in records:
         try:
-            t = _read_one(f, p, read_kwargs)
+            t = read(p, **read_kwargs)
         except ConfigError:            # the reader's options: every file would fail alike
             raise
-        except _Skip as why:
-            skipped.append(str(why))
+        except NotATestError as exc:   # a measurements table picked up by a wildcard (as without --by)
+            skipped.append(f"{exc} - skipped")
             rep.warn(skipped[-1])
             continue
         except EsmmError as exc:
-            failed.append((str(f), p, exc))
+            failed.append((f, p, exc))
             rep.warn(f"skipped: {exc}")
             continue
         key = t.specimen if by == "specimen" else str(Path(p).parent)
         try:  # the same bytes with the same sidecar (or none): one test given twice
             digest = ":".join(sha256_file(x) for x in [p, *sidecars([p])])
         except EsmmError as exc:  # gone or unreadable since it was read
-            failed.append((str(f), p, exc))
+            failed.append((f, p, exc))
             continue
         first = digests.setdefault(key, {}).setdefault(digest, p)
         if first != p:  # kept (the user may mean it) but said: it doubles that test's weight in the fit
             rep.warn(f"{f}: the same bytes as {first} in one group (a copy?); both are fitted, which doubles "
                      f"that test's weight - remove one if it is a copy")
         groups.setdefault(key, []).append(p)
-    return groups, failed, skipped, len(seen)
-
-
-class _Skip(Exception):
-    """A file a wildcard picked up that is not test data (the message says which and why)."""
-
-
-def _read_one(shown, p: str, read_kwargs: dict):
-    """The test in file *p* (given as *shown*); :class:`_Skip` for a file that is not test data."""
-    if backup_file(p):
-        raise _Skip(f"{shown}: named like an editor backup or lock file, not test data - skipped")
-    if Path(p).suffix.lower() == ".toml" and Path(p).is_file():
-        raise _Skip(f"{shown}: a TOML file without a data file of the same stem among the files, not test "
-                    f"data - skipped")
-    try:
-        return read(p, **read_kwargs)
-    except NotATestError as exc:  # a measurements table picked up by a wildcard (as without --by)
-        raise _Skip(f"{exc} - skipped") from None
+    return groups, failed, skipped, n_files
 
 
 def _failed_jobs(failed, taken: set[str]) -> list[Job]:
