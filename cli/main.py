@@ -14,7 +14,9 @@ was not met (``--force`` overrides); 5 a batch finished with failures;
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import os
 import signal
 import sys
 from collections.abc import Sequence
@@ -86,6 +88,32 @@ def main(argv: Sequence[str] | None = None) -> int:
     except MemoryError:
         ui.error("out of memory; try a coarser target (--size / --nodes) or fewer files at once")
         return 1
+    except BrokenPipeError:  # the reader of the output went away (esmm ... | head): not esmm's error
+        return 141
+    except OSError as exc:   # the system refused a read or write: disk full, permissions, I/O
+        where = f" ({exc.filename})" if exc.filename else ""
+        ui.error(f"the system refused a read or write{where}: {exc.strerror or exc}; free space or choose a "
+                 f"place that can be written, and run the command again")
+        return 1
+
+
+def _flush_stdout(code: int) -> int:
+    """Flush standard output now and return the exit code. If it cannot be written (a closed pipe, a
+    full disk), say so (a full disk: the output is lost, exit 1; a closed pipe: its reader left, 141)
+    and point it at the null device, so that the interpreter's own last flush does not fail again."""
+    try:
+        sys.stdout.flush()
+        return code
+    except BrokenPipeError:
+        code = code or 141
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            sys.stderr.write(f"esmm: error: the output could not be written: {exc.strerror or exc}; free space "
+                             f"or send it elsewhere, and run the command again\n")
+        code = code or 1
+    with contextlib.suppress(OSError, ValueError):
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    return code
 
 
 def flag_message(exc: EsmmError, parser: argparse.ArgumentParser, command: str) -> str:
@@ -114,6 +142,7 @@ def run() -> None:  # console-script entry point
         code = main()
     except KeyboardInterrupt:  # between the command's end and here
         code = 130
+    code = _flush_stdout(code)
     # The work is done and written: a Ctrl-C during the interpreter's shutdown must not turn
     # the exit status into "killed by SIGINT".
     signal.signal(signal.SIGINT, signal.SIG_IGN)

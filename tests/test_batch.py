@@ -596,6 +596,22 @@ def test_one_fit_over_a_wildcard_skips_the_same_files_as_the_batch(tmp_path, cap
     assert len(fit["inputs"]) == 2
 
 
+def test_an_output_the_system_refuses_is_one_line_not_a_traceback(tmp_path, monkeypatch, capsys):
+    """Standard output on a full disk (`esmm ... > /dev/full`) gave a traceback; now one line, exit 1."""
+    from esmm.cli.main import main
+
+    class Full(io.StringIO):
+        def write(self, text):
+            raise OSError(28, "No space left on device")
+
+    (tmp_path / "t.csv").write_text(UNIAXIAL)
+    monkeypatch.setattr(sys, "stdout", Full())
+    code = main(["calibrate", str(tmp_path / "t.csv"), "--out", str(tmp_path / "o"), "--starts", "2"])
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err
+    assert "the system refused a read or write: No space left on device" in err
+
+
 def test_group_names_avoid_the_batch_files_failed_rows_and_keep_unicode(tmp_path):
     """A specimen called summary.csv made a folder where the table goes (a traceback at the end); an
     unreadable path equal to a group name aborted the whole batch; non-ASCII ids lost their letters."""
