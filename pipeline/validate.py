@@ -73,12 +73,24 @@ def number_text(text: Any, name: str, **bounds) -> float | int:
     if isinstance(text, str):
         s = text.strip()
         try:
-            value: Any = int(s) if bounds.get("integer") else float(s)
+            value: Any = _whole(s) if bounds.get("integer") else float(s)
         except ValueError:
             kind = "a whole number" if bounds.get("integer") else "a number"
             raise ConfigError(f"{name}: expected {kind}, got {text!r}", parameter=name) from None
         return number(value, name, **bounds)
     return number(text, name, **bounds)
+
+
+def _whole(s: str) -> int:
+    """A whole number written as one: ``"5000"``, or in exponent form ``"1e6"`` (the way a range is
+    printed); ``"1.5"`` and ``"1e-3"`` raise ValueError."""
+    try:
+        return int(s)
+    except ValueError:
+        f = float(s)
+        if not (math.isfinite(f) and f == int(f)):
+            raise ValueError(s) from None
+        return int(f)
 
 
 def quantity(value: Any, kind: str, name: str, *, lo: float | None = None, hi: float | None = None,

@@ -211,3 +211,16 @@ def test_cli_outputs_say_which_columns_were_used_and_the_true_stress_conversion(
     assert "## How each file was read" in report and "nominal stress = true stress / stretch" in report
     # the conversion itself: the fit sees nominal stress, sigma / lambda
     np.testing.assert_allclose(read(src).stress, sigma / lam, rtol=1e-5)
+
+
+def test_whole_numbers_written_in_exponent_form_are_whole():
+    """`--points 1e6` was refused as "expected a whole number" while the range in the same message read
+    [3, 1e+06]: a whole number in exponent form is read as one; fractions still are not."""
+    from esmm.pipeline.errors import ConfigError
+    from esmm.pipeline.validate import number_text
+
+    assert number_text("1e6", "points", lo=3, integer=True) == 1_000_000
+    assert number_text(" 2.0E3 ", "points", integer=True) == 2000
+    for bad in ("1.5", "1e-3", "inf", "nan", "x"):
+        with pytest.raises(ConfigError, match="points: expected a whole number"):
+            number_text(bad, "points", integer=True)

@@ -211,7 +211,7 @@ def _problem(tests, *, model, loss, n_starts, weights, fixed, free) -> FitProble
         raise FitError("every parameter is fixed; nothing to fit")
     n_total = sum(t.n for t in tests)
     if n_total <= p:
-        raise FitError(f"{n_total} samples cannot determine {p} parameters; give more data")
+        raise FitError(f"{n_total} sample{'s' if n_total != 1 else ''} cannot determine {p} parameters; give more data")
     return FitProblem(layout, tests, w)
 
 
