@@ -634,12 +634,12 @@ def test_group_names_avoid_the_batch_files_failed_rows_and_keep_unicode(tmp_path
 
 
 def test_a_fit_error_names_the_files_of_its_group(tmp_path):
-    """'1 samples cannot determine 2 parameters' did not say which file."""
+    """'1 sample cannot determine 2 parameters' did not say which file."""
     from esmm.pipeline.batch.calibrate import fit_group
 
     f = tmp_path / "r1.csv"
     f.write_text("# mode: uniaxial\nstretch,nominal stress [MPa]\n1.1,0.1\n")
-    with pytest.raises(FitError, match=r"^r1\.csv: 1 samples"):
+    with pytest.raises(FitError, match=r"^r1\.csv: 1 sample cannot"):
         fit_group([str(f)], str(tmp_path / "o"), "g", {}, {"model": "arruda-boyce", "n_starts": 1})
     assert not (tmp_path / "o").exists()
 
@@ -658,7 +658,7 @@ def test_cli_batch_ctrl_c_and_quiet_failures_end_with_an_error_line(tmp_path, ru
     code, out, err = run_cli("-q", *common, "--out", tmp_path / "o1")
     errors = [ln for ln in err.splitlines() if ln.startswith("esmm: error: ")]
     assert code == 5 and out == ""
-    assert errors[0].startswith("esmm: error: b: t.csv: 1 samples") and "1 of 2 job(s) failed: b" in errors[-1]
+    assert errors[0].startswith("esmm: error: b: t.csv: 1 sample cannot") and "1 of 2 job(s) failed: b" in errors[-1]
 
     def interrupted(*a, **k):
         raise KeyboardInterrupt
