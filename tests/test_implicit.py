@@ -450,6 +450,22 @@ def test_threads_asked_of_the_implicit_stepper_are_reported_unused(tmp_path, sla
     assert not any("threads" in w for w in rep1.warnings)
 
 
+def test_an_implicit_step_longer_than_a_frame_warns_and_steps_once_per_frame(tmp_path, slab):
+    """implicit_step = "100 ms" at 30 frames/s ran at the frame step (33 ms) without a word; it says so now."""
+    rep = ListReporter()
+    sc = scene_from_dict({"scene": {"duration": "0.1 s", "gravity": [0, 0, -9.81]},
+                          "integrator": {"method": "implicit", "implicit_step": "100 ms"}}, source="t")
+    res = simulate_network(slab, make_tables(), sc, tmp_path / "long", reporter=rep)
+    assert res.summary.steps == 3 and res.summary.dt_max_s == pytest.approx(1 / 30)
+    assert any(w.startswith("[integrator] implicit_step: 100 ms is longer than a frame (33.33 ms") for w in rep.warnings)
+    rep1 = ListReporter()
+    sc1 = scene_from_dict({"scene": {"duration": "0.1 s", "gravity": [0, 0, -9.81]},
+                           "integrator": {"method": "implicit", "implicit_step": "20 ms"}},
+                          source="t")
+    simulate_network(slab, make_tables(), sc1, tmp_path / "short", reporter=rep1)
+    assert not any("implicit_step" in w for w in rep1.warnings)
+
+
 def test_quasi_newton_hands_a_solve_it_does_not_finish_to_newton(slab, reference, monkeypatch):
     """A solve the quasi-Newton iteration has not finished after QN_SWITCH iterations (before any hand-over
     was measured; then after the hand-overs' mean cost) goes on with Newton's iteration from its best

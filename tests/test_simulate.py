@@ -506,3 +506,20 @@ def test_mass_scaling_keeps_the_true_weight(box, tables):
     sim.relax(rtol=1e-10)
     W = box.mass.sum() * 9.81
     np.testing.assert_allclose(sim.grasper_force(), [0, 0, -W], rtol=1e-6, atol=1e-7 * W)
+
+
+@pytest.mark.parametrize("kappa, lam_max", [(4.0e5, 2.0), (4.66e7, 32.5)])
+def test_warm_up_steps_within_its_own_bound_for_a_stiff_volume_term(box, tables, kappa, lam_max):
+    """The warm-up's tiny problem takes a step under its own bound: a foam's volume term (bulk modulus
+    47 MPa, tables to stretch 32.5: racing-shoe foam from 'esmm calibrate --discover') put it at
+    0.27 us, below the fixed 1 us it used, and every run of such an asset was refused ("dt: 1e-06 s
+    exceeds the stability bound") before it started, whatever the scene or integrator."""
+    from esmm.pipeline.network.volume import VolumeSpec
+    from esmm.pipeline.simulate.simulator import warm_up
+    from esmm.pipeline.simulate.volumeterm import build_volume_term
+
+    springs = build_spring_term(box, tables)
+    vol = build_volume_term(box.points, box.tets, VolumeSpec(kappa), lam_max=lam_max)
+    for implicit in (False, True):
+        assert warm_up(springs, volume=vol, implicit=implicit) >= 0.0
+    assert warm_up(springs, implicit=True) >= 0.0

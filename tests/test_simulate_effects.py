@@ -409,6 +409,23 @@ def test_effects_from_a_material_table():
     assert math.isclose(build_spring_term(one_spring(), make_tables(), effects=fx).effects.g_inf, 0.8)
 
 
+def test_effects_the_kernels_do_not_advance_are_refused_not_dropped():
+    """Stretch-dependent relaxation (kappa != 0) was applied as plain QLV without a word; cyclic softening
+    was already refused. Both are one ConfigError line; kappa = 0 builds."""
+    from esmm.pipeline.errors import ConfigError
+    from esmm.pipeline.materials.effects import CyclicSofteningEffect
+
+    net, tb = one_spring(), make_tables()
+    nl = MaterialEffects(viscoelastic=ViscoelasticEffect(g=(0.3,), tau=(0.1,), kappa=-3.2))
+    with pytest.raises(ConfigError, match=r"cannot apply stretch-dependent relaxation \(viscoelastic kappa = -3.2\)"):
+        build_spring_term(net, tb, effects=nl)
+    cyc = MaterialEffects(cyclic_softening=CyclicSofteningEffect(d_inf=0.2, eta=1e3))
+    with pytest.raises(ConfigError, match="cannot apply 'cyclic_softening'"):
+        build_spring_term(net, tb, effects=cyc)
+    qlv = MaterialEffects(viscoelastic=ViscoelasticEffect(g=(0.3,), tau=(0.1,)))
+    assert build_spring_term(net, tb, effects=qlv).effects.g_inf == pytest.approx(0.7)
+
+
 # ---------------------------------------------------------------------------
 # the effects travel: params.toml -> asset -> simulator
 # ---------------------------------------------------------------------------

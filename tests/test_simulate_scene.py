@@ -139,6 +139,17 @@ def test_scene_from_file_and_overrides(tmp_path):
         load_scene("no-such-scene").source  # noqa: B018
 
 
+def test_a_duration_override_shorter_than_a_frame_is_refused():
+    """``--duration "10 ms"`` at 30 frames/s ran one frame, 33 ms, and reported 0.0333 s simulated: the
+    override is refused as the same duration in a scene file is (it names the option)."""
+    sc = load_scene("default")
+    with pytest.raises(ConfigError, match=r"^duration: 30 frames/s leaves no whole frame in the duration "
+                                          r"\(0\.01 s") as exc:
+        sc.with_overrides(duration="10 ms")
+    assert exc.value.parameter == "duration"
+    assert sc.with_overrides(duration=1 / 30).n_frames == 1
+
+
 def test_interactive_scene_is_the_default_on_a_slippery_bed_both_solved_implicitly():
     a, b = load_scene("default"), load_scene("interactive")
     changed = {f for f in a.__dataclass_fields__ if repr(getattr(a, f)) != repr(getattr(b, f))}
@@ -290,6 +301,29 @@ def test_a_floor_above_the_organ_is_refused_and_one_through_it_warns(slab):
     assert any(w.startswith("[floor] height: ") and "start below the plane at 5 mm" in w for w in rep.warnings)
     _, _, rep = _prepared(slab, {"floor": {"height": "auto"}, "grasper": {"enabled": False}})
     assert rep.warnings == [] and any(m.startswith("floor: stick, plane 0 mm") for m in rep.steps)
+
+
+def test_an_unconverged_start_warns_with_what_the_scene_can_change(slab, monkeypatch):
+    """FIRE's own advice ("raise max_iter or the tolerance") names no setting a scene or option has: the
+    warning gives the residual against the organ's weight and the scene's way out (start = "rest")."""
+    from esmm.pipeline.simulate.runsetup import settle_at_start
+    from esmm.pipeline.simulate.simulator import Simulator
+
+    def stuck(self, **kw):
+        raise SimulationError("quasi-static relaxation did not converge in 400000 iterations (residual "
+                              "0.0127 N > 1.85e-06 N); raise max_iter or the tolerance")
+
+    monkeypatch.setattr(Simulator, "relax", stuck)
+    run, sc, rep = _prepared(slab, {"scene": {"duration": "0.1 s", "start": "equilibrium",
+                                              "gravity": [0, 0, -9.81]}, "grasper": {"enabled": False}})
+    settle = settle_at_start(run, sc, slab, rep)
+    assert settle["converged"] is False
+    (w,) = [w for w in rep.warnings if "equilibrium under gravity was not reached" in w]
+    assert "residual 0.0127 N" in w and "raise max_iter" not in w
+    weight = float(np.sum(slab.mass)) * 9.81
+    assert f"the organ weighs {weight:.3g} N" in w and 'start = "rest"' in w
+    assert any(m.startswith("start (FIRE's closest state, not converged)") and "FIRE unconverged" in m
+               for m in rep.steps)
 
 
 def test_a_grasper_path_below_the_floor_warns(slab):

@@ -62,7 +62,7 @@ def test_scene_switch_and_run_records(assets, tmp_path):
     on, _ = assets
     a = read_asset(on.asset)
     tables = a.tables.with_compensation(5.1)
-    scene = load_scene("default").with_overrides(duration="0.02 s")
+    scene = load_scene("default").with_overrides(duration=1 / 30)     # one frame
     runs = {}
     for switch in ("asset", "none"):
         res = simulate_network(a.network, tables, scene.with_overrides(volume=switch), tmp_path / switch)

@@ -191,8 +191,12 @@ def settle_at_start(run: RunSetup, scene: Scene, network, reporter) -> dict | No
         if "diverged" in str(exc):
             raise
         settle = {"converged": False, "seconds": time.perf_counter() - t}
-        rep.warn(f"the equilibrium under gravity was not reached before t = 0 ({exc}); "
-                 "starting from the closest state found")
+        # FIRE's own advice ("raise max_iter or the tolerance") names knobs no scene or option sets.
+        why = str(exc).split("; raise max_iter")[0]
+        weight = float(np.linalg.norm(sim.fext, axis=1).sum())
+        rep.warn(f"the equilibrium under gravity was not reached before t = 0 ({why}; the organ weighs "
+                 f"{weight:.3g} N); starting from the closest state found, which its residual forces move at "
+                 "t = 0 ([scene] start = \"rest\" starts from the asset's shape instead)")
     u = np.linalg.norm(sim.displacement(), axis=1).max()
     settle["max_displacement_m"] = float(u)
     settle["shape"] = shape_change(network.points, getattr(network, "tets", None), sim.x, scene.gravity)
@@ -210,8 +214,10 @@ def settle_at_start(run: RunSetup, scene: Scene, network, reporter) -> dict | No
     shape = settle["shape"]
     kept = "" if shape["volume_ratio"] is None else (
         f", volume {100 * (shape['volume_ratio'] - 1):+.2g} %, {shape['inverted_tets']} inverted tets")
-    rep.step(f"equilibrium under gravity: largest sag {u * 1e3:.3g} mm, median {shape['sag_median_m'] * 1e3:.3g} mm"
-             f"{kept} ({settle.get('iterations', '?')} FIRE iterations, "
+    head = "equilibrium under gravity" if settle["converged"] else "start (FIRE's closest state, not converged)"
+    fire = f"{settle['iterations']} FIRE iterations" if "iterations" in settle else "FIRE unconverged"
+    rep.step(f"{head}: largest sag {u * 1e3:.3g} mm, median {shape['sag_median_m'] * 1e3:.3g} mm"
+             f"{kept} ({fire}, "
              + ("taken from the cache of equilibria found before" if settle.get("cached") else
                 f"{settle['seconds']:.2g} s") + ")"
              + ("; long-term (relaxed) response, history relaxed" if fx is not None and fx.n_terms else ""))
@@ -304,6 +310,10 @@ def _plan_implicit(run: RunSetup, scene: Scene, table, reporter) -> None:
         raise SimulationError(f"the scene needs {scene.n_frames * spf} implicit steps; over [integrator] max_steps = "
                               f"{scene.max_steps}; lengthen implicit_step or raise max_steps")
     sim.set_time_step(frame_dt / spf, bound=schedule.bound(sim.model, sim.state, sim.control, None), t0=0.0)
+    if scene.solve_step > frame_dt * (1 + 1e-9):
+        reporter.warn(f"[integrator] implicit_step: {scene.solve_step * 1e3:.4g} ms is longer than a frame "
+                      f"({frame_dt * 1e3:.4g} ms at {scene.frame_rate:g} frames/s): the solve steps once per frame, "
+                      f"at {sim.dt * 1e3:.4g} ms; give at most a frame (or \"frame\")")
     run.threads, run.thread_timing = 1, {}
     sim.threads = 1
     if isinstance(scene.threads, int) and scene.threads > 1:

@@ -287,6 +287,7 @@ class Scene:
             out = replace(out, volume=choice(volume, VOLUME, "volume"))
         if duration is not None:
             out = replace(out, duration=_seconds(duration, "duration"))
+            _check_whole_frame(out, "duration", parameter="duration")
         if threads is not None:
             out = replace(out, threads=_threads(threads, "threads"))
         if law is not None:
@@ -412,14 +413,18 @@ def scene_from_dict(data: dict, *, source: str = "<dict>") -> Scene:
     kw["grasper"] = None if gr.get("enabled", True) is False else _grasper(gr)
     kw["video"] = _video(_section(data, "video"))
     scene = Scene(**kw)
-    if scene.duration * scene.frame_rate < 1.0 - 1e-9:
-        # One frame would be run (n_frames is at least 1): 1 / frame_rate of simulated time, not the duration.
-        raise ConfigError(f"[scene] frame_rate: {scene.frame_rate:g} frames/s leaves no whole frame in the duration "
-                          f"({scene.duration:g} s; a frame is {1.0 / scene.frame_rate:g} s); give at least "
-                          f"{1.0 / scene.duration:g} frames/s or a longer duration")
+    _check_whole_frame(scene, "[scene] frame_rate")
     if scene.grasper is not None:
         _check_grasper_times(scene.grasper, scene.duration, "[grasper]")
     return scene
+
+
+def _check_whole_frame(scene: Scene, name: str, parameter: str | None = None) -> None:
+    """Refuse a duration shorter than one frame: one frame (1 / frame_rate) would be run instead of it."""
+    if scene.duration * scene.frame_rate < 1.0 - 1e-9:
+        raise ConfigError(f"{name}: {scene.frame_rate:g} frames/s leaves no whole frame in the duration "
+                          f"({scene.duration:g} s; a frame is {1.0 / scene.frame_rate:g} s); give at least "
+                          f"{1.0 / scene.duration:g} frames/s or a longer duration", parameter=parameter)
 
 
 def _scene_table(sc: dict) -> dict:
