@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from . import config as _config
-from .asset.material import material_effects
+from .asset.material import material_effects, storable_effects
 from .asset.provenance import collect_provenance
 from .asset.write import write_asset
 from .asset.xdmf import sidecar_path
@@ -504,10 +504,13 @@ def _material(cfg: PrepareConfig, run: _Run) -> Material:
     """The material, loaded before any meshing (a bad material or effects table fails fast)."""
     mat = run.stage("material", load_material, cfg.material)
     run.rep.step(f"config: {cfg.source}; structure {cfg.structure}; material {cfg.material}")
-    fx = material_effects(mat)
+    fx, dropped = storable_effects(material_effects(mat))
     if fx is not None:
         run.rep.step(f"material effects {', '.join(fx.names)}: written to /material/effects, applied by "
                      "'esmm simulate' (the material's parameters are the instantaneous response)")
+    for note in dropped:
+        run.rep.warn(f"material {cfg.material}: not stored in the asset, so not simulated: {note}; the "
+                     f"simulation will differ from the tissue there")
     return mat
 
 

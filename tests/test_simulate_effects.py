@@ -486,6 +486,30 @@ def test_asset_carries_the_effects(tmp_path, fit_material):
     assert fx.names == ["viscoelastic", "mullins", "damage"]
 
 
+def test_effects_an_asset_cannot_store_are_said_not_dropped(tmp_path):
+    """Cyclic softening, permanent set and kappa were dropped at writing without a word (prepare said they
+    were 'applied by esmm simulate'), and an asset with only the first two failed 'esmm info'. The
+    asset stores what the simulator applies; the rest comes back as notes, which prepare warns with."""
+    from esmm.pipeline.asset import read_asset, validate_asset
+    from esmm.pipeline.asset.material import storable_effects
+    from esmm.pipeline.materials.effects import CyclicSofteningEffect, PermanentSetEffect
+    from esmm.pipeline.materials.material import load_material
+
+    fx = MaterialEffects(ViscoelasticEffect((0.3,), (2.0,), kappa=-4.0), None, None, {},
+                         CyclicSofteningEffect(0.2, 150.0), PermanentSetEffect(0.1))
+    kept, notes = storable_effects(fx)
+    assert kept.names == ["viscoelastic"] and kept.viscoelastic.kappa == 0.0
+    assert [n.split(" ")[0] for n in notes] == ["cyclic_softening", "permanent_set", "the"]
+    assert "kappa = -4" in notes[2]
+    assert storable_effects(MaterialEffects(cyclic_softening=CyclicSofteningEffect(0.2, 150.0)))[0] is None
+    base = load_material("porcine_liver_paper")
+    p = tmp_path / "params.toml"
+    p.write_text(base.to_toml() + "[material.effects.cyclic_softening]\nd_inf = 0.2\neta = 150.0\n",
+                 encoding="utf-8")
+    path = _asset(tmp_path, load_material(str(p)))
+    assert validate_asset(path) == [] and read_asset(path).effects is None
+
+
 def test_asset_without_effects_has_none(tmp_path):
     from esmm.pipeline.asset import read_asset
     from esmm.pipeline.materials.material import load_material

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -72,6 +73,23 @@ def material_effects(material) -> MaterialEffects | None:
     return fx if fx else None
 
 
+def storable_effects(fx: MaterialEffects | None) -> tuple[MaterialEffects | None, list[str]]:
+    """The part of *fx* an asset stores (``/material/effects``: QLV viscoelasticity, Mullins, damage,
+    which ``esmm simulate`` applies), and one note per part it cannot store (cyclic softening,
+    permanent set, stretch-dependent relaxation), for the caller to say: nothing is dropped silently."""
+    if fx is None:
+        return None, []
+    dropped = [f"{n} (the asset format and the simulator have no {n.replace('_', ' ')})"
+               for n in ("cyclic_softening", "permanent_set") if getattr(fx, n) is not None]
+    v = fx.viscoelastic
+    if v is not None and v.kappa:
+        dropped.append(f"the stretch dependence of the relaxation (viscoelastic kappa = {v.kappa:g}): stored "
+                       f"as QLV (kappa = 0), which relaxes as much at every stretch")
+        v = replace(v, kappa=0.0)
+    kept = replace(fx, viscoelastic=v, cyclic_softening=None, permanent_set=None)
+    return (kept if kept else None), dropped
+
+
 def _param_units(material) -> dict[str, str]:
     """Parameter name -> SI unit ("Pa" for stress-like parameters, "1" otherwise)."""
     try:
@@ -131,8 +149,9 @@ def write_material(f: h5py.Group, material) -> None:
 
 
 def _write_effects(g: h5py.Group, material) -> None:
-    """``/material/effects``: the kept material effects in SI (docs/asset-format.md)."""
-    fx = material_effects(material)
+    """``/material/effects``: the kept material effects in SI that an asset stores (docs/asset-format.md;
+    :func:`storable_effects`)."""
+    fx, _ = storable_effects(material_effects(material))
     if fx is None:
         return
     d = fx.to_dict()

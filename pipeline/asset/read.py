@@ -27,7 +27,7 @@ from ..materials.effects import MaterialEffects
 from ..network.springs import SpringNetwork
 from ..network.tables import StiffnessTables
 from . import hdf5
-from .material import material_effects, material_from_toml, read_effects
+from .material import material_effects, material_from_toml, read_effects, storable_effects
 from .provenance import Provenance
 from .schema import ASSET_TYPE, ASSET_VERSION, CHECKSUM_ATTR, DATASETS, GROUPS, KNOWN_UNITS
 from .tables import read_tables
@@ -488,7 +488,7 @@ def read_asset(path: str | os.PathLike, *, verify: bool = True) -> Asset:
         raise AssetError(f"{p}: /material/toml cannot be read as a material ({exc}); {ADVICE}") from None
     if asset.effects is None and asset.material is not None:
         try:
-            asset.effects = material_effects(asset.material)
+            asset.effects = storable_effects(material_effects(asset.material))[0]
         except EsmmError as exc:
             raise AssetError(f"{p}: /material/toml has unreadable [material.effects] ({exc}); {ADVICE}") from None
     return asset
@@ -507,7 +507,7 @@ def _effects_problems(f: h5py.File) -> list[str]:
     if "/material/toml" not in f:
         return []
     try:
-        text_fx = material_effects(material_from_toml(hdf5.get_text(f["/material/toml"])))
+        text_fx = storable_effects(material_effects(material_from_toml(hdf5.get_text(f["/material/toml"]))))[0]
     except Exception as exc:  # noqa: BLE001 - any parse failure of the stored text is a problem to report
         return [f"/material/toml: cannot be read with its effects ({exc})"]
     if text_fx is None:
