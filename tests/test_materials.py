@@ -305,3 +305,34 @@ def test_arruda_boyce_energy_keeps_relative_precision_near_reference(N):
     w11 = m.d2W(3.0, 3.0, p)[0]
     taylor = w1 * u + w11 * u**2 / 2
     assert np.allclose(w, taylor, rtol=1e-12 + 10 * u * abs(w11 / w1))
+
+
+def test_uniaxial_admissible_range_of_a_barely_locking_chain():
+    """A discovered tendon fit (Arruda-Boyce N = 4.4e5: max I1 = 1.3e6) gave no bracket for the uniaxial
+    range (a traceback in 'esmm prepare'): at 2/m and sqrt(m) the excess was below rounding against m."""
+    from esmm.pipeline.materials import loading
+
+    class Lock:
+        def max_I1(self, params):
+            return params["m"]
+
+    for m in (3.01, 4.0, 1.3e6, 1e10):
+        lo, hi = loading.admissible_range(Lock(), {"m": m}, "uniaxial")
+        assert lo ** 2 + 2 / lo == pytest.approx(m, rel=1e-6) and hi ** 2 + 2 / hi == pytest.approx(m, rel=1e-6)
+        assert lo < 1 < hi
+
+
+def test_a_grid_too_coarse_near_one_is_refused_with_what_to_set():
+    """The same fit's grid ran to stretch 512 in steps of 0.5, and the compensation stopped with
+    'compression: calibration stretch 1.5 must lie in [0.5, 1)', a stretch the user never gave."""
+    from types import SimpleNamespace
+
+    from esmm.pipeline.errors import ConfigError
+    from esmm.pipeline.network.compensation import calibration_stretches
+
+    coarse = SimpleNamespace(lam_min=0.5, lam_max=512.0, dlam=0.5)
+    with pytest.raises(ConfigError, match=r"grid \(stretch 0\.5\.\.512 in steps of 0\.5\) is too coarse .* lam_max"):
+        calibration_stretches(coarse)
+    fine = SimpleNamespace(lam_min=0.5, lam_max=2.0, dlam=1.5 / 1023)
+    lo, hi = calibration_stretches(fine)
+    assert lo < 1 < hi

@@ -325,6 +325,14 @@ def admissible_range(model: MaterialModel, params: Mapping[str, float], mode: st
 
     if mode == "uniaxial":
         lo_bracket, hi_bracket = 2.0 / m, math.sqrt(m)
+        # There the excess is 4/m^2 and 2/sqrt(m): lost in rounding against m for a huge chain number
+        # (m = 1.3e6, a discovered tendon fit). Then 1/m and sqrt(m) + 1, where it is about m and
+        # 2 sqrt(m); the first bracket is kept where it works, so that every range found before is the
+        # same to the last bit.
+        if not excess(lo_bracket) > 0.0:
+            lo_bracket = 1.0 / m
+        if not excess(hi_bracket) > 0.0:
+            hi_bracket = math.sqrt(m) + 1.0
     else:  # equibiaxial
         lo_bracket, hi_bracket = m ** -0.25, math.sqrt(m / 2.0)
     kw = dict(xtol=1e-15, rtol=4 * np.finfo(float).eps, maxiter=200)

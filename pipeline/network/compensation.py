@@ -57,7 +57,7 @@ from . import compensation_policy as policy
 from . import stretch_fit
 from .compensation_policy import DEFAULT_RADIUS_ELEMENTS, DEFAULT_RANGE, RADIUS_ELEMENTS_RANGE
 from .loadcases import virtual_shear_test
-from .tables import LAWS, StiffnessTables
+from .tables import DEFAULT_LAM_MAX, LAWS, StiffnessTables
 from .tensile_test import (
     Specimen,
     TensileResult,
@@ -608,13 +608,20 @@ def calibration_stretches(tables: StiffnessTables, calibration_range=None) -> tu
     Raises
     ------
     ConfigError
-        *calibration_range* is not two finite numbers with ``LO < 1 < HI``.
+        *calibration_range* is not two finite numbers with ``LO < 1 < HI``, or the grid is
+        too coarse to hold two steps on each side of 1.
     """
     lo, hi = DEFAULT_RANGE if calibration_range is None else calibration_range
     lo, hi = number(lo, "calibration_range"), number(hi, "calibration_range")
     if not lo < 1.0 < hi:
         raise ConfigError(f"calibration_range: need LO < 1 < HI, got {lo:g} {hi:g}", parameter="calibration_range")
-    return max(lo, tables.lam_min + 2 * tables.dlam), min(hi, tables.lam_max - 2 * tables.dlam)
+    lo, hi = max(lo, tables.lam_min + 2 * tables.dlam), min(hi, tables.lam_max - 2 * tables.dlam)
+    if not lo < 1.0 < hi:   # two grid steps on each side of 1 do not fit: a grid far wider than the tissue
+        raise ConfigError(f"the tables' grid (stretch {tables.lam_min:.4g}..{tables.lam_max:.4g} in steps of "
+                          f"{tables.dlam:.3g}) is too coarse to calibrate the compensation near stretch 1; give "
+                          f"the grid's end (prepare config [tables] lam_max, e.g. {DEFAULT_LAM_MAX:g}, the default of a material that does not lock) or more "
+                          f"points ([tables] n)")
+    return lo, hi
 
 
 def compensate(tables: StiffnessTables, network, *, material=None, calibration_range=None,
