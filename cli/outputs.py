@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
-from esmm.pipeline.atomicio import unwritable_folder
+from esmm.pipeline.atomicio import unwritable_file, unwritable_folder
 from esmm.pipeline.errors import ConfigError
 
 
@@ -17,9 +15,6 @@ def check_out_dir(path, flag: str) -> None:
 
 def check_out_file(path, flag: str, example: str) -> None:
     """Refuse, before any work, an output file name that is a folder or lies in one that cannot be written."""
-    p = Path(path)
-    if p.is_dir():
-        raise ConfigError(f"{flag}: {p} is a folder; give a file name in it, e.g. {p / example}")
-    if p.parent.exists() and not p.parent.is_dir():
-        raise ConfigError(f"{flag}: {p} cannot be written, {p.parent} is a file; give a path in a folder")
-    check_out_dir(p.parent, flag)
+    problem = unwritable_file(path, example)
+    if problem:
+        raise ConfigError(f"{flag}: {problem}")

@@ -66,6 +66,17 @@ def unwritable_folder(path: str | os.PathLike) -> str | None:
     return None
 
 
+def unwritable_file(path: str | os.PathLike, example: str) -> str | None:
+    """Why the file *path* could not be written, as the end of a message (None: it can): it is a folder
+    (*example*: a file name to suggest in it), or its folder could not be made or written."""
+    p = Path(path)
+    if p.is_dir():
+        return f"{p} is a folder; give a file name in it, e.g. {p / example}"
+    if p.parent.exists() and not p.parent.is_dir():
+        return f"{p} cannot be written, {p.parent} is a file; give a path in a folder"
+    return unwritable_folder(p.parent)
+
+
 @contextlib.contextmanager
 def output_folder(path: str | os.PathLike) -> Iterator[Path]:
     """Create the folder *path* (and its missing parents) for a run's outputs; if the run fails, remove

@@ -34,7 +34,7 @@ from .asset.material import material_effects, storable_effects
 from .asset.provenance import collect_provenance
 from .asset.write import write_asset
 from .asset.xdmf import sidecar_path
-from .atomicio import unwritable_folder
+from .atomicio import unwritable_file
 from .errors import ConfigError, InputError, QualityError
 from .materials.material import Material, load_material
 from .mesh.cleaning import CleaningOptions, CleaningReport, clean_surface
@@ -490,14 +490,12 @@ def asset_paths(input_path: str | os.PathLike, output: str | os.PathLike | None)
 
 def _check_writable(out: Path) -> None:
     """Refuse, before any work, an asset path that cannot be written: a folder, under a file, not writable."""
-    if out.is_dir():
-        raise ConfigError(f"output: {out} is a folder; give the asset's file name in it", parameter="output")
+    problem = unwritable_file(out, "organ.h5")
+    if problem:
+        raise ConfigError(f"output: {problem}", parameter="output")
     if sidecar_path(out).is_dir():
         raise ConfigError(f"output: {out}: its ParaView sidecar {sidecar_path(out)} is a folder; "
                           "give another name", parameter="output")
-    problem = unwritable_folder(out.parent)
-    if problem:
-        raise ConfigError(f"output: {out} cannot be written: {problem}", parameter="output")
 
 
 def _material(cfg: PrepareConfig, run: _Run) -> Material:

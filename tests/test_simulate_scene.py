@@ -306,12 +306,13 @@ def test_a_floor_above_the_organ_is_refused_and_one_through_it_warns(slab):
 def test_an_unconverged_start_warns_with_what_the_scene_can_change(slab, monkeypatch):
     """FIRE's own advice ("raise max_iter or the tolerance") names no setting a scene or option has: the
     warning gives the residual against the organ's weight and the scene's way out (start = "rest")."""
+    from esmm.pipeline.simulate.relax import RelaxNotConverged
     from esmm.pipeline.simulate.runsetup import settle_at_start
     from esmm.pipeline.simulate.simulator import Simulator
 
     def stuck(self, **kw):
-        raise SimulationError("quasi-static relaxation did not converge in 400000 iterations (residual "
-                              "0.0127 N > 1.85e-06 N); raise max_iter or the tolerance")
+        raise RelaxNotConverged("quasi-static relaxation did not converge in 400000 iterations (residual "
+                                "0.0127 N > 1.85e-06 N)", "raise max_iter or the tolerance")
 
     monkeypatch.setattr(Simulator, "relax", stuck)
     run, sc, rep = _prepared(slab, {"scene": {"duration": "0.1 s", "start": "equilibrium",

@@ -28,6 +28,15 @@ from .model import Control, Model, State
 CHUNK = 2000
 
 
+class RelaxNotConverged(SimulationError):
+    """FIRE stopped at ``max_iter`` above the tolerance (not diverged). ``summary`` is the message without
+    its advice, which names :func:`relax`'s own parameters, for a caller that offers other ways out."""
+
+    def __init__(self, summary: str, advice: str):
+        super().__init__(f"{summary}; {advice}")
+        self.summary = summary
+
+
 def settle_effects(model: Model, state: State) -> None:
     """Take the current configuration as long held: maxima updated, history relaxed (h = 0).
 
@@ -110,9 +119,8 @@ def relax(model: Model, state: State, control: Control, *, dt_critical: float, f
     if it < 0 or not np.isfinite(res):
         raise SimulationError("quasi-static relaxation diverged (non-finite forces); check the asset")
     if res >= ftol:
-        raise SimulationError(
-            f"quasi-static relaxation did not converge in {max_iter} iterations "
-            f"(residual {res:.3g} N > {ftol:.3g} N); raise max_iter or the tolerance")
+        raise RelaxNotConverged(f"quasi-static relaxation did not converge in {max_iter} iterations "
+                                f"(residual {res:.3g} N > {ftol:.3g} N)", "raise max_iter or the tolerance")
     return info
 
 

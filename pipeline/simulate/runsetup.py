@@ -29,6 +29,7 @@ from ..network.regions import select_fixed
 from .grasper import GraspPlan, plan_grasp
 from .implicit import BackwardEuler, ImplicitSchedule
 from .model import Floor
+from .relax import RelaxNotConverged
 from .scene import Scene
 from .simulator import Simulator, warm_up
 from .springterm import build_spring_term
@@ -187,14 +188,11 @@ def settle_at_start(run: RunSetup, scene: Scene, network, reporter) -> dict | No
         info = sim.relax(rtol=1e-4, max_iter=400_000, inertia=run.start_inertia, reporter=rep,
                          cache=cache.folder("settle"))
         settle = {**info, "seconds": time.perf_counter() - t, "converged": True}
-    except SimulationError as exc:
-        if "diverged" in str(exc):
-            raise
+    except RelaxNotConverged as exc:    # (diverged: raised as it is)
         settle = {"converged": False, "seconds": time.perf_counter() - t}
         # FIRE's own advice ("raise max_iter or the tolerance") names knobs no scene or option sets.
-        why = str(exc).split("; raise max_iter")[0]
         weight = float(np.linalg.norm(sim.fext, axis=1).sum())
-        rep.warn(f"the equilibrium under gravity was not reached before t = 0 ({why}; the organ weighs "
+        rep.warn(f"the equilibrium under gravity was not reached before t = 0 ({exc.summary}; the organ weighs "
                  f"{weight:.3g} N); starting from the closest state found, which its residual forces move at "
                  "t = 0 ([scene] start = \"rest\" starts from the asset's shape instead)")
     u = np.linalg.norm(sim.displacement(), axis=1).max()
