@@ -672,7 +672,7 @@ class BackwardEuler:
         w = np.concatenate(ws)
         if self._perm is None or self._perm.size != A.shape[0] + B.shape[0]:
             self._perm = mixed_ordering(A, B)
-        return MixedFactor.of_parts(A, B, w, self._perm, single=self.single)
+        return MixedFactor.of_parts(A, B, w, self._perm, single=self.single, analysis=self._analysis())
 
     def _refactor(self, model: Model, state: State, x: np.ndarray, dt_fx: float) -> None:
         h = state.dt
@@ -682,7 +682,7 @@ class BackwardEuler:
             A = self._system_matrix(model, state, x, h, dt_fx)
             if self._perm is None or self._perm.size != A.shape[0]:
                 self._perm = node_ordering(A)
-            fac = SparseFactor.of(A, self._perm, single=self.single)
+            fac = SparseFactor.of(A, self._perm, single=self.single, analysis=self._analysis())
         st = self.stats
         st.factorizations += 1
         st.factor_s += fac.seconds
@@ -693,6 +693,10 @@ class BackwardEuler:
         self._cons = Constraints(fac, model.n_nodes)
         self._stale = False
         self._excess = 0
+
+    def _analysis(self):
+        """The last factor's symbolic analysis (its pattern's: a run's matrices share one), or None."""
+        return None if self._factor is None else self._factor.analysis
 
     def _renew_factor(self, model, state, control, x, dt_fx, contact, h) -> None:
         """Factor at *x* (with the constraint rows again) when the factor is stale, or at every

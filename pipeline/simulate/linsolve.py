@@ -1,10 +1,10 @@
 r"""Sparse linear algebra of the implicit stepper: a reused factorization, constraints, conjugate gradients.
 
-* :class:`SparseFactor`: an :math:`LDL^T`-type factorization of a symmetric
+* :class:`SparseFactor`: an :math:`LDL^T` factorization of a symmetric
   matrix in a nested-dissection order (:mod:`esmm.pipeline.network.newton`'s
-  :func:`~esmm.pipeline.network.newton.node_ordering` and
-  :func:`~esmm.pipeline.network.newton.ldlt`), used as the Newton iteration's
-  preconditioner for many steps; :class:`MixedFactor`: Newton's matrix with
+  :func:`~esmm.pipeline.network.newton.node_ordering`; the supernodal
+  factorization of :mod:`esmm.pipeline.network.supernodal`), used as the
+  Newton iteration's preconditioner for many steps; :class:`MixedFactor`: Newton's matrix with
   the volume term held as a saddle point of its parts (less fill than the
   matrix itself);
 * :class:`Constraints`: dofs held by hard constraints (prescribed grasp, floor
@@ -29,52 +29,78 @@ import numpy as np
 import scipy.sparse as sps
 
 from ..errors import SimulationError
-from ..network.newton import OrderedFactor, ldlt, node_ordering
+from ..network.newton import node_ordering
+from ..network.supernodal import LDLT, Analysis, ZeroPivot, canonical
 
 
 @dataclass(eq=False)
-class SparseFactor(OrderedFactor):
+class SparseFactor:
     """A symmetric matrix factored once, in a nested-dissection order, for many solves.
 
-    SuperLU (scipy) on the permuted matrix with the natural column order, no
-    pivoting and symmetric mode: for a symmetric positive definite matrix
-    (the stepper's is one) an :math:`LDL^T` factorization (``U = D L^T``),
-    solved by SuperLU's supernodal sweeps (:class:`OrderedFactor`'s ``solve``,
-    at most three right-hand sides at a time).
+    The supernodal multifrontal :math:`LDL^T` of
+    :mod:`esmm.pipeline.network.supernodal` (no pivoting: the stepper's matrix
+    is positive definite). Its symbolic analysis is taken over from the last
+    factor (*analysis*) while the pattern stays the same, which it does over a
+    run: a refactorization is then the numeric phase alone. Measured against
+    SuperLU in symmetric mode, which factored it before (docs/simulate.md §2b):
+    on the fine liver's matrix 3x faster to factor, 3-4x faster to solve.
 
     Attributes
     ----------
     perm : ndarray, shape (N,)
+        The order factored (the caller's, postordered).
     seconds : float
         Time the factorization took.
     nnz : int
         Nonzeros of L (fill).
     """
 
+    ldl: LDLT
     seconds: float = 0.0
-    nnz: int = 0
+
+    @property
+    def perm(self) -> np.ndarray:
+        return self.ldl.analysis.perm
+
+    @property
+    def analysis(self) -> Analysis:
+        return self.ldl.analysis
+
+    @property
+    def dtype(self):
+        return self.ldl.dtype
+
+    @property
+    def nnz(self) -> int:
+        return self.ldl.nnz
 
     @classmethod
-    def of(cls, A, perm: np.ndarray | None = None, *, single: bool = False) -> SparseFactor:
-        """Factor *A* (N, N), in order *perm* (default: :func:`node_ordering`).
+    def of(cls, A, perm: np.ndarray | None = None, *, single: bool = False,
+           analysis: Analysis | None = None) -> SparseFactor:
+        """Factor *A* (N, N), in order *perm* (default: :func:`node_ordering`), with *analysis* (a
+        former factor's, see :attr:`analysis`) when *A* has its pattern.
 
         *single*: factor and solve in float32 (measured on the fine liver: solves
-        1.6x faster, relative residual ~3e-4: a preconditioner, not a solver).
+        1.6x faster, relative residual ~1e-4: a preconditioner, not a solver).
         """
         t = time.perf_counter()
-        perm = node_ordering(A) if perm is None else perm
-        dtype = np.float32 if single else np.float64
-        lu = _factor(A, perm, dtype)
-        return cls(perm=perm, lu=lu, dtype=dtype, seconds=time.perf_counter() - t,
-                   nnz=int(lu.nnz + A.shape[0]) // 2)
+        A = canonical(A)
+        if perm is None and (analysis is None or not analysis.matches(A)):
+            perm = node_ordering(A)
+        ldl = _factor(A, analysis, perm, np.float32 if single else np.float64)
+        return cls(ldl=ldl, seconds=time.perf_counter() - t)
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """``A^-1 b`` for *b* of shape (N,) or (N, k) (float64)."""
+        return self.ldl.solve(b)
 
 
-def _factor(A, perm: np.ndarray, dtype):
-    """:func:`~esmm.pipeline.network.newton.ldlt` of the stepper's matrix; an exactly singular pivot
-    is the asset's fault (SimulationError)."""
+def _factor(A, analysis, perm, dtype) -> LDLT:
+    """:class:`~esmm.pipeline.network.supernodal.LDLT` of the stepper's matrix; a zero pivot is the
+    asset's fault (SimulationError)."""
     try:
-        return ldlt(A, perm, dtype=dtype)
-    except RuntimeError as exc:
+        return LDLT.of(A, analysis, perm=perm, dtype=dtype)
+    except ZeroPivot as exc:
         raise SimulationError(f"the implicit step's matrix could not be factored ({exc}); "
                               "check the asset's masses and fixed nodes") from None
 
@@ -113,18 +139,17 @@ class MixedFactor(SparseFactor):
 
     @classmethod
     def of_parts(cls, A, B, w: np.ndarray, perm: np.ndarray | None = None, *,
-                 single: bool = False) -> MixedFactor:
+                 single: bool = False, analysis: Analysis | None = None) -> MixedFactor:
         """Factor ``A + B^T diag(w) B`` (*A* (3n, 3n) positive definite, *B* (n, 3n): row a belongs to
         node a; or blocks of n such rows) in order *perm* of the saddle-point matrix (default:
-        :func:`mixed_ordering`)."""
+        :func:`mixed_ordering`), with *analysis* when the saddle-point matrix has its pattern."""
         t = time.perf_counter()
         n_dof = A.shape[0]
-        K = saddle_point(A, B, w)
-        perm = mixed_ordering(A, B) if perm is None else perm
-        dtype = np.float32 if single else np.float64
-        lu = _factor(K, perm, dtype)
-        return cls(perm=perm, lu=lu, dtype=dtype, seconds=time.perf_counter() - t,
-                   nnz=int(lu.nnz + K.shape[0]) // 2, n_dof=n_dof)
+        K = canonical(saddle_point(A, B, w))
+        if perm is None and (analysis is None or not analysis.matches(K)):
+            perm = mixed_ordering(A, B)
+        ldl = _factor(K, analysis, perm, np.float32 if single else np.float64)
+        return cls(ldl=ldl, seconds=time.perf_counter() - t, n_dof=n_dof)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``(A + B^T W B)^-1 b`` for *b* of shape (3n,) or (3n, k)."""

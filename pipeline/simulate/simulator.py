@@ -17,6 +17,7 @@ import numpy as np
 
 from ..blas import single_threaded_blas
 from ..errors import ConfigError, SimulationError
+from ..network import supernodal
 from ..progress import Reporter
 from . import kernels as K
 from .model import Control, Floor, Grasp, Model, State
@@ -290,6 +291,7 @@ def warm_up(springs: SpringTerm, *, threads: int = 1, volume: VolumeTerm | None 
         sub.tangent(sim.x, state=sim.state.effects, dt=1e-3)
         if volume is not None:
             vol.tangent(sim.x)
+        supernodal.warm_up()
     return time.perf_counter() - t
 
 
