@@ -205,7 +205,8 @@ class Analysis:
     rows, row_ptr : ndarray
         Supernode s's rows of L (its columns first): ``rows[row_ptr[s]:row_ptr[s + 1]]``.
     block_ptr : ndarray, shape (ns + 1,)
-        Offsets of the supernodes' dense blocks (column-major, rows x columns).
+        Offsets of the supernodes' blocks: column by column, each column's rows below its diagonal
+        (a dense trapezoid, packed: ``nc (nr - 1) - nc (nc - 1) / 2`` entries).
     nnz : int
         Entries of L (the diagonal included).
     """
@@ -249,7 +250,7 @@ class Analysis:
         nc = np.diff(start)
         row_ptr = np.concatenate([[0], np.cumsum(nr)]).astype(np.int64)
         take = np.concatenate([np.arange(ptr[f], ptr[f] + r) for f, r in zip(first, nr)]) if n else np.zeros(0, int)
-        block_ptr = np.concatenate([[0], np.cumsum(nr * nc)]).astype(np.int64)
+        block_ptr = np.concatenate([[0], np.cumsum(nc * (nr - 1) - nc * (nc - 1) // 2)]).astype(np.int64)
         col2sn = np.repeat(np.arange(nc.size), nc)
         last_parent = parent[start[1:] - 1]
         sparent = np.where(last_parent >= 0, col2sn[np.maximum(last_parent, 0)], -1)
@@ -351,11 +352,9 @@ def _numeric(start, rows, row_ptr, block_ptr, nchild, lo_ptr, lo_idx, vals, blk,
         b0 = block_ptr[s]
         for k in range(nc):
             dout[f + k] = dbuf[k]
-            col = blk[b0 + k * nr:b0 + (k + 1) * nr]
-            col[:k] = 0.0
-            col[k] = 1.0
+            c = _column(b0, nr, k)
             for i in range(k + 1, nr):
-                col[i] = F[i, k]
+                blk[c + i - k - 1] = F[i, k]
         if m > 0:
             L21 = np.empty((m, nc), F.dtype)
             W = np.empty((m, nc), F.dtype)
@@ -377,6 +376,20 @@ def _numeric(start, rows, row_ptr, block_ptr, nchild, lo_ptr, lo_idx, vals, blk,
 
 
 # -- solves ------------------------------------------------------------------------------------
+@nb.njit(inline="always", **_JIT)
+def _column(b0, nr, k):
+    """Where column k of a supernode with *nr* rows and block offset *b0* starts: its rows below the
+    diagonal, ``k + 1 .. nr - 1``, packed (columns of ``nr - 1``, ``nr - 2``, ... entries)."""
+    return b0 + k * (nr - 1) - (k * (k - 1)) // 2
+
+
+@nb.njit(inline="always", **_JIT)
+def _below(blk, b0, nr, nc, k):
+    """Column k's entries in the rows below the supernode (``nc .. nr - 1``)."""
+    c = _column(b0, nr, k) + nc - k - 1
+    return blk[c:c + nr - nc]
+
+
 @nb.njit(fastmath=True, inline="always", **_JIT)
 def _forward_block(s, start, rows, row_ptr, blk, block_ptr, x, tmp):
     """Supernode s's part of ``x <- L^-1 x``: its triangle, then its rows below (into tmp, scattered once)."""
@@ -387,8 +400,8 @@ def _forward_block(s, start, rows, row_ptr, blk, block_ptr, x, tmp):
     b0 = block_ptr[s]
     for k in range(nc):
         xk = x[f + k]
-        c = b0 + k * nr
-        col = blk[c + k + 1:c + nc]
+        c = _column(b0, nr, k)
+        col = blk[c:c + nc - k - 1]
         xs = x[f + k + 1:f + nc]
         for i in range(nc - k - 1):
             xs[i] -= col[i] * xk
@@ -399,18 +412,16 @@ def _forward_block(s, start, rows, row_ptr, blk, block_ptr, x, tmp):
     t[:] = 0.0
     k = 0
     while k + 4 <= nc:                          # four columns per pass over t
-        c0 = b0 + k * nr + nc
-        p0 = blk[c0:c0 + no]
-        p1 = blk[c0 + nr:c0 + nr + no]
-        p2 = blk[c0 + 2 * nr:c0 + 2 * nr + no]
-        p3 = blk[c0 + 3 * nr:c0 + 3 * nr + no]
+        p0 = _below(blk, b0, nr, nc, k)
+        p1 = _below(blk, b0, nr, nc, k + 1)
+        p2 = _below(blk, b0, nr, nc, k + 2)
+        p3 = _below(blk, b0, nr, nc, k + 3)
         x0, x1, x2, x3 = x[f + k], x[f + k + 1], x[f + k + 2], x[f + k + 3]
         for i in range(no):
             t[i] += p0[i] * x0 + p1[i] * x1 + p2[i] * x2 + p3[i] * x3
         k += 4
     while k < nc:
-        c0 = b0 + k * nr + nc
-        p0 = blk[c0:c0 + no]
+        p0 = _below(blk, b0, nr, nc, k)
         x0 = x[f + k]
         for i in range(no):
             t[i] += p0[i] * x0
@@ -437,11 +448,10 @@ def _backward_block(s, start, rows, row_ptr, blk, block_ptr, x, tmp):
             t[i] = x[rr[i]]
         k = 0
         while k + 4 <= nc:
-            c0 = b0 + k * nr + nc
-            p0 = blk[c0:c0 + no]
-            p1 = blk[c0 + nr:c0 + nr + no]
-            p2 = blk[c0 + 2 * nr:c0 + 2 * nr + no]
-            p3 = blk[c0 + 3 * nr:c0 + 3 * nr + no]
+            p0 = _below(blk, b0, nr, nc, k)
+            p1 = _below(blk, b0, nr, nc, k + 1)
+            p2 = _below(blk, b0, nr, nc, k + 2)
+            p3 = _below(blk, b0, nr, nc, k + 3)
             a0 = zero
             a1 = zero
             a2 = zero
@@ -458,16 +468,15 @@ def _backward_block(s, start, rows, row_ptr, blk, block_ptr, x, tmp):
             x[f + k + 3] -= a3
             k += 4
         while k < nc:
-            c0 = b0 + k * nr + nc
-            p0 = blk[c0:c0 + no]
+            p0 = _below(blk, b0, nr, nc, k)
             a0 = zero
             for i in range(no):
                 a0 += p0[i] * t[i]
             x[f + k] -= a0
             k += 1
     for k in range(nc - 1, -1, -1):
-        c = b0 + k * nr
-        col = blk[c + k + 1:c + nc]
+        c = _column(b0, nr, k)
+        col = blk[c:c + nc - k - 1]
         xs = x[f + k + 1:f + nc]
         acc = zero
         for i in range(nc - k - 1):
@@ -500,7 +509,7 @@ class LDLT:
     ----------
     analysis : Analysis
     blk : ndarray
-        The supernodes' blocks of L (column-major; unit diagonal stored).
+        The supernodes' blocks of L: column by column, the rows below the (unit) diagonal.
     dinv : ndarray, shape (n,)
         1 / D, in the factor's order.
     """
