@@ -7,6 +7,7 @@ compared with it on the same network, start and damping.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 import scipy.sparse as sps
@@ -439,15 +440,25 @@ def test_the_start_on_a_sticking_floor_does_not_depend_on_the_stepper(tmp_path, 
     np.testing.assert_array_equal(starts["implicit"], starts["explicit"])
 
 
-def test_threads_asked_of_the_implicit_stepper_are_reported_unused(tmp_path, slab):
-    rep = ListReporter()
-    sc = scene_from_dict({"scene": {"duration": "0.05 s", "gravity": [0, 0, -9.81]},
-                          "integrator": {"method": "implicit", "threads": 2}}, source="t")
-    simulate_network(slab, make_tables(), sc, tmp_path / "two", reporter=rep)
-    assert any("threads = 2 is not used" in w for w in rep.warnings)
-    rep1 = ListReporter()
-    simulate_network(slab, make_tables(), sc.with_overrides(threads=1), tmp_path / "one", reporter=rep1)
-    assert not any("threads" in w for w in rep1.warnings)
+def test_threads_of_the_implicit_stepper(tmp_path, slab):
+    """Its solves use one or two threads (the two halves of the nested dissection): two as asked, no
+    more (a larger count warns), the same motion either way; "auto" records its timing trial."""
+    base = {"scene": {"duration": "0.05 s", "gravity": [0, 0, -9.81]}, "integrator": {"method": "implicit"}}
+    runs = {}
+    for threads in (1, 2, 3, "auto"):
+        rep = ListReporter()
+        sc = scene_from_dict({**base, "integrator": {**base["integrator"], "threads": threads}}, source="t")
+        runs[threads] = simulate_network(slab, make_tables(), sc, tmp_path / str(threads), reporter=rep)
+        assert any("at most 2" in w for w in rep.warnings) == (threads == 3)
+    avail = min(2, numba.config.NUMBA_NUM_THREADS)
+    assert runs[1].summary.threads == 1
+    assert runs[2].summary.threads == runs[3].summary.threads == avail
+    assert runs["auto"].summary.threads in (1, 2)
+    assert set(runs["auto"].summary.thread_trial_s_per_step) == ({"1", "2"} if avail == 2 else set())
+    with History(runs[1].history) as one, History(runs[2].history) as two:
+        k = one.n_frames - 1
+        np.testing.assert_allclose(two.displacement(k), one.displacement(k), rtol=0,
+                                   atol=1e-6 * np.abs(one.displacement(k)).max())
 
 
 def test_an_implicit_step_longer_than_a_frame_warns_and_steps_once_per_frame(tmp_path, slab):

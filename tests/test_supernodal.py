@@ -125,3 +125,29 @@ def test_zero_pivot_is_refused():
     A = sp.csr_matrix(np.array([[0.0, 1.0], [1.0, 0.0]]))
     with pytest.raises(ZeroPivot, match="pivot"):
         LDLT.of(A, perm=np.arange(2))
+
+
+def test_two_threads_solve_the_same(spd):
+    fac = LDLT.of(spd, perm=node_ordering(spd))
+    B = np.random.default_rng(13).standard_normal((spd.shape[0], 3))
+    one = fac.solve(B)
+    fac.threads = 2
+    np.testing.assert_allclose(fac.solve(B), one, rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(fac.solve(B[:, 0]), one[:, 0], rtol=1e-10, atol=1e-13)
+
+
+def test_the_two_parts_are_whole_subtrees_under_their_ancestors(spd):
+    """What makes the two-thread sweeps race-free: a supernode of a part updates only rows of its own
+    part or of the shared ancestors (its rows below its columns belong to its ancestors)."""
+    an = Analysis.of(spd, node_ordering(spd))
+    col_part = np.repeat(an.part, np.diff(an.start))
+    nc = np.diff(an.start)
+    for s in range(nc.size):
+        below = an.rows[an.row_ptr[s] + nc[s]:an.row_ptr[s + 1]]
+        if an.part[s] >= 0:
+            assert set(col_part[below]) <= {an.part[s], -1}
+        else:
+            assert set(col_part[below]) <= {-1}
+    work = np.diff(an.block_ptr)
+    share = [work[an.part == g].sum() / work.sum() for g in (0, 1)]
+    assert min(share) > 0.2                          # both threads have work

@@ -218,6 +218,7 @@ class Analysis:
     row_ptr: np.ndarray
     block_ptr: np.ndarray
     nchild: np.ndarray
+    part: np.ndarray            #: (ns,) the supernode's part for two threads (0, 1), or -1: their ancestors
     lo_ptr: np.ndarray          #: the lower triangle of P A P^T, CSC: column pointers ...
     lo_idx: np.ndarray          #: ... row indices ...
     lo_src: np.ndarray          #: ... and each entry's position in A's CSR data
@@ -255,8 +256,9 @@ class Analysis:
         last_parent = parent[start[1:] - 1]
         sparent = np.where(last_parent >= 0, col2sn[np.maximum(last_parent, 0)], -1)
         nchild = np.bincount(sparent[sparent >= 0], minlength=nc.size).astype(np.int64)
+        part = _two_parts(sparent, np.diff(block_ptr) + nr)
         return cls(n=n, perm=perm, start=start, rows=col_rows[take].astype(np.int32), row_ptr=row_ptr,
-                   block_ptr=block_ptr, nchild=nchild, lo_ptr=lo_ptr, lo_idx=lo_idx,
+                   block_ptr=block_ptr, nchild=nchild, part=part, lo_ptr=lo_ptr, lo_idx=lo_idx,
                    lo_src=lo.data.astype(np.int64), a_indptr=A.indptr.copy(), a_indices=A.indices.copy(),
                    stack_size=int(_stack_size(nchild, nr - nc)), max_rows=int(nr.max()) if n else 0,
                    nnz=int(ptr[n]))
@@ -265,6 +267,42 @@ class Analysis:
         """Whether the canonical CSR *A* has the pattern analysed."""
         return (A.shape[0] == self.n and np.array_equal(A.indptr, self.a_indptr)
                 and np.array_equal(A.indices, self.a_indices))
+
+
+def _two_parts(sparent: np.ndarray, work: np.ndarray) -> np.ndarray:
+    """Split the supernodal forest for two threads: whole subtrees in two parts of about equal work,
+    the rest (their ancestors: the top separators of the nested dissection) in neither.
+
+    From the roots down, the heaviest subtree is replaced by its children while it alone weighs more
+    than half of all the subtrees in play; the subtrees are then dealt largest first to the lighter
+    part. Returns each supernode's part: 0, 1, or -1 for the ancestors.
+    """
+    ns = sparent.size
+    sub = np.asarray(work, dtype=np.float64).copy()
+    for c in range(ns):                               # postorder: children before parents
+        if sparent[c] >= 0:
+            sub[sparent[c]] += sub[c]
+    children = [[] for _ in range(ns)]
+    for c in range(ns):
+        if sparent[c] >= 0:
+            children[sparent[c]].append(c)
+    part = np.full(ns, -1, np.int64)
+    cand = [r for r in range(ns) if sparent[r] < 0]
+    while cand:
+        big = max(cand, key=lambda r: sub[r])
+        if not children[big] or sub[big] <= 0.5 * sum(sub[r] for r in cand):
+            break
+        cand.remove(big)
+        cand.extend(children[big])
+    load = [0.0, 0.0]
+    first = np.zeros(ns + 1, np.int64)                # a subtree is the postorder range [first, root]
+    for c in range(ns):
+        first[c] = min([c] + [first[k] for k in children[c]])
+    for r in sorted(cand, key=lambda r: -sub[r]):
+        g = int(load[1] < load[0])
+        load[g] += sub[r]
+        part[first[r]:r + 1] = g
+    return part
 
 
 def canonical(A) -> sp.csr_matrix:
@@ -501,6 +539,57 @@ def _solve(start, rows, row_ptr, blk, block_ptr, dinv, X, tmp):
             _backward_block(s, start, rows, row_ptr, blk, block_ptr, X[q], tmp)
 
 
+@nb.njit(fastmath=True, **_JIT)
+def _forward_part(g, part, start, rows, row_ptr, blk, block_ptr, X, tmp):
+    """The forward sweep over the supernodes of part g (:func:`_two_parts`), in order."""
+    for s in range(start.size - 1):
+        if part[s] == g:
+            for q in range(X.shape[0]):
+                _forward_block(s, start, rows, row_ptr, blk, block_ptr, X[q], tmp)
+
+
+@nb.njit(fastmath=True, **_JIT)
+def _backward_part(g, part, start, rows, row_ptr, blk, block_ptr, X, tmp):
+    """The backward sweep over the supernodes of part g, in reverse order."""
+    for s in range(start.size - 2, -1, -1):
+        if part[s] == g:
+            for q in range(X.shape[0]):
+                _backward_block(s, start, rows, row_ptr, blk, block_ptr, X[q], tmp)
+
+
+@nb.njit(fastmath=True, **_JIT)
+def _merge_parts(part, start, X, XX):
+    """X after both parts' forward sweeps on their copies XX[0], XX[1] of it: each part's own rows
+    from its copy, the shared ancestors' rows with both copies' updates."""
+    for s in range(start.size - 1):
+        g = part[s]
+        for q in range(X.shape[0]):
+            if g >= 0:
+                X[q, start[s]:start[s + 1]] = XX[g, q, start[s]:start[s + 1]]
+            else:
+                for j in range(start[s], start[s + 1]):
+                    X[q, j] = XX[0, q, j] + XX[1, q, j] - X[q, j]
+
+
+@nb.njit(parallel=True, **_JIT)
+def _solve_two(start, rows, row_ptr, blk, block_ptr, dinv, part, X, XX, tmp2):
+    """:func:`_solve` on two threads (:func:`_two_parts`): forward, each part's subtrees on its own
+    copy of X (XX[g]; they update their ancestors' rows, which the parts share), then the copies
+    merged and the ancestors solved; backward, the ancestors first, then both parts in place (each
+    writes its own rows only). tmp2 (2, m): the threads' scratch."""
+    for g in nb.prange(2):
+        XX[g] = X
+        _forward_part(g, part, start, rows, row_ptr, blk, block_ptr, XX[g], tmp2[g])
+    _merge_parts(part, start, X, XX)
+    _forward_part(-1, part, start, rows, row_ptr, blk, block_ptr, X, tmp2[0])
+    for q in range(X.shape[0]):
+        for j in range(X.shape[1]):
+            X[q, j] *= dinv[j]
+    _backward_part(-1, part, start, rows, row_ptr, blk, block_ptr, X, tmp2[0])
+    for g in nb.prange(2):
+        _backward_part(g, part, start, rows, row_ptr, blk, block_ptr, X, tmp2[g])
+
+
 @dataclass(eq=False)
 class LDLT:
     """A matrix factored (:meth:`of`) for solves (:meth:`solve`).
@@ -517,6 +606,7 @@ class LDLT:
     analysis: Analysis
     blk: np.ndarray
     dinv: np.ndarray
+    threads: int = 1            #: 2: :meth:`solve` on two threads (:func:`_solve_two`)
 
     @property
     def dtype(self):
@@ -552,15 +642,23 @@ class LDLT:
         """``A^-1 b`` for *b* of shape (N,) or (N, k), in float64 (computed in the factor's precision)."""
         an = self.analysis
         X = np.ascontiguousarray(np.asarray(b)[an.perm].reshape(an.n, -1).T, dtype=self.dtype)
-        _solve(an.start, an.rows, an.row_ptr, self.blk, an.block_ptr, self.dinv, X,
-               np.empty(max(an.max_rows, 1), self.dtype))
+        if self.threads > 1:
+            _solve_two(an.start, an.rows, an.row_ptr, self.blk, an.block_ptr, self.dinv, an.part, X,
+                       np.empty((2,) + X.shape, self.dtype), np.empty((2, max(an.max_rows, 1)), self.dtype))
+        else:
+            _solve(an.start, an.rows, an.row_ptr, self.blk, an.block_ptr, self.dinv, X,
+                   np.empty(max(an.max_rows, 1), self.dtype))
         out = np.empty((an.n, X.shape[0]))
         out[an.perm] = X.T
         return out.reshape(np.shape(b))
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's cache) the kernels for float32 and float64 on a 3 x 3 matrix."""
+    """Compile (or load from numba's cache) the kernels for float32 and float64, one and two threads,
+    on a 3 x 3 matrix."""
     A = sp.csr_matrix(np.array([[4.0, 1.0, 0.0], [1.0, 4.0, 1.0], [0.0, 1.0, 4.0]]))
     for dtype in (np.float32, np.float64):
-        LDLT.of(A, perm=np.array([2, 0, 1]), dtype=dtype).solve(np.ones((3, 2)))
+        fac = LDLT.of(A, perm=np.array([2, 0, 1]), dtype=dtype)
+        for threads in (1, 2):
+            fac.threads = threads
+            fac.solve(np.ones((3, 2)))

@@ -173,7 +173,10 @@ class BackwardEuler:
         speed (docs/simulate.md §2b). The "fresh" preconditioner always factors the
         exact matrix.
     threads : int
-        Kept for the :class:`~.simulator.Simulator` interface (the implicit step runs on one thread).
+        Threads of the factor's solves: 1, or 2 (the two halves of the nested dissection at once,
+        :mod:`esmm.pipeline.network.supernodal`; on the fine liver's factor 1.7 against 2.9 ms, on
+        the paper liver's 0.17 against 0.26 ms, with the workers kept awake,
+        :func:`~.runsetup.keep_workers_awake`). The rest of the step runs on one thread.
     """
 
     step: float = DEFAULT_STEP
@@ -511,7 +514,11 @@ class BackwardEuler:
     @staticmethod
     def _forces(model: Model, state: State, x: np.ndarray, v: np.ndarray, dt_fx: float,
                 mode: int = K.FX_PEEK) -> np.ndarray:
-        """Every term's force at (x, v) plus the external forces (n, 3) [N]; effects over *dt_fx*."""
+        """Every term's force at (x, v) plus the external forces (n, 3) [N]; effects over *dt_fx*.
+
+        One thread: the explicit stepper's chunked two-thread pass was slower here (0.91 against
+        0.81 ms on the fine liver, the springs and the volume term; docs/simulate.md §2b).
+        """
         sp = model.springs
         if state.effects is None:
             f = sp.forces(x, v, fext=model.fext)
@@ -683,6 +690,7 @@ class BackwardEuler:
             if self._perm is None or self._perm.size != A.shape[0]:
                 self._perm = node_ordering(A)
             fac = SparseFactor.of(A, self._perm, single=self.single, analysis=self._analysis())
+        fac.ldl.threads = min(2, max(1, int(self.threads)))
         st = self.stats
         st.factorizations += 1
         st.factor_s += fac.seconds
@@ -693,6 +701,26 @@ class BackwardEuler:
         self._cons = Constraints(fac, model.n_nodes)
         self._stale = False
         self._excess = 0
+
+    def solve_timing(self, threads=(1, 2), *, repeats: int = 7, warm: int = 3) -> dict:
+        """Median seconds of a solve with the current factor on each number of *threads* (a random
+        right-hand side, alternating; the first *warm* rounds not counted: a sleeping thread's first
+        solves are slow). The factor's own setting is restored."""
+        fac = self._factor
+        if fac is None:
+            return {}
+        keep = fac.ldl.threads
+        b = np.random.default_rng(0).standard_normal(fac.ldl.analysis.n)
+        times = {th: [] for th in threads}
+        for rep in range(warm + repeats):
+            for th in threads:
+                fac.ldl.threads = th
+                t = time.perf_counter()
+                fac.ldl.solve(b)
+                if rep >= warm:
+                    times[th].append(time.perf_counter() - t)
+        fac.ldl.threads = keep
+        return {th: float(np.median(v)) for th, v in times.items()}
 
     def _analysis(self):
         """The last factor's symbolic analysis (its pattern's: a run's matrices share one), or None."""

@@ -18,6 +18,7 @@ frames run, reporting what it decided:
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -69,6 +70,26 @@ def threads_available() -> int:
     return int(numba.config.NUMBA_NUM_THREADS)
 
 
+#: How long numba's OpenMP workers wait actively for the next parallel region before they sleep
+#: (``GOMP_SPINCOUNT``; about 70 ms on this project's machine): see :func:`keep_workers_awake`.
+WORKER_SPIN = "3000000"
+
+
+def keep_workers_awake() -> None:
+    """Let numba's OpenMP workers spin between parallel regions for a while before they sleep.
+
+    By default libgomp puts an idle worker to sleep almost at once when there are more threads than
+    cores (numba's pool and the main thread); on a virtual machine a sleeping core then takes 2-3 ms
+    to wake, more than the implicit stepper's whole solve it was woken for (measured on the fine
+    liver's factor: two threads 5.9 ms a solve between other work, one thread 2.9 ms; with the
+    workers spinning 1.5 ms; docs/simulate.md §2b). ``OMP_WAIT_POLICY=ACTIVE`` with a finite
+    ``GOMP_SPINCOUNT`` keeps them awake through a run and lets them sleep within ~0.1 s after it.
+    Only defaults (a user's own settings win), and only before numba first starts its threads.
+    """
+    os.environ.setdefault("OMP_WAIT_POLICY", "ACTIVE")
+    os.environ.setdefault("GOMP_SPINCOUNT", WORKER_SPIN)
+
+
 def fixed_nodes(network, scene: Scene) -> np.ndarray:
     """The scene's fixed nodes on *network* (its own region, or the asset's)."""
     if scene.fixed is None:
@@ -95,6 +116,7 @@ def prepare_run(network, tables, scene: Scene, *, effects, reporter) -> RunSetup
         rep.step(f"material effects: {springs.effects.explain()}")
     implicit = scene.method == "implicit"
     volume = volume_term(network, tables, scene, rep)
+    keep_workers_awake()
     warm = warm_up(springs, threads=1, volume=volume, implicit=implicit)
     if not implicit and threads_available() > 1 and springs.n_springs >= AUTO_PARALLEL_MIN_SPRINGS:
         warm += warm_up(springs, threads=threads_available(), volume=volume)
@@ -258,6 +280,20 @@ def choose_threads(sim: Simulator, requested, *, trial_steps: int = 30) -> tuple
     return best, {str(k): v for k, v in timing.items()}
 
 
+def choose_solve_threads(sim: Simulator, requested) -> tuple[int, dict]:
+    """The implicit stepper's solve threads (1 or 2): as *requested*, or for ``"auto"`` the faster on
+    its first factor, timed (on a busy machine two threads wait for each other longer than they save)."""
+    avail = min(2, threads_available())
+    if requested != "auto":
+        return max(1, min(int(requested), avail)), {}
+    if avail == 1:
+        return 1, {}
+    timing = sim.stepper.solve_timing((1, 2))
+    if not timing:
+        return 1, {}
+    return min(timing, key=timing.get), {str(k): v for k, v in timing.items()}
+
+
 def plan_steps(run: RunSetup, scene: Scene, plan: GraspPlan | None, reporter) -> None:
     """The run's step schedule, its first step and threads (into *run*).
 
@@ -312,17 +348,19 @@ def _plan_implicit(run: RunSetup, scene: Scene, table, reporter) -> None:
         reporter.warn(f"[integrator] implicit_step: {scene.solve_step * 1e3:.4g} ms is longer than a frame "
                       f"({frame_dt * 1e3:.4g} ms at {scene.frame_rate:g} frames/s): the solve steps once per frame, "
                       f"at {sim.dt * 1e3:.4g} ms; give at most a frame (or \"frame\")")
-    run.threads, run.thread_timing = 1, {}
-    sim.threads = 1
-    if isinstance(scene.threads, int) and scene.threads > 1:
-        reporter.warn(f"[integrator] threads = {scene.threads} is not used: the implicit stepper runs on one "
-                      "thread (method = \"explicit\" uses them)")
     run.schedule = schedule
+    sim.threads = 1
     run.prefactor_s = sim.stepper.prepare(sim.model, sim.state, sim.control)
+    run.threads, run.thread_timing = choose_solve_threads(sim, scene.threads)
+    sim.threads = run.threads
+    if isinstance(scene.threads, int) and scene.threads > 2:
+        reporter.warn(f"[integrator] threads = {scene.threads}: the implicit stepper's solves use at most 2 "
+                      "(the two halves of the factor's nested dissection); the rest of its step, one")
     st = sim.stepper.stats
     factored = FACTORED[sim.stepper.factored(sim.model)]
     reporter.step(f"{springs.n_springs} springs, {springs.n_nodes} nodes ({run.fixed.size} fixed), law {run.law}; "
                   f"implicit (backward Euler), step {sim.dt * 1e3:.4g} ms ({spf} per frame; the explicit bound "
                   f"would be {table.dt_critical * 1e6:.4g} us), grasper force at {scene.haptic_rate:g} Hz; "
-                  f"factored in {run.prefactor_s:.2g} s (fill {st.factor_nnz / 1e6:.3g} M, {factored})")
+                  f"factored in {run.prefactor_s:.2g} s (fill {st.factor_nnz / 1e6:.3g} M, {factored}); "
+                  f"{run.threads} thread(s)")
 
