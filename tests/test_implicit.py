@@ -477,21 +477,34 @@ def test_an_implicit_step_longer_than_a_frame_warns_and_steps_once_per_frame(tmp
     assert not any("implicit_step" in w for w in rep1.warnings)
 
 
-def test_quasi_newton_hands_a_solve_it_does_not_finish_to_newton(slab, reference, monkeypatch):
+def test_quasi_newton_hands_a_solve_it_does_not_finish_to_a_fresh_factor(slab, reference, monkeypatch):
     """A solve the quasi-Newton iteration has not finished after QN_SWITCH iterations (before any hand-over
-    was measured; then after the hand-overs' mean cost) goes on with Newton's iteration from its best
-    iterate: with the first switch after one iteration solves are handed over, and the lift still
-    follows the explicit reference."""
+    was measured; then after the hand-overs' mean cost) goes on from its best iterate with a factor taken
+    there: with the first switch after one iteration solves are handed over, the factor is renewed for
+    them, and the lift still follows the explicit reference."""
     monkeypatch.setattr(implicit, "QN_SWITCH", 1)
     tables, (te, Fe, Xe, _) = reference
     ti, Fi, Xi, sim = lift(slab, tables, BackwardEuler())
     st = sim.stepper.stats
-    assert st.fallbacks > 0 and st.newton > 0 and st.quasi_newton > 0
+    assert st.fallbacks > 0 and st.quasi_newton > 0
+    assert st.factorizations > st.fallbacks           # one at the start, one per hand-over (at least)
     assert st.unconverged == 0
     # after the first hand-over a solve gets as many quasi-Newton iterations as a hand-over has cost
-    # (the break-even rule): here every Newton iteration and its conjugate gradients were a hand-over's
-    assert sim.stepper._switch_after() == pytest.approx((st.cg + st.newton) / st.fallbacks)
-    assert sim.stepper._switch_after() > 1
+    # (the break-even rule), a fresh factor counted in solves: more than one
+    cost, count = sim.stepper._handover
+    assert count == st.fallbacks and sim.stepper._switch_after() == pytest.approx(cost / count)
+    assert cost / count > 1
+    u_e = Xe - slab.points
+    assert np.abs(Xi - Xe).max() <= 0.05 * np.linalg.norm(u_e, axis=2).max()
+
+
+def test_a_solve_that_stalls_on_the_fresh_factor_too_goes_on_with_newton(slab, reference, monkeypatch):
+    monkeypatch.setattr(BackwardEuler, "_switch_after", lambda self: 1)
+    tables, (te, Fe, Xe, _) = reference
+    ti, Fi, Xi, sim = lift(slab, tables, BackwardEuler())
+    st = sim.stepper.stats
+    assert st.fallbacks > 0 and st.newton > 0 and st.factorizations > st.fallbacks
+    assert st.unconverged == 0
     u_e = Xe - slab.points
     assert np.abs(Xi - Xe).max() <= 0.05 * np.linalg.norm(u_e, axis=2).max()
 

@@ -88,7 +88,7 @@ class ImplicitStats:
     steps: int = 0
     newton: int = 0                 #: Newton iterations (each: one force pass, one tangent, one linear solve)
     quasi_newton: int = 0           #: quasi-Newton iterations (each: one solve, one or two force passes)
-    fallbacks: int = 0              #: solves the quasi-Newton iteration handed over to Newton
+    fallbacks: int = 0              #: solves the quasi-Newton iteration handed over (a fresh factor, then Newton)
     cg: int = 0                     #: conjugate-gradient iterations
     solves: int = 0                 #: triangular solves with the factor (preconditioner, constraint columns)
     factorizations: int = 0
@@ -335,7 +335,7 @@ class BackwardEuler:
             moved = math.inf
             self._begin_solve(norm)
             # max_newton Newton iterations per solve, after the quasi-Newton ones
-            while norm > tol and moved > xtol and it - start < self.max_newton + self._qn["its"]:
+            while norm > tol and moved > xtol and it - start < self.max_newton + self._qn["all"]:
                 x, g, norm, moved = self._iterate(model, state, control, x, x0, v0, h, dt_fx, g, norm, contact,
                                                   mass_dof, coupling, fixed_dof)
                 it += 1
@@ -356,20 +356,32 @@ class BackwardEuler:
     def _begin_solve(self, norm: float) -> None:
         """A new solve (a step, or a re-solve after the contacts changed) from a residual of *norm*; its
         constraint rows were just set, which forgot the last solve's pairs (:meth:`_set_rows`)."""
-        self._qn = {"its": 0, "start": norm, "best": None, "newton": False, "cost0": 0}
+        self._qn = {"its": 0, "all": 0, "start": norm, "best": None, "refreshed": False, "newton": False,
+                    "cost0": None}
 
     def _end_solve(self) -> None:
-        """Record what the solve's Newton iterations cost, if it was handed over (:meth:`_switch_after`)."""
+        """Record what the solve cost after its hand-over, if it was handed over (:meth:`_switch_after`):
+        its iterations since (quasi-Newton, Newton, conjugate gradients: about a solve each) and the
+        fresh factor, in solves (its factorization's and constraint columns' seconds over a solve's)."""
         qn = self._qn
-        if qn.get("newton"):
-            self._handover[0] += self.stats.cg + self.stats.newton - qn["cost0"]
-            self._handover[1] += 1
+        if qn["cost0"] is None:
+            return
+        its, factorizations = qn["cost0"]
+        cons = self._cons
+        fresh = 0.0
+        if self.stats.factorizations > factorizations and cons is not None and cons.solves:
+            fresh = (self._factor.seconds + cons.columns_s) / (cons.solve_s / cons.solves)
+        self._handover[0] += self._iterations() - its + fresh
+        self._handover[1] += 1
+
+    def _iterations(self) -> int:
+        st = self.stats
+        return st.quasi_newton + st.newton + st.cg
 
     def _switch_after(self) -> float:
-        """Quasi-Newton iterations a solve gets before Newton's iteration takes over: what a hand-over
-        has cost so far, on average, in solves and force passes (its conjugate-gradient iterations, each
-        a solve and a product, and its Newton iterations, each a tangent and a line search), an
-        iteration of either costing about a solve; :data:`QN_SWITCH` until one has been measured.
+        """Quasi-Newton iterations a solve gets before it is handed over (:meth:`_iterate`): what a
+        hand-over has cost so far, on average, in solves (:meth:`_end_solve`; an iteration of any kind
+        costing about a solve); :data:`QN_SWITCH` until one has been measured.
 
         The break-even rule of renting against buying (the ski-rental problem; Karlin et al. 1988):
         going on until what the quasi-Newton iterations cost equals the hand-over's cost is never
@@ -380,18 +392,30 @@ class BackwardEuler:
         return cost / count if count else QN_SWITCH
 
     def _iterate(self, model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, mass_dof, coupling, fixed_dof):
-        """One iteration of the solve: quasi-Newton while it converges, else Newton from its best iterate;
-        (x, g, |g|, the update's largest nodal length)."""
+        """One iteration of the solve: quasi-Newton while it converges; else, from its best iterate,
+        quasi-Newton again on a factor taken there (once per solve), then Newton; (x, g, |g|, the
+        update's largest nodal length).
+
+        Why the fresh factor first: the quasi-Newton iterations stall where the matrix has changed
+        since the factor was taken (the release, a lift peeling the organ off its bed), and Newton's
+        iteration cost 7-12 conjugate-gradient iterations, each a solve and a product, per iteration
+        (the fine liver: 107 ms, a factorization 88 ms; docs/simulate.md §2b).
+        """
         qn = self._qn
         if self._quasi and not qn["newton"]:
             if qn["best"] is None or norm < qn["best"][0]:
                 qn["best"] = (norm, x, g)
             if qn["its"] < self._switch_after() and norm <= QN_DIVERGE * qn["start"]:
                 return self._quasi_newton(model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, fixed_dof)
-            qn["newton"] = True                         # hand over, once per solve
-            qn["cost0"] = self.stats.cg + self.stats.newton
-            self.stats.fallbacks += 1
+            if qn["cost0"] is None:                      # the hand-over: its cost counted from here
+                qn["cost0"] = (self._iterations(), self.stats.factorizations)
+                self.stats.fallbacks += 1
             norm, x, g = qn["best"]
+            if not qn["refreshed"] and self.preconditioner == "factor":
+                qn.update(refreshed=True, its=0, start=norm, best=None)
+                self._stale = True                       # refactored at x by the next iteration
+                return self._quasi_newton(model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, fixed_dof)
+            qn["newton"] = True
         return self._newton(model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, mass_dof, coupling,
                             fixed_dof)
 
@@ -410,6 +434,7 @@ class BackwardEuler:
             d = h0(b)
         self.stats.quasi_newton += 1
         self._qn["its"] += 1
+        self._qn["all"] += 1
         self._qn_step += 1
         d3 = d.reshape(-1, 3)
         step, xt, gt = self._secant_search(model, state, control, x, x0, v0, h, dt_fx, d3, float(b @ d))
