@@ -174,6 +174,25 @@ def test_constraints_hold_and_pcg_converges(box):
     assert np.abs(r).max() < 1e-8 * np.abs(b).max()
 
 
+def test_hard_rows_are_projected_out_at_once_as_one_after_the_other(box):
+    """The preconditioner's last projection removes each hard row's component: all at once when each
+    node's rows are orthonormal (the same as in turn), in turn otherwise."""
+    A = spd_system(box)
+    rng = np.random.default_rng(3)
+    n = np.array([0.0, 0.6, 0.8])
+    skew = np.array([[1.0, 0.0, 0.0], [np.sqrt(0.5), np.sqrt(0.5), 0.0]])
+    for rows, e in (([0, 0, 0, 5, 7], np.vstack([np.eye(3), n, n])), ([2, 2], skew)):
+        cons = Constraints(SparseFactor.of(A), box.n_nodes)
+        cons.set_rows(np.array(rows), e, np.zeros(len(rows)))
+        zz = rng.normal(size=(box.n_nodes, 3))
+        ref = zz.copy()
+        for a, d in zip(rows, e):
+            ref[a] -= (ref[a] @ d) * d
+        cons._project_hard(zz)
+        np.testing.assert_allclose(zz, ref, rtol=0, atol=1e-14)
+        assert cons._orthonormal == (rows[0] == 0)
+
+
 # ---------------------------------------------------------------------------
 # steps: stability and the explicit reference
 # ---------------------------------------------------------------------------

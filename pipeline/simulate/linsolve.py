@@ -212,6 +212,7 @@ class Constraints:
     comp: np.ndarray = field(default_factory=lambda: np.zeros(0))
     W: np.ndarray | None = None
     cap_inv: np.ndarray | None = None
+    _orthonormal: bool | None = field(default=None, repr=False)   #: each node's hard rows orthonormal
     solves: int = 0
     solve_s: float = 0.0        #: seconds spent in the preconditioner's solves
     columns_s: float = 0.0      #: seconds spent computing the columns of W
@@ -239,6 +240,7 @@ class Constraints:
 
     def set_rows(self, node: np.ndarray, e: np.ndarray, comp: np.ndarray) -> None:
         """Use rows (*node* (c,), unit *e* (c, 3), compliance *comp* (c,)); builds W and the capacitance inverse."""
+        self._orthonormal = None
         self.node = np.asarray(node, dtype=np.int64)
         self.e = np.asarray(e, dtype=np.float64).reshape(-1, 3)
         self.comp = np.asarray(comp, dtype=np.float64)
@@ -257,6 +259,26 @@ class Constraints:
             self.cap_inv = np.linalg.inv(cap)
         except np.linalg.LinAlgError:
             raise SimulationError("the implicit step's constraints are dependent (a node held twice?)") from None
+
+    def _project_hard(self, zz: np.ndarray) -> None:
+        """Remove from *zz* (n, 3), in place, the components along the hard rows: all at once where each
+        node's hard rows are orthonormal (the grasp's and the contacts' axes, a floor's normal), which
+        equals one after the other; one after the other otherwise."""
+        hard = self.comp == 0.0
+        if not hard.any():
+            return
+        node, e = self.node[hard], self.e[hard]
+        if self._orthonormal is None:
+            order = np.argsort(node, kind="stable")
+            gram = np.einsum("md,kd->mk", e[order], e[order])
+            same = node[order][:, None] == node[order][None, :]
+            self._orthonormal = bool(np.allclose(np.where(same, gram, 0.0), np.eye(node.size), atol=1e-12))
+        if self._orthonormal:
+            proj = np.einsum("md,md->m", zz[node], e)
+            np.add.at(zz, node, -proj[:, None] * e)
+            return
+        for a, d in zip(node, e):
+            zz[a] -= (zz[a] @ d) * d
 
     def gather(self, z: np.ndarray) -> np.ndarray:
         """``J z`` for *z* of shape (3n,) or (3n, k): each row's component of its node."""
@@ -280,12 +302,7 @@ class Constraints:
         self.solves += 1
         if self.W is not None:
             z = z - self.W @ (self.cap_inv @ self.gather(z))
-            hard = self.comp == 0.0            # exactly in the null space (the factor may be float32)
-            if hard.any():
-                zz = z.reshape(self.n, 3)
-                for m in np.flatnonzero(hard):
-                    a = self.node[m]
-                    zz[a] -= (zz[a] @ self.e[m]) * self.e[m]
+            self._project_hard(z.reshape(self.n, 3))     # exactly in the null space (the factor may be float32)
         if fixed is not None:
             z[fixed] = 0.0
         return z
