@@ -499,9 +499,11 @@ def test_an_implicit_step_longer_than_a_frame_warns_and_steps_once_per_frame(tmp
 def test_quasi_newton_hands_a_solve_it_does_not_finish_to_a_fresh_factor(slab, reference, monkeypatch):
     """A solve the quasi-Newton iteration has not finished after QN_SWITCH iterations (before any hand-over
     was measured; then after the hand-overs' mean cost) goes on from its best iterate with a factor taken
-    there: with the first switch after one iteration solves are handed over, the factor is renewed for
-    them, and the lift still follows the explicit reference."""
+    there, where that costs less than Newton's iteration may: with the first switch after one iteration
+    solves are handed over, the factor is renewed for them, and the lift still follows the explicit
+    reference. (On this small slab a factorization costs more solves than Newton's budget: forced.)"""
     monkeypatch.setattr(implicit, "QN_SWITCH", 1)
+    monkeypatch.setattr(BackwardEuler, "_refresh_pays", lambda self: True)
     tables, (te, Fe, Xe, _) = reference
     ti, Fi, Xi, sim = lift(slab, tables, BackwardEuler())
     st = sim.stepper.stats
@@ -519,11 +521,27 @@ def test_quasi_newton_hands_a_solve_it_does_not_finish_to_a_fresh_factor(slab, r
 
 def test_a_solve_that_stalls_on_the_fresh_factor_too_goes_on_with_newton(slab, reference, monkeypatch):
     monkeypatch.setattr(BackwardEuler, "_switch_after", lambda self: 1)
+    monkeypatch.setattr(BackwardEuler, "_refresh_pays", lambda self: True)
     tables, (te, Fe, Xe, _) = reference
     ti, Fi, Xi, sim = lift(slab, tables, BackwardEuler())
     st = sim.stepper.stats
     assert st.fallbacks > 0 and st.newton > 0 and st.factorizations > st.fallbacks
     assert st.unconverged == 0
+    u_e = Xe - slab.points
+    assert np.abs(Xi - Xe).max() <= 0.05 * np.linalg.norm(u_e, axis=2).max()
+
+
+def test_where_a_factorization_costs_more_than_newton_may_newton_takes_over(slab, reference, monkeypatch):
+    """On this slab a factorization costs more solves than Newton's iteration may spend (its Python
+    overhead against solves of microseconds): hand-overs go to Newton at once, whose iterations and
+    conjugate gradients are then the hand-over's cost."""
+    monkeypatch.setattr(implicit, "QN_SWITCH", 1)
+    tables, (te, Fe, Xe, _) = reference
+    ti, Fi, Xi, sim = lift(slab, tables, BackwardEuler())
+    st = sim.stepper.stats
+    assert not sim.stepper._refresh_pays()
+    assert st.fallbacks > 0 and st.newton > 0
+    assert sim.stepper._switch_after() == pytest.approx((st.cg + st.newton) / st.fallbacks)
     u_e = Xe - slab.points
     assert np.abs(Xi - Xe).max() <= 0.05 * np.linalg.norm(u_e, axis=2).max()
 

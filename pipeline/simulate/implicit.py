@@ -399,7 +399,8 @@ class BackwardEuler:
         Why the fresh factor first: the quasi-Newton iterations stall where the matrix has changed
         since the factor was taken (the release, a lift peeling the organ off its bed), and Newton's
         iteration cost 7-12 conjugate-gradient iterations, each a solve and a product, per iteration
-        (the fine liver: 107 ms, a factorization 88 ms; docs/simulate.md §2b).
+        (the fine liver: 107 ms, a factorization 88 ms; docs/simulate.md §2b). Where a factorization
+        costs more than Newton's iteration may (:meth:`_refresh_pays`), Newton's iteration at once.
         """
         qn = self._qn
         if self._quasi and not qn["newton"]:
@@ -411,13 +412,24 @@ class BackwardEuler:
                 qn["cost0"] = (self._iterations(), self.stats.factorizations)
                 self.stats.fallbacks += 1
             norm, x, g = qn["best"]
-            if not qn["refreshed"] and self.preconditioner == "factor":
+            if not qn["refreshed"] and self._refresh_pays():
                 qn.update(refreshed=True, its=0, start=norm, best=None)
                 self._stale = True                       # refactored at x by the next iteration
                 return self._quasi_newton(model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, fixed_dof)
             qn["newton"] = True
         return self._newton(model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, mass_dof, coupling,
                             fixed_dof)
+
+    def _refresh_pays(self) -> bool:
+        """Whether a fresh factor (its factorization and constraint columns, as last measured, in solves)
+        costs less than Newton's iteration may spend on a solve: ``max_newton`` iterations of at most
+        ``max_cg`` conjugate-gradient iterations and a tangent product each. The livers' factor costs
+        24-35 solves; the 100 k Kuhn box's, 660 (docs/simulate.md §2b)."""
+        cons, fac = self._cons, self._factor
+        if self.preconditioner != "factor" or fac is None or cons is None or cons.solves == 0:
+            return False
+        per_solve = cons.solve_s / cons.solves
+        return fac.seconds + cons.columns_s < self.max_newton * (self.max_cg + 1) * per_solve
 
     def _quasi_newton(self, model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, fixed_dof):
         """One L-BFGS iteration (:mod:`.quasinewton`): a solve with the factor, the secant's step."""
