@@ -702,8 +702,9 @@ class BackwardEuler:
             A = A + model.springs.damping_matrix(x) / h
         mass_dof = np.repeat(model.mass * (1.0 / (h * h) + model.mass_damping / h), 3)
         mov = np.repeat(model.movable, 3).astype(np.float64)
-        D = sps.diags(mov)
-        return (D @ A @ D + sps.diags(mass_dof * mov + (1.0 - mov))).tocsr()
+        A = sps.csr_matrix(A)
+        A.data *= np.repeat(mov, np.diff(A.indptr)) * mov[A.indices]     # D A D, D = diag(mov), in place
+        return (A + sps.diags(mass_dof * mov + (1.0 - mov))).tocsr()
 
     def _mixed_factor(self, model, state, x, h, dt_fx) -> MixedFactor:
         """Newton's matrix factored from its parts (:class:`~.linsolve.MixedFactor`): the system matrix
