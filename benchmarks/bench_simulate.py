@@ -308,17 +308,18 @@ def _run_figures(summary) -> dict:
 def implicit_traffic(stats: dict, springs: int, nnz_tangent: int) -> dict:
     """Bytes moved per implicit step (the GPU note): factor sweeps, tangent products, force passes.
 
-    A solve streams the factor twice (forward, backward; SuperLU keeps L and U = D L^T, float32
-    values + int32 row indices: ~8 bytes per entry per sweep); a conjugate-gradient product reads
-    the tangent (12 bytes per entry); a Newton iteration assembles it and passes the forces
-    (~50 bytes per spring each, docs/simulate.md §8).
+    A solve streams L twice (forward, backward; the supernodal factor's float32 blocks, their row
+    indices read once per block, not per entry: ~4 bytes per entry per sweep; SuperLU's, which this
+    stepper used until 2026-11-27, kept L and U = D L^T with an index per entry, 32 bytes per entry
+    and solve); a conjugate-gradient product reads the tangent (12 bytes per entry); a Newton
+    iteration assembles it and passes the forces (~50 bytes per spring each, docs/simulate.md §8).
     """
     steps = max(1, stats["steps"])
     solves = stats["solves"] / steps
     newton = stats["newton"] / steps
     quasi = stats.get("quasi_newton", 0) / steps
     cg = stats["cg"] / steps
-    factor = 2 * 8 * 2 * stats["factor_nnz"]
+    factor = 2 * 4 * stats["factor_nnz"]
     # a quasi-Newton iteration: its solve (counted in solves) and one or two force passes, no tangent
     b = (solves * factor + cg * 12 * nnz_tangent + newton * (2 * 50 * springs + 12 * nnz_tangent)
          + quasi * 2 * 50 * springs)
