@@ -25,8 +25,10 @@ of :math:`A` itself, ``factor_matrix``), taken at an earlier state and
 reused for as long as it keeps the iterations few (then refactored at the
 current state). By default each solve iterates by L-BFGS with that factor
 as its first inverse instead (:mod:`.quasinewton`: one solve per iteration,
-no tangent), and Newton's iteration takes over a solve it does not finish
-(``iteration``). Constraints join through the capacitance matrix
+no tangent); a solve it does not finish goes on with a factor taken at its best
+iterate, then with Newton's iteration (``iteration``). The factor is the
+supernodal :math:`LDL^T` of :mod:`esmm.pipeline.network.supernodal`, its
+solves on two threads where that is faster (``threads``). Constraints join through the capacitance matrix
 (:class:`~.linsolve.Constraints`), so the factor does not change with the
 grasp or the contacts. Unconditionally stable for a linear network; the
 iterations (with their line searches, and Newton's as the fallback) carry it
@@ -121,10 +123,11 @@ class BackwardEuler:
     iteration : {"quasi-newton", "newton"}
         How each solve iterates. "quasi-newton" (default): L-BFGS with the
         reused factor as its first inverse (:mod:`.quasinewton`; one solve
-        per iteration), Newton's iteration taking over a solve that has not
-        converged after as many iterations as a hand-over has cost so far
-        (:meth:`_switch_after`) or whose residual grew :data:`QN_DIVERGE`
-        times; "newton": Newton with conjugate gradients
+        per iteration), a solve that has not converged after as many
+        iterations as a hand-over has cost so far (:meth:`_switch_after`) or
+        whose residual grew :data:`QN_DIVERGE` times handed over: to a factor
+        taken at its best iterate where that pays (:meth:`_refresh_pays`),
+        then to Newton's iteration; "newton": Newton with conjugate gradients
         (also what a preconditioner other than "factor" gets).
         1.7-2.3x faster on five organs, within the same accuracy against the
         explicit reference (docs/simulate.md §2b).

@@ -78,11 +78,11 @@ WORKER_SPIN = "3000000"
 def keep_workers_awake() -> None:
     """Let numba's OpenMP workers spin between parallel regions for a while before they sleep.
 
-    By default libgomp puts an idle worker to sleep almost at once when there are more threads than
-    cores (numba's pool and the main thread); on a virtual machine a sleeping core then takes 2-3 ms
-    to wake, more than the implicit stepper's whole solve it was woken for (measured on the fine
-    liver's factor: two threads 5.9 ms a solve between other work, one thread 2.9 ms; with the
-    workers spinning 1.5 ms; docs/simulate.md §2b). ``OMP_WAIT_POLICY=ACTIVE`` with a finite
+    By default libgomp's idle workers went to sleep almost at once here (``GOMP_SPINCOUNT`` alone did
+    not change it, ``OMP_WAIT_POLICY=ACTIVE`` did), and a sleeping core of this virtual machine takes
+    2-3 ms to wake, more than the implicit stepper's whole solve it was woken for (the fine liver's
+    factor: two threads 5.9 ms a solve between other work, one thread 2.9 ms; with the workers
+    spinning 1.5 ms; docs/simulate.md §2b). ``OMP_WAIT_POLICY=ACTIVE`` with a finite
     ``GOMP_SPINCOUNT`` keeps them awake through a run and lets them sleep within ~0.1 s after it.
     Only defaults (a user's own settings win), and only before numba first starts its threads.
     """
