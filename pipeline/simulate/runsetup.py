@@ -117,9 +117,16 @@ def prepare_run(network, tables, scene: Scene, *, effects, reporter) -> RunSetup
     implicit = scene.method == "implicit"
     volume = volume_term(network, tables, scene, rep)
     keep_workers_awake()
-    warm = warm_up(springs, threads=1, volume=volume, implicit=implicit)
-    if not implicit and threads_available() > 1 and springs.n_springs >= AUTO_PARALLEL_MIN_SPRINGS:
-        warm += warm_up(springs, threads=threads_available(), volume=volume)
+    parallel = not implicit and threads_available() > 1 and springs.n_springs >= AUTO_PARALLEL_MIN_SPRINGS
+    with rep.task("the compiled kernels (from numba's cache, or compiled once per machine: about half a "
+                  "minute)", total=2 if parallel else 1) as advance:
+        warm = warm_up(springs, threads=1, volume=volume, implicit=implicit)
+        advance()
+        if parallel:
+            warm += warm_up(springs, threads=threads_available(), volume=volume)
+            advance()
+    if warm > 5.0:
+        rep.step(f"kernels compiled in {warm:.0f} s (cached for the next runs)")
     free0 = np.ones(springs.n_nodes, bool)
     free0[fixed] = False
     terms = [springs] if volume is None else [springs, volume]
