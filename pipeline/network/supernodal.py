@@ -15,17 +15,19 @@ and ``A^-1 b = P^T L^-T D^-1 L^-1 P b``. Two phases:
   algorithm), its postorder (composed with the caller's order: the same
   fill), the row structure of every column of L, the maximal supernodes
   (consecutive columns ``j-1, j`` with ``parent(j-1) = j`` and the same rows
-  below ``j``: Ng & Peyton 1993), the tree of fronts and where each entry
-  of A goes;
+  below ``j``: Ng & Peyton 1993) relaxed as CHOLMOD relaxes them (a few
+  explicit zeros for fewer, wider blocks: :data:`RELAX`), the tree of fronts,
+  its two halves for two threads and where each entry of A goes;
 * :class:`LDLT` (each matrix of that pattern): the multifrontal method (Duff
   & Reid 1983; Liu 1992), front by front in postorder: assemble the front's
   columns of A and its children's update matrices (extend-add), factor its
   pivot columns (a Crout :math:`LDL^T` of the dense front), and pass the
   Schur complement :math:`F_{22} - L_{21} D L_{21}^T` (one matrix product,
   BLAS) to the parent on a stack. Each supernode's columns of L are kept as
-  one dense column-major block, so that a solve reads L once, block by block
-  (vectorised loops, the row indices read once per block, not per entry),
-  and only L (not the :math:`U = DL^T` a general LU keeps beside it).
+  one dense block (column by column, below the unit diagonal), so that a solve
+  reads L once, block by block (vectorised loops, the row indices read once
+  per block, not per entry), and only L (not the :math:`U = DL^T` a general
+  LU keeps beside it); on one thread, or on two (:func:`_solve_two`).
 
 Why here and not SuperLU (scipy's ``splu`` in symmetric mode without
 pivoting, which :func:`~esmm.pipeline.network.newton.ldlt` uses): the
@@ -33,7 +35,7 @@ implicit stepper's preconditioner is factored tens of times a run and solved
 hundreds of times. On the fine liver's matrix (20 991 dofs, 5.0 M entries in L;
 one process, quiet machine, 2026-11-27) SuperLU factors in float32 in 0.24 s
 and solves in 8.0 ms, reading L and U; this factorization takes 0.08 s and a
-solve 1.7 ms (paper liver, 4 980 dofs: 21 → 7 ms and 0.64 → 0.20 ms). Exporting
+solve 1.6-2.9 ms (paper liver, 4 980 dofs: 21 → 6-7 ms and 0.64 → 0.2-0.3 ms). Exporting
 SuperLU's L for a faster solve alone would cost 0.14 s per factorization.
 The numbers are in docs/simulate.md §2b.
 
@@ -283,9 +285,7 @@ def _amalgamate(start: np.ndarray, parent: np.ndarray, ptr: np.ndarray) -> np.nd
     ns = start.size - 1
     nc = np.diff(start).astype(np.int64)
     nr = (ptr[start[:-1] + 1] - ptr[start[:-1]]).astype(np.int64)
-    col2sn = np.repeat(np.arange(ns), nc)
-    last_parent = parent[start[1:] - 1]
-    sparent = np.where(last_parent >= 0, col2sn[np.maximum(last_parent, 0)], -1)
+    sparent = _supernode_parents(start, parent)
     g_nc, g_nr, g_zeros = nc.copy(), nr.copy(), np.zeros(ns)
     top = np.ones(ns, bool)                        # s ends its group (not merged into s + 1)
     for s in range(ns - 1):
@@ -302,9 +302,17 @@ def _amalgamate(start: np.ndarray, parent: np.ndarray, ptr: np.ndarray) -> np.nd
     return np.concatenate([[0], start[tops + 1]]).astype(np.int64)
 
 
+def _supernode_parents(start: np.ndarray, parent: np.ndarray) -> np.ndarray:
+    """Each supernode's parent in the supernodal tree (the one holding its last column's parent), or -1."""
+    nc = np.diff(start)
+    col2sn = np.repeat(np.arange(nc.size), nc)
+    last_parent = parent[start[1:] - 1]
+    return np.where(last_parent >= 0, col2sn[np.maximum(last_parent, 0)], -1)
+
+
 def _front_rows(start, parent, ptr, col_rows):
-    """Each supernode's rows (its columns, then the rows below them: those of its last column's
-    parent... i.e. of its top column's structure), their pointers and the supernodal tree's parents."""
+    """Each supernode's rows (its columns, then the rows of L below its last column: they hold every
+    other column's rows below the supernode), their pointers and the supernodal tree's parents."""
     ns = start.size - 1
     nc = np.diff(start)
     parts, counts = [], np.empty(ns, np.int64)
@@ -315,10 +323,7 @@ def _front_rows(start, parent, ptr, col_rows):
         parts.append(below.astype(np.int32))
         counts[s] = nc[s] + below.size
     rows = np.concatenate(parts) if parts else np.zeros(0, np.int32)
-    col2sn = np.repeat(np.arange(ns), nc)
-    last_parent = parent[start[1:] - 1]
-    sparent = np.where(last_parent >= 0, col2sn[np.maximum(last_parent, 0)], -1)
-    return rows, np.concatenate([[0], np.cumsum(counts)]).astype(np.int64), sparent
+    return rows, np.concatenate([[0], np.cumsum(counts)]).astype(np.int64), _supernode_parents(start, parent)
 
 
 def _two_parts(sparent: np.ndarray, work: np.ndarray) -> np.ndarray:
