@@ -190,7 +190,7 @@ def test_hard_rows_are_projected_out_at_once_as_one_after_the_other(box):
             ref[a] -= (ref[a] @ d) * d
         cons._project_hard(zz)
         np.testing.assert_allclose(zz, ref, rtol=0, atol=1e-14)
-        assert cons._orthonormal == (rows[0] == 0)
+        assert cons._hard[2] == (rows[0] == 0)
 
 
 # ---------------------------------------------------------------------------

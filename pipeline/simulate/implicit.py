@@ -370,11 +370,8 @@ class BackwardEuler:
         if qn["cost0"] is None:
             return
         its, factorizations = qn["cost0"]
-        cons = self._cons
-        fresh = 0.0
-        if self.stats.factorizations > factorizations and cons is not None and cons.solves:
-            fresh = (self._factor.seconds + cons.columns_s) / (cons.solve_s / cons.solves)
-        self._handover[0] += self._iterations() - its + fresh
+        fresh = self._factor_in_solves() if self.stats.factorizations > factorizations else 0.0
+        self._handover[0] += self._iterations() - its + (fresh if math.isfinite(fresh) else 0.0)
         self._handover[1] += 1
 
     def _iterations(self) -> int:
@@ -428,11 +425,8 @@ class BackwardEuler:
         costs less than Newton's iteration may spend on a solve: ``max_newton`` iterations of at most
         ``max_cg`` conjugate-gradient iterations and a tangent product each. The livers' factor costs
         24-35 solves; the 100 k Kuhn box's, 660 (docs/simulate.md §2b)."""
-        cons, fac = self._cons, self._factor
-        if self.preconditioner != "factor" or fac is None or cons is None or cons.solves == 0:
-            return False
-        per_solve = cons.solve_s / cons.solves
-        return fac.seconds + cons.columns_s < self.max_newton * (self.max_cg + 1) * per_solve
+        budget = self.max_newton * (self.max_cg + 1)
+        return self.preconditioner == "factor" and self._factor_in_solves() < budget
 
     def _quasi_newton(self, model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, fixed_dof):
         """One L-BFGS iteration (:mod:`.quasinewton`): a solve with the factor, the secant's step."""
@@ -538,11 +532,15 @@ class BackwardEuler:
         """Whether the conjugate-gradient iterations lost to the factor's age (beyond one per Newton
         iteration) since it was taken have cost more than taking it again (its factorization and
         constraint columns, as measured): then the factor is renewed."""
+        return self.preconditioner == "factor" and self._excess > self._factor_in_solves()
+
+    def _factor_in_solves(self) -> float:
+        """What taking the factor again costs (its factorization and constraint columns, as measured
+        for the current one), in the current factor's mean solves; infinite before any solve."""
         cons, fac = self._cons, self._factor
-        if self.preconditioner != "factor" or cons is None or cons.solves == 0:
-            return False
-        per_solve = cons.solve_s / max(1, cons.solves - 0)
-        return self._excess * per_solve > fac.seconds + cons.columns_s
+        if fac is None or cons is None or cons.solves == 0 or cons.solve_s <= 0.0:
+            return math.inf
+        return (fac.seconds + cons.columns_s) / (cons.solve_s / cons.solves)
 
     # -- pieces of a step ------------------------------------------------------------
     @staticmethod
@@ -731,7 +729,7 @@ class BackwardEuler:
             if self._perm is None or self._perm.size != A.shape[0]:
                 self._perm = node_ordering(A)
             fac = SparseFactor.of(A, self._perm, single=self.single, analysis=self._analysis())
-        fac.ldl.threads = min(2, max(1, int(self.threads)))
+        fac.ldl.threads = self.threads
         st = self.stats
         st.factorizations += 1
         st.factor_s += fac.seconds

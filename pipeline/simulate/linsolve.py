@@ -212,7 +212,7 @@ class Constraints:
     comp: np.ndarray = field(default_factory=lambda: np.zeros(0))
     W: np.ndarray | None = None
     cap_inv: np.ndarray | None = None
-    _orthonormal: bool | None = field(default=None, repr=False)   #: each node's hard rows orthonormal
+    _hard: tuple | None = field(default=None, repr=False)   #: hard rows' nodes, directions, orthonormal
     solves: int = 0
     solve_s: float = 0.0        #: seconds spent in the preconditioner's solves
     columns_s: float = 0.0      #: seconds spent computing the columns of W
@@ -240,10 +240,10 @@ class Constraints:
 
     def set_rows(self, node: np.ndarray, e: np.ndarray, comp: np.ndarray) -> None:
         """Use rows (*node* (c,), unit *e* (c, 3), compliance *comp* (c,)); builds W and the capacitance inverse."""
-        self._orthonormal = None
         self.node = np.asarray(node, dtype=np.int64)
         self.e = np.asarray(e, dtype=np.float64).reshape(-1, 3)
         self.comp = np.asarray(comp, dtype=np.float64)
+        self._hard_rows()
         c = self.node.size
         if c == 0:
             self.W, self.cap_inv = None, None
@@ -260,20 +260,22 @@ class Constraints:
         except np.linalg.LinAlgError:
             raise SimulationError("the implicit step's constraints are dependent (a node held twice?)") from None
 
+    def _hard_rows(self) -> None:
+        """The hard rows (node, direction) and whether each node's are orthonormal (the grasp's and the
+        contacts' axes, a floor's normal), once per set of rows (:meth:`_project_hard`)."""
+        hard = self.comp == 0.0
+        node, e = self.node[hard], self.e[hard]
+        gram = np.einsum("md,kd->mk", e, e)
+        same = node[:, None] == node[None, :]
+        self._hard = (node, e, bool(np.allclose(np.where(same, gram, 0.0), np.eye(node.size), atol=1e-12)))
+
     def _project_hard(self, zz: np.ndarray) -> None:
         """Remove from *zz* (n, 3), in place, the components along the hard rows: all at once where each
-        node's hard rows are orthonormal (the grasp's and the contacts' axes, a floor's normal), which
-        equals one after the other; one after the other otherwise."""
-        hard = self.comp == 0.0
-        if not hard.any():
+        node's hard rows are orthonormal, which equals one after the other; one after the other otherwise."""
+        node, e, orthonormal = self._hard
+        if node.size == 0:
             return
-        node, e = self.node[hard], self.e[hard]
-        if self._orthonormal is None:
-            order = np.argsort(node, kind="stable")
-            gram = np.einsum("md,kd->mk", e[order], e[order])
-            same = node[order][:, None] == node[order][None, :]
-            self._orthonormal = bool(np.allclose(np.where(same, gram, 0.0), np.eye(node.size), atol=1e-12))
-        if self._orthonormal:
+        if orthonormal:
             proj = np.einsum("md,md->m", zz[node], e)
             np.add.at(zz, node, -proj[:, None] * e)
             return

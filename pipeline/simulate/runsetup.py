@@ -267,38 +267,42 @@ def plan_grasper(run: RunSetup, scene: Scene, network, reporter) -> GraspPlan | 
     return plan
 
 
+def _chosen(requested, avail: int, trial) -> tuple[int, dict]:
+    """Threads as *requested* (at most *avail*), or for ``"auto"`` the fastest of *trial()*'s timings
+    (``{threads: seconds}``; empty: one thread); and those timings for the summary."""
+    if requested != "auto":
+        return max(1, min(int(requested), avail)), {}
+    timing = trial() if avail > 1 else {}
+    if not timing:
+        return 1, {}
+    return min(timing, key=timing.get), {str(k): v for k, v in timing.items()}
+
+
 def choose_threads(sim: Simulator, requested, *, trial_steps: int = 30) -> tuple[int, dict]:
     """Resolve ``threads = "auto"`` by timing both step loops on the current state (then restored)."""
     avail = threads_available()
-    if requested != "auto":
-        return max(1, min(int(requested), avail)), {}
-    if avail == 1 or sim.model.springs.n_springs < AUTO_PARALLEL_MIN_SPRINGS:
-        return 1, {}
-    state = sim.snapshot()
-    timing = {}
-    for th in (1, avail):
-        sim.threads = th
-        sim.advance(2)
-        t = time.perf_counter()
-        sim.advance(trial_steps)
-        timing[th] = (time.perf_counter() - t) / trial_steps
-        sim.restore(state)
-    best = min(timing, key=timing.get)
-    return best, {str(k): v for k, v in timing.items()}
+
+    def trial() -> dict:
+        if sim.model.springs.n_springs < AUTO_PARALLEL_MIN_SPRINGS:
+            return {}
+        state = sim.snapshot()
+        timing = {}
+        for th in (1, avail):
+            sim.threads = th
+            sim.advance(2)
+            t = time.perf_counter()
+            sim.advance(trial_steps)
+            timing[th] = (time.perf_counter() - t) / trial_steps
+            sim.restore(state)
+        return timing
+
+    return _chosen(requested, avail, trial)
 
 
 def choose_solve_threads(sim: Simulator, requested) -> tuple[int, dict]:
     """The implicit stepper's solve threads (1 or 2): as *requested*, or for ``"auto"`` the faster on
     its first factor, timed (on a busy machine two threads wait for each other longer than they save)."""
-    avail = min(2, threads_available())
-    if requested != "auto":
-        return max(1, min(int(requested), avail)), {}
-    if avail == 1:
-        return 1, {}
-    timing = sim.stepper.solve_timing((1, 2))
-    if not timing:
-        return 1, {}
-    return min(timing, key=timing.get), {str(k): v for k, v in timing.items()}
+    return _chosen(requested, min(2, threads_available()), lambda: sim.stepper.solve_timing((1, 2)))
 
 
 def plan_steps(run: RunSetup, scene: Scene, plan: GraspPlan | None, reporter) -> None:
@@ -356,7 +360,6 @@ def _plan_implicit(run: RunSetup, scene: Scene, table, reporter) -> None:
                       f"({frame_dt * 1e3:.4g} ms at {scene.frame_rate:g} frames/s): the solve steps once per frame, "
                       f"at {sim.dt * 1e3:.4g} ms; give at most a frame (or \"frame\")")
     run.schedule = schedule
-    sim.threads = 1
     run.prefactor_s = sim.stepper.prepare(sim.model, sim.state, sim.control)
     run.threads, run.thread_timing = choose_solve_threads(sim, scene.threads)
     sim.threads = run.threads

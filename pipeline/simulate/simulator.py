@@ -291,9 +291,7 @@ def warm_up(springs: SpringTerm, *, threads: int = 1, volume: VolumeTerm | None 
         sub.tangent(sim.x, state=sim.state.effects, dt=1e-3)
         if volume is not None:
             vol.tangent(sim.x)
-        import numba
-
-        supernodal.warm_up(threads=(1, 2) if numba.config.NUMBA_NUM_THREADS > 1 else (1,))
+        supernodal.warm_up()
     return time.perf_counter() - t
 
 
