@@ -2,15 +2,18 @@
 
 Every check is against something computed another way: scipy's sparse direct
 solver (spsolve) for the solutions, SuperLU's L in the same order for the fill,
-column-by-column solves for the multi-right-hand-side kernel.
+column-by-column solves for the multi-right-hand-side kernel, the one-thread
+factor for the two-thread one.
 """
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spl
+from esmm.pipeline.blas import single_threaded_blas
 from esmm.pipeline.network.newton import ldlt, node_ordering
 from esmm.pipeline.network.supernodal import LDLT, Analysis, ZeroPivot
+from esmm.pipeline.simulate.linsolve import MixedFactor, SparseFactor
 
 
 def block_laplacian(n: int, seed: int) -> sp.csr_matrix:
@@ -151,3 +154,91 @@ def test_the_two_parts_are_whole_subtrees_under_their_ancestors(spd):
     work = np.diff(an.block_ptr)
     share = [work[an.part == g].sum() / work.sum() for g in (0, 1)]
     assert min(share) > 0.2                          # both threads have work
+
+
+def saddle_point_matrix():
+    """[[A, B^T], [B, -C]] with A, C positive definite, and a random order (test_quasi_definite_saddle_point)."""
+    rng = np.random.default_rng(8)
+    A = block_laplacian(4, seed=9)
+    m = 40
+    B = sp.random(m, A.shape[0], density=0.05, random_state=10, format="csr")
+    K = sp.bmat([[A, B.T], [B, -sp.diags(rng.uniform(0.1, 1.0, m))]], format="csr")
+    return K, rng.permutation(K.shape[0])
+
+
+def two_thread_cases():
+    """Matrices and orders whose trees split in different ways: two parts under a few ancestors (a grid
+    in nested dissection, a saddle point in a random order), several trees (no ancestor at all: a
+    diagonal), a chain (one part holds a leaf, the other is empty, the rest are ancestors)."""
+    spd = block_laplacian(6, seed=1)
+    disconnected = sp.block_diag([block_laplacian(3, seed=11), sp.identity(6), block_laplacian(2, seed=12)],
+                                 format="csr")
+    n = 300
+    chain = sp.diags([-np.ones(n - 1), np.full(n, 2.5), -np.ones(n - 1)], [-1, 0, 1], format="csr")
+    diagonal = sp.diags(np.arange(1.0, 51.0), format="csr")
+    return {"nested": (spd, node_ordering(spd)), "saddle": saddle_point_matrix(),
+            "disconnected": (disconnected, node_ordering(disconnected)), "chain": (chain, np.arange(n)),
+            "diagonal": (diagonal, np.arange(50))}
+
+
+@pytest.mark.parametrize("case", ["nested", "saddle", "disconnected", "chain", "diagonal"])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_two_thread_factor_equals_one_thread(case, dtype):
+    """The two-thread numeric phase does each front's arithmetic as the one-thread one does (the same
+    children, extend-added in the same order): the same factor, bit for bit, when OpenBLAS runs on one
+    thread in both (an OpenBLAS on several threads may round its matrix products differently)."""
+    A, perm = two_thread_cases()[case]
+    an = Analysis.of(A, perm)
+    with single_threaded_blas():
+        one = LDLT.of(A, an, dtype=dtype)
+        two = LDLT.of(A, an, dtype=dtype, threads=2)
+    assert two.threads == 2 and one.threads == 1
+    np.testing.assert_array_equal(two.blk, one.blk)
+    np.testing.assert_array_equal(two.dinv, one.dinv)
+    if dtype == np.float64:
+        b = np.random.default_rng(14).standard_normal(A.shape[0])
+        ref = spl.spsolve(A.tocsc(), b)
+        for fac in (LDLT.of(A, an, dtype=dtype, threads=2), two):
+            assert np.linalg.norm(fac.solve(b) - ref) <= 1e-10 * np.linalg.norm(ref)
+
+
+def test_the_two_thread_cases_split_as_named():
+    """The cases above cover the splits they are meant to: both parts and ancestors, no ancestor, an
+    empty part."""
+    sizes = {k: np.diff(Analysis.of(A, perm).part_ptr) for k, (A, perm) in two_thread_cases().items()}
+    assert all(sizes[k].min() > 0 for k in ("nested", "saddle", "disconnected"))
+    assert sizes["diagonal"][2] == 0 and min(sizes["diagonal"][:2]) > 0
+    assert sizes["chain"][1] == 0 and sizes["chain"][0] > 0 and sizes["chain"][2] > 0
+
+
+@pytest.mark.parametrize("where", [0, 1, 2])
+def test_two_thread_factor_refuses_a_bad_pivot(where):
+    """A zero pivot in either part (a leaf's first column: its pivot is A's diagonal entry), a non-finite
+    one in the ancestors; the pattern kept (the same analysis)."""
+    A, perm = two_thread_cases()["nested"]
+    an = Analysis.of(A, perm)
+    col = int(an.perm[an.start[an.by_part[an.part_ptr[where]]]])     # the region's first column
+    bad = A.copy()
+    bad.data[bad.indptr[col] + np.flatnonzero(bad.indices[bad.indptr[col]:bad.indptr[col + 1]] == col)] = \
+        0.0 if where < 2 else np.nan
+    assert an.matches(bad)
+    with pytest.raises(ZeroPivot, match=f"column {col}\\b"):
+        LDLT.of(bad, an, threads=2)
+
+
+def test_the_stepper_factors_take_one_thread_setting_for_both_phases():
+    """linsolve's factors pass *threads* to the factorization and keep it for their solves."""
+    A, perm = two_thread_cases()["nested"]
+    b = np.random.default_rng(15).standard_normal(A.shape[0])
+    one = SparseFactor.of(A, perm)
+    two = SparseFactor.of(A, perm, threads=2, analysis=one.analysis)
+    assert (one.ldl.threads, two.ldl.threads) == (1, 2) and two.analysis is one.analysis
+    np.testing.assert_allclose(two.solve(b), one.solve(b), rtol=1e-10, atol=1e-13)
+    n = A.shape[0] // 3
+    B = sp.random(n, A.shape[0], density=0.02, random_state=16, format="csr")
+    w = np.random.default_rng(17).uniform(0.5, 2.0, n)
+    mixed = [MixedFactor.of_parts(A, B, w, threads=th) for th in (1, 2)]
+    assert [f.ldl.threads for f in mixed] == [1, 2]
+    ref = spl.spsolve((A + B.T @ sp.diags(w) @ B).tocsc(), b)
+    for f in mixed:
+        assert np.linalg.norm(f.solve(b) - ref) <= 1e-9 * np.linalg.norm(ref)

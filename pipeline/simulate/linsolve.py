@@ -76,18 +76,20 @@ class SparseFactor:
 
     @classmethod
     def of(cls, A, perm: np.ndarray | None = None, *, single: bool = False,
-           analysis: Analysis | None = None) -> SparseFactor:
+           analysis: Analysis | None = None, threads: int = 1) -> SparseFactor:
         """Factor *A* (N, N), in order *perm* (default: :func:`node_ordering`), with *analysis* (a
         former factor's, see :attr:`analysis`) when *A* has its pattern.
 
         *single*: factor and solve in float32 (measured on the fine liver: solves
         1.6x faster, relative residual ~1e-4: a preconditioner, not a solver).
+        *threads*: 1, or 2 for the factorization and its solves both (one setting for the two:
+        :mod:`esmm.pipeline.network.supernodal`).
         """
         t = time.perf_counter()
         A = canonical(A)
         if perm is None and (analysis is None or not analysis.matches(A)):
             perm = node_ordering(A)
-        ldl = _factor(A, analysis, perm, np.float32 if single else np.float64)
+        ldl = _factor(A, analysis, perm, np.float32 if single else np.float64, threads)
         return cls(ldl=ldl, seconds=time.perf_counter() - t)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
@@ -95,11 +97,11 @@ class SparseFactor:
         return self.ldl.solve(b)
 
 
-def _factor(A, analysis, perm, dtype) -> LDLT:
-    """:class:`~esmm.pipeline.network.supernodal.LDLT` of the stepper's matrix; a zero pivot is the
-    asset's fault (SimulationError)."""
+def _factor(A, analysis, perm, dtype, threads) -> LDLT:
+    """:class:`~esmm.pipeline.network.supernodal.LDLT` of the stepper's matrix, factored and solved on
+    *threads*; a zero pivot is the asset's fault (SimulationError)."""
     try:
-        return LDLT.of(A, analysis, perm=perm, dtype=dtype)
+        return LDLT.of(A, analysis, perm=perm, dtype=dtype, threads=threads)
     except ZeroPivot as exc:
         raise SimulationError(f"the implicit step's matrix could not be factored ({exc}); "
                               "check the asset's masses and fixed nodes") from None
@@ -139,16 +141,17 @@ class MixedFactor(SparseFactor):
 
     @classmethod
     def of_parts(cls, A, B, w: np.ndarray, perm: np.ndarray | None = None, *,
-                 single: bool = False, analysis: Analysis | None = None) -> MixedFactor:
+                 single: bool = False, analysis: Analysis | None = None, threads: int = 1) -> MixedFactor:
         """Factor ``A + B^T diag(w) B`` (*A* (3n, 3n) positive definite, *B* (n, 3n): row a belongs to
         node a; or blocks of n such rows) in order *perm* of the saddle-point matrix (default:
-        :func:`mixed_ordering`), with *analysis* when the saddle-point matrix has its pattern."""
+        :func:`mixed_ordering`), with *analysis* when the saddle-point matrix has its pattern, on
+        *threads* (:meth:`SparseFactor.of`)."""
         t = time.perf_counter()
         n_dof = A.shape[0]
         K = canonical(saddle_point(A, B, w))
         if perm is None and (analysis is None or not analysis.matches(K)):
             perm = mixed_ordering(A, B)
-        ldl = _factor(K, analysis, perm, np.float32 if single else np.float64)
+        ldl = _factor(K, analysis, perm, np.float32 if single else np.float64, threads)
         return cls(ldl=ldl, seconds=time.perf_counter() - t, n_dof=n_dof)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
