@@ -7,6 +7,8 @@ compared with it on the same network, start and damping.
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 import pytest
@@ -544,6 +546,28 @@ def test_where_a_factorization_costs_more_than_newton_may_newton_takes_over(slab
     assert sim.stepper._switch_after() == pytest.approx((st.cg + st.newton) / st.fallbacks)
     u_e = Xe - slab.points
     assert np.abs(Xi - Xe).max() <= 0.05 * np.linalg.norm(u_e, axis=2).max()
+
+
+def test_prepare_measures_what_a_renewal_costs_not_the_first_analysis(slab, monkeypatch):
+    """prepare() factors twice: the first factorization finds the symbolic analysis, the second reuses it,
+    so the cost the renewal rules weigh (_renew_s, in _factor_in_solves) is a renewal's. (With the first's
+    cost the paper liver's runs renewed the factor in some runs and never in others.)"""
+    seen = []
+    refactor = BackwardEuler._refactor
+
+    def spy(self, *args, **kw):
+        seen.append(self._analysis())
+        refactor(self, *args, **kw)
+
+    monkeypatch.setattr(BackwardEuler, "_refactor", spy)
+    term = build_spring_term(slab, make_tables(), dashpot=2e-4)
+    sim = Simulator(term, slab.points, slab.mass, fixed=slab.fixed, gravity=(0, 0, -9.81),
+                    stepper=BackwardEuler())
+    sim.set_time_step(1 / 30, bound=sim.stepper.bound(sim.model, sim.control), t0=0.0)
+    stepper = sim.stepper
+    assert stepper.prepare(sim.model, sim.state, sim.control) > 0.0
+    assert len(seen) == 2 and seen[0] is None and seen[1] is stepper._factor.analysis
+    assert stepper.stats.factorizations == 2 and 0.0 < stepper._renew_s < math.inf
 
 
 def test_quasi_newton_needs_the_reused_factor():
