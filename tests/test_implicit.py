@@ -570,6 +570,24 @@ def test_prepare_measures_what_a_renewal_costs_not_the_first_analysis(slab, monk
     assert stepper.stats.factorizations == 2 and 0.0 < stepper._renew_s < math.inf
 
 
+@pytest.mark.parametrize("solo, expected", [(1e-12, 1), (math.inf, 2), (math.nan, 2)])
+def test_two_threads_fall_back_to_one_where_their_solves_got_slower(slab, solo, expected):
+    """Where "auto" chose two threads (solo_solve_s: a one-thread solve's time in the run's trial), a renewal
+    gives them up for one when the last factor's solves took longer on two (their median); never without
+    a trial (NaN)."""
+    term = build_spring_term(slab, make_tables(), dashpot=2e-4)
+    sim = Simulator(term, slab.points, slab.mass, fixed=slab.fixed, gravity=(0, 0, -9.81),
+                    stepper=BackwardEuler(threads=2, solo_solve_s=solo))
+    sim.set_time_step(1 / 30, bound=sim.stepper.bound(sim.model, sim.control), t0=0.0)
+    stepper = sim.stepper
+    stepper.prepare(sim.model, sim.state, sim.control)
+    assert stepper.threads == 2 and stepper._factor.ldl.threads == 2        # no solve yet: nothing to weigh
+    sim.advance(3)
+    stepper._refactor(sim.model, sim.state, sim.x, sim.dt)
+    assert stepper.threads == expected and stepper._factor.ldl.threads == expected
+    assert stepper.stats.thread_fallbacks == (expected == 1)
+
+
 def test_quasi_newton_needs_the_reused_factor():
     """With another preconditioner the solves iterate by Newton (the quasi-Newton's first inverse is the factor)."""
     assert BackwardEuler()._quasi and not BackwardEuler(preconditioner="jacobi")._quasi

@@ -101,6 +101,7 @@ class ImplicitStats:
     slides: int = 0                 #: sticking contacts let slide within a step (the floor pulled them)
     max_newton: int = 0
     backtracks: int = 0
+    thread_fallbacks: int = 0       #: two threads given up for one (:meth:`BackwardEuler._check_threads`)
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -176,10 +177,14 @@ class BackwardEuler:
         speed (docs/simulate.md §2b). The "fresh" preconditioner always factors the
         exact matrix.
     threads : int
-        Threads of the factor's solves: 1, or 2 (the two halves of the nested dissection at once,
-        :mod:`esmm.pipeline.network.supernodal`; on the fine liver's factor 1.7 against 2.9 ms, on
-        the paper liver's 0.17 against 0.26 ms, with the workers kept awake,
-        :func:`~.runsetup.keep_workers_awake`). The rest of the step runs on one thread.
+        Threads of the factor's solves and factorizations: 1, or 2 (the two halves of the nested
+        dissection at once, :mod:`esmm.pipeline.network.supernodal`; on the fine liver's factor a
+        solve 1.4-1.7 against 2.9-3.2 ms, a factorization 59 against 87 ms; on the paper liver's a
+        solve 0.17-0.26 against 0.26-0.46 ms, a factorization 4.5 against 6.5 ms; with the workers
+        kept awake, :func:`~.runsetup.keep_workers_awake`). The rest of the step runs on one thread.
+    solo_solve_s : float
+        A solve's time on one thread, measured where ``threads = "auto"`` chose two: if two threads'
+        solves get slower than that, the run goes on with one (:meth:`_check_threads`). NaN: never.
     """
 
     step: float = DEFAULT_STEP
@@ -198,6 +203,7 @@ class BackwardEuler:
     single: bool = True
     factor_matrix: str = "bound"
     threads: int = 1
+    solo_solve_s: float = math.nan
     stats: ImplicitStats = field(default_factory=ImplicitStats)
     _factor: SparseFactor | None = field(default=None, repr=False)
     _factor_h: float = field(default=math.nan, repr=False)
@@ -300,6 +306,8 @@ class BackwardEuler:
         dt_fx = self._dt_fx(state, h)
         if self.preconditioner == "factor" and (self._factor is None or self._factor_h != h or self._stale):
             self._refactor(model, state, x0, dt_fx)
+        if self._factor is not None:
+            self._factor.ldl.threads = self.threads      # as set since it was taken (the run's choice, a fall-back)
         F0 = self._start_force(model, state, control, t)
         x = self._predictor(model, control, x0, v0, h, contact, t + h)
         self._set_rows(model, control, contact, h)
@@ -730,21 +738,23 @@ class BackwardEuler:
         w = np.concatenate(ws)
         if self._perm is None or self._perm.size != A.shape[0] + B.shape[0]:
             self._perm = mixed_ordering(A, B)
-        return MixedFactor.of_parts(A, B, w, self._perm, single=self.single, analysis=self._analysis())
+        return MixedFactor.of_parts(A, B, w, self._perm, single=self.single, analysis=self._analysis(),
+                                    threads=self.threads)
 
     def _refactor(self, model: Model, state: State, x: np.ndarray, dt_fx: float) -> None:
         """Take the factor at *x*: the system matrix assembled and factored (what that cost in
         :attr:`_renew_s`)."""
         t = time.perf_counter()
         h = state.dt
+        self._check_threads()
         if self.factored(model) == "mixed":
             fac = self._mixed_factor(model, state, x, h, dt_fx)
         else:
             A = self._system_matrix(model, state, x, h, dt_fx)
             if self._perm is None or self._perm.size != A.shape[0]:
                 self._perm = node_ordering(A)
-            fac = SparseFactor.of(A, self._perm, single=self.single, analysis=self._analysis())
-        fac.ldl.threads = self.threads
+            fac = SparseFactor.of(A, self._perm, single=self.single, analysis=self._analysis(),
+                                  threads=self.threads)
         st = self.stats
         st.factorizations += 1
         st.factor_s += fac.seconds
@@ -756,6 +766,19 @@ class BackwardEuler:
         self._stale = False
         self._excess = 0
         self._renew_s = time.perf_counter() - t
+
+    def _check_threads(self) -> None:
+        """Two threads given up for one, for the rest of the run, where the last factor's solves on two
+        took longer (their median) than a solve on one did in the run's trial (:attr:`solo_solve_s`,
+        set where ``threads = "auto"`` chose two). Another process on the second core makes the two
+        threads wait for each other: beside a CPU hog the paper liver's solve took 12.5 ms on two
+        threads against 0.41 ms on one, and a run whose hog started after the trial 11.4 s instead of
+        0.9 s (2026-11-27). The median, not the mean: a factor's first solves on two threads are slow
+        (the workers waking; the paper liver's first 60 averaged 0.70 ms, their median 0.12 ms)."""
+        cons = self._cons
+        if self.threads > 1 and cons is not None and cons.apply_s and np.median(cons.apply_s) > self.solo_solve_s:
+            self.threads = 1
+            self.stats.thread_fallbacks += 1
 
     def solve_timing(self, threads=(1, 2), *, repeats: int = 7, warm: int = 3) -> dict:
         """Median seconds of a solve with the current factor on each number of *threads* (a random

@@ -218,6 +218,7 @@ class Constraints:
     _hard: tuple | None = field(default=None, repr=False)   #: hard rows' nodes, directions, orthonormal
     solves: int = 0
     solve_s: float = 0.0        #: seconds spent in the preconditioner's solves
+    apply_s: list = field(default_factory=list, repr=False)   #: each of the preconditioner's solves [s]
     columns_s: float = 0.0      #: seconds spent computing the columns of W
 
     def columns(self, node: np.ndarray, e: np.ndarray) -> None:
@@ -303,8 +304,10 @@ class Constraints:
             r = np.where(fixed, 0.0, r)
         t = time.perf_counter()
         z = self.factor.solve(r)
-        self.solve_s += time.perf_counter() - t
+        dt = time.perf_counter() - t
+        self.solve_s += dt
         self.solves += 1
+        self.apply_s.append(dt)
         if self.W is not None:
             z = z - self.W @ (self.cap_inv @ self.gather(z))
             self._project_hard(z.reshape(self.n, 3))     # exactly in the null space (the factor may be float32)

@@ -363,6 +363,8 @@ def _plan_implicit(run: RunSetup, scene: Scene, table, reporter) -> None:
     run.prefactor_s = sim.stepper.prepare(sim.model, sim.state, sim.control)
     run.threads, run.thread_timing = choose_solve_threads(sim, scene.threads)
     sim.threads = run.threads
+    if run.threads > 1 and "1" in run.thread_timing:
+        sim.stepper.solo_solve_s = run.thread_timing["1"]      # two threads fall back to one if they get slower
     if isinstance(scene.threads, int) and scene.threads > 2:
         reporter.warn(f"[integrator] threads = {scene.threads}: the implicit stepper's solves use at most 2 "
                       "(the two halves of the factor's nested dissection); the rest of its step, one")
