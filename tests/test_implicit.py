@@ -24,7 +24,7 @@ from esmm.pipeline.network.forcelaw import tangent_stiffness
 from esmm.pipeline.network.springs import network_from_tets
 from esmm.pipeline.network.tables import StiffnessTables
 from esmm.pipeline.progress import ListReporter
-from esmm.pipeline.simulate import implicit
+from esmm.pipeline.simulate import implicit, runsetup
 from esmm.pipeline.simulate import kernels as K
 from esmm.pipeline.simulate.history import History
 from esmm.pipeline.simulate.implicit import BackwardEuler, Slides
@@ -480,6 +480,15 @@ def test_threads_of_the_implicit_stepper(tmp_path, slab):
         k = one.n_frames - 1
         np.testing.assert_allclose(two.displacement(k), one.displacement(k), rtol=0,
                                    atol=1e-6 * np.abs(one.displacement(k)).max())
+
+
+@pytest.mark.parametrize("avail, requested, expected", [(2, "auto", 2), (1, "auto", 1), (2, 1, 1), (2, 3, 2),
+                                                      (1, 2, 1)])
+def test_factorization_threads(monkeypatch, avail, requested, expected):
+    """The factorizations take two threads under "auto" where there are two (untimed: long enough for the
+    workers' wake-up not to count), else as asked, at most two and at most what numba has."""
+    monkeypatch.setattr(runsetup, "threads_available", lambda: avail)
+    assert runsetup.choose_factor_threads(requested) == expected
 
 
 def test_an_implicit_step_longer_than_a_frame_warns_and_steps_once_per_frame(tmp_path, slab):

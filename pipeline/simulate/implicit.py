@@ -177,11 +177,14 @@ class BackwardEuler:
         speed (docs/simulate.md §2b). The "fresh" preconditioner always factors the
         exact matrix.
     threads : int
-        Threads of the factor's solves and factorizations: 1, or 2 (the two halves of the nested
-        dissection at once, :mod:`esmm.pipeline.network.supernodal`; on the fine liver's factor a
-        solve 1.4-1.7 against 2.9-3.2 ms, a factorization 59 against 87 ms; on the paper liver's a
-        solve 0.17-0.26 against 0.26-0.46 ms, a factorization 4.5 against 6.5 ms; with the workers
-        kept awake, :func:`~.runsetup.keep_workers_awake`). The rest of the step runs on one thread.
+        Threads of the factor's solves: 1, or 2 (the two halves of the nested dissection at once,
+        :mod:`esmm.pipeline.network.supernodal`; on the fine liver's factor 1.3-1.9 against
+        2.1-3.2 ms back to back, but 4-6 ms against 2.6-7 ms between other work on this VM; on the
+        paper liver's 0.13 against 0.21 ms in a run). The rest of the step runs on one thread.
+    factor_threads : int
+        Threads of the factorizations: 1 or 2 (the same halves; the fine liver's 59 against 87 ms,
+        the paper liver's 4.5 against 6.5 ms, 2026-11-27). Long enough that the workers' wake-up
+        does not count, unlike a solve's.
     solo_solve_s : float
         A solve's time on one thread, measured where ``threads = "auto"`` chose two: if two threads'
         solves get slower than that, the run goes on with one (:meth:`_check_threads`). NaN: never.
@@ -203,6 +206,7 @@ class BackwardEuler:
     single: bool = True
     factor_matrix: str = "bound"
     threads: int = 1
+    factor_threads: int = 1
     solo_solve_s: float = math.nan
     stats: ImplicitStats = field(default_factory=ImplicitStats)
     _factor: SparseFactor | None = field(default=None, repr=False)
@@ -739,7 +743,7 @@ class BackwardEuler:
         if self._perm is None or self._perm.size != A.shape[0] + B.shape[0]:
             self._perm = mixed_ordering(A, B)
         return MixedFactor.of_parts(A, B, w, self._perm, single=self.single, analysis=self._analysis(),
-                                    threads=self.threads)
+                                    threads=self.factor_threads)
 
     def _refactor(self, model: Model, state: State, x: np.ndarray, dt_fx: float) -> None:
         """Take the factor at *x*: the system matrix assembled and factored (what that cost in
@@ -754,7 +758,8 @@ class BackwardEuler:
             if self._perm is None or self._perm.size != A.shape[0]:
                 self._perm = node_ordering(A)
             fac = SparseFactor.of(A, self._perm, single=self.single, analysis=self._analysis(),
-                                  threads=self.threads)
+                                  threads=self.factor_threads)
+        fac.ldl.threads = self.threads                   # its solves'
         st = self.stats
         st.factorizations += 1
         st.factor_s += fac.seconds

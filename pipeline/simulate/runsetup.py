@@ -305,6 +305,14 @@ def choose_solve_threads(sim: Simulator, requested) -> tuple[int, dict]:
     return _chosen(requested, min(2, threads_available()), lambda: sim.stepper.solve_timing((1, 2)))
 
 
+def choose_factor_threads(requested) -> int:
+    """The implicit stepper's factorization threads (1 or 2): as *requested*, or for ``"auto"`` two where
+    numba has them, untimed: a factorization takes tens of milliseconds, so the workers' wake-up (2-3
+    ms here) does not count as it does for a solve (fine liver 87 -> 59 ms; beside a CPU hog 0.99-1.7x
+    faster still; docs/simulate.md §2b)."""
+    return _chosen(2 if requested == "auto" else requested, min(2, threads_available()), dict)[0]
+
+
 def plan_steps(run: RunSetup, scene: Scene, plan: GraspPlan | None, reporter) -> None:
     """The run's step schedule, its first step and threads (into *run*).
 
@@ -360,6 +368,7 @@ def _plan_implicit(run: RunSetup, scene: Scene, table, reporter) -> None:
                       f"({frame_dt * 1e3:.4g} ms at {scene.frame_rate:g} frames/s): the solve steps once per frame, "
                       f"at {sim.dt * 1e3:.4g} ms; give at most a frame (or \"frame\")")
     run.schedule = schedule
+    sim.stepper.factor_threads = choose_factor_threads(scene.threads)
     run.prefactor_s = sim.stepper.prepare(sim.model, sim.state, sim.control)
     run.threads, run.thread_timing = choose_solve_threads(sim, scene.threads)
     sim.threads = run.threads
