@@ -51,12 +51,15 @@ class SparseFactor:
         The order factored (the caller's, postordered).
     seconds : float
         Time the factorization took.
+    analysis_s : float
+        Of it, the symbolic analysis, where this factor needed a new one (else 0).
     nnz : int
         Nonzeros of L (fill).
     """
 
     ldl: LDLT
     seconds: float = 0.0
+    analysis_s: float = 0.0
 
     @property
     def perm(self) -> np.ndarray:
@@ -89,19 +92,26 @@ class SparseFactor:
         A = canonical(A)
         if perm is None and (analysis is None or not analysis.matches(A)):
             perm = node_ordering(A)
-        ldl = _factor(A, analysis, perm, np.float32 if single else np.float64, threads)
-        return cls(ldl=ldl, seconds=time.perf_counter() - t)
+        ldl, analysis_s = _factor(A, analysis, perm, np.float32 if single else np.float64, threads)
+        return cls(ldl=ldl, seconds=time.perf_counter() - t, analysis_s=analysis_s)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``A^-1 b`` for *b* of shape (N,) or (N, k) (float64)."""
         return self.ldl.solve(b)
 
 
-def _factor(A, analysis, perm, dtype, threads) -> LDLT:
+def _factor(A, analysis, perm, dtype, threads) -> tuple[LDLT, float]:
     """:class:`~esmm.pipeline.network.supernodal.LDLT` of the stepper's matrix, factored and solved on
-    *threads*; a zero pivot is the asset's fault (SimulationError)."""
+    *threads*, and the seconds of its symbolic analysis where *analysis* did not fit (0 otherwise);
+    a zero pivot is the asset's fault (SimulationError)."""
+    A = canonical(A)
+    analysis_s = 0.0
+    if analysis is None or not analysis.matches(A):
+        t = time.perf_counter()
+        analysis = Analysis.of(A, perm if perm is not None else np.arange(A.shape[0]))
+        analysis_s = time.perf_counter() - t
     try:
-        return LDLT.of(A, analysis, perm=perm, dtype=dtype, threads=threads)
+        return LDLT.of(A, analysis, dtype=dtype, threads=threads), analysis_s
     except ZeroPivot as exc:
         raise SimulationError(f"the implicit step's matrix could not be factored ({exc}); "
                               "check the asset's masses and fixed nodes") from None
@@ -151,8 +161,8 @@ class MixedFactor(SparseFactor):
         K = canonical(saddle_point(A, B, w))
         if perm is None and (analysis is None or not analysis.matches(K)):
             perm = mixed_ordering(A, B)
-        ldl = _factor(K, analysis, perm, np.float32 if single else np.float64, threads)
-        return cls(ldl=ldl, seconds=time.perf_counter() - t, n_dof=n_dof)
+        ldl, analysis_s = _factor(K, analysis, perm, np.float32 if single else np.float64, threads)
+        return cls(ldl=ldl, seconds=time.perf_counter() - t, analysis_s=analysis_s, n_dof=n_dof)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``(A + B^T W B)^-1 b`` for *b* of shape (3n,) or (3n, k)."""
