@@ -222,8 +222,6 @@ class BackwardEuler:
     _qn: dict = field(default_factory=dict, repr=False)       #: this solve's quasi-Newton record
     _qn_step: int = field(default=0, repr=False)              #: this step's quasi-Newton iterations
     _handover: list = field(default_factory=lambda: [0, 0], repr=False)  #: hand-overs' cost, and their count
-    _renew_s: float = field(default=math.nan, repr=False)     #: the last factor's assembly and numeric factorization [s]
-    _once_s: float = field(default=0.0, repr=False)          #: of the last factor's time, its ordering [s]
 
     def __post_init__(self):
         if self.iteration not in ITERATIONS:
@@ -283,9 +281,7 @@ class BackwardEuler:
         if self.preconditioner != "factor":
             return 0.0
         t = time.perf_counter()
-        dt_fx = self._dt_fx(state, state.dt)
-        self._system_matrix(model, state, state.x, state.dt, dt_fx)    # its one-time setup, untimed (_refactor)
-        self._refactor(model, state, state.x, dt_fx)
+        self._refactor(model, state, state.x, self._dt_fx(state, state.dt))
         return time.perf_counter() - t
 
     # -- one step ------------------------------------------------------------------
@@ -551,13 +547,22 @@ class BackwardEuler:
         return self.preconditioner == "factor" and self._excess > self._factor_in_solves()
 
     def _factor_in_solves(self) -> float:
-        """What taking the factor again costs (the matrix's assembly, its factorization and the
-        constraint columns, as measured for the current one), in the current factor's mean solves;
-        infinite before any solve."""
-        cons = self._cons
-        if self._factor is None or cons is None or cons.solves == 0 or cons.solve_s <= 0.0:
+        """What taking the factor again costs (its numeric factorization and constraint columns, as
+        measured for the current one), in the current factor's mean solves; infinite before any solve.
+
+        Without the symbolic analysis, which only the run's first factor does (with the analysis
+        kernels' first calls: the paper liver's 0.11 s against 4-7 ms for the numeric phase): with it
+        the factor counted as ~400 solves instead of ~25 until its first renewal, and a run renewed
+        it or not by its timing (the paper liver's default scene, 2026-11-27: 0 or 5 renewals, 2 031
+        or 1 008 quasi-Newton iterations, 1.71 or 0.99 s of stepping). Nor the matrix's assembly:
+        counted, it renewed the factor less often and the runs were slower, and the grasper force at
+        1 kHz, predicted from the factor's patch stiffness, missed the explicit reference by more
+        (docs/simulate.md §2b, "What a renewal costs").
+        """
+        cons, fac = self._cons, self._factor
+        if fac is None or cons is None or cons.solves == 0 or cons.solve_s <= 0.0:
             return math.inf
-        return (self._renew_s + cons.columns_s) / (cons.solve_s / cons.solves)
+        return (fac.seconds - fac.analysis_s + cons.columns_s) / (cons.solve_s / cons.solves)
 
     # -- pieces of a step ------------------------------------------------------------
     @staticmethod
@@ -734,23 +739,12 @@ class BackwardEuler:
         B = sps.vstack(Bs).tocsr() @ sps.diags(np.repeat(model.movable, 3).astype(np.float64))
         w = np.concatenate(ws)
         if self._perm is None or self._perm.size != A.shape[0] + B.shape[0]:
-            self._perm = self._timed_once(mixed_ordering, A, B)
+            self._perm = mixed_ordering(A, B)
         return MixedFactor.of_parts(A, B, w, self._perm, single=self.single, analysis=self._analysis(),
                                     threads=self.factor_threads)
 
     def _refactor(self, model: Model, state: State, x: np.ndarray, dt_fx: float) -> None:
-        """Take the factor at *x*: the system matrix assembled and factored.
-
-        What a renewal costs (:attr:`_renew_s`, which the renewal rules weigh, :meth:`_factor_in_solves`)
-        is its time without what the run's first factor alone does: the ordering, the symbolic
-        analysis (with the analysis kernels' first calls) and the assembly's one-time setup, which
-        :meth:`prepare` does first (the paper liver: 0.11 s against 13-16 ms for the rest). With the
-        first's whole cost the rules took the factor to cost about 400 solves instead of 25 until
-        its first renewal, and renewed it in some runs and not in others (the paper liver's default
-        scene, 2026-11-27: 0 or 5 renewals, 2 031 or 1 008 quasi-Newton iterations, 1.71 or 0.99 s
-        of stepping)."""
-        t = time.perf_counter()
-        self._once_s = 0.0
+        """Take the factor at *x*: the system matrix assembled and factored."""
         h = state.dt
         self._check_threads()
         if self.factored(model) == "mixed":
@@ -758,7 +752,7 @@ class BackwardEuler:
         else:
             A = self._system_matrix(model, state, x, h, dt_fx)
             if self._perm is None or self._perm.size != A.shape[0]:
-                self._perm = self._timed_once(node_ordering, A)
+                self._perm = node_ordering(A)
             fac = SparseFactor.of(A, self._perm, single=self.single, analysis=self._analysis(),
                                   threads=self.factor_threads)
         fac.ldl.threads = self.threads                   # its solves'
@@ -772,14 +766,6 @@ class BackwardEuler:
         self._cons = Constraints(fac, model.n_nodes)
         self._stale = False
         self._excess = 0
-        self._renew_s = time.perf_counter() - t - fac.analysis_s - self._once_s
-
-    def _timed_once(self, ordering, *args) -> np.ndarray:
-        """*ordering(*args)*, a run's fill-reducing order: its seconds kept out of what a renewal costs."""
-        t = time.perf_counter()
-        perm = ordering(*args)
-        self._once_s += time.perf_counter() - t
-        return perm
 
     def _check_threads(self) -> None:
         """Two threads given up for one, for the rest of the run, where the last factor's solves on two

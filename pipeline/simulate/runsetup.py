@@ -310,7 +310,7 @@ def choose_factor_threads(requested) -> int:
     numba has them, untimed: a factorization takes tens of milliseconds, so the workers' wake-up (2-3
     ms here) does not count as it does for a solve (fine liver 87 -> 59 ms; beside a CPU hog 0.99-1.7x
     faster still; docs/simulate.md §2b)."""
-    return _chosen(2 if requested == "auto" else requested, min(2, threads_available()), dict)[0]
+    return max(1, min(2 if requested == "auto" else int(requested), 2, threads_available()))
 
 
 def plan_steps(run: RunSetup, scene: Scene, plan: GraspPlan | None, reporter) -> None:
