@@ -52,6 +52,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba as nb
 import numpy as np
 import scipy.sparse as sp
 
@@ -394,10 +395,15 @@ class VolumeElements:
         per-tet formulation it is K itself.
         """
         x = self._x(points)
-        if "rest_tet_volume" not in self._cache:
-            self._cache["rest_tet_volume"] = tet_volumes(self._cache["rest_points"], self.tets)
-        G = self.gradient_matrix(x)
-        return (G.T @ sp.diags(self.bulk_modulus / self._cache["rest_tet_volume"]) @ G).tocsr()
+        t, m = self.tets.shape[0], 3 * self.n_nodes
+        if "bound_pattern" not in self._cache:
+            rest = tet_volumes(self._cache["rest_points"], self.tets)
+            self._cache["bound_weight"] = np.broadcast_to(self.bulk_modulus / rest, (t,)).astype(np.float64)
+            self._cache["bound_pattern"] = _tet_block_pattern(self.tets, self.n_nodes)
+        indptr, indices, pos = self._cache["bound_pattern"]
+        data = np.zeros(indices.size)
+        _add_outer_products(self._gradients(x).reshape(t, 12), self._cache["bound_weight"], pos, data)
+        return sp.csr_matrix((data, indices, indptr), shape=(m, m))
 
     def _geometric(self, x: np.ndarray, pbar: np.ndarray) -> sp.coo_matrix:
         """``sum_t pbar_t d2 V_t / dx2`` as a sparse (3n, 3n) matrix (off-diagonal node blocks only).
@@ -512,3 +518,27 @@ def volume_elements(points: np.ndarray, tets: np.ndarray, spec: VolumeSpec) -> V
     el = VolumeElements(spec, t, rest, n)
     el._cache["rest_points"] = x.copy()
     return el
+
+
+def _tet_block_pattern(tets: np.ndarray, n_nodes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The CSR pattern (indptr, indices) of the (3n, 3n) matrix whose node blocks couple the nodes of a
+    tet, and where each tet's 12 x 12 block goes in its data, ``pos`` (t, 144): entry ``12 a + b`` of
+    tet t (its dofs in the order ``3 tets[t] + (0, 1, 2)``) at ``data[pos[t, 12 a + b]]``."""
+    t, m = tets.shape[0], 3 * n_nodes
+    dofs = (3 * tets[:, :, None] + np.arange(3)[None, None, :]).reshape(t, 12).astype(np.int64)
+    key = (np.repeat(dofs, 12, axis=1) * m + np.tile(dofs, (1, 12))).ravel()
+    uniq, pos = np.unique(key, return_inverse=True)
+    rows = uniq // m
+    indptr = np.searchsorted(rows, np.arange(m + 1)).astype(np.int64)
+    return indptr, (uniq % m).astype(np.int64), pos.reshape(t, 144).astype(np.int64)
+
+
+@nb.njit(cache=True)
+def _add_outer_products(g, w, pos, data):
+    """``data[pos[t, 12 a + b]] += w[t] g[t, a] g[t, b]`` for every tet t: the per-tet Gauss-Newton
+    blocks ``w_t grad V_t grad V_t^T`` summed into a CSR matrix's data (:func:`_tet_block_pattern`)."""
+    for t in range(g.shape[0]):
+        for a in range(12):
+            ga = w[t] * g[t, a]
+            for b in range(12):
+                data[pos[t, 12 * a + b]] += ga * g[t, b]

@@ -291,6 +291,7 @@ def warm_up(springs: SpringTerm, *, threads: int = 1, volume: VolumeTerm | None 
         sub.tangent(sim.x, state=sim.state.effects, dt=1e-3)
         if volume is not None:
             vol.tangent(sim.x)
+            vol.tangent_bound(sim.x)
         supernodal.warm_up()
     return time.perf_counter() - t
 
