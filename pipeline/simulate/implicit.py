@@ -27,8 +27,9 @@ current state). By default each solve iterates by L-BFGS with that factor
 as its first inverse instead (:mod:`.quasinewton`: one solve per iteration,
 no tangent); a solve it does not finish goes on with a factor taken at its best
 iterate, then with Newton's iteration (``iteration``). The factor is the
-supernodal :math:`LDL^T` of :mod:`esmm.pipeline.network.supernodal`, its
-solves on two threads where that is faster (``threads``). Constraints join through the capacitance matrix
+supernodal :math:`LDL^T` of :mod:`esmm.pipeline.network.supernodal`, factored
+on two threads (``factor_threads``) and solved on two where that is faster
+(``threads``). Constraints join through the capacitance matrix
 (:class:`~.linsolve.Constraints`), so the factor does not change with the
 grasp or the contacts. Unconditionally stable for a linear network; the
 iterations (with their line searches, and Newton's as the fallback) carry it
