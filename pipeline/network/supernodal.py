@@ -61,6 +61,7 @@ symmetric order; a zero or non-finite pivot raises :class:`ZeroPivot` (a
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numba as nb
@@ -251,10 +252,12 @@ class Analysis:
     stack_size: int
     max_rows: int
     nnz: int
+    seconds: float = 0.0        #: how long the analysis took (a run's first factor does it; its renewals not)
 
     @classmethod
     def of(cls, A, perm: np.ndarray) -> Analysis:
         """Analyse the pattern of *A* (N, N; symmetric pattern, CSR or anything scipy converts) in order *perm*."""
+        t = time.perf_counter()
         A = canonical(A)
         n = A.shape[0]
         perm, lo, parent = _postordered(A, perm)
@@ -274,7 +277,7 @@ class Analysis:
                    part=part, by_part=by_part, part_ptr=part_ptr, part_stack=part_stack, lo_ptr=lo_ptr,
                    lo_idx=lo_idx, lo_src=lo.data.astype(np.int64), a_indptr=A.indptr.copy(),
                    a_indices=A.indices.copy(), stack_size=int(_stack_size(nchild, nr - nc)),
-                   max_rows=int(nr.max()) if n else 0, nnz=int(ptr[n]))
+                   max_rows=int(nr.max()) if n else 0, nnz=int(ptr[n]), seconds=time.perf_counter() - t)
 
     def matches(self, A) -> bool:
         """Whether the canonical CSR *A* has the pattern analysed."""

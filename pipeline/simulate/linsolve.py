@@ -104,14 +104,9 @@ def _factor(A, analysis, perm, dtype, threads) -> tuple[LDLT, float]:
     """:class:`~esmm.pipeline.network.supernodal.LDLT` of the stepper's matrix, factored and solved on
     *threads*, and the seconds of its symbolic analysis where *analysis* did not fit (0 otherwise);
     a zero pivot is the asset's fault (SimulationError)."""
-    A = canonical(A)
-    analysis_s = 0.0
-    if analysis is None or not analysis.matches(A):
-        t = time.perf_counter()
-        analysis = Analysis.of(A, perm if perm is not None else np.arange(A.shape[0]))
-        analysis_s = time.perf_counter() - t
     try:
-        return LDLT.of(A, analysis, dtype=dtype, threads=threads), analysis_s
+        ldl = LDLT.of(A, analysis, perm=perm, dtype=dtype, threads=threads)
+        return ldl, 0.0 if ldl.analysis is analysis else ldl.analysis.seconds
     except ZeroPivot as exc:
         raise SimulationError(f"the implicit step's matrix could not be factored ({exc}); "
                               "check the asset's masses and fixed nodes") from None

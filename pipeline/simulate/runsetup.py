@@ -267,11 +267,16 @@ def plan_grasper(run: RunSetup, scene: Scene, network, reporter) -> GraspPlan | 
     return plan
 
 
+def _as_asked(requested, avail: int) -> int:
+    """A thread count as asked, at least one and at most *avail*."""
+    return max(1, min(int(requested), avail))
+
+
 def _chosen(requested, avail: int, trial) -> tuple[int, dict]:
     """Threads as *requested* (at most *avail*), or for ``"auto"`` the fastest of *trial()*'s timings
     (``{threads: seconds}``; empty: one thread); and those timings for the summary."""
     if requested != "auto":
-        return max(1, min(int(requested), avail)), {}
+        return _as_asked(requested, avail), {}
     timing = trial() if avail > 1 else {}
     if not timing:
         return 1, {}
@@ -310,7 +315,7 @@ def choose_factor_threads(requested) -> int:
     numba has them, untimed: a factorization takes tens of milliseconds, so the workers' wake-up (2-3
     ms here) does not count as it does for a solve (fine liver 87 -> 59 ms; beside a CPU hog 0.99-1.7x
     faster still; docs/simulate.md §2b)."""
-    return max(1, min(2 if requested == "auto" else int(requested), 2, threads_available()))
+    return _as_asked(2 if requested == "auto" else requested, min(2, threads_available()))
 
 
 def plan_steps(run: RunSetup, scene: Scene, plan: GraspPlan | None, reporter) -> None:
