@@ -99,6 +99,25 @@ def test_tangent_bound_is_above_the_nodal_tangent_with_the_tets_sparsity(block):
     assert len({(int(r) // 3, int(c) // 3) for r, c in zip(Kc.row, Kc.col)} - pairs) > n     # K reaches further
 
 
+def test_bound_pattern_is_the_sorted_dof_pairs(block):
+    """The bound's CSR pattern, found on node pairs and widened to 3 x 3 blocks, is the one that sorting
+    every tet's 144 dof pairs gives (the plain definition), on a mesh with its tets and their nodes
+    shuffled; and each tet's 12 x 12 entries land on their own (row, column)."""
+    from esmm.pipeline.network.volume import _tet_block_pattern
+
+    rng = np.random.default_rng(5)
+    tets = block.tets[rng.permutation(len(block.tets))][:, rng.permutation(4)]
+    n, m = block.points.shape[0], 3 * block.points.shape[0]
+    indptr, indices, pos = _tet_block_pattern(tets, n)
+    dofs = (3 * tets[:, :, None] + np.arange(3)).reshape(-1, 12).astype(np.int64)
+    key = (np.repeat(dofs, 12, axis=1) * m + np.tile(dofs, (1, 12))).ravel()
+    uniq = np.unique(key)
+    np.testing.assert_array_equal(indptr, np.searchsorted(uniq // m, np.arange(m + 1)))
+    np.testing.assert_array_equal(indices, uniq % m)
+    rows = np.repeat(np.arange(m), np.diff(indptr))
+    np.testing.assert_array_equal(rows[pos.ravel()] * m + indices[pos.ravel()], key)
+
+
 @pytest.mark.parametrize("form", ["nodal", "tet"])
 def test_no_net_force_or_torque_and_rigid_motions_free(block, form):
     el = volume_elements(block.points, block.tets, VolumeSpec(2.0e5, form))

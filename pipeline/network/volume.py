@@ -523,14 +523,34 @@ def volume_elements(points: np.ndarray, tets: np.ndarray, spec: VolumeSpec) -> V
 def _tet_block_pattern(tets: np.ndarray, n_nodes: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The CSR pattern (indptr, indices) of the (3n, 3n) matrix whose node blocks couple the nodes of a
     tet, and where each tet's 12 x 12 block goes in its data, ``pos`` (t, 144): entry ``12 a + b`` of
-    tet t (its dofs in the order ``3 tets[t] + (0, 1, 2)``) at ``data[pos[t, 12 a + b]]``."""
-    t, m = tets.shape[0], 3 * n_nodes
-    dofs = (3 * tets[:, :, None] + np.arange(3)[None, None, :]).reshape(t, 12).astype(np.int64)
-    key = (np.repeat(dofs, 12, axis=1) * m + np.tile(dofs, (1, 12))).ravel()
-    uniq, pos = np.unique(key, return_inverse=True)
-    rows = uniq // m
-    indptr = np.searchsorted(rows, np.arange(m + 1)).astype(np.int64)
-    return indptr, (uniq % m).astype(np.int64), pos.reshape(t, 144).astype(np.int64)
+    tet t (its dofs in the order ``3 tets[t] + (0, 1, 2)``) at ``data[pos[t, 12 a + b]]``.
+
+    Found on the nodes (16 pairs a tet) and widened to 3 x 3 blocks: a row of node i's holds, for
+    each node j it shares a tet with (ascending), j's three dofs. Sorting the 144 dof pairs a tet
+    instead took 0.41 s on the fine liver (29 270 tets), inside the run's first step."""
+    t, n = tets.shape[0], n_nodes
+    ti = np.repeat(tets, 4, axis=1).ravel().astype(np.int64)
+    tj = np.tile(tets, (1, 4)).ravel().astype(np.int64)
+    pairs, which = np.unique(ti * n + tj, return_inverse=True)
+    row, col = pairs // n, pairs % n
+    start = np.searchsorted(row, np.arange(n + 1))              # node i's neighbours: pairs[start[i]:start[i+1]]
+    deg = np.diff(start)
+    k = np.arange(pairs.size) - start[row]                       # j's rank among i's neighbours
+    row_ptr = np.concatenate([[0], np.cumsum(np.repeat(3 * deg, 3))]).astype(np.int64)   # scalar rows
+    # each scalar row 3 i + d lists, for each neighbour j of i, the dofs 3 j + (0, 1, 2)
+    r_dof = np.repeat(np.arange(3 * n), np.repeat(3 * deg, 3))
+    node = r_dof // 3
+    within = np.arange(r_dof.size) - row_ptr[r_dof]
+    indices = 3 * col[start[node] + within // 3] + within % 3
+    # tet t's entry (a, b), a = 3 p + da, b = 3 q + db: row 3 tets[t, p] + da, neighbour rank k of the
+    # node pair (p, q), column offset db
+    kk = k[which].reshape(t, 4, 4)                               # rank of (tets[t, p], tets[t, q])
+    base = row_ptr[3 * tets.astype(np.int64)]                    # (t, 4): row 3 tets[t, p]'s start
+    p_, da, q_, db = np.meshgrid(np.arange(4), np.arange(3), np.arange(4), np.arange(3), indexing="ij")
+    p_, da, q_, db = (v.reshape(12, 12) for v in (p_, da, q_, db))
+    rowlen = (3 * deg[tets])[:, p_]                              # (t, 12, 12): a scalar row's length
+    pos = base[:, p_] + da * rowlen + 3 * kk[:, p_, q_] + db
+    return row_ptr, indices.astype(np.int64), np.ascontiguousarray(pos.reshape(t, 144), dtype=np.int64)
 
 
 @nb.njit(cache=True)
