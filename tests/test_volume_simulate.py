@@ -65,6 +65,36 @@ def test_force_pass_adds_the_volume_term(box, vol, tables):
     np.testing.assert_allclose(par, expect, rtol=0, atol=1e-12 * np.abs(expect).max())
 
 
+@pytest.mark.parametrize("effects", [False, True])
+def test_springs_beside_the_volume_term_on_two_threads_give_the_same_sum_bit_for_bit(box, vol, tables, effects):
+    """The implicit stepper's two-thread force pass (the springs on one thread, the volume term on the
+    other): the same numbers as the two passes one after the other, with dashpots, with material
+    effects in each mode (the effect state committed the same way too), and through the stepper's
+    own force pass on one and on two threads."""
+    from esmm.pipeline.materials.effects import MaterialEffects, MullinsEffect, ViscoelasticEffect
+    from esmm.pipeline.simulate.implicit import BackwardEuler
+
+    fx = MaterialEffects(ViscoelasticEffect((0.3,), (0.05,)), MullinsEffect(2.0, 2.0, 0.1)) if effects else None
+    springs = build_spring_term(box, tables, dashpot=2e-4, effects=fx)
+    x, v = shaken(box), 1e-3 * np.random.default_rng(3).standard_normal(box.points.shape)
+    fe = np.random.default_rng(4).standard_normal(box.points.shape)
+    modes = (K.FX_PEEK, K.FX_STEP, K.FX_PEEK) if effects else (K.FX_PEEK,)
+    s1, s2 = (springs.new_state() for _ in range(2))
+    for mode in modes:
+        one = springs.forces(x, v, fext=fe, state=s1, mode=mode, dt=1e-3) + vol.forces(x)
+        two = springs.forces(x, v, fext=fe, state=s2, mode=mode, dt=1e-3, beside=vol.kernel())
+        np.testing.assert_array_equal(two, one)
+        if effects:
+            for name in ("h", "pold", "wmax", "ximax"):
+                np.testing.assert_array_equal(getattr(s2, name), getattr(s1, name))
+    sim = Simulator(springs, box.points, box.mass, gravity=(0, 0, -9.81), volume=vol,
+                    stepper=BackwardEuler(step=1 / 30))
+    f1, f2 = (BackwardEuler._forces(sim.model, sim.state, x, v, 1e-3, threads=t) for t in (1, 2))
+    np.testing.assert_array_equal(f2, f1)
+    assert np.abs(f1 - sim.model.springs.forces(x, v, fext=sim.model.fext, state=sim.state.effects,
+                                                dt=1e-3)).max() > 0   # the volume term is in it
+
+
 def test_tangent_is_minus_the_force_jacobian(box, vol):
     x = shaken(box, 2e-3)
     Kt = vol.tangent(x)

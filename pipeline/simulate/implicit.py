@@ -60,9 +60,10 @@ from ..network.newton import node_ordering
 from . import kernels as K
 from .linsolve import Constraints, MixedFactor, SparseFactor, mixed_ordering, pcg
 from .model import Control, Model, State
-from .quasinewton import MEMORY, LBFGSMemory, secant_step
+from .quasinewton import MEMORY, MIN_STEP, LBFGSMemory, secant_step
 from .scene import FACTORS, ITERATIONS
 from .stepper import StepBound
+from .volumeterm import VolumeTerm
 
 #: Default step of the deformation solve: one frame at 30 frames/s [s].
 DEFAULT_STEP = 1.0 / 30.0
@@ -475,8 +476,8 @@ class BackwardEuler:
                                                   float(b @ d))
         self._pairs.update((xt - x).ravel(), (gt - g).ravel())
         new = self._norm(gt, control, contact, model.floor)
-        if not exact and new <= self._qn["tol"]:        # converged on the model: the residual itself decides
-            _, gt = self._residual(model, state, control, xt, x0, v0, h, dt_fx)
+        if not exact and (new <= self._qn["tol"] or new >= norm):   # converged, or no progress, on the model:
+            _, gt = self._residual(model, state, control, xt, x0, v0, h, dt_fx)    # the residual itself decides
             new, exact = self._norm(gt, control, contact, model.floor), True
         self._qn["exact"] = exact
         return xt, gt, new, max(1.0, step) * float(np.sqrt(np.einsum("ij,ij->i", d3, d3).max()))
@@ -501,8 +502,12 @@ class BackwardEuler:
             return step, x1, g1, True
         if step < 1.0:
             self.stats.backtracks += 1
+        xs = x + step * d3
+        if not MIN_STEP < step < QN_MAX_STEP:        # the secant's zero lies beyond the range: far from linear
+            _, gs = self._residual(model, state, control, xs, x0, v0, h, dt_fx)
+            return step, xs, gs, True
         self.stats.modelled += 1
-        return step, x + step * d3, g + step * (g1 - g), False
+        return step, xs, g + step * (g1 - g), False
 
     def _newton(self, model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, mass_dof, coupling, fixed_dof):
         """One Newton iteration from x (residual g, |g| = norm): the update's solve and its line search."""
@@ -600,26 +605,33 @@ class BackwardEuler:
 
     @staticmethod
     def _forces(model: Model, state: State, x: np.ndarray, v: np.ndarray, dt_fx: float,
-                mode: int = K.FX_PEEK) -> np.ndarray:
+                mode: int = K.FX_PEEK, *, threads: int = 1) -> np.ndarray:
         """Every term's force at (x, v) plus the external forces (n, 3) [N]; effects over *dt_fx*.
 
-        One thread: the explicit stepper's chunked two-thread pass was slower here (0.91 against
-        0.81 ms on the fine liver, the springs and the volume term; docs/simulate.md §2b).
+        On two *threads*, where the only other term is a volume term, the springs on one and the volume
+        term on the other (:func:`~.kernels.forces_beside_volume`, the same sum bit for bit): the fine
+        liver's 0.53 against 0.27 ms, the paper liver's 115 against 60 us (medians of 200 back to back,
+        2026-11-27). The explicit stepper's chunked two-thread pass was slower here (0.91 against
+        0.81 ms; docs/simulate.md §2b): its chunks share nodes and need a halo pass.
         """
         sp = model.springs
+        others = [term for term in model.terms if term is not sp]
+        beside = others[0].kernel() if threads > 1 and len(others) == 1 and isinstance(others[0], VolumeTerm) \
+            else None
+        if beside is not None:
+            others = []
         if state.effects is None:
-            f = sp.forces(x, v, fext=model.fext)
+            f = sp.forces(x, v, fext=model.fext, beside=beside)
         else:
-            f = sp.forces(x, v, fext=model.fext, state=state.effects, mode=mode, dt=dt_fx)
-        for term in model.terms:
-            if term is not sp:
-                f += term.forces(x, v)
+            f = sp.forces(x, v, fext=model.fext, state=state.effects, mode=mode, dt=dt_fx, beside=beside)
+        for term in others:
+            f += term.forces(x, v)
         return f
 
     def _residual(self, model, state, control, x, x0, v0, h, dt_fx):
         """(f, g): the forces at x and the residual g (n, 3) (zero on fixed nodes)."""
         v = (x - x0) / h
-        f = self._forces(model, state, x, v, dt_fx)
+        f = self._forces(model, state, x, v, dt_fx, threads=self.threads)
         fc = self._coupling_force(control, x, state.t + h)
         if fc is not None:
             f = f + fc
@@ -953,7 +965,8 @@ class BackwardEuler:
         if g_ is not None and not spring_grasp:
             v[g_.nodes] = g_.tip_velocity(state.t + 0.5 * h)
         fxs = state.effects
-        f = self._forces(model, state, x, (x - x0) / h, dt_fx, mode=K.FX_STEP if fxs is not None else K.FX_PEEK)
+        f = self._forces(model, state, x, (x - x0) / h, dt_fx, mode=K.FX_STEP if fxs is not None else K.FX_PEEK,
+                         threads=self.threads)
         if fxs is not None:
             fxs.t = t1
         state.x[:] = x

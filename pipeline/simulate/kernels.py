@@ -706,6 +706,21 @@ forces_serial = njit(**JIT_OPTIONS)(twin(_forces, "forces_serial"))
 forces_parallel = njit(parallel=True, **JIT_OPTIONS)(twin(_forces, "forces_parallel"))
 
 
+@njit(parallel=True, **JIT_OPTIONS)
+def forces_beside_volume(x, v, f, fv, fext, sp, fx, lay, vt):
+    """The spring pass (:func:`forces_serial`) into *f* on one thread while the other computes the volume
+    term's forces into *fv* (:func:`volume_forces_serial`, from zero); then ``f += fv``. The same sum, in
+    the same order, as the two passes one after the other: bit for bit. No chunks and no halo: each
+    thread has its own output (the implicit stepper's force pass, docs/simulate.md §2b)."""
+    for g in prange(2):
+        if g == 0:
+            forces_serial(x, v, f, fext, sp, fx, lay)
+        else:
+            fv[:] = 0.0
+            volume_forces_serial(x, fv, vt)
+    f += fv
+
+
 # ---------------------------------------------------------------------------
 # time stepping
 # ---------------------------------------------------------------------------

@@ -292,6 +292,7 @@ def warm_up(springs: SpringTerm, *, threads: int = 1, volume: VolumeTerm | None 
         if volume is not None:
             vol.tangent(sim.x)
             vol.tangent_bound(sim.x)
+            sub.forces(sim.x, state=sim.state.effects, dt=1e-3, beside=vol.kernel())
         supernodal.warm_up()
     return time.perf_counter() - t
 

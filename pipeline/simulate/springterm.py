@@ -127,7 +127,7 @@ class SpringTerm:
     # -- evaluation ------------------------------------------------------
     def forces(self, x: np.ndarray, v: np.ndarray | None = None, *, fext: np.ndarray | None = None,
                damped: bool | None = None, state: EffectState | None = None, mode: int = K.FX_PEEK,
-               dt: float = 0.0) -> np.ndarray:
+               dt: float = 0.0, beside: K.VolumeKernel | None = None) -> np.ndarray:
         """Nodal forces (n, 3) [N] at positions *x* (and velocities *v* for the dashpots).
 
         With material effects, *state* is the springs' state (default: the
@@ -135,6 +135,8 @@ class SpringTerm:
         *mode* one of ``kernels.FX_PEEK`` (the force a step of *dt* from the
         state would give; state unchanged), ``FX_STEP`` (the same, committing
         the state), ``FX_RELAXED`` (long-term force) or ``FX_SETTLE``.
+        *beside*: a volume term's kernel whose forces are computed on a second
+        thread meanwhile and added (:func:`~.kernels.forces_beside_volume`).
         """
         x = np.ascontiguousarray(x, dtype=np.float64)
         if x.shape != (self.n_nodes, 3):
@@ -146,7 +148,11 @@ class SpringTerm:
         if self.effects is not None:
             st = self.new_state() if state is None else state
             fx = self.effects.kernel(st, mode=int(mode), dt=dt)
-        K.forces_serial(x, v, f, fe, self.kernel(damped=damped), fx, self.layout(1))
+        if beside is None:
+            K.forces_serial(x, v, f, fe, self.kernel(damped=damped), fx, self.layout(1))
+        else:
+            K.forces_beside_volume(x, v, f, np.empty_like(x), fe, self.kernel(damped=damped), fx, self.layout(1),
+                                   beside)
         return f
 
     def stretches(self, x: np.ndarray) -> np.ndarray:
