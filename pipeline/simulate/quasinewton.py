@@ -29,7 +29,9 @@ residual is not exactly a gradient): :math:`\varphi'(s) = \mathbf g(\mathbf
 x + s\mathbf d)\cdot\mathbf d`, and the step is the zero of the secant
 through :math:`\varphi'(0)` and :math:`\varphi'(1)` (:func:`secant_step`;
 exact on a quadratic): shorter than the direction where the full step
-overshoots, longer where it still descends. The longer step matters: with the
+overshoots, longer where it still descends. The residual at that step is the
+secant's model of it, not a second force pass, except where a decision rests
+on it (:meth:`esmm.pipeline.simulate.implicit.BackwardEuler._secant_search`). The longer step matters: with the
 volume term's bound in the factor (:math:`P \succeq A` on the volume part) the
 direction is shorter than Newton's update (its largest nodal length a median
 0.23 of Newton's over the SOFA liver's lift), and both the iteration's speed
