@@ -857,27 +857,22 @@ class BackwardEuler:
         self._pairs.clear()
         if self._cons is None:
             return
-        nodes, es, comp = [], [], []
-        g_ = control.grasp
         eye = np.eye(3)
-        if g_ is not None:
-            for q, a in enumerate(g_.nodes):
-                c = 0.0 if g_.mode == "prescribed" else 1.0 / g_.stiffness[q]
-                for d in range(3):
-                    nodes.append(a)
-                    es.append(eye[d])
-                    comp.append(c)
         held, normal = self._holds(contact, model.floor)
-        for a in np.flatnonzero(held):
-            for d in range(3):
-                nodes.append(a)
-                es.append(eye[d])
-                comp.append(0.0)
-        for a in np.flatnonzero(normal):
-            nodes.append(a)
-            es.append(model.floor.normal)
-            comp.append(0.0)
-        self._cons.set_rows(np.array(nodes, np.int64), np.array(es).reshape(-1, 3), np.array(comp))
+        g_ = control.grasp
+        grasped = np.zeros(0, np.int64) if g_ is None else np.asarray(g_.nodes, np.int64)
+        if g_ is None or g_.mode == "prescribed":
+            grasp_comp = np.zeros(grasped.size)
+        else:
+            grasp_comp = 1.0 / np.asarray(g_.stiffness, dtype=np.float64)
+        held = np.flatnonzero(held)
+        normal = np.flatnonzero(normal)
+        # each grasped and each held node: three rows along the axes; each sliding contact: its normal
+        nodes = np.concatenate([np.repeat(grasped, 3), np.repeat(held, 3), normal])
+        es = np.concatenate([np.tile(eye, (grasped.size + held.size, 1)),
+                             np.tile(np.zeros(3) if model.floor is None else model.floor.normal, (normal.size, 1))])
+        comp = np.concatenate([np.repeat(grasp_comp, 3), np.zeros(3 * held.size + normal.size)])
+        self._cons.set_rows(nodes, es, comp)
 
     def _preconditioner(self, model, state, x, h, dt_fx, mass_dof, coupling, fixed_dof, contact, control):
         """``r -> z``: the constrained preconditioner (factor + capacitance, or the diagonal)."""
