@@ -358,9 +358,7 @@ class BackwardEuler:
                                                   mass_dof, coupling, fixed_dof)
                 it += 1
             if not self._qn["exact"]:                    # ended on the update's length at a modelled residual
-                _, g = self._residual(model, state, control, x, x0, v0, h, dt_fx)
-                norm = self._norm(g, control, contact, floor)
-                self._qn["exact"] = True
+                g, norm = self._exact_residual(model, state, control, x, x0, v0, h, dt_fx, contact)
             self._end_solve()
             changed, moved = self._contact_update(floor, g, x, contact, final=rounds == extra)
             if changed:
@@ -434,9 +432,7 @@ class BackwardEuler:
                 self.stats.fallbacks += 1
             norm, x, g, exact = qn["best"]
             if not exact:                                # the hand-over starts from the residual itself
-                _, g = self._residual(model, state, control, x, x0, v0, h, dt_fx)
-                norm = self._norm(g, control, contact, model.floor)
-                qn["exact"] = True
+                g, norm = self._exact_residual(model, state, control, x, x0, v0, h, dt_fx, contact)
             if not qn["refreshed"] and self._refresh_pays():
                 qn.update(refreshed=True, its=0, start=norm, best=None)
                 self._stale = True                       # refactored at x by the next iteration
@@ -477,11 +473,18 @@ class BackwardEuler:
         self._pairs.update((xt - x).ravel(), (gt - g).ravel())
         new = self._norm(gt, control, contact, model.floor)
         if not exact and (new <= self._qn["tol"] or new >= norm):   # converged, or no progress, on the model:
-            _, gt = self._residual(model, state, control, xt, x0, v0, h, dt_fx)    # the residual itself decides
-            new, exact = self._norm(gt, control, contact, model.floor), True
+            gt, new = self._exact_residual(model, state, control, xt, x0, v0, h, dt_fx, contact)   # it decides
+            exact = True
         self.stats.modelled += not exact
         self._qn["exact"] = exact
         return xt, gt, new, max(1.0, step) * float(np.sqrt(np.einsum("ij,ij->i", d3, d3).max()))
+
+    def _exact_residual(self, model, state, control, x, x0, v0, h, dt_fx, contact):
+        """(g, |g|): the residual itself at *x*, where a decision rests on it (:meth:`_secant_search`);
+        the solve's current residual is exact again."""
+        _, g = self._residual(model, state, control, x, x0, v0, h, dt_fx)
+        self._qn["exact"] = True
+        return g, self._norm(g, control, contact, model.floor)
 
     def _secant_search(self, model, state, control, x, x0, v0, h, dt_fx, d3, g, descent):
         """The step along *d3* from the residual's slopes (:func:`.quasinewton.secant_step`; *descent*
