@@ -360,27 +360,64 @@ def test_a_sliding_contact_stops_where_the_floor_pushes_again():
     np.testing.assert_array_equal(x, x_before)
 
 
-def test_stable_at_frame_and_haptic_steps_and_near_locking(box):
-    """Tables that lock below 0.8 (tangent x 40), loaded by 300 g: steps of 1/30 s and 1 ms settle on the equilibrium."""
+def locking_hang(box, load=300):
+    """(term, fixed, gravity): *box* hung by its top face under *load* g, its tables locking above
+    1.15 (tangent x 40 at 1.25): a unique equilibrium in the stiff range.
+
+    Not the box on its base: a network without a volume term folds through its fixed base under
+    such loads, into one of several hanging equilibria, and the path decides which (a fresh clone's
+    CI, 2026-11-27: 46 % apart, where the factor's renewals followed the machine's load)."""
     lam = np.linspace(0.6, 1.6, 201)
-    mu = np.vstack([2e4 * (1 + 40 * np.clip((0.85 - lam) / 0.1, 0, None) ** 2)] * 3)
+    mu = np.vstack([2e4 * (1 + 40 * np.clip((lam - 1.15) / 0.1, 0, None) ** 2)] * 3)
     tables = StiffnessTables(lam_min=0.6, lam_max=1.6, n=201, values=mu, stress=mu * (lam - 1),
                              energy=np.zeros((3, 201)))
-    fixed = np.flatnonzero(box.points[:, 2] < 1e-9)
-    term = build_spring_term(box, tables)
-    g = (0, 0, -9.81 * 300)
+    fixed = np.flatnonzero(box.points[:, 2] > box.points[:, 2].max() - 1e-9)
+    return build_spring_term(box, tables), fixed, (0, 0, -9.81 * load)
+
+
+def test_stable_at_frame_and_haptic_steps_and_near_locking(box):
+    """Tables that lock above 1.15, loaded by 300 g: steps of 1/30 s and 1 ms settle on the equilibrium,
+    whenever the factor is renewed (here at random: the renewals follow measured times)."""
+    term, fixed, g = locking_hang(box)
     ref = Simulator(term, box.points, box.mass, fixed=fixed, gravity=g)
     ref.relax(rtol=1e-9)
-    lo, _ = term.stretch_range(ref.x)
-    assert lo < 0.85                                   # the equilibrium is in the stiff (locking) range
-    for dt in (1 / 30, 1e-3):
-        sim = Simulator(term, box.points, box.mass, fixed=fixed, gravity=g, mass_damping=20.0,
-                        stepper=BackwardEuler(step=dt))
-        assert dt > 10 * stable_step(term, box.mass).dt
-        sim.advance(int(round(0.6 / dt)))
-        assert np.all(np.isfinite(sim.x))
-        u = ref.x - box.points
-        assert np.abs(sim.x - ref.x).max() < 0.02 * np.abs(u).max()
+    _, hi = term.stretch_range(ref.x)
+    assert hi > 1.25                                   # the equilibrium is in the stiff (locking) range
+    u = ref.x - box.points
+    rng = np.random.default_rng(1)
+    for timed in (True, False):
+        for dt in (1 / 30, 1e-3):
+            stepper = BackwardEuler(step=dt)
+            if not timed:
+                stepper._factor_in_solves = lambda: float(rng.uniform(0.0, 60.0))
+            sim = Simulator(term, box.points, box.mass, fixed=fixed, gravity=g, mass_damping=20.0, stepper=stepper)
+            assert dt > 10 * stable_step(term, box.mass).dt
+            sim.advance(int(round(0.6 / dt)))
+            assert np.all(np.isfinite(sim.x))
+            assert np.abs(sim.x - ref.x).max() < 0.02 * np.abs(u).max()
+
+
+@pytest.mark.parametrize("dt", [1 / 30, 1e-3])
+def test_a_force_below_the_tolerance_still_moves_a_state_at_rest(box, dt):
+    """At rest on one load's equilibrium, the weight raised by half the tolerance: the steps reach the
+    new equilibrium (each step iterates once at least; accepted as predicted, the state never moved)."""
+    term, fixed, g = locking_hang(box, load=30)
+    eq = []
+    for load in (g, np.multiply(g, 1.005)):
+        ref = Simulator(term, box.points, box.mass, fixed=fixed, gravity=load)
+        ref.relax(rtol=1e-10)
+        eq.append(ref.x.copy())
+    stepper = BackwardEuler(step=dt)
+    sim = Simulator(term, box.points, box.mass, fixed=fixed, gravity=np.multiply(g, 1.005), mass_damping=20.0,
+                    stepper=stepper)
+    sim.state.x[:] = eq[0]
+    free = np.setdiff1d(np.arange(box.n_nodes), fixed)
+    weight = np.abs(np.multiply(g, 1.005)[2]) * box.mass[free].max()
+    assert np.abs(term.forces(eq[0])[free] + box.mass[free, None] * np.multiply(g, 1.005)).max() < stepper.rtol * weight
+    sim.advance(int(round(0.6 / dt)))
+    shift = np.abs(eq[1] - eq[0]).max()
+    assert shift > 1e-6
+    assert np.abs(sim.x - eq[1]).max() < 0.05 * shift
 
 
 def first_mode_decay(term, box, fixed, stepper, h, duration=0.5):
