@@ -20,6 +20,16 @@ figure on stdout):
   ``gamma/2 + sqrt(1 + gamma^2/4)`` and at its inverse; then the cube's cases,
   or with ``--asset A.h5 --out B.h5`` a copy of an asset with those tables (to
   ``esmm validate B.h5``);
+* ``fabric``: an experiment on the springs' volume shares (not what ``esmm prepare`` does):
+  the cube's network at each of ``--sizes`` under six homogeneous small strains (every boundary
+  node on the affine field, the interior relaxed; ``--affine``: not relaxed), its strain energy
+  over the continuum's ``V e:C:e / 2`` with the springs' own Cauchy material (lambda = mu), for
+  the shares ``V_t / 6`` (``esmm prepare``), per-tet fitted shares (non-negative least squares
+  of each tet's six springs against ``V_t C``; Lloyd et al. 2007's idea) and a global
+  reweighting that makes the network's orientation fabric isotropic (:func:`_isotropic_factors`);
+  with ``--validate``, ``esmm validate --specimen`` at each size, or with ``--prepare STL --out
+  A.h5`` ``esmm prepare STL --config paper``, with the isotropic fabric (its calibration cached
+  apart, in the cache's ``fabric-experiment`` folder);
 * ``timing``: the network side of ``esmm validate ASSET`` (``--cases``, volume
   term on), its tangent factored the old way (the LU with COLAMD) and the new
   (the LDLᵀ in node order, :func:`esmm.pipeline.network.newton.free_order`),
@@ -29,17 +39,22 @@ figure on stdout):
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import os
 import shutil
 import time
 
 import numpy as np
+import scipy.sparse.linalg as spla
+from esmm.pipeline import cache
 from esmm.pipeline.asset import read_asset
 from esmm.pipeline.asset.rewrite import update_asset_tables
 from esmm.pipeline.fidelity import network_solve
 from esmm.pipeline.fidelity import validate as fv
 from esmm.pipeline.fidelity.specimen import cube_specimen
 from esmm.pipeline.materials.material import load_material
+from esmm.pipeline.network import springs
 from esmm.pipeline.network.compensation import compensate, correction_on_grid
 from esmm.pipeline.progress import ensure
 
@@ -97,6 +112,119 @@ def shear_loss(args, material):
                             cases=list(fv.SPECIMEN_CASES), volume_term="on")
     _rows(r, part="shear-loss", size_mm=args.sizes[0])
 
+#: Exponents (a, b, c) of the 15 monomials x^a y^b z^c of degree 4: a fully symmetric 4th-order tensor's components.
+_EXP = np.array([[a, b, 4 - a - b] for a in range(4, -1, -1) for b in range(4 - a, -1, -1)])
+#: Voigt pairs and the Cauchy material (lambda = mu = 1) the springs have.
+_VOIGT = ((0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1))
+_CAUCHY = np.ones((3, 3)) + 2 * np.eye(3)
+
+
+def _odd_free_average(a, b, c):
+    """The mean of x^a y^b z^c over the unit sphere (degree 4): (a-1)!!(b-1)!!(c-1)!! / 15, 0 if one is odd."""
+    if a % 2 or b % 2 or c % 2:
+        return 0.0
+    df = {0: 1, 2: 1, 4: 3}
+    return df[a] * df[b] * df[c] / 15.0
+
+
+def _isotropic_factors(n, q):
+    r"""Per-spring factors m that make the fabric isotropic: ``sum_s q_s m_s M(n_s) = alpha <M>`` with
+    ``M(n)`` the 15 degree-4 monomials of the spring's direction, ``<M>`` their sphere average (the
+    fabric of an isotropic network), ``sum q m = sum q``. With ``m = M(n) . gamma`` (degree-4
+    polynomials span the harmonics of degree 0, 2 and 4 on the sphere: the closest such factors to 1
+    in the q-weighted norm), ``gamma = alpha G^{-1} <M>``, ``G = sum q M M^T``. The network's affine
+    elasticity ``sum k L^2 nnnn / V`` is then isotropic (Cauchy's lambda = mu)."""
+    M = np.prod(n[:, None, :] ** _EXP[None, :, :], axis=2)
+    avg = np.array([_odd_free_average(*e) for e in _EXP])
+    m = M @ np.linalg.lstsq((M * q[:, None]).T @ M, avg, rcond=None)[0]
+    return m * q.sum() / (q * m).sum()
+
+
+def _per_tet_factors(net):
+    """The spring volume shares from each tet's six springs fitted to ``V_t C`` (non-negative least squares,
+    the Voigt matrices whole), over ``V_ij``: the factors to apply to ``v_ij``."""
+    from scipy.optimize import nnls
+    key = {tuple(p): i for i, p in enumerate(net.springs)}
+    vt = springs.tet_volumes(net.points, net.tets)
+    share = np.zeros(net.n_springs)
+    iu = np.triu_indices(6)
+    for t, tet in enumerate(net.tets):
+        cols, idx = [], []
+        for p, q in springs._TET_EDGES:
+            d = net.points[tet[q]] - net.points[tet[p]]
+            L = np.linalg.norm(d)
+            a = L * np.array([d[i] * d[j] for i, j in _VOIGT]) / L ** 2
+            cols.append(np.outer(a, a)[iu])
+            idx.append(key[tuple(sorted((tet[p], tet[q])))])
+        C = np.zeros((6, 6))
+        C[:3, :3], C[3:, 3:] = _CAUCHY, np.eye(3)
+        k = nnls(np.array(cols).T, (vt[t] * C)[iu])[0]
+        np.add.at(share, idx, k * np.array([net.rest_length[i] ** 2 for i in idx]))
+    return share / net.volume
+
+
+def _patch_ratios(net, *, affine=False):
+    """The network's energy over the continuum's in six homogeneous strains (module doc, ``fabric``)."""
+    from esmm.pipeline.network.springs import stiffness_matrix
+    K = stiffness_matrix(net).tocsr()
+    inner = np.ones(net.n_nodes, bool)
+    inner[np.unique(net.surface_faces)] = False
+    f, b = np.repeat(inner, 3), np.repeat(~inner, 3)
+    Kff, Kfb = K[f][:, f].tocsc(), K[f][:, b]
+    C = np.zeros((6, 6))
+    C[:3, :3], C[3:, 3:] = _CAUCHY, np.eye(3)
+    out = []
+    for i, j in _VOIGT:
+        eps = np.zeros((3, 3))
+        eps[i, j] = eps[j, i] = 1e-3
+        u = ((net.points - net.points.mean(0)) @ eps.T).ravel()
+        if not affine:
+            u[f] = spla.spsolve(Kff, -(Kfb @ u[b]))
+        ev = np.array([eps[p, q] * (1 if p == q else 2) for p, q in _VOIGT])
+        out.append(float(u @ (K @ u)) / float(net.total_volume() * ev @ C @ ev))
+    return out
+
+
+def _reweighted(net, m):
+    return dataclasses.replace(net, volume=net.volume * m, volume_weight=net.volume_weight * m)
+
+
+def _isotropic(net):
+    d = net.points[net.springs[:, 1]] - net.points[net.springs[:, 0]]
+    return _isotropic_factors(d / np.linalg.norm(d, axis=1)[:, None], net.volume)
+
+
+def fabric(args, material):
+    for size in args.sizes:
+        net = cube_specimen(material, size=size * 1e-3, volume=False, compensated=False).network
+        for name, m in (("volume", np.ones(net.n_springs)), ("per-tet", _per_tet_factors(net)),
+                        ("isotropic", _isotropic(net))):
+            r = _patch_ratios(_reweighted(net, m), affine=args.affine)
+            print(json.dumps(dict(part="fabric", size_mm=size, shares=name, affine=args.affine,
+                                  factors=[float(m.min()), float(m.max())], ratios=r,
+                                  spread=max(r) / min(r))), flush=True)
+    if not (args.validate or args.prepare):
+        return
+    from esmm.pipeline.fidelity import specimen as fs
+    from esmm.pipeline.network import tensile_test as tt
+    base = springs.network_from_tets
+
+    def builder(*a, **k):
+        net = base(*a, **k)
+        return _reweighted(net, _isotropic(net))
+
+    os.environ["ESMM_CACHE_DIR"] = str(cache.root() / "fabric-experiment")
+    from esmm.pipeline import prepare as pp
+    for mod in (fs, tt, pp):
+        mod.network_from_tets = builder
+    if args.prepare:
+        from esmm.cli.main import main as cli
+        cli(["prepare", args.prepare, "--config", "paper", "-o", args.out])
+        return
+    for size in args.sizes:
+        _rows(fv.validate_specimen(material, size=size * 1e-3, volume_term="on"), part="fabric-validate",
+              size_mm=size)
+
 
 def timing(args, _material):
     a = read_asset(args.asset)
@@ -124,7 +252,7 @@ def timing(args, _material):
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("part", choices=("strain", "radius", "shear-loss", "timing"))
+    p.add_argument("part", choices=("strain", "radius", "shear-loss", "fabric", "timing"))
     p.add_argument("--eps", type=float, default=0.005)
     p.add_argument("--sizes", type=float, nargs="+", default=[4.0], help="element sizes, mm")
     p.add_argument("--terms", nargs="+", default=["on", "off"])
@@ -132,8 +260,12 @@ def main() -> None:
     p.add_argument("--asset", help="timing, shear-loss: the asset")
     p.add_argument("--out", help="shear-loss: the asset copy to write")
     p.add_argument("--cases", nargs="+", default=["lift"])
+    p.add_argument("--affine", action="store_true", help="fabric: the strain energies unrelaxed")
+    p.add_argument("--validate", action="store_true", help="fabric: validate the cube with the isotropic fabric")
+    p.add_argument("--prepare", help="fabric: prepare this surface with the isotropic fabric (to --out)")
     args = p.parse_args()
-    {"strain": strain, "radius": radius, "shear-loss": shear_loss, "timing": timing}[args.part](args, load_material("porcine_liver_paper"))
+    parts = {"strain": strain, "radius": radius, "shear-loss": shear_loss, "fabric": fabric, "timing": timing}
+    parts[args.part](args, load_material("porcine_liver_paper"))
 
 
 if __name__ == "__main__":
