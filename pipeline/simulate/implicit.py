@@ -341,9 +341,9 @@ class BackwardEuler:
         The step's first solve takes one iteration even where the predictor's residual is already
         below the tolerance: accepted as it is, a state at rest whose forces are out of balance by
         less than ``rtol`` of the largest weight never moved again, however soft the mode they drive
-        (a 300 g box at 1 ms steps stopped 46 % of its sag short of the equilibrium, which step
-        sizes' path it took deciding). One iteration moves it by the linearized step, so the
-        stepper's resting states are the equilibria (docs/simulate.md §2b)."""
+        (a box at rest whose load rose by half the tolerance stayed where it was, at 1/30 s and at
+        1 ms steps). One iteration moves it by the linearized step, so the stepper's resting states
+        are the equilibria (docs/simulate.md §2b)."""
         st = self.stats
         floor = model.floor
         tol = self.rtol * self._force_scale(model)
