@@ -8,9 +8,9 @@ figure on stdout):
   (tension 1 + eps, compression 1 - eps, shear 2 eps), element sizes ``--sizes``,
   volume term ``--terms``: the signed force ratio network / continuum along the
   load, and the L2 and force errors of ``esmm validate``;
-* ``radius``: the cube's cases at the validation loads (1.2, 0.9, 0.3) with the
-  compensation calibrated on a cylinder of ``--radius`` element sizes instead of
-  the default 4;
+* ``radius``: the cube's cases at the validation loads (1.2, 0.9, 0.3) at each of
+  ``--sizes`` with the compensation calibrated on a cylinder of ``--radius`` element
+  sizes instead of the default 4;
 * ``shear-loss``: an experiment on the axial-only correction of before commit 689fbfe (not what
   ``esmm prepare`` does; on a joint-fit asset it corrects twice): the
   compensation's g multiplied by the calibration cylinder's own finite-strain
@@ -27,9 +27,10 @@ figure on stdout):
   the shares ``V_t / 6`` (``esmm prepare``), per-tet fitted shares (non-negative least squares
   of each tet's six springs against ``V_t C``; Lloyd et al. 2007's idea) and a global
   reweighting that makes the network's orientation fabric isotropic (:func:`_isotropic_factors`);
-  with ``--validate``, ``esmm validate --specimen`` at each size, or with ``--prepare STL --out
-  A.h5`` ``esmm prepare STL --config paper``, with the isotropic fabric (its calibration cached
-  apart, in the cache's ``fabric-experiment`` folder);
+  with ``--validate``, the cube's cases at each size as ``radius`` gives them (``--radius 4``:
+  ``esmm validate --specimen``'s calibration), or with ``--prepare STL --out A.h5`` ``esmm prepare
+  STL --config paper``, with the isotropic fabric (its calibrations cached apart, in the cache's
+  ``fabric-experiment`` folder);
 * ``timing``: the network side of ``esmm validate ASSET`` (``--cases``, volume
   term on), its tangent factored the old way (the LU with COLAMD) and the new
   (the LDLᵀ in node order, :func:`esmm.pipeline.network.newton.free_order`),
@@ -75,12 +76,14 @@ def strain(args, material):
             _rows(r, part="strain", eps=args.eps, size_mm=size, term=term)
 
 
-def radius(args, material):
-    spec = cube_specimen(material, size=args.sizes[0] * 1e-3, volume=True, compensated=False)
-    comp = compensate(spec.tables, spec.network, material=material, radius_elements=args.radius,
-                      volume=spec.network.volume_term)
-    r = fv.validate_network(spec.network, comp.tables, material, cases=list(fv.SPECIMEN_CASES), volume_term="on")
-    _rows(r, part="radius", radius_elements=args.radius, size_mm=args.sizes[0])
+def radius(args, material, part="radius"):
+    for size in args.sizes:
+        spec = cube_specimen(material, size=size * 1e-3, volume=True, compensated=False)
+        comp = compensate(spec.tables, spec.network, material=material, radius_elements=args.radius,
+                          volume=spec.network.volume_term)
+        r = fv.validate_network(spec.network, comp.tables, material, cases=list(fv.SPECIMEN_CASES),
+                                volume_term="on")
+        _rows(r, part=part, radius_elements=args.radius, size_mm=size)
 
 
 def _shear_loss_tables(tables):
@@ -221,9 +224,7 @@ def fabric(args, material):
         from esmm.cli.main import main as cli
         cli(["prepare", args.prepare, "--config", "paper", "-o", args.out])
         return
-    for size in args.sizes:
-        _rows(fv.validate_specimen(material, size=size * 1e-3, volume_term="on"), part="fabric-validate",
-              size_mm=size)
+    radius(args, material, part="fabric-validate")
 
 
 def timing(args, _material):
