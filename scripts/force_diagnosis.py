@@ -117,9 +117,9 @@ def shear_loss(args, material):
 
 #: Exponents (a, b, c) of the 15 monomials x^a y^b z^c of degree 4: a fully symmetric 4th-order tensor's components.
 _EXP = np.array([[a, b, 4 - a - b] for a in range(4, -1, -1) for b in range(4 - a, -1, -1)])
-#: Voigt pairs and the Cauchy material (lambda = mu = 1) the springs have.
+#: Voigt pairs and the Cauchy material (lambda = mu = 1) the springs have, in Voigt form (engineering shears).
 _VOIGT = ((0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1))
-_CAUCHY = np.ones((3, 3)) + 2 * np.eye(3)
+_CAUCHY = np.block([[np.ones((3, 3)) + 2 * np.eye(3), np.zeros((3, 3))], [np.zeros((3, 3)), np.eye(3)]])
 
 
 def _odd_free_average(a, b, c):
@@ -155,27 +155,21 @@ def _per_tet_factors(net):
         cols, idx = [], []
         for p, q in springs._TET_EDGES:
             d = net.points[tet[q]] - net.points[tet[p]]
-            L = np.linalg.norm(d)
-            a = L * np.array([d[i] * d[j] for i, j in _VOIGT]) / L ** 2
+            a = np.array([d[i] * d[j] for i, j in _VOIGT]) / np.linalg.norm(d)     # L n_i n_j
             cols.append(np.outer(a, a)[iu])
             idx.append(key[tuple(sorted((tet[p], tet[q])))])
-        C = np.zeros((6, 6))
-        C[:3, :3], C[3:, 3:] = _CAUCHY, np.eye(3)
-        k = nnls(np.array(cols).T, (vt[t] * C)[iu])[0]
+        k = nnls(np.array(cols).T, (vt[t] * _CAUCHY)[iu])[0]
         np.add.at(share, idx, k * np.array([net.rest_length[i] ** 2 for i in idx]))
     return share / net.volume
 
 
 def _patch_ratios(net, *, affine=False):
     """The network's energy over the continuum's in six homogeneous strains (module doc, ``fabric``)."""
-    from esmm.pipeline.network.springs import stiffness_matrix
-    K = stiffness_matrix(net).tocsr()
+    K = springs.stiffness_matrix(net).tocsr()
     inner = np.ones(net.n_nodes, bool)
     inner[np.unique(net.surface_faces)] = False
     f, b = np.repeat(inner, 3), np.repeat(~inner, 3)
     Kff, Kfb = K[f][:, f].tocsc(), K[f][:, b]
-    C = np.zeros((6, 6))
-    C[:3, :3], C[3:, 3:] = _CAUCHY, np.eye(3)
     out = []
     for i, j in _VOIGT:
         eps = np.zeros((3, 3))
@@ -184,7 +178,7 @@ def _patch_ratios(net, *, affine=False):
         if not affine:
             u[f] = spla.spsolve(Kff, -(Kfb @ u[b]))
         ev = np.array([eps[p, q] * (1 if p == q else 2) for p, q in _VOIGT])
-        out.append(float(u @ (K @ u)) / float(net.total_volume() * ev @ C @ ev))
+        out.append(float(u @ (K @ u)) / float(net.total_volume() * ev @ _CAUCHY @ ev))
     return out
 
 
