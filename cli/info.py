@@ -49,7 +49,8 @@ def _text(s: dict) -> list[str]:
              f"  springs      {s['springs']}, rest length {s['rest_length_mm'].get('min', 0):.2f} .. "
              f"{s['rest_length_mm'].get('max', 0):.2f} mm (mean {s['rest_length_mm'].get('mean', 0):.2f})"]
     if s["tets"]:
-        lines.append(f"  tets         {s['tets']}")
+        split = f" ({s['split_from']} tets split in eight)" if s.get("split_from") else ""
+        lines.append(f"  tets         {s['tets']}{split}")
     lo, hi = s["bounds_mm"]
     lines += [f"  volume       {s['volume_mL']:.2f} mL, mass {s['mass_g']:.1f} g "
               f"(density {s['density_kg_m3']:g} kg/m3)",

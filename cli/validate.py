@@ -35,6 +35,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="validate on the built-in specimen (a meshed cube) instead of an asset")
     p.add_argument("--side", metavar="MM", type=float, default=None, help="specimen cube edge in mm (20)")
     p.add_argument("--size", metavar="MM", type=float, default=None, help="specimen element size in mm (2.5)")
+    p.add_argument("--split", action="store_true", default=None,
+                   help="split the specimen's tets in eight, as 'esmm prepare --split' does (springs of half --size)")
     p.add_argument("--material", metavar="FILE_OR_NAME", default=None,
                    help="specimen material: preset name or TOML file (default porcine_liver_paper)")
     p.add_argument("--cases", metavar="CASE", nargs="+", default=None,
@@ -63,8 +65,8 @@ def _check_kind_options(args) -> None:
     from esmm.pipeline.errors import ConfigError
 
     if not args.specimen:
-        given = [f for f, v in (("--side", args.side), ("--size", args.size), ("--material", args.material))
-                 if v is not None]
+        given = [f for f, v in (("--side", args.side), ("--size", args.size), ("--material", args.material),
+                                ("--split", args.split)) if v is not None]
         if given:
             raise ConfigError(f"{', '.join(given)}: describe the built-in specimen (--specimen), not used with "
                               f"an ASSET (its mesh and material are in the asset); drop them or validate "
@@ -99,7 +101,7 @@ def run(args, ui) -> int:
         check_out_dir(out, "--out")
         rep = validate_specimen(load_material(args.material or SPECIMEN["material"]),
                                 side=(args.side or SPECIMEN["side"]) * 1e-3, size=(args.size or SPECIMEN["size"]) * 1e-3,
-                                out_dir=out, **opts)
+                                split=bool(args.split), out_dir=out, **opts)
     else:
         out = Path(args.out) if args.out else Path(args.asset).with_name(Path(args.asset).stem + "-validate")
         check_out_dir(out, "--out")

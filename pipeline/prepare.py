@@ -40,6 +40,7 @@ from .materials.material import Material, load_material
 from .mesh.cleaning import CleaningOptions, CleaningReport, clean_surface
 from .mesh.quality import QUALITY_FLOORS, QualityReport, check_floors, tet_quality
 from .mesh.readers import read_surface
+from .mesh.refine import split_mesh
 from .mesh.skeleton import check_n_surface, skeleton_structure
 from .mesh.targets import MeshTarget, mesh_target
 from .mesh.volume import mesh_volume
@@ -74,7 +75,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     "input": {"unit": None, "label": None},
     "cleaning": {"keep": "largest", "body": None, "smooth_iterations": 20, "smooth_passband": 0.1,
                  "target_faces": None, "target_edge": None},
-    "mesh": {"size": None, "nodes": None, "elements": None, "timeout": "120 s"},
+    "mesh": {"size": None, "nodes": None, "elements": None, "timeout": "120 s", "split": False},
     "skeleton": {"n_surface": None, "weight_exponent": 2.0},
     "fibres": {"frame": "identity"},
     "fixed": {"kind": "band", "axis": "longest", "end": "min", "width_fraction": 0.1},
@@ -89,7 +90,7 @@ KEYWORDS: dict[str, tuple[str, str]] = {
     "structure": ("prepare", "structure"), "material": ("prepare", "material"),
     "density": ("prepare", "density"), "unit": ("input", "unit"), "label": ("input", "label"),
     "keep_all": ("cleaning", "keep"), "body": ("cleaning", "body"), "compensate": ("tables", "compensate"),
-    "volume": ("volume", "enabled"),
+    "volume": ("volume", "enabled"), "split": ("mesh", "split"),
 }
 
 
@@ -115,6 +116,9 @@ class PrepareConfig:
         Size [m], node or tetrahedron count of the tet mesh.
     timeout : float
         Time limit of each meshing attempt [s].
+    split : bool
+        Split every tetrahedron of the mesh in eight (tetra structure; the
+        target is the mesh before the split).
     n_surface : int or None
         Surface vertices of the skeleton structure.
     weight_exponent : float
@@ -147,6 +151,7 @@ class PrepareConfig:
     cleaning: CleaningOptions
     target: MeshTarget
     timeout: float
+    split: bool
     n_surface: int | None
     weight_exponent: float
     fibre_frame: Any
@@ -302,7 +307,8 @@ def prepare_config(config: str | os.PathLike | dict | None = None, **keywords: A
     cfg = _merge(cfg, layer, source="options")
     from_keywords = {KEYWORDS[k]: k for k, v in keywords.items() if v is not None and v is not False}
     if cfg["prepare"]["structure"] == "skeleton":
-        given = [k for k in ("size", "nodes", "elements") if keywords.get(k) is not None]
+        given = [k for k in ("size", "nodes", "elements") if keywords.get(k) is not None] + \
+            (["split"] if keywords.get("split") else [])
         if given:
             raise ConfigError(f"{given[0]}: sets the tet mesh; for the skeleton structure set "
                               f"[skeleton] n_surface in the config", parameter=given[0])
@@ -388,7 +394,8 @@ def _mesh_part(cfg: dict, name) -> dict[str, Any]:
                          names={k: name("mesh", k) for k in ("size", "nodes", "elements")})
     where = name("mesh", "timeout")
     timeout = quantity(m["timeout"], "time", where) if isinstance(m["timeout"], str) else m["timeout"]
-    return {"target": target, "timeout": number(timeout, where, lo=0.0, lo_open=True)}
+    return {"target": target, "timeout": number(timeout, where, lo=0.0, lo_open=True),
+            "split": boolean(m["split"], name("mesh", "split"))}
 
 
 def _skeleton_part(cfg: dict, name) -> dict[str, Any]:
@@ -527,6 +534,10 @@ def _tetra(clean, cfg: PrepareConfig, run: _Run, *, force: bool, name: str) -> _
     mesh = run.stage("mesh", mesh_volume, clean, size=t.size, nodes=t.nodes, elements=t.elements,
                      timeout=cfg.timeout, reporter=run.rep)
     run.rep.step(f"mesh: {mesh.n_nodes} nodes, {mesh.n_tets} tets via {mesh.path} ({run.timings['mesh']:.1f} s)")
+    if cfg.split:
+        mesh = run.stage("split", split_mesh, mesh)
+        run.rep.step(f"split: every tet in eight, {mesh.n_nodes} nodes, {mesh.n_tets} tets "
+                     "(the network on the quadratic tets' nodes)")
     floors = {**QUALITY_FLOORS, **cfg.floors}
     quality = run.stage("quality", tet_quality, mesh)
     passed, problems = quality.passes(floors)
@@ -622,8 +633,8 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
             nodes: int | None = None, elements: int | None = None, structure: str | None = None,
             unit: str | None = None, label: int | None = None, keep_all: bool = False,
             body: int | None = None, material: str | None = None, density: float | None = None,
-            force: bool = False, compensate: bool | None = None, volume: bool | None = None, reporter=None,
-            argv: list[str] | None = None) -> PrepareResult:
+            force: bool = False, compensate: bool | None = None, volume: bool | None = None,
+            split: bool | None = None, reporter=None, argv: list[str] | None = None) -> PrepareResult:
     """Turn an organ surface into a spring-network asset.
 
     Parameters
@@ -664,6 +675,9 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
     volume : bool, optional
         Give the network its volume term (default: the config's, true; the tet
         structure only).
+    split : bool, optional
+        Split every tet of the mesh in eight (default: the config's, false; the
+        tet structure only): the network on the nodes of the quadratic tets.
     reporter
         Progress reporter (:mod:`esmm.pipeline.progress`).
     argv : list of str, optional
@@ -683,7 +697,7 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
     inp, out = asset_paths(input_path, output)
     cfg = prepare_config(config, size=size, nodes=nodes, elements=elements, structure=structure, unit=unit,
                          label=label, keep_all=keep_all, body=body, material=material, density=density,
-                         compensate=compensate, volume=volume)
+                         compensate=compensate, volume=volume, split=split)
     run = _Run(reporter)
     mat = _material(cfg, run)
     clean, cleaning = _surface(inp, cfg, run)

@@ -84,6 +84,7 @@ class Asset:
         out: dict[str, Any] = {
             "path": str(self.path), "schema_version": self.schema_version, "structure": net.structure,
             "nodes": net.n_nodes, "springs": net.n_springs, "tets": net.n_tets,
+            "split_from": None if net.quadratic_cells is None else int(net.quadratic_cells.shape[0]),
             "surface_faces": int(net.surface_faces.shape[0]), "volume_mL": net.total_volume() * 1e6,
             "mass_g": net.total_mass() * 1e3, "density_kg_m3": net.density, "fixed_nodes": int(net.fixed.size),
             "fixed_region": self.fixed_region,
@@ -337,7 +338,7 @@ def _shape_problems(f: h5py.File) -> list[str]:
     for path, shape in expect.items():
         if f[path].shape != shape:
             out.append(f"{path}: shape {f[path].shape}, expected {shape}")
-    for path, width in (("/mesh/tets", 4), ("/mesh/surface_faces", 3)):
+    for path, width in (("/mesh/tets", 4), ("/mesh/surface_faces", 3), ("/mesh/quadratic_cells", 10)):
         if path in f and (f[path].ndim != 2 or f[path].shape[1] != width):
             out.append(f"{path}: shape {f[path].shape}, expected (k, {width})")
     if f["/nodes/fixed"].ndim != 1:
@@ -351,6 +352,10 @@ def _shape_problems(f: h5py.File) -> list[str]:
                  "/springs/cos2", "/nodes/mass", "/springs/fibre_frame"):
         if not np.all(np.isfinite(_arr(f, path))):
             out.append(f"{path}: contains NaN or infinite values")
+    if "/mesh/quadratic_cells" in f:
+        q = _arr(f, "/mesh/quadratic_cells", np.int64)
+        if q.size and (q.min() < 0 or q.max() >= n):
+            out.append(f"/mesh/quadratic_cells: indices outside 0..{n - 1}")
     mask = _arr(f, "/nodes/fixed_mask")
     fixed = _arr(f, "/nodes/fixed", np.int64)
     if fixed.size and (fixed.min() < 0 or fixed.max() >= n):
@@ -378,6 +383,7 @@ def _network(f: h5py.File, *, with_volume: bool = True) -> SpringNetwork:
         fibre_frame=_arr(f, "/springs/fibre_frame", np.float64),
         density=float(f["/nodes"].attrs.get("density_kg_m3", 0.0)),
         volume_term=read_volume(f) if with_volume else None,
+        quadratic_cells=_arr(f, "/mesh/quadratic_cells", np.int64) if "/mesh/quadratic_cells" in f else None,
     )
 
 

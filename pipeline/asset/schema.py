@@ -37,6 +37,7 @@ GROUPS: dict[str, tuple[str, int, bool]] = {
 DATASETS: dict[str, tuple[str, str, bool]] = {
     "/mesh/points": ("m", "f", True),
     "/mesh/tets": ("index", "iu", False),          # absent for the skeleton structure
+    "/mesh/quadratic_cells": ("index", "iu", False),  # a split mesh's parents as 10-node cells
     "/mesh/surface_faces": ("index", "iu", True),
     "/mesh/node_kind": ("1", "u", True),
     "/springs/pairs": ("index", "iu", True),

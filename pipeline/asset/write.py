@@ -85,6 +85,10 @@ def _write_core(f: h5py.File, net: SpringNetwork, fixed_region: str) -> None:
     hdf5.put(g, "points", net.points, "m", dtype=np.float64, description="node positions at rest")
     if net.tets is not None:
         hdf5.put(g, "tets", net.tets, "index", dtype=idx, description="positively oriented tetrahedra")
+    if net.quadratic_cells is not None:
+        hdf5.put(g, "quadratic_cells", net.quadratic_cells, "index", dtype=idx,
+                 description="the tetrahedra the tets were split from, as 10-node cells on these nodes "
+                             "(vertices, then the middles of edges 01 12 20 03 13 23)")
     hdf5.put(g, "surface_faces", net.surface_faces, "index", dtype=idx,
             description="boundary triangles, counter-clockwise seen from outside")
     ds = hdf5.put(g, "node_kind", net.node_kind, "1", dtype=np.uint8, description="node kind code")

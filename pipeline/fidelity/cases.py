@@ -101,6 +101,10 @@ class LoadCase:
         Checked after a solve: a node below it becomes a pin (:func:`with_floor_pins`).
     load : dict
         The load's figures (stretch, gamma, lift vector) for the report.
+    quadratic_cells : ndarray of int, shape (p, 10), or None
+        10-node tetrahedra whose nodes are all of *points* (a network split from
+        them): the second-order continuum is then solved on these, node for
+        node, instead of on quadratic tetrahedra added to ``tets``.
     """
 
     name: str
@@ -114,6 +118,7 @@ class LoadCase:
     force_scale: float | None = None
     floor: Floor | None = None
     load: dict = field(default_factory=dict)
+    quadratic_cells: np.ndarray | None = None
 
     @property
     def n_nodes(self) -> int:

@@ -72,6 +72,13 @@ def quadratic_tets(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np
     return np.vstack([points, mid]), cells, edges
 
 
+def _quadratic(case: LoadCase) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The 10-node mesh of *case*: its own ``quadratic_cells`` (no node added), or :func:`quadratic_tets`."""
+    if case.quadratic_cells is None:
+        return quadratic_tets(case.points, case.tets)
+    return case.points, case.quadratic_cells, np.zeros((0, 2), np.int64)
+
+
 def _groups(case: LoadCase, edges: np.ndarray, n10: int):
     """Per group, its nodes among the 10-node mesh's; and the prescribed mask and values (n10, 3).
 
@@ -118,21 +125,22 @@ def _force_scale(case: LoadCase, material, mask: np.ndarray, u: np.ndarray) -> f
 def _discretise(fem, case: LoadCase, material, K: float, element: str):
     """felupe's field and solid body of *case*, its constraint groups and prescribed values."""
     if element == "p2":
-        p10, cells, edges = quadratic_tets(case.points, case.tets)
+        p10, cells, edges = _quadratic(case)
         members, mask, u = _groups(case, edges, p10.shape[0])
         region = fem.RegionQuadraticTetra(fem.Mesh(p10, cells, "tetra10"))
         field = fem.FieldContainer([fem.Field(region, dim=3)])
         solid = fem.SolidBodyNearlyIncompressible(IsochoricMaterial(material), field, bulk=K)
     else:  # MINI: a bubble node in every tet (free), u-p-J with p and J linear
         mesh = fem.Mesh(case.points, case.tets, "tetra").add_midpoints_volumes()
-        field = fem.FieldsMixed(fem.RegionTetraMINI(mesh), n=3)
+        region = fem.RegionTetraMINI(mesh)
+        field = fem.FieldsMixed(region, n=3)
         solid = fem.SolidBody(fem.ThreeFieldVariation(IsochoricMaterial(material, bulk=K)), field)
         members = {c.name: c.nodes for c in case.constraints}
         mask_v, u_v = case.prescribed()
         mask = np.zeros((mesh.npoints, 3), bool)
         u = np.zeros((mesh.npoints, 3))
         mask[:case.n_nodes], u[:case.n_nodes] = mask_v, u_v
-    return field, solid, members, mask, u, case.tets.shape[0]
+    return field, solid, members, mask, u, region.mesh.ncells
 
 
 def solve_continuum(case: LoadCase, material, *, bulk: float | None = None, element: str = "p2", steps: int = 8,

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..errors import ConfigError, MeshingError
 from ..mesh.gmsh_model import gmsh_model, tetrahedra
+from ..mesh.refine import split_in_eight
 from ..network.compensation import calibration_stretches, compensate
 from ..network.springs import network_from_tets
 from ..network.tables import build_tables
@@ -38,7 +39,7 @@ class Specimen:
 
 
 def cube_specimen(material, *, side: float = 20e-3, size: float = 2.5e-3, compensated: bool = True,
-                  volume: bool = True, reporter=None) -> Specimen:
+                  volume: bool = True, split: bool = False, reporter=None) -> Specimen:
     """A meshed cube with its spring network and the material's (compensated) tables.
 
     Parameters
@@ -53,6 +54,10 @@ def cube_specimen(material, *, side: float = 20e-3, size: float = 2.5e-3, compen
     volume : bool
         Give the network the volume term ``esmm prepare`` gives it (default; the
         compensation then runs with it) or none.
+    split : bool
+        Split every tetrahedron in eight, as ``esmm prepare --split`` does (the
+        springs are then half *size* long; the continuum is solved on the
+        *size* mesh's quadratic tetrahedra, node for node).
     """
     rep = ensure(reporter)
     for name, v in (("side", side), ("size", size)):
@@ -67,17 +72,19 @@ def cube_specimen(material, *, side: float = 20e-3, size: float = 2.5e-3, compen
     points, tets = _gmsh_cube(side, size)
 
     class _Mesh:  # what network_from_tets reads
-        pass
+        quadratic_cells = None
 
     mesh = _Mesh()
     mesh.points, mesh.tets = points, tets
+    if split:
+        mesh.points, mesh.tets, mesh.quadratic_cells = split_in_eight(points, tets)
     net = network_from_tets(mesh, fibre_frame=None, reorder="rcm")
     tables = build_tables(material)
     if volume:
         net = dataclasses.replace(net, volume_term=bulk_modulus(tables, calibration_range=calibration_stretches(tables)))
     if compensated:
         tables = compensate(tables, net, material=material, volume=net.volume_term, reporter=rep).tables
-    label = f"cube {side * 1e3:g} mm, elements {size * 1e3:g} mm"
+    label = f"cube {side * 1e3:g} mm, elements {size * 1e3:g} mm{', split in eight' if split else ''}"
     rep.step(f"specimen: {label}: {net.n_nodes} nodes, {net.n_springs} springs, {net.n_tets} tets, "
              f"volume factor c = {tables.volume_factor:.4g}")
     return Specimen(network=net, tables=tables, material=material, label=label)

@@ -16,7 +16,7 @@ under its rest position, solve again, until no node goes below.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -126,6 +126,11 @@ def network_terms(network, tables, material, *, volume_term: str = "auto") -> tu
     return (volume_elements(network.points, network.tets, network.volume_term),)
 
 
+def _p2_cells(network) -> int:
+    """The P2 continuum's cells: the network's parents when it was split (one per eight tets), else its tets."""
+    return network.n_tets if network.quadratic_cells is None else int(network.quadratic_cells.shape[0])
+
+
 def resolved_volume_term(network, volume_term: str) -> str:
     """``"on"`` or ``"off"``: *volume_term* (:data:`VOLUME_TERM`) for *network*."""
     choice(volume_term, VOLUME_TERM, "volume_term")
@@ -136,8 +141,13 @@ def resolved_volume_term(network, volume_term: str) -> str:
     return "on" if volume_term == "on" or (volume_term == "auto" and has) else "off"
 
 
-def _cases_for(network, names, loads: LoadOptions, reporter) -> list:
-    """The load cases *names* on *network*'s nodes and tetrahedra."""
+def _cases_for(network, names, loads: LoadOptions) -> list:
+    """The load cases *names* on *network*'s nodes and tetrahedra (and its quadratic cells, if split)."""
+    return [replace(c, quadratic_cells=network.quadratic_cells)
+            for c in _cases_on(network, names, loads)]
+
+
+def _cases_on(network, names, loads: LoadOptions) -> list:
     pts, tets = network.points, network.tets
     density = float(network.mass.sum()) / float(network.total_volume())
     out = []
@@ -318,7 +328,7 @@ def validate_network(network, tables, material, *, cases=None, label: str = "net
     element = choice(element, ("auto", "p2", "mini"), "element")
     elements = (element,)
     if element == "auto":
-        element = "p2" if network.n_tets <= P2_MAX_TETS else "mini"
+        element = "p2" if _p2_cells(network) <= P2_MAX_TETS else "mini"
         elements = ("p2", "mini") if element == "p2" else ("mini",)
     if element == "mini":
         rep.warn("the MINI continuum's reaction forces are first order: stiffer than the converged continuum "
@@ -327,7 +337,7 @@ def validate_network(network, tables, material, *, cases=None, label: str = "net
     law = tables.check_law(law)
     loads = LoadOptions() if loads is None else loads
     results, failed = [], {}
-    for c in _cases_for(network, names, loads, rep):
+    for c in _cases_for(network, names, loads):
         try:
             results.append(_solve_case(c, network, tables, material, law=law, terms=terms, bulk=bulk,
                                        elements=elements, max_rounds=max_rounds, rep=rep))
@@ -367,14 +377,14 @@ def validate_asset(path, *, cases=None, **options) -> ValidationReport:
                             cases=list(ORGAN_CASES) if cases is None else cases, **options)
 
 
-def validate_specimen(material, *, side: float = 20e-3, size: float = 2.5e-3, cases=None, reporter=None,
-                      **options) -> ValidationReport:
+def validate_specimen(material, *, side: float = 20e-3, size: float = 2.5e-3, split: bool = False, cases=None,
+                      reporter=None, **options) -> ValidationReport:
     """:func:`validate_network` on the built-in cube (default cases: the specimen's).
 
     The cube gets a volume term and tables compensated with it, as ``esmm prepare``
     gives an asset, unless ``volume_term="off"`` (then neither).
     """
     volume = options.get("volume_term", "auto") != "off"
-    spec = cube_specimen(material, side=side, size=size, volume=volume, reporter=reporter)
+    spec = cube_specimen(material, side=side, size=size, volume=volume, split=split, reporter=reporter)
     return validate_network(spec.network, spec.tables, material, label=f"specimen: {spec.label}",
                             cases=list(SPECIMEN_CASES) if cases is None else cases, reporter=reporter, **options)

@@ -74,9 +74,11 @@ class VolumeMesh:
         Faces used by one tetrahedron, counter-clockwise seen from outside.
     path : str
         The mesher that produced it: ``"gmsh"``, ``"gmsh-after-repair"`` or
-        ``"pytetwild"``.
+        ``"pytetwild"`` (``"+split"`` appended by :func:`~.refine.split_mesh`).
     log : list of str
         What was tried, with timings and reasons for failures.
+    quadratic_cells : ndarray, shape (p, 10), int64, or None
+        A split mesh's parents as 10-node tetrahedra on its nodes (:mod:`.refine`).
     """
 
     points: np.ndarray
@@ -84,6 +86,7 @@ class VolumeMesh:
     boundary_faces: np.ndarray
     path: str = "gmsh"
     log: list[str] = field(default_factory=list)
+    quadratic_cells: np.ndarray | None = None
 
     @property
     def n_nodes(self) -> int:

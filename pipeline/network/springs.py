@@ -92,6 +92,11 @@ class SpringNetwork:
     volume_term : VolumeSpec or None
         The volume term the network carries (:mod:`esmm.pipeline.network.volume`:
         bulk modulus and formulation, on ``tets``); None: springs alone.
+    quadratic_cells : ndarray, shape (p, 10), int64, or None
+        When ``tets`` were made by splitting a coarser mesh's tetrahedra in eight
+        (:func:`~esmm.pipeline.mesh.refine.split_in_eight`): those parents as
+        10-node tetrahedra on this network's nodes (every node is a vertex or an
+        edge middle of one), for the second-order continuum reference. None otherwise.
     """
 
     points: np.ndarray
@@ -109,6 +114,7 @@ class SpringNetwork:
     fibre_frame: np.ndarray = field(default_factory=lambda: np.eye(3))
     density: float = DEFAULT_DENSITY
     volume_term: Any = None        # a volume.VolumeSpec (that module builds on this one)
+    quadratic_cells: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.points = np.ascontiguousarray(np.asarray(self.points, dtype=np.float64).reshape(-1, 3))
@@ -120,6 +126,8 @@ class SpringNetwork:
         self.fixed = np.ascontiguousarray(np.asarray(self.fixed, dtype=np.int64).ravel())
         if self.tets is not None:
             self.tets = np.ascontiguousarray(np.asarray(self.tets, dtype=np.int64).reshape(-1, 4))
+        if self.quadratic_cells is not None:
+            self.quadratic_cells = np.ascontiguousarray(np.asarray(self.quadratic_cells, dtype=np.int64).reshape(-1, 10))
         if self.node_kind is None:
             self.node_kind = np.zeros(self.points.shape[0], np.uint8)
         self.node_kind = np.ascontiguousarray(np.asarray(self.node_kind, dtype=np.uint8).ravel())
@@ -466,7 +474,8 @@ def network_from_tets(mesh, *, density: float = DEFAULT_DENSITY, fibre_frame=Non
     ----------
     mesh
         Anything with ``points`` (n, 3) [m] and ``tets`` (t, 4) int, e.g. a
-        :class:`~esmm.pipeline.mesh.volume.VolumeMesh`.
+        :class:`~esmm.pipeline.mesh.volume.VolumeMesh`; its ``quadratic_cells``
+        (p, 10), if it has them (a split mesh), are carried over renumbered.
     density : float
         Tissue density [kg/m3].
     fibre_frame
@@ -505,6 +514,8 @@ def network_from_tets(mesh, *, density: float = DEFAULT_DENSITY, fibre_frame=Non
     if not np.all(np.isfinite(points)):
         raise InputError("mesh.points: NaN or infinite coordinates")
 
+    quadratic = _quadratic_cells(mesh, points.shape[0])
+
     # Drop unused nodes.
     used = np.unique(tets)
     if used.size != points.shape[0]:
@@ -512,6 +523,9 @@ def network_from_tets(mesh, *, density: float = DEFAULT_DENSITY, fibre_frame=Non
         remap[used] = np.arange(used.size)
         rep.step(f"dropped {points.shape[0] - used.size} nodes used by no tetrahedron")
         points, tets = points[used], remap[tets]
+        quadratic = None if quadratic is None else remap[quadratic]
+        if quadratic is not None and quadratic.min() < 0:
+            raise InputError("mesh.quadratic_cells: a 10-node cell uses a node of no tetrahedron")
     n = points.shape[0]
 
     # Orientation and degeneracy.
@@ -537,6 +551,7 @@ def network_from_tets(mesh, *, density: float = DEFAULT_DENSITY, fibre_frame=Non
     rank[order] = np.arange(n)
     points = points[order]
     tets = rank[tets]
+    quadratic = None if quadratic is None else rank[quadratic]
 
     edges, inverse = _sorted_unique_edges(tets[:, _TET_EDGES].reshape(-1, 2), n)
     volume = np.bincount(inverse, weights=np.repeat(vt / 6.0, 6), minlength=edges.shape[0])
@@ -552,9 +567,23 @@ def network_from_tets(mesh, *, density: float = DEFAULT_DENSITY, fibre_frame=Non
     net = SpringNetwork(
         points=points, springs=edges, rest_length=rest, volume=volume, volume_weight=volume / rest**2,
         cos2=direction_cos2(points, edges, frame), mass=mass, surface_faces=faces, tets=tets,
-        node_kind=kind, structure="tetra", fibre_frame=frame, density=rho,
+        node_kind=kind, structure="tetra", fibre_frame=frame, density=rho, quadratic_cells=quadratic,
     )
     return net
+
+
+def _quadratic_cells(mesh, n: int) -> np.ndarray | None:
+    """*mesh*'s ``quadratic_cells`` (p, 10) checked against its *n* nodes, or None when it has none."""
+    q = getattr(mesh, "quadratic_cells", None)
+    if q is None:
+        return None
+    q = np.asarray(q)
+    if q.ndim != 2 or q.shape[1] != 10 or q.dtype.kind not in "iu":
+        raise InputError(f"mesh.quadratic_cells: expected integer indices of shape (p, 10), got {q.dtype} {q.shape}")
+    q = q.astype(np.int64)
+    if q.size and (q.min() < 0 or q.max() >= n):
+        raise InputError(f"mesh.quadratic_cells: indices outside 0..{n - 1}")
+    return q
 
 
 def network_from_skeleton(points, edges, *, volume: float, surface_faces=None, node_kind=None,
