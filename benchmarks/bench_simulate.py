@@ -16,7 +16,8 @@ copy bandwidth measured with numpy (large arrays: DRAM; 8 MB arrays: cache).
 Material effects: the 50k network without effects, with 3 Prony terms per
 spring, and with viscoelasticity + Mullins + damage (``bench_effects``).
 
-Volume term (``bench_volume``): on the 5k and 50k boxes, the compiled force
+Volume term (``bench_volume``): on the 5k and 50k boxes and on a box split in
+eight (``50k-split``: the fabric of ``esmm prepare --split``), the compiled force
 pass of the springs alone and the volume term's pass alone (one thread,
 medians of CPU time per call; goal: the volume pass costs at most 2x the
 spring pass), the whole step with and without the term, and the stable step
@@ -194,7 +195,19 @@ def _median_call(fn, calls: int, repeats: int) -> tuple[float, float]:
     return statistics.median(walls), statistics.median(cpus)
 
 
-def bench_volume(tables, *, sizes=("5k", "50k"), repeats: int = 7) -> dict:
+def _bench_mesh(name: str):
+    """The box of *name*; ``"<size>-split"``: a box of half the cells per side, every tet split in eight
+    (the fabric of ``esmm prepare --split``, about as many tets as ``<size>``)."""
+    if not name.endswith("-split"):
+        return box_tets(SIZES[name])
+    from esmm.pipeline.mesh.refine import split_in_eight
+
+    base = box_tets(SIZES[name.removesuffix("-split")] // 2)
+    points, tets, cells = split_in_eight(base.points, base.tets)
+    return SimpleNamespace(points=points, tets=tets, quadratic_cells=cells)
+
+
+def bench_volume(tables, *, sizes=("5k", "50k", "50k-split"), repeats: int = 7) -> dict:
     """The volume term against the spring pass, one thread (module doc)."""
     from esmm.pipeline.network.springs import network_from_tets
     from esmm.pipeline.network.volume import bulk_modulus
@@ -207,7 +220,7 @@ def bench_volume(tables, *, sizes=("5k", "50k"), repeats: int = 7) -> dict:
     spec = bulk_modulus(tables)
     out: dict = {"bulk_modulus_pa": spec.bulk_modulus}
     for name in sizes:
-        net = network_from_tets(box_tets(SIZES[name]))
+        net = network_from_tets(_bench_mesh(name))
         springs = build_spring_term(net, tables)
         vol = build_volume_term(net.points, net.tets, spec, lam_max=tables.lam_max)
         warm = warm_up(springs) + warm_up(springs, volume=vol)
