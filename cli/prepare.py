@@ -65,7 +65,7 @@ def add_parser(sub) -> None:
     p.add_argument("--split", action="store_true", default=None,
                    help="split every tet of the mesh in eight: the network on the quadratic tets' nodes, "
                         "within a few %% of the continuum where the unsplit one is 5-17 %% stiff, at ~6x the "
-                        "nodes and simulation cost (docs/model.md, Part C3)")
+                        "nodes and ~12x the simulation cost (docs/model.md, Part C3)")
     p.add_argument("--force", action="store_true", help="write the asset even if the mesh is below the quality floors")
     p.set_defaults(func=run)
 
