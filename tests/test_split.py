@@ -143,3 +143,24 @@ def test_prepare_split_writes_the_quadratic_cells(tmp_path, bundled_data):
     assert net.n_tets == 8 * q.shape[0]
     np.testing.assert_allclose(net.total_volume(), np.abs(tet_volumes(net.points, q[:, :4])).sum(), rtol=1e-12)
     np.testing.assert_allclose(net.points[q[:, 4]], 0.5 * (net.points[q[:, 0]] + net.points[q[:, 1]]), atol=1e-15)
+
+
+def test_validate_solves_p2_on_a_split_networks_parents(cube):
+    """Through validate_network: the continuum's unknowns are exactly the split network's nodes."""
+    from esmm.pipeline.fidelity.validate import LoadOptions, validate_network
+    from esmm.pipeline.network.tables import build_tables
+
+    points, tets = cube
+
+    class Mesh:
+        pass
+
+    m = Mesh()
+    m.points, m.tets, m.quadratic_cells = split_in_eight(points, tets)
+    net = network_from_tets(m)
+    mat = load_material("porcine_liver_paper")
+    rep = validate_network(net, build_tables(mat), mat, cases=["shear"], loads=LoadOptions(gamma=0.05))
+    res = rep.results[0]
+    assert rep.info["element"] == "p2" and rep.info["split_from"] == tets.shape[0]
+    assert res.continuum.info["dofs"] == 3 * net.n_nodes
+    assert res.continuum.displacement.shape == net.points.shape

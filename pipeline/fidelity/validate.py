@@ -295,7 +295,8 @@ def validate_network(network, tables, material, *, cases=None, label: str = "net
     law : {"secant", "energy"}, optional
         The network's force law (default: the tables').
     element : {"auto", "p2", "mini"}
-        The continuum's element. "auto": P2 up to :data:`P2_MAX_TETS` tets, MINI above; a case
+        The continuum's element (P2 on a split network's parents, node for node). "auto": P2 up to
+        :data:`P2_MAX_TETS` tets (a split network: parents), MINI above; a case
         for which P2 finds no equilibrium is solved with MINI (its ``info["element_fallback"]`` says so).
     bulk_ratio : float
         K over the largest tangent shear modulus (:func:`~.material.bulk_modulus`).
@@ -349,6 +350,8 @@ def validate_network(network, tables, material, *, cases=None, label: str = "net
             "bulk_modulus_Pa": bulk, "bulk_ratio": float(bulk_ratio), "element": element,
             "nodes": network.n_nodes, "springs": network.n_springs, "tets": network.n_tets,
             "seconds": time.perf_counter() - t0}
+    if network.quadratic_cells is not None:     # split: the continuum's P2 cells are these parents
+        info["split_from"] = int(network.quadratic_cells.shape[0])
     report = ValidationReport(label=label, results=results, volume_term=volume_term, info=info)
     if out_dir is not None:
         _write(report, Path(out_dir))

@@ -26,7 +26,7 @@ from .volume import VolumeMesh
 __all__ = ["TET10_EDGES", "split_in_eight", "split_mesh"]
 
 #: The vertex pairs of a 10-node tetrahedron's middle nodes 4..9, in the order
-#: of felupe's and VTK's ``tetra10`` (and gmsh's): 01, 12, 20, 03, 13, 23.
+#: of felupe's and VTK's ``tetra10`` (not gmsh's, which swaps the last two): 01, 12, 20, 03, 13, 23.
 TET10_EDGES = ((0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3))
 
 
