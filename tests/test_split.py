@@ -8,6 +8,8 @@ quadratic cells), which must agree node for node.
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from esmm.pipeline.errors import ConfigError
@@ -23,6 +25,12 @@ from esmm.pipeline.network.springs import network_from_tets, tet_volumes
 def cube():
     """A coarse gmsh cube (20 mm, elements of 6.5 mm)."""
     return _gmsh_cube(20e-3, 6.5e-3)
+
+
+def _split(points, tets):
+    """A split mesh as network_from_tets reads it (points, tets, quadratic_cells)."""
+    p, t, q = split_in_eight(points, tets)
+    return SimpleNamespace(points=p, tets=t, quadratic_cells=q)
 
 
 def test_split_fills_each_parent_with_eight_positive_children(cube):
@@ -67,12 +75,7 @@ def test_quadratic_cells_are_felupe_tetra10(cube):
 
 def test_the_network_carries_its_quadratic_cells_through_the_renumbering(cube):
     points, tets = cube
-
-    class Mesh:
-        pass
-
-    m = Mesh()
-    m.points, m.tets, m.quadratic_cells = split_in_eight(points, tets)
+    m = _split(points, tets)
     net = network_from_tets(m, reorder="rcm")
     q = net.quadratic_cells
     assert q.shape == (tets.shape[0], 10)
@@ -86,14 +89,8 @@ def test_the_network_carries_its_quadratic_cells_through_the_renumbering(cube):
 def test_a_bad_quadratic_cells_array_is_refused(cube):
     from esmm.pipeline.errors import InputError
 
-    points, tets = cube
-
-    class Mesh:
-        pass
-
-    m = Mesh()
-    m.points, m.tets, q = split_in_eight(points, tets)
-    m.quadratic_cells = q[:, :9]
+    m = _split(*cube)
+    m.quadratic_cells = m.quadratic_cells[:, :9]
     with pytest.raises(InputError, match="quadratic_cells"):
         network_from_tets(m)
 
@@ -151,13 +148,7 @@ def test_validate_solves_p2_on_a_split_networks_parents(cube):
     from esmm.pipeline.network.tables import build_tables
 
     points, tets = cube
-
-    class Mesh:
-        pass
-
-    m = Mesh()
-    m.points, m.tets, m.quadratic_cells = split_in_eight(points, tets)
-    net = network_from_tets(m)
+    net = network_from_tets(_split(points, tets))
     mat = load_material("porcine_liver_paper")
     rep = validate_network(net, build_tables(mat), mat, cases=["shear"], loads=LoadOptions(gamma=0.05))
     res = rep.results[0]

@@ -32,6 +32,7 @@ from io import StringIO
 import numpy as np
 
 from ..errors import ConfigError, SimulationError
+from ..mesh.refine import quadratic_tets
 from ..network.newton import OrderedFactor, node_ordering, ordered_solve
 from ..progress import ensure
 from .cases import LoadCase
@@ -47,30 +48,6 @@ ELEMENTS = {
     "mini": "linear tetrahedra with a cubic bubble (MINI), pressure and volume ratio linear "
             "(felupe ThreeFieldVariation on RegionTetraMINI)",
 }
-
-#: Edge k of a tetrahedron joins vertices (I[k], J[k]): the 10-node order of felupe (and VTK).
-_EDGE_I = (0, 1, 2, 3, 3, 3)
-_EDGE_J = (1, 2, 0, 0, 1, 2)
-
-
-def quadratic_tets(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """10-node tetrahedra on the same vertices: a node at the middle of each edge.
-
-    Returns
-    -------
-    points10 : ndarray, shape (n + e, 3)
-        The *n* vertices first, then the *e* edge midpoints.
-    cells10 : ndarray of int, shape (t, 10)
-    edges : ndarray of int, shape (e, 2)
-        The vertices of the edge of each midpoint (midpoint k is node n + k).
-    """
-    tets = np.asarray(tets, dtype=np.int64)
-    pairs = np.sort(np.stack([tets[:, list(_EDGE_I)], tets[:, list(_EDGE_J)]], axis=-1).reshape(-1, 2), axis=1)
-    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
-    mid = 0.5 * (points[edges[:, 0]] + points[edges[:, 1]])
-    cells = np.hstack([tets, points.shape[0] + inverse.reshape(-1, 6)])
-    return np.vstack([points, mid]), cells, edges
-
 
 def _quadratic(case: LoadCase) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The 10-node mesh of *case*: its own ``quadratic_cells`` (no node added), or :func:`quadratic_tets`."""

@@ -23,11 +23,31 @@ import numpy as np
 from .readers import boundary_of_tets
 from .volume import VolumeMesh
 
-__all__ = ["TET10_EDGES", "split_in_eight", "split_mesh"]
+__all__ = ["TET10_EDGES", "quadratic_tets", "split_in_eight", "split_mesh"]
 
 #: The vertex pairs of a 10-node tetrahedron's middle nodes 4..9, in the order
 #: of felupe's and VTK's ``tetra10`` (not gmsh's, which swaps the last two): 01, 12, 20, 03, 13, 23.
 TET10_EDGES = ((0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3))
+
+
+def quadratic_tets(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """10-node tetrahedra on the same vertices: a node at the middle of each edge.
+
+    Returns
+    -------
+    points10 : ndarray, shape (n + e, 3)
+        The *n* vertices first, then the *e* edge midpoints.
+    cells10 : ndarray of int, shape (t, 10)
+        Vertices, then the middles of :data:`TET10_EDGES`.
+    edges : ndarray of int, shape (e, 2)
+        The vertices of the edge of each midpoint (midpoint k is node n + k).
+    """
+    tets = np.asarray(tets, dtype=np.int64)
+    pairs = np.sort(tets[:, np.array(TET10_EDGES)], axis=2).reshape(-1, 2)
+    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    mid = 0.5 * (points[edges[:, 0]] + points[edges[:, 1]])
+    cells = np.hstack([tets, points.shape[0] + inverse.reshape(-1, 6)])
+    return np.vstack([points, mid]), cells, edges
 
 
 def split_in_eight(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -54,13 +74,9 @@ def split_in_eight(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np
     points = np.asarray(points, dtype=np.float64)
     tets = np.array(tets, dtype=np.int64)
     _orient(points, tets)
-    ij = np.array(TET10_EDGES)
-    pairs = np.sort(tets[:, ij], axis=2).reshape(-1, 2)
-    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
-    mid = points.shape[0] + inverse.reshape(-1, 6)
-    out_points = np.vstack([points, 0.5 * (points[edges[:, 0]] + points[edges[:, 1]])])
+    out_points, cells, _ = quadratic_tets(points, tets)
     a, b, c, d = tets.T
-    m01, m12, m20, m03, m13, m23 = mid.T
+    m01, m12, m20, m03, m13, m23 = cells[:, 4:].T
     corners = [(a, m01, m20, m03), (m01, b, m12, m13), (m20, m12, c, m23), (m03, m13, m23, d)]
     # The octahedron m01 m12 m20 m03 m13 m23: its diagonals join opposite middles; the
     # four around a diagonal, in cyclic order, are the other four middles.
@@ -76,7 +92,7 @@ def split_in_eight(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np
     children = np.concatenate([np.stack([np.stack(cn, axis=1) for cn in corners], axis=1), inner], axis=1)
     children = children.reshape(-1, 4)
     _orient(out_points, children)
-    return out_points, children, np.hstack([tets, mid])
+    return out_points, children, cells
 
 
 def split_mesh(mesh: VolumeMesh) -> VolumeMesh:
