@@ -27,7 +27,7 @@ def _median(fn, repeats: int = 7) -> tuple[float, list[float]]:
 
 def _network():
     """A gmsh cylinder network with about TARGET_TETS tetrahedra."""
-    from esmm.pipeline.network.tensile_test import cylinder_specimen
+    from esmm.pipeline.compensation.virtual_tensile import cylinder_specimen
 
     size = 1.2e-3
     spec = cylinder_specimen(radius=5e-3, length=20e-3, size=size)

@@ -104,7 +104,7 @@ def _options(args) -> dict:
     Text becomes numbers here (``--size`` is in mm); the library checks the values
     and names the option it refuses.
     """
-    from esmm.pipeline.validate import number_text
+    from esmm.pipeline.checks import number_text
 
     def whole(text, name):
         return None if text is None else number_text(text, name, integer=True)

@@ -7,12 +7,12 @@ import dataclasses
 import math
 from datetime import UTC, datetime
 
-from esmm.pipeline.errors import ConfigError
-from esmm.pipeline.network.compensation_policy import (
+from esmm.pipeline.compensation.policy import (
     DEFAULT_RADIUS_ELEMENTS,
     DEFAULT_RANGE,
     RADIUS_ELEMENTS_RANGE,
 )
+from esmm.pipeline.errors import ConfigError
 
 EPILOG = """\
 examples:
@@ -77,7 +77,7 @@ def _material(args, asset):
 
 def _grid(args, old) -> dict:
     """The grid options of build_tables: the command line's, else the asset's (same material)."""
-    from esmm.pipeline.validate import number_text
+    from esmm.pipeline.checks import number_text
 
     n = None if args.points is None else number_text(args.points, "points", lo=3, hi=1_000_000, integer=True)
     n = n or (old.n if old is not None else None)
@@ -111,7 +111,7 @@ def _carry(tables, old, args, ui):
 
 
 def _calibration_range(args):
-    from esmm.pipeline.validate import number_text
+    from esmm.pipeline.checks import number_text
 
     if args.calibration_range is None:
         return None
@@ -124,7 +124,7 @@ def _volume(tables, asset, args, ui):
     Kept as it is for the same material; re-sized (same Poisson ratio) when
     ``--material`` gives another one, since its bulk modulus follows the material.
     """
-    from esmm.pipeline.network.compensation import calibration_stretches
+    from esmm.pipeline.compensation.calibration import calibration_stretches
     from esmm.pipeline.network.volume import DEFAULT_POISSON, bulk_modulus
 
     old = asset.network.volume_term
@@ -140,8 +140,8 @@ def _volume(tables, asset, args, ui):
 
 def _compensate(tables, asset, material, volume, args, ui):
     """The compensation of ``esmm prepare`` (same policy and cache), with the command line's overrides."""
-    from esmm.pipeline.network.compensation import compensate
-    from esmm.pipeline.validate import number_text
+    from esmm.pipeline.checks import number_text
+    from esmm.pipeline.compensation.calibration import compensate
 
     r_el = None if args.radius_elements is None else number_text(args.radius_elements, "radius_elements")
     return compensate(tables, asset.network, material=material, calibration_range=_calibration_range(args),

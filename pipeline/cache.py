@@ -2,7 +2,7 @@
 
 Root: ``$ESMM_CACHE_DIR``, else ``$XDG_CACHE_HOME/esmm``, else
 ``~/.cache/esmm``; one folder per kind of result (``compensation``: the
-calibrations of :mod:`~esmm.pipeline.network.compensation_policy`;
+calibrations of :mod:`~esmm.pipeline.compensation.policy`;
 ``settle``: the equilibria under gravity a simulation starts from,
 :mod:`~esmm.pipeline.simulate.relax`). An entry is named by the SHA-256 of
 everything its result depends on, the code that computes it included

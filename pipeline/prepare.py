@@ -35,6 +35,8 @@ from .asset.provenance import collect_provenance
 from .asset.write import write_asset
 from .asset.xdmf import sidecar_path
 from .atomicio import unwritable_file
+from .checks import boolean, choice, number, quantity
+from .compensation import calibration as compensation
 from .errors import ConfigError, InputError, QualityError
 from .materials.material import Material, load_material
 from .mesh.cleaning import CleaningOptions, CleaningReport, clean_surface
@@ -44,7 +46,6 @@ from .mesh.refine import split_mesh
 from .mesh.skeleton import check_n_surface, skeleton_structure
 from .mesh.targets import MeshTarget, mesh_target
 from .mesh.volume import mesh_volume
-from .network import compensation
 from .network.regions import FixedRegion, region_from_config, select_fixed
 from .network.springs import (
     NODE_SKELETON,
@@ -61,7 +62,6 @@ from .network.tables import GridOptions, StiffnessTables, build_tables, grid_opt
 from .network.volume import DEFAULT_POISSON, POISSON_RANGE, VolumeSpec, bulk_modulus
 from .progress import ensure
 from .units import factor
-from .validate import boolean, choice, number, quantity
 
 #: The default prepare preset.
 DEFAULT_PRESET = "paper"

@@ -33,7 +33,7 @@ figure on stdout):
   ``fabric-experiment`` folder);
 * ``timing``: the network side of ``esmm validate ASSET`` (``--cases``, volume
   term on), its tangent factored the old way (the LU with COLAMD) and the new
-  (the LDLᵀ in node order, :func:`esmm.pipeline.network.newton.free_order`),
+  (the LDLᵀ in node order, :func:`esmm.pipeline.linalg.newton.free_order`),
   in one process: seconds and the largest displacement difference.
 """
 
@@ -51,12 +51,12 @@ import scipy.sparse.linalg as spla
 from esmm.pipeline import cache
 from esmm.pipeline.asset import read_asset
 from esmm.pipeline.asset.rewrite import update_asset_tables
+from esmm.pipeline.compensation.calibration import compensate, correction_on_grid
 from esmm.pipeline.fidelity import network_solve
 from esmm.pipeline.fidelity import validate as fv
 from esmm.pipeline.fidelity.specimen import cube_specimen
 from esmm.pipeline.materials.material import load_material
 from esmm.pipeline.network import springs
-from esmm.pipeline.network.compensation import compensate, correction_on_grid
 from esmm.pipeline.progress import ensure
 
 
@@ -202,8 +202,8 @@ def fabric(args, material):
                                   spread=max(r) / min(r))), flush=True)
     if not (args.validate or args.prepare):
         return
+    from esmm.pipeline.compensation import virtual_tensile as tt
     from esmm.pipeline.fidelity import specimen as fs
-    from esmm.pipeline.network import tensile_test as tt
     base = springs.network_from_tets
 
     def builder(*a, **k):

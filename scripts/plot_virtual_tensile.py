@@ -25,15 +25,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from esmm.pipeline.atomicio import atomic_path, write_text  # noqa: E402
-from esmm.pipeline.errors import EsmmError, SimulationError  # noqa: E402
-from esmm.pipeline.materials.material import load_material  # noqa: E402
-from esmm.pipeline.network.compensation import calibrate_compensation  # noqa: E402
-from esmm.pipeline.network.tables import LAWS, build_tables  # noqa: E402
-from esmm.pipeline.network.tensile_test import (  # noqa: E402
+from esmm.pipeline.compensation.calibration import calibrate_compensation  # noqa: E402
+from esmm.pipeline.compensation.virtual_tensile import (  # noqa: E402
     continuum_stress,
     cylinder_specimen,
     virtual_tensile_test,
 )
+from esmm.pipeline.errors import EsmmError, SimulationError  # noqa: E402
+from esmm.pipeline.materials.material import load_material  # noqa: E402
+from esmm.pipeline.network.tables import LAWS, build_tables  # noqa: E402
 
 
 def _errs(r) -> dict:

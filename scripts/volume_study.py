@@ -35,15 +35,19 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse.linalg as spl
 from esmm.pipeline.asset import read_asset
+from esmm.pipeline.compensation.calibration import calibrate_compensation
+from esmm.pipeline.compensation.loadcases import (
+    homogeneous_test,
+    shear_deformation,
+    virtual_shear_test,
+)
+from esmm.pipeline.compensation.virtual_tensile import cylinder_specimen, virtual_tensile_test
 from esmm.pipeline.materials.loading import energy_density
 from esmm.pipeline.materials.material import load_material
 from esmm.pipeline.mesh.synthetic import box_tets
-from esmm.pipeline.network.compensation import calibrate_compensation
 from esmm.pipeline.network.forcelaw import tangent_stiffness
-from esmm.pipeline.network.loadcases import homogeneous_test, shear_deformation, virtual_shear_test
 from esmm.pipeline.network.springs import network_from_tets
 from esmm.pipeline.network.tables import build_tables
-from esmm.pipeline.network.tensile_test import cylinder_specimen, virtual_tensile_test
 from esmm.pipeline.network.volume import (
     VolumeSpec,
     bulk_modulus,

@@ -14,7 +14,7 @@ SHARED = REPO.parent / "shared" / "data"
 
 
 def pytest_configure(config):
-    # Calibrated compensations are cached (pipeline/network/compensation_policy.py); tests use a fresh cache
+    # Calibrated compensations are cached (pipeline/compensation/policy.py); tests use a fresh cache
     # of their own, never the user's ~/.cache/esmm.
     os.environ["ESMM_CACHE_DIR"] = tempfile.mkdtemp(prefix="esmm-test-cache-")
 

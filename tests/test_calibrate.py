@@ -216,8 +216,8 @@ def test_cli_outputs_say_which_columns_were_used_and_the_true_stress_conversion(
 def test_whole_numbers_written_in_exponent_form_are_whole():
     """`--points 1e6` was refused as "expected a whole number" while the range in the same message read
     [3, 1e+06]: a whole number in exponent form is read as one; fractions still are not."""
+    from esmm.pipeline.checks import number_text
     from esmm.pipeline.errors import ConfigError
-    from esmm.pipeline.validate import number_text
 
     assert number_text("1e6", "points", lo=3, integer=True) == 1_000_000
     assert number_text(" 2.0E3 ", "points", integer=True) == 2000

@@ -160,7 +160,7 @@ def test_viscoelasticity_found_in_multirate_load_unload(tmp_path):
     assert v.g[0] == pytest.approx(0.4, rel=0.05) and v.tau[0] == pytest.approx(3.0, rel=0.1)
     assert res.scheme == "leave one loading rate out"
     # the instantaneous base parameters are recovered
-    assert res.final.state.base[None]["mu"] == pytest.approx(20e3, rel=0.03)
+    assert res.final.values.base[None]["mu"] == pytest.approx(20e3, rel=0.03)
 
 
 def test_mullins_found_in_cycles_to_rising_maxima(tmp_path):

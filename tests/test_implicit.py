@@ -14,6 +14,8 @@ import numba
 import numpy as np
 import pytest
 import scipy.sparse as sps
+from esmm.pipeline.linalg import supernodal
+from esmm.pipeline.linalg.linsolve import Constraints, SparseFactor, pcg
 from esmm.pipeline.materials.effects import (
     DamageEffect,
     MaterialEffects,
@@ -21,7 +23,6 @@ from esmm.pipeline.materials.effects import (
     ViscoelasticEffect,
 )
 from esmm.pipeline.mesh.synthetic import box_tets
-from esmm.pipeline.network import supernodal
 from esmm.pipeline.network.forcelaw import tangent_stiffness
 from esmm.pipeline.network.springs import network_from_tets
 from esmm.pipeline.network.tables import StiffnessTables
@@ -30,7 +31,6 @@ from esmm.pipeline.simulate import implicit, runsetup
 from esmm.pipeline.simulate import kernels as K
 from esmm.pipeline.simulate.history import History
 from esmm.pipeline.simulate.implicit import BackwardEuler, Slides
-from esmm.pipeline.simulate.linsolve import Constraints, SparseFactor, pcg
 from esmm.pipeline.simulate.model import Floor, Grasp
 from esmm.pipeline.simulate.run import simulate_network
 from esmm.pipeline.simulate.scene import ITERATIONS, scene_from_dict

@@ -5,12 +5,12 @@ them, the batch runner and the command line on top::
 
     cli
     batch
-    prepare (the stage), validation
-    discover            simulate
+    prepare (the stage), fidelity (the validation)
+    discover            simulate        compensation
     calibrate           asset
     materials   <-      network
     tensile             mesh
-    ground: errors, progress, atomicio, blas, interrupts, cache, units, config, validate
+    ground: errors, progress, atomicio, blas, interrupts, cache, units, config, checks, linalg
 
 Checked from the source text (no import is run):
 
@@ -37,7 +37,9 @@ TOPS = {"cli": "esmm.cli", "pipeline": "esmm.pipeline"}
 #: The ground: small modules every package may use. Among themselves they import downwards only.
 GROUND = {"pipeline": set(), "errors": set(), "progress": set(), "atomicio": set(), "blas": set(), "interrupts": set(),
           "cache": set(),
-          "units": {"errors"}, "config": {"errors"}, "validate": {"errors", "units"}}
+          "units": {"errors"}, "config": {"errors"}, "checks": {"errors", "units"},
+          # the sparse linear algebra: a ground package (supernodal LDLT, Newton helpers, solves, L-BFGS)
+          "linalg": {"errors", "blas"}}
 
 #: package -> the packages (above the ground) it may import.
 ALLOWED: dict[str, set[str]] = {
@@ -49,10 +51,11 @@ ALLOWED: dict[str, set[str]] = {
     "network": {"mesh", "materials"},
     "asset": {"mesh", "network", "materials"},
     "simulate": {"mesh", "network", "asset", "materials"},
-    "prepare": {"mesh", "network", "asset", "materials"},
-    "fidelity": {"mesh", "network", "asset", "simulate", "materials"},
-    "batch": {"tensile", "materials", "calibrate", "discover", "mesh", "network", "asset", "simulate",
-              "prepare"},
+    "compensation": {"mesh", "network", "materials"},
+    "prepare": {"mesh", "network", "compensation", "asset", "materials"},
+    "fidelity": {"mesh", "network", "compensation", "asset", "simulate", "materials"},
+    "batch": {"tensile", "materials", "calibrate", "discover", "mesh", "network", "compensation", "asset",
+              "simulate", "prepare"},
     "cli": None,  # on top: anything of the library
 }
 

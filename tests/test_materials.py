@@ -327,8 +327,8 @@ def test_a_grid_too_coarse_near_one_is_refused_with_what_to_set():
     'compression: calibration stretch 1.5 must lie in [0.5, 1)', a stretch the user never gave."""
     from types import SimpleNamespace
 
+    from esmm.pipeline.compensation.calibration import calibration_stretches
     from esmm.pipeline.errors import ConfigError
-    from esmm.pipeline.network.compensation import calibration_stretches
 
     coarse = SimpleNamespace(lam_min=0.5, lam_max=512.0, dlam=0.5)
     with pytest.raises(ConfigError, match=r"grid \(stretch 0\.5\.\.512 in steps of 0\.5\) is too coarse .* lam_max"):

@@ -1,10 +1,10 @@
-"""The sparse linear algebra shared by the network's static solvers (pipeline/network/newton.py)."""
+"""The sparse linear algebra shared by the network's static solvers (pipeline/linalg/newton.py)."""
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spl
-from esmm.pipeline.network.newton import (
+from esmm.pipeline.linalg.newton import (
     OrderedFactor,
     at_round_off,
     descent_direction,

@@ -1,10 +1,10 @@
-"""The implicit step's quasi-Newton iteration (pipeline/simulate/quasinewton.py) against the theory of
+"""The implicit step's quasi-Newton iteration (pipeline/linalg/quasinewton.py) against the theory of
 L-BFGS on quadratics: Newton's step with the exact first inverse, the secant equation, termination in
 n iterations with exact line searches, and the secant step's exactness."""
 
 import numpy as np
 import pytest
-from esmm.pipeline.simulate.quasinewton import MIN_STEP, LBFGSMemory, secant_step
+from esmm.pipeline.linalg.quasinewton import MIN_STEP, LBFGSMemory, secant_step
 
 
 def spd(n, seed=0, cond=1e3):

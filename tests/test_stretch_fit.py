@@ -1,12 +1,12 @@
-"""The joint fit of the stretch correction (pipeline/network/stretch_fit.py): basis, sensitivities, step."""
+"""The joint fit of the stretch correction (pipeline/compensation/stretch_fit.py): basis, sensitivities, step."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from esmm.pipeline.compensation import stretch_fit as sf
+from esmm.pipeline.compensation.loadcases import homogeneous_test, shear_deformation
 from esmm.pipeline.mesh.synthetic import box_tets
-from esmm.pipeline.network import stretch_fit as sf
-from esmm.pipeline.network.loadcases import homogeneous_test, shear_deformation
 from esmm.pipeline.network.springs import network_from_tets
 from esmm.pipeline.network.tables import build_tables
 
@@ -86,9 +86,9 @@ def test_the_joint_fit_lowers_the_shear_error_the_axial_fit_leaves(liver, tables
     Both runs are the same calibration apart from the shear tests (``shear_check=()`` fits the axial
     test alone); the shear of each is then measured the same way, against the material.
     """
-    from esmm.pipeline.network.compensation import JOINT_CASES, calibrate_compensation
-    from esmm.pipeline.network.loadcases import virtual_shear_test
-    from esmm.pipeline.network.tensile_test import cylinder_specimen
+    from esmm.pipeline.compensation.calibration import JOINT_CASES, calibrate_compensation
+    from esmm.pipeline.compensation.loadcases import virtual_shear_test
+    from esmm.pipeline.compensation.virtual_tensile import cylinder_specimen
     from esmm.pipeline.network.volume import bulk_modulus
 
     spec = cylinder_specimen(radius=5e-3, length=20e-3, size=2.5e-3)
@@ -113,8 +113,8 @@ def test_the_joint_fit_lowers_the_shear_error_the_axial_fit_leaves(liver, tables
 
 
 def test_shear_test_from_predictors_finds_the_same_equilibrium_in_fewer_iterations(liver):
+    from esmm.pipeline.compensation.loadcases import virtual_shear_test
     from esmm.pipeline.errors import ConfigError
-    from esmm.pipeline.network.loadcases import virtual_shear_test
 
     net = _block()
     base = build_tables(liver)
@@ -136,9 +136,9 @@ def test_shear_test_from_predictors_finds_the_same_equilibrium_in_fewer_iteratio
 
 @pytest.mark.slow
 def test_the_joint_fit_falls_back_to_the_axial_fit_when_shear_finds_no_equilibrium(liver, tables, monkeypatch):
-    import esmm.pipeline.network.compensation as comp
+    import esmm.pipeline.compensation.calibration as comp
+    from esmm.pipeline.compensation.virtual_tensile import cylinder_specimen
     from esmm.pipeline.errors import SimulationError
-    from esmm.pipeline.network.tensile_test import cylinder_specimen
     from esmm.pipeline.network.volume import bulk_modulus
     from esmm.pipeline.progress import ListReporter
 

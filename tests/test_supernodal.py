@@ -1,4 +1,4 @@
-"""The supernodal multifrontal LDL^T (esmm.pipeline.network.supernodal) against independent solvers.
+"""The supernodal multifrontal LDL^T (esmm.pipeline.linalg.supernodal) against independent solvers.
 
 Every check is against something computed another way: scipy's sparse direct
 solver (spsolve) for the solutions, SuperLU's L in the same order for the fill,
@@ -11,9 +11,9 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 from esmm.pipeline.blas import single_threaded_blas
-from esmm.pipeline.network.newton import ldlt, node_ordering
-from esmm.pipeline.network.supernodal import LDLT, Analysis, ZeroPivot
-from esmm.pipeline.simulate.linsolve import MixedFactor, SparseFactor
+from esmm.pipeline.linalg.linsolve import MixedFactor, SparseFactor
+from esmm.pipeline.linalg.newton import ldlt, node_ordering
+from esmm.pipeline.linalg.supernodal import LDLT, Analysis, ZeroPivot
 
 
 def block_laplacian(n: int, seed: int) -> sp.csr_matrix:

@@ -8,8 +8,8 @@ import h5py
 import numpy as np
 import pytest
 from esmm.pipeline.asset import read_asset, validate_asset, write_asset
+from esmm.pipeline.compensation.virtual_tensile import cylinder_specimen
 from esmm.pipeline.network.tables import build_tables
-from esmm.pipeline.network.tensile_test import cylinder_specimen
 
 
 @pytest.fixture(scope="module")

@@ -6,15 +6,15 @@ import math
 
 import numpy as np
 import pytest
-from esmm.pipeline.errors import ConfigError
-from esmm.pipeline.network.compensation import calibrate_compensation
-from esmm.pipeline.network.forcelaw import spring_forces
-from esmm.pipeline.network.springs import affine_elasticity, engineering_constants
-from esmm.pipeline.network.tensile_test import (
+from esmm.pipeline.compensation.calibration import calibrate_compensation
+from esmm.pipeline.compensation.virtual_tensile import (
     continuum_stress,
     cylinder_specimen,
     virtual_tensile_test,
 )
+from esmm.pipeline.errors import ConfigError
+from esmm.pipeline.network.forcelaw import spring_forces
+from esmm.pipeline.network.springs import affine_elasticity, engineering_constants
 from esmm.pipeline.progress import ListReporter
 
 
@@ -123,7 +123,7 @@ def test_compensation_brings_the_coarse_network_within_5_percent(liver, tables, 
 
 
 def test_correction_on_grid_is_smooth_monotone_and_flat_beyond(tables):
-    from esmm.pipeline.network.compensation import correction_on_grid
+    from esmm.pipeline.compensation.calibration import correction_on_grid
 
     knots = [0.9, 0.95, 1.0, 1.1, 1.2, 1.3]
     g = [3.0, 1.6, 1.0, 1.9, 2.3, 2.25]

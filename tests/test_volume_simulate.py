@@ -263,7 +263,7 @@ def test_mixed_factor_solves_newtons_matrix(box, vol, tables, single):
     a shaken state, fixed dofs' columns of B zero) solves that matrix: to round-off in float64, to the
     float32 factor's ~1e-4 (a preconditioner) in float32; one and three right-hand sides; the parts of
     one term or of two (stacked rows, each node's next to its dofs)."""
-    from esmm.pipeline.simulate.linsolve import MixedFactor
+    from esmm.pipeline.linalg.linsolve import MixedFactor
 
     x = shaken(box)
     springs = build_spring_term(box, tables)

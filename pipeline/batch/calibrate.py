@@ -31,11 +31,11 @@ from typing import Any
 from ..atomicio import write_text
 from ..calibrate.fit import fit_material
 from ..calibrate.report import write_outputs
+from ..checks import choice
 from ..errors import ConfigError, EsmmError, InputError
 from ..progress import Reporter, ensure
 from ..tensile import NotATestError, read
 from ..tensile.files import record_files
-from ..validate import choice
 from .cache import CACHE_DIR
 from .jobs import BatchSummary, Job, JobOutput, sha256_file
 from .runner import SUMMARY_NAME, run_jobs

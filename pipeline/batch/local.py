@@ -223,11 +223,6 @@ class LocalPool:
         """Ids of the tasks not started yet."""
         return [tid for tid, _ in self._queue]
 
-    @property
-    def pids(self) -> list[int]:
-        """Process ids of the live workers."""
-        return [w.proc.pid for w in self._workers]
-
     def _start_worker(self) -> _Worker:
         from multiprocessing.connection import Connection
 

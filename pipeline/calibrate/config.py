@@ -26,12 +26,12 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..checks import choice, keys, number, number_text, table
 from ..config import load_toml
 from ..errors import ConfigError, EsmmError
 from ..materials import MODEL_NAMES, get_model
 from ..materials.composite import split_name
 from ..units import factor, parse_quantity
-from ..validate import choice, keys, number, number_text, table
 from .problem import check_parameter_names
 
 #: the robust losses of :func:`scipy.optimize.least_squares`

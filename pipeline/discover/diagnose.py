@@ -73,7 +73,7 @@ def _pct(v: float) -> str:
 # --------------------------------------------------------------------------- covariates
 def _covariate_table(problem: Problem, z_full: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """Residual (measured - model) of every fitting sample / stress scale and / noise σ, and its covariates."""
-    st = problem.state(z_full)
+    st = problem.values(z_full)
     coefs = problem.offsets(z_full)
     cols: dict[str, list] = {n: [] for n in ("d", "rate", "hold", "below", "toe", "high", "virgin", "tn", "file",
                                              "drive", "cycle", "compression", "timed")}
@@ -190,7 +190,7 @@ class _Signatures:
 
     def __init__(self, prob: Problem, z_full: np.ndarray):
         self.prob, self.z_full = prob, z_full
-        st = prob.state(z_full)
+        st = prob.values(z_full)
         self.coefs = prob.offsets(z_full)
         self.base_pred, resid, self.w = [], [], []
         for k, r in enumerate(prob.records):
@@ -256,7 +256,7 @@ class _Signatures:
             return None
         z = p2.transfer(prob, self.z_full)
         z = _set_slots(p2, z, values or {})
-        st2 = p2.state(z)
+        st2 = p2.values(z)
         out = [_finite((prob.add_offsets(k, p2.predict(k, st2), self.coefs[k]) - self.base_pred[k]) * self.w[k])
                for k in range(len(prob.records))]
         if per_record:
@@ -274,7 +274,7 @@ class _Signatures:
                 continue
             z = base_z.copy()
             z[i] = values(p2, i)
-            st2 = p2.state(z)
+            st2 = p2.values(z)
             parts = []
             for k in range(len(prob.records)):
                 if k in s.records:

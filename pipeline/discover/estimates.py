@@ -26,7 +26,7 @@ from ..calibrate.intervals import (
     unbounded,
 )
 from ..calibrate.problem import NAN_PENALTY
-from .model import Problem, State
+from .model import Problem, Values
 
 #: the serial correlation used for the inflation is clipped to this
 RHO_CLIP = 0.99
@@ -68,7 +68,7 @@ def estimates(problem: Problem, z_full: np.ndarray) -> list[Estimate]:
     coefs = prob.offsets(z_full)
     r0, J, off_keys = _jacobian(prob, z_full, coefs)
     iv = _Intervals(prob, z_full, r0, J)
-    st = prob.state(z_full)
+    st = prob.values(z_full)
     _slot_estimates(iv, prob, z_full)
     if st.g is not None:
         _prony_estimates(iv, prob, z_full, st)
@@ -81,7 +81,7 @@ def estimates(problem: Problem, z_full: np.ndarray) -> list[Estimate]:
 
 def _residual_at_offsets(prob: Problem, z_full: np.ndarray, coefs) -> np.ndarray:
     """The normalised residual on the training samples with the fitted offsets added explicitly."""
-    st = prob.state(z_full)
+    st = prob.values(z_full)
     out = []
     for k, r in enumerate(prob.records):
         if not prob.n_train[k]:
@@ -175,7 +175,7 @@ def _slot_estimates(iv: _Intervals, prob: Problem, z_full: np.ndarray) -> None:
         iv.add(key, grad, v, positive=s.log or s.kind == "stress", unit=unit)
 
 
-def _prony_estimates(iv: _Intervals, prob: Problem, z_full: np.ndarray, st: State) -> None:
+def _prony_estimates(iv: _Intervals, prob: Problem, z_full: np.ndarray, st: Values) -> None:
     """Prony weights g_j (from the stick-broken fractions u), relaxation times and g_inf."""
     idx_u = [i for i, s in enumerate(prob.slots) if s.effect == "viscoelastic" and s.name.startswith("u")]
     idx_t = [i for i, s in enumerate(prob.slots) if s.effect == "viscoelastic" and s.name.startswith("tau")]

@@ -10,7 +10,7 @@ import numpy as np
 from ..materials.terms import TERMS
 from .estimates import Estimate
 from .initialise import extend_variant, initialise
-from .model import Problem, Spec, State
+from .model import Problem, Spec, Values
 from .statistics import Errors, error_measures, information, n_effective
 
 
@@ -27,8 +27,8 @@ class Fitted:
     estimates: list[Estimate] = field(default_factory=list)
 
     @property
-    def state(self) -> State:
-        return self.problem.state(self.z)
+    def values(self) -> Values:
+        return self.problem.values(self.z)
 
 
 def finish(prob: Problem, z: np.ndarray) -> Fitted:
@@ -69,7 +69,7 @@ def fit_spec(spec: Spec, current: Fitted, *, init_from: Fitted | None = None) ->
 
 def effect_params(f: Fitted, name: str) -> dict[str, Any]:
     """The fitted parameters of effect or term *name* in *f* (values only; intervals in the final model)."""
-    st = f.state
+    st = f.values
     if name in TERMS:
         return {p.name: float(st.base[None][p.name]) for p in TERMS[name].parameters if p.name in st.base[None]}
     if name == "viscoelastic" and st.g is not None:
@@ -90,7 +90,7 @@ def effect_params(f: Fitted, name: str) -> dict[str, Any]:
     return {}
 
 
-def _slip_params(prob: Problem, st: State) -> dict[str, Any]:
+def _slip_params(prob: Problem, st: Values) -> dict[str, Any]:
     out = {}
     for k, r in enumerate(prob.records):
         if st.slips and st.slips[k].size:
@@ -100,11 +100,11 @@ def _slip_params(prob: Problem, st: State) -> dict[str, Any]:
     return out
 
 
-def _scale_params(prob: Problem, st: State) -> dict[str, Any]:
+def _scale_params(prob: Problem, st: Values) -> dict[str, Any]:
     return {r.name: {"specimen": r.specimen, "scale": float(st.scale[k])} for k, r in enumerate(prob.records)}
 
 
-def _slack_params(prob: Problem, st: State) -> dict[str, Any]:
+def _slack_params(prob: Problem, st: Values) -> dict[str, Any]:
     out = {}
     for k, r in enumerate(prob.records):
         if any(s.effect == "slack" and s.file == k for s in prob.slots):

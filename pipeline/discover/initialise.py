@@ -59,7 +59,7 @@ def _init_set(prob: Problem, z: np.ndarray) -> np.ndarray:
 def _init_scales(prob: Problem, z: np.ndarray) -> np.ndarray:
     """Each specimen's scale in closed form (least squares of its data on the current prediction),
     normalised to a geometric mean of 1."""
-    st = prob.state(z)
+    st = prob.values(z)
     idx = [i for i, s in enumerate(prob.slots) if s.effect == "specimen_scale"]
     logs = []
     for i in idx:
@@ -188,7 +188,7 @@ def _init_slack(prob: Problem, z: np.ndarray) -> np.ndarray:
         zz = z.copy()
         for i in idx:
             zz[i] = prob.lower[i] + q * (prob.upper[i] - prob.lower[i]) * 0.6
-        st = prob.state(zz)
+        st = prob.values(zz)
         for i in idx:
             blk, _ = prob.residual_block(prob.slots[i].file, st)
             c = float(blk @ blk)
@@ -246,7 +246,7 @@ def _relaxation_system(prob: Problem, z: np.ndarray, taus: np.ndarray, kappa: fl
     offset columns are projected out, a held offset taken off the data. None where
     no training record has time.
     """
-    st = prob.state(z)
+    st = prob.values(z)
     cols, target = [], []
     for k, r in enumerate(prob.records):
         if not prob.n_train[k] or r.t is None:

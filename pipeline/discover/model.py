@@ -194,8 +194,8 @@ class Slot:
 
 
 @dataclass
-class State:
-    """Parameter values decoded from an optimiser vector (SI)."""
+class Values:
+    """The parameter values an optimiser vector stands for, decoded (SI)."""
 
     base: dict[str | None, dict[str, float]]
     g: np.ndarray | None = None
@@ -459,8 +459,8 @@ class Problem:
         return {s.name: float(z_full[i]) for i, s in enumerate(self.slots[self.n_base:self.n_shared], self.n_base)
                 if s.effect == effect}
 
-    def state(self, z_full: np.ndarray) -> State:
-        st = State(base=self.layout.to_params(z_full[: self.n_base]))
+    def values(self, z_full: np.ndarray) -> Values:
+        st = Values(base=self.layout.to_params(z_full[: self.n_base]))
         sp = self.spec
         if sp.viscoelastic:
             v = self._shared(z_full, "viscoelastic")
@@ -486,7 +486,7 @@ class Problem:
         self._file_state(st, z_full)
         return st
 
-    def _file_state(self, st: State, z_full: np.ndarray) -> None:
+    def _file_state(self, st: Values, z_full: np.ndarray) -> None:
         m = len(self.records)
         st.slack, st.scale = np.zeros(m), np.ones(m)
         st.slips = [np.zeros(len(r.slips)) if self.spec.grip_slip else np.zeros(0) for r in self.records]
@@ -500,14 +500,14 @@ class Problem:
                 st.scale[list(s.group)] = math.exp(z_full[i])
 
     # ------------------------------------------------------------ forward model
-    def _key(self, k: int, st: State):
+    def _key(self, k: int, st: Values):
         r = self.records[k]
         params = st.base[r.key if self.directions else None]
         delta = float(st.slack[k]) if st.slack is not None else 0.0
         slips = tuple(float(v) for v in st.slips[k]) if st.slips else ()
         return (tuple(sorted(params.items())), delta, slips, st.set_fraction), params
 
-    def _x_true(self, k: int, st: State, idx: np.ndarray) -> np.ndarray:
+    def _x_true(self, k: int, st: Values, idx: np.ndarray) -> np.ndarray:
         """The specimen's stretch at samples *idx* after the slips and the slack."""
         r = self.records[k]
         x = r.x[idx]
@@ -543,7 +543,7 @@ class Problem:
         while len(c) > 24:
             c.pop(next(iter(c)))
 
-    def prefetch(self, st: State, ks) -> None:
+    def prefetch(self, st: Values, ks) -> None:
         """Compute the elastic responses of records *ks* missing from the cache, batched by mode."""
         groups: dict = {}
         for k in ks:
@@ -559,7 +559,7 @@ class Problem:
             for (k, key), val in zip(items, self._compute_elastic(mode, params, xs, st.set_fraction)):
                 self._remember(k, key, val)
 
-    def _elastic(self, k: int, st: State, idx: np.ndarray, use_cache: bool):
+    def _elastic(self, k: int, st: Values, idx: np.ndarray, use_cache: bool):
         """(P_e, W, ξ) on samples *idx* of record k (after slips, slack and set)."""
         if use_cache:
             key, _ = self._key(k, st)
@@ -572,7 +572,7 @@ class Problem:
         return self._compute_elastic(self.records[k].test.mode, params, [self._x_true(k, st, idx)],
                                      st.set_fraction)[0]
 
-    def predict(self, k: int, st: State, idx: np.ndarray | None = None, *, use_cache: bool = True) -> np.ndarray:
+    def predict(self, k: int, st: Values, idx: np.ndarray | None = None, *, use_cache: bool = True) -> np.ndarray:
         """Model stress of record k on samples *idx* (default: its fitting samples), before offsets."""
         r = self.records[k]
         if idx is None:
@@ -591,7 +591,7 @@ class Problem:
             p = np.maximum(p, 0.0)
         return p * st.scale[k] if st.scale is not None else p
 
-    def _softened(self, k: int, st: State, pe, w, xi) -> np.ndarray:
+    def _softened(self, k: int, st: Values, pe, w, xi) -> np.ndarray:
         """Elastic stress after damage, Mullins and cyclic softening (before relaxation)."""
         r = self.records[k]
         p = pe
@@ -606,11 +606,11 @@ class Problem:
                     p = p * cyclic_factor(accumulated_energy(w), *st.cyclic)
         return p
 
-    def elastic(self, k: int, st: State) -> tuple:
+    def elastic(self, k: int, st: Values) -> tuple:
         """(P_e, W, ξ) of record k on its fitting samples (W, ξ None where no effect needs them)."""
         return self._elastic(k, st, self.records[k].fit_idx, True)
 
-    def softened(self, k: int, st: State, idx: np.ndarray, *, use_cache: bool = True) -> np.ndarray:
+    def softened(self, k: int, st: Values, idx: np.ndarray, *, use_cache: bool = True) -> np.ndarray:
         """Elastic stress after slips, slack, set and softening (before relaxation), on samples *idx*."""
         pe, w, xi = self._elastic(k, st, idx, use_cache)
         return self._softened(k, st, pe, w, xi)
@@ -652,7 +652,7 @@ class Problem:
     def n_free_offsets(self, k: int) -> int:
         return self.n_offset[k] - (1 if self.pinned[k] is not None and self.n_offset[k] else 0)
 
-    def residual_block(self, k: int, st: State) -> tuple[np.ndarray, np.ndarray | None]:
+    def residual_block(self, k: int, st: Values) -> tuple[np.ndarray, np.ndarray | None]:
         """Normalised residual block of record k (training samples) and its offset coefficients."""
         r = self.records[k]
         pred = self.predict(k, st)
@@ -696,14 +696,14 @@ class Problem:
 
     def residuals(self, z: np.ndarray) -> np.ndarray:
         zf = self._full(z)
-        st = self.state(zf)
+        st = self.values(zf)
         self.prefetch(st, self._trained())
         blocks = [self.residual_block(k, st)[0] if self.n_train[k] else np.zeros(0) for k in range(len(self.records))]
         return np.concatenate(blocks + [self.constraint_residual(zf)])
 
     def jac(self, z: np.ndarray) -> np.ndarray:
         zf = self._full(z)
-        st0 = self.state(zf)
+        st0 = self.values(zf)
         self.prefetch(st0, self._trained())
         base_blocks = [self.residual_block(k, st0)[0] if self.n_train[k] else np.zeros(0)
                        for k in range(len(self.records))]
@@ -717,7 +717,7 @@ class Problem:
                 h = -h
             zp = zf.copy()
             zp[i] += h
-            stp = self.state(zp)
+            stp = self.values(zp)
             files = [k for k in (s.records or self._trained()) if self.n_train[k]]
             self.prefetch(stp, files)
             for k in files:
@@ -756,19 +756,19 @@ class Problem:
     # ------------------------------------------------------------ evaluation
     def offsets(self, z_full: np.ndarray) -> list[np.ndarray | None]:
         """Offset/drift coefficients (Pa) per record, as estimated on its training samples."""
-        st = self.state(z_full)
+        st = self.values(z_full)
         return [self.residual_block(k, st)[1] if self.n_train[k] else None for k in range(len(self.records))]
 
     def full_prediction(self, k: int, z_full: np.ndarray, coef=None) -> np.ndarray:
         """Prediction of record k on *all* its samples, with its offsets applied."""
-        st = self.state(z_full)
+        st = self.values(z_full)
         r = self.records[k]
         idx = np.arange(r.test.n)
         return self.add_offsets(k, self.predict(k, st, idx), coef, idx)
 
     def fit_residuals(self, z_full: np.ndarray) -> list[np.ndarray]:
         """Unnormalised residuals (Pa, model - data) on each record's training samples."""
-        st = self.state(z_full)
+        st = self.values(z_full)
         out = []
         for k, r in enumerate(self.records):
             if not self.n_train[k]:
@@ -834,4 +834,4 @@ def spec_of_effects(effects: MaterialEffects, terms=()) -> Spec:
                 permanent_set=int(effects.permanent_set is not None), terms=tuple(terms))
 
 
-__all__ = ["VARIANTS", "EFFECTS", "CANDIDATES", "Spec", "Slot", "State", "Bounds", "Problem", "spec_of_effects"]
+__all__ = ["VARIANTS", "EFFECTS", "CANDIDATES", "Spec", "Slot", "Values", "Bounds", "Problem", "spec_of_effects"]

@@ -238,31 +238,16 @@ def _add_visco(rng, c: Case) -> None:
     c.truth.viscoelastic = _visco(rng, 1.0, 15.0)
 
 
-def _add_slack(rng, c: Case) -> None:
-    lam = max(float(np.max(p.lam)) for p in c.protocols)
-    hi = 0.25 * (lam - 1) * GAUGE
-    c.vary["slack"] = [float(rng.uniform(0.3, 1.0)) * hi for _ in c.protocols]
-
-
 def _add_offset(rng, c: Case) -> None:
     f_max = float(np.max(np.abs(syn.simulate(c.protocols[0], c.truth)["true_force"])))
     c.vary["offset"] = [float(rng.choice([-1, 1]) * rng.uniform(0.03, 0.1) * f_max) for _ in c.protocols]
     c.rest = int(rng.integers(5, 30))
 
 
-def _add_set(rng, c: Case) -> None:
-    c.truth.permanent_set = {"fraction": float(rng.uniform(0.06, 0.2))}
-
-
 def _add_mullins(rng, c: Case) -> None:
     top = max(float(np.max(p.lam)) for p in c.protocols)
     c.truth.mullins = {"r": float(rng.uniform(1.5, 4.0)), "m": float(rng.uniform(0.05, 0.4)) * _W(c.truth.params, top),
                        "beta": 0.0}
-
-
-def _add_scale(rng, c: Case) -> None:
-    s = list(np.exp(rng.uniform(-0.35, 0.35, len(c.protocols))))
-    c.vary["scale"] = [float(v / np.exp(np.mean(np.log(s)))) for v in s]
 
 
 #: class name -> builder(rng, index)

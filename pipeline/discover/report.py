@@ -51,7 +51,7 @@ _NICE = {
 
 # --------------------------------------------------------------------------- JSON
 def _params_doc(f: Fitted) -> dict[str, Any]:
-    st = f.state
+    st = f.values
     out: dict[str, Any] = {"params": dict(st.base[None])}
     if f.problem.directions:
         out["directions"] = {d: dict(st.base[d]) for d in f.problem.directions}
@@ -350,7 +350,7 @@ def params_toml(res: DiscoverResult, *, which: str = "final", stress_unit: str |
     ``which="base"`` gives the base model alone.
     """
     f = res.final if which == "final" else res.base
-    st = f.state
+    st = f.values
     directions = None
     if f.problem.directions:
         dirp = [p.name for p in f.problem.model.parameters if p.directional]
@@ -460,7 +460,7 @@ def write_corrected(folder: str | Path, res: DiscoverResult) -> list[Path]:
     if not any(n in ARTEFACTS for n in res.kept):
         return []
     f = res.final
-    st = f.state
+    st = f.values
     coefs = f.problem.offsets(f.z)
     return [_write_one(folder, res, k, r, st, coefs[k]) for k, r in enumerate(res.records)]
 

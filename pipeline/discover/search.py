@@ -36,6 +36,7 @@ from ..blas import single_threaded_blas
 from ..calibrate.config import check_model
 from ..calibrate.fit import FitResult, fit_material
 from ..calibrate.problem import fibre_directions, file_weights
+from ..checks import number
 from ..errors import ConfigError, FitError
 from ..materials import get_model
 from ..materials.effects import ARTEFACTS, MATERIAL_EFFECTS, MaterialEffects
@@ -43,7 +44,6 @@ from ..materials.loading import energy_density
 from ..materials.terms import TERMS
 from ..progress import Reporter, ensure
 from ..tensile.data import TensileTest
-from ..validate import number
 from .diagnose import Diagnosis, diagnose
 from .estimates import estimates
 from .fitted import Fitted, effect_params, finish, fit_spec
@@ -160,7 +160,7 @@ class DiscoverResult:
 
     @property
     def material_effects(self) -> MaterialEffects:
-        me = self.final.state.material_effects()
+        me = self.final.values.material_effects()
         iv = {e.key: [e.lower, e.upper] for e in self.final.estimates
               if e.key.split(".")[0] in MATERIAL_EFFECTS + ("nonlinear_viscoelastic",)}
         return MaterialEffects(me.viscoelastic, me.mullins, me.damage, iv, me.cyclic_softening, me.permanent_set)
@@ -185,7 +185,7 @@ class DiscoverResult:
 
     def base_params(self, which: str = "final") -> dict[str | None, dict[str, float]]:
         f = self.final if which == "final" else self.base
-        return f.state.base
+        return f.values.base
 
 
 # --------------------------------------------------------------------------- the loop

@@ -32,8 +32,8 @@ from io import StringIO
 import numpy as np
 
 from ..errors import ConfigError, SimulationError
+from ..linalg.newton import OrderedFactor, node_ordering, ordered_solve
 from ..mesh.refine import quadratic_tets
-from ..network.newton import OrderedFactor, node_ordering, ordered_solve
 from ..progress import ensure
 from .cases import LoadCase
 from .material import IsochoricMaterial, bulk_modulus
@@ -282,7 +282,7 @@ class _NodeDissection:
 
     SuperLU without pivoting in symmetric mode on the matrix permuted by
     METIS nested dissection of its node graph
-    (:func:`~esmm.pipeline.network.newton.node_ordering`, computed once: the
+    (:func:`~esmm.pipeline.linalg.newton.node_ordering`, computed once: the
     pattern stays). On the kidney's lift (21 279 unknowns) 0.7 s and 14.8 M
     entries against 3.6 s and 37 M for the LU with COLAMD (docs/validate.md
     §1). No pivoting is exact for a positive definite matrix, which a stable

@@ -32,8 +32,8 @@ import time
 import numpy as np
 
 from ..errors import SimulationError
+from ..linalg.newton import descent_direction, free_order
 from ..network import forcelaw
-from ..network.newton import descent_direction, free_order
 from ..network.springs import tet_volumes
 from ..progress import ensure
 from .cases import LoadCase

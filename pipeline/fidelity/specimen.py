@@ -4,7 +4,7 @@ The cube (default 20 mm, elements of 2.5 mm) is meshed by gmsh in-process
 with the settings of ``esmm prepare`` (Delaunay, optimised with Netgen), turned
 into a spring network by :func:`~esmm.pipeline.network.springs.network_from_tets`
 and given the tables ``esmm prepare`` gives an asset: the material's tables,
-compensated on a cylinder meshed like it (:func:`~esmm.pipeline.network.compensation.compensate`,
+compensated on a cylinder meshed like it (:func:`~esmm.pipeline.compensation.calibration.compensate`,
 cached). Its faces are exact planes, so the specimen cases grip whole faces.
 """
 
@@ -16,10 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..compensation.calibration import calibration_stretches, compensate
 from ..errors import ConfigError, MeshingError
 from ..mesh.gmsh_model import gmsh_model, tetrahedra
 from ..mesh.refine import split_in_eight
-from ..network.compensation import calibration_stretches, compensate
 from ..network.springs import network_from_tets
 from ..network.tables import build_tables
 from ..network.volume import bulk_modulus

@@ -23,13 +23,13 @@ import numpy as np
 
 from ..asset import read_asset
 from ..atomicio import write_json, write_text
+from ..checks import choice
 from ..errors import ConfigError, SimulationError
 from ..network.volume import volume_elements
 from ..progress import ensure
 from ..simulate.grasper import plan_grasp
 from ..simulate.runsetup import fixed_nodes
 from ..simulate.scene import load_scene
-from ..validate import choice
 from .cases import (
     CASES,
     ORGAN_CASES,

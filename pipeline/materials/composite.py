@@ -110,7 +110,3 @@ class CompositeModel(MaterialModel):
 
     def _check_extra(self, params: dict[str, float], *, where: str) -> None:
         self.base._check_extra({k: params[k] for k in self.base.parameter_names}, where=where)
-
-    @property
-    def term_names(self) -> tuple[str, ...]:
-        return tuple(t.name for t in self.terms)

@@ -39,9 +39,9 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 
+from ..checks import choice, number
 from ..errors import ConfigError, InputError, MeshingError
 from ..progress import ensure
-from ..validate import choice, number
 from .surface import Surface, cross3, triple
 
 #: Largest accepted relative change of the enclosed volume by the cleaning.

@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from ..checks import number
 from ..errors import ConfigError
-from ..validate import number
 
 #: Minimum quality accepted by ``esmm prepare`` (unless forced); see docs/prepare.md.
 QUALITY_FLOORS: dict[str, float] = {

@@ -36,9 +36,9 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 
+from ..checks import number
 from ..errors import MeshingError
 from ..progress import ensure
-from ..validate import number
 from .cleaning import decimate, keep_largest, meshfix, meshfix_arrays, orient_outward
 from .surface import Surface
 

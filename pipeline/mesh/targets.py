@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..checks import number
 from ..errors import ConfigError
-from ..validate import number
 
 #: Fewest nodes a target may ask for (a handful of tetrahedra is not an organ).
 MIN_NODES = 10

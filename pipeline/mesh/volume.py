@@ -30,9 +30,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..checks import number
 from ..errors import ConfigError, MeshingError
 from ..progress import ensure
-from ..validate import number
 from .cleaning import face_components, keep_largest, meshfix, meshfix_arrays, orient_outward
 from .gmsh_worker import GmshFailure, GmshTimeout, run_worker
 from .readers import boundary_of_tets

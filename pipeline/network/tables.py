@@ -14,7 +14,7 @@ stiffness
 where :math:`W_T` is the strain energy of the tissue in incompressible
 uniaxial stretch along a material direction, the angles are those of the
 spring's rest direction with the fibre frame, and :math:`c` is the volumetric
-compensation factor of :mod:`esmm.pipeline.network.compensation` (1 when not
+compensation factor of :mod:`esmm.pipeline.compensation.calibration` (1 when not
 calibrated). Two force laws use the same tables; both are central forces
 whose magnitude is a function of :math:`\lambda` only,
 
@@ -32,7 +32,7 @@ whose magnitude is a function of :math:`\lambda` only,
 :math:`W_T'` (``stress``) and of an energy :math:`W_T` that is the exact
 integral of the interpolated stress (``energy``), so a consumer can evaluate
 both laws, their energies and tangents from the file alone. When the network
-has been calibrated (:mod:`esmm.pipeline.network.compensation`), ``values``
+has been calibrated (:mod:`esmm.pipeline.compensation.calibration`), ``values``
 and ``stress`` already include the stretch correction :math:`g(\lambda)`
 (``correction``; the material's own curves are ``values / correction``), so a
 consumer never applies it separately; only ``volume_factor`` multiplies.
@@ -62,10 +62,10 @@ from typing import Any
 
 import numpy as np
 
+from ..checks import choice, number
 from ..errors import ConfigError, InputError
 from ..materials.loading import nominal_stress
 from ..materials.material import DIRECTIONS
-from ..validate import choice, number
 
 #: Names of the force laws, in the order of preference.
 LAWS = ("secant", "energy")

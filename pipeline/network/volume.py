@@ -260,13 +260,6 @@ class VolumeElements:
             self._cache["A"] = A
         return self._cache["A"]
 
-    def with_modulus(self, bulk_modulus: float) -> VolumeElements:
-        """The same elements with another bulk modulus (everything else kept)."""
-        from dataclasses import replace
-
-        return VolumeElements(replace(self.spec, bulk_modulus=float(bulk_modulus)), self.tets, self.rest_volume,
-                              self.n_nodes)
-
     # -- evaluation ------------------------------------------------------------
     def _x(self, points) -> np.ndarray:
         x = np.asarray(points, dtype=np.float64)

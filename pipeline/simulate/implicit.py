@@ -24,13 +24,13 @@ term's per-tet bound in place of its nodal tangent (a third of the fill; or
 of :math:`A` itself, ``factor_matrix``), taken at an earlier state and
 reused for as long as it keeps the iterations few (then refactored at the
 current state). By default each solve iterates by L-BFGS with that factor
-as its first inverse instead (:mod:`.quasinewton`: one solve per iteration,
+as its first inverse instead (:mod:`~esmm.pipeline.linalg.quasinewton`: one solve per iteration,
 no tangent); a solve it does not finish goes on with a factor taken at its best
 iterate, then with Newton's iteration (``iteration``). The factor is the
-supernodal :math:`LDL^T` of :mod:`esmm.pipeline.network.supernodal`, factored
+supernodal :math:`LDL^T` of :mod:`esmm.pipeline.linalg.supernodal`, factored
 on two threads (``factor_threads``) and solved on two where that is faster
 (``threads``). Constraints join through the capacitance matrix
-(:class:`~.linsolve.Constraints`), so the factor does not change with the
+(:class:`~esmm.pipeline.linalg.linsolve.Constraints`), so the factor does not change with the
 grasp or the contacts. Unconditionally stable for a linear network; the
 iterations (with their line searches, and Newton's as the fallback) carry it
 through the tables' nonlinearity and locking.
@@ -56,11 +56,11 @@ import numpy as np
 import scipy.sparse as sps
 
 from ..errors import ConfigError
-from ..network.newton import node_ordering
+from ..linalg.linsolve import Constraints, MixedFactor, SparseFactor, mixed_ordering, pcg
+from ..linalg.newton import node_ordering
+from ..linalg.quasinewton import MEMORY, MIN_STEP, LBFGSMemory, secant_step
 from . import kernels as K
-from .linsolve import Constraints, MixedFactor, SparseFactor, mixed_ordering, pcg
 from .model import Control, Model, State
-from .quasinewton import MEMORY, MIN_STEP, LBFGSMemory, secant_step
 from .scene import FACTORS, ITERATIONS
 from .stepper import StepBound
 from .volumeterm import VolumeTerm
@@ -126,7 +126,7 @@ class BackwardEuler:
         (whichever is met first).
     iteration : {"quasi-newton", "newton"}
         How each solve iterates. "quasi-newton" (default): L-BFGS with the
-        reused factor as its first inverse (:mod:`.quasinewton`; one solve
+        reused factor as its first inverse (:mod:`~esmm.pipeline.linalg.quasinewton`; one solve
         per iteration), a solve that has not converged after as many
         iterations as a hand-over has cost so far (:meth:`_switch_after`) or
         whose residual grew :data:`QN_DIVERGE` times handed over: to a factor
@@ -172,7 +172,7 @@ class BackwardEuler:
         of the tets): a third of the fill and faster solves, but more
         conjugate-gradient iterations. "exact": Newton's matrix itself.
         "mixed": Newton's matrix too, with each term's ``tangent_parts`` as a
-        saddle point (:class:`~.linsolve.MixedFactor`; about half the exact fill).
+        saddle point (:class:`~esmm.pipeline.linalg.linsolve.MixedFactor`; about half the exact fill).
         Measured over the interactive scene (3 s, medians of 3-5 runs each):
         the bound is 1.58x faster on the fine liver (fill 17.3 M -> 5.0 M),
         1.05-1.22x on three paper-preset organs, 0.92x on the spleen and
@@ -181,7 +181,7 @@ class BackwardEuler:
         exact matrix.
     threads : int
         Threads of the factor's solves: 1, or 2 (the two halves of the nested dissection at once,
-        :mod:`esmm.pipeline.network.supernodal`; on the fine liver's factor 1.3-1.9 against
+        :mod:`esmm.pipeline.linalg.supernodal`; on the fine liver's factor 1.3-1.9 against
         2.1-3.2 ms back to back, but 4-6 ms against 2.6-7 ms between other work on this VM; on the
         paper liver's 0.13 against 0.21 ms in a run). The rest of the step runs on one thread.
     factor_threads : int
@@ -459,7 +459,7 @@ class BackwardEuler:
         return self.preconditioner == "factor" and self._factor_in_solves() < budget
 
     def _quasi_newton(self, model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, fixed_dof):
-        """One L-BFGS iteration (:mod:`.quasinewton`): a solve with the factor, the secant's step."""
+        """One L-BFGS iteration (:mod:`~esmm.pipeline.linalg.quasinewton`): a solve with the factor, the secant's step."""
         self._renew_factor(model, state, control, x, dt_fx, contact, h)
         b = -g.ravel()
         cons = self._cons
@@ -495,7 +495,7 @@ class BackwardEuler:
         return g, self._norm(g, control, contact, model.floor)
 
     def _secant_search(self, model, state, control, x, x0, v0, h, dt_fx, d3, g, descent):
-        """The step along *d3* from the residual's slopes (:func:`.quasinewton.secant_step`; *descent*
+        """The step along *d3* from the residual's slopes (:func:`~esmm.pipeline.linalg.quasinewton.secant_step`; *descent*
         = ``-phi'(0)`` > 0, *g* the residual at *x*); (step, x, g, whether g is the residual itself).
 
         Where the step is not the full one, the residual there is the secant's model,
@@ -781,7 +781,7 @@ class BackwardEuler:
         return (A + sps.diags(mass_dof * mov + (1.0 - mov))).tocsr()
 
     def _mixed_factor(self, model, state, x, h, dt_fx) -> MixedFactor:
-        """Newton's matrix factored from its parts (:class:`~.linsolve.MixedFactor`): the system matrix
+        """Newton's matrix factored from its parts (:class:`~esmm.pipeline.linalg.linsolve.MixedFactor`): the system matrix
         without the terms that have ``tangent_parts``, and their ``B^T diag(w) B`` (fixed dofs' columns
         of B zero)."""
         parts = [t for t in model.terms if t is not model.springs and getattr(t, "tangent_parts", None) is not None]

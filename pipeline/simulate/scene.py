@@ -36,10 +36,10 @@ from typing import Any
 
 import numpy as np
 
+from ..checks import boolean, choice, keys, number, number_text, quantity, table
 from ..config import load as load_config
 from ..errors import ConfigError
 from ..network.regions import region_from_config
-from ..validate import boolean, choice, keys, number, number_text, quantity, table
 
 DEFAULT_SCENE = "default"
 #: Half-width of a laparoscopic grasper's jaws [m] (radius "auto" grasps at least this).
@@ -314,7 +314,7 @@ class Scene:
 
 
 # ---------------------------------------------------------------------------
-# value helpers (on top of esmm.pipeline.validate)
+# value helpers (on top of esmm.pipeline.checks)
 # ---------------------------------------------------------------------------
 
 def _seconds(value, name: str) -> float:

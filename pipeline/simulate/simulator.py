@@ -17,7 +17,7 @@ import numpy as np
 
 from ..blas import single_threaded_blas
 from ..errors import ConfigError, SimulationError
-from ..network import supernodal
+from ..linalg import supernodal
 from ..progress import Reporter
 from . import kernels as K
 from .model import Control, Floor, Grasp, Model, State

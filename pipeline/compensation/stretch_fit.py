@@ -57,7 +57,7 @@ import math
 
 import numpy as np
 
-from .forcelaw import spring_force_magnitudes
+from ..network.forcelaw import spring_force_magnitudes
 
 __all__ = ["MODE_WEIGHTS", "equivalent_strain", "gauss_newton_step", "hat_basis", "power_shares",
            "test_weights", "velocity_gradient"]

@@ -9,7 +9,7 @@
   solves with it in the original numbering; :func:`at_round_off` tells
   whether a solution without pivoting is one.
 * :func:`descent_direction`: the Newton direction of ``esmm prepare``'s
-  virtual tensile test (:mod:`.tensile_test`) and ``esmm validate``'s network
+  virtual tensile test (:mod:`~esmm.pipeline.compensation.virtual_tensile`) and ``esmm validate``'s network
   solve (:mod:`esmm.pipeline.fidelity.network_solve`), with the exact sparse
   tangent.
 

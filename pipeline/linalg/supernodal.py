@@ -2,7 +2,7 @@ r"""A supernodal multifrontal :math:`LDL^T` factorization without pivoting, comp
 
 For a symmetric matrix :math:`A` (N, N) that is positive definite, or
 quasi-definite (Vanderbei 1995: the saddle-point matrix of
-:class:`esmm.pipeline.simulate.linsolve.MixedFactor`), in a fill-reducing
+:class:`esmm.pipeline.linalg.linsolve.MixedFactor`), in a fill-reducing
 order :math:`P`,
 
 .. math::
@@ -37,7 +37,7 @@ and ``A^-1 b = P^T L^-T D^-1 L^-1 P b``. Two phases:
   (as the implicit stepper runs it). Solving, see :func:`_solve_two`.
 
 Why here and not SuperLU (scipy's ``splu`` in symmetric mode without
-pivoting, which :func:`~esmm.pipeline.network.newton.ldlt` uses): the
+pivoting, which :func:`~esmm.pipeline.linalg.newton.ldlt` uses): the
 implicit stepper's preconditioner is factored tens of times a run and solved
 hundreds of times. On the fine liver's matrix (20 991 dofs, 5.0 M entries in L;
 one process, quiet machine, 2026-11-27) SuperLU factors in float32 in 0.24 s

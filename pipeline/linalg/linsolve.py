@@ -1,9 +1,9 @@
 r"""Sparse linear algebra of the implicit stepper: a reused factorization, constraints, conjugate gradients.
 
 * :class:`SparseFactor`: an :math:`LDL^T` factorization of a symmetric
-  matrix in a nested-dissection order (:mod:`esmm.pipeline.network.newton`'s
-  :func:`~esmm.pipeline.network.newton.node_ordering`; the supernodal
-  factorization of :mod:`esmm.pipeline.network.supernodal`), used as the
+  matrix in a nested-dissection order (:mod:`esmm.pipeline.linalg.newton`'s
+  :func:`~esmm.pipeline.linalg.newton.node_ordering`; the supernodal
+  factorization of :mod:`esmm.pipeline.linalg.supernodal`), used as the
   Newton iteration's preconditioner for many steps; :class:`MixedFactor`: Newton's matrix with
   the volume term held as a saddle point of its parts (less fill than the
   matrix itself);
@@ -29,8 +29,8 @@ import numpy as np
 import scipy.sparse as sps
 
 from ..errors import SimulationError
-from ..network.newton import node_ordering
-from ..network.supernodal import LDLT, Analysis, ZeroPivot, canonical
+from .newton import node_ordering
+from .supernodal import LDLT, Analysis, ZeroPivot, canonical
 
 
 @dataclass(eq=False)
@@ -38,7 +38,7 @@ class SparseFactor:
     """A symmetric matrix factored once, in a nested-dissection order, for many solves.
 
     The supernodal multifrontal :math:`LDL^T` of
-    :mod:`esmm.pipeline.network.supernodal` (no pivoting: the stepper's matrix
+    :mod:`esmm.pipeline.linalg.supernodal` (no pivoting: the stepper's matrix
     is positive definite). Its symbolic analysis is taken over from the last
     factor (*analysis*) while the pattern stays the same, which it does over a
     run: a refactorization is then the numeric phase alone. Measured against
@@ -86,7 +86,7 @@ class SparseFactor:
         *single*: factor and solve in float32 (measured on the fine liver: solves
         1.6x faster, relative residual ~1e-4: a preconditioner, not a solver).
         *threads*: 1, or 2 for the factorization and its solves both (one setting for the two:
-        :mod:`esmm.pipeline.network.supernodal`).
+        :mod:`esmm.pipeline.linalg.supernodal`).
         """
         t = time.perf_counter()
         A = canonical(A)
@@ -101,7 +101,7 @@ class SparseFactor:
 
 
 def _factor(A, analysis, perm, dtype, threads) -> tuple[LDLT, float]:
-    """:class:`~esmm.pipeline.network.supernodal.LDLT` of the stepper's matrix, factored and solved on
+    """:class:`~esmm.pipeline.linalg.supernodal.LDLT` of the stepper's matrix, factored and solved on
     *threads*, and the seconds of its symbolic analysis where *analysis* did not fit (0 otherwise);
     a zero pivot is the asset's fault (SimulationError)."""
     try:

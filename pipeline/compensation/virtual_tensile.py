@@ -31,14 +31,14 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError, MeshingError, SimulationError
+from ..linalg.newton import descent_direction, free_order
 from ..materials.loading import nominal_stress
 from ..mesh.gmsh_model import gmsh_model, tetrahedra
+from ..network import forcelaw
+from ..network.springs import network_from_tets, tet_volumes
+from ..network.tables import StiffnessTables
+from ..network.volume import VolumeElements, VolumeSpec, volume_elements
 from ..progress import ensure
-from . import forcelaw
-from .newton import descent_direction, free_order
-from .springs import network_from_tets, tet_volumes
-from .tables import StiffnessTables
-from .volume import VolumeElements, VolumeSpec, volume_elements
 
 __all__ = [
     "Potential", "Specimen", "TensileResult", "cylinder_specimen", "virtual_tensile_test", "continuum_stress",

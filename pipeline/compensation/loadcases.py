@@ -1,6 +1,6 @@
 r"""Homogeneous load cases beyond the uniaxial test: simple shear and any prescribed deformation.
 
-The virtual tensile test (:mod:`.tensile_test`) leaves the specimen's sides
+The virtual tensile test (:mod:`~esmm.pipeline.compensation.virtual_tensile`) leaves the specimen's sides
 free, which is what measures the Poisson effect. The tests here prescribe a
 homogeneous deformation :math:`\mathbf x = \mathbf F \mathbf X` on *every*
 boundary node of a network (any mesh: a specimen or an organ) and let the
@@ -29,10 +29,10 @@ import numpy as np
 
 from ..errors import ConfigError, SimulationError
 from ..materials.loading import energy_density, nominal_stress
-from .springs import tet_volumes
-from .tables import StiffnessTables
-from .tensile_test import Potential, _newton
-from .volume import VolumeSpec, inverted_tets, volume_elements
+from ..network.springs import tet_volumes
+from ..network.tables import StiffnessTables
+from ..network.volume import VolumeSpec, inverted_tets, volume_elements
+from .virtual_tensile import Potential, _newton
 
 __all__ = ["PLANES", "HomogeneousResult", "ShearResult", "boundary_nodes", "homogeneous_test", "shear_deformation",
            "virtual_shear_test"]
@@ -108,7 +108,7 @@ def homogeneous_test(network, tables: StiffnessTables, deformations, *, law: str
         The volume term on the network's tets (None: springs only).
     rtol, max_iter
         Newton's tolerance and iterations per step (see
-        :func:`~esmm.pipeline.network.tensile_test.virtual_tensile_test`).
+        :func:`~esmm.pipeline.compensation.virtual_tensile.virtual_tensile_test`).
     substeps : int
         Linear steps in F between two deformations (halved on failure, 12 times at most).
     predictors : array_like, shape (m, n, 3), optional

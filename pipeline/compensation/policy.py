@@ -1,4 +1,4 @@
-"""The policy of :func:`~esmm.pipeline.network.compensation.compensate`: its defaults and its cache.
+"""The policy of :func:`~esmm.pipeline.compensation.calibration.compensate`: its defaults and its cache.
 
 The defaults (calibration range, specimen radius) live here, in a module that
 imports nothing heavy, so that the command line can show them in its help.
@@ -31,7 +31,7 @@ from ..atomicio import write_json
 from ..cache import folder
 
 if TYPE_CHECKING:  # annotations only: this module stays light to import
-    from .tables import StiffnessTables
+    from ..network.tables import StiffnessTables
 
 #: Compression and tension ends of the calibration (clipped to the tables' grid; docs/model.md).
 DEFAULT_RANGE = (0.9, 1.3)
@@ -40,9 +40,11 @@ DEFAULT_RADIUS_ELEMENTS = 4.0
 #: Accepted radii of the calibration cylinder, in element sizes (larger = slower, closer to the bulk).
 RADIUS_ELEMENTS_RANGE = (1.5, 20.0)
 
-#: The modules whose source decides a calibration's result (their bytes enter the key).
-CODE = ("compensation.py", "tensile_test.py", "tables.py", "forcelaw.py", "springs.py", "volume.py", "loadcases.py",
-        "newton.py", "stretch_fit.py")
+#: The modules whose source decides a calibration's result (their bytes enter the key), relative to
+#: the library's folder.
+CODE = ("compensation/calibration.py", "compensation/virtual_tensile.py", "network/tables.py", "network/forcelaw.py",
+        "network/springs.py", "network/volume.py", "compensation/loadcases.py", "linalg/newton.py",
+        "compensation/stretch_fit.py")
 
 
 def cache_dir() -> Path:
@@ -58,7 +60,7 @@ def cache_key(tables: StiffnessTables, law: str, lo: float, hi: float, radius_el
     springs only): its bulk modulus and formulation change the result.
     """
     code = hashlib.sha256()
-    here = Path(__file__).resolve().parent
+    here = Path(__file__).resolve().parent.parent
     for name in CODE:
         code.update((here / name).read_bytes())
     blob = json.dumps({

@@ -38,7 +38,7 @@ on what specimen they were found.
 :func:`compensate` is the policy ``esmm prepare`` and ``esmm tables`` share:
 the calibration range (:data:`DEFAULT_RANGE`, clipped to the grid), the
 specimen (:func:`specimen_for`, :data:`DEFAULT_RADIUS_ELEMENTS`) and the cache
-of calibrations (:mod:`~esmm.pipeline.network.compensation_policy`).
+of calibrations (:mod:`~esmm.pipeline.compensation.policy`).
 """
 
 from __future__ import annotations
@@ -50,22 +50,21 @@ from typing import Any
 
 import numpy as np
 
+from ..checks import number
 from ..errors import ConfigError, SimulationError
+from ..network.tables import DEFAULT_LAM_MAX, LAWS, StiffnessTables
+from ..network.volume import VolumeSpec
 from ..progress import ensure
-from ..validate import number
-from . import compensation_policy as policy
-from . import stretch_fit
-from .compensation_policy import DEFAULT_RADIUS_ELEMENTS, DEFAULT_RANGE, RADIUS_ELEMENTS_RANGE
+from . import policy, stretch_fit
 from .loadcases import virtual_shear_test
-from .tables import DEFAULT_LAM_MAX, LAWS, StiffnessTables
-from .tensile_test import (
+from .policy import DEFAULT_RADIUS_ELEMENTS, DEFAULT_RANGE, RADIUS_ELEMENTS_RANGE
+from .virtual_tensile import (
     Specimen,
     TensileResult,
     continuum_stress,
     cylinder_specimen,
     virtual_tensile_test,
 )
-from .volume import VolumeSpec
 
 __all__ = ["Compensation", "CompensationResult", "calibrate_compensation", "compensate", "correction_on_grid",
            "specimen_for"]
@@ -144,11 +143,11 @@ class CompensationResult:
             return {"max_abs_rel_error": r.max_abs_rel_error, "rms_rel_error": r.rms_rel_error}
 
         return {
-            "method": "virtual load tests on a gmsh cylinder (pipeline/network/compensation.py): "
+            "method": "virtual load tests on a gmsh cylinder (pipeline/compensation/calibration.py): "
                       "scalar factor from a small-strain test (with the volume term: the weighted geometric mean "
                       "of small-strain tension and simple shear in two planes), stretch-dependent correction "
                       + ("by Gauss-Newton on power shares over tension, compression and simple shear in two planes "
-                         "(pipeline/network/stretch_fit.py)" if len(self.fitted_on) > 2 else
+                         "(pipeline/compensation/stretch_fit.py)" if len(self.fitted_on) > 2 else
                          "by fixed-point iteration on tension and compression"),
             "fitted_on": self.fitted_on,
             "law": self.law, "volume_factor": self.factor,
@@ -214,7 +213,7 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
     tables : StiffnessTables
         Material tables; their current compensation for *law* is replaced.
     specimen : Specimen
-        From :func:`~esmm.pipeline.network.tensile_test.cylinder_specimen`.
+        From :func:`~esmm.pipeline.compensation.virtual_tensile.cylinder_specimen`.
     law : {"secant", "energy"}, optional
         Default: ``tables.default_law``.
     material : Material, optional
@@ -230,7 +229,7 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
         Fixed-point iterations at most; the best correction found is kept.
     rtol : float
         Equilibrium tolerance of the virtual tests (see
-        :func:`~esmm.pipeline.network.tensile_test.virtual_tensile_test`).
+        :func:`~esmm.pipeline.compensation.virtual_tensile.virtual_tensile_test`).
     volume : VolumeSpec, optional
         The volume term the network will carry (:mod:`~esmm.pipeline.network.volume`);
         every test then includes it, and the scalar factor balances two load
@@ -631,7 +630,7 @@ def compensate(tables: StiffnessTables, network, *, material=None, calibration_r
 
     One virtual tensile test on a cylinder meshed like *network*
     (:func:`specimen_for`), by :func:`calibrate_compensation`; a calibration
-    with the same content address (:mod:`~esmm.pipeline.network.compensation_policy`)
+    with the same content address (:mod:`~esmm.pipeline.compensation.policy`)
     is reused instead of run again.
 
     Parameters
