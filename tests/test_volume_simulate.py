@@ -73,6 +73,7 @@ def test_springs_beside_the_volume_term_on_two_threads_give_the_same_sum_bit_for
     own force pass on one and on two threads."""
     from esmm.pipeline.materials.effects import MaterialEffects, MullinsEffect, ViscoelasticEffect
     from esmm.pipeline.simulate.implicit import BackwardEuler
+    from esmm.pipeline.simulate.implicit_system import forces
 
     fx = MaterialEffects(ViscoelasticEffect((0.3,), (0.05,)), MullinsEffect(2.0, 2.0, 0.1)) if effects else None
     springs = build_spring_term(box, tables, dashpot=2e-4, effects=fx)
@@ -89,7 +90,7 @@ def test_springs_beside_the_volume_term_on_two_threads_give_the_same_sum_bit_for
                 np.testing.assert_array_equal(getattr(s2, name), getattr(s1, name))
     sim = Simulator(springs, box.points, box.mass, gravity=(0, 0, -9.81), volume=vol,
                     stepper=BackwardEuler(step=1 / 30))
-    f1, f2 = (BackwardEuler._forces(sim.model, sim.state, x, v, 1e-3, threads=t) for t in (1, 2))
+    f1, f2 = (forces(sim.model, sim.state, x, v, 1e-3, threads=t) for t in (1, 2))
     np.testing.assert_array_equal(f2, f1)
     assert np.abs(f1 - sim.model.springs.forces(x, v, fext=sim.model.fext, state=sim.state.effects,
                                                 dt=1e-3)).max() > 0   # the volume term is in it
