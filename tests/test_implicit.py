@@ -1,7 +1,7 @@
 """The implicit stepper: the tangent stiffness, the linear algebra, and the comparison with the explicit reference.
 
 The explicit stepper (symplectic Euler under its stability bound) is the
-accuracy reference; the implicit one (backward Euler, docs/simulate.md §2b) is
+accuracy reference; the implicit one (backward Euler, docs/design/simulator.md) is
 compared with it on the same network, start and damping.
 """
 
@@ -227,7 +227,8 @@ def test_hard_rows_are_projected_out_at_once_as_one_after_the_other(box):
 
 DECAY = 30.0        # 1/s: mass-proportional damping of the comparison (both steppers)
 LIFT = 0.6          # s: the lift's duration: slow against the slab's first mode (~60 rad/s), as an
-                    # organ's (~5 rad/s, docs/simulate.md §3) is against the frame step
+                    # organ's (~5 rad/s, docs/design/simulator.md, "Numerical damping and stability") is against
+                    # the frame step
 
 
 def lift(slab, tables, stepper, *, frames=24, dt=None, floor=None):
@@ -289,8 +290,9 @@ def test_implicit_matches_the_explicit_reference(slab, reference, iteration):
 
 @pytest.mark.parametrize("iteration", ITERATIONS)
 def test_implicit_matches_the_explicit_reference_on_a_frictionless_bed(slab, iteration):
-    """The interactive scene's bed (docs/simulate.md §2b): the clamped slab sags onto a frictionless
-    floor touching its rest shape and its free end is lifted off it; both steppers at matched damping."""
+    """The interactive scene's bed (docs/design/simulator.md, "The scenes' physics"): the clamped slab
+    sags onto a frictionless floor touching its rest shape and its free end is lifted off it; both
+    steppers at matched damping."""
     tables = make_tables(mu0=2.0e4)
     fl = Floor.under(slab.points, (0, 0, -9.81), friction="slip")
     dt = stable_step(build_spring_term(slab, tables, dashpot=2e-4), slab.mass).dt
@@ -313,10 +315,10 @@ def test_implicit_matches_the_explicit_reference_on_a_sticking_bed(slab, iterati
     """The default scene's bed: as above with sticking friction. Where the lift peels the slab off
     the bed the explicit stepper's contacts creep (let go, landed, held again, within microseconds);
     the implicit one lets them slide within its step and stop where the floor pushes again
-    (:class:`Slides`). Holding them to the step's end instead erred 7.2 % in force here (and 29 % on
-    the paper liver, docs/simulate.md §2b). The displacement is not held to 5 % on this slab: the
-    peeled corner leaves the bed a step before the explicit one's (9 % of the largest displacement
-    at 1/30 s, 4 % at 1/240 s; on the livers 0.3-0.9 %)."""
+    (:class:`Slides`; docs/design/simulator.md, "Floor contact, with slides"); holding them to the
+    step's end instead errs by several per cent in force here. The displacement is not held to 5 %
+    on this slab: the peeled corner leaves the bed a step before the explicit one's (about a tenth
+    of the largest displacement at 1/30 s, less at shorter steps)."""
     tables = make_tables(mu0=2.0e4)
     fl = Floor.under(slab.points, (0, 0, -9.81), friction="stick")
     dt = stable_step(build_spring_term(slab, tables, dashpot=2e-4), slab.mass).dt
@@ -368,8 +370,8 @@ def locking_hang(box, load=300):
     1.15 (tangent x 40 at 1.25): a unique equilibrium in the stiff range.
 
     Not the box on its base: a network without a volume term folds through its fixed base under
-    such loads, into one of several hanging equilibria, and the path decides which (a fresh clone's
-    CI, 2026-11-27: 46 % apart, where the factor's renewals followed the machine's load)."""
+    such loads, into one of several hanging equilibria, and the path decides which (runs far apart
+    where the factor's renewals, which follow measured times, differed)."""
     lam = np.linspace(0.6, 1.6, 201)
     mu = np.vstack([2e4 * (1 + 40 * np.clip((lam - 1.15) / 0.1, 0, None) ** 2)] * 3)
     tables = StiffnessTables(lam_min=0.6, lam_max=1.6, n=201, values=mu, stress=mu * (lam - 1),
@@ -711,7 +713,7 @@ def test_quasi_newton_needs_the_reused_factor():
 
 
 def test_scene_integrator_keys():
-    assert scene_from_dict({}).method == "implicit"  # the default, as measured (docs/simulate.md section 9)
+    assert scene_from_dict({}).method == "implicit"  # the default (docs/design/simulator.md, "What it achieves")
     sc = scene_from_dict({"integrator": {"method": "implicit", "implicit_step": "1 ms", "haptic_rate": 2000,
                                          "newton_tol": 0.01}})
     assert sc.method == "implicit" and sc.solve_step == pytest.approx(1e-3) and sc.haptic_rate == 2000

@@ -209,7 +209,7 @@ def test_gravity_keeps_the_volume_within_one_percent_with_the_term_and_not_witho
 @pytest.mark.parametrize("factor_matrix,iteration", [("bound", "quasi-newton"), ("exact", "quasi-newton"),
                                                      ("mixed", "quasi-newton"), ("bound", "newton")])
 def test_implicit_stepper_takes_the_volume_term_at_the_frame_step(box, tables, factor_matrix, iteration):
-    """The implicit stepper sums every term's forces and tangent (docs/simulate.md §2b): with the volume
+    """The implicit stepper sums every term's forces and tangent (docs/design/simulator.md, "Scheme"): with the volume
     term it is stable at 1/30 s, settles on the same equilibrium as FIRE and keeps the volume within 1 %,
     whether its preconditioner factors the volume term's per-tet bound (the default), its tangent or the
     saddle point of its parts, and whether its solves iterate by quasi-Newton (the default) or Newton."""

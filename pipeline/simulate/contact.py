@@ -1,7 +1,7 @@
 r"""The floor's contacts within one implicit step: the active set and its slides.
 
 The implicit stepper (:mod:`.implicit`) holds the floor's contacts as constraints of the step's
-system (docs/design/simulator.md, "Floor contact"): a node that crosses the plane during a step is
+system (docs/design/simulator.md, "Floor contact, with slides"): a node that crosses the plane during a step is
 put back on it and held from the next step on; one the floor would have to pull (its reaction
 :math:`\lambda = \mathbf g\cdot\mathbf n < 0`, :math:`\mathbf g` the step's residual) is let go and
 the step solved again. On a frictionless floor ("slip") a held node is held along the normal only;
@@ -23,7 +23,7 @@ from .model import Control, Floor, Model, State
 
 @dataclass
 class Slides:
-    """A sticking floor's contacts within one implicit step (docs/design/simulator.md, "Floor contact").
+    """A sticking floor's contacts within one implicit step (docs/design/simulator.md, "Floor contact, with slides").
 
     The explicit stepper lets go of a held node the moment the floor would pull it and holds it
     again where it is back on the plane: where a lift peels the organ off its bed, such nodes

@@ -2,7 +2,7 @@ r"""The implicit stepper's reused factor: what it is taken of, when it is renewe
 
 The step's iterations (:mod:`.implicit_iteration`) precondition with a sparse :math:`LDL^T` of
 Newton's matrix (:mod:`esmm.pipeline.linalg.supernodal`) taken at an earlier state and kept for as
-long as it keeps the iterations few (docs/design/simulator.md, "The reused factor"):
+long as it keeps the iterations few (docs/design/simulator.md, "What is factored, and when it is renewed"):
 
 * what is factored (:meth:`FactorCache.factored`): by default Newton's matrix with the volume
   term's per-tet bound in place of its nodal tangent (a third of the fill, faster solves, a few
@@ -128,7 +128,8 @@ class FactorCache:
         assembly is counted: with the analysis the first factor would look many times dearer than its
         renewals and whether a run renews it would depend on that one timing; with the assembly the
         factor is renewed less often, and the 1 kHz grasper force, predicted from the factor's patch
-        stiffness (:mod:`.haptics`), gets less accurate (docs/design/simulator.md, "What a renewal costs").
+        stiffness (:mod:`.haptics`), gets less accurate (docs/design/simulator.md, "What is factored,
+        and when it is renewed").
         """
         cons, fac = self.constraints, self.factor
         if fac is None or cons is None or cons.solves == 0 or cons.solve_s <= 0.0:

@@ -2,11 +2,11 @@ r"""The implicit stepper: backward Euler, quasi-Newton or Newton iterations on a
 
 One step of :math:`h` from :math:`(\mathbf x_n, \mathbf v_n)` solves the step's nonlinear system
 :math:`\mathbf g(\mathbf x_{n+1}) = 0` for the positions at its end, then
-:math:`\mathbf v_{n+1} = (\mathbf x_{n+1} - \mathbf x_n)/h` (docs/design/simulator.md, "The
-implicit step"). Unconditionally stable for a linear network; the iterations (with their line
+:math:`\mathbf v_{n+1} = (\mathbf x_{n+1} - \mathbf x_n)/h` (docs/design/simulator.md,
+"Scheme"). Unconditionally stable for a linear network; the iterations (with their line
 searches, and Newton's as the fallback) carry it through the tables' nonlinearity and locking.
 
-:class:`BackwardEuler` is a thin stepper over four parts, each in its own module:
+:class:`BackwardEuler` is a thin stepper over five parts, each in its own module:
 
 * the step's system (:mod:`.implicit_system`): the residual with the force terms, their dashpots
   and material effects, subject to the fixed nodes, the prescribed grasp and the floor's contacts;
@@ -69,13 +69,14 @@ class BackwardEuler:
         Times a step is solved again after its contacts changed. None (default): once on a
         frictionless floor (a node the lift peels off leaves in the step it is let go, not a step
         later), twice on a sticking one (a pulled node slides, then stops or leaves,
-        :class:`~.contact.Slides`); docs/design/simulator.md, "Floor contact".
+        :class:`~.contact.Slides`); docs/design/simulator.md, "Floor contact, with slides".
     iteration : {"quasi-newton", "newton"}
         How each solve iterates (:mod:`.implicit_iteration`). "quasi-newton" (default): L-BFGS
         with the reused factor as its first inverse, handed over to a fresh factor and then to
         Newton where it does not converge; "newton": Newton with conjugate gradients (also what
         a preconditioner other than "factor" gets). The quasi-Newton iteration is the faster
-        at the same accuracy against the explicit reference (docs/design/simulator.md, "The iteration").
+        at the same accuracy against the explicit reference (docs/design/simulator.md, "The
+        iteration: quasi-Newton on a reused factor").
     memory : int
         Quasi-Newton: curvature pairs kept.
     max_newton : int
@@ -107,8 +108,8 @@ class BackwardEuler:
         "mixed": Newton's matrix too, with each term's ``tangent_parts`` as a
         saddle point (:class:`~esmm.pipeline.linalg.linsolve.MixedFactor`; about half the exact fill).
         Which is fastest depends on the mesh: the bound on most organs, where the volume term's
-        fill dominates (docs/design/simulator.md, "The reused factor"). The "fresh" preconditioner
-        always factors the exact matrix.
+        fill dominates (docs/design/simulator.md, "What is factored, and when it is renewed").
+        The "fresh" preconditioner always factors the exact matrix.
     threads : int
         Threads of the factor's solves and the force pass: 1 or 2 (:class:`~.implicit_stats.Threads`).
     factor_threads : int
@@ -143,8 +144,8 @@ class BackwardEuler:
         self.haptics = Haptics(rate=haptic_rate, drift=haptic_drift)
 
     def __repr__(self) -> str:
-        return (f"BackwardEuler(step={self.step!r}, iteration={self.iteration!r}, "
-                f"preconditioner={self.preconditioner!r}, factor_matrix={self.factor_matrix!r}, threads={self.threads})")
+        return (f"BackwardEuler(step={self.step!r}, iteration={self.iteration!r}, preconditioner="
+                f"{self.preconditioner!r}, factor_matrix={self.factor_matrix!r}, threads={self.threads})")
 
     @property
     def quasi(self) -> bool:

@@ -6,7 +6,7 @@ iteration, no tangent) or by Newton with conjugate gradients preconditioned by t
 (:class:`Newton`). A quasi-Newton solve that has not converged after as many iterations as a
 hand-over has cost so far, or whose residual grew :data:`QN_DIVERGE` times, is handed over: from
 its best iterate to a factor taken there where that pays, then to Newton's iteration
-(:class:`StepSolver`; docs/design/simulator.md, "The iteration").
+(:class:`StepSolver`; docs/design/simulator.md, "The iteration: quasi-Newton on a reused factor").
 
 After each solve the floor's contacts are updated (:mod:`.contact`) and, while their rounds allow,
 the step is solved again with them.
@@ -28,7 +28,7 @@ from .implicit_system import StepSystem
 
 #: Quasi-Newton iterations of one solve before it is handed over, until a hand-over's cost has been
 #: measured (then that cost: :meth:`StepSolver.switch_after`). Chosen over 8 for speed at the same
-#: accuracy (docs/design/simulator.md, "The iteration").
+#: accuracy (docs/design/simulator.md, "The iteration: quasi-Newton on a reused factor").
 QN_SWITCH = 12
 #: A quasi-Newton solve whose residual grew this many times above its start hands over to Newton.
 QN_DIVERGE = 4.0
@@ -113,12 +113,13 @@ class QuasiNewton:
         Where the step is not the full one, the residual there is the secant's model,
         ``g + step (g(x + d) - g)``, exact where the residual is linear along *d* (the model the step
         was chosen on), not a second force pass: about one force pass an iteration instead of two, as
-        many iterations, the grasper force as accurate (docs/design/simulator.md, "The secant's
-        residual"). The residual itself is evaluated where the secant's zero lies beyond the step's
-        range (far from linear, where the model can be wrong by orders of magnitude) and wherever a
-        decision rests on it: where the model shows convergence or no progress (:meth:`update`), where
-        a solve ends on the update's length, and at a hand-over (:class:`StepSolver`). The curvature
-        pair is then the secant's over the full direction scaled by the step (which BFGS's update does
+        many iterations, the grasper force as accurate (docs/design/simulator.md, "The iteration:
+        quasi-Newton on a reused factor"). The residual itself is evaluated where the secant's zero
+        lies beyond the step's range (far from linear, where the model can be wrong by orders of
+        magnitude) and wherever a decision rests on it: where the model shows convergence or no
+        progress (:meth:`update`), where a solve ends on the update's length, and at a hand-over
+        (:class:`StepSolver`). The curvature pair is then the secant's over the full direction scaled
+        by the step (which BFGS's update does
         not see)."""
         x1 = x + d3
         _, g1 = system.residual(x1)
@@ -238,7 +239,7 @@ class StepSolver:
         below the tolerance: accepted as it is, a state at rest whose forces are out of balance by
         less than ``rtol`` of the largest weight would never move again, however soft the mode they
         drive. One iteration moves it by the linearized step, so the stepper's resting states are the
-        equilibria (docs/design/simulator.md, "The iteration")."""
+        equilibria (docs/design/simulator.md, "The iteration: quasi-Newton on a reused factor")."""
         st = self.stats
         self.step_quasi = 0
         tol, xtol = system.tolerances(self.rtol, self.xtol)

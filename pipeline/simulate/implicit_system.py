@@ -1,7 +1,7 @@
 r"""One implicit step's nonlinear system: its constants, its residual and its matrices.
 
 A step of :math:`h` from :math:`(\mathbf x_n, \mathbf v_n)` solves for
-:math:`\mathbf x = \mathbf x_{n+1}` (docs/design/simulator.md, "The implicit step")
+:math:`\mathbf x = \mathbf x_{n+1}` (docs/design/simulator.md, "Scheme")
 
 .. math::
 
