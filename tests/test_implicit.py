@@ -1,7 +1,7 @@
 """The implicit stepper: the tangent stiffness, the linear algebra, and the comparison with the explicit reference.
 
 The explicit stepper (symplectic Euler under its stability bound) is the
-accuracy reference; the implicit one (backward Euler, docs/simulate.md §2b) is
+accuracy reference; the implicit one (backward Euler, docs/design/simulator.md) is
 compared with it on the same network, start and damping.
 """
 
@@ -27,10 +27,13 @@ from esmm.pipeline.network.forcelaw import tangent_stiffness
 from esmm.pipeline.network.springs import network_from_tets
 from esmm.pipeline.network.tables import StiffnessTables
 from esmm.pipeline.progress import ListReporter
-from esmm.pipeline.simulate import implicit, runsetup
+from esmm.pipeline.simulate import implicit_iteration, runsetup
 from esmm.pipeline.simulate import kernels as K
+from esmm.pipeline.simulate.contact import Slides
+from esmm.pipeline.simulate.factorcache import FactorCache
 from esmm.pipeline.simulate.history import History
-from esmm.pipeline.simulate.implicit import BackwardEuler, Slides
+from esmm.pipeline.simulate.implicit import BackwardEuler
+from esmm.pipeline.simulate.implicit_iteration import QuasiNewton, StepSolver
 from esmm.pipeline.simulate.model import Floor, Grasp
 from esmm.pipeline.simulate.run import simulate_network
 from esmm.pipeline.simulate.scene import ITERATIONS, scene_from_dict
@@ -224,7 +227,8 @@ def test_hard_rows_are_projected_out_at_once_as_one_after_the_other(box):
 
 DECAY = 30.0        # 1/s: mass-proportional damping of the comparison (both steppers)
 LIFT = 0.6          # s: the lift's duration: slow against the slab's first mode (~60 rad/s), as an
-                    # organ's (~5 rad/s, docs/simulate.md §3) is against the frame step
+                    # organ's (~5 rad/s, docs/design/simulator.md, "Numerical damping and stability") is against
+                    # the frame step
 
 
 def lift(slab, tables, stepper, *, frames=24, dt=None, floor=None):
@@ -286,8 +290,9 @@ def test_implicit_matches_the_explicit_reference(slab, reference, iteration):
 
 @pytest.mark.parametrize("iteration", ITERATIONS)
 def test_implicit_matches_the_explicit_reference_on_a_frictionless_bed(slab, iteration):
-    """The interactive scene's bed (docs/simulate.md §2b): the clamped slab sags onto a frictionless
-    floor touching its rest shape and its free end is lifted off it; both steppers at matched damping."""
+    """The interactive scene's bed (docs/design/simulator.md, "The scenes' physics"): the clamped slab
+    sags onto a frictionless floor touching its rest shape and its free end is lifted off it; both
+    steppers at matched damping."""
     tables = make_tables(mu0=2.0e4)
     fl = Floor.under(slab.points, (0, 0, -9.81), friction="slip")
     dt = stable_step(build_spring_term(slab, tables, dashpot=2e-4), slab.mass).dt
@@ -310,10 +315,10 @@ def test_implicit_matches_the_explicit_reference_on_a_sticking_bed(slab, iterati
     """The default scene's bed: as above with sticking friction. Where the lift peels the slab off
     the bed the explicit stepper's contacts creep (let go, landed, held again, within microseconds);
     the implicit one lets them slide within its step and stop where the floor pushes again
-    (:class:`Slides`). Holding them to the step's end instead erred 7.2 % in force here (and 29 % on
-    the paper liver, docs/simulate.md §2b). The displacement is not held to 5 % on this slab: the
-    peeled corner leaves the bed a step before the explicit one's (9 % of the largest displacement
-    at 1/30 s, 4 % at 1/240 s; on the livers 0.3-0.9 %)."""
+    (:class:`Slides`; docs/design/simulator.md, "Floor contact, with slides"); holding them to the
+    step's end instead errs by several per cent in force here. The displacement is not held to 5 %
+    on this slab: the peeled corner leaves the bed a step before the explicit one's (about a tenth
+    of the largest displacement at 1/30 s, less at shorter steps)."""
     tables = make_tables(mu0=2.0e4)
     fl = Floor.under(slab.points, (0, 0, -9.81), friction="stick")
     dt = stable_step(build_spring_term(slab, tables, dashpot=2e-4), slab.mass).dt
@@ -365,8 +370,8 @@ def locking_hang(box, load=300):
     1.15 (tangent x 40 at 1.25): a unique equilibrium in the stiff range.
 
     Not the box on its base: a network without a volume term folds through its fixed base under
-    such loads, into one of several hanging equilibria, and the path decides which (a fresh clone's
-    CI, 2026-11-27: 46 % apart, where the factor's renewals followed the machine's load)."""
+    such loads, into one of several hanging equilibria, and the path decides which (runs far apart
+    where the factor's renewals, which follow measured times, differed)."""
     lam = np.linspace(0.6, 1.6, 201)
     mu = np.vstack([2e4 * (1 + 40 * np.clip((lam - 1.15) / 0.1, 0, None) ** 2)] * 3)
     tables = StiffnessTables(lam_min=0.6, lam_max=1.6, n=201, values=mu, stress=mu * (lam - 1),
@@ -389,7 +394,7 @@ def test_stable_at_frame_and_haptic_steps_and_near_locking(box):
         for dt in (1 / 30, 1e-3):
             stepper = BackwardEuler(step=dt)
             if not timed:
-                stepper._factor_in_solves = lambda: float(rng.uniform(0.0, 60.0))
+                stepper.factors.factor_in_solves = lambda: float(rng.uniform(0.0, 60.0))
             sim = Simulator(term, box.points, box.mass, fixed=fixed, gravity=g, mass_damping=20.0, stepper=stepper)
             assert dt > 10 * stable_step(term, box.mass).dt
             sim.advance(int(round(0.6 / dt)))
@@ -573,8 +578,8 @@ def test_quasi_newton_hands_a_solve_it_does_not_finish_to_a_fresh_factor(slab, r
     there, where that costs less than Newton's iteration may: with the first switch after one iteration
     solves are handed over, the factor is renewed for them, and the lift still follows the explicit
     reference. (On this small slab a factorization costs more solves than Newton's budget: forced.)"""
-    monkeypatch.setattr(implicit, "QN_SWITCH", 1)
-    monkeypatch.setattr(BackwardEuler, "_refresh_pays", lambda self: True)
+    monkeypatch.setattr(implicit_iteration, "QN_SWITCH", 1)
+    monkeypatch.setattr(StepSolver, "refresh_pays", lambda self: True)
     tables, (te, Fe, Xe, _) = reference
     ti, Fi, Xi, sim = lift(slab, tables, BackwardEuler())
     st = sim.stepper.stats
@@ -583,8 +588,8 @@ def test_quasi_newton_hands_a_solve_it_does_not_finish_to_a_fresh_factor(slab, r
     assert st.unconverged == 0
     # after the first hand-over a solve gets as many quasi-Newton iterations as a hand-over has cost
     # (the break-even rule), a fresh factor counted in solves: more than one
-    cost, count = sim.stepper._handover
-    assert count == st.fallbacks and sim.stepper._switch_after() == pytest.approx(cost / count)
+    cost, count = sim.stepper.solver.handover_cost, sim.stepper.solver.handovers
+    assert count == st.fallbacks and sim.stepper.solver.switch_after() == pytest.approx(cost / count)
     assert cost / count > 1
     u_e = Xe - slab.points
     assert np.abs(Xi - Xe).max() <= 0.05 * np.linalg.norm(u_e, axis=2).max()
@@ -597,29 +602,24 @@ def test_a_solve_converges_on_the_residual_not_on_the_secants_model_of_it(slab, 
     end, carries the residual itself, recomputed here at the same x. (With a coarse *xtol* solves
     also end on the update's length, at an iterate whose residual was modelled.)"""
     checked = {"converged": 0, "ends": 0}
-    quasi, converge = BackwardEuler._quasi_newton, BackwardEuler._converge
+    update, solve = QuasiNewton.update, StepSolver.solve
 
-    def true_norm(self, model, state, control, x, x0, v0, h, dt_fx, contact):
-        _, g = self._residual(model, state, control, x, x0, v0, h, dt_fx)
-        return self._norm(g, control, contact, model.floor)
-
-    def spy_quasi(self, model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, fixed_dof):
-        xt, gt, new, moved = quasi(self, model, state, control, x, x0, v0, h, dt_fx, g, norm, contact, fixed_dof)
-        if new <= self._qn["tol"]:
-            assert self._qn["exact"]
-            assert new == pytest.approx(true_norm(self, model, state, control, xt, x0, v0, h, dt_fx, contact),
-                                        rel=1e-12)
+    def spy_update(self, system, x, g, norm, h0, tol):
+        xt, gt, new, moved, exact = update(self, system, x, g, norm, h0, tol)
+        if new <= tol:
+            assert exact
+            assert new == pytest.approx(system.norm(system.residual(xt)[1]), rel=1e-12)
             checked["converged"] += 1
-        return xt, gt, new, moved
+        return xt, gt, new, moved, exact
 
-    def spy_converge(self, model, state, control, x, x0, v0, h, dt_fx, contact, fixed_dof):
-        out = converge(self, model, state, control, x, x0, v0, h, dt_fx, contact, fixed_dof)
-        assert self._qn["exact"]
+    def spy_solve(self, system, x):
+        out = solve(self, system, x)
+        assert self.record.exact
         checked["ends"] += 1
         return out
 
-    monkeypatch.setattr(BackwardEuler, "_quasi_newton", spy_quasi)
-    monkeypatch.setattr(BackwardEuler, "_converge", spy_converge)
+    monkeypatch.setattr(QuasiNewton, "update", spy_update)
+    monkeypatch.setattr(StepSolver, "solve", spy_solve)
     tables, (te, Fe, Xe, _) = reference
     ti, Fi, Xi, sim = lift(slab, tables, BackwardEuler(xtol=xtol))
     st = sim.stepper.stats
@@ -631,8 +631,8 @@ def test_a_solve_converges_on_the_residual_not_on_the_secants_model_of_it(slab, 
 
 
 def test_a_solve_that_stalls_on_the_fresh_factor_too_goes_on_with_newton(slab, reference, monkeypatch):
-    monkeypatch.setattr(BackwardEuler, "_switch_after", lambda self: 1)
-    monkeypatch.setattr(BackwardEuler, "_refresh_pays", lambda self: True)
+    monkeypatch.setattr(StepSolver, "switch_after", lambda self: 1)
+    monkeypatch.setattr(StepSolver, "refresh_pays", lambda self: True)
     tables, (te, Fe, Xe, _) = reference
     ti, Fi, Xi, sim = lift(slab, tables, BackwardEuler())
     st = sim.stepper.stats
@@ -646,14 +646,14 @@ def test_where_a_factorization_costs_more_than_newton_may_newton_takes_over(slab
     """Where a factorization costs more solves than Newton's iteration may spend (forced here: the slab's
     costs fewer), hand-overs go to Newton at once, whose iterations and conjugate gradients are then the
     hand-over's cost."""
-    monkeypatch.setattr(implicit, "QN_SWITCH", 1)
-    monkeypatch.setattr(BackwardEuler, "_factor_in_solves", lambda self: math.inf)
+    monkeypatch.setattr(implicit_iteration, "QN_SWITCH", 1)
+    monkeypatch.setattr(FactorCache, "factor_in_solves", lambda self: math.inf)
     tables, (te, Fe, Xe, _) = reference
     ti, Fi, Xi, sim = lift(slab, tables, BackwardEuler())
     st = sim.stepper.stats
-    assert not sim.stepper._refresh_pays()
+    assert not sim.stepper.solver.refresh_pays()
     assert st.fallbacks > 0 and st.newton > 0
-    assert sim.stepper._switch_after() == pytest.approx((st.cg + st.newton) / st.fallbacks)
+    assert sim.stepper.solver.switch_after() == pytest.approx((st.cg + st.newton) / st.fallbacks)
     u_e = Xe - slab.points
     assert np.abs(Xi - Xe).max() <= 0.05 * np.linalg.norm(u_e, axis=2).max()
 
@@ -675,13 +675,14 @@ def test_what_a_renewal_costs_leaves_out_the_first_analysis(slab, monkeypatch):
     sim.set_time_step(1 / 30, bound=sim.stepper.bound(sim.model, sim.control), t0=0.0)
     stepper = sim.stepper
     assert stepper.prepare(sim.model, sim.state, sim.control) >= 0.3
-    assert stepper._factor.analysis_s >= 0.3
+    factors = stepper.factors
+    assert factors.factor.analysis_s >= 0.3
     sim.advance(2)
-    cons = stepper._cons
-    assert 0.0 < stepper._factor_in_solves() * cons.solve_s / cons.solves < 0.3
-    first = stepper._factor.analysis
-    stepper._refactor(sim.model, sim.state, sim.x, sim.dt)
-    assert stepper._factor.analysis is first and stepper._factor.analysis_s == 0.0
+    cons = factors.constraints
+    assert 0.0 < factors.factor_in_solves() * cons.solve_s / cons.solves < 0.3
+    first = factors.factor.analysis
+    stepper.prepare(sim.model, sim.state, sim.control)                # a renewal
+    assert factors.factor.analysis is first and factors.factor.analysis_s == 0.0
 
 
 @pytest.mark.parametrize("solo, expected", [(1e-12, 1), (math.inf, 2), (math.nan, 2)])
@@ -695,23 +696,24 @@ def test_two_threads_fall_back_to_one_where_their_solves_got_slower(slab, solo, 
     sim.set_time_step(1 / 30, bound=sim.stepper.bound(sim.model, sim.control), t0=0.0)
     stepper = sim.stepper
     stepper.prepare(sim.model, sim.state, sim.control)
-    assert stepper.threads == 2 and stepper._factor.ldl.threads == 2        # no solve yet: nothing to weigh
+    assert stepper.threads == 2 and stepper.factors.factor.ldl.threads == 2    # no solve yet: nothing to weigh
     sim.advance(3)
-    stepper._refactor(sim.model, sim.state, sim.x, sim.dt)
-    assert stepper.threads == expected and stepper._factor.ldl.threads == expected
+    stepper.prepare(sim.model, sim.state, sim.control)                # a renewal
+    assert stepper.threads == expected and stepper.factors.factor.ldl.threads == expected
     assert stepper.stats.thread_fallbacks == (expected == 1)
 
 
 def test_quasi_newton_needs_the_reused_factor():
     """With another preconditioner the solves iterate by Newton (the quasi-Newton's first inverse is the factor)."""
-    assert BackwardEuler()._quasi and not BackwardEuler(preconditioner="jacobi")._quasi
-    assert not BackwardEuler(iteration="newton")._quasi
+    assert BackwardEuler().quasi and not BackwardEuler(preconditioner="jacobi").quasi
+    assert not BackwardEuler(iteration="newton").quasi
+    assert not BackwardEuler(preconditioner="jacobi").solver.quasi
     with pytest.raises(Exception, match="iteration"):
         BackwardEuler(iteration="bfgs")
 
 
 def test_scene_integrator_keys():
-    assert scene_from_dict({}).method == "implicit"  # the default, as measured (docs/simulate.md section 9)
+    assert scene_from_dict({}).method == "implicit"  # the default (docs/design/simulator.md, "What it achieves")
     sc = scene_from_dict({"integrator": {"method": "implicit", "implicit_step": "1 ms", "haptic_rate": 2000,
                                          "newton_tol": 0.01}})
     assert sc.method == "implicit" and sc.solve_step == pytest.approx(1e-3) and sc.haptic_rate == 2000

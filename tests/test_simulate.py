@@ -383,7 +383,7 @@ def test_cantilever_sag_matches_euler_bernoulli():
     mu0 = 3.0e4
     tb = make_tables("constant", mu0=mu0)
     E = uniaxial_modulus(net, mu0, L, b * h)
-    # An isotropic affine network has E = mu/6 (docs/simulate.md); this mesh's measured
+    # An isotropic affine network has E = mu/6; this mesh's measured
     # E differs from it and from the continuum: use the measured one.
     assert 0.05 * mu0 < E < 0.3 * mu0
     rho = net.density
@@ -413,7 +413,7 @@ def test_cantilever_sag_matches_euler_bernoulli():
     assert abs(w - w_lin) < 0.01 * w_lin, (w, w_lin)
     # The lattice is stiffer in bending than Euler-Bernoulli with its uniaxial E by a
     # through-thickness discretisation error that does not depend on L/h and falls with the
-    # number of layers (w/w_EB = 0.70, 0.89, 0.95, 0.97 for 2, 4, 6, 8 layers; docs/simulate.md);
+    # number of layers (w/w_EB = 0.70, 0.89, 0.95, 0.97 for 2, 4, 6, 8 layers);
     # shear adds ~1 % at L/h = 10. With 6 layers (measured 0.949) accept 8 %.
     assert abs(w - w_eb) < 0.08 * w_eb, (w, w_eb, E)
 

@@ -73,6 +73,7 @@ def test_springs_beside_the_volume_term_on_two_threads_give_the_same_sum_bit_for
     own force pass on one and on two threads."""
     from esmm.pipeline.materials.effects import MaterialEffects, MullinsEffect, ViscoelasticEffect
     from esmm.pipeline.simulate.implicit import BackwardEuler
+    from esmm.pipeline.simulate.implicit_system import forces
 
     fx = MaterialEffects(ViscoelasticEffect((0.3,), (0.05,)), MullinsEffect(2.0, 2.0, 0.1)) if effects else None
     springs = build_spring_term(box, tables, dashpot=2e-4, effects=fx)
@@ -89,7 +90,7 @@ def test_springs_beside_the_volume_term_on_two_threads_give_the_same_sum_bit_for
                 np.testing.assert_array_equal(getattr(s2, name), getattr(s1, name))
     sim = Simulator(springs, box.points, box.mass, gravity=(0, 0, -9.81), volume=vol,
                     stepper=BackwardEuler(step=1 / 30))
-    f1, f2 = (BackwardEuler._forces(sim.model, sim.state, x, v, 1e-3, threads=t) for t in (1, 2))
+    f1, f2 = (forces(sim.model, sim.state, x, v, 1e-3, threads=t) for t in (1, 2))
     np.testing.assert_array_equal(f2, f1)
     assert np.abs(f1 - sim.model.springs.forces(x, v, fext=sim.model.fext, state=sim.state.effects,
                                                 dt=1e-3)).max() > 0   # the volume term is in it
@@ -208,7 +209,7 @@ def test_gravity_keeps_the_volume_within_one_percent_with_the_term_and_not_witho
 @pytest.mark.parametrize("factor_matrix,iteration", [("bound", "quasi-newton"), ("exact", "quasi-newton"),
                                                      ("mixed", "quasi-newton"), ("bound", "newton")])
 def test_implicit_stepper_takes_the_volume_term_at_the_frame_step(box, tables, factor_matrix, iteration):
-    """The implicit stepper sums every term's forces and tangent (docs/simulate.md §2b): with the volume
+    """The implicit stepper sums every term's forces and tangent (docs/design/simulator.md, "Scheme"): with the volume
     term it is stable at 1/30 s, settles on the same equilibrium as FIRE and keeps the volume within 1 %,
     whether its preconditioner factors the volume term's per-tet bound (the default), its tangent or the
     saddle point of its parts, and whether its solves iterate by quasi-Newton (the default) or Newton."""

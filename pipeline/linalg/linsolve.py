@@ -17,7 +17,8 @@ r"""Sparse linear algebra of the implicit stepper: a reused factorization, const
   space (the preconditioner :math:`\Pi = P^{-1} - W C^{-1} W^T`,
   :math:`W = P^{-1}J^T`, maps any residual into it).
 
-docs/simulate.md §2b explains the choices and their measured alternatives.
+docs/design/simulator.md ("What is factored, and when it is renewed", "Constraints by the
+capacitance matrix") explains the choices.
 """
 
 from __future__ import annotations
@@ -41,9 +42,9 @@ class SparseFactor:
     :mod:`esmm.pipeline.linalg.supernodal` (no pivoting: the stepper's matrix
     is positive definite). Its symbolic analysis is taken over from the last
     factor (*analysis*) while the pattern stays the same, which it does over a
-    run: a refactorization is then the numeric phase alone. Measured against
-    SuperLU in symmetric mode, which factored it before (docs/simulate.md §2b):
-    on the fine liver's matrix 3x faster to factor, 3-4x faster to solve.
+    run: a refactorization is then the numeric phase alone. Several times
+    faster to factor and to solve than SuperLU in symmetric mode
+    (:mod:`esmm.pipeline.linalg.supernodal`).
 
     Attributes
     ----------
@@ -83,8 +84,8 @@ class SparseFactor:
         """Factor *A* (N, N), in order *perm* (default: :func:`node_ordering`), with *analysis* (a
         former factor's, see :attr:`analysis`) when *A* has its pattern.
 
-        *single*: factor and solve in float32 (measured on the fine liver: solves
-        1.6x faster, relative residual ~1e-4: a preconditioner, not a solver).
+        *single*: factor and solve in float32 (faster solves, a relative residual about 1e-4:
+        a preconditioner, not a solver).
         *threads*: 1, or 2 for the factorization and its solves both (one setting for the two:
         :mod:`esmm.pipeline.linalg.supernodal`).
         """
@@ -133,8 +134,8 @@ class MixedFactor(SparseFactor):
     is factored like the others, in a nested-dissection order of the nodes,
     each node's row of B next to its dofs. It holds Newton's matrix exactly
     (not a bound) with the sparsity of B (one tet around a node) instead of
-    :math:`B^T W B`'s (two): on the fine liver 9.3 M entries instead of
-    17.3 M (docs/simulate.md §2b).
+    :math:`B^T W B`'s (two): about half the fill on an organ's mesh
+    (docs/design/simulator.md, "What is factored, and when it is renewed").
 
     Attributes
     ----------
@@ -249,8 +250,8 @@ class Constraints:
 
     def set_rows(self, node: np.ndarray, e: np.ndarray, comp: np.ndarray) -> None:
         """Use rows (*node* (c,), unit *e* (c, 3), compliance *comp* (c,)); builds W and the capacitance inverse
-        (kept where the rows are the ones in use: a step whose grasp and contacts did not change; on the
-        fine liver's default scene the rebuild, W's copy of 3n x c entries, was 0.8 ms of a 1.9 ms call)."""
+        (kept where the rows are the ones in use: a step whose grasp and contacts did not change, where
+        rebuilding them, W's copy of 3n x c entries, would be most of the call)."""
         node = np.asarray(node, dtype=np.int64)
         e = np.asarray(e, dtype=np.float64).reshape(-1, 3)
         comp = np.asarray(comp, dtype=np.float64)

@@ -14,9 +14,8 @@
   tangent.
 
 Why nested dissection and no pivoting: on the networks' tangents it fills
-less and factors faster than SuperLU's own orders with pivoting (the fine
-liver's lift tangent with the volume term, 20 442 unknowns: 2.6 s and 34 M
-entries against 11.1 s and 61 M with COLAMD; docs/validate.md §3); no
+less and factors several times faster than SuperLU's own orders with pivoting
+(COLAMD; docs/design/validation.md, "The continuum reference"); no
 pivoting is exact for a positive definite matrix, and a solution that is not
 at round-off (an indefinite tangent's small pivot) is solved again by the LU
 with COLAMD, which pivots.
@@ -95,8 +94,7 @@ class OrderedFactor:
     """:func:`ldlt`'s factor, solved in the original numbering.
 
     SuperLU's solves with many right-hand sides at once slow down steeply
-    (measured: 3 columns 1.8x one, 12 columns 100x), so :meth:`solve` takes at
-    most three at a time.
+    beyond a few columns, so :meth:`solve` takes at most three at a time.
     """
 
     perm: np.ndarray

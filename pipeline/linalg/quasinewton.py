@@ -1,6 +1,6 @@
 r"""Limited-memory BFGS on the implicit step's residual, with the reused factor as its first inverse.
 
-The implicit step solves :math:`\mathbf g(\mathbf x) = 0` (:mod:`.implicit`).
+The implicit step solves :math:`\mathbf g(\mathbf x) = 0` (:mod:`esmm.pipeline.simulate.implicit_system`).
 Newton's iteration with conjugate gradients costs, per update, a tangent
 assembly and several products and preconditioner solves. The quasi-Newton
 iteration (Liu, Bouaziz & Kavan 2017, "Quasi-Newton methods for real-time
@@ -31,12 +31,12 @@ through :math:`\varphi'(0)` and :math:`\varphi'(1)` (:func:`secant_step`;
 exact on a quadratic): shorter than the direction where the full step
 overshoots, longer where it still descends. The residual at that step is the
 secant's model of it, not a second force pass, except where a decision rests
-on it (:meth:`esmm.pipeline.simulate.implicit.BackwardEuler._secant_search`). The longer step matters: with the
+on it (:class:`esmm.pipeline.simulate.implicit_iteration.QuasiNewton`). The longer step matters: with the
 volume term's bound in the factor (:math:`P \succeq A` on the volume part) the
-direction is shorter than Newton's update (its largest nodal length a median
-0.23 of Newton's over the SOFA liver's lift), and both the iteration's speed
+direction is much shorter than Newton's update, and both the iteration's speed
 and its stopping test (the update's length) need the step Newton would take.
-docs/simulate.md §2b has the measurements and the fallback to Newton.
+docs/design/simulator.md, "The iteration: quasi-Newton on a reused factor", has the
+fallback to Newton.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-#: Pairs kept (Liu et al. 2017 keep 5-7; not varied here: the solves take 3-6 iterations).
+#: Pairs kept (Liu et al. 2017 keep 5-7; not varied: a solve rarely takes as many iterations).
 MEMORY = 8
 #: Shortest step the secant rule takes, as a fraction of the direction.
 MIN_STEP = 0.1

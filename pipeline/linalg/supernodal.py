@@ -39,20 +39,14 @@ and ``A^-1 b = P^T L^-T D^-1 L^-1 P b``. Two phases:
 Why here and not SuperLU (scipy's ``splu`` in symmetric mode without
 pivoting, which :func:`~esmm.pipeline.linalg.newton.ldlt` uses): the
 implicit stepper's preconditioner is factored tens of times a run and solved
-hundreds of times. On the fine liver's matrix (20 991 dofs, 5.0 M entries in L;
-one process, quiet machine, 2026-11-27) SuperLU factors in float32 in 0.24 s
-and solves in 8.0 ms, reading L and U; this factorization takes 0.08 s and a
-solve 1.6-2.9 ms (paper liver, 4 980 dofs: 21 → 6-7 ms and 0.64 → 0.2-0.3 ms). Exporting
-SuperLU's L for a faster solve alone would cost 0.14 s per factorization.
-The numbers are in docs/simulate.md §2b. On two threads (quiet machine, the
-workers kept awake, medians of 21 alternating factorizations, 2026-11-27) the
-fine liver's factor takes 59 ms in float32 against 87 ms on one (1.46x;
-float64 116 against 150 ms, 1.29x), the paper liver's 4.5 against 6.5 ms
-(1.46x; float64 6.0 against 8.7 ms). The ancestors bound the gain: on the fine
-liver two fronts of 1 164 and 909 rows, a quarter of the one-thread time (23 of
-85 ms), the parts 34 and 28 ms. With another process busy on the second core
-the two threads still factored faster or as fast (1.0-1.7x), but their solves
-slowed down many times: which to use is the caller's to time.
+hundreds of times. SuperLU keeps :math:`U = DL^T` beside L and its solves read
+both (exporting its L for a faster solve alone would cost a large part of
+its factorization again); this factorization is several times faster to factor and
+to solve on the organs' matrices (docs/design/simulator.md, "What is factored,
+and when it is renewed"). On two threads the ancestors, which run on one thread,
+bound the gain. With another process busy on the second core the two threads
+still factor about as fast, but their solves slow down many times: which to use
+is the caller's to time.
 
 No pivoting: exact for positive definite and quasi-definite matrices in any
 symmetric order; a zero or non-finite pivot raises :class:`ZeroPivot` (a
@@ -802,9 +796,9 @@ def warm_up(*, dtypes=(np.float32,)) -> None:
     """Compile (or load from numba's cache) the kernels for *dtypes* on a 3 x 3 matrix, on one thread
     and, where numba has two, on two (the factorization and the solve).
 
-    Compiling on a fresh machine takes about 21 s for one dtype on one and two threads (the analysis
-    3.9 s, the one-thread factorization 1.8 s and solve 1.4 s, the two-thread factorization 2.2 s and
-    solve 10.8 s; 2026-11-27), then 0.3 s from the cache; the implicit stepper factors in float32.
+    Compiling on a fresh machine takes tens of seconds for one dtype on one and two threads (most of
+    it the two-thread solve), a fraction of a second from the cache; the implicit stepper factors in
+    float32.
     """
     A = sp.csr_matrix(np.array([[4.0, 1.0, 0.0], [1.0, 4.0, 1.0], [0.0, 1.0, 4.0]]))
     an = Analysis.of(A, np.array([2, 0, 1]))

@@ -1,4 +1,4 @@
-"""The real-time simulator (``esmm simulate``); see docs/simulate.md.
+"""The real-time simulator (``esmm simulate``); see docs/guide/simulate.md and docs/design/simulator.md.
 
 Modules, bottom up (each imports only those above it in this list):
 
@@ -18,6 +18,11 @@ Modules, bottom up (each imports only those above it in this list):
 * :mod:`.simulator`: :class:`~.simulator.Simulator`, the session holding them together;
 * :mod:`.scene` (scene files), :mod:`.grasper` (grasp planning), :mod:`.history`
   (HDF5 + XDMF), :mod:`.render` (off-screen video), :mod:`.plots` (force plot);
+* the implicit stepper, :class:`~.implicit.BackwardEuler` (:mod:`.implicit`), a thin stepper
+  over its parts: :mod:`.implicit_stats` (its statistics and threads), :mod:`.contact` (the
+  floor's active set), :mod:`.implicit_system` (one step's system), :mod:`.factorcache` (the
+  reused factor), :mod:`.haptics` (the grasper force between solves) and
+  :mod:`.implicit_iteration` (the solve);
 * :mod:`.runsetup` (a run's setup), :mod:`.frames` (its frame loop),
   :mod:`.summary` (its figures), :mod:`.run` (``simulate`` / ``simulate_network``).
 

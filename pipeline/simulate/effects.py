@@ -4,7 +4,7 @@ The material effects kept by ``esmm calibrate --discover``
 (:class:`~esmm.pipeline.materials.effects.MaterialEffects`, stored in the asset's
 ``/material/effects``) act on each spring's elastic force
 :math:`F_e = \sum_d w_d f_d(\lambda)` exactly as they act on the nominal stress
-of the tensile test they were fitted to (docs/discover.md, composition
+of the tensile test they were fitted to (docs/design/discovery.md, "The extended model"; composition
 :math:`P = \mathrm{QLV}[(1-D)\,\eta\,P_e]`):
 
 .. math::

@@ -5,9 +5,9 @@ Each frame (1 / frame_rate of simulated time) gets its step from the run's
 :class:`~.stepper.StepSchedule`, or the implicit one's fixed step); it is advanced in segments cut at the
 grasper's events (grasp, release) and, with an adaptive step, at 8 checks of
 the stretch window. A frame whose stretches left the window is redone from a
-snapshot with a wider window (docs/simulate.md §2). After each frame the
-history gets the displacement and the tip, and the forces of the steps while
-something was held.
+snapshot with a wider window (docs/design/simulator.md, "The explicit stepper
+(the accuracy reference)"). After each frame the history gets the displacement
+and the tip, and the forces of the steps while something was held.
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ class RangeCheck:
                 self.rep.warn(
                     f"{when}, {n_out} of {m.n_springs} springs are outside the tables' stretch range "
                     f"[{m.lam_min:.4g}, {m.lam_max:.4g}] (stretches {lo:.4g}..{hi:.4g}): there the force is "
-                    "the tables' extrapolation, not the material (docs/simulate.md). The organ deforms more "
+                    "the tables' extrapolation, not the material (docs/design/simulator.md). The organ deforms more "
                     "than its material can describe: a gentler scene, or a stiffer network (volumetric "
                     "compensation: 'esmm tables ASSET --compensate'). Warned once per run; the summary "
                     "counts the frames")

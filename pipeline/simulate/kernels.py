@@ -28,7 +28,8 @@ when done per block of springs). Every kernel lives in this one file on
 purpose: numba's on-disk cache of a function is invalidated only when *its*
 file changes, not when a function it calls from another file does.
 
-Symplectic Euler with implicit mass damping (docs/simulate.md §2)::
+Symplectic Euler with implicit mass damping (docs/design/simulator.md, "The explicit
+stepper (the accuracy reference)")::
 
     f_n = f(x_n, v_n) + f_ext
     v_{n+1} = (v_n + dt f_n / m) / (1 + alpha dt),   x_{n+1} = x_n + dt v_{n+1}
@@ -67,7 +68,7 @@ differences into block buffers (scalar), (2) length, stretch, table cell and
 weight (contiguous: LLVM vectorises it, sqrt included), (3) table fetch and
 law factor, (4) the material effects when there are any, (5) force
 coefficient ``F/L`` (vectorised, the division included), (6) scatter. This is
-~20 % faster than the one-loop form on AVX-512 hardware and gives bitwise the
+faster than the one-loop form on vector hardware (AVX-512) and gives bitwise the
 same numbers.
 
 Written once, compiled as needed
@@ -107,7 +108,7 @@ With effects (viscoelastic QLV, Mullins, damage), each spring carries state
     wmax  (s,)     largest energy density W reached so far [Pa]            (Mullins)
     ximax (s,)     largest uniaxial-equivalent stretch reached so far      (damage)
 
-and its force is (docs/simulate.md, "Material effects")
+and its force is (docs/design/model.md, "Material effects")
 
     F_e = sum_d w_d f_d(lam)                      the elastic (instantaneous) force
     P   = (1 - D(ximax)) * eta(W, wmax) * F_e     damage and Mullins softening
@@ -189,7 +190,8 @@ class Layout(NamedTuple):
 
 
 class VolumeKernel(NamedTuple):
-    """The volume term (nodal-averaged volume penalty, docs/model.md Part C2) as the kernels read it.
+    """The volume term (nodal-averaged volume penalty, docs/design/model.md, "The volume term (nearly
+    incompressible network)") as the kernels read it.
 
     ``None`` in place of it: no volume term (the spring-only variant, which
     contains no volume code). Per node ``a``: ``J_a = s24[a] * sum_{t ni a} 6 V_t``
@@ -317,8 +319,8 @@ def _effects_block(p0, nb, sd, lam_min, inv_h, damped, a1, a0, etab, fxp, ab, h,
 
     buf[5] holds the table's weighted f_d before the law's factor ``a1 (lam - 1) + a0``.
     One function on purpose: helpers taking arrays, called per spring, cost an atomic
-    reference count per array and call (measured 5x slower when damage, Mullins and
-    QLV were split out).
+    reference count per array and call (several times slower with damage, Mullins and
+    QLV split out).
     """
     for b in range(nb):
         buf[5, b] = buf[5, b] * (a1 * (buf[4, b] - 1.0) + a0)
@@ -447,7 +449,7 @@ def _scatter_owned(nb, p0, hi, h, ij, f, buf, hbuf):
 def _range_forces(p0, p1, hi, h, x, v, f, sp, fx, hbuf, owned):
     # The tuples are unpacked once, here, and the inlined block functions get plain
     # arrays: an array taken out of a tuple is reference-counted (an atomic increment
-    # and decrement), which done per block of springs costs ~10 % of the pass.
+    # and decrement), which done per block of springs costs a noticeable part of the pass.
     ij, sd, tab, lam_min, inv_h, last_cell, law, damped = sp
     if fx is not None:
         etab, fxp, ab, hp, pold, wmax, ximax, mode = fx
@@ -497,7 +499,7 @@ def chunk_forces(c, x, v, f, fext, sp, fx, lay):
 def _all_forces(x, v, f, fext, sp, fx):
     # One chunk: every node and spring, scattered plainly. Its own compiled function
     # with literal bounds: LLVM then keeps the block buffers' row offsets constant and
-    # the loop's constants in registers (~5 % faster than the chunked form).
+    # the loop's constants in registers (faster than the chunked form).
     _start_forces(0, x.shape[0], f, fext)
     _range_forces(0, sp.ij.shape[1], x.shape[0], 0, x, v, f, sp, fx, np.empty((0, 3)), False)
 
@@ -711,7 +713,7 @@ def forces_beside_volume(x, v, f, fv, fext, sp, fx, lay, vt):
     """The spring pass (:func:`forces_serial`) into *f* on one thread while the other computes the volume
     term's forces into *fv* (:func:`volume_forces_serial`, from zero); then ``f += fv``. The same sum, in
     the same order, as the two passes one after the other: bit for bit. No chunks and no halo: each
-    thread has its own output (the implicit stepper's force pass, docs/simulate.md §2b)."""
+    thread has its own output (the implicit stepper's force pass, :func:`.implicit_system.forces`)."""
     for g in prange(2):
         if g == 0:
             forces_serial(x, v, f, fext, sp, fx, lay)
@@ -1200,7 +1202,7 @@ def stretch_change(x, x0, ij, sd):
 
 
 # ---------------------------------------------------------------------------
-# tangent stiffness (the implicit stepper; docs/simulate.md §2b)
+# tangent stiffness (the implicit stepper; docs/design/simulator.md, "Scheme")
 # ---------------------------------------------------------------------------
 
 @njit(inline="always", **JIT_OPTIONS)

@@ -24,7 +24,7 @@ from . import kernels as K
 from .kernels import Nodes, fire_relax
 from .model import Control, Model, State
 
-#: FIRE iterations per kernel call: the progress shown moves this often (0.2-2 s on the livers).
+#: FIRE iterations per kernel call: the progress shown moves this often (about a second on an organ).
 CHUNK = 2000
 
 

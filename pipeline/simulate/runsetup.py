@@ -71,20 +71,21 @@ def threads_available() -> int:
 
 
 #: How long numba's OpenMP workers wait actively for the next parallel region before they sleep
-#: (``GOMP_SPINCOUNT``; about 70 ms on this project's machine): see :func:`keep_workers_awake`.
+#: (``GOMP_SPINCOUNT``; tens of milliseconds on a current core): see :func:`keep_workers_awake`.
 WORKER_SPIN = "3000000"
 
 
 def keep_workers_awake() -> None:
     """Let numba's OpenMP workers spin between parallel regions for a while before they sleep.
 
-    By default libgomp's idle workers went to sleep almost at once here (``GOMP_SPINCOUNT`` alone did
-    not change it, ``OMP_WAIT_POLICY=ACTIVE`` did), and a sleeping core of this virtual machine takes
-    2-3 ms to wake, more than the implicit stepper's whole solve it was woken for (the fine liver's
-    factor: two threads 5.9 ms a solve between other work, one thread 2.9 ms; with the workers
-    spinning 1.5 ms; docs/simulate.md §2b). ``OMP_WAIT_POLICY=ACTIVE`` with a finite
-    ``GOMP_SPINCOUNT`` keeps them awake through a run and lets them sleep within ~0.1 s after it.
-    Only defaults (a user's own settings win), and only before numba first starts its threads.
+    By default libgomp's idle workers can go to sleep almost at once (``GOMP_SPINCOUNT`` alone does
+    not change that, ``OMP_WAIT_POLICY=ACTIVE`` does), and a sleeping core, on a virtual machine
+    especially, can take milliseconds to wake: more than the implicit stepper's whole solve it was
+    woken for, so two threads' solves between other work would be slower than one thread's
+    (docs/design/simulator.md, "What is factored, and when it is renewed"). ``OMP_WAIT_POLICY=ACTIVE``
+    with a finite ``GOMP_SPINCOUNT`` keeps them awake through a run and lets them sleep within
+    ~0.1 s after it. Only defaults (a user's own settings win), and only before numba first starts
+    its threads.
     """
     os.environ.setdefault("OMP_WAIT_POLICY", "ACTIVE")
     os.environ.setdefault("GOMP_SPINCOUNT", WORKER_SPIN)
@@ -312,9 +313,10 @@ def choose_solve_threads(sim: Simulator, requested) -> tuple[int, dict]:
 
 def choose_factor_threads(requested) -> int:
     """The implicit stepper's factorization threads (1 or 2): as *requested*, or for ``"auto"`` two where
-    numba has them, untimed: a factorization takes tens of milliseconds, so the workers' wake-up (2-3
-    ms here) does not count as it does for a solve (fine liver 87 -> 59 ms; beside a CPU hog 0.99-1.7x
-    faster still; docs/simulate.md §2b)."""
+    numba has them, untimed: a factorization takes tens of milliseconds, so the workers' wake-up (a
+    few milliseconds at most) does not count as it does for a solve, and two threads factor at least
+    as fast as one even beside another busy process (docs/design/simulator.md, "What is factored, and
+    when it is renewed")."""
     return _as_asked(2 if requested == "auto" else requested, min(2, threads_available()))
 
 

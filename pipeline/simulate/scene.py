@@ -2,7 +2,7 @@
 
 A scene is a TOML file (or a bundled preset, ``configs/scenes/<name>.toml``).
 Every dimensional value carries its unit, as in every esmm config; the full
-schema with defaults is ``configs/scenes/default.toml`` and docs/simulate.md.
+schema with defaults is ``configs/scenes/default.toml`` and docs/reference/configuration.md.
 Tables and keys::
 
     [scene]       duration, frame_rate, gravity, gravity_unit, law, start, effects, volume
@@ -61,7 +61,8 @@ _STIFFNESS_UNITS = {"n/m": 1.0, "n/mm": 1e3, "kn/m": 1e3}
 VIEWS = ("auto", "xy", "xz", "yz", "iso")
 LAWS = ("asset", "secant", "energy")
 EFFECTS = ("asset", "none")
-#: Use the asset's volume term (nearly incompressible network) or not (docs/model.md, Part C2).
+#: Use the asset's volume term (nearly incompressible network) or not (docs/design/model.md, "The volume term
+#: (nearly incompressible network)").
 VOLUME = ("asset", "none")
 GRASP_MODES = ("prescribed", "spring")
 STARTS = ("equilibrium", "rest")
@@ -70,15 +71,17 @@ PRECISIONS = ("float64", "float32")
 FRICTIONS = ("stick", "slip")
 DIRECTIONS = ("away", "up")
 METHODS = ("implicit", "explicit")
-#: What the implicit stepper's reused factor is taken of (docs/simulate.md §2b).
+#: What the implicit stepper's reused factor is taken of (docs/design/simulator.md, "What is factored, and when
+#: it is renewed").
 FACTORS = ("bound", "exact", "mixed")
-#: How the implicit stepper iterates each solve (docs/simulate.md §2b).
+#: How the implicit stepper iterates each solve (docs/design/simulator.md, "The iteration: quasi-Newton on a
+#: reused factor").
 ITERATIONS = ("quasi-newton", "newton")
 
 
 @dataclass(frozen=True)
 class FloorSpec:
-    """A rigid floor perpendicular to gravity (docs/simulate.md §4).
+    """A rigid floor perpendicular to gravity (docs/design/simulator.md, "The scenes' physics").
 
     Attributes
     ----------
@@ -177,8 +180,8 @@ class Scene:
         Time constant tau of the mass-proportional damping [s] (None: none).
     method : {"explicit", "implicit"}
         The integrator: backward Euler with Newton and a reused factorization
-        (:mod:`.implicit`; stable at the frame step; the default: the faster on
-        both livers and both beds, docs/simulate.md §9), or the explicit
+        (:mod:`.implicit`; stable at the frame step; the default: the faster at
+        the same accuracy, docs/design/simulator.md, "What it achieves"), or the explicit
         symplectic Euler bounded by the stiffest spring (the accuracy reference).
     implicit_step : "frame" or float
         Step of the implicit solve: one frame (1 / frame_rate), or a time [s].
@@ -190,16 +193,16 @@ class Scene:
         fraction of the largest nodal weight.
     factor : {"bound", "exact", "mixed"}
         Implicit: what the reused factor is taken of, Newton's matrix with the
-        volume term's per-tet bound in it (a third of the fill; 1.58x faster on
-        the fine liver, 0.86-1.22x on five smaller organs), Newton's matrix
-        itself, or Newton's matrix as the saddle point of the springs' matrix
-        and the volume term's parts (about half the exact fill; 0.6-1.2x the
-        bound's speed, docs/simulate.md §2b).
+        volume term's per-tet bound in it (a third of the fill: the fastest
+        where the volume term's fill dominates), Newton's matrix itself, or
+        Newton's matrix as the saddle point of the springs' matrix and the
+        volume term's parts (about half the exact fill; docs/design/simulator.md,
+        "What is factored, and when it is renewed").
     iteration : {"quasi-newton", "newton"}
         Implicit: how each step's solve iterates, L-BFGS with the reused factor
-        (Newton taking over a solve it does not finish; 1.7-2.3x faster on five
-        organs, within the same accuracy) or Newton with conjugate gradients
-        (docs/simulate.md §2b).
+        (Newton taking over a solve it does not finish; the faster, at the same
+        accuracy) or Newton with conjugate gradients (docs/design/simulator.md,
+        "The iteration: quasi-Newton on a reused factor").
     safety : float
         Explicit: fraction of the critical time step used.
     step : {"adaptive", "table"}

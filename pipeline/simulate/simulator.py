@@ -188,7 +188,8 @@ class Simulator:
         The force is the one the tissue (with its weight) exerts on the grasper
         (what a haptic device renders); zeros when nothing is grasped. OpenBLAS
         runs on one thread meanwhile: the implicit stepper's vector and
-        triangular-solve operations are too small to share (docs/simulate.md §2b).
+        triangular-solve operations are too small to share (docs/design/simulator.md, "What is factored, and
+        when it is renewed").
         """
         with single_threaded_blas():
             return self.stepper.advance(self.model, self.state, self.control, nsteps, record=record)

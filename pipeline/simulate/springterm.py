@@ -5,7 +5,7 @@ r"""The spring force term: a network and its tables as the kernels read them.
 :class:`~esmm.pipeline.network.tables.StiffnessTables` into a
 :class:`SpringTerm`: the springs sorted for the kernels, their weights, the
 law's table, and the bounds of their tangent stiffness that the explicit step
-needs (docs/simulate.md §2):
+needs (docs/design/simulator.md, "The explicit stepper (the accuracy reference)"):
 
 .. math::  \kappa_{ij} = \max(k^t_{ij}, F_{ij}/L_{ij}, 0) \le \sum_d a_{ij,d} G_d
 

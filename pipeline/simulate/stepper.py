@@ -266,9 +266,8 @@ class SymplecticEuler:
 class FrameSchedule(Protocol):
     """How a run chooses the step of each frame (:func:`~.frames.run_frames` asks it).
 
-    :class:`StepSchedule` is the explicit stepper's; an implicit stepper's
-    schedule would return its fixed step (e.g. 1 ms for a 1 kHz grasper
-    force) and no window.
+    :class:`StepSchedule` is the explicit stepper's; the implicit stepper's
+    (:class:`~.implicit.ImplicitSchedule`) returns its fixed step and no window.
     """
 
     @property
@@ -292,7 +291,8 @@ class StepSchedule:
     "adaptive": the bound over a stretch window of half-width ``delta`` around
     the current stretches (never below the whole-table bound), with the
     springs' history forces; the run checks the window along the frame and
-    redoes it wider when a stretch leaves it (docs/simulate.md §2).
+    redoes it wider when a stretch leaves it (docs/design/simulator.md, "The explicit stepper (the accuracy
+    reference)").
 
     Parameters
     ----------

@@ -3,7 +3,8 @@ r"""The volume force term: the network's volume elements as the kernels read the
 :func:`build_volume_term` turns the volume elements of a network
 (:mod:`esmm.pipeline.network.volume`: nodal volumes
 :math:`V_a = \sum_{t \ni a} V_t/4`, energy
-:math:`U = \sum_a V_{a,0}\,\tfrac{\kappa}{2}(J_a - 1)^2`, docs/model.md Part C2)
+:math:`U = \sum_a V_{a,0}\,\tfrac{\kappa}{2}(J_a - 1)^2`, docs/design/model.md, "The volume term
+(nearly incompressible network)")
 into a :class:`VolumeTerm`, a :class:`~.model.ForceTerm` beside the springs:
 
 * its forces are compiled (:func:`~.kernels.volume_forces`: one thread
@@ -106,7 +107,7 @@ class VolumeTerm:
         Degrees of freedom in the order of ``x.ravel()`` (node-major, xyz). The
         term has no velocity dependence (*v* is accepted for the interface).
         *definite*: the positive semi-definite part only (no pressure geometric
-        part), as the implicit stepper's Newton matrix needs (docs/simulate.md §2b).
+        part), as the implicit stepper's Newton matrix needs (docs/design/simulator.md, "Scheme").
         """
         return self.elements.tangent(np.asarray(x, dtype=np.float64), definite=definite)
 
