@@ -12,7 +12,7 @@ LOCK    ?= requirements.lock
 PIN     := $(if $(LOCK),-c $(LOCK),)
 
 .DEFAULT_GOAL := help
-.PHONY: help install check-system test test-fast demo bench lint lock clean
+.PHONY: help install check-system test test-fast demo bench results lint lock clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  make %-13s %s\n", $$1, $$2}'
@@ -40,8 +40,12 @@ test-fast: install ## the tests without the slow (meshing, rendering) ones
 demo: install ## run the whole pipeline on the bundled real data (outputs in demo-output/)
 	bash scripts/demo.sh "$(DEMO_OUT)"
 
-bench: install ## run the benchmarks, write JSON to benchmarks/results.json
-	$(BIN)/python benchmarks/run.py --out "$(BENCH_OUT)"
+bench: install ## run the benchmarks, write benchmarks/results.json, render benchmarks/RESULTS.md
+	$(BIN)/python benchmarks/run.py --out "$(BENCH_OUT)"; status=$$?; \
+	$(PYTHON) benchmarks/results_md.py && exit $$status
+
+results: ## render benchmarks/RESULTS.md and the README's table from the committed JSON (no measuring)
+	$(PYTHON) benchmarks/results_md.py
 
 lock: ## refresh requirements.lock: the newest releases pyproject.toml allows, installed and frozen
 	bash scripts/lock.sh "$(PYTHON)" requirements.lock

@@ -20,7 +20,7 @@ say "3/9 calibrate, batch: every brain region on its own, in parallel"
 say "4/9 close the loop: what the hyperelastic model misses in raw VHB 4910 exports (fit on 0.05 /s + relaxation)"
 "$ESMM" calibrate data/tensile/vhb4910_raw/lu_0d05_*.csv data/tensile/vhb4910_raw/relax_2d0.csv \
     --discover --out "$OUT/vhb-discover" --json "$OUT/vhb-discover/discover-summary.json"
-say "    ... and predict the 0.01 /s tests it never saw, without refitting"
+say "    ... and predict the 0.01 /s tests it never saw (the material is not refitted)"
 "$ESMM" evaluate "$OUT/vhb-discover" data/tensile/vhb4910_raw/lu_0d01_*.csv --json "$OUT/vhb-discover/evaluate-0d01.json"
 
 say "5/9 close the loop on raw Instron exports of rat-tail tendon (geometry read from the files' headers): the relaxation"
