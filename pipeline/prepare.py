@@ -614,6 +614,25 @@ def _fix(net: SpringNetwork, cfg: PrepareConfig, run: _Run) -> SpringNetwork:
     return net.with_fixed(fixed)
 
 
+def _structure(clean, cfg: PrepareConfig, run: _Run, *, force: bool, name: str) -> _Structure:
+    """The config's structure (tetra or skeleton) of the cleaned surface, its network reported."""
+    shape = _tetra(clean, cfg, run, force=force, name=name) if cfg.structure == "tetra" else \
+        _skeleton(clean, cfg, run)
+    net = shape.network
+    run.rep.step(f"network: {net.summary()}, bandwidth {net.bandwidth()} ({run.timings['network']:.2f} s)")
+    return shape
+
+
+def _spring_model(net: SpringNetwork, mat: Material, cfg: PrepareConfig,
+                  run: _Run) -> tuple[SpringNetwork, StiffnessTables]:
+    """The network with its volume term and fixed nodes, and its (compensated) stiffness tables."""
+    tables = _tables(mat, cfg, run)
+    net = dataclasses.replace(net, volume_term=_volume(tables, net, cfg, run))
+    tables = _compensated(tables, mat, net, cfg, run)
+    net = _fix(net, cfg, run)
+    return net, tables
+
+
 def _write(out: Path, inp: Path, net: SpringNetwork, mat: Material, tables: StiffnessTables,
            structure: _Structure, cleaning: CleaningReport, cfg: PrepareConfig, run: _Run,
            argv: list[str] | None) -> None:
@@ -701,14 +720,8 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
     run = _Run(reporter)
     mat = _material(cfg, run)
     clean, cleaning = _surface(inp, cfg, run)
-    shape = _tetra(clean, cfg, run, force=force, name=inp.name) if cfg.structure == "tetra" else \
-        _skeleton(clean, cfg, run)
-    net = shape.network
-    run.rep.step(f"network: {net.summary()}, bandwidth {net.bandwidth()} ({run.timings['network']:.2f} s)")
-    tables = _tables(mat, cfg, run)
-    net = dataclasses.replace(net, volume_term=_volume(tables, net, cfg, run))
-    tables = _compensated(tables, mat, net, cfg, run)
-    net = _fix(net, cfg, run)
+    shape = _structure(clean, cfg, run, force=force, name=inp.name)
+    net, tables = _spring_model(shape.network, mat, cfg, run)
     _write(out, inp, net, mat, tables, shape, cleaning, cfg, run, argv)
     return PrepareResult(asset=out, xdmf=sidecar_path(out), network=net, quality=shape.quality,
                          quality_passed=shape.passed, cleaning=cleaning, tables=tables, material=mat,

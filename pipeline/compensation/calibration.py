@@ -253,11 +253,7 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
     if lam_t.size + lam_c.size == 0:
         raise ConfigError("tension/compression: give at least one side to calibrate on")
     base = tables.with_compensation(1.0, correction={law: np.ones(tables.n)})
-
-    def reference(lam):
-        if material is not None:
-            return continuum_stress(material, lam)
-        return np.interp(lam, base.lam, base.material_stress[2])
+    reference = _reference(material, base)
 
     # 1. scalar factor from small-strain tests (tension; with the volume term also simple shear)
     scalar = _scalar_factor(specimen, base, law, material, volume, reference)
@@ -275,11 +271,7 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
                np.asarray(shear_check, dtype=np.float64), tol, max_iter, rep)
     f = fit(run)
     before = _before(f.first, c, specimen, base, lam_t, lam_c, law, reference, rtol, volume)
-    checks = {f"shear_{plane}": _shear_record(r) for plane, r in f.shear.items()}
-    result = CompensationResult(law=law, factor=c, knots=f.knots, g=f.g, before=before, scalar=f.first,
-                                after=f.after, iterations=f.iterations, converged=f.converged,
-                                specimen=specimen.describe(), volume=None if volume is None else volume.describe(),
-                                small_strain=scalar, checks=checks, fitted_on=list(f.fitted_on))
+    result = _result(run, f, before)
     if not f.converged:
         rep.warn(f"compensation ({law}): stopped after {f.iterations} iterations at max |error| "
                  f"{100 * f.err:.2f} % (tolerance {100 * tol:.2g} %)")
@@ -332,6 +324,26 @@ class _Run:
                                   f"correction ({exc}); narrow the calibration range") from None
         self.rep.warn(f"compensation ({self.law}): iteration {it} found no equilibrium (the corrected network "
                       "loses stability); keeping the best correction so far. A smaller compression range avoids this")
+
+
+def _reference(material, base: StiffnessTables):
+    """The target stress [Pa] as a function of the stretch: the material's, else the tables' own along z."""
+    def reference(lam):
+        if material is not None:
+            return continuum_stress(material, lam)
+        return np.interp(lam, base.lam, base.material_stress[2])
+
+    return reference
+
+
+def _result(run: _Run, f: _Fit, before: TensileResult) -> CompensationResult:
+    """The details of a calibration: the fit *f* of *run*, with the uncorrected test *before*."""
+    checks = {f"shear_{plane}": _shear_record(r) for plane, r in f.shear.items()}
+    volume = run.volume
+    return CompensationResult(law=run.law, factor=run.c, knots=f.knots, g=f.g, before=before, scalar=f.first,
+                              after=f.after, iterations=f.iterations, converged=f.converged,
+                              specimen=run.specimen.describe(), volume=None if volume is None else volume.describe(),
+                              small_strain=run.scalar, checks=checks, fitted_on=list(f.fitted_on))
 
 
 def _fit_axial(run: _Run, guesses: dict[str, np.ndarray] | None = None):

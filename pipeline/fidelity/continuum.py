@@ -179,27 +179,9 @@ def solve_continuum(case: LoadCase, material, *, bulk: float | None = None, elem
                               scale=path.body(0.0))
     stepper = _Stepper(fem, solid, body, dof0, dof1, _Check(_force_scale(case, material, mask, u_full), rtol),
                        max_iter, _linear_solver(element, dof1, case.n_nodes, ncells), residual=element == "mini")
-    t, dt, cuts, run, done_steps = 0.0, 1.0 / max(1, int(steps)), 0, 0, 0
     with rep.task(f"continuum {case.name} (felupe, {ncells} tets, {element})", total=1.0) as advance:
-        while t < 1.0 - 1e-12:
-            t1 = min(1.0, t + dt)
-            ok, its = stepper.step(path.body(t1), path.prescribed(t1))
-            if stepper.iterations > budget:
-                raise SimulationError(
-                    f"continuum reference: case {case.name!r} took more than {budget} Newton iterations and "
-                    f"reached load factor {t:.3g} only; its constraints may go beyond the material's locking "
-                    "stretch")
-            if not ok:
-                cuts, run = cuts + 1, run + 1
-                if run > max_cuts:
-                    raise SimulationError(
-                        f"continuum reference: no equilibrium for case {case.name!r} at load factor {t1:.4g} "
-                        f"after {max_cuts} step halvings; the load may go beyond the material's locking stretch")
-                dt /= 2.0
-                continue
-            advance(t1 - t)
-            t, done_steps, run = t1, done_steps + 1, 0
-            dt = 2.0 * dt if its <= _QUICK else dt
+        done_steps, cuts = _apply_load(case, stepper, path, steps=steps, max_cuts=max_cuts, budget=budget,
+                                       advance=advance)
     return _solution(case, solid, body, stepper.field, members, K, _max_i1(material), {
         "bulk_modulus_Pa": K, "element": element, "elements": ELEMENTS[element], "dofs": ndof,
         "load_steps": done_steps, "step_cuts": cuts, "newton_iterations": stepper.iterations,
@@ -261,6 +243,36 @@ class _Stepper:
             self.solid.restore(saved)
             self.field = self.solid.field
         return ok, its
+
+
+def _apply_load(case: LoadCase, stepper: _Stepper, path: _LoadPath, *, steps: int, max_cuts: int, budget: int,
+                advance) -> tuple[int, int]:
+    """Raise the load factor from 0 to 1 in adaptive steps: ``(load steps done, step halvings)``.
+
+    A step is halved when Newton fails (at most *max_cuts* times in a row) and
+    doubled after one that converged in at most :data:`_QUICK` iterations.
+    """
+    t, dt, cuts, run, done_steps = 0.0, 1.0 / max(1, int(steps)), 0, 0, 0
+    while t < 1.0 - 1e-12:
+        t1 = min(1.0, t + dt)
+        ok, its = stepper.step(path.body(t1), path.prescribed(t1))
+        if stepper.iterations > budget:
+            raise SimulationError(
+                f"continuum reference: case {case.name!r} took more than {budget} Newton iterations and "
+                f"reached load factor {t:.3g} only; its constraints may go beyond the material's locking "
+                "stretch")
+        if not ok:
+            cuts, run = cuts + 1, run + 1
+            if run > max_cuts:
+                raise SimulationError(
+                    f"continuum reference: no equilibrium for case {case.name!r} at load factor {t1:.4g} "
+                    f"after {max_cuts} step halvings; the load may go beyond the material's locking stretch")
+            dt /= 2.0
+            continue
+        advance(t1 - t)
+        t, done_steps, run = t1, done_steps + 1, 0
+        dt = 2.0 * dt if its <= _QUICK else dt
+    return done_steps, cuts
 
 
 def _linear_solver(element: str, dof1: np.ndarray, n_vertices: int, n_cells: int):

@@ -273,6 +273,19 @@ def _first_of(elements, solve, case, rep):
     return out
 
 
+def _continuum_elements(network, element: str, rep) -> tuple[str, tuple[str, ...]]:
+    """The continuum's element and the elements to try in order ("auto": P2 where it fits, then MINI)."""
+    element = choice(element, ("auto", "p2", "mini"), "element")
+    elements = (element,)
+    if element == "auto":
+        element = "p2" if _p2_cells(network) <= P2_MAX_TETS else "mini"
+        elements = ("p2", "mini") if element == "p2" else ("mini",)
+    if element == "mini":
+        rep.warn("the MINI continuum's reaction forces are first order: stiffer than the converged continuum "
+                 "on a coarse mesh (docs/validate.md §1); the P2 element is the reference where it fits in memory")
+    return element, elements
+
+
 def validate_network(network, tables, material, *, cases=None, label: str = "network", loads: LoadOptions | None = None,
                      volume_term: str = "auto", law: str | None = None, element: str = "auto",
                      bulk_ratio: float = DEFAULT_BULK_RATIO, out_dir=None, max_rounds: int = 10,
@@ -326,14 +339,7 @@ def validate_network(network, tables, material, *, cases=None, label: str = "net
     check_continuum(material)
     terms = network_terms(network, tables, material, volume_term=volume_term)
     volume_term = resolved_volume_term(network, volume_term)
-    element = choice(element, ("auto", "p2", "mini"), "element")
-    elements = (element,)
-    if element == "auto":
-        element = "p2" if _p2_cells(network) <= P2_MAX_TETS else "mini"
-        elements = ("p2", "mini") if element == "p2" else ("mini",)
-    if element == "mini":
-        rep.warn("the MINI continuum's reaction forces are first order: stiffer than the converged continuum "
-                 "on a coarse mesh (docs/validate.md §1); the P2 element is the reference where it fits in memory")
+    element, elements = _continuum_elements(network, element, rep)
     bulk = bulk_modulus(material, ratio=bulk_ratio)
     law = tables.check_law(law)
     loads = LoadOptions() if loads is None else loads
