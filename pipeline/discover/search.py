@@ -317,7 +317,7 @@ def _base_model(records: list[Record], base_fit: FitResult, fixed, directions) -
         base_params.update({d: dict(p) for d, p in base_fit.directions.items()})
     bounds = Bounds(records, _largest_energy(m, records, base_params, directions) or 1.0)
     bprob = Problem(m, records, Spec(), fixed=fixed_all, directions=directions, bounds=bounds)
-    z, _ = bprob.solve(bprob.set_base(bprob.default_z(), base_params))
+    z, _ = bprob.solve(bprob.params.set_base(bprob.params.default_z(), base_params))
     return finish(bprob, z)
 
 
