@@ -82,31 +82,6 @@ def _config(args):
                                  fixed=_pairs(args.fixed, "--fix"), free=args.free)
 
 
-def read_tests(paths, overrides, ui) -> list:
-    """Read every file; of several, what a wildcard picks up beside the records (sidecars of files given
-    too, other TOML files, editor backups, measurement tables) is skipped with a warning. A single such
-    file, or any other problem, is an error."""
-    from esmm.pipeline.tensile import NotATestError, read
-    from esmm.pipeline.tensile.files import record_files
-
-    if len(paths) > 1:
-        records, skipped, _ = record_files(paths)
-        for msg in skipped:
-            ui.warn(msg)
-        paths = [given for given, _ in records]
-    tests = []
-    for p in paths:
-        try:
-            tests.append(read(p, overrides=overrides, reporter=ui))
-        except NotATestError as exc:
-            if len(paths) == 1:
-                raise
-            ui.warn(f"{exc} - skipped")
-    if not tests:
-        raise ConfigError("none of the files is a test record; give the tests' CSV files")
-    return tests
-
-
 def check_outputs(args) -> None:
     """Refuse, before reading and fitting, an --out or --json path that could not be written at the end."""
     from esmm.cli.outputs import check_out_dir, check_out_file
@@ -133,8 +108,9 @@ def run_fit(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) 
     from esmm.pipeline.atomicio import write_json
     from esmm.pipeline.calibrate.fit import fit_material
     from esmm.pipeline.calibrate.report import display_stress_unit, result_to_dict, write_outputs
+    from esmm.pipeline.tensile.files import read_tests
 
-    tests = read_tests(args.files, overrides, ui)
+    tests = read_tests(args.files, overrides=overrides, reporter=ui)
     result = fit_material(tests, **fit_kwargs, reporter=ui)
 
     unit, fac = display_stress_unit([abs(e.value) for e in result.estimates if e.kind == "stress"] or [1.0])
@@ -192,6 +168,7 @@ def run_discover(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, A
     ``--json``, and prints the before/after summary.
     """
     from esmm.pipeline.discover import discover_and_save, summary_lines
+    from esmm.pipeline.tensile.files import read_tests
 
     if args.by:
         raise ConfigError("--discover analyses one group of files at a time and cannot be combined with --by; "
@@ -201,7 +178,7 @@ def run_discover(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, A
     if loss not in (None, "linear"):
         ui.warn(f"--discover compares models by likelihood and held-out error with the linear loss; "
                 f"--loss {loss} is ignored")
-    tests = read_tests(args.files, overrides, ui)
+    tests = read_tests(args.files, overrides=overrides, reporter=ui)
     res = discover_and_save(tests, out_dir=args.out, json_path=args.json, reporter=ui, **kw)
     for line in summary_lines(res):
         ui.info(line)

@@ -38,7 +38,7 @@ from .atomicio import unwritable_file
 from .checks import boolean, choice, number, quantity
 from .compensation import calibration as compensation
 from .errors import ConfigError, InputError, QualityError
-from .materials.material import Material, load_material
+from .materials.material import DEFAULT_MATERIAL, Material, load_material
 from .mesh.cleaning import CleaningOptions, CleaningReport, clean_surface
 from .mesh.quality import QUALITY_FLOORS, QualityReport, check_floors, tet_quality
 from .mesh.readers import read_surface
@@ -65,8 +65,6 @@ from .units import factor
 
 #: The default prepare preset.
 DEFAULT_PRESET = "paper"
-#: The default material preset.
-DEFAULT_MATERIAL = "porcine_liver_paper"
 
 #: Every section and key a prepare config may have, with its default (None: unset).
 DEFAULTS: dict[str, dict[str, Any]] = {

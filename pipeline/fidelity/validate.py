@@ -25,6 +25,7 @@ from ..asset import read_asset
 from ..atomicio import write_json, write_text
 from ..checks import choice
 from ..errors import ConfigError, SimulationError
+from ..materials.material import DEFAULT_MATERIAL, load_material
 from ..network.volume import volume_elements
 from ..progress import ensure
 from ..simulate.grasper import plan_grasp
@@ -48,8 +49,8 @@ from .network_solve import solve_network
 from .report import plot_case, table_markdown, write_fields
 from .specimen import cube_specimen
 
-__all__ = ["VOLUME_TERM", "LoadOptions", "ValidationReport", "network_terms", "resolved_volume_term", "validate_asset",
-           "validate_network", "validate_specimen"]
+__all__ = ["VOLUME_TERM", "LoadOptions", "ValidationReport", "default_out_dir", "network_terms", "resolved_volume_term",
+           "validate_asset", "validate_network", "validate_specimen"]
 
 #: ``volume_term`` values: the network with its volume term (issue 11, part B) if it has one, with it, without it.
 VOLUME_TERM = ("auto", "on", "off")
@@ -386,14 +387,24 @@ def validate_asset(path, *, cases=None, **options) -> ValidationReport:
                             cases=list(ORGAN_CASES) if cases is None else cases, **options)
 
 
-def validate_specimen(material, *, side: float = 20e-3, size: float = 2.5e-3, split: bool = False, cases=None,
+def validate_specimen(material=None, *, side: float = 20e-3, size: float = 2.5e-3, split: bool = False, cases=None,
                       reporter=None, **options) -> ValidationReport:
     """:func:`validate_network` on the built-in cube (default cases: the specimen's).
 
     The cube gets a volume term and tables compensated with it, as ``esmm prepare``
-    gives an asset, unless ``volume_term="off"`` (then neither).
+    gives an asset, unless ``volume_term="off"`` (then neither). *material*
+    defaults to the preset :data:`~esmm.pipeline.materials.material.DEFAULT_MATERIAL`.
     """
+    material = load_material(DEFAULT_MATERIAL) if material is None else material
     volume = options.get("volume_term", "auto") != "off"
     spec = cube_specimen(material, side=side, size=size, volume=volume, split=split, reporter=reporter)
     return validate_network(spec.network, spec.tables, material, label=f"specimen: {spec.label}",
                             cases=list(SPECIMEN_CASES) if cases is None else cases, reporter=reporter, **options)
+
+
+def default_out_dir(asset_path=None) -> Path:
+    """Where the validation writes when no folder is given: ``<asset stem>-validate`` beside the asset,
+    or ``specimen-validate`` in the current folder for the built-in specimen."""
+    if asset_path is None:
+        return Path("specimen-validate")
+    return Path(asset_path).with_name(Path(asset_path).stem + "-validate")
