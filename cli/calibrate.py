@@ -33,7 +33,7 @@ def add_parser(sub) -> None:
     p.add_argument("files", nargs="+", metavar="FILE", help="tensile-test files (CSV-like text)")
     p.add_argument("--model", default=None, help="material model: esedf (default) or arruda-boyce")
     p.add_argument("--config", metavar="C", help="calibrate config (TOML with a [calibrate] table; "
-                   "docs/calibrate.md); the options below override it")
+                   "docs/reference/configuration.md); the options below override it")
     p.add_argument("--out", metavar="DIR", help="folder for params.toml, fit.png, report.md, fit.json")
     p.add_argument("--json", metavar="PATH", help="also write the JSON result here")
     p.add_argument("--loss", default=None, help="robust loss: linear (default), soft_l1, huber, cauchy, arctan")
@@ -49,7 +49,7 @@ def add_parser(sub) -> None:
     p.add_argument("--discover", action="store_true",
                    help="also find what the model misses (rate dependence, Mullins softening, damage, slack, "
                         "load-cell offset), add what the data support and report the error before and after "
-                        "(docs/discover.md)")
+                        "(docs/guide/discover.md)")
     p.add_argument("--by", choices=["specimen", "folder"], help="batch: fit each group of files on its own")
     p.add_argument("--jobs", type=int, default=None, metavar="N", dest="workers",
                    help="batch: local worker processes (default: all cores)")
@@ -131,7 +131,7 @@ def run_fit(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) 
 
 
 def run_batch(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) -> int:
-    """``--by``: one fit per group of files, in parallel, cached (docs/batch.md)."""
+    """``--by``: one fit per group of files, in parallel, cached (docs/guide/batch.md)."""
     from esmm.pipeline.atomicio import write_json
     from esmm.pipeline.batch.calibrate import batch_document, calibrate_batch
 
@@ -161,7 +161,7 @@ def report_batch_problems(summary, ui) -> None:
 
 
 def run_discover(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) -> int:
-    """``--discover``: find what the model misses, report before and after (docs/discover.md).
+    """``--discover``: find what the model misses, report before and after (docs/guide/discover.md).
 
     Reads the files, runs :func:`esmm.pipeline.discover.discover_and_save` with the calibrate
     options (model, starts, seed, weights, --fix, --free), writes the outputs to ``--out`` and

@@ -32,7 +32,7 @@ def add_parser(sub) -> None:
         description="Rebuild the /tables group of an asset: mu_e(lambda) and the uniaxial stress "
         "of the material on a stretch grid, the default spring force law, optionally the "
         "per-spring stiffness table and the volumetric compensation found by a virtual "
-        "tensile test on a cylinder meshed like the asset (docs/model.md).",
+        "tensile test on a cylinder meshed like the asset (docs/guide/tables.md).",
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

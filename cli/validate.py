@@ -8,7 +8,7 @@ EPILOG = """\
 cases: tension, compression (frictionless grips on the end faces along z), shear (bottom
 face clamped, top face moved sideways), gravity (the organ on its bed: the scene's anchor
 and floor), lift (the bed, and the grasped patch moved by the scene's lift). Default: the
-organ cases for an ASSET, the specimen cases for --specimen. docs/validate.md states every
+organ cases for an ASSET, the specimen cases for --specimen. docs/guide/validate.md states every
 boundary condition and the figures.
 
 outputs (in --out DIR, default ASSET-validate/ or specimen-validate/):
@@ -47,7 +47,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--law", choices=("secant", "energy"), default=None, help="network force law (the tables')")
     p.add_argument("--element", choices=("auto", "p2", "mini"), default="auto",
                    help="continuum element: quadratic tets (p2, the reference) or MINI (first order); "
-                        "auto: p2 up to a size (docs/validate.md section 1), MINI above it and for a case p2 "
+                        "auto: p2 up to a size (docs/design/validation.md), MINI above it and for a case p2 "
                         "cannot solve")
     p.add_argument("--scene", metavar="C", default=None, help="scene of the organ cases (default 'default')")
     p.add_argument("--json", metavar="OUT.json", default=None, help="also write the figures there ('-': stdout)")

@@ -12,7 +12,7 @@ They are parsed and checked once, before any work, into a frozen
 :class:`PrepareConfig` (:func:`prepare_config`); a message names the config key
 (``[mesh] nodes``) or the keyword (``nodes``) the bad value came from. The
 resolved configuration is stored in the asset's provenance, so an asset can be
-remade from it. The config schema is documented in docs/prepare-config.md.
+remade from it. The config schema is documented in docs/reference/configuration.md ("Prepare config").
 """
 
 from __future__ import annotations
@@ -131,7 +131,7 @@ class PrepareConfig:
     compensate : bool
         Calibrate the volumetric compensation.
     volume : bool
-        Give the network its volume term (tet structure; docs/model.md, Part C2).
+        Give the network its volume term (tet structure; docs/design/model.md, "The volume term (nearly incompressible network)").
     poisson_ratio : float
         The Poisson ratio the volume term's bulk modulus is sized for.
     source : str
@@ -567,11 +567,11 @@ def _volume(tables: StiffnessTables, net: SpringNetwork, cfg: PrepareConfig, run
     """The network's volume term (bulk modulus from the material), or None (disabled, or no tets)."""
     if not cfg.volume:
         run.warn("no volume term: the network is compressible (Poisson ratio ~1/4) and loses volume under "
-                 "load (docs/model.md, Part C2)")
+                 "load (docs/design/model.md, 'The volume term')")
         return None
     if net.tets is None:
         run.warn("the skeleton structure has no tetrahedra, so it gets no volume term: it does not keep the "
-                 "organ's volume (use the tetra structure for that; docs/model.md, Part C2)")
+                 "organ's volume (use the tetra structure for that; docs/design/model.md, 'The volume term')")
         return None
     spec = bulk_modulus(tables, poisson=cfg.poisson_ratio,
                         calibration_range=compensation.calibration_stretches(tables))
@@ -595,7 +595,7 @@ def _compensated(tables: StiffnessTables, mat: Material, net: SpringNetwork, cfg
     """*tables* compensated for the network (with its volume term) unless disabled."""
     if not cfg.compensate:
         run.warn("no volumetric compensation: the raw network is several times softer than the tissue "
-                 "(docs/model.md); compensate the asset later with 'esmm tables'")
+                 "(docs/design/tables.md); compensate the asset later with 'esmm tables'")
         return tables
     comp = run.stage("compensation", compensation.compensate, tables, net, material=mat, reporter=run.rep,
                      volume=net.volume_term)

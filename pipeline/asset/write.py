@@ -139,7 +139,7 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
                 tables: StiffnessTables | None = None,
                 quality=None, cleaning=None, provenance: Provenance | None = None,
                 quality_floors: dict | None = None, fixed_region: str = "", xdmf: bool = True) -> Path:
-    """Write *network* and what goes with it to an HDF5 asset (docs/asset-format.md).
+    """Write *network* and what goes with it to an HDF5 asset (docs/reference/asset-format.md).
 
     The file is written to a temporary name and renamed when complete; the
     XDMF sidecar ``<name>.xdmf`` likewise. Every dataset gets a ``units`` and a
@@ -192,7 +192,7 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
     try:
         with atomic_path(path) as tmp:
             # The user block carries the file header (hash of every later byte), written by
-            # seal() when the file is closed, before the rename (docs/asset-format.md).
+            # seal() when the file is closed, before the rename (docs/reference/asset-format.md).
             with hdf5.create(tmp) as f:
                 _write_groups(f, network, material=material, tables=tables, quality=quality, cleaning=cleaning,
                               quality_floors=quality_floors, fixed_region=fixed_region)

@@ -8,7 +8,7 @@ per volume, i.e. Lamé constants :math:`\lambda_L = \mu_L = E/15` and a Young's
 modulus :math:`E/6` (Poisson ratio 1/4, the Cauchy relation of central-force
 networks). Nodal relaxation softens it a little more, and at finite stretch the
 off-axis springs are stretched less than the specimen, so a stiffening tissue
-is matched worse the further it is stretched (docs/model-tables.md).
+is matched worse the further it is stretched (docs/design/tables.md).
 
 :func:`calibrate_compensation` fixes both with one numerical test per mesh:
 
@@ -27,7 +27,7 @@ is matched worse the further it is stretched (docs/model-tables.md).
    mostly from springs near the axis, whose stretch is :math:`\lambda`.
    With a volume term (and a material), g is then refitted on tension,
    compression and simple shear in two planes together, by Levenberg-Marquardt
-   on the springs' power shares (:mod:`.stretch_fit`, docs/model.md C2.4): fitted
+   on the springs' power shares (:mod:`.stretch_fit`; docs/design/tables.md, "The compensation"): fitted
    on the axial test alone it leaves the network soft in shear and in bulkier
    meshes at finite strain.
 
@@ -75,7 +75,7 @@ SMALL_STRAIN = 1e-4
 SHEAR_CHECK = (0.1, 0.2, 0.3, 0.4)
 #: The small-strain load cases of the scalar factor with the volume term, and their weights: the
 #: specimen's axial mode and its two shear planes weigh 1 : 2 : 2, the isotropic average of the
-#: five deviatoric modes of a transversely isotropic (cylinder) network (docs/model-tables.md §4b).
+#: five deviatoric modes of a transversely isotropic (cylinder) network (docs/design/tables.md, "The compensation").
 SCALAR_CASES = (("tension", 1.0), ("xy", 2.0), ("xz", 2.0))
 #: The load cases the stretch correction is fitted on with the volume term (without it: the first two).
 JOINT_CASES = ("tension", "compression", "shear_xy", "shear_xz")

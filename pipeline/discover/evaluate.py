@@ -13,7 +13,7 @@ discovery (RMSE, NRMSE = RMSE / range of the measured stress, max error) for
   each new file*, because they belong to a test, not to the material.
 
 Nothing of the material is refitted. The JSON document (schema
-``esmm.evaluate/1``) is described in docs/discover.md.
+``esmm.evaluate/1``) is described in docs/reference/outputs.md.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 r"""The extended model: a hyperelastic base, strain-energy terms and effects, and its least-squares fit.
 
 The objective is the one of :func:`esmm.pipeline.calibrate.fit.fit_material`
-(docs/calibrate.md), so that a base model fitted here and there agree:
+(docs/design/calibration.md, "The objective"), so that a base model fitted here and there agree:
 
 .. math::
 
@@ -16,7 +16,7 @@ parameters of file *f*. The sum runs over the thinned fitting samples of each
 file (:func:`~esmm.pipeline.discover.covariates.thin`); reported errors use
 every sample.
 
-Prediction of one file, in this order (docs/discover.md):
+Prediction of one file, in this order (docs/design/discovery.md, "The extended model"):
 
 1. grip slip: ``x ← x - Σ_j δ_j [k ≥ k_j]`` (the extension lost at each slip);
    slack: ``x_true = max(x / (1 + δ_f), 1)`` (tension tests only);

@@ -1,6 +1,6 @@
 """Outputs of a discovery: JSON, Markdown, residual plots, params.toml with effects, corrected data.
 
-Files written by :func:`write_outputs` into the output folder (docs/discover.md):
+Files written by :func:`write_outputs` into the output folder (docs/reference/outputs.md):
 
 ``discover.json``         the full result (schema ``esmm.discover/1``), also what ``esmm evaluate`` reads
 ``discover.md``           the report, with the plain-language paragraph
@@ -87,7 +87,7 @@ def saved_model(res: DiscoverResult) -> dict[str, Any]:
 
 
 def result_to_dict(res: DiscoverResult) -> dict[str, Any]:
-    """The JSON document of a discovery (schema ``esmm.discover/1``, docs/discover.md)."""
+    """The JSON document of a discovery (schema ``esmm.discover/1``, docs/reference/outputs.md)."""
     fin, base = res.final, res.base
     d0 = res.diagnoses[0] if res.diagnoses else None
     dl = res.diagnoses[-1] if res.diagnoses else None
@@ -307,7 +307,7 @@ def markdown(res: DiscoverResult, *, plots: bool = True) -> str:
                  f"{_pct(hf.get(n, {}).get('nrmse'))} |")
     L += ["", "## Candidates", "", "Fitted Δχ²: the fit's improvement in noise variances (noise estimated from each "
           "record alone); penalty ln N per parameter. Held-out z: the held-out improvement in standard errors "
-          "(needs 2). docs/discover.md section 3.", "",
+          "(needs 2). docs/design/discovery.md, 'The two tests, and their assumptions'.", "",
           "| candidate | kind | kept | variant | fitted Δχ² | noise BIC | held-out NRMSE | held-out z | ΔAICc | reason |",
           "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for c in res.candidates.values():

@@ -2,7 +2,7 @@
 
 :func:`discover` is the library entry point of ``esmm calibrate --discover``.
 
-Procedure (docs/discover.md):
+Procedure (docs/design/discovery.md, "The loop"):
 
 1. Prepare the records (cut at ruptures, noise estimated from each record
    alone, slips located) and fit the base model
@@ -140,7 +140,7 @@ class Search:
 
 @dataclass
 class DiscoverResult:
-    """Everything :func:`discover` found (see docs/discover.md for the JSON)."""
+    """Everything :func:`discover` found (see docs/reference/outputs.md for the JSON)."""
 
     model: str
     records: list[Record]

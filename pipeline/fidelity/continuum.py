@@ -1,6 +1,6 @@
 """The continuum reference: the load case solved with felupe, quadratic tetrahedra, mixed u-p-J.
 
-Discretisation (docs/validate.md §1):
+Discretisation (docs/design/validation.md, "The continuum reference"):
 
 * the asset's tetrahedra with a node added at the middle of every edge
   (10-node quadratic tetrahedra on the *same* vertices and straight edges,
@@ -283,7 +283,7 @@ def _linear_solver(element: str, dof1: np.ndarray, n_vertices: int, n_cells: int
 
 
 def _lu_solve(A, b):
-    """SuperLU with COLAMD: 2-4x faster here than scipy's spsolve default, and far faster than MMD."""
+    """SuperLU with COLAMD: faster on these systems than scipy's spsolve default, and far faster than MMD."""
     import scipy.sparse.linalg as spl
 
     return spl.splu(A.tocsc(), permc_spec="COLAMD").solve(np.asarray(b, dtype=np.float64).ravel())
@@ -295,10 +295,10 @@ class _NodeDissection:
     SuperLU without pivoting in symmetric mode on the matrix permuted by
     METIS nested dissection of its node graph
     (:func:`~esmm.pipeline.linalg.newton.node_ordering`, computed once: the
-    pattern stays). On the kidney's lift (21 279 unknowns) 0.7 s and 14.8 M
-    entries against 3.6 s and 37 M for the LU with COLAMD (docs/validate.md
-    §1). No pivoting is exact for a positive definite matrix, which a stable
-    equilibrium's is; a solution whose residual is not at round-off (a matrix
+    pattern stays): a factor of less than half the fill of the LU with COLAMD,
+    found several times faster
+    (docs/design/validation.md, "The continuum reference"). No pivoting is
+    exact for a positive definite matrix, which a stable equilibrium's is; a solution whose residual is not at round-off (a matrix
     the line search took through an unstable state) is solved again by the LU.
     """
 
@@ -334,8 +334,9 @@ class _CondensedMini:
     diagonal (3 x 3 per element) and its inverse is exact and cheap: the
     vertex system ``S = A_ss − A_sb A_bb⁻¹ A_bs`` (displacement, pressure and
     volume ratio at the vertices, a third of the unknowns) is factorised
-    instead of the whole one, then the bubbles follow. The same solution, 5-15x
-    faster (docs/validate.md §1); the whole LU if a block is singular.
+    instead of the whole one, then the bubbles follow. The same solution, several
+    times faster (docs/design/validation.md, "The continuum reference"); the
+    whole LU if a block is singular.
     """
 
     def __init__(self, dof1: np.ndarray, n_vertices: int, n_cells: int):
@@ -379,9 +380,9 @@ def _newton(fem, field, solid, body, dof0, dof1, ext0, check, max_iter, solver, 
     and, if *residual*, one whose residual does not decrease. The latter is
     off for P2: its condensed pressure and volume ratio take the whole Newton
     update whatever the step length, so the residuals of a shortened step are
-    not Newton's (felupe's ``LinesearchPlugin`` notes this); on the bundled
-    liver under gravity it rejected every halving of the first update, where
-    plain Newton converged in 5 iterations (docs/validate.md §1).
+    not Newton's (felupe's ``LinesearchPlugin`` notes this): on an organ under
+    gravity it can reject every halving of the first update where plain
+    Newton converges (docs/design/validation.md, "The continuum reference").
     """
     # The library never prints: verbose=0 asks felupe so; its warnings (a singular matrix) mean failure here.
     with redirect_stdout(StringIO()), warnings.catch_warnings():
@@ -400,7 +401,7 @@ def _newton(fem, field, solid, body, dof0, dof1, ext0, check, max_iter, solver, 
 
 #: Share of the way from rest to the material's locking invariant, ``(Ī1 - 3) / (I1_lock - 3)``, from which a
 #: cell counts as locking: within 1 % of it. The eight-chain energy's curvature grows without bound there (the
-#: bundled liver's material: 2.7x its small-strain value at 0.99, 16 600x at 0.9999; docs/validate.md §4).
+#: bundled liver's material: 2.7x its small-strain value at 0.99, 16 600x at 0.9999; docs/design/validation.md, "Error measures").
 NEAR_LOCKING = 0.99
 
 

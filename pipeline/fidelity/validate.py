@@ -5,7 +5,7 @@ solves each with the continuum (:mod:`.continuum`, felupe) and with the
 network (:mod:`.network_solve`), compares them (:mod:`.compare`) and writes
 the outputs (:mod:`.report`) when given a folder. :func:`validate_asset` reads
 an asset first; :func:`validate_specimen` makes the built-in cube
-(:mod:`.specimen`). docs/validate.md explains every choice.
+(:mod:`.specimen`). docs/design/validation.md explains every choice.
 
 The floor of the organ cases is a unilateral sticking contact; both solvers
 get it as the same bilateral constraints, found by an active set: solve, pin
@@ -52,9 +52,9 @@ from .specimen import cube_specimen
 __all__ = ["VOLUME_TERM", "LoadOptions", "ValidationReport", "default_out_dir", "network_terms", "resolved_volume_term",
            "validate_asset", "validate_network", "validate_specimen"]
 
-#: ``volume_term`` values: the network with its volume term (issue 11, part B) if it has one, with it, without it.
+#: ``volume_term`` values: the network with its volume term if it has one, with it, without it.
 VOLUME_TERM = ("auto", "on", "off")
-#: Continuum elements by size: quadratic tetrahedra up to this many tets, MINI above (docs/validate.md §1).
+#: Continuum elements by size: quadratic tetrahedra up to this many tets, MINI above (docs/design/validation.md, "The continuum reference").
 #: P2 is the reference: MINI's reaction forces converge at first order and are stiff on organ meshes
 #: (the kidney's lift by 29 %). Every organ of the "paper" preset (4 000-6 000 tets) is below; the "fine"
 #: liver (29 270 tets: about 141 000 P2 unknowns) is above.
@@ -114,8 +114,8 @@ def network_terms(network, tables, material, *, volume_term: str = "auto") -> tu
 
     The one place that decides them: ``"auto"`` takes the network's own volume
     term (what ``esmm prepare`` stored in the asset's ``/volume``) when it has
-    one, ``"on"`` requires it, ``"off"`` leaves it out (the network as before
-    issue 11, part B; its tables are still the ones compensated with the term).
+    one, ``"on"`` requires it, ``"off"`` leaves it out (the springs alone; the
+    tables are still the ones compensated with the term).
 
     Returns
     -------
@@ -249,7 +249,7 @@ def _solve_case(case, network, tables, material, *, law, terms, bulk, elements, 
         rep.warn(f"{case.name}: the continuum comes within {100 * (1 - NEAR_LOCKING):.0f} % of the material's "
                  f"locking in {fe.info['cells_near_locking']} cell(s) (largest share of the way "
                  f"{fe.info['locking_share']:.4f}): its stiffness there has no bound, so its reaction force depends "
-                 "on the mesh; read the force error as the case's, not the network's alone (docs/validate.md §4)")
+                 "on the mesh; read the force error as the case's, not the network's alone (docs/design/validation.md, 'Error measures')")
     rep.step(f"{case.name}: L2 error {100 * res.l2_error:.2f} %, max {100 * res.max_error:.2f} %, force "
              f"{100 * res.force_error:.2f} % (largest continuum displacement {res.max_displacement_m * 1e3:.3g} mm)")
     return res
@@ -283,7 +283,7 @@ def _continuum_elements(network, element: str, rep) -> tuple[str, tuple[str, ...
         elements = ("p2", "mini") if element == "p2" else ("mini",)
     if element == "mini":
         rep.warn("the MINI continuum's reaction forces are first order: stiffer than the converged continuum "
-                 "on a coarse mesh (docs/validate.md §1); the P2 element is the reference where it fits in memory")
+                 "on a coarse mesh (docs/design/validation.md, 'The continuum reference'); the P2 element is the reference where it fits in memory")
     return element, elements
 
 

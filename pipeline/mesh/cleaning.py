@@ -18,10 +18,9 @@
 8. ``repair``: non-manifold edges, degeneracies and self-intersections
    (pymeshfix), keep the largest resulting piece, orient outward again.
 
-Steps 5-6 come before 7-8 (the brief listed hole filling and repair first):
-pymeshfix needs ~17 s just to load a 1 M-face mesh and the decimator may leave
-non-manifold edges, which the repair then removes; smoothing has to see the
-staircase at full resolution. See docs/prepare.md.
+Steps 5-6 come before 7-8: pymeshfix is slow to load a mesh of a million faces
+and the decimator may leave non-manifold edges, which the repair then removes;
+smoothing has to see the staircase at full resolution. See docs/guide/prepare.md, "Cleaning".
 
 The result must stay within :data:`MAX_VOLUME_CHANGE` (2 %) of the enclosed
 volume of the kept body (for an open body, its volume with the holes capped).
@@ -73,7 +72,7 @@ def decimate(points: np.ndarray, faces: np.ndarray, target: int) -> tuple[np.nda
     metres because that changes every asset already made from a surface (the
     bundled liver's paper preset: 1 446 nodes instead of 1 660, smallest
     dihedral angle 11.0 instead of 17.0 degrees) and every figure measured on
-    them (docs/prepare.md §8, "Known limits").
+    them (docs/guide/prepare.md, "How far to trust it").
     """
     import fast_simplification
 

@@ -7,7 +7,7 @@ equivalent modulus ``mu_e(lambda)`` [Pa] has the stiffness
 
 .. math::  k_{ij}(\\lambda) = \\mu_e(\\lambda)\\, v_{ij}, \\qquad v_{ij} = V_{ij} / L_{0,ij}^2
 
-(docs/model.md (Part B) derives it from an energy match and states what the
+(docs/design/model.md, "The spring network", derives it from an energy match and states what the
 network's effective modulus then is). ``cos2`` holds the squared direction
 cosines of each spring in the fibre frame, which select the per-direction
 stiffness tables.
@@ -613,7 +613,7 @@ def network_from_skeleton(points, edges, *, volume: float, surface_faces=None, n
         V_ij = V * L0_ij**p / sum_k L0_k**p
 
     With ``p = 2`` every spring gets the same volume weight ``v_ij = V / sum
-    L0**2`` (docs/model.md (Part B) gives the reasons). Each spring's mass
+    L0**2`` (docs/design/model.md, "The spring network", gives the reasons). Each spring's mass
     ``density * V_ij`` is lumped half to each end, so ``sum m = density * V``.
 
     Parameters
