@@ -107,7 +107,7 @@ class ESEDF(MaterialModel):
     )
     not_parameters = {
         k: "in the reading implemented here the paper's b and C belong to terms in the isotropized "
-           "third invariant I3i, which vanish in incompressible deformation (docs/model.md); "
+           "third invariant I3i, which vanish in incompressible deformation (docs/design/model.md); "
            "keep the value under [material.reported]"
         for k in ("b", "C")
     }
