@@ -1,5 +1,5 @@
 """Discovery: the runtime of one discovery on a 10 000-sample file, and the confusion table of a seeded
-population of generated cases with hidden effects (docs/discover.md, section 9).
+population of generated cases with hidden effects (docs/design/discovery.md, "What it achieves").
 
 Goals: one discovery on a 10 000-sample file under 30 s on a 2-core machine; at least 95 % of
 the population's cases with the right names, the error at least halved where an effect is hidden.

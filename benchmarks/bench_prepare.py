@@ -3,7 +3,7 @@ partial liver to a ~5 000-node tetra asset; wall time and peak memory of the com
 
 Each case runs the installed ``esmm`` in a subprocess (imports included, as a user
 sees it); peak memory is the child's maximum resident set size. The volumetric
-compensation is content-addressed and cached (docs/model.md): the cases run with a
+compensation is content-addressed and cached (docs/design/tables.md, "The record, the cache and the cost"): the cases run with a
 warm cache, and the one-time cost of the calibration is measured separately.
 """
 

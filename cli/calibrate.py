@@ -33,7 +33,7 @@ def add_parser(sub) -> None:
     p.add_argument("files", nargs="+", metavar="FILE", help="tensile-test files (CSV-like text)")
     p.add_argument("--model", default=None, help="material model: esedf (default) or arruda-boyce")
     p.add_argument("--config", metavar="C", help="calibrate config (TOML with a [calibrate] table; "
-                   "docs/calibrate.md); the options below override it")
+                   "docs/reference/configuration.md); the options below override it")
     p.add_argument("--out", metavar="DIR", help="folder for params.toml, fit.png, report.md, fit.json")
     p.add_argument("--json", metavar="PATH", help="also write the JSON result here")
     p.add_argument("--loss", default=None, help="robust loss: linear (default), soft_l1, huber, cauchy, arctan")
@@ -49,7 +49,7 @@ def add_parser(sub) -> None:
     p.add_argument("--discover", action="store_true",
                    help="also find what the model misses (rate dependence, Mullins softening, damage, slack, "
                         "load-cell offset), add what the data support and report the error before and after "
-                        "(docs/discover.md)")
+                        "(docs/guide/discover.md)")
     p.add_argument("--by", choices=["specimen", "folder"], help="batch: fit each group of files on its own")
     p.add_argument("--jobs", type=int, default=None, metavar="N", dest="workers",
                    help="batch: local worker processes (default: all cores)")
@@ -82,31 +82,6 @@ def _config(args):
                                  fixed=_pairs(args.fixed, "--fix"), free=args.free)
 
 
-def read_tests(paths, overrides, ui) -> list:
-    """Read every file; of several, what a wildcard picks up beside the records (sidecars of files given
-    too, other TOML files, editor backups, measurement tables) is skipped with a warning. A single such
-    file, or any other problem, is an error."""
-    from esmm.pipeline.tensile import NotATestError, read
-    from esmm.pipeline.tensile.files import record_files
-
-    if len(paths) > 1:
-        records, skipped, _ = record_files(paths)
-        for msg in skipped:
-            ui.warn(msg)
-        paths = [given for given, _ in records]
-    tests = []
-    for p in paths:
-        try:
-            tests.append(read(p, overrides=overrides, reporter=ui))
-        except NotATestError as exc:
-            if len(paths) == 1:
-                raise
-            ui.warn(f"{exc} - skipped")
-    if not tests:
-        raise ConfigError("none of the files is a test record; give the tests' CSV files")
-    return tests
-
-
 def check_outputs(args) -> None:
     """Refuse, before reading and fitting, an --out or --json path that could not be written at the end."""
     from esmm.cli.outputs import check_out_dir, check_out_file
@@ -133,8 +108,9 @@ def run_fit(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) 
     from esmm.pipeline.atomicio import write_json
     from esmm.pipeline.calibrate.fit import fit_material
     from esmm.pipeline.calibrate.report import display_stress_unit, result_to_dict, write_outputs
+    from esmm.pipeline.tensile.files import read_tests
 
-    tests = read_tests(args.files, overrides, ui)
+    tests = read_tests(args.files, overrides=overrides, reporter=ui)
     result = fit_material(tests, **fit_kwargs, reporter=ui)
 
     unit, fac = display_stress_unit([abs(e.value) for e in result.estimates if e.kind == "stress"] or [1.0])
@@ -155,7 +131,7 @@ def run_fit(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) 
 
 
 def run_batch(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) -> int:
-    """``--by``: one fit per group of files, in parallel, cached (docs/batch.md)."""
+    """``--by``: one fit per group of files, in parallel, cached (docs/guide/batch.md)."""
     from esmm.pipeline.atomicio import write_json
     from esmm.pipeline.batch.calibrate import batch_document, calibrate_batch
 
@@ -185,13 +161,14 @@ def report_batch_problems(summary, ui) -> None:
 
 
 def run_discover(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) -> int:
-    """``--discover``: find what the model misses, report before and after (docs/discover.md).
+    """``--discover``: find what the model misses, report before and after (docs/guide/discover.md).
 
     Reads the files, runs :func:`esmm.pipeline.discover.discover_and_save` with the calibrate
     options (model, starts, seed, weights, --fix, --free), writes the outputs to ``--out`` and
     ``--json``, and prints the before/after summary.
     """
     from esmm.pipeline.discover import discover_and_save, summary_lines
+    from esmm.pipeline.tensile.files import read_tests
 
     if args.by:
         raise ConfigError("--discover analyses one group of files at a time and cannot be combined with --by; "
@@ -201,7 +178,7 @@ def run_discover(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, A
     if loss not in (None, "linear"):
         ui.warn(f"--discover compares models by likelihood and held-out error with the linear loss; "
                 f"--loss {loss} is ignored")
-    tests = read_tests(args.files, overrides, ui)
+    tests = read_tests(args.files, overrides=overrides, reporter=ui)
     res = discover_and_save(tests, out_dir=args.out, json_path=args.json, reporter=ui, **kw)
     for line in summary_lines(res):
         ui.info(line)

@@ -15,7 +15,7 @@ examples:
   esmm prepare p01/liver.stl p02/liver.stl --out assets/ --config coarse   (a batch: assets/p01/liver.h5, ...)
 
 Presets (--config): coarse (~1 500 tets), paper (~5 000 tets, default), fine (~30 000 tets),
-or a TOML file (docs/prepare-config.md). Options given here override the config.
+or a TOML file (docs/reference/configuration.md). Options given here override the config.
 Exit codes: 0 written, 2 bad input/options, 3 meshing failed, 4 mesh below the quality
 floors (--force writes it anyway); a batch: 5 if any organ failed, 130 interrupted.
 """
@@ -65,7 +65,7 @@ def add_parser(sub) -> None:
     p.add_argument("--split", action="store_true", default=None,
                    help="split every tet of the mesh in eight: the network on the quadratic tets' nodes, "
                         "within a few %% of the continuum where the unsplit one is 5-17 %% stiff, at ~6x the "
-                        "nodes and ~12x the simulation cost (docs/model.md, Part C3)")
+                        "nodes and ~12x the simulation cost (docs/design/model.md)")
     p.add_argument("--force", action="store_true", help="write the asset even if the mesh is below the quality floors")
     p.set_defaults(func=run)
 

@@ -15,7 +15,7 @@ outputs (in --out DIR, default ASSET-sim/ beside the asset):
 scenes: 'default' (bundled: the organ lies on a sticking bed, its lowest 5 % held; a grasper
 lifts the free edge 20 mm in 1 s, holds, releases at 2 s; implicit stepper, grasper force at
 1 kHz), 'interactive' (the default on a frictionless bed) or a TOML file, which
-may start from a bundled one (base = "default"); see docs/simulate.md for the schema.
+may start from a bundled one (base = "default"); see docs/reference/configuration.md for the schema.
 
 material effects: an asset made from a discovery's params.toml carries its kept effects
 (viscoelastic, Mullins, damage; 'esmm info' lists them); they are applied per spring

@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import math
-from datetime import UTC, datetime
 
 from esmm.pipeline.compensation.policy import (
     DEFAULT_RADIUS_ELEMENTS,
@@ -35,7 +32,7 @@ def add_parser(sub) -> None:
         description="Rebuild the /tables group of an asset: mu_e(lambda) and the uniaxial stress "
         "of the material on a stretch grid, the default spring force law, optionally the "
         "per-spring stiffness table and the volumetric compensation found by a virtual "
-        "tensile test on a cylinder meshed like the asset (docs/model.md).",
+        "tensile test on a cylinder meshed like the asset (docs/guide/tables.md).",
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -65,87 +62,21 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _material(args, asset):
-    from esmm.pipeline.materials.material import load_material
+def _check_options(args, asset) -> None:
+    """Refuse, in the command's terms, what :func:`~esmm.pipeline.retable.rebuild_tables` would refuse."""
+    from esmm.pipeline.retable import unused_options
 
-    if args.material is not None:
-        return load_material(args.material)
-    if asset.material is not None:
-        return asset.material
-    raise ConfigError(f"{args.asset}: the asset stores no material; give one with --material")
-
-
-def _grid(args, old) -> dict:
-    """The grid options of build_tables: the command line's, else the asset's (same material)."""
-    from esmm.pipeline.checks import number_text
-
-    n = None if args.points is None else number_text(args.points, "points", lo=3, hi=1_000_000, integer=True)
-    n = n or (old.n if old is not None else None)
-    lo = hi = None
-    if args.stretch_range is not None:
-        lo, hi = (number_text(v, "stretch_range") for v in args.stretch_range)
-        if not 0 < lo < 1 < hi:
-            raise ConfigError(f"stretch_range: need 0 < LO < 1 < HI, got {lo:g} {hi:g}", parameter="stretch_range")
-    elif old is not None and args.material is None:
-        lo, hi = old.lam_min, old.lam_max
-    return {"lam_min": lo, "lam_max": hi, **({} if n is None else {"n": n})}
-
-
-def _carry(tables, old, args, ui):
-    """*tables* with the asset's compensation when the material and grid are unchanged: (tables, kept)."""
-    from esmm.pipeline.network.tables import LAWS
-
-    if old is None or (old.volume_factor == 1.0 and not any(old.is_corrected(lw) for lw in LAWS)):
-        return tables, False
-    same = (old.material_toml == tables.material_toml and old.n == tables.n
-            and math.isclose(old.lam_min, tables.lam_min, rel_tol=1e-12)
-            and math.isclose(old.lam_max, tables.lam_max, rel_tol=1e-12))
-    if same:
-        return tables.with_compensation(
-            old.volume_factor, correction={lw: old.correction[i] for i, lw in enumerate(LAWS)},
-            record=old.metadata.get("compensation")), True
-    if not args.compensate:
-        ui.warn("the asset's compensation was dropped (the material or the grid changed); "
-                "run again with --compensate")
-    return tables, False
-
-
-def _calibration_range(args):
-    from esmm.pipeline.checks import number_text
-
-    if args.calibration_range is None:
-        return None
-    return tuple(number_text(v, "calibration_range") for v in args.calibration_range)
-
-
-def _volume(tables, asset, args, ui):
-    """The asset's volume term for these tables: (spec or None, replaced?).
-
-    Kept as it is for the same material; re-sized (same Poisson ratio) when
-    ``--material`` gives another one, since its bulk modulus follows the material.
-    """
-    from esmm.pipeline.compensation.calibration import calibration_stretches
-    from esmm.pipeline.network.volume import DEFAULT_POISSON, bulk_modulus
-
-    old = asset.network.volume_term
-    if old is None or args.material is None:
-        return old, False
-    nu = DEFAULT_POISSON if old.poisson_ratio is None else old.poisson_ratio
-    spec = bulk_modulus(tables, poisson=nu, calibration_range=calibration_stretches(tables, _calibration_range(args)),
-                        formulation=old.formulation)
-    ui.step(f"volume term re-sized for the new material: bulk modulus {old.bulk_modulus / 1e3:.4g} -> "
-            f"{spec.bulk_modulus / 1e3:.4g} kPa (Poisson ratio {nu:g})")
-    return spec, True
-
-
-def _compensate(tables, asset, material, volume, args, ui):
-    """The compensation of ``esmm prepare`` (same policy and cache), with the command line's overrides."""
-    from esmm.pipeline.checks import number_text
-    from esmm.pipeline.compensation.calibration import compensate
-
-    r_el = None if args.radius_elements is None else number_text(args.radius_elements, "radius_elements")
-    return compensate(tables, asset.network, material=material, calibration_range=_calibration_range(args),
-                      radius_elements=r_el, volume=volume, reporter=ui)
+    if args.material is None and asset.material is None:
+        raise ConfigError(f"{args.asset}: the asset stores no material; give one with --material")
+    unused = unused_options(asset, material_given=args.material is not None, compensate=args.compensate,
+                            calibration_range=args.calibration_range, radius_elements=args.radius_elements)
+    if "radius_elements" in unused:
+        raise ConfigError("radius_elements: only used by the virtual tensile test; add --compensate or remove it",
+                          parameter="radius_elements")
+    if "calibration_range" in unused:
+        raise ConfigError("calibration_range: only used by the virtual tensile test (and to re-size the asset's "
+                          "volume term for a new --material); add --compensate or remove it",
+                          parameter="calibration_range")
 
 
 def _summary(args, material, tables, carried: bool, comp) -> dict:
@@ -205,50 +136,22 @@ def _text(summary: dict, tables, n_springs: int) -> list[str]:
 
 
 def run(args, ui) -> int:
-    from esmm.pipeline.asset import read_asset, update_asset_tables
+    from esmm.pipeline.asset import read_asset
     from esmm.pipeline.atomicio import json_text
-    from esmm.pipeline.network.tables import build_tables
+    from esmm.pipeline.materials.material import load_material
+    from esmm.pipeline.retable import rebuild_tables
 
     asset = read_asset(args.asset)
-    material = _material(args, asset)
-    law = args.law or (asset.tables.default_law if asset.tables is not None else "secant")
-    if args.radius_elements is not None and not args.compensate:
-        raise ConfigError("radius_elements: only used by the virtual tensile test; add --compensate or remove it",
-                          parameter="radius_elements")
-    if (args.calibration_range is not None and not args.compensate
-            and not (args.material is not None and asset.network.volume_term is not None)):
-        raise ConfigError("calibration_range: only used by the virtual tensile test (and to re-size the asset's "
-                          "volume term for a new --material); add --compensate or remove it",
-                          parameter="calibration_range")
-    grid = _grid(args, asset.tables)
-    try:
-        tables = build_tables(material, law=law, **grid)
-    except ConfigError as exc:   # the library names its grid "lam_min/lam_max"; here it is --stretch-range
-        prefix = "lam_min/lam_max:"
-        if args.stretch_range is None or not str(exc).startswith(prefix):
-            raise
-        raise ConfigError("stretch_range:" + str(exc)[len(prefix):], parameter="stretch_range") from None
-    tables, carried = _carry(tables, asset.tables, args, ui)
-    volume, resized = _volume(tables, asset, args, ui)
-    comp = None
-    if args.compensate:
-        comp = _compensate(tables, asset, material, volume, args, ui)
-        tables, carried = comp.tables, False
-        if comp.reused is not None and not comp.record.get("converged", True):
-            # calibrated earlier (its warning then is not repeated by the library): say it again
-            ui.warn(f"the reused compensation did not converge (max |stress error| "
-                    f"{100 * comp.record['errors_after']['max_abs_rel_error']:.2f} %); try a narrower "
-                    f"--calibration-range")
-    meta = dict(tables.metadata)
-    meta["written_by"] = {"command": ["esmm", *getattr(args, "_argv", [])],
-                          "utc": datetime.now(UTC).isoformat(timespec="seconds")}
-    tables = dataclasses.replace(tables, metadata=meta)
-    update_asset_tables(args.asset, tables, material=material if args.material is not None else None,
-                        per_spring=args.per_spring, volume=volume if resized else None, reporter=ui)
-    summary = _summary(args, material, tables, carried, comp)
+    material = None if args.material is None else load_material(args.material)
+    _check_options(args, asset)
+    result = rebuild_tables(asset, material=material, law=args.law, points=args.points,
+                            stretch_range=args.stretch_range, per_spring=args.per_spring, compensate=args.compensate,
+                            calibration_range=args.calibration_range, radius_elements=args.radius_elements,
+                            argv=["esmm", *getattr(args, "_argv", [])], reporter=ui)
+    summary = _summary(args, result.material, result.tables, result.compensation_kept, result.compensation)
     if args.json:
         ui.info(json_text(summary).rstrip("\n"))
         return 0
-    for line in _text(summary, tables, asset.network.n_springs):
+    for line in _text(summary, result.tables, asset.network.n_springs):
         ui.info(line)
     return 0

@@ -8,7 +8,7 @@ EPILOG = """\
 cases: tension, compression (frictionless grips on the end faces along z), shear (bottom
 face clamped, top face moved sideways), gravity (the organ on its bed: the scene's anchor
 and floor), lift (the bed, and the grasped patch moved by the scene's lift). Default: the
-organ cases for an ASSET, the specimen cases for --specimen. docs/validate.md states every
+organ cases for an ASSET, the specimen cases for --specimen. docs/guide/validate.md states every
 boundary condition and the figures.
 
 outputs (in --out DIR, default ASSET-validate/ or specimen-validate/):
@@ -47,17 +47,13 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--law", choices=("secant", "energy"), default=None, help="network force law (the tables')")
     p.add_argument("--element", choices=("auto", "p2", "mini"), default="auto",
                    help="continuum element: quadratic tets (p2, the reference) or MINI (first order); "
-                        "auto: p2 up to a size (docs/validate.md section 1), MINI above it and for a case p2 "
+                        "auto: p2 up to a size (docs/design/validation.md), MINI above it and for a case p2 "
                         "cannot solve")
     p.add_argument("--scene", metavar="C", default=None, help="scene of the organ cases (default 'default')")
     p.add_argument("--json", metavar="OUT.json", default=None, help="also write the figures there ('-': stdout)")
     p.add_argument("--out", metavar="DIR", default=None, help="output folder")
     p.set_defaults(func=run)
     return p
-
-
-#: The built-in specimen's defaults (mm; a material preset), used when --specimen is given without them.
-SPECIMEN = {"side": 20.0, "size": 2.5, "material": "porcine_liver_paper"}
 
 
 def _check_kind_options(args) -> None:
@@ -83,7 +79,12 @@ def run(args, ui) -> int:
     from esmm.cli.outputs import check_out_dir, check_out_file
     from esmm.pipeline.atomicio import json_text, write_json
     from esmm.pipeline.errors import ConfigError, SimulationError
-    from esmm.pipeline.fidelity.validate import LoadOptions, validate_asset, validate_specimen
+    from esmm.pipeline.fidelity.validate import (
+        LoadOptions,
+        default_out_dir,
+        validate_asset,
+        validate_specimen,
+    )
     from esmm.pipeline.materials.material import load_material
 
     if (args.asset is None) == (not args.specimen):
@@ -96,15 +97,13 @@ def run(args, ui) -> int:
         check_out_file(args.json, "--json", "validation.json")
     opts = {"cases": args.cases, "volume_term": args.volume_term, "law": args.law, "element": args.element,
             "loads": LoadOptions(scene=args.scene), "reporter": ui}
+    out = Path(args.out) if args.out else default_out_dir(args.asset)
+    check_out_dir(out, "--out")
     if args.specimen:
-        out = Path(args.out) if args.out else Path("specimen-validate")
-        check_out_dir(out, "--out")
-        rep = validate_specimen(load_material(args.material or SPECIMEN["material"]),
-                                side=(args.side or SPECIMEN["side"]) * 1e-3, size=(args.size or SPECIMEN["size"]) * 1e-3,
-                                split=bool(args.split), out_dir=out, **opts)
+        cube = {name: mm * 1e-3 for name, mm in (("side", args.side), ("size", args.size)) if mm is not None}
+        rep = validate_specimen(None if args.material is None else load_material(args.material),
+                                split=bool(args.split), out_dir=out, **cube, **opts)
     else:
-        out = Path(args.out) if args.out else Path(args.asset).with_name(Path(args.asset).stem + "-validate")
-        check_out_dir(out, "--out")
         rep = validate_asset(args.asset, out_dir=out, **opts)
     say = ui.step if args.json == "-" else ui.info    # with --json -, stdout is the JSON alone
     say(f"validated {rep.label} (volume term {rep.volume_term}, continuum element {rep.info['element']}, "

@@ -2,11 +2,10 @@
 
 The discovery solves many small least-squares problems (a few thousand rows,
 a dozen columns). For these, OpenBLAS threads cost more than they save, and on
-a machine whose cores are busy they cost a great deal (an SVD of a 4400 x 13
-Jacobian took 0.14 s with two threads on a loaded 2-core machine and 3 ms with
-one). The implicit stepper's conjugate gradients and sparse triangular
-solves are as small: on the fine liver under load its dot products took 1.4
-ms each with two threads and 10 µs with one (docs/simulate.md §2b).
+a machine whose cores are busy they cost a great deal: waking a second thread
+takes far longer than the work itself. The implicit stepper's conjugate
+gradients and sparse triangular solves are as small (docs/design/simulator.md,
+"The implicit stepper (the default)").
 :func:`single_threaded_blas` sets the thread count of every OpenBLAS
 loaded in the process to 1 for the duration of a ``with`` block and restores
 it after, using ``threadpoolctl`` when it is installed and the libraries'
@@ -58,7 +57,7 @@ def _handles() -> list[tuple]:
 
 @functools.cache
 def _controller():
-    """threadpoolctl's controller of the libraries loaded so far (made once: 1 ms, then 10 µs a block), or None."""
+    """threadpoolctl's controller of the libraries loaded so far (made once, then cheap per block), or None."""
     try:
         from threadpoolctl import ThreadpoolController  # type: ignore[import-not-found]
     except ImportError:

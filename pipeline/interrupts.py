@@ -1,8 +1,8 @@
 """Ctrl-C (and a worker's SIGTERM) never lands in the middle of an import.
 
 A KeyboardInterrupt raised while a compiled extension is being initialised
-leaves it half-made, and VTK then crashes the process (SIGSEGV, seen when
-``esmm prepare`` was interrupted during its first ``import vtk``) instead of
+leaves it half-made, and VTK then crashes the process (SIGSEGV, as when
+``esmm prepare`` is interrupted during its first ``import vtk``) instead of
 stopping cleanly with exit code 130. The library imports such modules lazily,
 so the moment is real.
 

@@ -12,7 +12,7 @@ They are parsed and checked once, before any work, into a frozen
 :class:`PrepareConfig` (:func:`prepare_config`); a message names the config key
 (``[mesh] nodes``) or the keyword (``nodes``) the bad value came from. The
 resolved configuration is stored in the asset's provenance, so an asset can be
-remade from it. The config schema is documented in docs/prepare-config.md.
+remade from it. The config schema is documented in docs/reference/configuration.md ("Prepare config").
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from .atomicio import unwritable_file
 from .checks import boolean, choice, number, quantity
 from .compensation import calibration as compensation
 from .errors import ConfigError, InputError, QualityError
-from .materials.material import Material, load_material
+from .materials.material import DEFAULT_MATERIAL, Material, load_material
 from .mesh.cleaning import CleaningOptions, CleaningReport, clean_surface
 from .mesh.quality import QUALITY_FLOORS, QualityReport, check_floors, tet_quality
 from .mesh.readers import read_surface
@@ -65,8 +65,6 @@ from .units import factor
 
 #: The default prepare preset.
 DEFAULT_PRESET = "paper"
-#: The default material preset.
-DEFAULT_MATERIAL = "porcine_liver_paper"
 
 #: Every section and key a prepare config may have, with its default (None: unset).
 DEFAULTS: dict[str, dict[str, Any]] = {
@@ -133,7 +131,7 @@ class PrepareConfig:
     compensate : bool
         Calibrate the volumetric compensation.
     volume : bool
-        Give the network its volume term (tet structure; docs/model.md, Part C2).
+        Give the network its volume term (tet structure; docs/design/model.md, "The volume term (nearly incompressible network)").
     poisson_ratio : float
         The Poisson ratio the volume term's bulk modulus is sized for.
     source : str
@@ -569,11 +567,11 @@ def _volume(tables: StiffnessTables, net: SpringNetwork, cfg: PrepareConfig, run
     """The network's volume term (bulk modulus from the material), or None (disabled, or no tets)."""
     if not cfg.volume:
         run.warn("no volume term: the network is compressible (Poisson ratio ~1/4) and loses volume under "
-                 "load (docs/model.md, Part C2)")
+                 "load (docs/design/model.md, 'The volume term')")
         return None
     if net.tets is None:
         run.warn("the skeleton structure has no tetrahedra, so it gets no volume term: it does not keep the "
-                 "organ's volume (use the tetra structure for that; docs/model.md, Part C2)")
+                 "organ's volume (use the tetra structure for that; docs/design/model.md, 'The volume term')")
         return None
     spec = bulk_modulus(tables, poisson=cfg.poisson_ratio,
                         calibration_range=compensation.calibration_stretches(tables))
@@ -597,7 +595,7 @@ def _compensated(tables: StiffnessTables, mat: Material, net: SpringNetwork, cfg
     """*tables* compensated for the network (with its volume term) unless disabled."""
     if not cfg.compensate:
         run.warn("no volumetric compensation: the raw network is several times softer than the tissue "
-                 "(docs/model.md); compensate the asset later with 'esmm tables'")
+                 "(docs/design/tables.md); compensate the asset later with 'esmm tables'")
         return tables
     comp = run.stage("compensation", compensation.compensate, tables, net, material=mat, reporter=run.rep,
                      volume=net.volume_term)
@@ -612,6 +610,25 @@ def _fix(net: SpringNetwork, cfg: PrepareConfig, run: _Run) -> SpringNetwork:
     fixed = select_fixed(net.points, cfg.fixed, node_kind=net.node_kind)
     run.rep.step(f"fixed: {fixed.size} nodes ({cfg.fixed.describe()})")
     return net.with_fixed(fixed)
+
+
+def _structure(clean, cfg: PrepareConfig, run: _Run, *, force: bool, name: str) -> _Structure:
+    """The config's structure (tetra or skeleton) of the cleaned surface, its network reported."""
+    shape = _tetra(clean, cfg, run, force=force, name=name) if cfg.structure == "tetra" else \
+        _skeleton(clean, cfg, run)
+    net = shape.network
+    run.rep.step(f"network: {net.summary()}, bandwidth {net.bandwidth()} ({run.timings['network']:.2f} s)")
+    return shape
+
+
+def _spring_model(net: SpringNetwork, mat: Material, cfg: PrepareConfig,
+                  run: _Run) -> tuple[SpringNetwork, StiffnessTables]:
+    """The network with its volume term and fixed nodes, and its (compensated) stiffness tables."""
+    tables = _tables(mat, cfg, run)
+    net = dataclasses.replace(net, volume_term=_volume(tables, net, cfg, run))
+    tables = _compensated(tables, mat, net, cfg, run)
+    net = _fix(net, cfg, run)
+    return net, tables
 
 
 def _write(out: Path, inp: Path, net: SpringNetwork, mat: Material, tables: StiffnessTables,
@@ -701,14 +718,8 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
     run = _Run(reporter)
     mat = _material(cfg, run)
     clean, cleaning = _surface(inp, cfg, run)
-    shape = _tetra(clean, cfg, run, force=force, name=inp.name) if cfg.structure == "tetra" else \
-        _skeleton(clean, cfg, run)
-    net = shape.network
-    run.rep.step(f"network: {net.summary()}, bandwidth {net.bandwidth()} ({run.timings['network']:.2f} s)")
-    tables = _tables(mat, cfg, run)
-    net = dataclasses.replace(net, volume_term=_volume(tables, net, cfg, run))
-    tables = _compensated(tables, mat, net, cfg, run)
-    net = _fix(net, cfg, run)
+    shape = _structure(clean, cfg, run, force=force, name=inp.name)
+    net, tables = _spring_model(shape.network, mat, cfg, run)
     _write(out, inp, net, mat, tables, shape, cleaning, cfg, run, argv)
     return PrepareResult(asset=out, xdmf=sidecar_path(out), network=net, quality=shape.quality,
                          quality_passed=shape.passed, cleaning=cleaning, tables=tables, material=mat,

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Regenerate the results of docs/discover.md (section 10): ``esmm calibrate --discover`` on every real data set.
+"""Regenerate the results of docs/design/discovery.md ("What it achieves"): ``esmm calibrate --discover`` on every real data set.
 
 Usage::
 
@@ -11,7 +11,7 @@ defaults) and reads its ``discover.json``: NRMSE before and after (fitted and he
 names, the discovery's own time. ``--seeds`` also runs the generated population
 (:func:`esmm.pipeline.discover.population.score`, 114 cases) for each seed given. Prints the
 markdown table and writes every figure to ``--out`` (rows and seeds not run are kept from an
-existing file). Takes ~4 min for the rows and ~2-4 min per seed on two cores.
+existing file). The rows and each seed take minutes.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Where the network's force error comes from (issue 11; docs/validate.md §5, "Diagnosis").
+"""Where the network's force error comes from (docs/design/validation.md, "What the network's errors are, and why").
 
 Parts (``python scripts/force_diagnosis.py PART [options]``; one JSON line per
 figure on stdout):
@@ -11,7 +11,7 @@ figure on stdout):
 * ``radius``: the cube's cases at the validation loads (1.2, 0.9, 0.3) at each of
   ``--sizes`` with the compensation calibrated on a cylinder of ``--radius`` element
   sizes instead of the default 4;
-* ``shear-loss``: an experiment on the axial-only correction of before commit 689fbfe (not what
+* ``shear-loss``: an experiment on the axial-only stretch correction (fitted on the uniaxial test alone; not what
   ``esmm prepare`` does; on a joint-fit asset it corrects twice): the
   compensation's g multiplied by the calibration cylinder's own finite-strain
   loss in simple shear (its recorded shear checks, xy and xz, over their
@@ -32,8 +32,8 @@ figure on stdout):
   STL --config paper``, with the isotropic fabric (its calibrations cached apart, in the cache's
   ``fabric-experiment`` folder);
 * ``timing``: the network side of ``esmm validate ASSET`` (``--cases``, volume
-  term on), its tangent factored the old way (the LU with COLAMD) and the new
-  (the LDLᵀ in node order, :func:`esmm.pipeline.linalg.newton.free_order`),
+  term on), its tangent factored two ways (the LU with COLAMD, and the LDLᵀ in
+  node order of :func:`esmm.pipeline.linalg.newton.free_order`),
   in one process: seconds and the largest displacement difference.
 """
 

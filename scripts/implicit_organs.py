@@ -1,4 +1,4 @@
-"""The default and the interactive scene on every shared organ: implicit against explicit (docs/simulate.md §8).
+"""The default and the interactive scene on every shared organ: implicit against explicit (docs/design/simulator.md, "What it achieves").
 
 For each organ surface: ``esmm prepare --config paper`` (the volume term on),
 then, for each of the two scenes (the default's sticking bed, the interactive
@@ -6,15 +6,14 @@ one's frictionless bed), ``esmm simulate --scene S --method implicit``
 (backward Euler at the frame step, grasper force at 1 kHz) and the same scene
 with ``--method explicit`` (the accuracy reference), one after the other. From each
 ``summary.json``: the real-time factor and the stepping time; from the two
-histories (``benchmarks/bench_simulate.implicit_accuracy``, over the lift
+histories (``implicit_accuracy`` of benchmarks/bench_simulate.py, over the lift
 t <= 1 s): the grasper force error (max and rms over the largest force) and the
 displacement error (over the largest displacement). Written to
 ``docs/figures/implicit_organs.json``::
 
     python scripts/implicit_organs.py
 
-Run from the checkout (``../shared/data`` must resolve). About two minutes per
-organ on a two-core machine.
+Run from the checkout (``../shared/data`` must resolve). Minutes per organ.
 """
 
 from __future__ import annotations

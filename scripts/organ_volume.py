@@ -1,4 +1,4 @@
-"""The organ under gravity with and without the volume term (docs/model.md, Part C2.6).
+"""The organ under gravity with and without the volume term (docs/design/model.md, "The volume term (nearly incompressible network)").
 
 For each organ surface: ``esmm prepare`` with its defaults (the volume term on)
 and with ``--no-volume`` (each compensated for what it carries), then
@@ -13,8 +13,7 @@ and the end of the run, the time step and the real-time factor. Written to
     python scripts/organ_volume.py                    # the bundled liver
     python scripts/organ_volume.py --openhelp         # + OpenHELP kidney, spleen and the SOFA liver
 
-Run from the checkout (``../shared/data`` must resolve). Minutes per organ on
-a shared two-core machine.
+Run from the checkout (``../shared/data`` must resolve). Minutes per organ.
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ Writes ``fig5a_mu_e.png``: mu_e(lambda) as tabulated by
 the material evaluated directly (dots) and the paper's reference values; and
 ``fig5a_force_laws.png``: the spring force per unit c V / L0 of the secant
 (paper Eq. 9) and energy-consistent laws, and their ratio. Prints the values
-quoted in docs/model-tables.md.
+quoted in docs/design/tables.md.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from esmm.pipeline.errors import EsmmError  # noqa: E402
 from esmm.pipeline.materials.material import load_material  # noqa: E402
 from esmm.pipeline.network.tables import build_tables  # noqa: E402
 
-#: Values read off the paper's Fig. 5a for its porcine-liver fit (docs/model.md) [MPa].
+#: Values read off the paper's Fig. 5a for its porcine-liver fit (docs/design/tables.md) [MPa].
 PAPER_POINTS = {1.1: 0.029, 1.3: 0.123}
 
 

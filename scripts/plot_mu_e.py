@@ -7,7 +7,7 @@ Usage::
         [--out docs/figures/mu_e_porcine_liver.png]
 
 mu_e(lambda) = 2 W(lambda) / (lambda - 1)^2 for incompressible uniaxial stretch
-(docs/model.md), from compression to just below locking, in MPa.
+(docs/design/model.md), from compression to just below locking, in MPa.
 """
 
 from __future__ import annotations

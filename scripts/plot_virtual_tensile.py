@@ -9,7 +9,7 @@ Usage::
 Writes ``virtual_tensile_curves.png`` (nominal stress vs stretch), ``virtual_tensile_errors.png``
 (relative error vs stretch, per mesh size and law), ``virtual_tensile_correction.png`` (the
 stretch correction g) and ``virtual_tensile_study.json`` (every number quoted in
-docs/model-tables.md). Takes a few minutes on two cores (the finest mesh dominates).
+docs/design/tables.md). Takes minutes (the finest mesh dominates).
 """
 
 from __future__ import annotations

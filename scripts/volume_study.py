@@ -1,4 +1,4 @@
-"""The volume term's study (docs/model.md, Part C2): locking, Poisson ratio, bulk modulus, transfer.
+"""The volume term's study (docs/design/model.md, "The volume term (nearly incompressible network)"): locking, Poisson ratio, bulk modulus, transfer.
 
 Parts (``python scripts/volume_study.py PART [PART ...]``, results merged into
 ``docs/figures/volume_study.json``):
@@ -22,7 +22,7 @@ Parts (``python scripts/volume_study.py PART [PART ...]``, results merged into
   calibration ``esmm prepare`` ran: c, its three small-strain factors, the
   stretch correction, errors, shear checks, volume change).
 
-Takes tens of minutes on a shared two-core machine (``transfer`` most).
+Takes tens of minutes (``transfer`` most).
 """
 
 from __future__ import annotations

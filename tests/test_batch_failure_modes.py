@@ -163,92 +163,117 @@ def _run_row(fn_job, tmp, **kw) -> tuple[int, str]:
     return s.exit_code, s.by_name()["x"].reason + " " + s.table()
 
 
-def batch_case(row_id: str, tmp: Path) -> tuple[int, str]:
-    """Run a batch row; return (exit code, text that must contain the phrase)."""
-    from esmm.pipeline.batch import cache as bcache
+def _error_of(call, kind: type[EsmmError] = ConfigError) -> tuple[int, str]:
+    """Run *call*, which must raise a *kind* error: (its exit code, its message)."""
+    try:
+        call()
+    except kind as exc:
+        return exc.exit_code, str(exc)
+    raise AssertionError("no error")
+
+
+def _one_bad_file(tmp: Path, out: Path) -> tuple[int, str]:
+    from esmm.cli.main import main
+
+    bad = tmp / "broken.csv"
+    bad.write_bytes(b"\x00\x01binary")
+    files = [str(p) for p in sorted(BRAIN.glob("cortex_*.csv"))] + [str(bad)]
+    code = main(["calibrate", "--by", "specimen", *files, "--out", str(out), "--starts", "2", "--jobs", "1"])
+    return code, (out / "summary.csv").read_text()
+
+
+def _interrupted(tmp: Path, out: Path) -> tuple[int, str]:
+    s = run_jobs([Job(name="x", kind="t", fn=job_interrupt)] + _jobs(out), out_dir=out, scheduler="serial")
+    return s.exit_code, s.by_name()["x"].status + " " + s.log_path.read_text()
+
+
+def _killed(tmp: Path, out: Path) -> tuple[int, str]:
+    out.mkdir()
+    (out / ".ok.txt.tmp-dead1.txt").write_text("half")
+    s = run_jobs(_jobs(out), out_dir=out, scheduler="serial")
+    assert not list(out.glob(".*.tmp-*"))
+    return s.exit_code, s.log_path.read_text()
+
+
+def _rerun(tmp: Path, out: Path) -> tuple[int, str]:
+    run_jobs(_jobs(out), out_dir=out, scheduler="serial")
+    s = run_jobs(_jobs(out), out_dir=out, scheduler="serial")
+    return s.exit_code, s.table()
+
+
+def _output_edited(tmp: Path, out: Path) -> tuple[int, str]:
+    run_jobs(_jobs(out), out_dir=out, scheduler="serial")
+    (out / "ok.txt").write_text("OK")
+    s = run_jobs(_jobs(out), out_dir=out, scheduler="serial")
+    assert s.by_name()["ok"].status == "done"
+    return s.exit_code, s.log_path.read_text()
+
+
+def _stale_task(tmp: Path, out: Path, *, input_changed: bool) -> tuple[int, str]:
+    """A task whose input changed, or whose code version is not this one, since its key was made."""
     from esmm.pipeline.batch.worker import execute
 
-    out = tmp / "out"
-    if row_id == "batch-one-bad-file":
-        from esmm.cli.main import main
+    src = tmp / "in.csv"
+    src.write_text("a")
+    out.mkdir()
+    task = {"name": "x", "kind": "t", "key": "0" * 64, "fn": job_ok, "args": (str(out), "x"), "kwargs": {},
+            "out_dir": str(out), "key_inputs": [str(src)], "digests": [("in.csv", bjobs.sha256_file(src))],
+            "config": {}, "code_version": bjobs.code_version()}
+    if input_changed:
+        src.write_text("b")
+    else:
+        task["code_version"] = "0.0.0+elsewhere"
+    res = execute(task)
+    assert res["status"] == "failed"
+    return bjobs.EXIT_FAILED, res["reason"]
 
-        bad = tmp / "broken.csv"
-        bad.write_bytes(b"\x00\x01binary")
-        files = [str(p) for p in sorted(BRAIN.glob("cortex_*.csv"))] + [str(bad)]
-        code = main(["calibrate", "--by", "specimen", *files, "--out", str(out), "--starts", "2", "--jobs", "1"])
-        return code, (out / "summary.csv").read_text()
-    if row_id == "batch-job-fails":
-        return _run_row(job_raise, tmp, scheduler="serial")
-    if row_id == "batch-worker-killed":
-        return _run_row(job_kill, tmp, workers=1)
-    if row_id == "batch-job-timeout":
-        return _run_row(job_sleep, tmp, workers=2, job_timeout=1)
-    if row_id == "batch-interrupted":
-        s = run_jobs([Job(name="x", kind="t", fn=job_interrupt)] + _jobs(out), out_dir=out, scheduler="serial")
-        return s.exit_code, s.by_name()["x"].status + " " + s.log_path.read_text()
-    if row_id == "batch-killed":
-        out.mkdir()
-        (out / ".ok.txt.tmp-dead1.txt").write_text("half")
-        s = run_jobs(_jobs(out), out_dir=out, scheduler="serial")
-        assert not list(out.glob(".*.tmp-*"))
-        return s.exit_code, s.log_path.read_text()
-    if row_id == "batch-rerun":
-        run_jobs(_jobs(out), out_dir=out, scheduler="serial")
-        s = run_jobs(_jobs(out), out_dir=out, scheduler="serial")
-        return s.exit_code, s.table()
-    if row_id == "batch-output-edited":
-        run_jobs(_jobs(out), out_dir=out, scheduler="serial")
-        (out / "ok.txt").write_text("OK")
-        s = run_jobs(_jobs(out), out_dir=out, scheduler="serial")
-        assert s.by_name()["ok"].status == "done"
-        return s.exit_code, s.log_path.read_text()
-    if row_id in ("batch-input-changed", "batch-code-mismatch"):
-        src = tmp / "in.csv"
-        src.write_text("a")
-        out.mkdir()
-        task = {"name": "x", "kind": "t", "key": "0" * 64, "fn": job_ok, "args": (str(out), "x"), "kwargs": {},
-                "out_dir": str(out), "key_inputs": [str(src)], "digests": [("in.csv", bjobs.sha256_file(src))],
-                "config": {}, "code_version": bjobs.code_version()}
-        if row_id == "batch-input-changed":
-            src.write_text("b")
-        else:
-            task["code_version"] = "0.0.0+elsewhere"
-        res = execute(task)
-        assert res["status"] == "failed"
-        return bjobs.EXIT_FAILED, res["reason"]
-    if row_id == "batch-locked":
-        with bcache.FolderLock(out):
-            try:
-                run_jobs(_jobs(out), out_dir=out, scheduler="serial")
-            except EsmmError as exc:
-                return exc.exit_code, str(exc)
-        raise AssertionError("no error")
-    if row_id == "batch-bad-scheduler":
-        try:
-            run_jobs(_jobs(out), out_dir=out, scheduler="cluster please")
-        except ConfigError as exc:
-            return exc.exit_code, str(exc)
-        raise AssertionError("no error")
-    if row_id == "batch-scheduler-unreachable":
-        import socket
 
-        with socket.socket() as sock:
-            sock.bind(("127.0.0.1", 0))
-            port = sock.getsockname()[1]
-        try:
-            run_jobs(_jobs(out), out_dir=out, scheduler=f"tcp://127.0.0.1:{port}", connect_timeout=2)
-        except ConfigError as exc:
-            return exc.exit_code, str(exc)
-        raise AssertionError("no error")
-    if row_id == "batch-name-clash":
-        from esmm.pipeline.batch.prepare import prepare_jobs
+def _locked(tmp: Path, out: Path) -> tuple[int, str]:
+    from esmm.pipeline.batch import cache as bcache
 
-        try:
-            prepare_jobs([tmp / "liver.stl", tmp / "liver.obj"], out_dir=out)
-        except ConfigError as exc:
-            return exc.exit_code, str(exc)
-        raise AssertionError("no error")
-    raise KeyError(row_id)
+    with bcache.FolderLock(out):
+        return _error_of(lambda: run_jobs(_jobs(out), out_dir=out, scheduler="serial"), EsmmError)
+
+
+def _scheduler_unreachable(tmp: Path, out: Path) -> tuple[int, str]:
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    return _error_of(lambda: run_jobs(_jobs(out), out_dir=out, scheduler=f"tcp://127.0.0.1:{port}",
+                                      connect_timeout=2))
+
+
+def _name_clash(tmp: Path, out: Path) -> tuple[int, str]:
+    from esmm.pipeline.batch.prepare import prepare_jobs
+
+    return _error_of(lambda: prepare_jobs([tmp / "liver.stl", tmp / "liver.obj"], out_dir=out))
+
+
+#: Each batch row of the table: a function of (tmp, out folder) -> (exit code, text with the phrase).
+BATCH_CASES = {
+    "batch-one-bad-file": _one_bad_file,
+    "batch-job-fails": lambda tmp, out: _run_row(job_raise, tmp, scheduler="serial"),
+    "batch-worker-killed": lambda tmp, out: _run_row(job_kill, tmp, workers=1),
+    "batch-job-timeout": lambda tmp, out: _run_row(job_sleep, tmp, workers=2, job_timeout=1),
+    "batch-interrupted": _interrupted,
+    "batch-killed": _killed,
+    "batch-rerun": _rerun,
+    "batch-output-edited": _output_edited,
+    "batch-input-changed": lambda tmp, out: _stale_task(tmp, out, input_changed=True),
+    "batch-code-mismatch": lambda tmp, out: _stale_task(tmp, out, input_changed=False),
+    "batch-locked": _locked,
+    "batch-bad-scheduler": lambda tmp, out: _error_of(
+        lambda: run_jobs(_jobs(out), out_dir=out, scheduler="cluster please")),
+    "batch-scheduler-unreachable": _scheduler_unreachable,
+    "batch-name-clash": _name_clash,
+}
+
+
+def batch_case(row_id: str, tmp: Path) -> tuple[int, str]:
+    """Run a batch row; return (exit code, text that must contain the phrase)."""
+    return BATCH_CASES[row_id](tmp, tmp / "out")
 
 
 SLOW = {"mesh-below-quality", "batch-one-bad-file", "batch-scheduler-unreachable"}

@@ -1,5 +1,5 @@
 """esmm validate: the continuum reference verified against analytic solutions, the network solve,
-the cases and the command (docs/validate.md)."""
+the cases and the command (docs/design/validation.md)."""
 
 from __future__ import annotations
 

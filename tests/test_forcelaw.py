@@ -94,7 +94,7 @@ def test_secant_to_energy_ratio_is_2W_over_dlam_P(liver, tables):
     W = liver.uniaxial_energy(lam)
     P = nominal_stress(liver.model_obj, liver.params, "uniaxial", lam)
     np.testing.assert_allclose(ratio, 2 * W / ((lam - 1) * P), rtol=5e-4)
-    # pinned on the paper's liver (docs/model-tables.md): the secant law is much softer
+    # pinned on the paper's liver (docs/design/tables.md): the secant law is much softer
     np.testing.assert_allclose(ratio, [0.498, 0.620, 0.678, 0.585, 0.566], atol=2e-3)
     # and the two laws agree in the small-strain limit
     small = np.array([1 - 1e-3, 1 + 1e-3])

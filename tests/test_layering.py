@@ -5,7 +5,7 @@ them, the batch runner and the command line on top::
 
     cli
     batch
-    prepare (the stage), fidelity (the validation)
+    prepare, retable (the stages), fidelity (the validation)
     discover            simulate        compensation
     calibrate           asset
     materials   <-      network
@@ -53,6 +53,7 @@ ALLOWED: dict[str, set[str]] = {
     "simulate": {"mesh", "network", "asset", "materials"},
     "compensation": {"mesh", "network", "materials"},
     "prepare": {"mesh", "network", "compensation", "asset", "materials"},
+    "retable": {"network", "compensation", "asset", "materials"},
     "fidelity": {"mesh", "network", "compensation", "asset", "simulate", "materials"},
     "batch": {"tensile", "materials", "calibrate", "discover", "mesh", "network", "compensation", "asset",
               "simulate", "prepare"},

@@ -1,4 +1,4 @@
-"""The spring network: builders, invariants, ordering and the energy match (docs/model.md (Part B))."""
+"""The spring network: builders, invariants, ordering and the energy match (docs/design/model.md, "The spring network")."""
 
 from __future__ import annotations
 
@@ -306,7 +306,7 @@ def test_uniaxial_energy_matches_affine_tensor(cube_net):
     for axis in range(3):
         ratio = uniaxial_energy_ratio(cube_net, 1e-6, axis)
         assert ratio == pytest.approx(c[axis, axis], rel=1e-4)
-    # Measured: about 0.21 (isotropic directions: 1/5) of 1/2 E eps^2 V; see docs/model.md (Part B).
+    # Measured: about 0.21 (isotropic directions: 1/5) of 1/2 E eps^2 V; see docs/design/model.md, "The spring network".
     assert 0.18 < c[0, 0] < 0.24
 
 
@@ -343,7 +343,7 @@ def test_relaxed_network_modulus_and_poisson(cube_net):
     """Relaxation (non-affine node motion) costs ~8 % of the affine modulus; nu approaches 1/4.
 
     Measured on this gmsh cube (h = L/8, 884 nodes): E_eff = 0.165 mu_e (affine 0.180),
-    E_eff / E_affine = 0.92, nu = 0.23-0.24. The numbers are quoted in docs/model.md (Part B).
+    E_eff / E_affine = 0.92, nu = 0.23-0.24. The numbers are quoted in docs/design/model.md, "The spring network".
     """
     e_aff, nu_aff = engineering_constants(affine_elasticity(cube_net))
     for axis in (0, 2):

@@ -1,4 +1,4 @@
-"""Packaging: every subpackage is listed, the top-level names cli/pipeline are not importable,
+"""Packaging: every subpackage is listed, the top-level names cli and pipeline are not importable,
 and the console script answers --version and --help."""
 
 from __future__ import annotations

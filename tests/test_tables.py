@@ -42,7 +42,7 @@ def test_interpolated_mu_e_matches_material(liver, tables):
 
 def test_pinned_mu_e_of_the_paper_liver(tables):
     # E = mu_e(1) of the ESEDF liver fit, and the paper's Fig. 5a reference values
-    # mu_e(1.1) ~ 0.029 MPa, mu_e(1.3) ~ 0.123 MPa (docs/model.md).
+    # mu_e(1.1) ~ 0.029 MPa, mu_e(1.3) ~ 0.123 MPa (docs/design/model.md).
     mu = tables.mu_e(np.array([0.9, 1.0, 1.1, 1.2, 1.3]))[0] / 1e6
     np.testing.assert_allclose(mu, [0.035843, 0.0149231, 0.0291758, 0.0675516, 0.123324], rtol=2e-4)
     assert abs(mu[2] / 0.029 - 1) < 0.01 and abs(mu[4] / 0.123 - 1) < 0.005

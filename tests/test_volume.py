@@ -81,9 +81,10 @@ def test_matrix_free_product_is_the_tangent(block, form, definite):
 
 
 def test_tangent_bound_is_above_the_nodal_tangent_with_the_tets_sparsity(block):
-    """The per-tet Gauss-Newton matrix the implicit stepper factors (docs/simulate.md §2b): above the nodal
-    term's definite tangent (Cauchy-Schwarz: the difference is positive semi-definite, and strictly larger
-    somewhere), equal to it for the per-tet formulation, and coupling only nodes of a common tet."""
+    """The per-tet Gauss-Newton matrix the implicit stepper factors (docs/design/simulator.md,
+    "What is factored, and when it is renewed"): above the nodal term's definite tangent
+    (Cauchy-Schwarz: the difference is positive semi-definite, and strictly larger somewhere),
+    equal to it for the per-tet formulation, and coupling only nodes of a common tet."""
     x = deformed(block)
     nodal = volume_elements(block.points, block.tets, VolumeSpec(2.0e5, "nodal"))
     tet = volume_elements(block.points, block.tets, VolumeSpec(2.0e5, "tet"))
@@ -196,7 +197,7 @@ def test_bulk_modulus_rule(tables):
     dP = (nominal_stress(liver.model_obj, liver.params, "uniaxial", at + h)
           - nominal_stress(liver.model_obj, liver.params, "uniaxial", at - h)) / (2 * h)
     assert mu_t == pytest.approx(float(dP) / 3, rel=2e-3)
-    # small-strain tangent: E/3 with E = mu_e(1) = 0.0149231 MPa (docs/model.md)
+    # small-strain tangent: E/3 with E = mu_e(1) = 0.0149231 MPa (docs/design/model.md)
     mu0, _ = tangent_shear_modulus(tables, 0.999, 1.001)
     assert mu0 == pytest.approx(0.0149231e6 / 3, rel=5e-3)    # (the largest over the window: stiffening)
     assert mu_t / mu0 > 30

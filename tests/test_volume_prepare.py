@@ -53,7 +53,7 @@ def test_scene_switch_and_run_records(assets, tmp_path):
     """A short run with the term on and off: the volume records of the summary.
 
     The asset is uncompensated; the run uses its tables with the scalar factor
-    a compensation with the term finds (c = 5.1, docs/model.md Part C2), so that
+    a compensation with the term finds (c = 5.1, docs/design/model.md, "The volume term (nearly incompressible network)"), so that
     the springs have about the tissue's small-strain modulus.
     """
     from esmm.pipeline.simulate.run import simulate_network

@@ -1,6 +1,6 @@
 """The HDF5 asset: one file with the spring network, material, tables and provenance.
 
-See docs/asset-format.md for the schema. ``write_asset`` writes it (and an
+See docs/reference/asset-format.md for the schema. ``write_asset`` writes it (and an
 XDMF sidecar for ParaView) atomically; ``read_asset`` reads it back and
 refuses anything truncated, tampered with or of an unknown/newer schema;
 ``validate_asset`` lists every problem; ``update_asset_tables`` rewrites the

@@ -2,7 +2,7 @@
 
 Written by :func:`write_material` (from a ``Material`` or its TOML text) and read
 back by :func:`material_from_toml` and :func:`read_effects`
-(docs/asset-format.md). The writer and the reader of whole assets
+(docs/reference/asset-format.md). The writer and the reader of whole assets
 (:mod:`~esmm.pipeline.asset.write`, :mod:`~esmm.pipeline.asset.read`) and the
 tables rewriter (:mod:`~esmm.pipeline.asset.rewrite`) all go through here.
 """
@@ -149,7 +149,7 @@ def write_material(f: h5py.Group, material) -> None:
 
 
 def _write_effects(g: h5py.Group, material) -> None:
-    """``/material/effects``: the kept material effects in SI that an asset stores (docs/asset-format.md;
+    """``/material/effects``: the kept material effects in SI that an asset stores (docs/reference/asset-format.md;
     :func:`storable_effects`)."""
     fx, _ = storable_effects(material_effects(material))
     if fx is None:

@@ -159,7 +159,7 @@ def _damaged(p: Path, exc: BaseException) -> AssetError:
 
 
 def _check_bytes(path: Path) -> None:
-    """The file header check (docs/asset-format.md), before libhdf5 sees the file."""
+    """The file header check (docs/reference/asset-format.md), before libhdf5 sees the file."""
     try:
         _sealed, problem = hdf5.check_file(path)
     except OSError as exc:
@@ -443,7 +443,7 @@ def read_asset(path: str | os.PathLike, *, verify: bool = True) -> Asset:
         The ``.h5`` file.
     verify : bool
         Check every dataset's SHA-256 and the root checksum (default; costs
-        one pass over the data). The file header's hash (docs/asset-format.md)
+        one pass over the data). The file header's hash (docs/reference/asset-format.md)
         is checked either way: it keeps libhdf5 away from damaged bytes.
 
     Raises

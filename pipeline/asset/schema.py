@@ -1,6 +1,6 @@
 """The asset schema: group types, versions and the unit of every dataset.
 
-The authoritative description is docs/asset-format.md; this module is its
+The authoritative description is docs/reference/asset-format.md; this module is its
 machine-readable part. Every group carries the attributes ``esmm_type`` and
 ``esmm_version`` (an integer, bumped on any incompatible change); every
 dataset carries ``units`` (an SI unit, ``"1"`` for dimensionless numbers,

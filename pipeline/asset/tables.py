@@ -1,4 +1,4 @@
-"""The ``/tables`` group of an asset: stiffness tables stored and read back (docs/asset-format.md).
+"""The ``/tables`` group of an asset: stiffness tables stored and read back (docs/reference/asset-format.md).
 
 :func:`write_tables` stores a :class:`~esmm.pipeline.network.tables.StiffnessTables`
 in an open HDF5 group, :func:`read_tables` reads it back (refusing anything

@@ -1,4 +1,4 @@
-"""The optional ``/volume`` group: the volume term of the network (docs/asset-format.md).
+"""The optional ``/volume`` group: the volume term of the network (docs/reference/asset-format.md).
 
 ``esmm prepare`` writes it by default for the tet structure: what the
 simulator needs to keep the organ's volume (the bulk modulus, the

@@ -117,11 +117,29 @@ def _write_core(f: h5py.File, net: SpringNetwork, fixed_region: str) -> None:
     hdf5.put(g, "fixed_mask", net.fixed_mask(), "1", dtype=np.uint8, description="1 on fixed nodes")
 
 
+def _write_groups(f: h5py.File, network: SpringNetwork, *, material, tables: StiffnessTables | None, quality,
+                  cleaning, quality_floors: dict | None, fixed_region: str) -> None:
+    """The network and each optional group that is given (material, tables, volume, reports), in file order."""
+    _write_core(f, network, fixed_region)
+    if material is not None:
+        write_material(f, material)
+    if tables is not None:
+        write_tables(f.create_group("tables"), tables)
+    if network.volume_term is not None:
+        write_volume(f, network.volume_term, network.points, network.tets)
+    if quality is not None:
+        _report_group(f, "quality", quality, ("min_dihedral_deg", "n_tets", "n_nodes", "volume"),
+                      floors=quality_floors)
+    if cleaning is not None:
+        _report_group(f, "cleaning", cleaning, ("volume_before", "volume_after", "bodies_found",
+                                                "relative_volume_change"))
+
+
 def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=None,
                 tables: StiffnessTables | None = None,
                 quality=None, cleaning=None, provenance: Provenance | None = None,
                 quality_floors: dict | None = None, fixed_region: str = "", xdmf: bool = True) -> Path:
-    """Write *network* and what goes with it to an HDF5 asset (docs/asset-format.md).
+    """Write *network* and what goes with it to an HDF5 asset (docs/reference/asset-format.md).
 
     The file is written to a temporary name and renamed when complete; the
     XDMF sidecar ``<name>.xdmf`` likewise. Every dataset gets a ``units`` and a
@@ -174,21 +192,10 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
     try:
         with atomic_path(path) as tmp:
             # The user block carries the file header (hash of every later byte), written by
-            # seal() when the file is closed, before the rename (docs/asset-format.md).
+            # seal() when the file is closed, before the rename (docs/reference/asset-format.md).
             with hdf5.create(tmp) as f:
-                _write_core(f, network, fixed_region)
-                if material is not None:
-                    write_material(f, material)
-                if tables is not None:
-                    write_tables(f.create_group("tables"), tables)
-                if network.volume_term is not None:
-                    write_volume(f, network.volume_term, network.points, network.tets)
-                if quality is not None:
-                    _report_group(f, "quality", quality, ("min_dihedral_deg", "n_tets", "n_nodes", "volume"),
-                                  floors=quality_floors)
-                if cleaning is not None:
-                    _report_group(f, "cleaning", cleaning, ("volume_before", "volume_after", "bodies_found",
-                                                            "relative_volume_change"))
+                _write_groups(f, network, material=material, tables=tables, quality=quality, cleaning=cleaning,
+                              quality_floors=quality_floors, fixed_region=fixed_region)
                 _write_provenance(f, prov)
                 hdf5.seal(f)
                 text = xdmf_text(f, path.name) if xdmf else None

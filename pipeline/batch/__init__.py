@@ -7,7 +7,7 @@
   (:mod:`.prepare`): the ``esmm calibrate --by`` and multi-file ``esmm prepare``
   batches built on it.
 
-See docs/batch.md.
+See docs/guide/batch.md.
 """
 
 from .jobs import BatchSummary, Job, JobOutcome, JobOutput, cache_key, code_version

@@ -35,6 +35,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -307,6 +308,183 @@ def _run_dask(tasks: list[Task], target: Any, on_event: OnEvent, logger: logging
 
 
 # ----------------------------------------------------------------------------- run_jobs
+@dataclass
+class _Batch:
+    """What the steps of one :func:`run_jobs` call share: the folder, the log, the outcomes so far."""
+
+    out: Path
+    logger: logging.Logger
+    rep: Reporter
+    summary: BatchSummary
+    outcomes: dict[str, JobOutcome] = field(default_factory=dict)
+
+
+def _check_jobs(jobs: Sequence[Job], job_timeout: float | None) -> list[str]:
+    """The job names, after checking the time limit and that no two jobs share a name."""
+    if job_timeout is not None and not (isinstance(job_timeout, (int, float)) and job_timeout > 0):
+        raise ConfigError(f"job_timeout: expected a positive number of seconds, got {job_timeout!r}")
+    names = [j.name for j in jobs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ConfigError(f"two batch jobs would write the same output {dup[0]!r}; rename one of the inputs")
+    return names
+
+
+def _make_out_dir(out_dir: str | os.PathLike) -> Path:
+    """The batch folder, created if needed, as an absolute path."""
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from None
+    return out.resolve()
+
+
+def _describe_scheduler(kind: str, target: Any, workers: int | None) -> tuple[int, str]:
+    """``(worker processes, description for the log)``; 0 processes for Dask (the cluster decides)."""
+    if kind == "local":
+        n_workers = workers or available_cpus()
+        return n_workers, f"local ({n_workers} process{'es' if n_workers > 1 else ''})"
+    if kind == "serial":
+        return 1, "serial (this process)"
+    return 0, f"dask {target if isinstance(target, str) else 'client'}"
+
+
+def _open_batch(out: Path, rep: Reporter, summary: BatchSummary,
+                lock: _cache.FolderLock) -> tuple[_Batch, logging.Handler, list[Path]]:
+    """Sweep what a killed run left (only under a working lock), open the log: the batch, its log handler, the sweep."""
+    # Temporary files can be swept only while no one else writes here (the lock says so).
+    swept = [] if lock.unsupported else _cache.sweep_temp(out) + _cache.sweep_workers(out)
+    logger, handler, log_path = _open_log(out)
+    if lock.unsupported:
+        logger.warning("the file system cannot lock %s: make sure no other batch writes there; "
+                       "leftover temporary files are not removed", out)
+    summary.log_path = log_path
+    return _Batch(out, logger, rep, summary), handler, swept
+
+
+def _log_start(batch: _Batch, n_jobs: int, *, desc: str, force: bool, version: str, swept: list[Path]) -> None:
+    """The log's first lines: the batch's settings and the temporary files swept."""
+    batch.logger.info("batch start: %d job(s); scheduler %s; out %s; force %s; esmm %s; pid %d",
+                      n_jobs, desc, batch.out, force, version, os.getpid())
+    if swept:
+        batch.logger.info("removed %d temporary file(s) left by an interrupted run: %s", len(swept),
+                          ", ".join(str(p.relative_to(batch.out)) for p in swept[:20]))
+
+
+def _plan_tasks(jobs: Sequence[Job], batch: _Batch, *, force: bool, version: str) -> list[Task]:
+    """The tasks to run; jobs that failed before running and cached jobs go straight to the outcomes."""
+    out, logger, outcomes = batch.out, batch.logger, batch.outcomes
+    tasks: list[Task] = []
+    for job in jobs:
+        if job.error is not None or job.fn is None:
+            reason = job.error or "the job has no function to run"
+            outcomes[job.name] = JobOutcome(job.name, job.kind, "failed", reason=reason,
+                                            exit_code=job.error_exit_code,
+                                            summary=dict(job.error_summary))
+            logger.warning("job %s: failed before running (exit %d): %s", job.name,
+                           job.error_exit_code, reason)
+            continue
+        try:
+            digests = input_digests(job.key_inputs)
+            config = _canonical(job.config, "config")
+            key = cache_key(job, digests=digests)
+        except EsmmError as exc:
+            outcomes[job.name] = JobOutcome(job.name, job.kind, "failed", reason=str(exc),
+                                            exit_code=exc.exit_code)
+            logger.warning("job %s: failed before running (exit %d): %s", job.name, exc.exit_code, exc)
+            continue
+        if not force:
+            doc, why = _cache.lookup(out, key)
+            if doc is not None:
+                outcomes[job.name] = JobOutcome(
+                    job.name, job.kind, "cached", key=key,
+                    outputs=[r["path"] for r in doc["outputs"]], summary=doc.get("summary") or {},
+                    worker=str(doc.get("worker", "")))
+                logger.info("job %s: skipped, cached (key %s, made %s in %.2f s)", job.name, key[:12],
+                            doc.get("finished_utc", "?"), float(doc.get("seconds") or 0.0))
+                continue
+            if why:
+                logger.info("job %s: recomputing, the cached result is not usable: %s", job.name, why)
+        tasks.append({"name": job.name, "kind": job.kind, "key": key, "fn": job.fn,
+                      "args": tuple(job.args), "kwargs": dict(job.kwargs), "out_dir": str(out),
+                      "key_inputs": [os.fspath(p) for p in job.key_inputs], "digests": digests,
+                      "config": config, "code_version": version})
+    return tasks
+
+
+def _outcome_recorder(batch: _Batch, advance: Callable[[int], Any]) -> OnEvent:
+    """The callback a scheduler calls with each finished task: record, log, report, advance."""
+    logger, rep = batch.logger, batch.rep
+
+    def on_event(task: Task, res: dict[str, Any]) -> None:
+        o = JobOutcome(task["name"], task["kind"], res["status"], reason=res.get("reason", ""),
+                       seconds=float(res.get("seconds") or 0.0), key=task["key"],
+                       outputs=list(res.get("outputs") or []), summary=res.get("summary") or {},
+                       worker=res.get("worker", ""), exit_code=int(res.get("exit_code", 0)))
+        batch.outcomes[o.name] = o
+        if o.status == "done":
+            logger.info("job %s: done in %.2f s on %s (key %s); outputs: %s", o.name, o.seconds, o.worker,
+                        o.key[:12], ", ".join(o.outputs) or "-")
+            rep.step(f"done     {o.name} ({o.seconds:.1f} s)")
+        elif o.status == "failed":
+            logger.warning("job %s: failed after %.2f s on %s (exit %d): %s", o.name, o.seconds,
+                           o.worker or "?", o.exit_code, o.reason)
+            if res.get("detail"):
+                logger.error("job %s: traceback:\n%s", o.name, res["detail"].rstrip())
+            rep.warn(f"{o.name} failed: {o.reason}")
+        else:
+            logger.warning("job %s: %s: %s", o.name, o.status, o.reason)
+        advance(1)
+
+    return on_event
+
+
+def _run_tasks(tasks: list[Task], batch: _Batch, *, kind: str, target: Any, n_workers: int, desc: str,
+               title: str, job_timeout: float | None, connect_timeout: float, can_sweep: bool) -> None:
+    """Run *tasks* on the scheduler; an interruption is recorded in the summary, not raised."""
+    where = desc if kind != "local" else f"{min(n_workers, len(tasks))} local process(es)"
+    # The interruption is caught outside the progress task, so that the task ends as
+    # stopped (not "done") in the reporter.
+    try:
+        with _sigterm_as_interrupt(), batch.rep.task(f"{title}: {len(tasks)} job(s) on {where}",
+                                                     total=len(tasks)) as advance:
+            on_event = _outcome_recorder(batch, advance)
+            if kind == "serial":
+                _run_serial(tasks, on_event)
+            elif kind == "local":
+                _run_local(tasks, n_workers, on_event, job_timeout, _cache.workers_dir(batch.out))
+            else:
+                addr = _run_dask(tasks, target, on_event, batch.logger, connect_timeout)
+                batch.summary.scheduler = f"dask {addr}"
+    except KeyboardInterrupt:
+        batch.summary.interrupted = True
+        batch.logger.warning("batch interrupted (Ctrl-C or SIGTERM): queued jobs not started")
+        if kind != "dask" and can_sweep:
+            late = _cache.sweep_temp(batch.out)
+            if late:
+                batch.logger.info("removed %d temporary file(s) of stopped jobs", len(late))
+
+
+def _write_summary(batch: _Batch, jobs: Sequence[Job], names: list[str], desc: str, t_start: float) -> None:
+    """Fill the summary (jobs never started count as interrupted), write the table, log the end."""
+    summary, logger = batch.summary, batch.logger
+    by_name = {j.name: j for j in jobs}
+    summary.outcomes = [batch.outcomes.get(n) or JobOutcome(n, by_name[n].kind, "interrupted",
+                                                            reason="not started: the batch was interrupted",
+                                                            exit_code=130)
+                        for n in names]
+    summary.scheduler = summary.scheduler or desc
+    summary.seconds = time.perf_counter() - t_start
+    try:
+        summary.table_path = write_text(batch.out / SUMMARY_NAME, summary.table("csv"))
+    except OSError as exc:  # pragma: no cover - disk full
+        logger.error("cannot write %s: %s", SUMMARY_NAME, exc)
+    logger.info("summary (%s):\n%s", "INTERRUPTED" if summary.interrupted else "complete",
+                summary.table("text"))
+    logger.info("batch end: exit code %d", summary.exit_code)
+
+
 def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any = None,
              workers: int | None = None, force: bool = False, reporter: Reporter | None = None,
              title: str = "batch", connect_timeout: float = 15.0,
@@ -355,146 +533,32 @@ def run_jobs(jobs: Sequence[Job], *, out_dir: str | os.PathLike, scheduler: Any 
     rep = ensure(reporter)
     kind, target = parse_scheduler(scheduler)
     workers = _check_workers(workers)
-    if job_timeout is not None and not (isinstance(job_timeout, (int, float)) and job_timeout > 0):
-        raise ConfigError(f"job_timeout: expected a positive number of seconds, got {job_timeout!r}")
-    names = [j.name for j in jobs]
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise ConfigError(f"two batch jobs would write the same output {dup[0]!r}; rename one of the inputs")
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from None
-    out = out.resolve()
+    names = _check_jobs(jobs, job_timeout)
+    out = _make_out_dir(out_dir)
     t_start = time.perf_counter()
-    outcomes: dict[str, JobOutcome] = {}
-    by_name = {j.name: j for j in jobs}
     summary = BatchSummary([], out)
     desc = ""
 
     with _cache.locked(out) as lock:
-        # Temporary files can be swept only while no one else writes here (the lock says so).
-        swept = [] if lock.unsupported else _cache.sweep_temp(out) + _cache.sweep_workers(out)
-        logger, handler, log_path = _open_log(out)
-        if lock.unsupported:
-            logger.warning("the file system cannot lock %s: make sure no other batch writes there; "
-                           "leftover temporary files are not removed", out)
-        summary.log_path = log_path
+        batch, handler, swept = _open_batch(out, rep, summary, lock)
+        logger = batch.logger
         try:
             version = code_version()
-            if kind == "local":
-                n_workers = workers or available_cpus()
-                desc = f"local ({n_workers} process{'es' if n_workers > 1 else ''})"
-            elif kind == "serial":
-                n_workers, desc = 1, "serial (this process)"
-            else:
-                n_workers, desc = 0, f"dask {target if isinstance(target, str) else 'client'}"
-            logger.info("batch start: %d job(s); scheduler %s; out %s; force %s; esmm %s; pid %d",
-                        len(jobs), desc, out, force, version, os.getpid())
-            if swept:
-                logger.info("removed %d temporary file(s) left by an interrupted run: %s", len(swept),
-                            ", ".join(str(p.relative_to(out)) for p in swept[:20]))
-
-            # -- plan: known failures, keys, cache hits
-            tasks: list[Task] = []
-            for job in jobs:
-                if job.error is not None or job.fn is None:
-                    reason = job.error or "the job has no function to run"
-                    outcomes[job.name] = JobOutcome(job.name, job.kind, "failed", reason=reason,
-                                                    exit_code=job.error_exit_code,
-                                                    summary=dict(job.error_summary))
-                    logger.warning("job %s: failed before running (exit %d): %s", job.name,
-                                   job.error_exit_code, reason)
-                    continue
-                try:
-                    digests = input_digests(job.key_inputs)
-                    config = _canonical(job.config, "config")
-                    key = cache_key(job, digests=digests)
-                except EsmmError as exc:
-                    outcomes[job.name] = JobOutcome(job.name, job.kind, "failed", reason=str(exc),
-                                                    exit_code=exc.exit_code)
-                    logger.warning("job %s: failed before running (exit %d): %s", job.name, exc.exit_code, exc)
-                    continue
-                if not force:
-                    doc, why = _cache.lookup(out, key)
-                    if doc is not None:
-                        outcomes[job.name] = JobOutcome(
-                            job.name, job.kind, "cached", key=key,
-                            outputs=[r["path"] for r in doc["outputs"]], summary=doc.get("summary") or {},
-                            worker=str(doc.get("worker", "")))
-                        logger.info("job %s: skipped, cached (key %s, made %s in %.2f s)", job.name, key[:12],
-                                    doc.get("finished_utc", "?"), float(doc.get("seconds") or 0.0))
-                        continue
-                    if why:
-                        logger.info("job %s: recomputing, the cached result is not usable: %s", job.name, why)
-                tasks.append({"name": job.name, "kind": job.kind, "key": key, "fn": job.fn,
-                              "args": tuple(job.args), "kwargs": dict(job.kwargs), "out_dir": str(out),
-                              "key_inputs": [os.fspath(p) for p in job.key_inputs], "digests": digests,
-                              "config": config, "code_version": version})
-            n_cached = sum(o.status == "cached" for o in outcomes.values())
+            n_workers, desc = _describe_scheduler(kind, target, workers)
+            _log_start(batch, len(jobs), desc=desc, force=force, version=version, swept=swept)
+            tasks = _plan_tasks(jobs, batch, force=force, version=version)
+            n_cached = sum(o.status == "cached" for o in batch.outcomes.values())
             if n_cached:
                 rep.step(f"{n_cached} job(s) already done (cached); {len(tasks)} to run")
-
-            # -- run
-            def on_event(task: Task, res: dict[str, Any]) -> None:
-                o = JobOutcome(task["name"], task["kind"], res["status"], reason=res.get("reason", ""),
-                               seconds=float(res.get("seconds") or 0.0), key=task["key"],
-                               outputs=list(res.get("outputs") or []), summary=res.get("summary") or {},
-                               worker=res.get("worker", ""), exit_code=int(res.get("exit_code", 0)))
-                outcomes[o.name] = o
-                if o.status == "done":
-                    logger.info("job %s: done in %.2f s on %s (key %s); outputs: %s", o.name, o.seconds, o.worker,
-                                o.key[:12], ", ".join(o.outputs) or "-")
-                    rep.step(f"done     {o.name} ({o.seconds:.1f} s)")
-                elif o.status == "failed":
-                    logger.warning("job %s: failed after %.2f s on %s (exit %d): %s", o.name, o.seconds,
-                                   o.worker or "?", o.exit_code, o.reason)
-                    if res.get("detail"):
-                        logger.error("job %s: traceback:\n%s", o.name, res["detail"].rstrip())
-                    rep.warn(f"{o.name} failed: {o.reason}")
-                else:
-                    logger.warning("job %s: %s: %s", o.name, o.status, o.reason)
-                advance(1)
-
             if tasks:
-                where = desc if kind != "local" else f"{min(n_workers, len(tasks))} local process(es)"
-                # The interruption is caught outside the progress task, so that the task ends as
-                # stopped (not "done") in the reporter.
-                try:
-                    with _sigterm_as_interrupt(), rep.task(f"{title}: {len(tasks)} job(s) on {where}",
-                                                           total=len(tasks)) as advance:
-                        if kind == "serial":
-                            _run_serial(tasks, on_event)
-                        elif kind == "local":
-                            _run_local(tasks, n_workers, on_event, job_timeout, _cache.workers_dir(out))
-                        else:
-                            addr = _run_dask(tasks, target, on_event, logger, connect_timeout)
-                            summary.scheduler = f"dask {addr}"
-                except KeyboardInterrupt:
-                    summary.interrupted = True
-                    logger.warning("batch interrupted (Ctrl-C or SIGTERM): queued jobs not started")
-                    if kind != "dask" and not lock.unsupported:
-                        late = _cache.sweep_temp(out)
-                        if late:
-                            logger.info("removed %d temporary file(s) of stopped jobs", len(late))
+                _run_tasks(tasks, batch, kind=kind, target=target, n_workers=n_workers, desc=desc, title=title,
+                           job_timeout=job_timeout, connect_timeout=connect_timeout,
+                           can_sweep=not lock.unsupported)
         except KeyboardInterrupt:  # during planning
             summary.interrupted = True
             logger.warning("batch interrupted before any job ran")
         finally:
-            summary.outcomes = [outcomes.get(n) or JobOutcome(n, by_name[n].kind, "interrupted",
-                                                              reason="not started: the batch was interrupted",
-                                                              exit_code=130)
-                                for n in names]
-            summary.scheduler = summary.scheduler or desc
-            summary.seconds = time.perf_counter() - t_start
-            try:
-                summary.table_path = write_text(out / SUMMARY_NAME, summary.table("csv"))
-            except OSError as exc:  # pragma: no cover - disk full
-                logger.error("cannot write %s: %s", SUMMARY_NAME, exc)
-            logger.info("summary (%s):\n%s", "INTERRUPTED" if summary.interrupted else "complete",
-                        summary.table("text"))
-            logger.info("batch end: exit code %d", summary.exit_code)
+            _write_summary(batch, jobs, names, desc, t_start)
             logger.removeHandler(handler)
             handler.close()
     return summary

@@ -15,8 +15,8 @@ may hold::
 :func:`load_calibrate_config` reads it (every value checked, one-line
 :class:`~esmm.pipeline.errors.ConfigError` naming the file and key) and lays the
 caller's options over it; :meth:`CalibrateConfig.fit_kwargs` are the keyword
-arguments of :func:`esmm.pipeline.calibrate.fit.fit_material`. docs/calibrate.md
-describes the table.
+arguments of :func:`esmm.pipeline.calibrate.fit.fit_material`.
+docs/reference/configuration.md ("Calibrate config") describes the table.
 """
 
 from __future__ import annotations

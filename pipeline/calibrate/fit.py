@@ -167,7 +167,7 @@ def fit_material(
     -------
     FitResult
     """
-    # Small dense problems: BLAS threads cost more than they save (docs/calibrate.md).
+    # Small dense problems: BLAS threads cost more than they save (:mod:`esmm.pipeline.blas`).
     with single_threaded_blas():
         return _fit_material(tests, model=model, loss=loss, f_scale=f_scale, n_starts=n_starts,
                              weights=weights, fixed=fixed, initial=initial, free=free, seed=seed,

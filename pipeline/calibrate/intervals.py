@@ -7,7 +7,7 @@ directions of parameter space whose relative singular value is below
 :data:`NULL_WEIGHT` of its (normalised) gradient in them is unbounded. The
 covariance is inflated by :math:`(1+ρ)/(1-ρ)` for the lag-1 autocorrelation ρ of
 the residuals (:func:`lag1`), because the samples of a machine record are not
-independent (docs/calibrate.md).
+independent (docs/design/calibration.md, "Confidence intervals").
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Outputs of a calibration: parameters (TOML), JSON, plots (PNG) and a Markdown report.
 
 The JSON document (schema ``esmm.calibrate/1``) is described in
-docs/calibrate.md. Every file is written atomically.
+docs/reference/outputs.md. Every file is written atomically.
 """
 
 from __future__ import annotations
@@ -76,7 +76,7 @@ def result_to_dict(result: FitResult, tests: Sequence[TensileTest]) -> dict[str,
 def how_read(test: TensileTest) -> dict[str, Any]:
     """How the reader took *test* from its file: the columns used (index, header, unit, factor to SI),
     where stretch and stress came from (and the conversions made, e.g. true to nominal stress), the
-    cross-checks against derived columns and the reader's warnings (specs/tensile-data.md: say which
+    cross-checks against derived columns and the reader's warnings (docs/reference/tensile-input.md: say which
     columns were used, say so in the outputs)."""
     md = test.metadata
     return {"file": str(test.source), "stretch_from": md.get("stretch_from"), "stress_from": md.get("stress_from"),

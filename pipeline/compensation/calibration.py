@@ -8,7 +8,7 @@ per volume, i.e. Lamé constants :math:`\lambda_L = \mu_L = E/15` and a Young's
 modulus :math:`E/6` (Poisson ratio 1/4, the Cauchy relation of central-force
 networks). Nodal relaxation softens it a little more, and at finite stretch the
 off-axis springs are stretched less than the specimen, so a stiffening tissue
-is matched worse the further it is stretched (docs/model-tables.md).
+is matched worse the further it is stretched (docs/design/tables.md).
 
 :func:`calibrate_compensation` fixes both with one numerical test per mesh:
 
@@ -27,7 +27,7 @@ is matched worse the further it is stretched (docs/model-tables.md).
    mostly from springs near the axis, whose stretch is :math:`\lambda`.
    With a volume term (and a material), g is then refitted on tension,
    compression and simple shear in two planes together, by Levenberg-Marquardt
-   on the springs' power shares (:mod:`.stretch_fit`, docs/model.md C2.4): fitted
+   on the springs' power shares (:mod:`.stretch_fit`; docs/design/tables.md, "The compensation"): fitted
    on the axial test alone it leaves the network soft in shear and in bulkier
    meshes at finite strain.
 
@@ -75,7 +75,7 @@ SMALL_STRAIN = 1e-4
 SHEAR_CHECK = (0.1, 0.2, 0.3, 0.4)
 #: The small-strain load cases of the scalar factor with the volume term, and their weights: the
 #: specimen's axial mode and its two shear planes weigh 1 : 2 : 2, the isotropic average of the
-#: five deviatoric modes of a transversely isotropic (cylinder) network (docs/model-tables.md §4b).
+#: five deviatoric modes of a transversely isotropic (cylinder) network (docs/design/tables.md, "The compensation").
 SCALAR_CASES = (("tension", 1.0), ("xy", 2.0), ("xz", 2.0))
 #: The load cases the stretch correction is fitted on with the volume term (without it: the first two).
 JOINT_CASES = ("tension", "compression", "shear_xy", "shear_xz")
@@ -253,11 +253,7 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
     if lam_t.size + lam_c.size == 0:
         raise ConfigError("tension/compression: give at least one side to calibrate on")
     base = tables.with_compensation(1.0, correction={law: np.ones(tables.n)})
-
-    def reference(lam):
-        if material is not None:
-            return continuum_stress(material, lam)
-        return np.interp(lam, base.lam, base.material_stress[2])
+    reference = _reference(material, base)
 
     # 1. scalar factor from small-strain tests (tension; with the volume term also simple shear)
     scalar = _scalar_factor(specimen, base, law, material, volume, reference)
@@ -275,11 +271,7 @@ def calibrate_compensation(tables: StiffnessTables, specimen: Specimen, *, law: 
                np.asarray(shear_check, dtype=np.float64), tol, max_iter, rep)
     f = fit(run)
     before = _before(f.first, c, specimen, base, lam_t, lam_c, law, reference, rtol, volume)
-    checks = {f"shear_{plane}": _shear_record(r) for plane, r in f.shear.items()}
-    result = CompensationResult(law=law, factor=c, knots=f.knots, g=f.g, before=before, scalar=f.first,
-                                after=f.after, iterations=f.iterations, converged=f.converged,
-                                specimen=specimen.describe(), volume=None if volume is None else volume.describe(),
-                                small_strain=scalar, checks=checks, fitted_on=list(f.fitted_on))
+    result = _result(run, f, before)
     if not f.converged:
         rep.warn(f"compensation ({law}): stopped after {f.iterations} iterations at max |error| "
                  f"{100 * f.err:.2f} % (tolerance {100 * tol:.2g} %)")
@@ -332,6 +324,26 @@ class _Run:
                                   f"correction ({exc}); narrow the calibration range") from None
         self.rep.warn(f"compensation ({self.law}): iteration {it} found no equilibrium (the corrected network "
                       "loses stability); keeping the best correction so far. A smaller compression range avoids this")
+
+
+def _reference(material, base: StiffnessTables):
+    """The target stress [Pa] as a function of the stretch: the material's, else the tables' own along z."""
+    def reference(lam):
+        if material is not None:
+            return continuum_stress(material, lam)
+        return np.interp(lam, base.lam, base.material_stress[2])
+
+    return reference
+
+
+def _result(run: _Run, f: _Fit, before: TensileResult) -> CompensationResult:
+    """The details of a calibration: the fit *f* of *run*, with the uncorrected test *before*."""
+    checks = {f"shear_{plane}": _shear_record(r) for plane, r in f.shear.items()}
+    volume = run.volume
+    return CompensationResult(law=run.law, factor=run.c, knots=f.knots, g=f.g, before=before, scalar=f.first,
+                              after=f.after, iterations=f.iterations, converged=f.converged,
+                              specimen=run.specimen.describe(), volume=None if volume is None else volume.describe(),
+                              small_strain=run.scalar, checks=checks, fitted_on=list(f.fitted_on))
 
 
 def _fit_axial(run: _Run, guesses: dict[str, np.ndarray] | None = None):

@@ -3,8 +3,8 @@
 The defaults (calibration range, specimen radius) live here, in a module that
 imports nothing heavy, so that the command line can show them in its help.
 
-A calibration (virtual tension, compression and shear tests on a cylinder; half a
-minute to three minutes) is stored under a content address: everything its result
+A calibration (virtual tension, compression and shear tests on a cylinder: the
+slowest part of ``esmm prepare``) is stored under a content address: everything its result
 depends on. The calibration specimen is meshed in units of the organ's median
 spring length and a radius of a fixed number of elements, then scaled, so it is
 the same mesh, geometrically similar, for every organ, and the spring network's
@@ -33,7 +33,7 @@ from ..cache import folder
 if TYPE_CHECKING:  # annotations only: this module stays light to import
     from ..network.tables import StiffnessTables
 
-#: Compression and tension ends of the calibration (clipped to the tables' grid; docs/model.md).
+#: Compression and tension ends of the calibration (clipped to the tables' grid; docs/design/tables.md).
 DEFAULT_RANGE = (0.9, 1.3)
 #: Radius of the calibration cylinder, in element sizes.
 DEFAULT_RADIUS_ELEMENTS = 4.0

@@ -5,10 +5,10 @@ table at the spring's own stretch. Fitted on the calibration cylinder's uniaxial
 test alone (one knot per test stretch, :func:`~.compensation.calibrate_compensation`
 without a volume term), it matches that test and under-corrects every other
 deformation: in a bulkier body and in shear, more of the load rides on springs
-stretched less than the specimen (docs/validate.md, "Where the force error comes
-from"). With the volume term the calibration fits :math:`g` on uniaxial tension,
-uniaxial compression and simple shear in two planes together; this module holds
-the pieces of that fit.
+stretched less than the specimen (docs/design/validation.md,
+"What the network's errors are, and why"). With the volume term the calibration
+fits :math:`g` on uniaxial tension, uniaxial compression and simple shear in two
+planes together; this module holds the pieces of that fit.
 
 **Sensitivity.** For a displacement-controlled test with load parameter
 :math:`t` at equilibrium, the reaction's power is

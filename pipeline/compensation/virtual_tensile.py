@@ -318,60 +318,16 @@ def virtual_tensile_test(specimen: Specimen, tables: StiffnessTables, *, stretch
     """
     rep = ensure(reporter)
     law = tables.check_law(law)
-    lam_list = np.linspace(1.01, 1.30, 30) if stretch is None else np.asarray(stretch, dtype=np.float64).ravel()
-    if lam_list.size == 0 or not np.all(np.isfinite(lam_list)) or np.any(lam_list <= 0):
-        raise ConfigError("stretch: need a non-empty list of positive finite stretches")
-    steps = np.diff(np.concatenate([[1.0], lam_list]))
-    if not (np.all(steps > 0) or np.all(steps < 0)):
-        raise ConfigError("stretch: must move monotonically away from 1 (all increasing above 1 "
-                          "or all decreasing below 1)")
-
-    net = specimen.network
-    X = net.points
-    n = X.shape[0]
-    H = specimen.length
-    fixed = np.zeros((n, 3), bool)
-    fixed[specimen.bottom, 2] = True
-    fixed[specimen.top, 2] = True
-    fixed[specimen.centre, :2] = True
-    fixed[specimen.rim, 1] = True
-    free = ~fixed.ravel()
-    side = _side_nodes(specimen)
-    r0 = np.linalg.norm(X[side, :2], axis=1)
-
+    lam_list = _check_stretches(stretch)
     if predictors is not None and len(predictors) != lam_list.size:
         raise ConfigError(f"predictors: need one position array per stretch ({lam_list.size}), "
                           f"got {len(predictors)}")
+    net = specimen.network
     pot = Potential(net, tables, law, None if volume is None else specimen.volume_elements(volume))
-    V0 = net.total_volume()
-    x = X.copy()
-    lam_prev = 1.0
-    out_P, out_lat, out_it, out_J, path = [], [], [], [], []
-    worst = 0.0
     with rep.task(f"virtual tensile test ({law} law)", total=lam_list.size) as advance:
-        for k, lam in enumerate(lam_list):
-            done = False
-            if predictors is not None and np.shape(predictors[k]) == X.shape:
-                guess = np.array(predictors[k], dtype=np.float64)
-                guess[specimen.bottom, 2] = 0.0
-                guess[specimen.top, 2] = lam * H
-                guess[specimen.centre, :2] = 0.0
-                guess[specimen.rim, 1] = 0.0
-                ok, xg, its, res = _newton(guess, pot, free, H, rtol, max_iter)
-                if ok:
-                    x, done = xg, True
-            if not done:
-                x, its, res = _advance(x, lam_prev, lam, pot, free, H, rtol, max_iter)
-            worst = max(worst, res)
-            lam_prev = lam
-            f = pot.forces(x)
-            out_P.append(-f[specimen.top, 2].sum() / specimen.area)
-            out_J.append(float(tet_volumes(x, net.tets).sum()) / V0)
-            out_lat.append(float(np.mean(np.linalg.norm(x[side, :2], axis=1) / r0)))
-            out_it.append(its)
-            if keep_path:
-                path.append(x.copy())
-            advance(1)
+        x, worst, out_P, out_lat, out_it, out_J, path = _stretch_path(
+            specimen, pot, lam_list, predictors, rtol=rtol, max_iter=max_iter, keep_path=keep_path,
+            advance=advance)
     stress = np.asarray(out_P)
     if material is not None:
         ref = continuum_stress(material, lam_list)
@@ -385,6 +341,83 @@ def virtual_tensile_test(specimen: Specimen, tables: StiffnessTables, *, stretch
     rep.step(f"virtual tensile test ({law}, c={tables.volume_factor:.4g}): max |error| "
              f"{100 * res.max_abs_rel_error:.2f} % over stretch {lam_list.min():.3g}-{lam_list.max():.3g}")
     return res
+
+
+def _stretch_path(specimen: Specimen, pot: Potential, lam_list, predictors, *, rtol: float, max_iter: int,
+                  keep_path: bool, advance):
+    """Visit the stretches in order and measure each equilibrium.
+
+    Returns the last positions, the largest residual, and per stretch the
+    nominal stress on the top grip [Pa], the mean lateral stretch of the side,
+    the Newton iterations, the volume ratio J and (if *keep_path*) the positions.
+    """
+    net = specimen.network
+    X = net.points
+    free = _free_dofs(specimen)
+    side = _side_nodes(specimen)
+    r0 = np.linalg.norm(X[side, :2], axis=1)
+    V0 = net.total_volume()
+    x = X.copy()
+    lam_prev = 1.0
+    out_P, out_lat, out_it, out_J, path = [], [], [], [], []
+    worst = 0.0
+    for k, lam in enumerate(lam_list):
+        predictor = None if predictors is None else predictors[k]
+        x, its, res = _equilibrium(specimen, pot, free, x, lam_prev, lam, predictor, rtol, max_iter)
+        worst = max(worst, res)
+        lam_prev = lam
+        f = pot.forces(x)
+        out_P.append(-f[specimen.top, 2].sum() / specimen.area)
+        out_J.append(float(tet_volumes(x, net.tets).sum()) / V0)
+        out_lat.append(float(np.mean(np.linalg.norm(x[side, :2], axis=1) / r0)))
+        out_it.append(its)
+        if keep_path:
+            path.append(x.copy())
+        advance(1)
+    return x, worst, out_P, out_lat, out_it, out_J, path
+
+
+def _check_stretches(stretch) -> np.ndarray:
+    """The axial stretches to visit, shape (m,): default 30 from 1.01 to 1.30; monotonic away from 1."""
+    lam_list = np.linspace(1.01, 1.30, 30) if stretch is None else np.asarray(stretch, dtype=np.float64).ravel()
+    if lam_list.size == 0 or not np.all(np.isfinite(lam_list)) or np.any(lam_list <= 0):
+        raise ConfigError("stretch: need a non-empty list of positive finite stretches")
+    steps = np.diff(np.concatenate([[1.0], lam_list]))
+    if not (np.all(steps > 0) or np.all(steps < 0)):
+        raise ConfigError("stretch: must move monotonically away from 1 (all increasing above 1 "
+                          "or all decreasing below 1)")
+    return lam_list
+
+
+def _free_dofs(specimen: Specimen) -> np.ndarray:
+    """Free coordinates, shape (3 n,): the grips hold z at both ends; the centre line and rim stop rigid motion."""
+    fixed = np.zeros((specimen.network.points.shape[0], 3), bool)
+    fixed[specimen.bottom, 2] = True
+    fixed[specimen.top, 2] = True
+    fixed[specimen.centre, :2] = True
+    fixed[specimen.rim, 1] = True
+    return ~fixed.ravel()
+
+
+def _equilibrium(specimen: Specimen, pot: Potential, free, x, lam_prev: float, lam: float, predictor,
+                 rtol: float, max_iter: int):
+    """Equilibrium positions at stretch *lam*: ``(x, iterations, residual)``.
+
+    Newton from the *predictor* (grip coordinates reset exactly) if one of the
+    right shape is given and it converges; otherwise continuation from the
+    equilibrium *x* at *lam_prev*.
+    """
+    H = specimen.length
+    if predictor is not None and np.shape(predictor) == x.shape:
+        guess = np.array(predictor, dtype=np.float64)
+        guess[specimen.bottom, 2] = 0.0
+        guess[specimen.top, 2] = lam * H
+        guess[specimen.centre, :2] = 0.0
+        guess[specimen.rim, 1] = 0.0
+        ok, xg, its, res = _newton(guess, pot, free, H, rtol, max_iter)
+        if ok:
+            return xg, its, res
+    return _advance(x, lam_prev, lam, pot, free, H, rtol, max_iter)
 
 
 def _side_nodes(specimen: Specimen) -> np.ndarray:

@@ -5,8 +5,8 @@ model chosen), diagnoses the structure of its residual, adds the effects the
 data support (viscoelasticity, Mullins softening, damage; slack and load-cell
 offset as measurement artefacts), each judged by AICc *and* by held-out data,
 and reports the error before and after. ``esmm evaluate`` predicts new files
-with what a calibration or a discovery saved. docs/discover.md describes the
-method, the JSON schemas and the choices made.
+with what a calibration or a discovery saved. docs/design/discovery.md describes the
+method and the choices made, docs/reference/outputs.md the JSON schemas.
 
 Public API
 ----------

@@ -73,14 +73,14 @@ def _pct(v: float) -> str:
 # --------------------------------------------------------------------------- covariates
 def _covariate_table(problem: Problem, z_full: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """Residual (measured - model) of every fitting sample / stress scale and / noise σ, and its covariates."""
-    st = problem.values(z_full)
+    st = problem.params.values(z_full)
     coefs = problem.offsets(z_full)
     cols: dict[str, list] = {n: [] for n in ("d", "rate", "hold", "below", "toe", "high", "virgin", "tn", "file",
                                              "drive", "cycle", "compression", "timed")}
     E, N = [], []
     for k, r in enumerate(problem.records):
         idx = r.fit_idx
-        e = r.y[idx] - problem.add_offsets(k, problem.predict(k, st), coefs[k])
+        e = r.y[idx] - problem.forward.add_offsets(k, problem.forward.predict(k, st), coefs[k])
         c = r.cov
         E.append(e / r.scale)
         N.append(e / r.sigma)
@@ -190,11 +190,11 @@ class _Signatures:
 
     def __init__(self, prob: Problem, z_full: np.ndarray):
         self.prob, self.z_full = prob, z_full
-        st = prob.values(z_full)
+        st = prob.params.values(z_full)
         self.coefs = prob.offsets(z_full)
         self.base_pred, resid, self.w = [], [], []
         for k, r in enumerate(prob.records):
-            p = prob.add_offsets(k, prob.predict(k, st), self.coefs[k])
+            p = prob.forward.add_offsets(k, prob.forward.predict(k, st), self.coefs[k])
             self.base_pred.append(p)
             self.w.append(1.0 / r.sigma)
             resid.append(np.nan_to_num((r.y[r.fit_idx] - p) / r.sigma))
@@ -219,7 +219,7 @@ class _Signatures:
         extra = []
         off = np.concatenate([[0], np.cumsum(self.sizes)])
         for k in range(len(prob.records)):
-            X = prob.offset_columns(k, prob.records[k].fit_idx)
+            X = prob.forward.offset_columns(k, prob.records[k].fit_idx)
             if X is not None:
                 block = np.zeros((J.shape[0], X.shape[1]))
                 block[off[k]:off[k + 1]] = X / prob.records[k].sigma
@@ -254,10 +254,10 @@ class _Signatures:
             p2 = prob.derived(prob.spec.with_(name, variant))
         except Exception:  # noqa: BLE001 - a candidate that cannot be built scores 0
             return None
-        z = p2.transfer(prob, self.z_full)
+        z = p2.params.transfer(prob.params, self.z_full)
         z = _set_slots(p2, z, values or {})
-        st2 = p2.values(z)
-        out = [_finite((prob.add_offsets(k, p2.predict(k, st2), self.coefs[k]) - self.base_pred[k]) * self.w[k])
+        st2 = p2.params.values(z)
+        out = [_finite((prob.forward.add_offsets(k, p2.forward.predict(k, st2), self.coefs[k]) - self.base_pred[k]) * self.w[k])
                for k in range(len(prob.records))]
         if per_record:
             return out
@@ -267,18 +267,18 @@ class _Signatures:
         """One signature per per-file slot of *name* (slack, slips, scales), each set to its value in *values*."""
         prob = self.prob
         p2 = prob.derived(prob.spec.with_(name, variant))
-        base_z = p2.transfer(prob, self.z_full)
+        base_z = p2.params.transfer(prob.params, self.z_full)
         sigs = []
         for i, s in enumerate(p2.slots):
             if s.effect != name:
                 continue
             z = base_z.copy()
             z[i] = values(p2, i)
-            st2 = p2.values(z)
+            st2 = p2.params.values(z)
             parts = []
             for k in range(len(prob.records)):
                 if k in s.records:
-                    parts.append(_finite((prob.add_offsets(k, p2.predict(k, st2), self.coefs[k])
+                    parts.append(_finite((prob.forward.add_offsets(k, p2.forward.predict(k, st2), self.coefs[k])
                                           - self.base_pred[k]) * self.w[k]))
                 else:
                     parts.append(np.zeros(self.sizes[k]))

@@ -68,7 +68,7 @@ def estimates(problem: Problem, z_full: np.ndarray) -> list[Estimate]:
     coefs = prob.offsets(z_full)
     r0, J, off_keys = _jacobian(prob, z_full, coefs)
     iv = _Intervals(prob, z_full, r0, J)
-    st = prob.values(z_full)
+    st = prob.params.values(z_full)
     _slot_estimates(iv, prob, z_full)
     if st.g is not None:
         _prony_estimates(iv, prob, z_full, st)
@@ -81,12 +81,12 @@ def estimates(problem: Problem, z_full: np.ndarray) -> list[Estimate]:
 
 def _residual_at_offsets(prob: Problem, z_full: np.ndarray, coefs) -> np.ndarray:
     """The normalised residual on the training samples with the fitted offsets added explicitly."""
-    st = prob.values(z_full)
+    st = prob.params.values(z_full)
     out = []
     for k, r in enumerate(prob.records):
         if not prob.n_train[k]:
             continue
-        p = prob.add_offsets(k, prob.predict(k, st), coefs[k])
+        p = prob.forward.add_offsets(k, prob.forward.predict(k, st), coefs[k])
         pos = prob.train[k]
         y = r.y[r.fit_idx]
         if pos is not None:
@@ -105,7 +105,7 @@ def _jacobian(prob: Problem, z_full: np.ndarray, coefs) -> tuple[np.ndarray, np.
         for k, r in enumerate(prob.records):
             if not prob.n_train[k] or coefs[k] is None:
                 continue
-            X = prob.free_offset_columns(k, r.fit_idx)
+            X = prob.forward.free_offset_columns(k, r.fit_idx)
             if X is None:
                 continue
             pos = prob.train[k]
@@ -115,7 +115,7 @@ def _jacobian(prob: Problem, z_full: np.ndarray, coefs) -> tuple[np.ndarray, np.
             start = int(sum(prob.n_train[j] for j in range(k) if prob.n_train[j]))
             block[start:start + X.shape[0]] = prob.factor[k] * X / r.scale
             cols.append(block)
-            first = prob.n_offset[k] - X.shape[1]  # a held offset read at rest is coefficient 0
+            first = prob.forward.n_offset[k] - X.shape[1]  # a held offset read at rest is coefficient 0
             off_keys += [(k, first + j) for j in range(X.shape[1])]
     return r0, np.concatenate(cols, axis=1), off_keys
 

@@ -13,7 +13,7 @@ discovery (RMSE, NRMSE = RMSE / range of the measured stress, max error) for
   each new file*, because they belong to a test, not to the material.
 
 Nothing of the material is refitted. The JSON document (schema
-``esmm.evaluate/1``) is described in docs/discover.md.
+``esmm.evaluate/1``) is described in docs/reference/outputs.md.
 """
 
 from __future__ import annotations
@@ -205,10 +205,10 @@ def evaluate(fit: SavedFit | str | Path, tests: list[TensileTest], *, reporter: 
     base_spec = Spec() if saved.kind == "discover" else Spec(terms=spec.terms)
     pb = Problem(m, records, base_spec, fixed=dict(saved.fixed), directions=saved.directions, bounds=bounds,
                  free_scales=True)
-    before = full_errors(pb, pb.encode(_per_direction(saved.base)))
+    before = full_errors(pb, pb.params.encode(_per_direction(saved.base)))
     # after: final material + effects; artefacts re-estimated per file
     pa = pb.derived(spec)
-    za = _artefacts_refitted(pa, pa.encode(_per_direction(saved.final), effects))
+    za = _artefacts_refitted(pa, pa.params.encode(_per_direction(saved.final), effects))
     after = full_errors(pa, za)
     fitted = Fitted(spec, pa, za, {}, after)
     artefacts = {n: effect_params(fitted, n) for n in ARTEFACTS if spec.variant(n)}

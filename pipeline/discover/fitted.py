@@ -28,7 +28,7 @@ class Fitted:
 
     @property
     def values(self) -> Values:
-        return self.problem.values(self.z)
+        return self.problem.params.values(self.z)
 
 
 def finish(prob: Problem, z: np.ndarray) -> Fitted:
@@ -53,7 +53,7 @@ def fit_spec(spec: Spec, current: Fitted, *, init_from: Fitted | None = None) ->
     """
     prob = current.problem.derived(spec)
     src = init_from or current
-    z0 = prob.transfer(src.problem, src.z)
+    z0 = prob.params.transfer(src.problem.params, src.z)
     new = [n for n in spec.names() if not src.spec.variant(n)]
     for n in new:
         z0 = initialise(prob, z0, n)

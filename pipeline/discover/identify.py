@@ -1,4 +1,4 @@
-"""What the data can show: the identifiability rule of every candidate (docs/discover.md, section 6).
+"""What the data can show: the identifiability rule of every candidate (docs/design/discovery.md, "The extended model").
 
 :func:`identifiability` says, per candidate, whether it applies to these data
 at all and whether the data can tell it from the rest of the model, with the

@@ -59,14 +59,14 @@ def _init_set(prob: Problem, z: np.ndarray) -> np.ndarray:
 def _init_scales(prob: Problem, z: np.ndarray) -> np.ndarray:
     """Each specimen's scale in closed form (least squares of its data on the current prediction),
     normalised to a geometric mean of 1."""
-    st = prob.values(z)
+    st = prob.params.values(z)
     idx = [i for i, s in enumerate(prob.slots) if s.effect == "specimen_scale"]
     logs = []
     for i in idx:
         num = den = 0.0
         for k in prob.slots[i].group:
             r = prob.records[k]
-            p = prob.predict(k, st) / st.scale[k]
+            p = prob.forward.predict(k, st) / st.scale[k]
             good = np.isfinite(p)
             w = 1.0 / (r.fit_idx.size * r.scale**2)
             num += w * float(p[good] @ r.y[r.fit_idx][good])
@@ -130,7 +130,7 @@ def _grid_search_base(prob: Problem, z: np.ndarray, grid) -> np.ndarray:
     """*z* with the elastic-law values of least cost among *grid* (name -> SI value)."""
     best, zb = math.inf, z
     for values in grid:
-        zz = prob.set_base(z, {None: values, **{d: values for d in (prob.directions or [])}})
+        zz = prob.params.set_base(z, {None: values, **{d: values for d in (prob.directions or [])}})
         c = _cost(prob, zz)
         if c < best:
             best, zb = c, zz
@@ -188,7 +188,7 @@ def _init_slack(prob: Problem, z: np.ndarray) -> np.ndarray:
         zz = z.copy()
         for i in idx:
             zz[i] = prob.lower[i] + q * (prob.upper[i] - prob.lower[i]) * 0.6
-        st = prob.values(zz)
+        st = prob.params.values(zz)
         for i in idx:
             blk, _ = prob.residual_block(prob.slots[i].file, st)
             c = float(blk @ blk)
@@ -246,22 +246,22 @@ def _relaxation_system(prob: Problem, z: np.ndarray, taus: np.ndarray, kappa: fl
     offset columns are projected out, a held offset taken off the data. None where
     no training record has time.
     """
-    st = prob.values(z)
+    st = prob.params.values(z)
     cols, target = [], []
     for k, r in enumerate(prob.records):
         if not prob.n_train[k] or r.t is None:
             continue
         idx = r.fit_idx
         sc = st.scale[k] if st.scale is not None else 1.0
-        pd = np.nan_to_num(prob.softened(k, st, idx)) * sc
+        pd = np.nan_to_num(prob.forward.softened(k, st, idx)) * sc
         atoms = np.stack([qlv_stress(r.t[idx], pd, [1.0], [tau]) - pd for tau in taus], axis=1)
         if kappa:
-            atoms = atoms * np.exp(kappa * (prob.elastic(k, st)[2] - 1.0))[:, None]
-        y = r.y[idx] - pd - (prob.pinned[k] if prob.n_offset[k] and prob.pinned[k] is not None else 0.0)
+            atoms = atoms * np.exp(kappa * (prob.forward.elastic(k, st)[2] - 1.0))[:, None]
+        y = r.y[idx] - pd - (prob.forward.pinned[k] if prob.forward.n_offset[k] and prob.forward.pinned[k] is not None else 0.0)
         pos = prob.train[k]
         if pos is not None:
             atoms, y = atoms[pos], y[pos]
-        X = prob.free_offset_columns(k, idx)
+        X = prob.forward.free_offset_columns(k, idx)
         if X is not None:
             if pos is not None:
                 X = X[pos]

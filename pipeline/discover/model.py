@@ -1,7 +1,7 @@
 r"""The extended model: a hyperelastic base, strain-energy terms and effects, and its least-squares fit.
 
 The objective is the one of :func:`esmm.pipeline.calibrate.fit.fit_material`
-(docs/calibrate.md), so that a base model fitted here and there agree:
+(docs/design/calibration.md, "The objective"), so that a base model fitted here and there agree:
 
 .. math::
 
@@ -16,7 +16,7 @@ parameters of file *f*. The sum runs over the thinned fitting samples of each
 file (:func:`~esmm.pipeline.discover.covariates.thin`); reported errors use
 every sample.
 
-Prediction of one file, in this order (docs/discover.md):
+Prediction of one file, in this order (docs/design/discovery.md, "The extended model"):
 
 1. grip slip: ``x ← x - Σ_j δ_j [k ≥ k_j]`` (the extension lost at each slip);
    slack: ``x_true = max(x / (1 + δ_f), 1)`` (tension tests only);
@@ -306,38 +306,30 @@ def file_slots(spec: Spec, records: Sequence[Record], *, free_scales: bool = Fal
     return slots
 
 
-# --------------------------------------------------------------------------- problem
-class Problem:
-    """The least-squares problem of one model (elastic law + effects) on some records.
+# --------------------------------------------------------------------------- parameters
+class ParameterLayout:
+    """The optimiser vector of one model on some records: where each parameter sits, and what a vector means.
+
+    The elastic law's slots come first (laid out as the calibrate fit lays
+    them), then the shared effect slots (:func:`effect_slots`), then the
+    per-file artefact slots (:func:`file_slots`). This class gives their
+    bounds, a neutral start, the encoding of known parameter values into a
+    vector and the decoding of a vector into :class:`Values`.
 
     Parameters
     ----------
     model : MaterialModel
-        The base model (the ESEDF); the strain-energy terms come from *spec*.
-    records : sequence of Record
-    spec : Spec
-    fixed : mapping
-        Base parameters held (SI).
-    directions : list of str or None
-        Fibre directions of an anisotropic fit (as the calibrate fit).
-    bounds : Bounds
-    train : list of (ndarray or None), optional
-        Per record: positions *within its fitting samples* that enter the
-        objective (None: all). Records with an empty array are predicted (for
-        their history) but do not count.
-    free_scales : bool
-        Every specimen's stress scale free, none held by the geometric-mean
-        constraint (for predicting new files with the material held).
+        The elastic law (the base model with the strain-energy terms of *spec*).
+    records, spec, fixed, directions, bounds, free_scales
+        As in :class:`Problem`.
     """
 
     def __init__(self, model, records: Sequence[Record], spec: Spec, *, fixed: Mapping[str, float],
-                 directions: list[str] | None, bounds: Bounds, train=None, free_scales: bool = False):
-        self.base_model = model
-        self.model = get_model(composite_name(model.name, spec.terms)) if spec.terms else model
+                 directions: list[str] | None, bounds: Bounds, free_scales: bool):
+        self.model = model
         self.records = list(records)
         self.spec = spec
         self.fixed = dict(fixed)
-        self.directions = directions
         self.bounds = bounds
         # the elastic law's slots: those of the calibrate fit on the fitting samples
         self.layout = layout_for(self.model, [fitting_view(r) for r in self.records], fixed=self.fixed,
@@ -346,50 +338,10 @@ class Problem:
         self.n_base = len(slots)
         slots += effect_slots(spec, bounds)
         self.n_shared = len(slots)
-        self.free_scales = free_scales
         slots += file_slots(spec, self.records, free_scales=free_scales)
         self.slots = slots
         self.lower = np.array([s.lo for s in slots])
         self.upper = np.array([s.hi for s in slots])
-        self.n_offset = [0] * len(self.records)
-        #: per record: the offset read at rest before loading (held, not fitted), or None
-        self.pinned: list[float | None] = [None] * len(self.records)
-        if spec.sensor_offset:
-            for k, r in enumerate(self.records):
-                if offset_applicable(r):
-                    self.n_offset[k] = 2 if (spec.sensor_offset == 2 and drift_applicable(r)) else 1
-                    self.pinned[k] = rest_reading(r)
-        self.set_train(train)
-        # the specimens whose scales the constraint holds: those with training samples now
-        self.scale_ref = [] if free_scales else [i for i, s in enumerate(slots) if s.effect == "specimen_scale"
-                                                 and any(self.n_train[k] for k in s.group)]
-        self._cache: list[dict] = [dict() for _ in self.records]
-        self.active = np.arange(len(slots))
-        self.z_full = self.default_z()
-
-    def derived(self, spec: Spec | None = None, *, train=None) -> Problem:
-        """The problem of the same records, base and bounds with another *spec* and/or training set."""
-        return Problem(self.base_model, self.records, self.spec if spec is None else spec, fixed=self.fixed,
-                       directions=self.directions, bounds=self.bounds, train=train, free_scales=self.free_scales)
-
-    # ------------------------------------------------------------ layout
-    def set_train(self, train) -> None:
-        m = len(self.records)
-        self.train = [None] * m if train is None else list(train)
-        self.factor = np.zeros(m)
-        self.n_train = np.zeros(m, dtype=int)
-        for k, r in enumerate(self.records):
-            n = r.fit_idx.size if self.train[k] is None else len(self.train[k])
-            self.n_train[k] = n
-            self.factor[k] = math.sqrt(r.weight / n) if n else 0.0
-        self._X = [self._design(k) for k in range(m)]
-
-    def _design(self, k: int):
-        X = self.free_offset_columns(k, self.records[k].fit_idx) if hasattr(self, "n_offset") else None
-        if X is None:
-            return None
-        pos = self.train[k]
-        return X if pos is None else X[pos]
 
     def keys(self) -> list[str]:
         return [s.key if s.file is None else f"{s.key}[{self.records[s.file].name}]" for s in self.slots]
@@ -441,8 +393,8 @@ class Problem:
                 z[i] = vals[(s.effect, s.name)]  # not clipped: a saved value stands as it is
         return z
 
-    def transfer(self, other: Problem, z_other: np.ndarray) -> np.ndarray:
-        """Map another problem's vector onto this one (matching slots by key and file name)."""
+    def transfer(self, other: ParameterLayout, z_other: np.ndarray) -> np.ndarray:
+        """Map another layout's vector onto this one (matching slots by key and file name)."""
         z = self.default_z()
         src = {}
         for s, v in zip(other.slots, z_other):
@@ -460,6 +412,7 @@ class Problem:
                 if s.effect == effect}
 
     def values(self, z_full: np.ndarray) -> Values:
+        """The parameter values *z_full* stands for (Prony weights from their stick-broken fractions)."""
         st = Values(base=self.layout.to_params(z_full[: self.n_base]))
         sp = self.spec
         if sp.viscoelastic:
@@ -499,7 +452,39 @@ class Problem:
             elif s.effect == "specimen_scale":
                 st.scale[list(s.group)] = math.exp(z_full[i])
 
-    # ------------------------------------------------------------ forward model
+
+# --------------------------------------------------------------------------- forward model
+class ForwardModel:
+    """The model stress of each record at decoded :class:`Values` (steps 1-7 of the module docstring).
+
+    Also the design of each record's load-cell offset and drift (step 8),
+    which the residuals eliminate in closed form. The elastic responses are
+    cached per record (the most recent 24 parameter sets), so that perturbing
+    an effect parameter in the Jacobian reuses them.
+
+    Parameters
+    ----------
+    model : MaterialModel
+        The elastic law.
+    records, spec, directions
+        As in :class:`Problem`.
+    """
+
+    def __init__(self, model, records: Sequence[Record], spec: Spec, *, directions: list[str] | None):
+        self.model = model
+        self.records = list(records)
+        self.spec = spec
+        self.directions = directions
+        self.n_offset = [0] * len(self.records)
+        #: per record: the offset read at rest before loading (held, not fitted), or None
+        self.pinned: list[float | None] = [None] * len(self.records)
+        if spec.sensor_offset:
+            for k, r in enumerate(self.records):
+                if offset_applicable(r):
+                    self.n_offset[k] = 2 if (spec.sensor_offset == 2 and drift_applicable(r)) else 1
+                    self.pinned[k] = rest_reading(r)
+        self._cache: list[dict] = [dict() for _ in self.records]
+
     def _key(self, k: int, st: Values):
         r = self.records[k]
         params = st.base[r.key if self.directions else None]
@@ -615,21 +600,12 @@ class Problem:
         pe, w, xi = self._elastic(k, st, idx, use_cache)
         return self._softened(k, st, pe, w, xi)
 
+    # ------------------------------------------------------------ load-cell offset and drift
     def add_offsets(self, k: int, pred: np.ndarray, coef: np.ndarray | None, idx: np.ndarray | None = None,
                     ) -> np.ndarray:
         """*pred* of record k on samples *idx* (default: its fitting samples) plus its offset and drift *coef*."""
         X = self.offset_columns(k, self.records[k].fit_idx if idx is None else idx)
         return pred if X is None or coef is None else pred + X @ coef
-
-    @contextlib.contextmanager
-    def offsets_held(self) -> Iterator[None]:
-        """Within: the offsets are not eliminated in closed form (derivatives at fixed offsets)."""
-        saved = self._X
-        self._X = [None] * len(self.records)
-        try:
-            yield
-        finally:
-            self._X = saved
 
     def offset_columns(self, k: int, idx: np.ndarray) -> np.ndarray | None:
         """Design of record k's offset (and drift, (t - t0)/T) on samples *idx*; None without an offset."""
@@ -652,10 +628,97 @@ class Problem:
     def n_free_offsets(self, k: int) -> int:
         return self.n_offset[k] - (1 if self.pinned[k] is not None and self.n_offset[k] else 0)
 
+
+# --------------------------------------------------------------------------- problem
+class Problem:
+    """The least-squares problem of one model (elastic law + effects) on some records.
+
+    It holds the training set, assembles the normalised residuals (with the
+    load-cell offsets eliminated in closed form) and their Jacobian, and
+    solves. What the optimiser vector means is :attr:`params`
+    (:class:`ParameterLayout`); the model stress of a record is
+    :attr:`forward` (:class:`ForwardModel`).
+
+    Parameters
+    ----------
+    model : MaterialModel
+        The base model (the ESEDF); the strain-energy terms come from *spec*.
+    records : sequence of Record
+    spec : Spec
+    fixed : mapping
+        Base parameters held (SI).
+    directions : list of str or None
+        Fibre directions of an anisotropic fit (as the calibrate fit).
+    bounds : Bounds
+    train : list of (ndarray or None), optional
+        Per record: positions *within its fitting samples* that enter the
+        objective (None: all). Records with an empty array are predicted (for
+        their history) but do not count.
+    free_scales : bool
+        Every specimen's stress scale free, none held by the geometric-mean
+        constraint (for predicting new files with the material held).
+    """
+
+    def __init__(self, model, records: Sequence[Record], spec: Spec, *, fixed: Mapping[str, float],
+                 directions: list[str] | None, bounds: Bounds, train=None, free_scales: bool = False):
+        self.base_model = model
+        self.model = get_model(composite_name(model.name, spec.terms)) if spec.terms else model
+        self.records = list(records)
+        self.spec = spec
+        self.fixed = dict(fixed)
+        self.directions = directions
+        self.bounds = bounds
+        self.free_scales = free_scales
+        self.params = ParameterLayout(self.model, self.records, spec, fixed=self.fixed, directions=directions,
+                                      bounds=bounds, free_scales=free_scales)
+        self.forward = ForwardModel(self.model, self.records, spec, directions=directions)
+        slots = self.slots = self.params.slots
+        self.lower, self.upper = self.params.lower, self.params.upper
+        self.set_train(train)
+        # the specimens whose scales the constraint holds: those with training samples now
+        self.scale_ref = [] if free_scales else [i for i, s in enumerate(slots) if s.effect == "specimen_scale"
+                                                 and any(self.n_train[k] for k in s.group)]
+        self.active = np.arange(len(slots))
+        self.z_full = self.params.default_z()
+
+    def derived(self, spec: Spec | None = None, *, train=None) -> Problem:
+        """The problem of the same records, base and bounds with another *spec* and/or training set."""
+        return Problem(self.base_model, self.records, self.spec if spec is None else spec, fixed=self.fixed,
+                       directions=self.directions, bounds=self.bounds, train=train, free_scales=self.free_scales)
+
+    def set_train(self, train) -> None:
+        """Use the samples *train* (see the class docstring) in the objective."""
+        m = len(self.records)
+        self.train = [None] * m if train is None else list(train)
+        self.factor = np.zeros(m)
+        self.n_train = np.zeros(m, dtype=int)
+        for k, r in enumerate(self.records):
+            n = r.fit_idx.size if self.train[k] is None else len(self.train[k])
+            self.n_train[k] = n
+            self.factor[k] = math.sqrt(r.weight / n) if n else 0.0
+        self._X = [self._design(k) for k in range(m)]
+
+    def _design(self, k: int):
+        X = self.forward.free_offset_columns(k, self.records[k].fit_idx)
+        if X is None:
+            return None
+        pos = self.train[k]
+        return X if pos is None else X[pos]
+
+    @contextlib.contextmanager
+    def offsets_held(self) -> Iterator[None]:
+        """Within: the offsets are not eliminated in closed form (derivatives at fixed offsets)."""
+        saved = self._X
+        self._X = [None] * len(self.records)
+        try:
+            yield
+        finally:
+            self._X = saved
+
     def residual_block(self, k: int, st: Values) -> tuple[np.ndarray, np.ndarray | None]:
         """Normalised residual block of record k (training samples) and its offset coefficients."""
         r = self.records[k]
-        pred = self.predict(k, st)
+        pred = self.forward.predict(k, st)
         pos = self.train[k]
         y = r.y[r.fit_idx]
         if pos is not None:
@@ -663,10 +726,11 @@ class Problem:
         res = pred - y
         coef = None
         X = self._X[k]
-        pin = self.pinned[k] if self.n_offset[k] else None
+        n_offset = self.forward.n_offset[k]
+        pin = self.forward.pinned[k] if n_offset else None
         if pin is not None:
             res = res + pin
-            coef = np.array([pin] + [0.0] * (self.n_offset[k] - 1))
+            coef = np.array([pin] + [0.0] * (n_offset - 1))
         if X is not None and res.size:
             good = np.isfinite(res)
             if good.sum() > X.shape[1]:
@@ -694,19 +758,20 @@ class Problem:
     def _trained(self) -> list[int]:
         return [k for k in range(len(self.records)) if self.n_train[k]]
 
+    def _blocks(self, st: Values) -> list[np.ndarray]:
+        """Every record's residual block at *st* (empty for records without training samples)."""
+        self.forward.prefetch(st, self._trained())
+        return [self.residual_block(k, st)[0] if self.n_train[k] else np.zeros(0) for k in range(len(self.records))]
+
     def residuals(self, z: np.ndarray) -> np.ndarray:
         zf = self._full(z)
-        st = self.values(zf)
-        self.prefetch(st, self._trained())
-        blocks = [self.residual_block(k, st)[0] if self.n_train[k] else np.zeros(0) for k in range(len(self.records))]
+        blocks = self._blocks(self.params.values(zf))
         return np.concatenate(blocks + [self.constraint_residual(zf)])
 
     def jac(self, z: np.ndarray) -> np.ndarray:
+        """Forward differences, per block: a slot perturbs only the residuals of the records it acts on."""
         zf = self._full(z)
-        st0 = self.values(zf)
-        self.prefetch(st0, self._trained())
-        base_blocks = [self.residual_block(k, st0)[0] if self.n_train[k] else np.zeros(0)
-                       for k in range(len(self.records))]
+        base_blocks = self._blocks(self.params.values(zf))
         offs = np.concatenate([[0], np.cumsum([b.size for b in base_blocks])])
         n_c = self.constraint_residual(zf).size
         J = np.zeros((int(offs[-1]) + n_c, len(self.active)))
@@ -717,9 +782,9 @@ class Problem:
                 h = -h
             zp = zf.copy()
             zp[i] += h
-            stp = self.values(zp)
+            stp = self.params.values(zp)
             files = [k for k in (s.records or self._trained()) if self.n_train[k]]
-            self.prefetch(stp, files)
+            self.forward.prefetch(stp, files)
             for k in files:
                 J[offs[k]:offs[k + 1], c] = (self.residual_block(k, stp)[0] - base_blocks[k]) / h
             if n_c and i in self.scale_ref:
@@ -756,19 +821,19 @@ class Problem:
     # ------------------------------------------------------------ evaluation
     def offsets(self, z_full: np.ndarray) -> list[np.ndarray | None]:
         """Offset/drift coefficients (Pa) per record, as estimated on its training samples."""
-        st = self.values(z_full)
+        st = self.params.values(z_full)
         return [self.residual_block(k, st)[1] if self.n_train[k] else None for k in range(len(self.records))]
 
     def full_prediction(self, k: int, z_full: np.ndarray, coef=None) -> np.ndarray:
         """Prediction of record k on *all* its samples, with its offsets applied."""
-        st = self.values(z_full)
+        st = self.params.values(z_full)
         r = self.records[k]
         idx = np.arange(r.test.n)
-        return self.add_offsets(k, self.predict(k, st, idx), coef, idx)
+        return self.forward.add_offsets(k, self.forward.predict(k, st, idx), coef, idx)
 
     def fit_residuals(self, z_full: np.ndarray) -> list[np.ndarray]:
         """Unnormalised residuals (Pa, model - data) on each record's training samples."""
-        st = self.values(z_full)
+        st = self.params.values(z_full)
         out = []
         for k, r in enumerate(self.records):
             if not self.n_train[k]:
@@ -780,7 +845,8 @@ class Problem:
 
     def n_params(self) -> int:
         """Free parameters: active slots + offset coefficients of the training records - the scale constraint."""
-        k = int(len(self.active) + sum(self.n_free_offsets(j) for j in range(len(self.records)) if self.n_train[j]))
+        k = int(len(self.active) + sum(self.forward.n_free_offsets(j) for j in range(len(self.records))
+                                       if self.n_train[j]))
         return k - (1 if len(self.scale_ref) >= 2 else 0)
 
 
@@ -834,4 +900,5 @@ def spec_of_effects(effects: MaterialEffects, terms=()) -> Spec:
                 permanent_set=int(effects.permanent_set is not None), terms=tuple(terms))
 
 
-__all__ = ["VARIANTS", "EFFECTS", "CANDIDATES", "Spec", "Slot", "Values", "Bounds", "Problem", "spec_of_effects"]
+__all__ = ["VARIANTS", "EFFECTS", "CANDIDATES", "Spec", "Slot", "Values", "Bounds", "ParameterLayout", "ForwardModel",
+           "Problem", "spec_of_effects"]

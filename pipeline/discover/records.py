@@ -6,7 +6,7 @@ the material's response), its measurement noise is estimated without a model
 (:func:`~esmm.pipeline.discover.covariates.noise_sd`), grip slips are located,
 the covariates computed and the fitting samples chosen.
 
-The applicability rules of the artefacts (docs/discover.md) live here:
+The applicability rules of the artefacts (docs/design/discovery.md, "The extended model") live here:
 artefacts are corrected on *machine records* only — files with a time column,
 as a testing machine writes them. A curve without time (digitised from a
 paper, averaged over specimens: Treloar's, Budday's) has been processed

@@ -1,6 +1,6 @@
 """Outputs of a discovery: JSON, Markdown, residual plots, params.toml with effects, corrected data.
 
-Files written by :func:`write_outputs` into the output folder (docs/discover.md):
+Files written by :func:`write_outputs` into the output folder (docs/reference/outputs.md):
 
 ``discover.json``         the full result (schema ``esmm.discover/1``), also what ``esmm evaluate`` reads
 ``discover.md``           the report, with the plain-language paragraph
@@ -87,7 +87,7 @@ def saved_model(res: DiscoverResult) -> dict[str, Any]:
 
 
 def result_to_dict(res: DiscoverResult) -> dict[str, Any]:
-    """The JSON document of a discovery (schema ``esmm.discover/1``, docs/discover.md)."""
+    """The JSON document of a discovery (schema ``esmm.discover/1``, docs/reference/outputs.md)."""
     fin, base = res.final, res.base
     d0 = res.diagnoses[0] if res.diagnoses else None
     dl = res.diagnoses[-1] if res.diagnoses else None
@@ -307,7 +307,7 @@ def markdown(res: DiscoverResult, *, plots: bool = True) -> str:
                  f"{_pct(hf.get(n, {}).get('nrmse'))} |")
     L += ["", "## Candidates", "", "Fitted Δχ²: the fit's improvement in noise variances (noise estimated from each "
           "record alone); penalty ln N per parameter. Held-out z: the held-out improvement in standard errors "
-          "(needs 2). docs/discover.md section 3.", "",
+          "(needs 2). docs/design/discovery.md, 'The two tests, and their assumptions'.", "",
           "| candidate | kind | kept | variant | fitted Δχ² | noise BIC | held-out NRMSE | held-out z | ΔAICc | reason |",
           "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for c in res.candidates.values():
@@ -474,7 +474,7 @@ def _corrections(f: Fitted, k: int, st, coef) -> tuple[float, np.ndarray, np.nda
     if st.slips and st.slips[k].size:
         for e, d in zip(r.slips, st.slips[k]):
             lost[e:] += d
-    X = f.problem.offset_columns(k, np.arange(n))
+    X = f.problem.forward.offset_columns(k, np.arange(n))
     off = X @ coef if (X is not None and coef is not None) else np.zeros(n)
     scale = float(st.scale[k]) if st.scale is not None else 1.0
     return delta, lost, off, scale
@@ -520,9 +520,9 @@ def _done(res: DiscoverResult, f: Fitted, k: int, r, delta, lost, off, scale) ->
     if "grip_slip" in res.kept and lost[-1] > 0:
         done.append(f"{len(r.slips)} grip slip(s), {lost[-1] * (L0 * 1e3 if L0 else 1):.4g} "
                     f"{'mm' if L0 else '(stretch)'} of extension in all, taken off")
-    if "sensor_offset" in res.kept and f.problem.n_offset[k]:
+    if "sensor_offset" in res.kept and f.problem.forward.n_offset[k]:
         done.append(f"load-cell offset {off[0] * (r.area or 1):+.4g} {'N' if r.area else 'Pa'}"
-                    + (" and its drift" if f.problem.n_offset[k] == 2 else "") + " removed")
+                    + (" and its drift" if f.problem.forward.n_offset[k] == 2 else "") + " removed")
     if "specimen_scale" in res.kept and scale != 1.0:
         done.append(f"specimen stress scale {scale:.4g}: the cross-section is {scale:.4g} times the stated one")
     if r.cut:

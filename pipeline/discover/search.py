@@ -2,7 +2,7 @@
 
 :func:`discover` is the library entry point of ``esmm calibrate --discover``.
 
-Procedure (docs/discover.md):
+Procedure (docs/design/discovery.md, "The loop"):
 
 1. Prepare the records (cut at ruptures, noise estimated from each record
    alone, slips located) and fit the base model
@@ -140,7 +140,7 @@ class Search:
 
 @dataclass
 class DiscoverResult:
-    """Everything :func:`discover` found (see docs/discover.md for the JSON)."""
+    """Everything :func:`discover` found (see docs/reference/outputs.md for the JSON)."""
 
     model: str
     records: list[Record]
@@ -317,7 +317,7 @@ def _base_model(records: list[Record], base_fit: FitResult, fixed, directions) -
         base_params.update({d: dict(p) for d, p in base_fit.directions.items()})
     bounds = Bounds(records, _largest_energy(m, records, base_params, directions) or 1.0)
     bprob = Problem(m, records, Spec(), fixed=fixed_all, directions=directions, bounds=bounds)
-    z, _ = bprob.solve(bprob.set_base(bprob.default_z(), base_params))
+    z, _ = bprob.solve(bprob.params.set_base(bprob.params.default_z(), base_params))
     return finish(bprob, z)
 
 

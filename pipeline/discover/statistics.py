@@ -1,7 +1,7 @@
 """Statistics of a discovery: residual structure, the two tests a candidate must pass, error measures.
 
 A candidate is judged by two statistics whose assumptions real records meet
-(docs/discover.md, section 3):
+(docs/design/discovery.md, "The two tests, and their assumptions"):
 
 * :func:`noise_test` — the **fitted** improvement in units of the measurement
   noise, which is estimated from each record alone
@@ -32,8 +32,8 @@ A candidate is judged by two statistics whose assumptions real records meet
   still be at least one of its standard errors — a candidate closer on most
   samples but no better on average changes the prediction without improving it.
 
-AICc and BIC on effective sample sizes (:func:`information`) are still
-computed and reported for comparison; they no longer decide.
+AICc and BIC on effective sample sizes (:func:`information`) are computed
+and reported for comparison; they do not decide.
 """
 
 from __future__ import annotations

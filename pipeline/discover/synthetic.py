@@ -3,7 +3,7 @@
 The generator writes what a testing machine writes — (time, displacement,
 force) CSV files with the specimen geometry in ``# key: value`` comment lines
 or in a TOML sidecar, in the formats of the tensile-data contract
-(/work/shared/specs/tensile-data.md) — for a hyperelastic base material plus
+(docs/reference/tensile-input.md) — for a hyperelastic base material plus
 one or more hidden effects, with realistic noise and quantisation.
 
 Its physics is written independently of the fitting code in

@@ -1,4 +1,4 @@
 """Fidelity of the spring network: an independent continuum (finite-element) reference.
 
-See docs/validate.md.
+See docs/design/validation.md.
 """

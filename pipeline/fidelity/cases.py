@@ -7,7 +7,7 @@ t in [0, 1]. The continuum (:mod:`.continuum`) and the network
 (:mod:`.network_solve`) solve exactly this problem; nothing else about the
 boundary is assumed by either.
 
-Cases (docs/validate.md §2 states each boundary condition and why):
+Cases (docs/design/validation.md, "Load cases (the same on both sides)", states each boundary condition and why):
 
 * ``tension``, ``compression`` -- frictionless grips on the two end faces
   along an axis (normal displacement prescribed, lateral motion free, rigid

@@ -6,7 +6,7 @@ lumped nodal volumes:
 
 * **L2 error** ``sqrt(Σ w_i |u_n − u_c|² / Σ w_i) / max_i |u_c|``: the
   volume-weighted RMS of the difference, relative to the continuum's largest
-  displacement (the issue's measure);
+  displacement (the headline figure);
 * **max error** ``max_i |u_n − u_c| / max_i |u_c|``;
 * **force error** ``|R_n − R_c| / s`` for the case's compared reaction (vector
   difference), with ``s = |R_c|`` or the case's ``force_scale`` (gravity: the

@@ -1,6 +1,6 @@
 """The continuum reference: the load case solved with felupe, quadratic tetrahedra, mixed u-p-J.
 
-Discretisation (docs/validate.md §1):
+Discretisation (docs/design/validation.md, "The continuum reference"):
 
 * the asset's tetrahedra with a node added at the middle of every edge
   (10-node quadratic tetrahedra on the *same* vertices and straight edges,
@@ -179,27 +179,9 @@ def solve_continuum(case: LoadCase, material, *, bulk: float | None = None, elem
                               scale=path.body(0.0))
     stepper = _Stepper(fem, solid, body, dof0, dof1, _Check(_force_scale(case, material, mask, u_full), rtol),
                        max_iter, _linear_solver(element, dof1, case.n_nodes, ncells), residual=element == "mini")
-    t, dt, cuts, run, done_steps = 0.0, 1.0 / max(1, int(steps)), 0, 0, 0
     with rep.task(f"continuum {case.name} (felupe, {ncells} tets, {element})", total=1.0) as advance:
-        while t < 1.0 - 1e-12:
-            t1 = min(1.0, t + dt)
-            ok, its = stepper.step(path.body(t1), path.prescribed(t1))
-            if stepper.iterations > budget:
-                raise SimulationError(
-                    f"continuum reference: case {case.name!r} took more than {budget} Newton iterations and "
-                    f"reached load factor {t:.3g} only; its constraints may go beyond the material's locking "
-                    "stretch")
-            if not ok:
-                cuts, run = cuts + 1, run + 1
-                if run > max_cuts:
-                    raise SimulationError(
-                        f"continuum reference: no equilibrium for case {case.name!r} at load factor {t1:.4g} "
-                        f"after {max_cuts} step halvings; the load may go beyond the material's locking stretch")
-                dt /= 2.0
-                continue
-            advance(t1 - t)
-            t, done_steps, run = t1, done_steps + 1, 0
-            dt = 2.0 * dt if its <= _QUICK else dt
+        done_steps, cuts = _apply_load(case, stepper, path, steps=steps, max_cuts=max_cuts, budget=budget,
+                                       advance=advance)
     return _solution(case, solid, body, stepper.field, members, K, _max_i1(material), {
         "bulk_modulus_Pa": K, "element": element, "elements": ELEMENTS[element], "dofs": ndof,
         "load_steps": done_steps, "step_cuts": cuts, "newton_iterations": stepper.iterations,
@@ -263,6 +245,36 @@ class _Stepper:
         return ok, its
 
 
+def _apply_load(case: LoadCase, stepper: _Stepper, path: _LoadPath, *, steps: int, max_cuts: int, budget: int,
+                advance) -> tuple[int, int]:
+    """Raise the load factor from 0 to 1 in adaptive steps: ``(load steps done, step halvings)``.
+
+    A step is halved when Newton fails (at most *max_cuts* times in a row) and
+    doubled after one that converged in at most :data:`_QUICK` iterations.
+    """
+    t, dt, cuts, run, done_steps = 0.0, 1.0 / max(1, int(steps)), 0, 0, 0
+    while t < 1.0 - 1e-12:
+        t1 = min(1.0, t + dt)
+        ok, its = stepper.step(path.body(t1), path.prescribed(t1))
+        if stepper.iterations > budget:
+            raise SimulationError(
+                f"continuum reference: case {case.name!r} took more than {budget} Newton iterations and "
+                f"reached load factor {t:.3g} only; its constraints may go beyond the material's locking "
+                "stretch")
+        if not ok:
+            cuts, run = cuts + 1, run + 1
+            if run > max_cuts:
+                raise SimulationError(
+                    f"continuum reference: no equilibrium for case {case.name!r} at load factor {t1:.4g} "
+                    f"after {max_cuts} step halvings; the load may go beyond the material's locking stretch")
+            dt /= 2.0
+            continue
+        advance(t1 - t)
+        t, done_steps, run = t1, done_steps + 1, 0
+        dt = 2.0 * dt if its <= _QUICK else dt
+    return done_steps, cuts
+
+
 def _linear_solver(element: str, dof1: np.ndarray, n_vertices: int, n_cells: int):
     """The sparse solver of a Newton step: MINI with its bubbles condensed, P2 by a symmetric factorization."""
     if element == "mini":
@@ -271,7 +283,7 @@ def _linear_solver(element: str, dof1: np.ndarray, n_vertices: int, n_cells: int
 
 
 def _lu_solve(A, b):
-    """SuperLU with COLAMD: 2-4x faster here than scipy's spsolve default, and far faster than MMD."""
+    """SuperLU with COLAMD: faster on these systems than scipy's spsolve default, and far faster than MMD."""
     import scipy.sparse.linalg as spl
 
     return spl.splu(A.tocsc(), permc_spec="COLAMD").solve(np.asarray(b, dtype=np.float64).ravel())
@@ -283,10 +295,10 @@ class _NodeDissection:
     SuperLU without pivoting in symmetric mode on the matrix permuted by
     METIS nested dissection of its node graph
     (:func:`~esmm.pipeline.linalg.newton.node_ordering`, computed once: the
-    pattern stays). On the kidney's lift (21 279 unknowns) 0.7 s and 14.8 M
-    entries against 3.6 s and 37 M for the LU with COLAMD (docs/validate.md
-    §1). No pivoting is exact for a positive definite matrix, which a stable
-    equilibrium's is; a solution whose residual is not at round-off (a matrix
+    pattern stays): a factor of less than half the fill of the LU with COLAMD,
+    found several times faster
+    (docs/design/validation.md, "The continuum reference"). No pivoting is
+    exact for a positive definite matrix, which a stable equilibrium's is; a solution whose residual is not at round-off (a matrix
     the line search took through an unstable state) is solved again by the LU.
     """
 
@@ -322,8 +334,9 @@ class _CondensedMini:
     diagonal (3 x 3 per element) and its inverse is exact and cheap: the
     vertex system ``S = A_ss − A_sb A_bb⁻¹ A_bs`` (displacement, pressure and
     volume ratio at the vertices, a third of the unknowns) is factorised
-    instead of the whole one, then the bubbles follow. The same solution, 5-15x
-    faster (docs/validate.md §1); the whole LU if a block is singular.
+    instead of the whole one, then the bubbles follow. The same solution, several
+    times faster (docs/design/validation.md, "The continuum reference"); the
+    whole LU if a block is singular.
     """
 
     def __init__(self, dof1: np.ndarray, n_vertices: int, n_cells: int):
@@ -367,9 +380,9 @@ def _newton(fem, field, solid, body, dof0, dof1, ext0, check, max_iter, solver, 
     and, if *residual*, one whose residual does not decrease. The latter is
     off for P2: its condensed pressure and volume ratio take the whole Newton
     update whatever the step length, so the residuals of a shortened step are
-    not Newton's (felupe's ``LinesearchPlugin`` notes this); on the bundled
-    liver under gravity it rejected every halving of the first update, where
-    plain Newton converged in 5 iterations (docs/validate.md §1).
+    not Newton's (felupe's ``LinesearchPlugin`` notes this): on an organ under
+    gravity it can reject every halving of the first update where plain
+    Newton converges (docs/design/validation.md, "The continuum reference").
     """
     # The library never prints: verbose=0 asks felupe so; its warnings (a singular matrix) mean failure here.
     with redirect_stdout(StringIO()), warnings.catch_warnings():
@@ -388,7 +401,7 @@ def _newton(fem, field, solid, body, dof0, dof1, ext0, check, max_iter, solver, 
 
 #: Share of the way from rest to the material's locking invariant, ``(Ī1 - 3) / (I1_lock - 3)``, from which a
 #: cell counts as locking: within 1 % of it. The eight-chain energy's curvature grows without bound there (the
-#: bundled liver's material: 2.7x its small-strain value at 0.99, 16 600x at 0.9999; docs/validate.md §4).
+#: bundled liver's material: 2.7x its small-strain value at 0.99, 16 600x at 0.9999; docs/design/validation.md, "Error measures").
 NEAR_LOCKING = 0.99
 
 

@@ -1,7 +1,7 @@
 r"""The tissue as a nearly incompressible continuum: W = W_iso(Ī1) + U(J).
 
 An esmm material model is an incompressible strain energy :math:`W(I_1, I_2)`
-(docs/model.md, Part A). The continuum reference of ``esmm validate`` uses its
+(docs/design/model.md, "Material models"). The continuum reference of ``esmm validate`` uses its
 standard compressible extension (Flory's split),
 
 .. math::

@@ -2,7 +2,7 @@
 
 :func:`solve_network` is the one function through which ``esmm validate``
 solves the network, so that the method can change without touching the
-rest. Today: Newton's method on the total potential
+rest. It is Newton's method on the total potential
 
 .. math::
 
@@ -10,7 +10,7 @@ rest. Today: Newton's method on the total potential
 
 (the springs' potential, :func:`~esmm.pipeline.network.forcelaw.spring_energy`, of
 the same tables and force law the simulator uses, plus any further term such as
-the volume term of issue 11) with the exact sparse tangent, the gravity
+the volume term) with the exact sparse tangent, the gravity
 ``f_g = m_i g`` on the network's own lumped masses and the case's Dirichlet
 constraints, reached with the load factor t in steps. Each step starts from
 the linear predictor (the tangent applied to the prescribed increment), takes

@@ -5,7 +5,7 @@ solves each with the continuum (:mod:`.continuum`, felupe) and with the
 network (:mod:`.network_solve`), compares them (:mod:`.compare`) and writes
 the outputs (:mod:`.report`) when given a folder. :func:`validate_asset` reads
 an asset first; :func:`validate_specimen` makes the built-in cube
-(:mod:`.specimen`). docs/validate.md explains every choice.
+(:mod:`.specimen`). docs/design/validation.md explains every choice.
 
 The floor of the organ cases is a unilateral sticking contact; both solvers
 get it as the same bilateral constraints, found by an active set: solve, pin
@@ -25,6 +25,7 @@ from ..asset import read_asset
 from ..atomicio import write_json, write_text
 from ..checks import choice
 from ..errors import ConfigError, SimulationError
+from ..materials.material import DEFAULT_MATERIAL, load_material
 from ..network.volume import volume_elements
 from ..progress import ensure
 from ..simulate.grasper import plan_grasp
@@ -48,12 +49,12 @@ from .network_solve import solve_network
 from .report import plot_case, table_markdown, write_fields
 from .specimen import cube_specimen
 
-__all__ = ["VOLUME_TERM", "LoadOptions", "ValidationReport", "network_terms", "resolved_volume_term", "validate_asset",
-           "validate_network", "validate_specimen"]
+__all__ = ["VOLUME_TERM", "LoadOptions", "ValidationReport", "default_out_dir", "network_terms", "resolved_volume_term",
+           "validate_asset", "validate_network", "validate_specimen"]
 
-#: ``volume_term`` values: the network with its volume term (issue 11, part B) if it has one, with it, without it.
+#: ``volume_term`` values: the network with its volume term if it has one, with it, without it.
 VOLUME_TERM = ("auto", "on", "off")
-#: Continuum elements by size: quadratic tetrahedra up to this many tets, MINI above (docs/validate.md §1).
+#: Continuum elements by size: quadratic tetrahedra up to this many tets, MINI above (docs/design/validation.md, "The continuum reference").
 #: P2 is the reference: MINI's reaction forces converge at first order and are stiff on organ meshes
 #: (the kidney's lift by 29 %). Every organ of the "paper" preset (4 000-6 000 tets) is below; the "fine"
 #: liver (29 270 tets: about 141 000 P2 unknowns) is above.
@@ -113,8 +114,8 @@ def network_terms(network, tables, material, *, volume_term: str = "auto") -> tu
 
     The one place that decides them: ``"auto"`` takes the network's own volume
     term (what ``esmm prepare`` stored in the asset's ``/volume``) when it has
-    one, ``"on"`` requires it, ``"off"`` leaves it out (the network as before
-    issue 11, part B; its tables are still the ones compensated with the term).
+    one, ``"on"`` requires it, ``"off"`` leaves it out (the springs alone; the
+    tables are still the ones compensated with the term).
 
     Returns
     -------
@@ -248,7 +249,7 @@ def _solve_case(case, network, tables, material, *, law, terms, bulk, elements, 
         rep.warn(f"{case.name}: the continuum comes within {100 * (1 - NEAR_LOCKING):.0f} % of the material's "
                  f"locking in {fe.info['cells_near_locking']} cell(s) (largest share of the way "
                  f"{fe.info['locking_share']:.4f}): its stiffness there has no bound, so its reaction force depends "
-                 "on the mesh; read the force error as the case's, not the network's alone (docs/validate.md §4)")
+                 "on the mesh; read the force error as the case's, not the network's alone (docs/design/validation.md, 'Error measures')")
     rep.step(f"{case.name}: L2 error {100 * res.l2_error:.2f} %, max {100 * res.max_error:.2f} %, force "
              f"{100 * res.force_error:.2f} % (largest continuum displacement {res.max_displacement_m * 1e3:.3g} mm)")
     return res
@@ -271,6 +272,19 @@ def _first_of(elements, solve, case, rep):
     if len(elements) > 1:
         out[0].info["element_fallback"] = reason
     return out
+
+
+def _continuum_elements(network, element: str, rep) -> tuple[str, tuple[str, ...]]:
+    """The continuum's element and the elements to try in order ("auto": P2 where it fits, then MINI)."""
+    element = choice(element, ("auto", "p2", "mini"), "element")
+    elements = (element,)
+    if element == "auto":
+        element = "p2" if _p2_cells(network) <= P2_MAX_TETS else "mini"
+        elements = ("p2", "mini") if element == "p2" else ("mini",)
+    if element == "mini":
+        rep.warn("the MINI continuum's reaction forces are first order: stiffer than the converged continuum "
+                 "on a coarse mesh (docs/design/validation.md, 'The continuum reference'); the P2 element is the reference where it fits in memory")
+    return element, elements
 
 
 def validate_network(network, tables, material, *, cases=None, label: str = "network", loads: LoadOptions | None = None,
@@ -326,14 +340,7 @@ def validate_network(network, tables, material, *, cases=None, label: str = "net
     check_continuum(material)
     terms = network_terms(network, tables, material, volume_term=volume_term)
     volume_term = resolved_volume_term(network, volume_term)
-    element = choice(element, ("auto", "p2", "mini"), "element")
-    elements = (element,)
-    if element == "auto":
-        element = "p2" if _p2_cells(network) <= P2_MAX_TETS else "mini"
-        elements = ("p2", "mini") if element == "p2" else ("mini",)
-    if element == "mini":
-        rep.warn("the MINI continuum's reaction forces are first order: stiffer than the converged continuum "
-                 "on a coarse mesh (docs/validate.md §1); the P2 element is the reference where it fits in memory")
+    element, elements = _continuum_elements(network, element, rep)
     bulk = bulk_modulus(material, ratio=bulk_ratio)
     law = tables.check_law(law)
     loads = LoadOptions() if loads is None else loads
@@ -380,14 +387,24 @@ def validate_asset(path, *, cases=None, **options) -> ValidationReport:
                             cases=list(ORGAN_CASES) if cases is None else cases, **options)
 
 
-def validate_specimen(material, *, side: float = 20e-3, size: float = 2.5e-3, split: bool = False, cases=None,
+def validate_specimen(material=None, *, side: float = 20e-3, size: float = 2.5e-3, split: bool = False, cases=None,
                       reporter=None, **options) -> ValidationReport:
     """:func:`validate_network` on the built-in cube (default cases: the specimen's).
 
     The cube gets a volume term and tables compensated with it, as ``esmm prepare``
-    gives an asset, unless ``volume_term="off"`` (then neither).
+    gives an asset, unless ``volume_term="off"`` (then neither). *material*
+    defaults to the preset :data:`~esmm.pipeline.materials.material.DEFAULT_MATERIAL`.
     """
+    material = load_material(DEFAULT_MATERIAL) if material is None else material
     volume = options.get("volume_term", "auto") != "off"
     spec = cube_specimen(material, side=side, size=size, volume=volume, split=split, reporter=reporter)
     return validate_network(spec.network, spec.tables, material, label=f"specimen: {spec.label}",
                             cases=list(SPECIMEN_CASES) if cases is None else cases, reporter=reporter, **options)
+
+
+def default_out_dir(asset_path=None) -> Path:
+    """Where the validation writes when no folder is given: ``<asset stem>-validate`` beside the asset,
+    or ``specimen-validate`` in the current folder for the built-in specimen."""
+    if asset_path is None:
+        return Path("specimen-validate")
+    return Path(asset_path).with_name(Path(asset_path).stem + "-validate")

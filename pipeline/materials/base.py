@@ -60,7 +60,7 @@ class Parameter:
     fit
         False for parameters that homogeneous tests cannot identify together
         with the others (held at their value unless a user frees them; see
-        docs/model.md for the reason per model).
+        docs/design/model.md for the reason per model).
     """
 
     name: str

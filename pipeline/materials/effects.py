@@ -1,7 +1,7 @@
 r"""Material effects beyond hyperelasticity, and the data object that carries them.
 
 Five *material* effects extend a hyperelastic base model with nominal stress
-:math:`P_e(\lambda)` (see docs/discover.md for the reasons behind each choice):
+:math:`P_e(\lambda)` (see docs/design/discovery.md, "The extended model", for the reasons behind each choice):
 
 ``viscoelastic`` — quasi-linear viscoelasticity (Fung, 1981)
     .. math::
@@ -625,7 +625,7 @@ class MaterialEffects:
             ps = d.get("permanent_set")
             pset = PermanentSetEffect(float(ps["fraction"])) if ps else None
         except (KeyError, TypeError, ValueError) as exc:
-            raise ConfigError(f"{where}: incomplete or malformed effect entry ({exc}); see docs/discover.md") from None
+            raise ConfigError(f"{where}: incomplete or malformed effect entry ({exc}); see docs/reference/configuration.md") from None
         # strict JSON writes an unbounded side as null: lower -inf, upper +inf
         intervals = {str(k): [(-math.inf, math.inf)[j] if a is None else float(a) for j, a in enumerate(val)]
                      for k, val in (d.get("intervals") or {}).items()}

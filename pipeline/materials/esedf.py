@@ -22,7 +22,7 @@ and :math:`c` makes :math:`W_{iso} = 0` in the reference state. The paper's
 isotropized third invariant :math:`I_{3i}` is 1 in every incompressible
 deformation, so the terms in it vanish; the paper's ``b`` and ``C`` enter only
 through those terms and are therefore not parameters of this (incompressible)
-model. docs/model.md gives the evidence for this reading: it reproduces the
+model. docs/design/model.md gives the evidence for this reading: it reproduces the
 reference values μ_e(1.1) ≈ 0.029 MPa and μ_e(1.3) ≈ 0.123 MPa of the paper's
 porcine-liver fit to 0.5 %.
 
@@ -97,7 +97,7 @@ class ESEDF(MaterialModel):
     Parameters (SI): ``mu`` [Pa] Arruda-Boyce chain modulus C_R, ``N`` links per
     chain, ``A1`` [Pa] and ``A2`` [Pa] fibre moduli, ``f`` fibre fraction.
     Defaults are the paper's porcine-liver fit. See
-    :mod:`esmm.pipeline.materials.esedf` and docs/model.md.
+    :mod:`esmm.pipeline.materials.esedf` and docs/design/model.md.
     """
 
     name = "esedf"
@@ -107,7 +107,7 @@ class ESEDF(MaterialModel):
     )
     not_parameters = {
         k: "in the reading implemented here the paper's b and C belong to terms in the isotropized "
-           "third invariant I3i, which vanish in incompressible deformation (docs/model.md); "
+           "third invariant I3i, which vanish in incompressible deformation (docs/design/model.md); "
            "keep the value under [material.reported]"
         for k in ("b", "C")
     }

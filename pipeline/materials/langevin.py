@@ -170,7 +170,7 @@ def inverse_langevin(x):
     ndarray, shape (...)
         β with a relative error of a few 1e-15 for every representable
         :math:`x \in (-1, 1)` (checked against 60-digit arithmetic in the
-        tests). About 1 ms for 10 000 values.
+        tests). Vectorised: cheap enough to evaluate on every table build.
     """
     xa = _as_float_array(x)
     flat = np.atleast_1d(xa).ravel()

@@ -1,6 +1,6 @@
 r"""Homogeneous incompressible deformations: invariants, energy, nominal stress.
 
-Modes (the names of the tensile-data contract, docs/tensile-data.md):
+Modes (the names of the tensile-data contract, docs/reference/tensile-input.md):
 
 ============== ===================================== ========================= =========================
 mode           principal stretches (x = λ or γ)      :math:`I_1`               :math:`I_2`
@@ -212,8 +212,8 @@ def nominal_stress(model: MaterialModel, params: Mapping[str, float], mode: str,
     Returns
     -------
     ndarray, shape (...)
-        P [Pa]; NaN outside the admissible range. 10 000 values take about
-        3 ms (dominated by the inverse Langevin function).
+        P [Pa]; NaN outside the admissible range. Vectorised (its cost is
+        dominated by the inverse Langevin function).
     """
     mode = _check_mode(mode)
     u, v, du, dv, _, _ = _kinematics(mode, x)

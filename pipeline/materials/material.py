@@ -45,6 +45,8 @@ __all__ = ["DIRECTIONS", "Material", "load_material"]
 
 #: The fibre directions of the spring network.
 DIRECTIONS = ("x", "y", "z")
+#: The material preset used where none is given (``esmm prepare``, the validation specimen).
+DEFAULT_MATERIAL = "porcine_liver_paper"
 
 _RESERVED = ("model", "name", "source", "stress_unit", "parameters", "directions")
 

@@ -14,7 +14,7 @@ so the stiffness tables of the network, :math:`\mu_e = 2W/(\lambda-1)^2`, follow
 from the sum as from any model. Every term vanishes in the reference state
 (:math:`W_j(3, 3) = 0`) and has non-negative coefficients; which residual
 structure each addresses is in :data:`TERMS` (``addresses``) and in
-docs/discover.md. The library follows the model-discovery literature
+docs/design/discovery.md. The library follows the model-discovery literature
 (constitutive artificial neural networks, Linka & Kuhl 2023; EUCLID, Flaschel et
 al. 2021): invariant-based terms, linear in a modulus, with at most one
 nonlinear shape parameter each.

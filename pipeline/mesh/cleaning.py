@@ -18,10 +18,9 @@
 8. ``repair``: non-manifold edges, degeneracies and self-intersections
    (pymeshfix), keep the largest resulting piece, orient outward again.
 
-Steps 5-6 come before 7-8 (the brief listed hole filling and repair first):
-pymeshfix needs ~17 s just to load a 1 M-face mesh and the decimator may leave
-non-manifold edges, which the repair then removes; smoothing has to see the
-staircase at full resolution. See docs/prepare.md.
+Steps 5-6 come before 7-8: pymeshfix is slow to load a mesh of a million faces
+and the decimator may leave non-manifold edges, which the repair then removes;
+smoothing has to see the staircase at full resolution. See docs/guide/prepare.md, "Cleaning".
 
 The result must stay within :data:`MAX_VOLUME_CHANGE` (2 %) of the enclosed
 volume of the kept body (for an open body, its volume with the holes capped).
@@ -73,7 +72,7 @@ def decimate(points: np.ndarray, faces: np.ndarray, target: int) -> tuple[np.nda
     metres because that changes every asset already made from a surface (the
     bundled liver's paper preset: 1 446 nodes instead of 1 660, smallest
     dihedral angle 11.0 instead of 17.0 degrees) and every figure measured on
-    them (docs/prepare.md §8, "Known limits").
+    them (docs/guide/prepare.md, "How far to trust it").
     """
     import fast_simplification
 
@@ -525,6 +524,50 @@ def orient_outward(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, i
 
 
 # ------------------------------------------------------------------- main
+class _StepRecorder:
+    """Records one cleaning step: its figures into the report and a line to the reporter.
+
+    Called as ``record(name, t0, p0, f0, p1, f1, note, **figures)`` with the
+    surface before (``p0, f0``) and after (``p1, f1``) the step. The volume and
+    area of a surface are computed once: consecutive steps share the arrays,
+    so the figures are cached by the arrays' identity (the arrays are held, so
+    the identities stay valid), and the border loops by the faces' identity.
+    """
+
+    def __init__(self, report: CleaningReport, rep):
+        self.report = report
+        self.rep = rep
+        self._cache: dict = {}
+        self._loops: dict = {}
+
+    def figures(self, p, f) -> tuple[float, float]:
+        """Enclosed volume (holes capped) [m3] and area [m2] of the surface ``(p, f)``."""
+        cache, loops_cache = self._cache, self._loops
+        if cache.get("key") == (id(p), id(f)):
+            return cache["v"], cache["a"]
+        if loops_cache.get("key") != id(f):  # the border loops depend on the faces only
+            loops_cache.update(key=id(f), loops=_boundary_loops(p.shape[0], f), keep=f)
+        lab0 = np.zeros(f.shape[0], np.int64)
+        v = float(capped_volumes(p, f, lab0, 1, loops_cache["loops"])[0]) if f.shape[0] else 0.0
+        a = Surface(p, f).area()
+        cache.update(key=(id(p), id(f)), v=v, a=a, keep=(p, f))  # keep: ids stay valid
+        return v, a
+
+    def __call__(self, name: str, t0: float, p0, f0, p1, f1, note: str, **figures_) -> dict:
+        dt = time.perf_counter() - t0
+        v0, a0 = self.figures(p0, f0)
+        v1, a1 = self.figures(p1, f1)
+        d = {"name": name, "seconds": dt,
+             "points_before": int(p0.shape[0]), "points_after": int(p1.shape[0]),
+             "faces_before": int(f0.shape[0]), "faces_after": int(f1.shape[0]),
+             "volume_before": v0, "volume_after": v1, "area_before": a0, "area_after": a1}
+        d.update(figures_)
+        self.report.steps.append(d)
+        self.rep.step(f"{name}: {note}; {f0.shape[0]} -> {f1.shape[0]} faces, volume {abs(v0) * 1e6:.1f} -> "
+                      f"{abs(v1) * 1e6:.1f} mL ({d['seconds']:.2f} s)")
+        return d
+
+
 def clean_surface(surface: Surface, *, options: CleaningOptions | None = None,
                   reporter=None) -> tuple[Surface, CleaningReport]:
     """Turn a raw organ surface into one closed, outward, smooth, decimated body.
@@ -567,42 +610,42 @@ def clean_surface(surface: Surface, *, options: CleaningOptions | None = None,
     pts, fcs = _compact(pts, fcs)
     report.area_before = Surface(pts, fcs).area()
     extent = float((pts.max(axis=0) - pts.min(axis=0)).max())
+    record = _StepRecorder(report, rep)
 
-    cache: dict = {}
-    loops_cache: dict = {}
+    pts, fcs = _merge_step(pts, fcs, extent, record)
+    pts, fcs = _degenerate_step(pts, fcs, extent, record, where)
+    pts, fcs, fcs_or, n_kept = _bodies_step(pts, fcs, opts, record, rep, where)
+    fcs = _orient_step(pts, fcs, fcs_or, record)
+    v_ref = capped_volume(pts, fcs)
+    report.volume_before = v_ref
+    if not v_ref > 0:
+        raise MeshingError(f"{where}: the kept body encloses no volume (a flat sheet?); check the input file")
+    out, iters = _smooth_keeping_volume(pts, fcs, v_ref, opts, record, rep, where, n_bodies=n_kept)
+    out = Surface(*out, surface.source)
+    if not out.is_closed():
+        raise MeshingError(
+            f"{where}: the surface still has {out.n_boundary_edges()} open or {out.n_nonmanifold_edges()} "
+            f"non-manifold edges after repair; export the organ again with holes filled"
+        )
+    report.smooth_iterations_used = iters
+    report.volume_after = out.volume()
+    report.area_after = out.area()
+    report.relative_volume_change = report.volume_after / report.volume_before - 1.0
+    rep.step(f"cleaned: {out.n_points} points, {out.n_faces} faces, volume {report.volume_after * 1e6:.1f} mL "
+             f"({report.relative_volume_change * 100:+.2f} % of the kept body)")
+    return out.with_source(f"cleaned ({iters} smoothing iterations)"), report
 
-    def figures(p, f):
-        if cache.get("key") == (id(p), id(f)):
-            return cache["v"], cache["a"]
-        if loops_cache.get("key") != id(f):  # the border loops depend on the faces only
-            loops_cache.update(key=id(f), loops=_boundary_loops(p.shape[0], f), keep=f)
-        lab0 = np.zeros(f.shape[0], np.int64)
-        v = float(capped_volumes(p, f, lab0, 1, loops_cache["loops"])[0]) if f.shape[0] else 0.0
-        a = Surface(p, f).area()
-        cache.update(key=(id(p), id(f)), v=v, a=a, keep=(p, f))  # keep: ids stay valid
-        return v, a
 
-    def record(name: str, t0: float, p0, f0, p1, f1, note: str, **figures_):
-        dt = time.perf_counter() - t0
-        v0, a0 = figures(p0, f0)
-        v1, a1 = figures(p1, f1)
-        d = {"name": name, "seconds": dt,
-             "points_before": int(p0.shape[0]), "points_after": int(p1.shape[0]),
-             "faces_before": int(f0.shape[0]), "faces_after": int(f1.shape[0]),
-             "volume_before": v0, "volume_after": v1, "area_before": a0, "area_after": a1}
-        d.update(figures_)
-        report.steps.append(d)
-        rep.step(f"{name}: {note}; {f0.shape[0]} -> {f1.shape[0]} faces, volume {abs(v0) * 1e6:.1f} -> "
-                 f"{abs(v1) * 1e6:.1f} mL ({d['seconds']:.2f} s)")
-        return d
-
-    # 1. merge duplicate points
+def _merge_step(pts, fcs, extent: float, record: _StepRecorder):
+    """Step 1: merge duplicate points (closer than :data:`MERGE_TOLERANCE` of the extent)."""
     t0 = time.perf_counter()
     p1, f1, merged = _merge_points(pts, fcs, MERGE_TOLERANCE * max(extent, 1e-12))
     record("merge", t0, pts, fcs, p1, f1, f"{merged} duplicate points merged", points_merged=merged)
-    pts, fcs = p1, f1
+    return p1, f1
 
-    # 2. degenerate faces
+
+def _degenerate_step(pts, fcs, extent: float, record: _StepRecorder, where: str):
+    """Step 2: drop faces with a repeated corner, of zero area, or duplicated."""
     t0 = time.perf_counter()
     f1, n_rep, n_zero, n_dup = _drop_degenerate(pts, fcs, (1e-9 * extent) ** 2)
     p1, f1 = _compact(pts, f1) if f1.shape[0] else (pts, f1)
@@ -611,9 +654,28 @@ def clean_surface(surface: Surface, *, options: CleaningOptions | None = None,
     record("degenerate", t0, pts, fcs, p1, f1,
            f"{n_rep} with a repeated corner, {n_zero} of zero area, {n_dup} duplicates dropped",
            repeated_corner=n_rep, zero_area=n_zero, duplicates=n_dup)
-    pts, fcs = p1, f1
+    return p1, f1
 
-    # 3. bodies
+
+def _chosen_bodies(opts: CleaningOptions, rank, nf, vols) -> list[int]:
+    """The bodies kept (indices into the components): ``body=N``, all of them, or the largest."""
+    n_bodies = len(rank)
+    if opts.body is not None:
+        if opts.body >= n_bodies:
+            listing = ", ".join(f"{i}: {nf[k]} faces {vols[k] * 1e6:.3g} mL" for i, k in enumerate(rank[:6]))
+            raise ConfigError(f"body: {opts.body} does not exist; the surface has {n_bodies} bodies ({listing})")
+        return [int(rank[opts.body])]
+    if opts.keep == "all":
+        return [int(k) for k in rank]
+    return [int(rank[0])]
+
+
+def _bodies_step(pts, fcs, opts: CleaningOptions, record: _StepRecorder, rep, where: str):
+    """Step 3: split into bodies and keep the chosen ones.
+
+    Returns the kept surface ``(points, faces)``, the same faces consistently
+    oriented within each body, and the number of bodies kept.
+    """
     t0 = time.perf_counter()
     n_bodies, lab = face_components(pts.shape[0], fcs)
     # Orientation inside each body must be consistent before its volume means anything.
@@ -624,18 +686,10 @@ def clean_surface(surface: Surface, *, options: CleaningOptions | None = None,
     areas = np.bincount(lab, tri_area, minlength=n_bodies)
     nf = np.bincount(lab, minlength=n_bodies)
     rank = np.lexsort((-areas, -vols))  # by volume, then area
-    report.bodies_found = n_bodies
-    if opts.body is not None:
-        if opts.body >= n_bodies:
-            listing = ", ".join(f"{i}: {nf[k]} faces {vols[k] * 1e6:.3g} mL" for i, k in enumerate(rank[:6]))
-            raise ConfigError(f"body: {opts.body} does not exist; the surface has {n_bodies} bodies ({listing})")
-        kept = [int(rank[opts.body])]
-    elif opts.keep == "all":
-        kept = [int(k) for k in rank]
-    else:
-        kept = [int(rank[0])]
+    record.report.bodies_found = n_bodies
+    kept = _chosen_bodies(opts, rank, nf, vols)
     dropped = [int(k) for k in rank if k not in kept]
-    report.bodies_dropped = [(int(nf[k]), float(vols[k])) for k in dropped]
+    record.report.bodies_dropped = [(int(nf[k]), float(vols[k])) for k in dropped]
     if len(kept) == n_bodies:
         p1, f1, f1_or = pts, fcs, f_or
     else:
@@ -655,14 +709,16 @@ def clean_surface(surface: Surface, *, options: CleaningOptions | None = None,
     if dropped and vols[dropped].max() > 0.1 * vols[kept].sum():
         rep.warn(f"{where}: dropped a second body of {vols[dropped].max() * 1e6:.3g} mL "
                  f"(kept {vols[kept].sum() * 1e6:.3g} mL); use keep='all' or body=N to choose")
-    pts, fcs = p1, f1
+    return p1, f1, f1_or, len(kept)
 
-    # 4. orient (the consistent orientation was found with the bodies; now the sign)
+
+def _orient_step(pts, fcs, fcs_or, record: _StepRecorder):
+    """Step 4: turn each body outward (its consistent orientation *fcs_or* was found with the bodies)."""
     t0 = time.perf_counter()
-    n_kept, lab_k = face_components(pts.shape[0], f1_or)
-    signs = capped_volumes(pts, f1_or, lab_k, n_kept)
+    n_kept, lab_k = face_components(pts.shape[0], fcs_or)
+    signs = capped_volumes(pts, fcs_or, lab_k, n_kept)
     neg = signs < 0
-    f1 = f1_or.copy()
+    f1 = fcs_or.copy()
     fl = neg[lab_k]
     f1[fl] = f1[fl][:, ::-1]
     changed = np.any(f1 != fcs, axis=1)
@@ -672,25 +728,27 @@ def clean_surface(surface: Surface, *, options: CleaningOptions | None = None,
     record("orient", t0, pts, fcs, pts, f1,
            f"{n_flip} faces flipped ({int(neg.sum())} bodies turned outward)",
            faces_flipped=n_flip, bodies_flipped=int(neg.sum()))
-    fcs = f1
-    v_ref = capped_volume(pts, fcs)
-    report.volume_before = v_ref
-    if not v_ref > 0:
-        raise MeshingError(f"{where}: the kept body encloses no volume (a flat sheet?); check the input file")
+    return f1
 
-    # 5-8 with decreasing smoothing until the volume is kept.
+
+def _smooth_keeping_volume(pts, fcs, v_ref: float, opts: CleaningOptions, record: _StepRecorder, rep,
+                           where: str, *, n_bodies: int):
+    """Steps 5-8 with less smoothing each time until the volume stays within :data:`MAX_VOLUME_CHANGE`.
+
+    Returns the surface ``(points, faces)`` and the smoothing iterations used.
+    """
     target = _target_faces(opts, Surface(pts, fcs).area())
     iters = int(opts.smooth_iterations)
     tried: list[str] = []
     while True:
         result = _smooth_to_closed(pts, fcs, iters, opts.smooth_passband, target, record, where,
-                                   n_bodies=len(kept))
+                                   n_bodies=n_bodies)
         p_out, f_out = result
         v_out = capped_volume(p_out, f_out)
         change = v_out / v_ref - 1.0
         tried.append(f"{iters} iterations: {change * 100:+.2f} %")
         if abs(change) <= MAX_VOLUME_CHANGE:
-            break
+            return (p_out, f_out), iters
         if iters == 0:
             raise MeshingError(
                 f"{where}: cleaning changes the enclosed volume by more than "
@@ -700,19 +758,6 @@ def clean_surface(surface: Surface, *, options: CleaningOptions | None = None,
         iters = _fewer(iters)
         rep.warn(f"{where}: volume changed {change * 100:+.2f} % with {tried[-1].split(':')[0]}; "
                  f"retrying with {iters}")
-    out = Surface(p_out, f_out, surface.source)
-    if not out.is_closed():
-        raise MeshingError(
-            f"{where}: the surface still has {out.n_boundary_edges()} open or {out.n_nonmanifold_edges()} "
-            f"non-manifold edges after repair; export the organ again with holes filled"
-        )
-    report.smooth_iterations_used = iters
-    report.volume_after = out.volume()
-    report.area_after = out.area()
-    report.relative_volume_change = report.volume_after / report.volume_before - 1.0
-    rep.step(f"cleaned: {out.n_points} points, {out.n_faces} faces, volume {report.volume_after * 1e6:.1f} mL "
-             f"({report.relative_volume_change * 100:+.2f} % of the kept body)")
-    return out.with_source(f"cleaned ({iters} smoothing iterations)"), report
 
 
 def _fewer(iters: int) -> int:

@@ -14,7 +14,7 @@ Measures (all 1 for the regular tetrahedron, 0 for a flat one):
 * **dihedral angles** (six per element); the regular value is
   ``arccos(1/3) = 70.53`` degrees; slivers have angles near 0 and 180.
 
-The floors (:data:`QUALITY_FLOORS`) and their reasons are in docs/prepare.md.
+The floors (:data:`QUALITY_FLOORS`) and their reasons are in docs/guide/prepare.md ("Quality floors").
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ import numpy as np
 from ..checks import number
 from ..errors import ConfigError
 
-#: Minimum quality accepted by ``esmm prepare`` (unless forced); see docs/prepare.md.
+#: Minimum quality accepted by ``esmm prepare`` (unless forced); see docs/guide/prepare.md, "Quality floors".
 QUALITY_FLOORS: dict[str, float] = {
     # No inverted, flat or nearly flat element (volume below ~2 % of the regular one of the
     # same size): its volume weight and its springs' directions are meaningless.
@@ -37,7 +37,7 @@ QUALITY_FLOORS: dict[str, float] = {
     # Slivers: with a small dihedral angle the four nodes are nearly coplanar, the element's
     # springs give little stiffness across that plane (a local soft mode) and a finite-element
     # solve on it is poorly conditioned; the mesher's slivers are relocated up to it
-    # (pipeline/mesh/slivers.py): every shared input reaches 11-22 deg (docs/prepare.md §4).
+    # (pipeline/mesh/slivers.py): every shared input reaches 11-22 deg (docs/guide/prepare.md, "Quality floors").
     "min_dihedral_deg": 10.0,
     # The worst 1 % of the elements must still be reasonable shapes; gmsh+Netgen meshes of
     # organs reach 0.55-0.65 (SICN) and 0.43-0.50 (gamma, radius ratio), the fTetWild
@@ -215,7 +215,7 @@ def tet_quality(mesh) -> QualityReport:
     Returns
     -------
     QualityReport
-        Fast: about 0.1 s for 1e5 elements.
+        Vectorised: fast enough to run on every mesh.
     """
     m = tet_measures(mesh.points, mesh.tets)
     pct = {}

@@ -5,7 +5,7 @@ are exactly the nodes of the quadratic (10-node) tetrahedra on the original
 mesh. A spring network on the refined mesh therefore has one node per degree
 of freedom of a second-order finite element on the original one, and the
 continuum reference (``esmm validate``, P2) is solved on those quadratic cells
-node for node (docs/model.md Part C3, docs/validate.md).
+node for node (docs/design/model.md, "The network on the quadratic tetrahedra's nodes (`--split`)"; docs/design/validation.md).
 
 The split (Bey 1995, "Simplicial grid refinement"): the four corner
 tetrahedra, and the inner octahedron cut along one of its three diagonals

@@ -137,17 +137,32 @@ def skeleton_structure(surface: Surface, *, n_surface: int | None = None, k: int
     if not surface.is_closed() or not surface.volume() > 0:
         raise MeshingError(f"{where}: the skeleton structure needs a closed, outward surface; clean it first")
     log: list[str] = []
-    t0 = time.perf_counter()
+    surf, s_edges, mean_edge = _decimated_surface(surface, n_surface, log, rep)
+    spacing = float(spacing) if spacing is not None else 2.0 * mean_edge
+    sk_pts, sk_edges, inside_dt = _skeleton_nodes(surf, spacing, where, log, rep)
+    locator = _Locator(surf)
+    sk_pts, sk_edges = _interior_skeleton(sk_pts, sk_edges, k, inside_dt, locator, log)
+    return _rigid_structure(surf, s_edges, sk_pts, sk_edges, k, locator, inside_dt, where, log, rep)
 
-    # 1. decimated surface
+
+def _decimated_surface(surface: Surface, n_surface: int | None, log: list[str], rep):
+    """Step 1: the surface decimated to *n_surface* vertices, its edges (e, 2) and mean edge length [m]."""
+    t0 = time.perf_counter()
     surf = _decimate(surface, n_surface if n_surface is not None else DEFAULT_N_SURFACE)
     ns = surf.n_points
     s_edges, _ = surf.edges()
     mean_edge = float(np.linalg.norm(surf.points[s_edges[:, 0]] - surf.points[s_edges[:, 1]], axis=1).mean())
     log.append(f"surface: {ns} vertices, {surf.n_faces} faces, mean edge {mean_edge * 1e3:.2f} mm")
     rep.step(f"skeleton: surface decimated to {ns} vertices ({time.perf_counter() - t0:.2f} s)")
+    return surf, s_edges, mean_edge
 
-    # 2. voxels and skeleton
+
+def _skeleton_nodes(surf: Surface, spacing: float, where: str, log: list[str], rep):
+    """Steps 2-3: voxelise, thin to a skeleton, cluster it into nodes *spacing* apart.
+
+    Returns the skeleton nodes (m, 3) [m], their springs (s, 2) and the
+    distance field of the inside voxels.
+    """
     t1 = time.perf_counter()
     mask, origin, h = _voxelise(surf)
     if mask.sum() < 8:
@@ -163,17 +178,15 @@ def skeleton_structure(surface: Surface, *, n_surface: int | None = None, k: int
         skel[np.unravel_index(np.argmax(dt), dt.shape)] = True
     log.append(f"voxels: {mask.shape} at {h * 1e3:.2f} mm, {int(mask.sum())} inside, "
                f"{int(skel.sum())} skeleton voxels")
-
-    # 3. skeleton nodes
-    spacing = float(spacing) if spacing is not None else 2.0 * mean_edge
     sk_pts, sk_edges = _skeleton_graph(skel, origin, h, spacing)
     log.append(f"skeleton: {sk_pts.shape[0]} nodes, {sk_edges.shape[0]} springs, spacing {spacing * 1e3:.1f} mm")
     rep.step(f"skeleton: {sk_pts.shape[0]} skeleton nodes from {int(skel.sum())} voxels "
              f"({time.perf_counter() - t1:.2f} s)")
+    return sk_pts, sk_edges, _DistanceField(mask, origin, h)
 
-    # 4.-5. springs and checks
-    locator = _Locator(surf)
-    inside_dt = _DistanceField(mask, origin, h)
+
+def _interior_skeleton(sk_pts, sk_edges, k: int, inside_dt: _DistanceField, locator: _Locator, log: list[str]):
+    """Enough skeleton nodes for *k* links per surface vertex, and only the skeleton springs inside the organ."""
     min_nodes = max(4, k + 2)
     if sk_pts.shape[0] < min_nodes:
         # A convex blob thins to a point or a stub: add deep medial points (farthest-point
@@ -188,6 +201,12 @@ def skeleton_structure(surface: Surface, *, n_surface: int | None = None, k: int
     if sk_edges.size and not keep.all():
         log.append(f"skeleton: {int((~keep).sum())} skeleton springs left the organ and were dropped")
         sk_edges = sk_edges[keep]
+    return sk_pts, sk_edges
+
+
+def _rigid_structure(surf: Surface, s_edges, sk_pts, sk_edges, k: int, locator: _Locator,
+                     inside_dt: _DistanceField, where: str, log: list[str], rep) -> SkeletonStructure:
+    """Steps 4-5: join surface and skeleton with k = *k*, *k* + 1, ... 6 links until the network is rigid."""
     normals = _vertex_normals(surf)
     last_problem = ""
     for kk in range(k, 7):
@@ -463,7 +482,7 @@ def _vertex_normals(surf: Surface) -> np.ndarray:
 
 
 def _connect(surf, s_edges, sk_pts, sk_edges, k, locator, normals, dist):
-    """Join surface vertices to visible skeleton nodes; return points, edges, kind, info."""
+    """Join surface vertices to visible skeleton nodes; return points, edges, kind, info, lonely vertices."""
     from scipy.spatial import cKDTree
 
     ns = surf.n_points
@@ -476,47 +495,90 @@ def _connect(surf, s_edges, sk_pts, sk_edges, k, locator, normals, dist):
     links = [set() for _ in range(ns)]
     lonely: list[int] = []
     for v in range(ns):
-        n_sk = len(skel)
-        kk = min(n_sk, max(k * 4, 12))
-        _, order = tree.query(spts[v], k=kk)
-        order = np.atleast_1d(order)
-        found = [int(j) for j in order if not locator.crosses(spts[v], skel[j], from_surface=True)][:k]
-        if len(found) < k and kk < n_sk:
-            rest = np.argsort(((np.asarray(skel) - spts[v]) ** 2).sum(1))[kk:]
-            for j in rest:
-                if len(found) >= k:
-                    break
-                if not locator.crosses(spts[v], skel[j], from_surface=True):
-                    found.append(int(j))
-                    reconnected += 1
+        found, n_past = _visible_nodes(spts[v], skel, tree, k, locator)
+        reconnected += n_past
         if not found:
-            # No skeleton node is visible: add a medial node on the inward normal, the most
-            # interior point of the first run of inside samples, visible from v.
-            best = _medial_point(spts[v], dist, locator)
-            if best is None:
+            j, new = _medial_link(spts[v], skel, extra_edges, locator, dist)
+            if j is None:
                 lonely.append(v)
                 continue
-            d2 = ((np.asarray(skel) - best) ** 2).sum(1)
-            if d2.min() < (0.5 * dist.h) ** 2:  # that voxel is already a node: reuse it
-                links[v].add(int(np.argmin(d2)))
+            if not new:
+                links[v].add(j)
                 continue
-            skel.append(best)
-            j_new = len(skel) - 1
-            found = [j_new]
+            found = [j]
             added += 1
-            # Join the new node to visible interior nodes (or it would dangle).
-            n_join = 0
-            for j in np.argsort(d2)[:12]:
-                if not locator.crosses(best, skel[j]):
-                    extra_edges.append((int(j), j_new))
-                    n_join += 1
-                    if n_join == 2:
-                        break
         links[v].update(found)
     sk_arr = np.asarray(skel)
     n_sk = sk_arr.shape[0]
-    # Each skeleton node gets at least 4 surface vertices (pins it in all directions).
-    count = np.zeros(n_sk, int)
+    count = _pin_skeleton_nodes(spts, sk_arr, links, locator)
+    rows = [(v, ns + j) for v in range(ns) for j in links[v]]
+    e = [s_edges, np.asarray(rows, np.int64).reshape(-1, 2)]
+    if sk_edges.size:
+        e.append(sk_edges + ns)
+    if extra_edges:
+        e.append(np.asarray(extra_edges, np.int64) + ns)
+    edges = np.unique(np.sort(np.vstack(e), axis=1), axis=0)
+    pts = np.vstack([spts, sk_arr])
+    kind = np.concatenate([np.zeros(ns, np.int8), np.ones(n_sk, np.int8)])
+    info = (f"{len(rows)} surface-skeleton springs, {reconnected} reconnected past the nearest, "
+            f"{added} medial nodes added, {int((count < 4).sum())} skeleton nodes with < 4 surface links, "
+            f"{len(lonely)} surface vertices with no visible interior point")
+    return pts, edges, kind, info, lonely
+
+
+def _visible_nodes(p, skel: list, tree, k: int, locator: _Locator) -> tuple[list[int], int]:
+    """Up to *k* skeleton nodes that surface point *p* sees, nearest first, and how many lay past the nearest ones."""
+    n_sk = len(skel)
+    kk = min(n_sk, max(k * 4, 12))
+    _, order = tree.query(p, k=kk)
+    order = np.atleast_1d(order)
+    found = [int(j) for j in order if not locator.crosses(p, skel[j], from_surface=True)][:k]
+    reconnected = 0
+    if len(found) < k and kk < n_sk:
+        rest = np.argsort(((np.asarray(skel) - p) ** 2).sum(1))[kk:]
+        for j in rest:
+            if len(found) >= k:
+                break
+            if not locator.crosses(p, skel[j], from_surface=True):
+                found.append(int(j))
+                reconnected += 1
+    return found, reconnected
+
+
+def _medial_link(p, skel: list, extra_edges: list, locator: _Locator, dist: _DistanceField):
+    """A skeleton node for surface point *p* that sees none: ``(index, whether it is new)``, ``(None, False)`` if none.
+
+    The node is the most interior point visible from *p* (:func:`_medial_point`);
+    an existing node at that voxel is reused, a new one is appended to *skel*
+    and joined to up to two visible nodes (in *extra_edges*), or it would dangle.
+    """
+    best = _medial_point(p, dist, locator)
+    if best is None:
+        return None, False
+    d2 = ((np.asarray(skel) - best) ** 2).sum(1)
+    if d2.min() < (0.5 * dist.h) ** 2:  # that voxel is already a node: reuse it
+        return int(np.argmin(d2)), False
+    skel.append(best)
+    j_new = len(skel) - 1
+    n_join = 0
+    for j in np.argsort(d2)[:12]:
+        if not locator.crosses(best, skel[j]):
+            extra_edges.append((int(j), j_new))
+            n_join += 1
+            if n_join == 2:
+                break
+    return j_new, True
+
+
+def _pin_skeleton_nodes(spts, sk_arr, links: list[set], locator: _Locator) -> np.ndarray:
+    """Link each skeleton node to at least 4 visible surface vertices (pins it in all directions).
+
+    Adds to *links* in place; returns the surface links per skeleton node, shape (m,).
+    """
+    from scipy.spatial import cKDTree
+
+    ns = spts.shape[0]
+    count = np.zeros(sk_arr.shape[0], int)
     for v in range(ns):
         for j in links[v]:
             count[j] += 1
@@ -531,19 +593,7 @@ def _connect(surf, s_edges, sk_pts, sk_edges, k, locator, normals, dist):
             if not locator.crosses(spts[v], sk_arr[j], from_surface=True):
                 links[v].add(int(j))
                 count[j] += 1
-    rows = [(v, ns + j) for v in range(ns) for j in links[v]]
-    e = [s_edges, np.asarray(rows, np.int64).reshape(-1, 2)]
-    if sk_edges.size:
-        e.append(sk_edges + ns)
-    if extra_edges:
-        e.append(np.asarray(extra_edges, np.int64) + ns)
-    edges = np.unique(np.sort(np.vstack(e), axis=1), axis=0)
-    pts = np.vstack([spts, sk_arr])
-    kind = np.concatenate([np.zeros(ns, np.int8), np.ones(n_sk, np.int8)])
-    info = (f"{len(rows)} surface-skeleton springs, {reconnected} reconnected past the nearest, "
-            f"{added} medial nodes added, {int((count < 4).sum())} skeleton nodes with < 4 surface links, "
-            f"{len(lonely)} surface vertices with no visible interior point")
-    return pts, edges, kind, info, lonely
+    return count
 
 
 def stiffness_matrix(points: np.ndarray, edges: np.ndarray) -> sparse.csr_matrix:

@@ -25,7 +25,7 @@ from .quality import QUALITY_FLOORS, tet_measures
 
 __all__ = ["SLIVER_TARGET_DEG", "improve_slivers"]
 
-#: The smallest dihedral angle aimed at [deg]: the quality floor (docs/prepare.md §4).
+#: The smallest dihedral angle aimed at [deg]: the quality floor (docs/guide/prepare.md, "Quality floors").
 SLIVER_TARGET_DEG = QUALITY_FLOORS["min_dihedral_deg"]
 _STEPS = (0.3, 0.1, 0.03)
 

@@ -94,8 +94,6 @@ def invesalius_like_surface(*, shape: str = "liver", voxel: tuple[float, float, 
     Surface
         Points in metres; ``source`` records the options.
     """
-    from skimage.measure import marching_cubes
-
     if shape not in SHAPES:
         raise ValueError(f"shape: unknown {shape!r}; choose one of {', '.join(SHAPES)}")
     voxel = tuple(float(v) for v in voxel)
@@ -106,6 +104,39 @@ def invesalius_like_surface(*, shape: str = "liver", voxel: tuple[float, float, 
     lo = np.min([np.array(c) - np.array(r) for c, r in ells], axis=0) * scale
     hi = np.max([np.array(c) + np.array(r) for c, r in ells], axis=0) * scale
     size = hi - lo
+    lo_g, (x, y, z) = _voxel_grid(lo, hi, voxel, second_body=second_body, open_border=open_border)
+    blend = 0.12 * float(np.min(size))
+    f = _field(x, y, z, ells, scale=scale, blend=blend)
+    if handle:
+        f = _with_handle(f, x, y, z, ells[0], scale, voxel)
+    if second_body:
+        f = _with_second_body(f, x, y, z, lo, hi)
+    mask = np.where(f < 0.0, 255, 0).astype(np.uint8)
+    if islands:
+        _add_islands(mask, rng)
+    if not open_border:
+        mask = np.pad(mask, 1)
+        origin = lo_g - np.array(voxel)
+    else:
+        origin = lo_g
+    verts, faces = _marching_cubes(mask, voxel, origin)
+    if inward_normals:
+        faces = faces[:, ::-1]
+    src = (f"synthetic InVesalius-like {shape} voxel={voxel} mm islands={islands} handle={handle} "
+           f"open_border={open_border} second_body={second_body} inward_normals={inward_normals} seed={seed}")
+    surf = Surface(verts * 1e-3, faces, src)
+    if path is not None:
+        write_stl(surf, path, unit="mm")
+    return surf
+
+
+def _voxel_grid(lo, hi, voxel, *, second_body: bool, open_border: bool):
+    """The grid's lower corner (3,) [mm] and its voxel centres ``(x, y, z)``, each (nx, ny, nz) [mm].
+
+    The organ's box *lo*-*hi* with a margin for the defects; wider for a
+    second body; cut 15 % into the organ's bottom for an open border.
+    """
+    size = hi - lo
     margin = 0.12 * size  # room for islands, the handle and the second body
     lo_g = lo - margin
     hi_g = hi + margin
@@ -115,58 +146,59 @@ def invesalius_like_surface(*, shape: str = "liver", voxel: tuple[float, float, 
         # The scan stops inside the organ: cut 15 % off its bottom (z).
         lo_g[2] = lo[2] + 0.15 * size[2]
     axes = [np.arange(lo_g[i], hi_g[i] + voxel[i], voxel[i]) for i in range(3)]
-    x, y, z = np.meshgrid(*axes, indexing="ij")
-    blend = 0.12 * float(np.min(size))
-    f = _field(x, y, z, ells, scale=scale, blend=blend)
-    if handle:
-        # A ring whose centre sits on the top of the main lobe, its plane vertical:
-        # half of it is inside the organ, half outside -> one handle (genus + 1).
-        c0, r0 = ells[0]
-        cx, cy, cz = c0[0] * scale, c0[1] * scale, (c0[2] + r0[2]) * scale
-        big = 0.35 * r0[2] * scale
-        small = max(0.09 * r0[2] * scale, 2.5 * max(voxel))
-        q = np.sqrt((x - cx) ** 2 + (z - cz) ** 2) - big
-        torus = np.sqrt(q ** 2 + (y - cy) ** 2) - small
-        f = _smin(f, torus, 0.3 * small)
-    if second_body:
-        sx = hi[0] + 0.35 * size[0]
-        r2 = 0.2 * size
-        e2 = (np.sqrt(((x - sx) / r2[0]) ** 2 + ((y - 0.5 * (lo[1] + hi[1])) / r2[1]) ** 2
-                      + ((z - 0.5 * (lo[2] + hi[2])) / r2[2]) ** 2) - 1.0) * float(r2.min())
-        f = np.minimum(f, e2)
-    mask = np.where(f < 0.0, 255, 0).astype(np.uint8)
-    if islands:
-        # A few specks of 1-2 voxels in the margin (segmentation noise).
-        shape_idx = np.array(mask.shape)
-        placed = 0
-        tries = 0
-        while placed < 4 and tries < 200:
-            tries += 1
-            idx = np.array([rng.integers(1, s - 3) for s in shape_idx])
-            block = mask[idx[0] - 1:idx[0] + 4, idx[1] - 1:idx[1] + 4, idx[2] - 1:idx[2] + 4]
-            if block.any():
-                continue
-            ext = rng.integers(1, 3, size=3)
-            mask[idx[0]:idx[0] + ext[0], idx[1]:idx[1] + ext[1], idx[2]:idx[2] + ext[2]] = 255
-            placed += 1
-    if not open_border:
-        mask = np.pad(mask, 1)
-        origin = lo_g - np.array(voxel)
-    else:
-        origin = lo_g
+    return lo_g, np.meshgrid(*axes, indexing="ij")
+
+
+def _with_handle(f, x, y, z, main, scale: float, voxel) -> np.ndarray:
+    """The field *f* with a handle (genus + 1) on the *main* lobe ``(centre, radii)``.
+
+    A ring whose centre sits on the top of the main lobe, its plane vertical:
+    half of it is inside the organ, half outside.
+    """
+    c0, r0 = main
+    cx, cy, cz = c0[0] * scale, c0[1] * scale, (c0[2] + r0[2]) * scale
+    big = 0.35 * r0[2] * scale
+    small = max(0.09 * r0[2] * scale, 2.5 * max(voxel))
+    q = np.sqrt((x - cx) ** 2 + (z - cz) ** 2) - big
+    torus = np.sqrt(q ** 2 + (y - cy) ** 2) - small
+    return _smin(f, torus, 0.3 * small)
+
+
+def _with_second_body(f, x, y, z, lo, hi) -> np.ndarray:
+    """The field *f* with a separate ellipsoid beside the organ's box *lo*-*hi* (along x)."""
+    size = hi - lo
+    sx = hi[0] + 0.35 * size[0]
+    r2 = 0.2 * size
+    e2 = (np.sqrt(((x - sx) / r2[0]) ** 2 + ((y - 0.5 * (lo[1] + hi[1])) / r2[1]) ** 2
+                  + ((z - 0.5 * (lo[2] + hi[2])) / r2[2]) ** 2) - 1.0) * float(r2.min())
+    return np.minimum(f, e2)
+
+
+def _add_islands(mask: np.ndarray, rng: np.random.Generator) -> None:
+    """Set a few specks of 1-2 voxels in the empty margin of *mask* (segmentation noise), in place."""
+    shape_idx = np.array(mask.shape)
+    placed = 0
+    tries = 0
+    while placed < 4 and tries < 200:
+        tries += 1
+        idx = np.array([rng.integers(1, s - 3) for s in shape_idx])
+        block = mask[idx[0] - 1:idx[0] + 4, idx[1] - 1:idx[1] + 4, idx[2] - 1:idx[2] + 4]
+        if block.any():
+            continue
+        ext = rng.integers(1, 3, size=3)
+        mask[idx[0]:idx[0] + ext[0], idx[1]:idx[1] + ext[1], idx[2]:idx[2] + ext[2]] = 255
+        placed += 1
+
+
+def _marching_cubes(mask: np.ndarray, voxel, origin) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (n, 3) [mm] and triangles (m, 3) of the 0/255 *mask*, Y negated as InVesalius writes it."""
+    from skimage.measure import marching_cubes
+
     verts, faces, _n, _v = marching_cubes(mask.astype(np.float32), level=127.0, spacing=voxel,
                                           allow_degenerate=False)
     verts = verts + origin
     verts[:, 1] *= -1.0  # InVesalius negates Y
-    faces = faces.astype(np.int64)
-    if inward_normals:
-        faces = faces[:, ::-1]
-    src = (f"synthetic InVesalius-like {shape} voxel={voxel} mm islands={islands} handle={handle} "
-           f"open_border={open_border} second_body={second_body} inward_normals={inward_normals} seed={seed}")
-    surf = Surface(verts * 1e-3, faces, src)
-    if path is not None:
-        write_stl(surf, path, unit="mm")
-    return surf
+    return verts, faces.astype(np.int64)
 
 
 def box_tets(nx: int, ny: int, nz: int, size) -> SimpleNamespace:

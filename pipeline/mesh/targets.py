@@ -11,7 +11,7 @@ A mesh is asked for by at most one of
   :data:`ELEMENTS_TOLERANCE` off;
 
 and by :data:`DEFAULT_NODES` nodes when none is given. The reasons for the
-constants are in docs/prepare.md.
+constants are in docs/guide/prepare.md ("Tetrahedra").
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ MIN_NODES = 10
 #: Node count aimed at when no target is given.
 DEFAULT_NODES = 5000
 #: Node-count model N = a V / h^3 + b A / h^2 (interior + surface nodes), fitted on gmsh
-#: Delaunay meshes of three livers at 1 200-18 000 nodes (docs/prepare.md); within ~25 %.
+#: Delaunay meshes of three livers at 1 200-18 000 nodes (docs/guide/prepare.md); within ~25 %.
 NODES_A, NODES_B = 0.387, 2.44
 #: Relative node-count error that triggers one re-run with a corrected size.
 NODES_TOLERANCE = 0.25
@@ -109,7 +109,7 @@ def size_for_nodes(volume: float, nodes: int, area: float | None = None) -> floa
     """Element size h [m] expected to give about *nodes* nodes.
 
     Solves ``nodes = a V / h^3 + b A / h^2`` (interior plus surface nodes;
-    ``a``, ``b`` fitted on organ meshes, see docs/prepare.md). Without the
+    ``a``, ``b`` fitted on organ meshes, see docs/guide/prepare.md). Without the
     area, a sphere's area for the volume is used.
 
     Parameters

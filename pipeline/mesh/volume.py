@@ -285,8 +285,8 @@ def _attempt(path: str, surf: Surface, h: float, v_surf: float, timeout: float,
         if path == "pytetwild":
             # fTetWild's output is finer than its "ideal edge length" (its envelope refines
             # near the surface): x1.3 gives about the node count gmsh gives at h. Fewer
-            # optimisation passes than its defaults (80, energy 10): 3-5x faster, and the
-            # result still passes the floors (docs/prepare.md).
+            # optimisation passes than its defaults (80, energy 10): several times faster, and
+            # the result still passes the floors (docs/guide/prepare.md, "Quality floors").
             out = run_worker("tetwild", {"edge_length": _TETWILD_EDGE_FACTOR * h * scale, "epsilon": 1e-3,
                                          "threads": 2, "num_opt_iter": 20, "stop_energy": 20.0},
                              arrays=arrays, timeout=timeout)

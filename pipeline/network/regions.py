@@ -189,57 +189,79 @@ def region_from_config(table: dict | None, *, where: str = "[fixed]") -> FixedRe
     if kind == "none":
         return FixedRegion(kind="none", width_fraction=None)
     if kind == "band":
-        axis = table.get("axis", "longest")
-        if isinstance(axis, str):
-            if axis != "longest":
-                raise ConfigError(f"{where} axis: {axis!r} is not \"longest\" or a vector like [0, 0, 1]")
-        else:
-            axis = _vector3(axis, f"{where} axis", lengths=False)
-            norm = float(np.linalg.norm(axis))
-            if norm == 0:
-                raise ConfigError(f"{where} axis: the zero vector is not a direction")
-            axis = axis / norm
-        end = table.get("end", "min")
-        if end not in ("min", "max"):
-            raise ConfigError(f"{where} end: {end!r} is not \"min\" or \"max\"")
-        if "offset" in table and "end" in table:
-            raise ConfigError(f"{where}: give either offset (a plane position) or end, not both")
-        offset = None
-        if "offset" in table:
-            try:
-                offset = _length(table["offset"], f"{where} offset")
-            except InputError as exc:
-                raise ConfigError(str(exc)) from None
-        if "width" in table and "width_fraction" in table:
-            raise ConfigError(f"{where}: give either width or width_fraction, not both")
-        width, frac = None, None
-        if "width" in table:
-            try:
-                width = _length(table["width"], f"{where} width")
-            except InputError as exc:
-                raise ConfigError(str(exc)) from None
-            if width <= 0:
-                raise ConfigError(f"{where} width: must be positive, got {table['width']!r}")
-        else:
-            if offset is not None:
-                raise ConfigError(f"{where}: a band given by offset needs an absolute width, e.g. width = \"10 mm\"")
-            frac = table.get("width_fraction", DEFAULT_WIDTH_FRACTION)
-            if isinstance(frac, bool) or not isinstance(frac, (int, float)) or not 0 < frac <= 1:
-                raise ConfigError(f"{where} width_fraction: expected a number in (0, 1], got {frac!r}")
-            frac = float(frac)
-        return FixedRegion(kind="band", axis=axis, end=end, width=width, width_fraction=frac,
-                           offset=offset, surface_only=surface_only)
+        return _band_region(table, where, surface_only)
     if kind == "box":
-        for key in ("lower", "upper"):
-            if key not in table:
-                raise ConfigError(f"{where}: kind \"box\" needs {key} = [x, y, z] with units, e.g. [\"0 mm\", \"0 mm\", \"0 mm\"]")
-        lower = _vector3(table["lower"], f"{where} lower", lengths=True)
-        upper = _vector3(table["upper"], f"{where} upper", lengths=True)
-        if np.any(upper <= lower):
-            raise ConfigError(f"{where}: upper must exceed lower on every axis (got lower {_mm(lower)} mm, "
-                              f"upper {_mm(upper)} mm)")
-        return FixedRegion(kind="box", lower=lower, upper=upper, width_fraction=None, surface_only=surface_only)
-    # nearest
+        return _box_region(table, where, surface_only)
+    return _nearest_region(table, where, surface_only)
+
+
+def _band_region(table: dict, where: str, surface_only: bool) -> FixedRegion:
+    """A ``kind = "band"`` table: a slab across *axis* at one *end* or at *offset*."""
+    axis = _band_axis(table.get("axis", "longest"), where)
+    end = table.get("end", "min")
+    if end not in ("min", "max"):
+        raise ConfigError(f"{where} end: {end!r} is not \"min\" or \"max\"")
+    if "offset" in table and "end" in table:
+        raise ConfigError(f"{where}: give either offset (a plane position) or end, not both")
+    offset = None
+    if "offset" in table:
+        try:
+            offset = _length(table["offset"], f"{where} offset")
+        except InputError as exc:
+            raise ConfigError(str(exc)) from None
+    width, frac = _band_width(table, where, offset)
+    return FixedRegion(kind="band", axis=axis, end=end, width=width, width_fraction=frac,
+                       offset=offset, surface_only=surface_only)
+
+
+def _band_axis(axis, where: str):
+    """``"longest"`` or a unit vector (3,) from a non-zero vector."""
+    if isinstance(axis, str):
+        if axis != "longest":
+            raise ConfigError(f"{where} axis: {axis!r} is not \"longest\" or a vector like [0, 0, 1]")
+        return axis
+    axis = _vector3(axis, f"{where} axis", lengths=False)
+    norm = float(np.linalg.norm(axis))
+    if norm == 0:
+        raise ConfigError(f"{where} axis: the zero vector is not a direction")
+    return axis / norm
+
+
+def _band_width(table: dict, where: str, offset: float | None) -> tuple[float | None, float | None]:
+    """``(width [m], None)`` or ``(None, width_fraction)``; a band at an offset needs an absolute width."""
+    if "width" in table and "width_fraction" in table:
+        raise ConfigError(f"{where}: give either width or width_fraction, not both")
+    if "width" in table:
+        try:
+            width = _length(table["width"], f"{where} width")
+        except InputError as exc:
+            raise ConfigError(str(exc)) from None
+        if width <= 0:
+            raise ConfigError(f"{where} width: must be positive, got {table['width']!r}")
+        return width, None
+    if offset is not None:
+        raise ConfigError(f"{where}: a band given by offset needs an absolute width, e.g. width = \"10 mm\"")
+    frac = table.get("width_fraction", DEFAULT_WIDTH_FRACTION)
+    if isinstance(frac, bool) or not isinstance(frac, (int, float)) or not 0 < frac <= 1:
+        raise ConfigError(f"{where} width_fraction: expected a number in (0, 1], got {frac!r}")
+    return None, float(frac)
+
+
+def _box_region(table: dict, where: str, surface_only: bool) -> FixedRegion:
+    """A ``kind = "box"`` table: the nodes between *lower* and *upper*."""
+    for key in ("lower", "upper"):
+        if key not in table:
+            raise ConfigError(f"{where}: kind \"box\" needs {key} = [x, y, z] with units, e.g. [\"0 mm\", \"0 mm\", \"0 mm\"]")
+    lower = _vector3(table["lower"], f"{where} lower", lengths=True)
+    upper = _vector3(table["upper"], f"{where} upper", lengths=True)
+    if np.any(upper <= lower):
+        raise ConfigError(f"{where}: upper must exceed lower on every axis (got lower {_mm(lower)} mm, "
+                          f"upper {_mm(upper)} mm)")
+    return FixedRegion(kind="box", lower=lower, upper=upper, width_fraction=None, surface_only=surface_only)
+
+
+def _nearest_region(table: dict, where: str, surface_only: bool) -> FixedRegion:
+    """A ``kind = "nearest"`` table: the *count* nodes nearest *point*."""
     if "point" not in table or "count" not in table:
         raise ConfigError(f"{where}: kind \"nearest\" needs point = [x, y, z] with units and count = N")
     point = _vector3(table["point"], f"{where} point", lengths=True)

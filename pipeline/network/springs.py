@@ -7,7 +7,7 @@ equivalent modulus ``mu_e(lambda)`` [Pa] has the stiffness
 
 .. math::  k_{ij}(\\lambda) = \\mu_e(\\lambda)\\, v_{ij}, \\qquad v_{ij} = V_{ij} / L_{0,ij}^2
 
-(docs/model.md (Part B) derives it from an energy match and states what the
+(docs/design/model.md, "The spring network", derives it from an energy match and states what the
 network's effective modulus then is). ``cos2`` holds the squared direction
 cosines of each spring in the fibre frame, which select the per-direction
 stiffness tables.
@@ -498,60 +498,12 @@ def network_from_tets(mesh, *, density: float = DEFAULT_DENSITY, fibre_frame=Non
     rep = ensure(reporter)
     rho = check_density(density)
     reorder = check_reorder(reorder)
-    points = np.asarray(getattr(mesh, "points", None), dtype=np.float64)
-    tets = np.asarray(getattr(mesh, "tets", None))
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise InputError(f"mesh.points: expected shape (n, 3), got {points.shape}")
-    if tets.ndim != 2 or tets.shape[1] != 4 or tets.shape[0] == 0:
-        raise InputError(f"mesh.tets: expected shape (t, 4) with t > 0, got {tets.shape}; the mesh has no tetrahedra")
-    if tets.dtype.kind not in "iu":
-        raise InputError(f"mesh.tets: expected integer indices, got {tets.dtype}")
-    tets = tets.astype(np.int64)
-    if tets.min() < 0 or tets.max() >= points.shape[0]:
-        raise InputError(f"mesh.tets: indices outside 0..{points.shape[0] - 1}")
-    if np.any(np.sort(tets, axis=1)[:, 1:] == np.sort(tets, axis=1)[:, :-1]):
-        raise InputError("mesh.tets: a tetrahedron repeats a node")
-    if not np.all(np.isfinite(points)):
-        raise InputError("mesh.points: NaN or infinite coordinates")
-
+    points, tets = _checked_tets(mesh)
     quadratic = _quadratic_cells(mesh, points.shape[0])
-
-    # Drop unused nodes.
-    used = np.unique(tets)
-    if used.size != points.shape[0]:
-        remap = np.full(points.shape[0], -1, np.int64)
-        remap[used] = np.arange(used.size)
-        rep.step(f"dropped {points.shape[0] - used.size} nodes used by no tetrahedron")
-        points, tets = points[used], remap[tets]
-        quadratic = None if quadratic is None else remap[quadratic]
-        if quadratic is not None and quadratic.min() < 0:
-            raise InputError("mesh.quadratic_cells: a 10-node cell uses a node of no tetrahedron")
+    points, tets, quadratic = _drop_unused_nodes(points, tets, quadratic, rep)
     n = points.shape[0]
-
-    # Orientation and degeneracy.
-    vt = tet_volumes(points, tets)
-    scale = float(np.ptp(points, axis=0).max()) ** 3
-    tiny = 1e-12 * scale
-    degenerate = np.abs(vt) <= tiny
-    if np.any(degenerate):
-        raise MeshingError(f"{int(degenerate.sum())} of {tets.shape[0]} tetrahedra have zero volume; "
-                           f"remesh it (a smaller element size, or the surface repair first)")
-    neg = vt < 0
-    if np.any(neg):
-        tets = tets.copy()
-        tets[neg] = tets[neg][:, [0, 1, 3, 2]]
-        vt = np.abs(vt)
-        rep.step(f"flipped {int(neg.sum())} negatively oriented tetrahedra")
-
-    # Edges, then the node order from the edge graph.
-    pairs = tets[:, _TET_EDGES].reshape(-1, 2)
-    edges, _ = _sorted_unique_edges(pairs, n)
-    order = node_order(points, edges, reorder)
-    rank = np.empty(n, np.int64)
-    rank[order] = np.arange(n)
-    points = points[order]
-    tets = rank[tets]
-    quadratic = None if quadratic is None else rank[quadratic]
+    tets, vt = _oriented_tets(points, tets, rep)
+    points, tets, quadratic = _renumbered(points, tets, quadratic, reorder)
 
     edges, inverse = _sorted_unique_edges(tets[:, _TET_EDGES].reshape(-1, 2), n)
     volume = np.bincount(inverse, weights=np.repeat(vt / 6.0, 6), minlength=edges.shape[0])
@@ -570,6 +522,69 @@ def network_from_tets(mesh, *, density: float = DEFAULT_DENSITY, fibre_frame=Non
         node_kind=kind, structure="tetra", fibre_frame=frame, density=rho, quadratic_cells=quadratic,
     )
     return net
+
+
+def _checked_tets(mesh) -> tuple[np.ndarray, np.ndarray]:
+    """*mesh*'s points (n, 3) float and tets (t, 4) int64, checked for shape, range and finiteness."""
+    points = np.asarray(getattr(mesh, "points", None), dtype=np.float64)
+    tets = np.asarray(getattr(mesh, "tets", None))
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError(f"mesh.points: expected shape (n, 3), got {points.shape}")
+    if tets.ndim != 2 or tets.shape[1] != 4 or tets.shape[0] == 0:
+        raise InputError(f"mesh.tets: expected shape (t, 4) with t > 0, got {tets.shape}; the mesh has no tetrahedra")
+    if tets.dtype.kind not in "iu":
+        raise InputError(f"mesh.tets: expected integer indices, got {tets.dtype}")
+    tets = tets.astype(np.int64)
+    if tets.min() < 0 or tets.max() >= points.shape[0]:
+        raise InputError(f"mesh.tets: indices outside 0..{points.shape[0] - 1}")
+    if np.any(np.sort(tets, axis=1)[:, 1:] == np.sort(tets, axis=1)[:, :-1]):
+        raise InputError("mesh.tets: a tetrahedron repeats a node")
+    if not np.all(np.isfinite(points)):
+        raise InputError("mesh.points: NaN or infinite coordinates")
+    return points, tets
+
+
+def _drop_unused_nodes(points, tets, quadratic, rep):
+    """``(points, tets, quadratic)`` without the nodes that no tetrahedron uses, renumbered."""
+    used = np.unique(tets)
+    if used.size != points.shape[0]:
+        remap = np.full(points.shape[0], -1, np.int64)
+        remap[used] = np.arange(used.size)
+        rep.step(f"dropped {points.shape[0] - used.size} nodes used by no tetrahedron")
+        points, tets = points[used], remap[tets]
+        quadratic = None if quadratic is None else remap[quadratic]
+        if quadratic is not None and quadratic.min() < 0:
+            raise InputError("mesh.quadratic_cells: a 10-node cell uses a node of no tetrahedron")
+    return points, tets, quadratic
+
+
+def _oriented_tets(points, tets, rep) -> tuple[np.ndarray, np.ndarray]:
+    """Tets turned to positive orientation and their volumes, shape (t,); degenerate ones refused."""
+    vt = tet_volumes(points, tets)
+    scale = float(np.ptp(points, axis=0).max()) ** 3
+    tiny = 1e-12 * scale
+    degenerate = np.abs(vt) <= tiny
+    if np.any(degenerate):
+        raise MeshingError(f"{int(degenerate.sum())} of {tets.shape[0]} tetrahedra have zero volume; "
+                           f"remesh it (a smaller element size, or the surface repair first)")
+    neg = vt < 0
+    if np.any(neg):
+        tets = tets.copy()
+        tets[neg] = tets[neg][:, [0, 1, 3, 2]]
+        vt = np.abs(vt)
+        rep.step(f"flipped {int(neg.sum())} negatively oriented tetrahedra")
+    return tets, vt
+
+
+def _renumbered(points, tets, quadratic, reorder: str | None):
+    """``(points, tets, quadratic)`` with the nodes in the order :func:`node_order` finds on the edge graph."""
+    n = points.shape[0]
+    pairs = tets[:, _TET_EDGES].reshape(-1, 2)
+    edges, _ = _sorted_unique_edges(pairs, n)
+    order = node_order(points, edges, reorder)
+    rank = np.empty(n, np.int64)
+    rank[order] = np.arange(n)
+    return points[order], rank[tets], None if quadratic is None else rank[quadratic]
 
 
 def _quadratic_cells(mesh, n: int) -> np.ndarray | None:
@@ -598,7 +613,7 @@ def network_from_skeleton(points, edges, *, volume: float, surface_faces=None, n
         V_ij = V * L0_ij**p / sum_k L0_k**p
 
     With ``p = 2`` every spring gets the same volume weight ``v_ij = V / sum
-    L0**2`` (docs/model.md (Part B) gives the reasons). Each spring's mass
+    L0**2`` (docs/design/model.md, "The spring network", gives the reasons). Each spring's mass
     ``density * V_ij`` is lumped half to each end, so ``sum m = density * V``.
 
     Parameters
@@ -621,38 +636,10 @@ def network_from_skeleton(points, edges, *, volume: float, surface_faces=None, n
     """
     rho = check_density(density)
     reorder = check_reorder(reorder)
-    pts = np.asarray(points, dtype=np.float64)
-    e = np.asarray(edges)
-    if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] < 2:
-        raise InputError(f"skeleton points: expected shape (n, 3) with n >= 2, got {pts.shape}")
-    if not np.all(np.isfinite(pts)):
-        raise InputError("skeleton points: NaN or infinite coordinates")
-    if e.ndim != 2 or e.shape[1] != 2 or e.shape[0] == 0 or e.dtype.kind not in "iu":
-        raise InputError(f"skeleton edges: expected an integer array of shape (e, 2) with e > 0, got {e.shape}")
-    e = e.astype(np.int64)
+    pts, e = _checked_skeleton(points, edges)
     n = pts.shape[0]
-    if e.min() < 0 or e.max() >= n:
-        raise InputError(f"skeleton edges: indices outside 0..{n - 1}")
-    if np.any(e[:, 0] == e[:, 1]):
-        raise InputError("skeleton edges: an edge joins a node to itself")
-    try:
-        vol = float(volume)
-    except (TypeError, ValueError):
-        raise InputError(f"volume: {volume!r} is not a number (m3)") from None
-    if not np.isfinite(vol) or vol <= 0:
-        raise InputError(f"volume: {volume!r} must be a positive number of m3 (the organ volume)")
-    if not np.isfinite(weight_exponent):
-        raise InputError(f"weight_exponent: {weight_exponent!r} is not a finite number")
-    faces = np.zeros((0, 3), np.int64) if surface_faces is None else np.asarray(surface_faces, dtype=np.int64).reshape(-1, 3)
-    if faces.size and (faces.min() < 0 or faces.max() >= n):
-        raise InputError(f"skeleton surface_faces: indices outside 0..{n - 1}")
-    if node_kind is None:
-        kind = np.full(n, NODE_SKELETON, np.uint8)
-        kind[np.unique(faces)] = NODE_SURFACE
-    else:
-        kind = np.asarray(node_kind, dtype=np.uint8).ravel()
-        if kind.shape != (n,):
-            raise InputError(f"skeleton node_kind: expected shape ({n},), got {kind.shape}")
+    vol = _checked_volume(volume, weight_exponent)
+    faces, kind = _skeleton_faces_and_kinds(surface_faces, node_kind, n)
 
     edges_u, _ = _sorted_unique_edges(e, n)
     used = np.unique(edges_u)
@@ -679,6 +666,53 @@ def network_from_skeleton(points, edges, *, volume: float, surface_faces=None, n
         node_kind=kind, structure="skeleton", fibre_frame=frame, density=rho,
     )
     return net
+
+
+def _checked_skeleton(points, edges) -> tuple[np.ndarray, np.ndarray]:
+    """Skeleton points (n, 3) float and edges (e, 2) int64, checked for shape, range and self-loops."""
+    pts = np.asarray(points, dtype=np.float64)
+    e = np.asarray(edges)
+    if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] < 2:
+        raise InputError(f"skeleton points: expected shape (n, 3) with n >= 2, got {pts.shape}")
+    if not np.all(np.isfinite(pts)):
+        raise InputError("skeleton points: NaN or infinite coordinates")
+    if e.ndim != 2 or e.shape[1] != 2 or e.shape[0] == 0 or e.dtype.kind not in "iu":
+        raise InputError(f"skeleton edges: expected an integer array of shape (e, 2) with e > 0, got {e.shape}")
+    e = e.astype(np.int64)
+    n = pts.shape[0]
+    if e.min() < 0 or e.max() >= n:
+        raise InputError(f"skeleton edges: indices outside 0..{n - 1}")
+    if np.any(e[:, 0] == e[:, 1]):
+        raise InputError("skeleton edges: an edge joins a node to itself")
+    return pts, e
+
+
+def _checked_volume(volume, weight_exponent) -> float:
+    """The organ volume [m3] as a positive float; the weight exponent checked finite."""
+    try:
+        vol = float(volume)
+    except (TypeError, ValueError):
+        raise InputError(f"volume: {volume!r} is not a number (m3)") from None
+    if not np.isfinite(vol) or vol <= 0:
+        raise InputError(f"volume: {volume!r} must be a positive number of m3 (the organ volume)")
+    if not np.isfinite(weight_exponent):
+        raise InputError(f"weight_exponent: {weight_exponent!r} is not a finite number")
+    return vol
+
+
+def _skeleton_faces_and_kinds(surface_faces, node_kind, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Surface triangles (k, 3) int64 and node kinds (n,) uint8 (default: surface nodes, the rest skeleton)."""
+    faces = np.zeros((0, 3), np.int64) if surface_faces is None else np.asarray(surface_faces, dtype=np.int64).reshape(-1, 3)
+    if faces.size and (faces.min() < 0 or faces.max() >= n):
+        raise InputError(f"skeleton surface_faces: indices outside 0..{n - 1}")
+    if node_kind is None:
+        kind = np.full(n, NODE_SKELETON, np.uint8)
+        kind[np.unique(faces)] = NODE_SURFACE
+    else:
+        kind = np.asarray(node_kind, dtype=np.uint8).ravel()
+        if kind.shape != (n,):
+            raise InputError(f"skeleton node_kind: expected shape ({n},), got {kind.shape}")
+    return faces, kind
 
 
 # -- linear analysis (for checks and documentation) -----------------------------------------

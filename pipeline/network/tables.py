@@ -78,7 +78,7 @@ DEFAULT_LAM_MAX = 2.0
 LOCK_MARGIN = 0.02
 
 # The three texts below describe the tables where they are stored (the /tables group of an
-# asset, docs/asset-format.md): the grid, the extrapolation and the force laws.
+# asset, docs/reference/asset-format.md): the grid, the extrapolation and the force laws.
 GRID_RULE = (
     "uniform grid of n points from lam_min to lam_max; defaults: "
     f"lam_min = max({DEFAULT_LAM_MIN}, lower admissible stretch + {LOCK_MARGIN:g}*(1 - lower)), "

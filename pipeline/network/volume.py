@@ -1,7 +1,7 @@
 r"""Volume elements: the term that makes the spring network nearly incompressible.
 
 A central-force network has a Poisson ratio near 1/4 whatever its weights
-(docs/model.md, Part B); tissue is nearly incompressible. The springs keep
+(docs/design/model.md, "The spring network"); tissue is nearly incompressible. The springs keep
 carrying the calibrated nonlinear stretch response; this term adds a penalty
 on the change of volume of *volume elements* built on the network's
 tetrahedra:
@@ -18,7 +18,7 @@ of element (``formulation``):
   share of the tetrahedra around it, :math:`V_a = \sum_{t \ni a} V_t / 4`
   (the average nodal pressure tetrahedron of Bonet & Burton 1998). One
   volume constraint per node, three degrees of freedom per node: it does not
-  lock (docs/model.md, Part C2, measures it);
+  lock (docs/design/model.md, "The volume term (nearly incompressible network)", shows it);
 * ``"tet"``: one element per tetrahedron, :math:`V_e = V_t`. About five to
   six constraints per node: linear tetrahedra lock (the network becomes far
   too stiff in shear and bending as :math:`\kappa` grows). Kept for the
@@ -66,13 +66,14 @@ __all__ = [
 
 FORMULATIONS = ("nodal", "tet")
 
-#: Poisson ratio of the stiffest calibrated state the volume term is sized for (docs/model.md, Part C2):
+#: Poisson ratio of the stiffest calibrated state the volume term is sized for
+#: (docs/design/model.md, "The volume term (nearly incompressible network)"):
 #: kappa = 9.7 times the liver's tangent shear modulus at stretch 1.3, i.e. Poisson ratio 0.4987 at small
 #: strain; the volume changes by at most 0.4 % over the calibration range.
 DEFAULT_POISSON = 0.45
 #: Accepted Poisson ratios (0: no volume stiffness beyond the springs'; 0.5 is the incompressible limit).
 POISSON_RANGE = (0.0, 0.4999)
-#: Largest |J - 1| the whole-run stability bound assumes (the term keeps J near 1; docs/simulate.md).
+#: Largest |J - 1| the whole-run stability bound assumes (the term keeps J near 1; docs/design/simulator.md).
 J_RANGE = 0.5
 
 # For node k of a positively oriented tet (0, 1, 2, 3): an even permutation (p0, k, p2, p3) of it,
@@ -347,8 +348,8 @@ class VolumeElements:
         ``K = G^T A^T D A G`` (+ the geometric part unless *definite*, which is
         formed: it has the sparsity of the tets): two sparse products with the
         element gradients G (t, 3n) and the averaging A instead of the (3n, 3n)
-        matrix, whose node blocks reach every node two tets away (measured on the
-        paper liver: 12 ms to form K, 2 ms for G).
+        matrix, whose node blocks reach every node two tets away (forming K costs
+        several times the products).
 
         Returns
         -------
@@ -384,8 +385,9 @@ class VolumeElements:
         \delta V_t^2/(4 V_{t,0})`, and summing over the nodes counts each tet's
         :math:`\delta V_t^2/V_{t,0}` once. Its node blocks couple only the
         nodes of a tet (K's reach every node two tets away), so its sparse
-        factor has about a third of the fill (docs/simulate.md §2b). For the
-        per-tet formulation it is K itself.
+        factor has about a third of the fill (docs/design/simulator.md,
+        "What is factored, and when it is renewed"). For the per-tet
+        formulation it is K itself.
         """
         x = self._x(points)
         t, m = self.tets.shape[0], 3 * self.n_nodes
@@ -519,8 +521,8 @@ def _tet_block_pattern(tets: np.ndarray, n_nodes: int) -> tuple[np.ndarray, np.n
     tet t (its dofs in the order ``3 tets[t] + (0, 1, 2)``) at ``data[pos[t, 12 a + b]]``.
 
     Found on the nodes (16 pairs a tet) and widened to 3 x 3 blocks: a row of node i's holds, for
-    each node j it shares a tet with (ascending), j's three dofs. Sorting the 144 dof pairs a tet
-    instead took 0.41 s on the fine liver (29 270 tets), inside the run's first step."""
+    each node j it shares a tet with (ascending), j's three dofs. Sorting the 144 dof pairs of every
+    tet instead is far slower on a large mesh, and this runs inside a simulation's first step."""
     t, n = tets.shape[0], n_nodes
     ti = np.repeat(tets, 4, axis=1).ravel().astype(np.int64)
     tj = np.tile(tets, (1, 4)).ravel().astype(np.int64)

@@ -38,7 +38,7 @@ IGNORE = "ignore"
 REFUSED: dict[str, str] = {}
 
 # Normalised header names (see normalise_name) -> quantity. English names come
-# from the contract (specs/tensile-data.md) and from the exports of common
+# from the contract (docs/reference/tensile-input.md) and from the exports of common
 # testing machines (Instron Bluehill, ZwickRoell testXpert, MTS, Shimadzu
 # Trapezium, Chinese machines); a few German and Chinese names are included.
 SYNONYMS: dict[str, str] = {}

@@ -36,7 +36,7 @@ class TensileTest:
         Specimen keys (``specimen``, ``gauge_length`` [m], ``area`` [m2],
         ``orientation``, ``tissue``, ``temperature``, ``notes``) plus
         ``columns``/``units`` as found, ``encoding`` and ``raw`` (bool); the
-        full list of keys is in docs/tensile-input.md ("What the reader returns").
+        full list of keys is in docs/reference/tensile-input.md ("What the reader returns").
     """
 
     source: Path

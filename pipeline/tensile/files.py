@@ -13,6 +13,12 @@ import os
 import re
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
+
+from ..errors import ConfigError
+from ..progress import ensure
+from .data import TensileTest
+from .reader import NotATestError, read
 
 #: Files a wildcard picks up beside the data that are copies or locks of editors and tools:
 #: ``x.csv~``, ``#x.csv#``, ``.#x.csv``, ``.~lock.x.csv#`` (LibreOffice), ``.x.csv.swp`` (vim),
@@ -56,3 +62,38 @@ def record_files(paths: Sequence[str | os.PathLike]) -> tuple[list[tuple[str, st
         else:
             records.append((str(f), p))
     return records, skipped, len(seen)
+
+
+def read_tests(paths: Sequence[str | os.PathLike], *, overrides: dict[str, Any] | None = None,
+               reporter=None) -> list[TensileTest]:
+    """Read the tensile records among *paths*, in order.
+
+    Of several files, what a wildcard picks up beside the records (sidecars of
+    files given too, other TOML files, editor backups, measurement tables) is
+    skipped with a warning (:func:`record_files`, :class:`~.reader.NotATestError`).
+    A single such file, or any other problem, is an error.
+
+    Raises
+    ------
+    ConfigError
+        None of the files is a test record.
+    NotATestError
+        The single file given is not a test record.
+    """
+    rep = ensure(reporter)
+    if len(paths) > 1:
+        records, skipped, _ = record_files(paths)
+        for msg in skipped:
+            rep.warn(msg)
+        paths = [given for given, _ in records]
+    tests = []
+    for p in paths:
+        try:
+            tests.append(read(p, overrides=overrides, reporter=rep))
+        except NotATestError as exc:
+            if len(paths) == 1:
+                raise
+            rep.warn(f"{exc} - skipped")
+    if not tests:
+        raise ConfigError("none of the files is a test record; give the tests' CSV files")
+    return tests

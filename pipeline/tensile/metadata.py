@@ -33,7 +33,7 @@ from ..errors import ConfigError, EsmmError, InputError
 from .columns import column_keyword
 from .data import MODES
 
-#: The keys of the contract (specs/tensile-data.md) plus ``delimiter`` and ``decimal``.
+#: The keys of the contract (docs/reference/tensile-input.md) plus ``delimiter`` and ``decimal``.
 KEYS = (
     "specimen", "gauge_length", "width", "thickness", "diameter", "area", "columns", "units", "encoding",
     "mode", "orientation", "tissue", "temperature", "notes", "delimiter", "decimal",

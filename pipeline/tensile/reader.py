@@ -1,8 +1,7 @@
 """Read one tensile-test file (a testing machine's CSV-like export) into a :class:`TensileTest`.
 
-The input contract is ``specs/tensile-data.md``; what is accepted, the column
-synonyms, the precedence of metadata and every error message are documented in
-``docs/tensile-input.md``.
+The input contract, what is accepted, the column synonyms, the precedence of
+metadata and every error message are documented in ``docs/reference/tensile-input.md``.
 
 Outline of :func:`read`:
 
@@ -90,7 +89,7 @@ def read(
         ``stretch`` (n,) is lambda, or gamma for ``simple_shear``; ``stress`` (n,)
         is nominal stress [Pa]; ``time`` (n,) [s] from the first sample, or None;
         ``displacement`` (n,) [m] and ``force`` (n,) [N] when the file has them
-        (with units); ``metadata`` as documented in docs/tensile-input.md.
+        (with units); ``metadata`` as documented in docs/reference/tensile-input.md ("What the reader returns").
 
     Raises
     ------
@@ -915,7 +914,7 @@ def _require_columns(label: str, mode: str, cols: list[_Column], x_col, s_col, d
         raise InputError(
             f"{label}: unknown column names {names}{hdr_line}; the test needs "
             f"{x_need if x_missing else s_need}: rename the columns (time, displacement, force, stretch, "
-            f"strain, stress, shear strain, shear stress, or a synonym in docs/tensile-input.md) or give "
+            f"strain, stress, shear strain, shear stress, or a synonym in docs/reference/tensile-input.md) or give "
             f"columns = [...] in the sidecar {side}"
         )
     if x_missing:
@@ -1103,7 +1102,7 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
     metadata.update(stretch_from=x_from, stress_from=s_from, raw=plan.x_col is None or plan.s_col is None,
                     n_rows=int(len(x)), cross_checks=checks, column_notes=notes, **meta_extra)
     x_c, s_c = plan.x_col or plan.d_col, plan.s_col or plan.f_col
-    rep.step(  # the columns used and the conversions made (specs/tensile-data.md: say which, say so)
+    rep.step(  # the columns used and the conversions made (docs/reference/tensile-input.md: say which, say so)
         f"read {label}: {len(x)} rows, {plan.mode}; {plan.x_name} {np.min(x):.4g}..{np.max(x):.4g} from {x_from}, "
         f"column {x_c.index + 1} '{x_c.header or x_c.quantity}'; stress {np.min(stress):.4g}..{np.max(stress):.4g} "
         f"Pa from {s_from}, column {s_c.index + 1} '{s_c.header or s_c.quantity}'"
@@ -1123,7 +1122,7 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
 def _metadata(md: M.Metadata, geo: M.Geometry, plan: _Plan, layout: _Layout, cols: list[_Column],
               used: dict[str, _Column], factors: dict[str, float], enc: str, decimal: str,
               linenos: list[int], warnings: list[str]) -> dict[str, Any]:
-    """The metadata record of docs/tensile-input.md (without the figures of the numbers)."""
+    """The metadata record of docs/reference/tensile-input.md (without the figures of the numbers)."""
 
     def text(key):
         e = md.get(key)
