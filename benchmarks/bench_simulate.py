@@ -21,13 +21,13 @@ eight (``50k-split``: the fabric of ``esmm prepare --split``), the compiled forc
 pass of the springs alone and the volume term's pass alone (one thread,
 medians of CPU time per call; goal: the volume pass costs at most 2x the
 spring pass), the whole step with and without the term, and the stable step
-each allows (the term is stiff: docs/model.md, Part C2).
+each allows (the term is stiff: docs/design/model.md, "The volume term").
 
 Demo: the paper-sized liver asset (``esmm prepare`` of data/meshes/sofa_liver.stl,
 preset "paper") in the default scene for 1 s of simulated time, adaptive and
 whole-table step; then the off-screen rendering rate at 960 x 720.
 
-Implicit stepper (``bench_implicit``, docs/simulate.md §2b and §8): the bundled
+Implicit stepper (``bench_implicit``, docs/design/simulator.md): the bundled
 TotalSegmentator liver prepared with the "paper" and "fine" presets, the default
 scene run with the implicit and the explicit stepper in the same process
 (real-time factors and their ratio), the implicit step's cost at 100 k and
@@ -322,10 +322,9 @@ def implicit_traffic(stats: dict, springs: int, nnz_tangent: int) -> dict:
     """Bytes moved per implicit step (the GPU note): factor sweeps, tangent products, force passes.
 
     A solve streams L twice (forward, backward; the supernodal factor's float32 blocks, their row
-    indices read once per block, not per entry: ~4 bytes per entry per sweep; SuperLU's, which this
-    stepper used until 2026-11-27, kept L and U = D L^T with an index per entry, 32 bytes per entry
-    and solve); a conjugate-gradient product reads the tangent (12 bytes per entry); a Newton
-    iteration assembles it and passes the forces (~50 bytes per spring each, docs/simulate.md §8).
+    indices read once per block, not per entry: ~4 bytes per entry per sweep); a conjugate-gradient
+    product reads the tangent (12 bytes per entry); a Newton iteration assembles it and passes the
+    forces (~50 bytes per spring each).
     """
     steps = max(1, stats["steps"])
     solves = stats["solves"] / steps
@@ -372,9 +371,9 @@ def implicit_accuracy(hist_implicit: Path, hist_explicit: Path, lift_end: float,
 
 def bench_implicit(*, duration: float = 3.0, sizes=("100k", "500k-jacobi"), steps: int = 3, runs: int = 3) -> dict:
     """Real-time factors of the default and the interactive scene (the default on a frictionless bed,
-    docs/simulate.md §9) on the bundled liver (paper and fine presets), implicit and explicit in one
+    docs/design/simulator.md) on the bundled liver (paper and fine presets), implicit and explicit in one
     run (the implicit scene *runs* times: the figures are those of the run with the median stepping
-    time, every run's time listed; a run's time varies by +-30 % on this VM), the implicit stepper with
+    time, every run's time listed; a run's time varies from run to run), the implicit stepper with
     its other iteration (Newton or quasi-Newton) and, on the interactive
     scene, its other factor, each run's accuracy against the explicit one over the lift; the implicit step on
     the Kuhn boxes of *sizes* (:data:`IMPLICIT_SIZES`: 100 k with the factor, 500 k with the Jacobi
@@ -415,7 +414,7 @@ def bench_implicit(*, duration: float = 3.0, sizes=("100k", "500k-jacobi"), step
             other = "newton" if scene.iteration == "quasi-newton" else "quasi-newton"   # the other iteration
             row.update(_implicit_variant(*run, other, scene.iteration, iteration=other))
             if key.endswith("_interactive"):      # the other [integrator] factor, in the same run
-                other = "mixed" if scene.factor == "bound" else "bound"   # the haptic-margin choice (§2b)
+                other = "mixed" if scene.factor == "bound" else "bound"   # the haptic-margin choice (docs/design/simulator.md)
                 row.update(_implicit_variant(*run, f"{other}_factor", scene.factor, factor=other))
             row["accuracy_over_lift"] = implicit_accuracy(hist["implicit"], hist["explicit"], lift_end,
                                                           imp["dt_max_s"])

@@ -1,4 +1,4 @@
-"""docs/failure-modes.md is enforced: one check per table row (exit code and message phrase)."""
+"""docs/reference/failure-modes.md is enforced: one check per table row (exit code and message phrase)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from esmm.pipeline.errors import ConfigError, EsmmError, InputError
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
 REPO = Path(__file__).resolve().parent.parent
-DOC = REPO / "docs" / "failure-modes.md"
+DOC = REPO / "docs" / "reference" / "failure-modes.md"
 LIVER = REPO / "data" / "meshes" / "ts_liver_3mm_closed.stl"
 BRAIN = REPO / "data" / "tensile" / "budday2017_brain"
 

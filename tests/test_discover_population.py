@@ -57,7 +57,7 @@ def test_score_tabulates_a_seeded_run():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="known limit (docs/discover.md, sections 10-11): the pair pool misses a "
+@pytest.mark.xfail(strict=True, reason="known limit (docs/design/discovery.md): the pair pool misses a "
                                        "relaxation masked by per-file offsets that do not help alone")
 def test_population_seed1_masked_pair():
     case = population(71, 1)[70]

@@ -28,7 +28,7 @@ def write_volume(f: h5py.File, spec: VolumeSpec, points: np.ndarray, tets: np.nd
     """Write ``/volume`` for *spec* on the mesh (*points* (n, 3) [m] at rest, *tets* (t, 4))."""
     g = hdf5.typed_group(f, "volume", *GROUPS["/volume"][:2])
     g.attrs["formulation"] = spec.formulation
-    g.attrs["energy"] = "U = sum_e V_e0 * kappa/2 * (J_e - 1)^2, J_e = V_e / V_e0 (docs/model.md, Part C2)"
+    g.attrs["energy"] = "U = sum_e V_e0 * kappa/2 * (J_e - 1)^2, J_e = V_e / V_e0 (docs/design/model.md, 'The volume term')"
     g.attrs["rule"] = spec.rule
     for key in ("poisson_ratio", "at_stretch"):
         value = getattr(spec, key)

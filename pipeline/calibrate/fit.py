@@ -277,7 +277,7 @@ def _summarise(prob: FitProblem, sol, loss: str, n_starts: int) -> FitResult:
     if rho > 0.5:
         warnings.append(
             f"residuals are serially correlated (lag-1 {rho:.2f}): the model misses a systematic "
-            "effect; the discovery of missing effects may find it (docs/discover.md)"
+            "effect; the discovery of missing effects may find it (docs/guide/discover.md)"
         )
     if not sol.success:
         warnings.append(f"the optimiser stopped early: {sol.message}")

@@ -371,7 +371,7 @@ def params_toml(res: DiscoverResult, *, which: str = "final", stress_unit: str |
             f"# {'final' if which == 'final' else 'base'} model: NRMSE {_pct(e.nrmse)}, held-out NRMSE "
             f"{_pct(f.heldout.nrmse if f.heldout else None)}"]
     if which == "final" and me:
-        head.append("# [material.effects.*]: see docs/discover.md; with viscoelastic, the parameters above are the "
+        head.append("# [material.effects.*]: see docs/reference/configuration.md, 'Material file'; with viscoelastic, the parameters above are the "
                     "instantaneous response")
     arte = [n for n in res.kept if n in ARTEFACTS]
     if which == "final" and arte:

@@ -194,7 +194,7 @@ class Material:
         if self.source:
             head["source"] = self.source
         head["stress_unit"] = self.stress_unit
-        lines = [f"# material for esmm (model {self.model!r}); equations: docs/model.md",
+        lines = [f"# material for esmm (model {self.model!r}); equations: docs/design/model.md",
                  "[material]", tomli_w.dumps(head).rstrip("\n")]
         scalars = {k: v for k, v in self.metadata.items() if not isinstance(v, Mapping)}
         if scalars:
