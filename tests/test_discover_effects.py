@@ -8,7 +8,6 @@ import json
 import numpy as np
 import pytest
 from esmm.pipeline.discover import synthetic as syn
-from esmm.pipeline.discover.covariates import noise_sd
 from esmm.pipeline.discover.records import prepare, rest_reading
 from esmm.pipeline.discover.statistics import autocorrelation_time, noise_test, paired_heldout
 from esmm.pipeline.errors import ConfigError
@@ -24,6 +23,7 @@ from esmm.pipeline.materials.effects import (
     set_stretch,
 )
 from esmm.pipeline.tensile import read
+from esmm.pipeline.tensile.events import noise_sd
 
 BASE = {"mu": 20e3, "N": 4.0}
 

@@ -3,7 +3,7 @@
 :func:`prepare` turns every :class:`~esmm.pipeline.tensile.TensileTest` into a
 :class:`Record`: the record is cut at a rupture (what follows a break is not
 the material's response), its measurement noise is estimated without a model
-(:func:`~esmm.pipeline.discover.covariates.noise_sd`), grip slips are located,
+(:func:`~esmm.pipeline.tensile.events.noise_sd`), grip slips are located,
 the covariates computed and the fitting samples chosen.
 
 The applicability rules of the artefacts (docs/design/discovery.md, "The extended model") live here:
@@ -24,7 +24,8 @@ import numpy as np
 
 from ..calibrate.problem import stress_scale
 from ..tensile.data import TensileTest
-from .covariates import Covariates, covariates, noise_sd, rupture_index, slip_events, thin
+from ..tensile.events import noise_sd, rupture_index, slip_events
+from .covariates import Covariates, covariates, thin
 
 
 def reference(mode: str) -> float:
@@ -121,7 +122,7 @@ def prepare(tests: Sequence[TensileTest], *, max_points: int = 600,
 
 
 def cut_at_rupture(t: TensileTest) -> tuple[TensileTest, dict[str, Any]]:
-    """*t* without the samples from its rupture on (:func:`~.covariates.rupture_index`), and what was cut."""
+    """*t* without the samples from its rupture on (:func:`~esmm.pipeline.tensile.events.rupture_index`), and what was cut."""
     if t.time is None or t.mode == "simple_shear":
         return t, {}
     k = rupture_index(t.stretch, t.stress, noise_sd(t.stress))
@@ -228,7 +229,7 @@ def rest_reading(rec: Record) -> float | None:
 
 
 def slip_applicable(rec: Record) -> bool:
-    """Grip slip is corrected where the record shows one (:func:`~.covariates.slip_events`)."""
+    """Grip slip is corrected where the record shows one (:func:`~esmm.pipeline.tensile.events.slip_events`)."""
     return machine_record(rec) and bool(rec.slips)
 
 

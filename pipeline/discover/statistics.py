@@ -5,7 +5,7 @@ A candidate is judged by two statistics whose assumptions real records meet
 
 * :func:`noise_test` — the **fitted** improvement in units of the measurement
   noise, which is estimated from each record alone
-  (:func:`~esmm.pipeline.discover.covariates.noise_sd`), not from any model's
+  (:func:`~esmm.pipeline.tensile.events.noise_sd`), not from any model's
   residual: ``Δχ² = Σ_f ΔRSS_f / σ_f²`` must exceed the Schwarz (BIC) penalty
   ``Δk ln N`` of the parameters it adds. With the noise variance known, this is
   the BIC of a Gaussian likelihood; its penalty grows as ln N, so it does not
