@@ -29,7 +29,6 @@ from esmm.pipeline.network.tables import StiffnessTables
 from esmm.pipeline.progress import ListReporter
 from esmm.pipeline.simulate import implicit_iteration, runsetup
 from esmm.pipeline.simulate import kernels as K
-from esmm.pipeline.simulate.contact import Slides
 from esmm.pipeline.simulate.factorcache import FactorCache
 from esmm.pipeline.simulate.history import History
 from esmm.pipeline.simulate.implicit import BackwardEuler
@@ -330,39 +329,6 @@ def test_implicit_matches_the_explicit_reference_on_a_sticking_bed(slab, iterati
     lifting = ti <= LIFT
     scale = np.linalg.norm(Fe[te <= LIFT], axis=1).max()
     assert np.linalg.norm(Fi - Fe_i, axis=1)[lifting].max() <= 0.05 * scale
-
-
-def test_a_sliding_contact_stops_where_the_floor_pushes_again():
-    """:class:`Slides` on three held nodes: one pulled slides, then stops where its reaction, linear
-    along the slide, is zero; one pulled again after sliding leaves; a pressed one stays held."""
-    n = 4
-    contact = np.array([True, True, True, False])
-    sl = Slides.none(n)
-    x_held = np.zeros((n, 3))
-    x_held[3] = [0.0, 0.0, 1.0]
-    lam = np.array([-1.0, -2.0, 3.0, 0.0])
-    x = x_held.copy()
-    leave, changed, started = sl.update(lam, x, contact, final=False)
-    assert changed and started == 2 and not leave.any()
-    np.testing.assert_array_equal(sl.sliding, [True, True, False, False])
-    # the slide solve: node 0 moved 4 mm along x and is pushed (+3), node 1 is still pulled, node 3 rose
-    x_slid = x_held.copy()
-    x_slid[0] = [0.004, 0.0, 0.0]
-    x_slid[1] = [0.0, 0.002, 0.0]
-    x_slid[3] = [0.0, 0.0, 1.002]
-    x = x_slid.copy()
-    leave, changed, started = sl.update(np.array([3.0, -0.5, 3.0, 0.0]), x, contact, final=False)
-    assert changed and started == 0
-    np.testing.assert_array_equal(leave, [False, True, False, False])
-    s = -1.0 / (-1.0 - 3.0)                                     # its reaction's zero: a quarter of the way
-    np.testing.assert_allclose(x[0], [s * 0.004, 0.0, 0.0])
-    np.testing.assert_allclose(x[3], [0.0, 0.0, 1.0 + s * 0.002])       # the field taken back by s
-    np.testing.assert_array_equal(sl.sliding, [False, False, False, False])
-    # slid once this step: pulled again, it stays held; the final check moves nothing
-    x_before = x.copy()
-    leave, changed, started = sl.update(np.array([-1.0, 0.0, 3.0, 0.0]), x, contact & ~leave, final=True)
-    assert not changed and started == 0 and not leave.any()
-    np.testing.assert_array_equal(x, x_before)
 
 
 def locking_hang(box, load=300):

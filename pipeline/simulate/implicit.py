@@ -49,6 +49,18 @@ DEFAULT_STEP = 1.0 / 30.0
 PRECONDITIONERS = ("factor", "fresh", "jacobi")
 
 
+def _threads_field(name: str, doc: str) -> property:
+    """A property of the stepper that reads and sets one field of its shared :class:`Threads` record."""
+
+    def get(self):
+        return getattr(self._threads, name)
+
+    def set_(self, value) -> None:
+        setattr(self._threads, name, value)
+
+    return property(get, set_, doc=doc)
+
+
 class BackwardEuler:
     """The implicit stepper (module doc); a :class:`~.stepper.Stepper`.
 
@@ -152,32 +164,10 @@ class BackwardEuler:
         """Whether solves iterate by quasi-Newton (it needs the reused factor; else Newton's)."""
         return self.iteration == "quasi-newton" and self.preconditioner == "factor"
 
-    @property
-    def threads(self) -> int:
-        """Threads of the factor's solves and the force pass (1 or 2; lowered to 1 where two got slower)."""
-        return self._threads.solve
-
-    @threads.setter
-    def threads(self, value: int) -> None:
-        self._threads.solve = value
-
-    @property
-    def factor_threads(self) -> int:
-        """Threads of the factorizations (1 or 2)."""
-        return self._threads.factor
-
-    @factor_threads.setter
-    def factor_threads(self, value: int) -> None:
-        self._threads.factor = value
-
-    @property
-    def solo_solve_s(self) -> float:
-        """A solve's time on one thread in the run's trial [s] (NaN: none)."""
-        return self._threads.solo_solve_s
-
-    @solo_solve_s.setter
-    def solo_solve_s(self, value: float) -> None:
-        self._threads.solo_solve_s = value
+    threads = _threads_field("solve", "Threads of the factor's solves and the force pass (1 or 2; lowered to 1 "
+                                      "where two got slower).")
+    factor_threads = _threads_field("factor", "Threads of the factorizations (1 or 2).")
+    solo_solve_s = _threads_field("solo_solve_s", "A solve's time on one thread in the run's trial [s] (NaN: none).")
 
     # -- the Stepper interface ------------------------------------------------------
     def bound(self, model: Model, control: Control) -> StepBound:
