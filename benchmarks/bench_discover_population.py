@@ -178,6 +178,7 @@ def _row(t: dict, res: dict) -> dict:
             "family": t["family"], "law": t["base_law"]["name"], "format": t["format"],
             "variant": (t["effect"] or {}).get("variant"), "effect_size": (t["effect"] or {}).get("size"),
             "files": len(t["files"]), "samples": sum(f["samples"] for f in t["files"]),
+            "acquisition_error_of_range": max(f["acquisition_error_of_range"] for f in t["files"]),
             "chain": {k: ch[k] for k in ("filter", "order", "f_out", "bits", "quantize_at", "hum_of_noise",
                                          "decimator", "filter_delay_s")},
             "seed": t["seed"], **{"effects": [], "terms": []}, **res}

@@ -164,10 +164,17 @@ class Chain:
         return d
 
 
-def record_force(force: np.ndarray, ch: Chain, rng: np.random.Generator) -> np.ndarray:
-    """The exported force [N] (shape (n // R,)) from the true force on the fine grid."""
+def record_force(force: np.ndarray, ch: Chain, rng: np.random.Generator | None) -> np.ndarray:
+    """The exported force [N] (shape (n // R,)) from the true force on the fine grid.
+
+    With ``rng=None`` the chain runs without noise, hum and quantization: the filters' effect
+    alone, against which the acquisition error of a record is measured.
+    """
     n = force.size
     sos = ch.sos()
+    if rng is None:
+        v, _ = signal.sosfilt(sos, force, zi=signal.sosfilt_zi(sos) * force[0])
+        return decimate(v, decimator_taps(ch.decimator, ch.ratio, ch.cic_order, ch.fs, ch.f_out), ch.ratio)
     sd_o = ch.noise_sd_of_capacity * ch.capacity_N
     sd_w = sd_o / np.sqrt(noise_bandwidth(sos))
     pink_sd = sd_w * np.sqrt(2.0 * np.pi * ch.pink_corner_Hz / ch.fs)

@@ -232,6 +232,7 @@ def _record_file(rng, folder: Path, k: int, sim: dict, ch, spec: dict, ks: int, 
     gauge = spec["gauge_length"]
     pos = (sim["x"] - x0) * gauge
     f_out = record_force(force, ch, rng)
+    f_clean = record_force(force, ch, None)
     d_out = record_position(pos, ch)
     t_out = sim["t"][ch.ratio - 1:: ch.ratio] - sim["t"][ch.ratio - 1]  # the controller's clock starts at 0
     t_start = float(np.round(rng.uniform(0.0, 30.0), 2)) if rng.uniform() < 0.3 else 0.0
@@ -250,6 +251,8 @@ def _record_file(rng, folder: Path, k: int, sim: dict, ch, spec: dict, ks: int, 
     return {"file": path.name, "specimen": rec["specimen"], "gauge_length_m": gauge, "gauge_length_stated_m": gauge_stated,
             "area_m2": spec["area"], "area_stated_m2": area_stated, "area_error": error, "stated": stated,
             "samples": int(t_out.size), "duration_s": float(sim["t"][-1]), "fine_samples": sim["n"],
+            "acquisition_error_sd_N": float(np.std(f_out - f_clean)),
+            "acquisition_error_of_range": float(np.std(f_out - f_clean) / (np.ptp(f_clean) or 1.0)),
             "time_start_s": t_start, "slips_s": sim["slips_s"], "chain": ch.describe(), "export": info}
 
 

@@ -135,7 +135,7 @@ def draw(name: str, rng: np.random.Generator, ctx: Ctx) -> dict:
         return {"variant": "miehe_continuous", "d_inf": rng.uniform(0.1, 0.4), "eta_Pa": 2.0 * w_max * n_sat / 3.0,
                 "cycles_to_95pc": n_sat}
     if name == "permanent_set":
-        return {"variant": "multiplicative_residual_stretch", "f": rng.uniform(0.05, 0.35), "q": rng.uniform(1.0, 2.0)}
+        return {"variant": "multiplicative_residual_stretch", "f": rng.uniform(0.05, 0.2), "q": rng.uniform(1.0, 2.0)}
     return draw_artefact(name, rng, span)
 
 

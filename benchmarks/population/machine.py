@@ -2,9 +2,9 @@
 
 The lab chooses an export rate that gives a usable record (10^3-10^5 samples) and a filter
 bandwidth well above the test's own time scale: the analog filter's delay is drawn as a small
-fraction (0.02-0.5 %) of the shortest loading segment, and the export rate follows from it and
+fraction (0.05-1 %) of the shortest loading segment, and the export rate follows from it and
 from the drawn cut-off (0.05-0.45 of the export Nyquist frequency), within the machine's
-1-100 Hz. Where the two wishes conflict (a fast segment in a long test) the rate caps win and
+1-100 Hz and at most 40 000 samples a file. Where the two wishes conflict (a fast segment in a long test) the rate caps win and
 the delay recorded in truth.json is larger. The load cell is the smallest of a catalogue whose
 capacity is at least 3-100 times the peak force (labs keep one cell for many tests). The white
 noise at the export is 0.001-0.02 % of the cell's capacity; the 1/f corner lies 10^-3 to 0.3 times
@@ -24,7 +24,7 @@ from .draws import loguniform
 RATES = (1.0, 2.0, 5.0, 10.0, 20.0, 25.0, 50.0, 100.0)
 CAPACITIES = (0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 25.0, 50.0, 100.0, 250.0, 500.0, 1e3, 2.5e3, 5e3, 1e4, 3e4, 5e4, 1e5)
 #: the most fine-grid samples per file (memory and time), and the most exported samples
-MAX_FINE, MAX_OUT, MIN_OUT = 3_000_000, 60_000, 1_000
+MAX_FINE, MAX_OUT, MIN_OUT = 3_000_000, 40_000, 1_000
 
 
 def draw_timing(rng: np.random.Generator, durations: list[float], t_move: float) -> list[Chain]:
@@ -34,9 +34,9 @@ def draw_timing(rng: np.random.Generator, durations: list[float], t_move: float)
     u = float(rng.uniform(0.05, 0.45))
     ripple = float(rng.uniform(0.1, 1.0))
     g = dc_group_delay(aa_filter(kind, order, 1.0, 1000.0, ripple), 1000.0, 1.0)  # delay x cut-off
-    lag = loguniform(rng, 2e-4, 5e-3)
+    lag = loguniform(rng, 5e-4, 1e-2)
     f_lag = 2.0 * g / (lag * t_move) / u  # export rate that keeps the drawn delay
-    n_target = loguniform(rng, 1500.0, 20000.0)
+    n_target = loguniform(rng, 1000.0, 15000.0)
     ratio0 = int(rng.choice([4, 8, 16, 32, 64]))
     base = Chain(f_out=1.0, ratio=ratio0, filter=kind, order=order, cutoff_of_nyquist=u, ripple_db=ripple,
                  decimator=str(rng.choice(["cic", "fir"])), cic_order=int(rng.integers(1, 4)), bits=16,
