@@ -122,6 +122,12 @@ def _by(rows: list[dict], key) -> dict:
     return dict(sorted(out.items()))
 
 
+def _bin(v: float, edges: tuple[float, float], what: str) -> str:
+    lo, hi = edges
+    return (f"< {100 * lo:g} % {what}" if v < lo else f"{100 * lo:g}-{100 * hi:g} % {what}" if v < hi
+            else f">= {100 * hi:g} % {what}")
+
+
 def score_clean(rows: list[dict]) -> dict:
     ok = [r for r in rows if r["status"] == "ok"]
     fp = [r for r in ok if r["effects"]]
@@ -143,6 +149,8 @@ def score_clean(rows: list[dict]) -> dict:
             "fp_by_quantize_at": _by(ok, lambda r: r["chain"]["quantize_at"]),
             "fp_by_hum": _by(ok, lambda r: r["chain"]["hum_of_noise"] > 0),
             "fp_by_family": _by(ok, lambda r: r["family"]),
+            "fp_by_force_lag": _by(ok, lambda r: _bin(r["chain"]["force_lag_of_segment"], (1e-3, 1e-2), "of segment")),
+            "fp_by_acquisition_error": _by(ok, lambda r: _bin(r["acquisition_error_of_range"], (1e-3, 1e-2), "of range")),
             "fp_cases": [r["case"] for r in fp]}
 
 
@@ -179,8 +187,8 @@ def _row(t: dict, res: dict) -> dict:
             "variant": (t["effect"] or {}).get("variant"), "effect_size": (t["effect"] or {}).get("size"),
             "files": len(t["files"]), "samples": sum(f["samples"] for f in t["files"]),
             "acquisition_error_of_range": max(f["acquisition_error_of_range"] for f in t["files"]),
-            "chain": {k: ch[k] for k in ("filter", "order", "f_out", "bits", "quantize_at", "hum_of_noise",
-                                         "decimator", "filter_delay_s")},
+            "chain": {k: ch.get(k) for k in ("filter", "order", "f_out", "bits", "quantize_at", "hum_of_noise",
+                                             "decimator", "position", "force_lag_s", "force_lag_of_segment")},
             "seed": t["seed"], **{"effects": [], "terms": []}, **res}
 
 

@@ -177,7 +177,7 @@ def test_reduced_relaxation_functions(name):
 
 
 def test_fung_spectrum_is_fungs_closed_form():
-    """G(t) = [1 + C (E1(t/tau2) - E1(t/tau1))] / [1 + C ln(tau2/tau1)] (Fung 1993, sec. 7.6)."""
+    """G(t) = [1 + C (E1(t/tau2) - E1(t/tau1))] / [1 + C ln(tau2/tau1)] (Fung 1993)."""
     from scipy.special import exp1
 
     k = KERNELS["fung"]

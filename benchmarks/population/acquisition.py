@@ -2,8 +2,8 @@
 
 The true force and crosshead position are computed on a fine grid at the converter's rate
 ``fs = R f_out`` (R = the oversampling ratio). The force channel then goes the way a
-strain-gauge load cell's signal goes (Horowitz & Hill 2015, *The Art of Electronics*, ch. 8 on
-amplifier noise; Lyons 2011, *Understanding DSP*, ch. 10 on CIC decimation):
+strain-gauge load cell's signal goes (Horowitz & Hill 2015, *The Art of Electronics*, on
+amplifier noise; Lyons 2011, *Understanding DSP*, on CIC decimation):
 
 1. amplifier noise: white plus 1/f (flicker) noise with a corner frequency where the two have
    equal power; the 1/f part is Kasdin's (1995, Proc. IEEE 83:802) fractional-differencing filter

@@ -202,7 +202,8 @@ def make_case(seq: np.random.SeedSequence, cls: str, folder: Path, *, kind: str 
              "seed": {"entropy": seq.entropy, "spawn_key": list(seq.spawn_key)}, "class": cls,
              "effect": None if cls == "clean" else {"name": cls, **prm, "size": size},
              "family": family, "shape": shape, "mode": mode, "base_law": law.describe(),
-             "protocol": {"kind": kind, **proto.info}, "rupture": rup, "format": fmt,
+             "protocol": {"kind": kind, **proto.info, "shortest_segment_s": t_move, "longest_hold_s": t_long},
+             "rupture": rup, "format": fmt,
              "specimens": specs, "files": files}
     truth = _plain(truth)
     (folder / "truth.json").write_text(json.dumps(truth, indent=1, sort_keys=True) + "\n", encoding="utf-8")
@@ -253,7 +254,15 @@ def _record_file(rng, folder: Path, k: int, sim: dict, ch, spec: dict, ks: int, 
             "samples": int(t_out.size), "duration_s": float(sim["t"][-1]), "fine_samples": sim["n"],
             "acquisition_error_sd_N": float(np.std(f_out - f_clean)),
             "acquisition_error_of_range": float(np.std(f_out - f_clean) / (np.ptp(f_clean) or 1.0)),
-            "time_start_s": t_start, "slips_s": sim["slips_s"], "chain": ch.describe(), "export": info}
+            "time_start_s": t_start, "slips_s": sim["slips_s"], "chain": _lag(ch.describe(), proto), "export": info}
+
+
+def _lag(chain: dict, proto: Protocol) -> dict:
+    """The chain plus the force's lag behind the position [s] (the analog filter's delay, and the
+    decimator's when the position is latched rather than averaged alike), and that lag over the
+    shortest loading segment: a lag makes an elastic record's loops open."""
+    lag = chain["filter_delay_s"] + (chain["decimator_delay_s"] if chain["position"] == "latched" else 0.0)
+    return {**chain, "force_lag_s": lag, "force_lag_of_segment": lag / proto.shortest_segment()}
 
 
 def plan(seed: int, n_cases: int, clean_fraction: float = 0.5) -> list[tuple[str, str | None]]:

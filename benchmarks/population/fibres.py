@@ -9,10 +9,10 @@
   the energy along the test). Fibres carry load only while stretched (``E > 0``).
 * :class:`WeibullToe`: a neo-Hookean matrix and collagen fibres along the load that are crimped
   and straighten at stretches ``s`` drawn from a shifted Weibull distribution (fibre recruitment:
-  Lanir 1983, J. Biomech. 16:1; the Weibull form of Hamedzadeh, Gasser & Federico 2018, J. Mech.
-  Behav. Biomed. Mater. 80:168). A straight fibre is linear elastic in its own strain
-  ``lambda/s - 1``. With ``F`` the cumulative distribution of ``s``, the fibres' stress and energy
-  per reference volume are (integrating by parts)
+  Lanir 1983, J. Biomech. 16:1; the Weibull form of Hamedzadeh, Gasser & Federico 2018). A
+  straight fibre is linear elastic in its own strain ``lambda/s - 1``. With ``F`` the cumulative
+  distribution of ``s``, the fibres' stress and energy per reference volume are (integrating by
+  parts)
 
       P_f = E lambda J(lambda),   W_f = E/2 (lambda**2 J(lambda) - K(lambda)),
       J = int_1^lambda F(s)/s**2 ds,   K = int_1^lambda F(s) ds,

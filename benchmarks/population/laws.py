@@ -10,7 +10,7 @@ homogeneous incompressible tests, in closed form:
 
 For a law written in the invariants ``I1 = sum lambda_i**2``, ``I2 = sum lambda_i**-2`` with
 ``W1 = dW/dI1``, ``W2 = dW/dI2`` the stresses are the classical ones (Treloar 1975, *The physics of
-rubber elasticity*, ch. 10; Ogden 1984, *Non-linear elastic deformations*, sec. 7.2):
+rubber elasticity*; Ogden 1984, *Non-linear elastic deformations*):
 
 * uniaxial     ``P = 2 (x - x**-2) (W1 + W2 / x)``
 * equibiaxial  ``P = 2 (x - x**-5) (W1 + x**2 W2)``
@@ -202,13 +202,13 @@ class VerondaWestmann(InvariantLaw):
 
 
 #: The five coefficients of the series of the inverse Langevin function (Arruda & Boyce 1993,
-#: J. Mech. Phys. Solids 41:389, eq. 22).
+#: J. Mech. Phys. Solids 41:389).
 _AB_C = (0.5, 1.0 / 20.0, 11.0 / 1050.0, 19.0 / 7000.0, 519.0 / 673750.0)
 
 
 class ArrudaBoyce(InvariantLaw):
     """The eight-chain model in its five-term series,
-    ``W = mu sum_i C_i / lam_m**(2i - 2) (I1**i - 3**i)`` (Arruda & Boyce 1993, eq. 22)."""
+    ``W = mu sum_i C_i / lam_m**(2i - 2) (I1**i - 3**i)`` (Arruda & Boyce 1993)."""
 
     name = "arruda_boyce"
 
@@ -226,7 +226,7 @@ class Ogden(Law):
     """``W = sum_p mu_p/alpha_p (l1**alpha_p + l2**alpha_p + l3**alpha_p - 3)`` (Ogden 1972, Proc. R.
     Soc. A 326:565); initial shear modulus ``sum_p mu_p alpha_p / 2``.
 
-    Stresses (Ogden 1984, sec. 7.2): uniaxial ``sum mu_p (x**(a-1) - x**(-a/2-1))``; equibiaxial
+    Stresses (Ogden 1984): uniaxial ``sum mu_p (x**(a-1) - x**(-a/2-1))``; equibiaxial
     ``sum mu_p (x**(a-1) - x**(-2a-1))``; pure shear ``sum mu_p (x**(a-1) - x**(-a-1))``; simple shear
     ``sum mu_p (l**a - l**-a) / (l + 1/l)`` with ``l = g/2 + sqrt(1 + g**2/4)``.
     """

@@ -2,7 +2,7 @@
 stretch-dependent (nonlinear) relaxation.
 
 Quasi-linear viscoelasticity (Fung 1972, in *Biomechanics: its foundations and objectives*; Fung
-1993, *Biomechanics*, sec. 7.6): ``P(t) = int_0^t G(t - s) dP_e(s)/ds ds`` with ``G(0) = 1`` and
+1993, *Biomechanics: mechanical properties of living tissues*): ``P(t) = int_0^t G(t - s) dP_e(s)/ds ds`` with ``G(0) = 1`` and
 ``P_e`` the instantaneous elastic stress. It is integrated by **direct convolution on the fine
 time grid**: with ``P_e`` taken linear between grid points the integral is exactly
 ``P_n = G(t_n) P_e(0) + sum_k Gbar_{n-k} (P_e(t_k) - P_e(t_{k-1}))`` where ``Gbar_j`` is the mean
@@ -16,7 +16,7 @@ Kernels (each with ``value(t)`` and ``primitive(t)``):
   ``G = [1 + C (E1(t/tau_2) - E1(t/tau_1))] / [1 + C ln(tau_2/tau_1)]``;
 * :class:`PowerLaw` the modified power law ``G = g_inf + (1 - g_inf)(1 + t/t0)**(-n)``
   (Nutting's power-law relaxation with a time ``t0`` that keeps ``G(0) = 1``; Findley, Lai &
-  Onaran 1976, *Creep and relaxation of nonlinear viscoelastic materials*, ch. 5).
+  Onaran 1976, *Creep and relaxation of nonlinear viscoelastic materials*).
 
 Stretch-dependent relaxation:
 
