@@ -439,3 +439,16 @@ def test_slack_specimen_carries_no_force_until_taut():
     assert np.all(p[x <= 1.05] == 0.0) and np.all(p[x > 1.16] > 0.0)
     sharp = E.slack_stress({"variant": "sharp", "delta": 0.1, "spread": 0.5}, el, x)
     assert np.allclose(sharp, np.where(x > 1.1, LAWS["neo_hookean"].stress(x / 1.1, "uniaxial"), 0.0))
+
+
+def test_scoring_counts_plain_viscoelastic_apart_for_stretch_dependent_relaxation():
+    import bench_discover_population as B
+
+    assert B.judge("nonlinear_viscoelastic", ["viscoelastic", "nonlinear_viscoelastic"])[:2] == (True, True)
+    strict, lenient, cols = B.judge("nonlinear_viscoelastic", ["viscoelastic"])
+    assert (strict, lenient, cols) == (False, False, [B.PLAIN_VE])
+    assert B.judge("viscoelastic", ["viscoelastic", "nonlinear_viscoelastic"])[:2] == (False, True)
+    assert B.judge("slack", []) == (False, False, ["nothing"])
+    assert B.judge("slack", ["slack", "sensor_offset"])[:2] == (False, True)
+    lo, hi = B.clopper_pearson(0, 20)
+    assert lo == 0.0 and hi == pytest.approx(1 - 0.025 ** (1 / 20))  # the exact bound at k = 0
