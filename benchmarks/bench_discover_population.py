@@ -230,7 +230,8 @@ def table(res: dict) -> str:
     c, e, rt = res["clean"], res["effects"], res["runtime"]
     lo, hi = c["fp_ci95"]
     lines = [f"population seed {res['population']['seed']}: {res['population']['cases']} cases, "
-             f"generator {res['population']['generator_version']}; esmm {res['esmm']}",
+             f"generator {res['population']['generator_version']}; esmm {res['esmm']}; cases in "
+             f"{res['population']['folder']}",
              f"clean: false positives {c['false_positives']}/{c['ran']} = {_pct(c['fp_rate'])} "
              f"(95 % CI {_pct(lo)} - {_pct(hi)}); elastic terms added on {c['with_terms']}/{c['ran']}",
              "  invented: " + (", ".join(f"{k} {v}" for k, v in c["invented"].items()) or "nothing"),
@@ -268,7 +269,9 @@ def main(argv=None) -> int:
     out = Path(args.out)
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="esmm-population-"))
     if work.exists() and any(work.iterdir()):
-        shutil.rmtree(work)
+        if not (work / "index.json").exists():
+            ap.error(f"--work {work}: not empty and not a population folder (no index.json); give a new folder")
+        shutil.rmtree(work)  # an earlier population: regenerated from its seed
     res = evaluate(args.cases, args.seed, jobs=args.jobs, timeout=args.timeout, work=work,
                    clean_fraction=args.clean_fraction)
     out.parent.mkdir(parents=True, exist_ok=True)
