@@ -16,15 +16,18 @@ told from the material law.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 from ..calibrate.problem import stress_scale
 from ..tensile.data import TensileTest
-from ..tensile.events import noise_sd, rupture_index, slip_events
+from ..tensile.events import SLIP_ALPHA, rupture_index, slip_events
+from ..tensile.noise import Noise, noise_model
 from .covariates import Covariates, covariates, thin
 
 
@@ -69,8 +72,10 @@ class Record:
         self.area = t.metadata.get("area")
         self.gauge = t.metadata.get("gauge_length")
         self.T = float(self.t[-1] - self.t[0]) if self.t is not None else 0.0
-        #: white measurement noise of the stress [Pa], from the record alone
-        self.sigma = noise_sd(self.y)
+        #: the measurement noise of the stress, from the record alone (size [Pa], correlation, quantisation)
+        self.noise: Noise = noise_model(self.y, self.t)
+        #: its per-sample standard deviation [Pa]
+        self.sigma = self.noise.sigma
         #: samples where the grip slipped (the stretch is shifted from each on)
         self.slips = slip_events(self.x, self.y, self.cov.direction) if self.history and self.tension_only else []
 
@@ -125,7 +130,7 @@ def cut_at_rupture(t: TensileTest) -> tuple[TensileTest, dict[str, Any]]:
     """*t* without the samples from its rupture on (:func:`~esmm.pipeline.tensile.events.rupture_index`), and what was cut."""
     if t.time is None or t.mode == "simple_shear":
         return t, {}
-    k = rupture_index(t.stretch, t.stress, noise_sd(t.stress))
+    k = rupture_index(t.stretch, t.stress, noise_model(t.stress).sigma)
     if k is None or k < 10:
         return t, {}
     cut = {"index": int(k), "stretch": float(t.stretch[k]), "time": float(t.time[k]),
@@ -255,18 +260,27 @@ def set_applicable(rec: Record) -> bool:
     return float(np.min(after_peak)) - 1.0 <= 0.5 * span
 
 
-def strain_softening(rec: Record) -> bool:
-    """While the stretch increases on its first loading, the stress falls more than 10 noise standard
-    deviations below its maximum so far and does not come back: a descending branch that no stable
-    elastic law makes (a softening only damage explains)."""
+def strain_softening(rec: Record, alpha: float = SLIP_ALPHA) -> bool:
+    """While the stretch increases on a loading run, the stress falls below its maximum so far by more than
+    the noise can make it, and does not come back: a descending branch that no stable elastic law makes
+    (a softening only damage explains).
+
+    "More than the noise can make": the fall exceeds z √2 σ, √2 σ the largest
+    standard deviation of the noise's difference across any lag
+    (:meth:`~esmm.pipeline.tensile.noise.Noise.difference_sd`) and z the normal
+    quantile of *alpha* over the record's samples (Bonferroni: a clean record is
+    called softening with probability at most *alpha*).
+    """
     if not rec.tension_only:
         return False
+    z = float(stats.norm.isf(alpha / max(rec.y.size, 1)))
+    drop = z * math.sqrt(2.0) * rec.sigma
     d = rec.cov.direction
     for s0, e0 in [(a, b) for a, b, v in _runs_of(d) if v > 0]:
         y = rec.y[s0:e0]
         top = np.maximum.accumulate(y)
         later = np.maximum.accumulate(y[::-1])[::-1]
-        if np.any((y < top - 10.0 * rec.sigma) & (later < top)):
+        if np.any((y < top - drop) & (later < top)):
             return True
     return False
 

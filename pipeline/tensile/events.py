@@ -7,13 +7,16 @@ about itself, without any model of the material.
 from __future__ import annotations
 
 import numpy as np
+from scipy import stats
+
+from .noise import noise_model, robust_sd
 
 #: a rupture falls faster than this many times the test's mean secant stiffness (largest stress / span)
 SUDDEN_STEEPNESS = 10.0
 #: a sudden drop below this fraction of the stress before it is a rupture (a slip loses less)
 RUPTURE_FRACTION = 0.5
-#: a slip must lose more than this many noise standard deviations of stress
-SLIP_SIGMAS = 6.0
+#: the probability of one false slip anywhere in a clean record (Bonferroni over its loading samples)
+SLIP_ALPHA = 0.01
 
 
 def runs(a: np.ndarray) -> list[tuple[int, int, int]]:
@@ -27,44 +30,14 @@ def runs(a: np.ndarray) -> list[tuple[int, int, int]]:
 
 
 def noise_sd(y: np.ndarray) -> float:
-    r"""Standard deviation of the white measurement noise of a record, estimated without a model.
+    """Per-sample standard deviation of the measurement noise of a record *y* (time order) [units of *y*].
 
-    The third difference at lag 1, normalised to unit gain for white noise,
-    :math:`e_k = (y_{k+3} - 3y_{k+2} + 3y_{k+1} - y_k)/\sqrt{20}`, annihilates every
-    locally quadratic signal, so on a record sampled densely compared with its
-    curvature it is pure noise; its robust scale (1.4826 × median absolute
-    deviation) ignores the few samples at turning points, slips and breaks. A
-    quantised record (most differences exactly zero) is floored at the
-    quantisation noise q/√12, q the smallest step between samples.
-
-    Parameters
-    ----------
-    y : ndarray, shape (n,)
-        Stress in sample (time) order [Pa].
-
-    Returns
-    -------
-    float
-        σ [Pa] (at least 1e-12 of the record's largest |y|).
+    From :func:`~esmm.pipeline.tensile.noise.noise_model`: robust to filtered,
+    decimated, quantised and partly 1/f noise (third differences at growing
+    lags, the plateau between the noise's correlation and the signal). At least
+    1e-12 of the record's largest |y|.
     """
-    y = np.asarray(y, float)
-    y = y[np.isfinite(y)]
-    floor = 1e-12 * (float(np.max(np.abs(y))) if y.size else 1.0) or 1e-300
-    if y.size < 8:
-        return floor
-    mad = _third_difference_sd(y)
-    steps = np.abs(np.diff(y))
-    steps = steps[steps > 0]
-    quant = float(np.min(steps)) / np.sqrt(12.0) if steps.size else 0.0
-    return max(mad, quant, floor)
-
-
-def _third_difference_sd(y: np.ndarray) -> float:
-    """1.4826 × MAD of the normalised third differences of *y* (0 with fewer than 8 samples)."""
-    if y.size < 8:
-        return 0.0
-    e = (y[3:] - 3.0 * y[2:-1] + 3.0 * y[1:-2] - y[:-3]) / np.sqrt(20.0)
-    return 1.4826 * float(np.median(np.abs(e - np.median(e))))
+    return noise_model(y).sigma
 
 
 def _falls(x: np.ndarray, y: np.ndarray, k0: int, k1: int, slope: float) -> bool:
@@ -118,43 +91,87 @@ def rupture_index(x: np.ndarray, y: np.ndarray, sigma: float = 0.0) -> int | Non
     return None
 
 
-def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray) -> list[int]:
+def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, alpha: float = SLIP_ALPHA) -> list[int]:
     """Samples where the grip slipped: the bottom of each sudden, sustained drop of stress during loading.
 
-    A slip: during a loading run, the stress falls monotonically while the
-    stretch advances, faster than it rose over the five samples before (a
-    sawtooth, not a smooth maximum); the fall
-    exceeds :data:`SLIP_SIGMAS` local noise standard deviations (the
-    third-difference estimate of :func:`noise_sd` over the 50 samples around it:
-    a step that large between two noisy samples is 4.2 standard deviations of
-    their difference, about one chance in 10^5 per sample) and ends more than 2σ
-    below the level three samples before the fall began (a spike falls back to the
-    trend, a slip below it); it loses less than a rupture; and the same run later
-    climbs back above the stress before the fall (the curve continues, shifted).
+    A slip: during a loading run, the stress falls monotonically from sample k
+    to m while the stretch advances, and
+
+    * the fall is sudden against the record's own noise: the second difference
+      across it, g = (y_m − y_k) − (y_k − y_{k−h}) with h = m − k (the fall plus the
+      rise the trend would have made over the same samples), is below
+      −z s_h, where s_h is the robust standard deviation of the same second
+      difference at lag h over every loading sample of the record (so whatever
+      the noise's correlation, filtering or quantisation, a fall of noise over h
+      samples is judged against falls of noise over h samples), and z the normal
+      quantile of *alpha* / (loading samples): the chance of one false slip
+      anywhere in a clean record is at most *alpha* (Bonferroni);
+    * it is sustained: the mean stress over the h + 1 samples after the fall
+      stays below the level before it by more than half the fall (a spike falls
+      back at once);
+    * it loses less than :data:`RUPTURE_FRACTION` of the stress (else a rupture),
+      and the same run later climbs back above the stress before the fall (the
+      curve continues, shifted).
+
+    No window counts samples: the fall's own duration sets the lag.
+
+    Parameters
+    ----------
+    x, y : ndarray, shape (n,)
+        Stretch and stress in time order.
+    direction : ndarray of int, shape (n,)
+        +1 loading, -1 unloading, 0 hold (:class:`~esmm.pipeline.discover.covariates.Covariates`).
+    alpha : float
+        Probability of a false slip in a clean record.
+
+    Returns
+    -------
+    list of int
+        The last sample of each slip's fall.
     """
     x = np.asarray(x, float)
     y = np.asarray(y, float)
+    d = np.asarray(direction)
+    loading = [(s, e) for s, e, v in runs(d) if v > 0 and e - s >= 4]
+    n_load = sum(e - s for s, e in loading)
+    if n_load < 8:
+        return []
+    z = float(stats.norm.isf(alpha / n_load))
+    scales: dict[int, float] = {}
     out: list[int] = []
-    for s, e, d in runs(np.asarray(direction)):
-        if d <= 0:
-            continue
+    for s, e in loading:
         k = s
         while k < e - 1:
             m = k
             while m + 1 < e and y[m + 1] < y[m]:
                 m += 1
-            if m > k and _is_slip(x, y, s, e, k, m):
+            if m > k and _is_slip(x, y, s, e, k, m, z, scales, loading):
                 out.append(int(m))
             k = m + 1
     return out
 
 
-def _is_slip(x, y, s: int, e: int, k: int, m: int) -> bool:
+def _second_difference_scale(y: np.ndarray, h: int, loading: list[tuple[int, int]]) -> float:
+    """Robust standard deviation of y_{j+h} − 2y_j + y_{j−h} over the loading samples (0 if too few)."""
+    vals = [y[s + 2 * h:e] - 2.0 * y[s + h:e - h] + y[s:e - 2 * h] for s, e in loading if e - s > 2 * h]
+    if not vals:
+        return 0.0
+    g = np.concatenate(vals)
+    return robust_sd(g - np.median(g)) if g.size >= 8 else 0.0
+
+
+def _is_slip(x, y, s: int, e: int, k: int, m: int, z: float, scales: dict[int, float], loading) -> bool:
     """Whether the fall from sample k to m of the loading run [s, e) is a slip (see :func:`slip_events`)."""
-    lo, hi = max(0, k - 25), min(y.size, m + 26)
-    sigma = max(_third_difference_sd(y[lo:hi]), 1e-12 * float(np.max(np.abs(y))))
-    k0 = max(s, k - 5)
-    rise = (y[k] - y[k0]) / (x[k] - x[k0]) if x[k] > x[k0] else 0.0
-    ref = y[max(s, k - 3)]
-    return bool(y[k] - y[m] > SLIP_SIGMAS * sigma and ref - y[m] > 2.0 * sigma and y[m] > RUPTURE_FRACTION * y[k]
-                and _falls(x, y, k, m, max(rise, 0.0)) and np.any(y[m:e] > y[k]))
+    h = m - k
+    if k - h < s or y[m] <= RUPTURE_FRACTION * y[k]:
+        return False
+    if h not in scales:
+        scales[h] = _second_difference_scale(y, h, loading)
+    floor = 1e-12 * float(np.max(np.abs(y)))
+    g = (y[m] - y[k]) - (y[k] - y[k - h])
+    if not g < -z * max(scales[h], floor):
+        return False
+    after = y[m:min(e, m + h + 1)]
+    if not float(np.mean(after)) < y[k] - 0.5 * (y[k] - y[m]):
+        return False
+    return bool(_falls(x, y, k, m, 0.0) and np.any(y[m:e] > y[k]))
