@@ -16,6 +16,12 @@ high-stretch end, against time) explain the ranking in words; :func:`structure`
 says where a residual is largest and what it follows, for the honest outcome
 when nothing explains it.
 
+The residual is called **noise** (:attr:`Diagnosis.white`) when its mean square is within
+:data:`WHITE_CHI2` noise variances per sample, or within :data:`WHITE_Z` standard errors of one
+(the standard error of a mean of n squared noise samples, √(2τ/n), counts the noise's correlation τ
+at the fitting samples' spacing). Its lag-1 autocorrelation and runs test are reported; they do
+not decide (filtered noise is correlated however good the model).
+
 The residual here is *measured − model* (what the model misses).
 """
 
@@ -36,8 +42,11 @@ from .statistics import runs_test
 
 #: strength used for the finite-difference signatures (in each effect's own coordinate)
 _EPS = 1e-3
-#: a residual within this many noise variances per sample (RMS 0.7 σ) is at the record's resolution
+#: a residual within this many noise variances per sample (RMS 1.2 σ) is at the record's resolution
 WHITE_CHI2 = 1.5
+#: ... or within this many standard errors of one noise variance per sample (its standard error counts the
+#: noise's correlation at the fitting samples' spacing)
+WHITE_Z = 3.0
 
 
 @dataclass
@@ -425,11 +434,18 @@ def diagnose(problem: Problem, z_full: np.ndarray, *, candidates: list[str] | No
     gains, ss = _scores(problem, z_full, names)
     scores = {n: g / ss for n, g in gains.items()}
     why = _explain(problem, facts, scores, names)
-    white = chi2 <= WHITE_CHI2 or (rho < 0.3 and runs_z > -3.0)
+    white = chi2 <= max(WHITE_CHI2, 1.0 + WHITE_Z * math.sqrt(2.0 * _noise_tau(problem) / max(en.size, 1)))
     ranking = sorted(names, key=lambda n: -gains.get(n, 0.0))
     rmse = errors.rmse if errors is not None else float("nan")
     nrmse = errors.nrmse if errors is not None else float("nan")
     return Diagnosis(rmse, nrmse, rho, runs_z, white, chi2, facts, scores, gains, why, ranking, structure(en, cat))
+
+
+def _noise_tau(problem: Problem) -> float:
+    """The median over records of their noise's integrated autocorrelation time at the fitting spacing."""
+    taus = [r.noise.tau(float(np.median(np.diff(r.fit_idx))) if r.fit_idx.size > 1 else 1.0)
+            for r in problem.records]
+    return float(np.median(taus)) if taus else 1.0
 
 
 def _explain(problem: Problem, f: dict[str, Any], scores: dict[str, float], names: list[str]) -> dict[str, str]:

@@ -44,6 +44,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 from ..calibrate.intervals import lag1
 
@@ -102,24 +103,32 @@ def information(res: Sequence[np.ndarray], n_eff: Sequence[float], k: int) -> di
             "n_eff": N, "k": k}
 
 
-def noise_chi2(res: Sequence[np.ndarray], sigma: Sequence[float]) -> float:
-    """χ² = Σ_f Σ_k r_fk² / σ_f² of residuals (model - data, Pa) against each record's noise σ_f."""
+def noise_chi2(res: Sequence[np.ndarray], sigma: Sequence[float], tau: Sequence[float] | None = None) -> float:
+    """χ² = Σ_f Σ_k r_fk² / (σ_f² τ_f) of residuals (model - data, Pa) against each record's noise σ_f.
+
+    τ_f (default 1) is the integrated autocorrelation time of the record's noise
+    at its fitting samples' spacing: n correlated samples carry the information
+    of n/τ independent ones.
+    """
     tot = 0.0
-    for r, s in zip(res, sigma):
+    for f, (r, s) in enumerate(zip(res, sigma)):
         r = r[np.isfinite(r)]
-        tot += float(r @ r) / max(s, 1e-300) ** 2
+        tot += float(r @ r) / max(s, 1e-300) ** 2 / (tau[f] if tau is not None else 1.0)
     return tot
 
 
 def noise_test(res0: Sequence[np.ndarray], res1: Sequence[np.ndarray], sigma: Sequence[float],
-               dk: int) -> dict[str, float]:
-    """The fitted improvement of a candidate (res1) over the current model (res0) in noise units.
+               dk: int, tau: Sequence[float] | None = None) -> dict[str, float]:
+    """The pre-screen: the fitted improvement of a candidate (res1) over the current model (res0) in noise units.
 
     Returns ``{"dchi2", "penalty", "dbic"}``: ``dbic = -Δχ² + Δk ln N`` (negative: the
-    improvement pays for the parameters), N the number of fitting samples.
+    improvement pays for the parameters), N the number of fitting samples, Δχ²
+    with each record's χ² divided by its noise's autocorrelation time *tau*.
+    Only a pre-screen (it saves the held-out check of candidates that cannot
+    pay for themselves on the data they were fitted to); it decides nothing.
     """
     n = sum(int(np.isfinite(r).sum()) for r in res1)
-    d = noise_chi2(res0, sigma) - noise_chi2(res1, sigma)
+    d = noise_chi2(res0, sigma, tau) - noise_chi2(res1, sigma, tau)
     pen = max(dk, 0) * math.log(max(n, 2))
     return {"dchi2": d, "penalty": pen, "dbic": pen - d}
 
@@ -152,64 +161,119 @@ def autocorrelation_time(d: np.ndarray) -> float:
     return float(min(max(tau, 1.0), n))
 
 
-def paired_heldout(pairs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, float, float]],
-                   ) -> dict[str, float]:
-    """The held-out improvement of a candidate over the current model (module docstring).
+def segment_mean(d: np.ndarray) -> tuple[float, float, float]:
+    """(mean, variance of the mean, degrees of freedom) of a serially correlated series *d*.
+
+    The variance of the mean is heteroskedasticity- and autocorrelation-consistent:
+    var(d) τ / n with τ the integrated autocorrelation time
+    (:func:`autocorrelation_time`); its degrees of freedom are those of n/τ
+    effective samples, n/τ − 1 (at least 1): a smooth series of n samples counts
+    as few.
+    """
+    d = np.asarray(d, float)
+    n = d.size
+    if n == 0:
+        return 0.0, 0.0, 1.0
+    if n == 1:
+        return float(d[0]), math.inf, 1.0
+    tau = autocorrelation_time(d)
+    return float(d.mean()), float(np.var(d, ddof=1)) * tau / n, max(n / tau - 1.0, 1.0)
+
+
+def heldout_test(segments: Sequence[HeldoutSegment]) -> dict[str, float]:
+    """The held-out comparison of a candidate with the current model: one-sided p-value and size.
+
+    Per held-out sample the loss difference is d = e₀² − e₁² (current minus
+    candidate squared error; e = prediction − data), > 0 where the candidate
+    predicts better. With Δ = p₀ − p₁ the difference of the two predictions,
+    d = Δ² + 2Δe₁. Both models were fitted on other data, so Δ is fixed and
+    the only randomness of d is the held-out data's in e₁:
+
+    * **Statistic.** Per file, the mean of d over its held-out samples (in
+      units of the file's stress range², so that files of any stress level
+      count alike), each segment's part (a segment: one fold's contiguous
+      held-out samples of one file) with the variance 4 var(Δe₁) τ / n of the
+      mean of 2Δe₁, τ the integrated autocorrelation time of the series Δe₁
+      (heteroskedasticity- and autocorrelation-consistent, :func:`segment_mean`;
+      segments independent). G = the mean over files, each counting equally;
+      T = G / se(G). Any misfit the candidate leaves in e₁ enlarges the variance
+      (the test is conservative then); the noise's correlation enters through τ.
+    * **Reference distribution.** Student's t with the Welch–Satterthwaite
+      degrees of freedom of the segments' variances, ν = (Σ v)² / Σ (v²/ν_s),
+      ν_s = n_s/τ_s − 1. ``p`` is the one-sided p-value of "the candidate
+      predicts the held-out data no better" (H0: E[d] ≤ 0).
+    * **Size.** ``noise_units``: the mean over files of the fall of the held-out
+      mean squared error in units of each file's noise variance σ_f²; the search
+      requires at least one (a candidate that changes the prediction by less
+      than the measurement's own noise is not established by it, however many
+      samples make the change significant).
 
     Parameters
     ----------
-    pairs : sequence of (y, p0, p1, range, sigma)
-        Per file: held-out data, the current model's and the candidate's
-        predictions (time order), the file's stress range and noise σ [Pa].
+    segments : sequence of HeldoutSegment
 
     Returns
     -------
     dict
-        ``noise_units``: mean over files of ΔMSE_f / σ_f² (the held-out
-        improvement in noise variances per sample; > 0: the candidate predicts
-        better); ``gain``: the same per range² (NRMSE units); ``z``: the sign test —
-        among the held-out samples where the two predictions differ by more than
-        the noise, how much more often the candidate is the closer one, in
-        standard errors (the signs' serial correlation included); ``z_mean``:
-        the mean improvement in its standard errors; ``decided``: the samples
-        where the predictions differ; ``relative``: the fall of the held-out mean
-        squared error as a fraction of the current model's; ``relative_se``: that
-        error's own relative standard error (its sampling uncertainty, serial
-        correlation included).
+        ``p``, ``t``, ``dof``, ``gain`` (G: the fall of the held-out MSE per
+        range²), ``se``, ``noise_units``, ``relative`` (the fall as a fraction of
+        the current model's held-out MSE), ``samples``.
     """
-    gains, units, var_mean = [], [], 0.0
-    sign_sum, sign_var, decided = 0.0, 0.0, 0
-    mse0, var0 = 0.0, 0.0
-    for y, p0, p1, rng, sig in pairs:
-        good = np.isfinite(p0) & np.isfinite(p1) & np.isfinite(y)
+    per_file: dict[str, list] = {}
+    for sg in segments:
+        good = np.isfinite(sg.p0) & np.isfinite(sg.p1) & np.isfinite(sg.y)
         if not good.any():
             continue
-        e0, e1 = np.abs(p0[good] - y[good]), np.abs(p1[good] - y[good])
-        d = e0 * e0 - e1 * e1
-        dn = d / max(rng, 1e-300) ** 2
-        gains.append(float(dn.mean()))
-        units.append(float(d.mean()) / max(sig, 1e-300) ** 2)
-        var_mean += float(np.var(dn)) * autocorrelation_time(dn) / dn.size
-        q0 = (e0 / max(rng, 1e-300)) ** 2
-        mse0 += float(q0.mean())
-        var0 += float(np.var(q0)) * autocorrelation_time(q0) / q0.size
-        differ = np.abs(p1[good] - p0[good]) > sig
-        if differ.sum() >= 2:
-            signs = np.sign(e0[differ] - e1[differ])
-            sign_sum += float(signs.sum())
-            sign_var += float(signs.size) * autocorrelation_time(signs)
-            decided += int(signs.size)
-    if not gains:
-        return {"gain": 0.0, "noise_units": 0.0, "z": 0.0, "z_mean": 0.0, "decided": 0, "relative": 0.0,
-                "relative_se": math.inf}
-    m = len(gains)
-    gain = float(np.mean(gains))
-    se = math.sqrt(var_mean) / m
-    return {"gain": gain, "noise_units": float(np.mean(units)),
-            "z": sign_sum / math.sqrt(sign_var) if sign_var > 0 else 0.0,
-            "z_mean": gain / se if se > 0 else 0.0, "decided": decided,
-            "relative": gain * m / mse0 if mse0 > 0 else 0.0,
-            "relative_se": math.sqrt(var0) / mse0 if mse0 > 0 else math.inf}
+        rng = max(sg.range, 1e-300)
+        delta = (sg.p0[good] - sg.p1[good]) / rng
+        e1 = (sg.p1[good] - sg.y[good]) / rng
+        mu, v, nu = segment_mean(delta * e1)
+        e0 = delta + e1
+        per_file.setdefault(sg.file, []).append((int(good.sum()), float(np.mean(delta * delta)) + 2.0 * mu, 4.0 * v,
+                                                 nu, float(np.mean(e0 * e0)), (rng / max(sg.sigma, 1e-300)) ** 2))
+    return _combine(per_file)
+
+
+def _combine(per_file: dict[str, list]) -> dict[str, float]:
+    """The statistic, its t reference and the size from per-file lists of segment summaries
+    (n, mean d, variance of the mean, degrees of freedom, current MSE, range²/σ²) (:func:`heldout_test`)."""
+    if not per_file:
+        return {"p": 1.0, "t": 0.0, "dof": 0.0, "gain": 0.0, "se": math.inf, "noise_units": 0.0, "relative": 0.0,
+                "samples": 0}
+    F = len(per_file)
+    gain, units, mse0, var, ws_den, total = 0.0, 0.0, 0.0, 0.0, 0.0, 0
+    for segs in per_file.values():
+        n_f = sum(s[0] for s in segs)
+        total += n_f
+        m_f = sum(s[0] * s[1] for s in segs) / n_f
+        gain += m_f / F
+        units += m_f * segs[0][5] / F
+        mse0 += sum(s[0] * s[4] for s in segs) / n_f / F
+        for n_s, _, v_s, nu_s, _, _ in segs:
+            c = (n_s / n_f / F) ** 2 * v_s
+            var += c
+            ws_den += c * c / nu_s if math.isfinite(c) else math.inf
+    se = math.sqrt(var) if math.isfinite(var) else math.inf
+    dof = var * var / ws_den if ws_den > 0 and math.isfinite(ws_den) else 1.0
+    if se > 0 and math.isfinite(se):
+        t = gain / se
+    else:
+        t = math.inf if (gain > 0 and se == 0) else 0.0
+    p = float(stats.t.sf(t, max(dof, 1.0))) if math.isfinite(t) else (0.0 if t > 0 else 1.0)
+    return {"p": p, "t": float(t), "dof": float(dof), "gain": float(gain), "se": se, "noise_units": float(units),
+            "relative": gain / mse0 if mse0 > 0 else 0.0, "samples": total}
+
+
+@dataclass
+class HeldoutSegment:
+    """One fold's contiguous held-out samples of one file: data, the two predictions, scale and noise."""
+
+    file: str
+    y: np.ndarray
+    p0: np.ndarray  # the current model's prediction [Pa]
+    p1: np.ndarray  # the candidate's prediction [Pa]
+    range: float  # the file's stress range [Pa]
+    sigma: float  # the file's noise standard deviation [Pa]
 
 
 @dataclass
