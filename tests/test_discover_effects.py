@@ -9,8 +9,12 @@ import numpy as np
 import pytest
 from esmm.pipeline.discover import synthetic as syn
 from esmm.pipeline.discover.records import prepare, rest_reading
-from esmm.pipeline.discover.statistics import HeldoutSegment, autocorrelation_time, heldout_test, noise_test
-from scipy import signal
+from esmm.pipeline.discover.statistics import (
+    HeldoutSegment,
+    autocorrelation_time,
+    heldout_test,
+    noise_test,
+)
 from esmm.pipeline.errors import ConfigError
 from esmm.pipeline.materials.effects import (
     CyclicSofteningEffect,
@@ -25,6 +29,7 @@ from esmm.pipeline.materials.effects import (
 )
 from esmm.pipeline.tensile import read
 from esmm.pipeline.tensile.events import noise_sd
+from scipy import signal
 
 BASE = {"mu": 20e3, "N": 4.0}
 

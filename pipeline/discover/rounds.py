@@ -13,20 +13,20 @@ the search is :class:`~esmm.pipeline.discover.search.Search`.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from collections.abc import Sequence
 
 import numpy as np
 
 from ..errors import FitError
 from ..materials.terms import TERMS
 from .diagnose import Diagnosis, diagnose
-from .fitted import effect_params, fit_spec
+from .fitted import Fitted, effect_params, fit_spec
+from .heldout import FoldSet, cached_heldout
 from .levels import Levels, round_levels
 from .model import VARIANTS
+from .records import Record
+from .state import Candidate, Criteria, Search, start_search
 from .trials import Trial, best_variant, check_heldout, compared, judged_on, noise_taus, passes
-
-if TYPE_CHECKING:
-    from .search import Candidate, Search
 
 #: the most strain-energy terms fitted per round (the best by their first-order gain)
 TERMS_PER_ROUND = 3
@@ -361,3 +361,15 @@ def backward(s: Search, rep) -> None:
         s.kept.remove(name)
         s.current = reduced
         sync_kept(s, c.round)
+
+
+def run_search(start: Fitted, material: FoldSet, artefact: FoldSet, records: list[Record],
+               candidates: Sequence[str], criteria: Criteria, rep) -> Search:
+    """The rounds and the backward elimination from the model *start* (:mod:`.rounds`)."""
+    search = start_search(start, material, artefact, records, candidates, criteria)
+    rnd = 1
+    while run_round(search, rnd, rep):
+        rnd += 1
+    backward(search, rep)
+    cached_heldout(search.current, material)
+    return search

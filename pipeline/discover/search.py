@@ -49,89 +49,17 @@ from ..tensile.data import TensileTest
 from .diagnose import Diagnosis
 from .estimates import estimates
 from .fitted import Fitted, effect_params, finish
-from .heldout import FoldSet, cached_heldout, fold_sets
-from .identify import identifiability
+from .heldout import cached_heldout, fold_sets
 from .levels import ALPHA, Levels
 from .model import CANDIDATES, Bounds, Problem, Spec
+from .nested import nested_heldout
 from .records import Record, fitting_view, prepare
-from .rounds import backward, run_round
+from .rounds import run_search
+from .state import Candidate, Criteria, Search
 from .trials import MIN_NOISE_UNITS
 
 
-def kind_of(name: str) -> str:
-    """``material`` (travels with the material), ``artefact`` (corrected per test) or ``elastic`` (a term)."""
-    if name in TERMS:
-        return "elastic"
-    return "artefact" if name in ARTEFACTS else "material"
-
-
 # --------------------------------------------------------------------------- results
-@dataclass
-class Candidate:
-    """The verdict on one candidate (last round it was tried in)."""
-
-    name: str
-    kind: str  # "material", "artefact" or "elastic"
-    round: int = 0
-    variant: str = ""
-    delta_aicc: float | None = None
-    delta_bic: float | None = None
-    dbic_noise: float | None = None
-    dchi2: float | None = None
-    heldout_nrmse: float | None = None
-    heldout_gain: float | None = None
-    heldout_z: float | None = None  # the held-out statistic t
-    heldout_p: float | None = None  # its one-sided p-value
-    heldout_level: float | None = None  # the level it was judged at (search-wide control)
-    heldout_noise_units: float | None = None
-    kept: bool = False
-    identifiable: bool = True
-    applicable: bool = True
-    reason: str = ""
-    score: float = 0.0
-    gain_chi2: float = 0.0
-    params: dict[str, Any] = field(default_factory=dict)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "name": self.name, "kind": self.kind, "round": self.round, "variant": self.variant,
-            "delta_aicc": self.delta_aicc, "delta_bic": self.delta_bic, "dbic_noise": self.dbic_noise,
-            "dchi2": self.dchi2, "heldout_nrmse": self.heldout_nrmse, "heldout_gain": self.heldout_gain,
-            "heldout_z": self.heldout_z, "heldout_p": self.heldout_p, "heldout_level": self.heldout_level,
-            "heldout_noise_units": self.heldout_noise_units,
-            "kept": self.kept, "identifiable": self.identifiable, "applicable": self.applicable,
-            "first_order_share": self.score, "first_order_chi2": self.gain_chi2, "reason": self.reason,
-            "params": self.params,
-        }
-
-
-@dataclass(frozen=True)
-class Criteria:
-    """When a candidate is kept, and when the search stops (see :func:`discover`)."""
-
-    alpha: float = ALPHA
-    min_noise_units: float = MIN_NOISE_UNITS
-    max_effects: int = 6
-
-
-@dataclass
-class Search:
-    """The state of the greedy search: the current model, the verdicts so far, what was kept."""
-
-    base: Fitted
-    current: Fitted
-    material: FoldSet  # the folds material effects and terms are judged on
-    artefact: FoldSet  # the folds per-file artefacts are judged on
-    candidates: dict[str, Candidate]
-    testable: list[str]
-    crit: Criteria
-    kept: list[str] = field(default_factory=list)
-    kept_round: dict[str, int] = field(default_factory=dict)
-    diagnoses: list[Diagnosis] = field(default_factory=list)
-    upgrades: list[str] = field(default_factory=list)
-    levels: list[Levels] = field(default_factory=list)  # per round
-
-
 @dataclass
 class DiscoverResult:
     """Everything :func:`discover` found (see docs/reference/outputs.md for the JSON)."""
@@ -286,26 +214,12 @@ def _discover(tests, *, model, base, fixed, free, weights, n_starts, seed, max_p
         "max_effects": criteria.max_effects, "n_starts": n_starts, "seed": seed, "candidates": list(candidates),
         "noise_sd": {r.name: r.sigma for r in records}})
     if nested:
-        from .nested import nested_heldout
-
         result.nested = nested_heldout(result, search, candidates, criteria, rep)
     result.seconds = time.perf_counter() - t_start
     rep.step(f"discover: kept {', '.join(search.kept) or 'nothing'}; NRMSE {start.errors.nrmse:.2%} -> "
              f"{search.current.errors.nrmse:.2%}, held-out {start.heldout.nrmse:.2%} -> "
              f"{search.current.heldout.nrmse:.2%} ({result.seconds:.1f} s)")
     return result
-
-
-def run_search(start: Fitted, material: FoldSet, artefact: FoldSet, records: list[Record],
-               candidates: Sequence[str], criteria: Criteria, rep) -> Search:
-    """The rounds and the backward elimination from the model *start* (:mod:`.rounds`)."""
-    search = _start_search(start, material, artefact, records, candidates, criteria)
-    rnd = 1
-    while run_round(search, rnd, rep):
-        rnd += 1
-    backward(search, rep)
-    cached_heldout(search.current, material)
-    return search
 
 
 def _check(tests, *, model, candidates, criteria: Criteria, max_points) -> None:
@@ -347,23 +261,6 @@ def _largest_energy(m, records: list[Record], base_params, directions) -> float:
         if np.any(np.isfinite(wv)):
             w_ref = max(w_ref, float(np.nanmax(wv[np.isfinite(wv)])))
     return w_ref
-
-
-def _start_search(start: Fitted, material: FoldSet, artefact: FoldSet, records: list[Record],
-                  considered: Sequence[str], crit: Criteria) -> Search:
-    """Every candidate, with the reason it is not tried where the data cannot show it."""
-    ident = identifiability(records)
-    cands: dict[str, Candidate] = {}
-    for n in CANDIDATES:
-        applicable, ok, why = ident[n]
-        c = Candidate(n, kind_of(n), identifiable=ok, applicable=applicable)
-        if n not in considered:
-            c.reason = "not considered (excluded by the caller)"
-        elif not applicable or not ok:
-            c.reason = why
-        cands[n] = c
-    testable = [n for n in considered if ident[n][0] and ident[n][1]]
-    return Search(start, start, material, artefact, cands, testable, crit)
 
 
 # --------------------------------------------------------------------------- the outcome
