@@ -77,7 +77,7 @@ class Record:
         #: its per-sample standard deviation [Pa]
         self.sigma = self.noise.sigma
         #: samples where the grip slipped (the stretch is shifted from each on)
-        self.slips = slip_events(self.x, self.y, self.cov.direction) if self.history and self.tension_only else []
+        self.slips = slip_events(self.x, self.y, self.cov.direction, noise=self.noise) if self.history and self.tension_only else []
 
     @property
     def name(self) -> str:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from .noise import noise_model, robust_sd
+from .noise import Noise, noise_model, robust_sd
 
 #: a rupture falls faster than this many times the test's mean secant stiffness (largest stress / span)
 SUDDEN_STEEPNESS = 10.0
@@ -91,7 +91,8 @@ def rupture_index(x: np.ndarray, y: np.ndarray, sigma: float = 0.0) -> int | Non
     return None
 
 
-def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, alpha: float = SLIP_ALPHA) -> list[int]:
+def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, noise: Noise | None = None,
+                alpha: float = SLIP_ALPHA) -> list[int]:
     """Samples where the grip slipped: the bottom of each sudden, sustained drop of stress during loading.
 
     A slip: during a loading run, the stress falls monotonically from sample k
@@ -100,10 +101,12 @@ def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, alpha: f
     * the fall is sudden against the record's own noise: the second difference
       across it, g = (y_m − y_k) − (y_k − y_{k−h}) with h = m − k (the fall plus the
       rise the trend would have made over the same samples), is below
-      −z s_h, where s_h is the robust standard deviation of the same second
-      difference at lag h over every loading sample of the record (so whatever
-      the noise's correlation, filtering or quantisation, a fall of noise over h
-      samples is judged against falls of noise over h samples), and z the normal
+      −z s_h, where s_h is the larger of the robust standard deviation of the
+      same second difference at lag h over every loading sample of the record
+      and the noise model's (:meth:`~esmm.pipeline.tensile.noise.Noise.second_difference_sd`):
+      whatever the noise's correlation, filtering or quantisation, a fall over
+      h samples is judged against the noise's falls over h samples, as the
+      record shows them and as its noise model predicts them; z is the normal
       quantile of *alpha* / (loading samples): the chance of one false slip
       anywhere in a clean record is at most *alpha* (Bonferroni);
     * it is sustained: the mean stress over the h + 1 samples after the fall
@@ -121,6 +124,8 @@ def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, alpha: f
         Stretch and stress in time order.
     direction : ndarray of int, shape (n,)
         +1 loading, -1 unloading, 0 hold (:class:`~esmm.pipeline.discover.covariates.Covariates`).
+    noise : Noise, optional
+        The record's noise model (default: :func:`~esmm.pipeline.tensile.noise.noise_model` of *y*).
     alpha : float
         Probability of a false slip in a clean record.
 
@@ -137,6 +142,7 @@ def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, alpha: f
     if n_load < 8:
         return []
     z = float(stats.norm.isf(alpha / n_load))
+    noise = noise if noise is not None else noise_model(y)
     scales: dict[int, float] = {}
     out: list[int] = []
     for s, e in loading:
@@ -145,7 +151,7 @@ def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, alpha: f
             m = k
             while m + 1 < e and y[m + 1] < y[m]:
                 m += 1
-            if m > k and _is_slip(x, y, s, e, k, m, z, scales, loading):
+            if m > k and _is_slip(x, y, s, e, k, m, z, scales, loading, noise):
                 out.append(int(m))
             k = m + 1
     return out
@@ -160,13 +166,14 @@ def _second_difference_scale(y: np.ndarray, h: int, loading: list[tuple[int, int
     return robust_sd(g - np.median(g)) if g.size >= 8 else 0.0
 
 
-def _is_slip(x, y, s: int, e: int, k: int, m: int, z: float, scales: dict[int, float], loading) -> bool:
+def _is_slip(x, y, s: int, e: int, k: int, m: int, z: float, scales: dict[int, float], loading,
+             noise: Noise) -> bool:
     """Whether the fall from sample k to m of the loading run [s, e) is a slip (see :func:`slip_events`)."""
     h = m - k
     if k - h < s or y[m] <= RUPTURE_FRACTION * y[k]:
         return False
     if h not in scales:
-        scales[h] = _second_difference_scale(y, h, loading)
+        scales[h] = max(_second_difference_scale(y, h, loading), noise.second_difference_sd(h))
     floor = 1e-12 * float(np.max(np.abs(y)))
     g = (y[m] - y[k]) - (y[k] - y[k - h])
     if not g < -z * max(scales[h], floor):

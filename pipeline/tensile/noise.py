@@ -106,6 +106,10 @@ class Noise:
         """Standard deviation of the noise's difference across *k* samples: σ √(2(1 − ρ(k)))."""
         return self.sigma * math.sqrt(max(2.0 * (1.0 - float(self.rho(k))), 0.0))
 
+    def second_difference_sd(self, k: float) -> float:
+        """Standard deviation of the noise's y_{j+k} − 2y_j + y_{j−k}: σ √(6 − 8ρ(k) + 2ρ(2k))."""
+        return self.sigma * math.sqrt(max(6.0 - 8.0 * float(self.rho(k)) + 2.0 * float(self.rho(2 * k)), 0.0))
+
     def to_dict(self) -> dict:
         return {"sd": self.sigma, "quantum": self.quantum, "correlation_samples": self.length,
                 "correlation_time_s": self.correlation_time if math.isfinite(self.correlation_time) else None,
@@ -172,8 +176,13 @@ def lag_profile(y: np.ndarray) -> list[tuple[int, float]]:
 
 
 def _plateau(profile: list[tuple[int, float]]) -> tuple[int, bool]:
-    """Index of the plateau's lag in *profile* and whether a flat step was found."""
-    s = np.array([v for _, v in profile])
+    """Index of the plateau's lag in *profile* and whether a flat step was found.
+
+    The profile is read through its running maximum: positively correlated
+    noise makes s(L) rise with L, and a dip after a rise (a quantised record's
+    rounding pattern at one lag) is not the noise falling.
+    """
+    s = np.maximum.accumulate(np.array([v for _, v in profile]))
     if s.size == 1:
         return 0, True
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -257,7 +266,7 @@ def noise_model(y: np.ndarray, t: np.ndarray | None = None) -> Noise:
     if not profile:
         return Noise(max(q / math.sqrt(12.0), floor), q, 0.0, dt, False, ())
     j, flat = _plateau(profile)
-    sigma = profile[j][1]
+    sigma = max(v for _, v in profile[: j + 1])
     q_sd = q / math.sqrt(12.0)
     if sigma <= q_sd:  # below the converter's resolution: the quantisation error is the noise
         return Noise(max(q_sd, floor), q, 0.0, dt, flat, tuple(profile))
