@@ -24,7 +24,7 @@ from .fitted import Fitted, effect_params, fit_spec
 from .heldout import FoldSet, cached_heldout
 from .levels import Levels, round_levels
 from .model import VARIANTS
-from .records import Record
+from .records import Record, slack_applicable, specimen_groups
 from .state import Candidate, Criteria, Search, start_search
 from .trials import Trial, best_variant, check_heldout, compared, judged_on, noise_taus, passes
 
@@ -41,7 +41,7 @@ def run_round(s: Search, rnd: int, rep) -> bool:
 
     Returns False when the search is over.
     """
-    remaining = [n for n in s.testable if n not in s.kept]
+    remaining = [n for n in s.testable if n not in s.kept and not confounded(s, n, rnd)]
     diag = diagnose(s.current.problem, s.current.z, candidates=remaining, errors=s.current.errors)
     s.diagnoses.append(diag)
     upgradable = [n for n in s.kept if n in VARIANTS and s.current.spec.variant(n) < max(VARIANTS[n])]
@@ -70,6 +70,32 @@ def run_round(s: Search, rnd: int, rep) -> bool:
     if winner is None:
         return False
     _keep(s, winner, rnd, rep)
+    return True
+
+
+#: strain-energy terms whose fibres are recruited from the reference state on: a slack shifts their onset
+RECRUITMENT_TERMS = ("toe", "fibreexp")
+
+
+def confounded(s: Search, name: str, rnd: int) -> bool:
+    """Whether *name* cannot be told from what the current model already has (its verdict then says so).
+
+    A slack (a specimen that carries no load until taut, or whose fibres are
+    taut one after another) and a recruitment term whose fibres start to
+    straighten above the reference length are the same curve on one specimen:
+    with a recruitment term in the law, slack is judged only where several
+    specimens can show different slacks.
+    """
+    if name != "slack" or not any(t in s.current.spec.terms for t in RECRUITMENT_TERMS):
+        return False
+    if len(specimen_groups([r for r in s.current.problem.records if slack_applicable(r)])) >= 2:
+        return False
+    c = s.candidates[name]
+    c.round = rnd
+    c.reason = (f"not identifiable from these data in round {rnd}: with the fibre-recruitment term "
+                f"{', '.join(t for t in s.current.spec.terms if t in RECRUITMENT_TERMS)} in the law, one "
+                "specimen's slack is the onset of its recruitment (fibres that straighten above the reference "
+                "length); specimens with different slacks would tell them apart")
     return True
 
 
@@ -133,8 +159,10 @@ def _try_candidates(s: Search, order: list[str], rnd: int, advance) -> tuple[lis
     singles: dict[str, Trial] = {}
     for n in order:
         c = s.candidates[n]
-        t = best_variant(n, VARIANTS.get(n, (1,)), s.current)
+        t = best_variant(n, VARIANTS.get(n, (1,)), s.current, warm=s.warm)
         advance(1)
+        if t is not None:
+            s.remember(t.fit)
         if t is None:
             c.reason = "the fit with this candidate failed"
             continue
@@ -180,8 +208,10 @@ def _try_upgrades(s: Search, upgradable: list[str], advance) -> list[Trial]:
     trials = []
     for n in upgradable:
         nxt = [v for v in VARIANTS[n] if v > s.current.spec.variant(n)]
-        t = best_variant(n, nxt, s.current, upgrade=True)
+        t = best_variant(n, nxt, s.current, upgrade=True, warm=s.warm)
         advance(1)
+        if t is not None:
+            s.remember(t.fit)
         if t is not None and t.screened:
             trials.append(t)
     return trials
@@ -209,7 +239,7 @@ def _heldout_winner(s: Search, trials: list[Trial], rnd: int, lv: Levels) -> Tri
                 f"{CHECKS_PER_ROUND} candidates with larger fitted improvements were checked first")
     for t in checked:
         h = _check(s, t, t.name)
-        ok = passes(h, lv.single, s.crit.min_noise_units)
+        ok = passes(h, lv.single, s.crit.min_resolution_units)
         if t.name in s.kept:  # a variant upgrade of a kept effect
             if ok:
                 s.upgrades.append(f"round {rnd}: {t.name} extended to {t.fit.spec.variant_text(t.name)} "
@@ -241,7 +271,7 @@ def _rejected_text(t: Trial, h: dict, level: float, s: Search) -> str:
     return (f"rejected: the fit improves (Δχ² {t.noise['dchi2']:.4g}) but it does not predict data it was not "
             f"fitted to ({h['scheme']}): held-out NRMSE {ref:.2%} -> {new:.2%}, one-sided p {h['p']:.2g} "
             f"(t {h['t']:+.2f} on {h['dof']:.1f} degrees of freedom; needs p <= {level:.2g}), "
-            f"{h['noise_units']:+.3g} noise variances per sample (needs {s.crit.min_noise_units:g})")
+            f"{h['resolution_units']:+.3g} squared resolutions per sample (needs {s.crit.min_resolution_units:g})")
 
 
 def _keep(s: Search, t: Trial, rnd: int, rep) -> None:
@@ -259,7 +289,7 @@ def _keep(s: Search, t: Trial, rnd: int, rep) -> None:
     ref, new = s.current.cv[h["fold_set"]].nrmse, f.cv[h["fold_set"]].nrmse
     c.reason = (f"kept ({kind}) in round {rnd}: fitted Δχ² {t.noise['dchi2']:.4g} noise variances; held-out NRMSE "
                 f"{ref:.2%} -> {new:.2%} ({h['scheme']}), one-sided p {h['p']:.2g} <= {c.heldout_level:.2g}, "
-                f"{h['noise_units']:.3g} noise variances per sample")
+                f"{h['resolution_units']:.3g} squared resolutions per sample")
     rep.step(f"round {rnd}: kept {winner} ({c.variant}): NRMSE {s.current.errors.nrmse:.2%} -> "
              f"{f.errors.nrmse:.2%}, held-out {ref:.2%} -> {new:.2%} (p {h['p']:.2g})")
     s.kept.append(winner)
@@ -301,10 +331,11 @@ def _try_pairs(singles: dict[str, Trial], s: Search, lv: Levels):
             a, b = pool[i], pool[j]
             spec = current.spec.with_(a, singles[a].fit.spec.variant(a)).with_(b, singles[b].fit.spec.variant(b))
             try:
-                t = compared(f"{a}+{b}", fit_spec(spec, current), current)
+                t = compared(f"{a}+{b}", fit_spec(spec, current, init_from=s.warm.get(spec)), current)
             except FitError:
                 continue
-            if t.screened and passes(_check(s, t, [a, b]), lv.pair, s.crit.min_noise_units):
+            s.remember(t.fit)
+            if t.screened and passes(_check(s, t, [a, b]), lv.pair, s.crit.min_resolution_units):
                 passed.append(((a, b), t))
     return min(passed, key=lambda p: p[1].heldout["p"]) if passed else None
 
@@ -342,15 +373,16 @@ def backward(s: Search, rep) -> None:
     for name in list(reversed(s.kept)):
         if len(s.kept) < 2 or (name == "viscoelastic" and "nonlinear_viscoelastic" in s.kept):
             continue
+        spec = s.current.spec.with_(name, 0)
         try:
-            reduced = fit_spec(s.current.spec.with_(name, 0), s.current)
+            reduced = fit_spec(spec, s.current, init_from=s.warm.get(spec))
         except FitError:
             continue
         t = compared(name, s.current, reduced)
         fs = judged_on(name, s.material, s.artefact)
         h = check_heldout(t, reduced, fs)
         level = s.candidates[name].heldout_level or s.levels[max(s.kept_round.get(name, 1), 1) - 1].single
-        if t.screened and passes(h, level, s.crit.min_noise_units):
+        if t.screened and passes(h, level, s.crit.min_resolution_units):
             continue
         c = s.candidates[name]
         c.kept = False
@@ -364,9 +396,14 @@ def backward(s: Search, rep) -> None:
 
 
 def run_search(start: Fitted, material: FoldSet, artefact: FoldSet, records: list[Record],
-               candidates: Sequence[str], criteria: Criteria, rep) -> Search:
-    """The rounds and the backward elimination from the model *start* (:mod:`.rounds`)."""
+               candidates: Sequence[str], criteria: Criteria, rep, *, warm: dict | None = None) -> Search:
+    """The rounds and the backward elimination from the model *start* (:mod:`.rounds`).
+
+    *warm*: fits to start from, by spec, read but not added to (an inner selection's, :mod:`.nested`).
+    """
     search = start_search(start, material, artefact, records, candidates, criteria)
+    if warm is not None:
+        search.warm, search.record = warm, False
     rnd = 1
     while run_round(search, rnd, rep):
         rnd += 1

@@ -56,7 +56,7 @@ from .nested import nested_heldout
 from .records import Record, fitting_view, prepare
 from .rounds import run_search
 from .state import Candidate, Criteria, Search
-from .trials import MIN_NOISE_UNITS
+from .trials import MIN_RESOLUTION_UNITS
 
 
 # --------------------------------------------------------------------------- results
@@ -127,7 +127,7 @@ def discover(
     max_points: int = 400,
     candidates: Sequence[str] = CANDIDATES,
     alpha: float = ALPHA,
-    min_noise_units: float = MIN_NOISE_UNITS,
+    min_resolution_units: float = MIN_RESOLUTION_UNITS,
     max_effects: int = 6,
     nested: bool = True,
     reporter: Reporter | None = None,
@@ -159,8 +159,10 @@ def discover(
         The probability that the search adds anything to records the current
         model already explains (search-wide, :mod:`.levels`): each candidate's
         held-out p-value must be below its share of it ...
-    min_noise_units : float
-        ... and its held-out improvement at least this many noise variances per sample.
+    min_resolution_units : float
+        ... and its held-out improvement at least this many squared resolutions per sample (the
+        resolution: the larger of the record's noise and the force channel's accuracy,
+        :data:`~esmm.pipeline.discover.statistics.FORCE_ACCURACY` of the reading).
     max_effects : int
         Stop after this many kept candidates.
     nested : bool
@@ -172,7 +174,7 @@ def discover(
     -------
     DiscoverResult
     """
-    criteria = Criteria(alpha, min_noise_units, max_effects)
+    criteria = Criteria(alpha, min_resolution_units, max_effects)
     with single_threaded_blas():
         return _discover(tests, model=model, base=base, fixed=fixed, free=free, weights=weights, n_starts=n_starts,
                          seed=seed, max_points=max_points, candidates=candidates, criteria=criteria,
@@ -209,7 +211,7 @@ def _discover(tests, *, model, base, fixed, free, weights, n_starts, seed, max_p
     search = run_search(start, material, artefact, records, candidates, criteria, rep)
     _final_verdicts(search, records)
     result = _result(search, base_fit, t_start, settings={
-        "max_points": max_points, "alpha": criteria.alpha, "min_noise_units": criteria.min_noise_units,
+        "max_points": max_points, "alpha": criteria.alpha, "min_resolution_units": criteria.min_resolution_units,
         "criterion": "held-out test at the search-wide level (pre-screen: noise-referenced BIC)",
         "max_effects": criteria.max_effects, "n_starts": n_starts, "seed": seed, "candidates": list(candidates),
         "noise_sd": {r.name: r.sigma for r in records}})
@@ -231,7 +233,7 @@ def _check(tests, *, model, candidates, criteria: Criteria, max_points) -> None:
         raise ConfigError(f"candidates: unknown effect or term {bad[0]!r}; the candidates are "
                           f"{', '.join(CANDIDATES)}", parameter="candidates")
     number(criteria.alpha, "alpha", lo=0.0, hi=1.0)
-    number(criteria.min_noise_units, "min_noise_units", lo=0.0)
+    number(criteria.min_resolution_units, "min_resolution_units", lo=0.0)
     number(criteria.max_effects, "max_effects", lo=0, integer=True)
     number(max_points, "max_points", lo=20, integer=True)
 

@@ -19,7 +19,7 @@ from .identify import identifiability
 from .levels import ALPHA, Levels
 from .model import CANDIDATES
 from .records import Record
-from .trials import MIN_NOISE_UNITS
+from .trials import MIN_RESOLUTION_UNITS
 
 
 def kind_of(name: str) -> str:
@@ -73,7 +73,7 @@ class Criteria:
     """When a candidate is kept, and when the search stops (see :func:`discover`)."""
 
     alpha: float = ALPHA
-    min_noise_units: float = MIN_NOISE_UNITS
+    min_resolution_units: float = MIN_RESOLUTION_UNITS
     max_effects: int = 6
 
 
@@ -93,6 +93,15 @@ class Search:
     diagnoses: list[Diagnosis] = field(default_factory=list)
     upgrades: list[str] = field(default_factory=list)
     levels: list[Levels] = field(default_factory=list)  # per round
+    #: fits to start from, by spec (the full search's own; an inner selection of :mod:`.nested` reads the
+    #: full search's and records nothing)
+    warm: dict = field(default_factory=dict)
+    record: bool = True
+
+    def remember(self, f: Fitted) -> None:
+        """Keep *f* as the warm start of its spec."""
+        if self.record:
+            self.warm[f.spec] = f
 
 
 def start_search(start: Fitted, material: FoldSet, artefact: FoldSet, records: list[Record],

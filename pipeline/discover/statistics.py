@@ -202,11 +202,14 @@ def heldout_test(segments: Sequence[HeldoutSegment]) -> dict[str, float]:
       degrees of freedom of the segments' variances, ν = (Σ v)² / Σ (v²/ν_s),
       ν_s = n_s/τ_s − 1. ``p`` is the one-sided p-value of "the candidate
       predicts the held-out data no better" (H0: E[d] ≤ 0).
-    * **Size.** ``noise_units``: the mean over files of the fall of the held-out
-      mean squared error in units of each file's noise variance σ_f²; the search
-      requires at least one (a candidate that changes the prediction by less
-      than the measurement's own noise is not established by it, however many
-      samples make the change significant).
+    * **Size.** ``resolution_units``: the mean over files of the fall of the
+      held-out mean squared error in units of each file's resolution squared,
+      r_f = max(σ_f, :data:`FORCE_ACCURACY` × RMS of its stress) — the larger of
+      its noise and the accuracy of a testing machine's force channel; the
+      search requires at least one. A candidate that changes the prediction by
+      less than what the measurement can resolve is not established by it,
+      however many samples make the change significant. ``noise_units``: the same
+      in units of σ_f² alone (reported).
 
     Parameters
     ----------
@@ -230,26 +233,28 @@ def heldout_test(segments: Sequence[HeldoutSegment]) -> dict[str, float]:
         mu, v, nu = segment_mean(delta * e1)
         e0 = delta + e1
         per_file.setdefault(sg.file, []).append((int(good.sum()), float(np.mean(delta * delta)) + 2.0 * mu, 4.0 * v,
-                                                 nu, float(np.mean(e0 * e0)), (rng / max(sg.sigma, 1e-300)) ** 2))
+                                                 nu, float(np.mean(e0 * e0)), (rng / max(sg.sigma, 1e-300)) ** 2,
+                                                 (rng / max(sg.resolution, sg.sigma, 1e-300)) ** 2))
     return _combine(per_file)
 
 
 def _combine(per_file: dict[str, list]) -> dict[str, float]:
     """The statistic, its t reference and the size from per-file lists of segment summaries
-    (n, mean d, variance of the mean, degrees of freedom, current MSE, range²/σ²) (:func:`heldout_test`)."""
+    (n, mean d, variance of the mean, degrees of freedom, current MSE, range²/σ², range²/r²) (:func:`heldout_test`)."""
     if not per_file:
-        return {"p": 1.0, "t": 0.0, "dof": 0.0, "gain": 0.0, "se": math.inf, "noise_units": 0.0, "relative": 0.0,
-                "samples": 0}
+        return {"p": 1.0, "t": 0.0, "dof": 0.0, "gain": 0.0, "se": math.inf, "noise_units": 0.0,
+                "resolution_units": 0.0, "relative": 0.0, "samples": 0}
     F = len(per_file)
-    gain, units, mse0, var, ws_den, total = 0.0, 0.0, 0.0, 0.0, 0.0, 0
+    gain, units, res_units, mse0, var, ws_den, total = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0
     for segs in per_file.values():
         n_f = sum(s[0] for s in segs)
         total += n_f
         m_f = sum(s[0] * s[1] for s in segs) / n_f
         gain += m_f / F
         units += m_f * segs[0][5] / F
+        res_units += m_f * segs[0][6] / F
         mse0 += sum(s[0] * s[4] for s in segs) / n_f / F
-        for n_s, _, v_s, nu_s, _, _ in segs:
+        for n_s, _, v_s, nu_s, *_ in segs:
             c = (n_s / n_f / F) ** 2 * v_s
             var += c
             ws_den += c * c / nu_s if math.isfinite(c) else math.inf
@@ -261,7 +266,7 @@ def _combine(per_file: dict[str, list]) -> dict[str, float]:
         t = math.inf if (gain > 0 and se == 0) else 0.0
     p = float(stats.t.sf(t, max(dof, 1.0))) if math.isfinite(t) else (0.0 if t > 0 else 1.0)
     return {"p": p, "t": float(t), "dof": float(dof), "gain": float(gain), "se": se, "noise_units": float(units),
-            "relative": gain / mse0 if mse0 > 0 else 0.0, "samples": total}
+            "resolution_units": float(res_units), "relative": gain / mse0 if mse0 > 0 else 0.0, "samples": total}
 
 
 @dataclass
@@ -274,6 +279,19 @@ class HeldoutSegment:
     p1: np.ndarray  # the candidate's prediction [Pa]
     range: float  # the file's stress range [Pa]
     sigma: float  # the file's noise standard deviation [Pa]
+    resolution: float = 0.0  # what the measurement resolves [Pa]: max(sigma, FORCE_ACCURACY x RMS stress)
+
+
+#: the relative accuracy of a testing machine's force channel: ISO 7500-1 class 0.5 (the indicated force within
+#: 0.5 % of the reading over the calibrated range); a model change below it is not resolved by the measurement
+FORCE_ACCURACY = 0.005
+
+
+def resolution(y: np.ndarray, sigma: float) -> float:
+    """What a record resolves [Pa]: the larger of its noise σ and :data:`FORCE_ACCURACY` × the RMS of *y*."""
+    y = np.asarray(y, float)
+    y = y[np.isfinite(y)]
+    return max(float(sigma), FORCE_ACCURACY * (float(np.sqrt(np.mean(y * y))) if y.size else 0.0))
 
 
 @dataclass

@@ -12,9 +12,10 @@ parameter refitted) with
   (:func:`~esmm.pipeline.discover.statistics.heldout_test`): a one-sided
   p-value of "the candidate predicts held-out data no better", from a
   heteroskedasticity- and autocorrelation-consistent statistic, and the size
-  of the improvement in noise variances. The search keeps a candidate when
-  the p-value is below the level its family-wise control gives it
-  (:mod:`.levels`) and the size is at least :data:`MIN_NOISE_UNITS`.
+  of the improvement in squared resolutions (the larger of the noise and the
+  force channel's accuracy). The search keeps a candidate when the p-value is
+  below the level its family-wise control gives it (:mod:`.levels`) and the
+  size is at least :data:`MIN_RESOLUTION_UNITS`.
 
 Material effects and strain-energy terms are judged on the material scheme's
 folds, per-file artefacts on the artefact scheme's (:mod:`.heldout`). AICc
@@ -25,6 +26,7 @@ nothing.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -34,10 +36,18 @@ from ..errors import FitError
 from ..materials.effects import ARTEFACTS
 from .fitted import Fitted, fit_spec
 from .heldout import FoldSet, cached_heldout
-from .statistics import HeldoutSegment, heldout_test, information, n_effective, noise_test
+from .statistics import (
+    HeldoutSegment,
+    heldout_test,
+    information,
+    n_effective,
+    noise_test,
+    resolution,
+)
 
-#: a candidate must lower the held-out mean squared error by at least this many noise variances per sample
-MIN_NOISE_UNITS = 1.0
+#: a candidate must lower the held-out mean squared error by at least this many squared resolutions per sample
+#: (:func:`~esmm.pipeline.discover.statistics.heldout_test`: the larger of the noise and the force accuracy)
+MIN_RESOLUTION_UNITS = 1.0
 
 
 @dataclass
@@ -98,16 +108,21 @@ def compared(name: str, f: Fitted, current: Fitted) -> Trial:
                  information(res1, nu, f.problem.n_params()), information(res0, nu, current.problem.n_params()))
 
 
-def best_variant(name: str, variants, current: Fitted, *, upgrade: bool = False) -> Trial | None:
+def best_variant(name: str, variants, current: Fitted, *, upgrade: bool = False,
+                 warm: Mapping[Any, Fitted] | None = None) -> Trial | None:
     """Fit the variants of *name* in order; a richer variant must pay for its parameters against the simpler.
 
+    Each fit starts from the fit of the same spec in *warm* when there is one
+    (the full search's, for an inner selection), else from the previous variant.
     Returns the best variant by the pre-screen (None if no fit succeeded).
     """
     best: Trial | None = None
     prev: Trial | None = None
     for v in variants:
+        spec = current.spec.with_(name, v)
+        start = (warm or {}).get(spec) or (prev.fit if prev is not None else None)
         try:
-            f = fit_spec(current.spec.with_(name, v), current, init_from=prev.fit if prev is not None else None)
+            f = fit_spec(spec, current, init_from=start)
         except FitError:
             break
         t = compared(name, f, current)
@@ -135,9 +150,9 @@ def check_heldout(t: Trial, current: Fitted, fs: FoldSet) -> dict[str, Any]:
     return t.heldout
 
 
-def passes(h: dict[str, Any], level: float, min_noise_units: float = MIN_NOISE_UNITS) -> bool:
-    """The decision: p-value at most *level* and the improvement at least *min_noise_units* noise variances."""
-    return bool(h) and h["p"] <= level and h["noise_units"] >= min_noise_units
+def passes(h: dict[str, Any], level: float, min_units: float = MIN_RESOLUTION_UNITS) -> bool:
+    """The decision: p-value at most *level* and the improvement at least *min_units* squared resolutions."""
+    return bool(h) and h["p"] <= level and h["resolution_units"] >= min_units
 
 
 def segments(f: Fitted, e0, e1) -> list[HeldoutSegment]:
@@ -151,10 +166,11 @@ def segments(f: Fitted, e0, e1) -> list[HeldoutSegment]:
         _, i0, i1 = np.intersect1d(idx0, idx1, return_indices=True)
         idx, y, q0, q1, fold = idx0[i0], y0[i0], p0[i0], p1[i1], fold0[i0]
         r = f.problem.records[k]
+        res = resolution(r.y, r.sigma)
         cuts = np.flatnonzero((np.diff(idx) > 1) | (np.diff(fold) != 0)) + 1
         for part in np.split(np.arange(idx.size), cuts):
             if part.size:
-                out.append(HeldoutSegment(r.name, y[part], q0[part], q1[part], r.range, r.sigma))
+                out.append(HeldoutSegment(r.name, y[part], q0[part], q1[part], r.range, r.sigma, res))
     return out
 
 
