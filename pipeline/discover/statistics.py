@@ -44,7 +44,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import stats
+from scipy import signal, stats
 
 from ..calibrate.intervals import lag1
 
@@ -231,6 +231,8 @@ def heldout_test(segments: Sequence[HeldoutSegment]) -> dict[str, float]:
         delta = (sg.p0[good] - sg.p1[good]) / rng
         e1 = (sg.p1[good] - sg.y[good]) / rng
         mu, v, nu = segment_mean(delta * e1)
+        if VARIANCE == "noise":
+            v, nu = noise_variance(delta, sg.sigma / rng, sg.length), 1e6
         e0 = delta + e1
         per_file.setdefault(sg.file, []).append((int(good.sum()), float(np.mean(delta * delta)) + 2.0 * mu, 4.0 * v,
                                                  nu, float(np.mean(e0 * e0)), (rng / max(sg.sigma, 1e-300)) ** 2,
@@ -269,6 +271,23 @@ def _combine(per_file: dict[str, list]) -> dict[str, float]:
             "resolution_units": float(res_units), "relative": gain / mse0 if mse0 > 0 else 0.0, "samples": total}
 
 
+#: the variance of the held-out statistic: "hac" (of the series Δe₁) or "noise" (the noise model's)
+VARIANCE = "hac"
+
+
+def noise_variance(delta: np.ndarray, sigma: float, length: float) -> float:
+    """Variance of the mean of Δε for noise ε of SD *sigma* and correlation ρ(k) = e^{−k/length}: σ² ΔᵀRΔ / n²."""
+    n = delta.size
+    if n == 0:
+        return math.inf
+    r = math.exp(-1.0 / length) if length > 0 else 0.0
+    quad = float(delta @ delta)
+    if r > 0:
+        s = signal.lfilter([0.0, r], [1.0, -r], delta)
+        quad += 2.0 * float(delta @ s)
+    return sigma * sigma * max(quad, 0.0) / (n * n)
+
+
 @dataclass
 class HeldoutSegment:
     """One fold's contiguous held-out samples of one file: data, the two predictions, scale and noise."""
@@ -280,6 +299,7 @@ class HeldoutSegment:
     range: float  # the file's stress range [Pa]
     sigma: float  # the file's noise standard deviation [Pa]
     resolution: float = 0.0  # what the measurement resolves [Pa]: max(sigma, FORCE_ACCURACY x RMS stress)
+    length: float = 0.0  # the noise's correlation length [samples]
 
 
 #: the relative accuracy of a testing machine's force channel: ISO 7500-1 class 0.5 (the indicated force within

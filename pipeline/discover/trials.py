@@ -170,7 +170,8 @@ def segments(f: Fitted, e0, e1) -> list[HeldoutSegment]:
         cuts = np.flatnonzero((np.diff(idx) > 1) | (np.diff(fold) != 0)) + 1
         for part in np.split(np.arange(idx.size), cuts):
             if part.size:
-                out.append(HeldoutSegment(r.name, y[part], q0[part], q1[part], r.range, r.sigma, res))
+                out.append(HeldoutSegment(r.name, y[part], q0[part], q1[part], r.range, r.sigma, res,
+                                          r.noise.length))
     return out
 
 

@@ -98,7 +98,8 @@ def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, noise: N
     A slip: during a loading run, the stress falls monotonically from sample k
     to m while the stretch advances, and
 
-    * the fall is sudden against the record's own noise: the second difference
+    * the fall loses more than z s'_h (below), and it is sudden against the record's own noise: the
+      second difference
       across it, g = (y_m − y_k) − (y_k − y_{k−h}) with h = m − k (the fall plus the
       rise the trend would have made over the same samples), is below
       −z s_h, where s_h is the larger of the robust standard deviation of the
@@ -109,14 +110,22 @@ def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, noise: N
       record shows them and as its noise model predicts them; z is the normal
       quantile of *alpha* / (loading samples): the chance of one false slip
       anywhere in a clean record is at most *alpha* (Bonferroni);
+    * it is not a toggle: when the rise over the h samples before the fall is
+      itself a jump (it differs from the rise over the h samples before those
+      by more than z s'_h, s'_h the larger of the record's robust standard
+      deviation of lag-2h differences, less their median, and the noise
+      model's), the fall must take the curve below where that jump started (a
+      converter toggling between two levels, a spike, rises and falls back to
+      where it was; a slip falls below it);
     * it is sustained: the mean stress over the h + 1 samples after the fall
       stays below the level before it by more than half the fall (a spike falls
       back at once);
     * it loses less than :data:`RUPTURE_FRACTION` of the stress (else a rupture),
-      and the same run later climbs back above the stress before the fall (the
-      curve continues, shifted).
+      and the same run then loads again, the stress rising after the fall by more
+      than z s'_h (a softening keeps falling or levels off).
 
-    No window counts samples: the fall's own duration sets the lag.
+    Two falls closer than either's duration are one slip (the filter's ringing
+    splits a fall). No window counts samples: the fall's own duration sets the lag.
 
     Parameters
     ----------
@@ -144,7 +153,7 @@ def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, noise: N
     z = float(stats.norm.isf(alpha / n_load))
     noise = noise if noise is not None else noise_model(y)
     scales: dict[int, float] = {}
-    out: list[int] = []
+    falls: list[tuple[int, int]] = []
     for s, e in loading:
         k = s
         while k < e - 1:
@@ -152,33 +161,45 @@ def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, noise: N
             while m + 1 < e and y[m + 1] < y[m]:
                 m += 1
             if m > k and _is_slip(x, y, s, e, k, m, z, scales, loading, noise):
-                out.append(int(m))
+                if falls and k - falls[-1][1] <= max(m - k, falls[-1][1] - falls[-1][0]):
+                    falls[-1] = (falls[-1][0], m)  # one slip whose fall the filter's ringing split in two
+                else:
+                    falls.append((k, m))
             k = m + 1
-    return out
+    return [int(m) for _, m in falls]
 
 
-def _second_difference_scale(y: np.ndarray, h: int, loading: list[tuple[int, int]]) -> float:
-    """Robust standard deviation of y_{j+h} − 2y_j + y_{j−h} over the loading samples (0 if too few)."""
-    vals = [y[s + 2 * h:e] - 2.0 * y[s + h:e - h] + y[s:e - 2 * h] for s, e in loading if e - s > 2 * h]
+def _lag_scale(y: np.ndarray, h: int, loading: list[tuple[int, int]], second: bool) -> float:
+    """Robust standard deviation over the loading samples of y_{j+h} − 2y_j + y_{j−h} (*second*) or of
+    y_{j+2h} − y_j less its median (the trend), 0 when too few."""
+    if second:
+        vals = [y[s + 2 * h:e] - 2.0 * y[s + h:e - h] + y[s:e - 2 * h] for s, e in loading if e - s > 2 * h]
+    else:
+        vals = [y[s + 2 * h:e] - y[s:e - 2 * h] for s, e in loading if e - s > 2 * h]
     if not vals:
         return 0.0
     g = np.concatenate(vals)
     return robust_sd(g - np.median(g)) if g.size >= 8 else 0.0
 
 
-def _is_slip(x, y, s: int, e: int, k: int, m: int, z: float, scales: dict[int, float], loading,
-             noise: Noise) -> bool:
+def _is_slip(x, y, s: int, e: int, k: int, m: int, z: float, scales: dict, loading, noise: Noise) -> bool:
     """Whether the fall from sample k to m of the loading run [s, e) is a slip (see :func:`slip_events`)."""
     h = m - k
     if k - h < s or y[m] <= RUPTURE_FRACTION * y[k]:
         return False
     if h not in scales:
-        scales[h] = max(_second_difference_scale(y, h, loading), noise.second_difference_sd(h))
+        scales[h] = (max(_lag_scale(y, h, loading, True), noise.second_difference_sd(h)),
+                     max(_lag_scale(y, h, loading, False), noise.difference_sd(2 * h)))
     floor = 1e-12 * float(np.max(np.abs(y)))
+    s2, s1 = z * max(scales[h][0], floor), z * max(scales[h][1], floor)
     g = (y[m] - y[k]) - (y[k] - y[k - h])
-    if not g < -z * max(scales[h], floor):
+    if not (g < -s2 and y[k] - y[m] > s1):
+        return False
+    # a fall back to where a sudden rise started is a toggle or a spike, not a slip
+    jump_before = k - 2 * h >= s and abs((y[k] - y[k - h]) - (y[k - h] - y[k - 2 * h])) > s1
+    if jump_before and not y[m] - y[k - h] < -s1:
         return False
     after = y[m:min(e, m + h + 1)]
     if not float(np.mean(after)) < y[k] - 0.5 * (y[k] - y[m]):
         return False
-    return bool(_falls(x, y, k, m, 0.0) and np.any(y[m:e] > y[k]))
+    return bool(_falls(x, y, k, m, 0.0) and float(np.max(y[m:e])) - y[m] > s1)
