@@ -162,22 +162,42 @@ def test_heldout_test_signs_and_size():
 
 @pytest.mark.parametrize("phi", [0.0, 0.9])
 def test_heldout_test_is_calibrated_under_correlated_noise(phi):
-    """At the null's boundary (two predictions equally wrong, on either side of the truth) the one-sided
-    test rejects at 5 % in 5 % of 600 records within binomial error, white or AR(1) noise; the same
-    statistic with an independent-samples variance rejects far more often under AR(1) noise."""
+    """At the null's boundary (two predictions equally wrong, on either side of the truth) both one-sided
+    statistics reject at 5 % in 5 % of 600 records within binomial error, white or AR(1) noise (the noise
+    test given the noise model's σ and correlation length, the replication check from the data alone);
+    the same statistic with an independent-samples variance rejects far more often under AR(1) noise."""
     rng = np.random.default_rng(12)
     n, a = 1000, 0.05
-    hits, naive = 0, 0
+    length = -1.0 / np.log(phi) if phi else 0.0
+    hits, hits_rep, naive = 0, 0, 0
     for _ in range(600):
         y = 0.1 * _ar_noise(rng, n, phi)
-        segs = [HeldoutSegment("f", y[:500], np.full(500, a), np.full(500, -a), 1.0, 0.1),
-                HeldoutSegment("f", y[500:], np.full(500, a), np.full(500, -a), 1.0, 0.1)]
+        segs = [HeldoutSegment("f", y[:500], np.full(500, a), np.full(500, -a), 1.0, 0.1, 0.1, length),
+                HeldoutSegment("f", y[500:], np.full(500, a), np.full(500, -a), 1.0, 0.1, 0.1, length)]
         h = heldout_test(segs)
         hits += h["p"] <= 0.05
+        hits_rep += h["p_replication"] <= 0.05
         d = (a - y) ** 2 - (-a - y) ** 2
         naive += d.mean() / (d.std(ddof=1) / np.sqrt(n)) >= 1.645
     assert 13 <= hits <= 48, hits  # binomial(600, 0.05): 30 +- 3 sd
+    assert 13 <= hits_rep <= 48, hits_rep
     if phi:
         assert naive > 100, naive
+
+
+def test_replication_check_rejects_an_improvement_small_next_to_the_misfit_left():
+    """A candidate that moves the prediction by a tenth of a smooth misfit it leaves: far beyond the noise
+    (the noise test passes), but not replicated across the held-out segments."""
+    rng = np.random.default_rng(3)
+    t = np.linspace(0.0, 1.0, 2000)
+    truth = np.zeros_like(t)
+    misfit = 0.05 * np.sin(2 * np.pi * 3 * t)  # what both models miss, smooth
+    y = truth + 1e-3 * rng.standard_normal(t.size)
+    p0 = truth + misfit + 0.006
+    p1 = truth + misfit + 0.001 * np.cos(2 * np.pi * 5 * t)
+    segs = [HeldoutSegment("f", y[i:i + 400], p0[i:i + 400], p1[i:i + 400], 1.0, 1e-3, 1e-3, 0.0)
+            for i in range(0, 2000, 400)]
+    h = heldout_test(segs)
+    assert h["p"] < 1e-6 and h["p_replication"] > 0.05
 
 

@@ -24,8 +24,9 @@ from .fitted import Fitted, effect_params, fit_spec
 from .heldout import FoldSet, cached_heldout
 from .levels import Levels, round_levels
 from .model import VARIANTS
-from .records import Record, slack_applicable, specimen_groups
+from .records import Record
 from .state import Candidate, Criteria, Search, start_search
+from .statistics import REPLICATION_LEVEL
 from .trials import Trial, best_variant, check_heldout, compared, judged_on, noise_taus, passes
 
 #: the most strain-energy terms fitted per round (the best by their first-order gain)
@@ -41,7 +42,7 @@ def run_round(s: Search, rnd: int, rep) -> bool:
 
     Returns False when the search is over.
     """
-    remaining = [n for n in s.testable if n not in s.kept and not confounded(s, n, rnd)]
+    remaining = [n for n in s.testable if n not in s.kept]
     diag = diagnose(s.current.problem, s.current.z, candidates=remaining, errors=s.current.errors)
     s.diagnoses.append(diag)
     upgradable = [n for n in s.kept if n in VARIANTS and s.current.spec.variant(n) < max(VARIANTS[n])]
@@ -70,32 +71,6 @@ def run_round(s: Search, rnd: int, rep) -> bool:
     if winner is None:
         return False
     _keep(s, winner, rnd, rep)
-    return True
-
-
-#: strain-energy terms whose fibres are recruited from the reference state on: a slack shifts their onset
-RECRUITMENT_TERMS = ("toe", "fibreexp")
-
-
-def confounded(s: Search, name: str, rnd: int) -> bool:
-    """Whether *name* cannot be told from what the current model already has (its verdict then says so).
-
-    A slack (a specimen that carries no load until taut, or whose fibres are
-    taut one after another) and a recruitment term whose fibres start to
-    straighten above the reference length are the same curve on one specimen:
-    with a recruitment term in the law, slack is judged only where several
-    specimens can show different slacks.
-    """
-    if name != "slack" or not any(t in s.current.spec.terms for t in RECRUITMENT_TERMS):
-        return False
-    if len(specimen_groups([r for r in s.current.problem.records if slack_applicable(r)])) >= 2:
-        return False
-    c = s.candidates[name]
-    c.round = rnd
-    c.reason = (f"not identifiable from these data in round {rnd}: with the fibre-recruitment term "
-                f"{', '.join(t for t in s.current.spec.terms if t in RECRUITMENT_TERMS)} in the law, one "
-                "specimen's slack is the onset of its recruitment (fibres that straighten above the reference "
-                "length); specimens with different slacks would tell them apart")
     return True
 
 
@@ -200,7 +175,7 @@ def _record(c: Candidate, t: Trial) -> None:
     c.dchi2 = t.noise["dchi2"]
     c.params = effect_params(t.fit, c.name)
     c.heldout_nrmse = c.heldout_gain = c.heldout_z = c.heldout_noise_units = c.heldout_p = None
-    c.heldout_level = None
+    c.heldout_level = c.heldout_p_replication = None
 
 
 def _try_upgrades(s: Search, upgradable: list[str], advance) -> list[Trial]:
@@ -262,6 +237,7 @@ def _heldout_fields(c: Candidate, t: Trial, level: float, s: Search) -> None:
     ref = s.current.cv.get(h["fold_set"])
     c.heldout_gain = 1.0 - e.nrmse / max(ref.nrmse, 1e-300) if e is not None and ref is not None else None
     c.heldout_z, c.heldout_p, c.heldout_level = h["t"], h["p"], level
+    c.heldout_p_replication = h["p_replication"]
     c.heldout_noise_units = h["noise_units"]
 
 
@@ -269,9 +245,11 @@ def _rejected_text(t: Trial, h: dict, level: float, s: Search) -> str:
     ref = s.current.cv[h["fold_set"]].nrmse
     new = t.fit.cv[h["fold_set"]].nrmse
     return (f"rejected: the fit improves (Δχ² {t.noise['dchi2']:.4g}) but it does not predict data it was not "
-            f"fitted to ({h['scheme']}): held-out NRMSE {ref:.2%} -> {new:.2%}, one-sided p {h['p']:.2g} "
-            f"(t {h['t']:+.2f} on {h['dof']:.1f} degrees of freedom; needs p <= {level:.2g}), "
-            f"{h['resolution_units']:+.3g} squared resolutions per sample (needs {s.crit.min_resolution_units:g})")
+            f"fitted to well enough ({h['scheme']}): held-out NRMSE {ref:.2%} -> {new:.2%}; beyond the noise "
+            f"p {h['p']:.2g} (needs <= {level:.2g}); replicated across the held-out segments p "
+            f"{h['p_replication']:.2g} (t {h['t_replication']:+.2f} on {h['dof']:.1f} degrees of freedom; needs <= "
+            f"{REPLICATION_LEVEL:g}); {h['resolution_units']:+.3g} squared resolutions per sample (needs "
+            f"{s.crit.min_resolution_units:g})")
 
 
 def _keep(s: Search, t: Trial, rnd: int, rep) -> None:
@@ -288,8 +266,9 @@ def _keep(s: Search, t: Trial, rnd: int, rep) -> None:
     h = t.heldout
     ref, new = s.current.cv[h["fold_set"]].nrmse, f.cv[h["fold_set"]].nrmse
     c.reason = (f"kept ({kind}) in round {rnd}: fitted Δχ² {t.noise['dchi2']:.4g} noise variances; held-out NRMSE "
-                f"{ref:.2%} -> {new:.2%} ({h['scheme']}), one-sided p {h['p']:.2g} <= {c.heldout_level:.2g}, "
-                f"{h['resolution_units']:.3g} squared resolutions per sample")
+                f"{ref:.2%} -> {new:.2%} ({h['scheme']}); beyond the noise p {h['p']:.2g} <= {c.heldout_level:.2g}, "
+                f"replicated p {h['p_replication']:.2g} <= {REPLICATION_LEVEL:g}; {h['resolution_units']:.3g} "
+                "squared resolutions per sample")
     rep.step(f"round {rnd}: kept {winner} ({c.variant}): NRMSE {s.current.errors.nrmse:.2%} -> "
              f"{f.errors.nrmse:.2%}, held-out {ref:.2%} -> {new:.2%} (p {h['p']:.2g})")
     s.kept.append(winner)

@@ -46,6 +46,7 @@ class Candidate:
     heldout_z: float | None = None  # the held-out statistic t
     heldout_p: float | None = None  # its one-sided p-value
     heldout_level: float | None = None  # the level it was judged at (search-wide control)
+    heldout_p_replication: float | None = None  # the replication check's p-value
     heldout_noise_units: float | None = None
     kept: bool = False
     identifiable: bool = True
@@ -61,6 +62,7 @@ class Candidate:
             "delta_aicc": self.delta_aicc, "delta_bic": self.delta_bic, "dbic_noise": self.dbic_noise,
             "dchi2": self.dchi2, "heldout_nrmse": self.heldout_nrmse, "heldout_gain": self.heldout_gain,
             "heldout_z": self.heldout_z, "heldout_p": self.heldout_p, "heldout_level": self.heldout_level,
+            "heldout_p_replication": self.heldout_p_replication,
             "heldout_noise_units": self.heldout_noise_units,
             "kept": self.kept, "identifiable": self.identifiable, "applicable": self.applicable,
             "first_order_share": self.score, "first_order_chi2": self.gain_chi2, "reason": self.reason,

@@ -37,6 +37,7 @@ from ..materials.effects import ARTEFACTS
 from .fitted import Fitted, fit_spec
 from .heldout import FoldSet, cached_heldout
 from .statistics import (
+    REPLICATION_LEVEL,
     HeldoutSegment,
     heldout_test,
     information,
@@ -151,8 +152,11 @@ def check_heldout(t: Trial, current: Fitted, fs: FoldSet) -> dict[str, Any]:
 
 
 def passes(h: dict[str, Any], level: float, min_units: float = MIN_RESOLUTION_UNITS) -> bool:
-    """The decision: p-value at most *level* and the improvement at least *min_units* squared resolutions."""
-    return bool(h) and h["p"] <= level and h["resolution_units"] >= min_units
+    """The decision: the noise test's p-value at most *level*, the replication check's at most
+    :data:`~esmm.pipeline.discover.statistics.REPLICATION_LEVEL`, and the improvement at least *min_units*
+    squared resolutions."""
+    return (bool(h) and h["p"] <= level and h["p_replication"] <= REPLICATION_LEVEL
+            and h["resolution_units"] >= min_units)
 
 
 def segments(f: Fitted, e0, e1) -> list[HeldoutSegment]:
