@@ -25,26 +25,38 @@ What the inner selections share with the full search: each record's noise
 model, rupture cut, slips and covariates (properties of the record, not of
 the model), the identifiability of the candidates (the protocol), and warm
 starts (a candidate's fit starts from its fit on all data, then converges on
-the training samples). When the search kept nothing, the selection is not run
-again: *before* and *after* are then the base model's held-out error.
+the training samples). For their cost they fit :data:`NESTED_POINTS`
+samples per file (the errors use every sample), and the outer folds run in
+parallel processes where the machine has the cores. When the search kept
+nothing, the selection is not run again: *before* and *after* are then the
+base model's held-out error.
 """
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 import time
 from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from ..blas import single_threaded_blas
 from ..errors import FitError
 from ..progress import SILENT
 from .fitted import Fitted, finish
 from .heldout import Fold, FoldSet, fold_sets
-from .model import Problem
+from .model import Problem, Spec
+from .records import prepare
 from .rounds import run_search
 from .state import Criteria, Search
 from .statistics import error_measures
+
+#: fitting samples per file of the inner selections (the full search's, if fewer)
+NESTED_POINTS = 200
 
 
 class Restricted(Problem):
@@ -113,7 +125,7 @@ def _expand(fs: FoldSet, keep: list[int], m: int) -> FoldSet:
     return FoldSet(fs.key, fs.scheme, folds)
 
 
-def inner_fold_sets(search: Search, outer: Fold, j: int) -> tuple[FoldSet, FoldSet]:
+def inner_fold_sets(ctx: _Context, outer: Fold, j: int) -> tuple[FoldSet, FoldSet]:
     """The inner selection's (material, artefact) folds for outer fold *j*.
 
     An outer fold that holds out whole files leaves the inner selection the
@@ -123,7 +135,7 @@ def inner_fold_sets(search: Search, outer: Fold, j: int) -> tuple[FoldSet, FoldS
     cycles leaves every file: its inner folds are the other outer folds and
     blocks, without the outer held-out samples.
     """
-    records = search.base.problem.records
+    records = ctx.base.problem.records
     m = len(records)
     out_files = [k for k in range(m) if outer.train[k] is not None and len(outer.train[k]) == 0]
     if out_files:
@@ -131,21 +143,94 @@ def inner_fold_sets(search: Search, outer: Fold, j: int) -> tuple[FoldSet, FoldS
         mat, art = fold_sets([records[k] for k in keep])
         mat_x = _expand(mat, keep, m)
         return mat_x, (mat_x if art is mat else _expand(art, keep, m))
-    mat = inner_folds(search.material, outer, j)
-    art = mat if search.artefact is search.material else inner_folds(search.artefact, outer, None)
+    mat = inner_folds(ctx.material, outer, j)
+    art = mat if ctx.artefact is ctx.material else inner_folds(ctx.artefact, outer, None)
     return mat, art
 
 
-def _restricted_base(search: Search, outer: Fold) -> Fitted:
+@dataclass
+class _Context:
+    """What every outer fold's selection shares: the records (thinned to :data:`NESTED_POINTS`), the base
+    model on them, the outer folds, the warm starts, the candidates and criteria."""
+
+    base: Fitted
+    material: FoldSet
+    artefact: FoldSet
+    warm: dict
+    candidates: tuple[str, ...]
+    criteria: Criteria
+
+
+def _context(search: Search, candidates: Sequence[str], criteria: Criteria) -> _Context:
+    """The records thinned to :data:`NESTED_POINTS` fitting samples, and the base model on them."""
+    full = search.base.problem
+    points = max(min(NESTED_POINTS, max(r.fit_idx.size for r in full.records)), 20)
+    records = prepare([r.test for r in full.records], max_points=points, weights=[r.weight for r in full.records])
+    prob = Problem(full.base_model, records, Spec(), fixed=full.fixed, directions=full.directions,
+                   bounds=full.bounds)
+    base = finish(prob, prob.params.transfer(full.params, search.base.z))
+    material, artefact = fold_sets(records)
+    return _Context(base, material, artefact, search.warm, tuple(candidates), criteria)
+
+
+def _restricted_base(ctx: _Context, outer: Fold) -> Fitted:
     """The base model refitted on the outer fold's training samples (from its fit on all data)."""
-    p = search.base.problem
+    p = ctx.base.problem
     prob = Restricted(p.base_model, p.records, p.spec, fixed=p.fixed, directions=p.directions, bounds=p.bounds,
                       free_scales=p.free_scales, outer=outer.train)
     try:
-        z, _ = prob.solve(search.base.z.copy())
+        z, _ = prob.solve(ctx.base.z.copy())
     except FitError:
-        z = search.base.z.copy()
+        z = ctx.base.z.copy()
     return finish(prob, z)
+
+
+def _outer(ctx: _Context, j: int) -> tuple[dict, dict, list[str]]:
+    """Outer fold *j*: the base refitted and the whole selection run on its training samples; their
+    predictions of its held-out samples, and what the selection kept."""
+    outer = ctx.material.folds[j]
+    start = _restricted_base(ctx, outer)
+    inner_mat, inner_art = inner_fold_sets(ctx, outer, j)
+    inner = run_search(start, inner_mat, inner_art, list(ctx.base.problem.records), ctx.candidates, ctx.criteria,
+                       SILENT, warm=ctx.warm)
+    before, after = {}, {}
+    _predict(start, outer, j, before)
+    _predict(inner.current, outer, j, after)
+    return before, after, list(inner.kept)
+
+
+#: the context of the outer folds run in forked worker processes (set by :func:`_run_folds` before forking)
+_SHARED: _Context | None = None
+
+
+def _worker(j: int):
+    with single_threaded_blas():
+        return _outer(_SHARED, j)
+
+
+def _run_folds(ctx: _Context, rep) -> list[tuple[dict, dict, list[str]]]:
+    """Every outer fold, in worker processes where the machine has cores to spare (forked: they share the
+    context without copying it), else one after the other."""
+    global _SHARED
+    n = len(ctx.material.folds)
+    workers = min(n, os.cpu_count() or 1)
+    with rep.task("nested held-out errors: the selection run again inside each outer fold", total=n) as adv:
+        if workers > 1 and "fork" in multiprocessing.get_all_start_methods():
+            _SHARED = ctx
+            try:
+                with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
+                    out = []
+                    for got in pool.map(_worker, range(n)):
+                        out.append(got)
+                        adv(1)
+                    return out
+            finally:
+                _SHARED = None
+        out = []
+        for j in range(n):
+            out.append(_outer(ctx, j))
+            adv(1)
+        return out
 
 
 def _predict(f: Fitted, outer: Fold, j: int, out: dict) -> None:
@@ -178,37 +263,35 @@ def _errors(records, got: dict):
     return error_measures(items, spans)
 
 
-def nested_heldout(result, search: Search, candidates: Sequence[str], criteria: Criteria, rep) -> dict[str, Any]:
+def nested_heldout(search: Search, candidates: Sequence[str], criteria: Criteria, rep) -> dict[str, Any]:
     """The nested held-out errors before and after (module docstring), as a JSON-ready dict.
 
     Keys: ``scheme``, ``before`` and ``after`` (rmse, nrmse, max_abs, per_file;
     Pa), ``kept_per_fold`` (the names each outer fold's selection kept),
     ``selection_rerun`` (False when nothing was kept and the selection was not
-    run again), ``seconds``.
+    run again), ``fitting_samples`` (per file, of the inner selections),
+    ``seconds``.
     """
     t0 = time.perf_counter()
     mat = search.material
-    records = search.base.problem.records
     if not search.kept:
         base = search.base.cv.get("material") or search.base.heldout
         doc = base.to_dict() if base is not None else None
         return {"scheme": mat.scheme, "before": doc, "after": doc, "kept_per_fold": [], "selection_rerun": False,
                 "seconds": 0.0}
+    ctx = _context(search, candidates, criteria)
     before, after, kept = {}, {}, []
-    with rep.task("nested held-out errors: the selection run again inside each outer fold",
-                  total=len(mat.folds)) as adv:
-        for j, outer in enumerate(mat.folds):
-            start = _restricted_base(search, outer)
-            inner_mat, inner_art = inner_fold_sets(search, outer, j)
-            inner = run_search(start, inner_mat, inner_art, list(records), candidates, criteria, SILENT,
-                               warm=search.warm)
-            _predict(start, outer, j, before)
-            _predict(inner.current, outer, j, after)
-            kept.append(list(inner.kept))
-            adv(1)
-    return {"scheme": mat.scheme, "before": _errors(records, before).to_dict(),
+    for b, a, k in _run_folds(ctx, rep):
+        for src, dst in ((b, before), (a, after)):
+            for rec, parts in src.items():
+                got = dst.setdefault(rec, ([], [], [], []))
+                for lst, new in zip(got, parts):
+                    lst += new
+        kept.append(k)
+    records = ctx.base.problem.records
+    return {"scheme": ctx.material.scheme, "before": _errors(records, before).to_dict(),
             "after": _errors(records, after).to_dict(), "kept_per_fold": kept, "selection_rerun": True,
-            "seconds": time.perf_counter() - t0}
+            "fitting_samples": [int(r.fit_idx.size) for r in records], "seconds": time.perf_counter() - t0}
 
 
 __all__ = ["Restricted", "inner_folds", "nested_heldout"]

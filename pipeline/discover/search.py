@@ -216,7 +216,7 @@ def _discover(tests, *, model, base, fixed, free, weights, n_starts, seed, max_p
         "max_effects": criteria.max_effects, "n_starts": n_starts, "seed": seed, "candidates": list(candidates),
         "noise_sd": {r.name: r.sigma for r in records}})
     if nested:
-        result.nested = nested_heldout(result, search, candidates, criteria, rep)
+        result.nested = nested_heldout(search, candidates, criteria, rep)
     result.seconds = time.perf_counter() - t_start
     rep.step(f"discover: kept {', '.join(search.kept) or 'nothing'}; NRMSE {start.errors.nrmse:.2%} -> "
              f"{search.current.errors.nrmse:.2%}, held-out {start.heldout.nrmse:.2%} -> "
