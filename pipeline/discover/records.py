@@ -2,9 +2,10 @@
 
 :func:`prepare` turns every :class:`~esmm.pipeline.tensile.TensileTest` into a
 :class:`Record`: the record is cut at a rupture (what follows a break is not
-the material's response), its measurement noise is estimated without a model
-(:func:`~esmm.pipeline.tensile.events.noise_sd`), grip slips are located,
-the covariates computed and the fitting samples chosen.
+the material's response), a force channel that lags the stretch is advanced
+(:func:`undo_force_lag`), its measurement noise is modelled without a model of
+the material (:func:`~esmm.pipeline.tensile.noise.noise_model`), grip slips are
+located, the covariates computed and the fitting samples chosen.
 
 The applicability rules of the artefacts (docs/design/discovery.md, "The extended model") live here:
 artefacts are corrected on *machine records* only — files with a time column,
@@ -26,7 +27,7 @@ from scipy import stats
 
 from ..calibrate.problem import stress_scale
 from ..tensile.data import TensileTest
-from ..tensile.events import SLIP_ALPHA, rupture_index, slip_events
+from ..tensile.events import SLIP_ALPHA, force_lag, rupture_index, slip_events
 from ..tensile.noise import Noise, noise_model
 from .covariates import Covariates, covariates, thin
 
@@ -57,6 +58,8 @@ class Record:
     fit_idx: np.ndarray
     weight: float = 1.0
     cut: dict[str, Any] = field(default_factory=dict)
+    #: ``{"seconds", "dropped"}`` when the force channel lagged the stretch and was advanced, else empty
+    lag: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self):
         t = self.test
@@ -116,14 +119,43 @@ class Record:
 
 def prepare(tests: Sequence[TensileTest], *, max_points: int = 600,
             weights: Sequence[float] | None = None) -> list[Record]:
-    """Records of *tests*: cut at ruptures, covariates, thinned fitting samples, noise."""
+    """Records of *tests*: cut at ruptures, the force's lag behind the stretch taken off, covariates, thinned
+    fitting samples, noise."""
     out = []
     for i, t in enumerate(tests):
         t, cut = cut_at_rupture(t)
         cov = covariates(t)
+        t, lag = undo_force_lag(t, cov)
+        if lag:
+            cov = covariates(t)
         idx = thin(t, max_points, cov=cov)
-        out.append(Record(t, cov, idx, 1.0 if weights is None else float(weights[i]), cut))
+        out.append(Record(t, cov, idx, 1.0 if weights is None else float(weights[i]), cut, lag))
     return out
+
+
+def undo_force_lag(t: TensileTest, cov: Covariates) -> tuple[TensileTest, dict[str, Any]]:
+    """*t* with its force channel advanced by the lag it shows behind the stretch
+    (:func:`~esmm.pipeline.tensile.events.force_lag`), and what was done (empty: no lag).
+
+    The stress at time t is read at t + d (linear interpolation); the samples of
+    the last d seconds, which have no stress reading any more, are dropped.
+    """
+    if t.time is None or t.mode == "simple_shear" or t.n < 8:
+        return t, {}
+    time_, y = np.asarray(t.time, float), np.asarray(t.stress, float)
+    d = force_lag(t.stretch, y, time_, cov.direction)
+    if d <= 0:
+        return t, {}
+    keep = np.flatnonzero(time_ + d <= time_[-1])
+    shifted = view_test(t, keep)
+
+    def advance(a):
+        return None if a is None else np.interp(time_[keep] + d, time_, np.asarray(a, float))
+
+    out = TensileTest(source=t.source, mode=t.mode, stretch=shifted.stretch, stress=advance(t.stress),
+                      time=shifted.time, displacement=shifted.displacement, force=advance(t.force),
+                      metadata=t.metadata)
+    return out, {"seconds": float(d), "dropped": int(t.n - keep.size)}
 
 
 def cut_at_rupture(t: TensileTest) -> tuple[TensileTest, dict[str, Any]]:

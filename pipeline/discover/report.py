@@ -102,7 +102,7 @@ def _noise_doc(r) -> dict[str, Any]:
             "correlation_samples": m.length,
             "correlation_time_s": m.correlation_time if math.isfinite(m.correlation_time) else None,
             "tau_at_fitting_spacing": m.tau(spacing), "separable": m.separable,
-            "resolution_Pa": resolution(r.y, r.sigma),
+            "resolution_Pa": resolution(r.y, r.sigma), "force_lag_s": r.lag.get("seconds", 0.0),
             "at_rest": dict(zip(("mean_Pa", "sd_Pa", "samples"), pre)) if pre is not None else None}
 
 
@@ -254,6 +254,11 @@ def plain_language(res: DiscoverResult) -> str:
     for name, cut in res.cuts.items():
         words.append(f"{name} ruptured at stretch {cut['stretch']:.4g}; the {cut['dropped']} samples after the "
                      "rupture are not the material's response and were left out.")
+    for r in res.records:
+        if r.lag:
+            words.append(f"In {r.name} the force lags the stretch by {r.lag['seconds']:.3g} s where the loading "
+                         "turns (the acquisition's filters; a material's stress never peaks after its strain): the "
+                         "force was advanced by that much.")
     d0 = res.diagnoses[0] if res.diagnoses else None
     if d0 is not None:
         if d0.white:
@@ -400,7 +405,7 @@ def _md_parameters(res: DiscoverResult) -> list[str]:
 def _md_noise(res: DiscoverResult) -> list[str]:
     L = ["## Measurement noise (from each record alone)", "",
          "| file | noise sd | of the range | quantisation step | correlation time | τ at the fitting spacing | "
-         "at rest before loading |", "| --- | --- | --- | --- | --- | --- | --- |"]
+         "force lag (taken off) | at rest before loading |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in res.records:
         d = _noise_doc(r)
         pre = d["at_rest"]
@@ -409,8 +414,7 @@ def _md_noise(res: DiscoverResult) -> list[str]:
         L.append(f"| {r.name} | {r.sigma:.4g} Pa{'' if d['separable'] else ' (noise and signal not separable)'} | "
                  f"{100 * r.sigma / r.range:.3g} % | {d['quantum_Pa']:.3g} Pa | "
                  f"{'–' if ct is None else f'{ct:.3g} s'} ({d['correlation_samples']:.3g} samples) | "
-                 f"{d['tau_at_fitting_spacing']:.3g} | "
-                 f"{rest} |")
+                 f"{d['tau_at_fitting_spacing']:.3g} | {d['force_lag_s']:.3g} s | {rest} |")
     return L + [""]
 
 

@@ -195,6 +195,10 @@ def _discover(tests, *, model, base, fixed, free, weights, n_starts, seed, max_p
         if r.cut:
             rep.step(f"{r.name}: ruptured at stretch {r.cut['stretch']:.4g} (t = {r.cut['time']:.4g} s); the "
                      f"{r.cut['dropped']} samples after it are not the material's response and are left out")
+        if r.lag:
+            rep.step(f"{r.name}: the force lags the stretch by {r.lag['seconds']:.3g} s at its turning points (the "
+                     f"acquisition's filter delays): the force was advanced by it, the last {r.lag['dropped']} "
+                     "samples dropped")
     # 1. the base model, fitted on the thinned samples, and its held-out error
     base_fit = fit_material([fitting_view(r) for r in records], model=model, n_starts=n_starts, seed=seed,
                             fixed=fixed, free=tuple(free), weights=w,

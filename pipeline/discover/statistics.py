@@ -1,39 +1,23 @@
-"""Statistics of a discovery: residual structure, the two tests a candidate must pass, error measures.
+"""Statistics of a discovery: residual structure, the pre-screen, the held-out test, error measures.
 
-A candidate is judged by two statistics whose assumptions real records meet
-(docs/design/discovery.md, "The two tests, and their assumptions"):
+docs/design/discovery.md, "The held-out test, and its assumptions":
 
-* :func:`noise_test` — the **fitted** improvement in units of the measurement
-  noise, which is estimated from each record alone
-  (:func:`~esmm.pipeline.tensile.events.noise_sd`), not from any model's
-  residual: ``Δχ² = Σ_f ΔRSS_f / σ_f²`` must exceed the Schwarz (BIC) penalty
-  ``Δk ln N`` of the parameters it adds. With the noise variance known, this is
-  the BIC of a Gaussian likelihood; its penalty grows as ln N, so it does not
-  explode on dense records, and on data the current model already explains to
-  the noise level ``Δχ²`` is a χ²(Δk) variable, which exceeds ``Δk ln N`` with
-  probability below 0.3 % for N ≥ 400.
-* :func:`paired_heldout` — the **held-out** improvement, on data left out of
-  the fit: (a) on average, the squared prediction error must fall by at least
-  one noise variance per sample (an effect that changes the prediction by less
-  than the measurement's own noise is not established by it); and (b)
-  beyond chance, by two standard errors (one-sided p ≈ 0.02) of either of two
-  paired statistics whose standard errors count their serial correlation
-  (integrated autocorrelation time, Geyer's initial positive sequence): the
-  mean difference of squared errors (the Diebold-Mariano test of predictive
-  accuracy), or a sign test — among the held-out samples where the two
-  predictions differ by more than the noise, the candidate is the closer one
-  more often than not. The sign test establishes a consistent improvement when
-  the mean's standard error is inflated by a few held-out segments of very
-  different size (cycles of rising amplitude); the mean establishes a large
-  improvement concentrated where the effect acts (the high-stretch end). Either
-  passing roughly doubles the false-positive rate of one test (about 4 %), and
-  the candidate must also have passed the noise test of its fit. (c) Not only
-  more often closer: when the sign test decides, the mean improvement must
-  still be at least one of its standard errors — a candidate closer on most
-  samples but no better on average changes the prediction without improving it.
+* :func:`noise_test` — the **pre-screen**: the fitted improvement in units of the
+  measurement noise (each record's χ² divided by its noise's autocorrelation time
+  at the fitting spacing) must exceed the Schwarz penalty ``Δk ln N``. It saves
+  the held-out check of candidates that cannot pay for themselves on the data
+  they were fitted to; it decides nothing.
+* :func:`heldout_test` — what **decides**: on data held out of the fit, a
+  one-sided p-value that the candidate predicts better beyond the measurement
+  noise (its variance from the record's noise model, the two models' predictions
+  fixed), judged at the search-wide level of :mod:`.levels`; a replication check
+  across the held-out segments (heteroskedasticity- and autocorrelation-consistent,
+  Student's t with Welch–Satterthwaite degrees of freedom, at
+  :data:`REPLICATION_LEVEL`); and a size of at least one squared resolution per
+  sample (the larger of the noise and :data:`FORCE_ACCURACY` of the reading).
 
-AICc and BIC on effective sample sizes (:func:`information`) are computed
-and reported for comparison; they do not decide.
+AICc and BIC on effective sample sizes (:func:`information`) are computed and
+reported for comparison; they decide nothing.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Events in a tensile record that a model must not fit: measurement noise, ruptures, grip slips.
+"""Events in a tensile record that a model must not fit: measurement noise, ruptures, grip slips, a force lag.
 
 Shared by the calibrate fit and the discovery (:mod:`esmm.pipeline.discover`): what a record says
 about itself, without any model of the material.
@@ -17,6 +17,9 @@ SUDDEN_STEEPNESS = 10.0
 RUPTURE_FRACTION = 0.5
 #: the probability of one false slip anywhere in a clean record (Bonferroni over its loading samples)
 SLIP_ALPHA = 0.01
+#: a lag longer than this fraction of the runs at a reversal is not an acquisition delay (filters delay by a few
+#: samples)
+LAG_OF_RUN = 0.05
 
 
 def runs(a: np.ndarray) -> list[tuple[int, int, int]]:
@@ -203,3 +206,83 @@ def _is_slip(x, y, s: int, e: int, k: int, m: int, z: float, scales: dict, loadi
     if not float(np.mean(after)) < y[k] - 0.5 * (y[k] - y[m]):
         return False
     return bool(_falls(x, y, k, m, 0.0) and float(np.max(y[m:e])) - y[m] > s1)
+
+
+def force_lag(x: np.ndarray, y: np.ndarray, t: np.ndarray, direction: np.ndarray) -> float:
+    """How long the force channel lags the stretch [s] (0 when it does not), from the record's reversals.
+
+    Where the stretch reverses from loading to unloading at one speed, a
+    rate-independent material's stress is symmetric in time about the same
+    moment as the stretch (elastic, damage and Mullins laws give the same
+    stress on either side of the peak at first order), and a viscoelastic
+    stress peaks earlier (it relaxes as the rate falls to zero) and falls
+    faster after it: a stress that is symmetric about a *later* moment is the
+    acquisition chain's delay (a low-pass filter's and a decimating filter's
+    group delays, a force channel read after the position). At each reversal
+    (a loading run followed directly by an unloading run) the centre of
+    symmetry of each channel is the shift c minimising Σ_τ (y_{c+τ} − y_{c−τ})²
+    over τ up to an eighth of the shorter run (every sample of the window
+    contributes, so the noise averages out), refined between samples by a
+    parabola; the lag is the stress's centre less the stretch's. The record's
+    lag is the median over its reversals when it is positive at most of them
+    and at least one sampling interval, and shorter than :data:`LAG_OF_RUN` of
+    the runs (a filter delays by a few samples); else 0.
+
+    Parameters
+    ----------
+    x, y, t : ndarray, shape (n,)
+        Stretch, stress and time [s] in time order (nearly uniform sampling).
+    direction : ndarray of int, shape (n,)
+        +1 loading, -1 unloading, 0 hold.
+    """
+    x, y, t = (np.asarray(a, float) for a in (x, y, t))
+    lags, lengths = [], []
+    for k, length in _reversals(runs(np.asarray(direction))):
+        q = length // 8
+        if q < 3:
+            continue
+        lags.append(_symmetry_centre(y, k, q) - _symmetry_centre(x, k, q))
+        lengths.append(length)
+    if not lags:
+        return 0.0
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    lag = np.array(lags) * dt
+    d = float(np.median(lag))
+    ok = d >= dt > 0 and float(np.mean(lag > 0)) > 0.5 and d <= LAG_OF_RUN * min(lengths) * dt
+    return d if ok else 0.0
+
+
+def _reversals(rr: list[tuple[int, int, int]]) -> list[tuple[int, int]]:
+    """(sample, shorter run's length) of each reversal: a loading run followed by an unloading run, directly or
+    through a pause shorter than an eighth of either (the crosshead turning)."""
+    out = []
+    for i in range(len(rr) - 1):
+        s0, e0, v0 = rr[i]
+        if v0 <= 0:
+            continue
+        s1, e1, v1 = rr[i + 1]
+        if v1 < 0:
+            out.append((e0, min(e0 - s0, e1 - s1)))
+        elif v1 == 0 and i + 2 < len(rr) and rr[i + 2][2] < 0:
+            s2, e2, _ = rr[i + 2]
+            length = min(e0 - s0, e2 - s2)
+            if e1 - s1 < length // 8:
+                out.append(((s1 + e1) // 2, length))
+    return out
+
+
+def _symmetry_centre(a: np.ndarray, k: int, q: int) -> float:
+    """The shift c (samples, relative to *k*, within ±q) about which *a* is most nearly symmetric over ±q samples."""
+    n = a.size
+    cs = np.arange(max(k - q, q), min(k + q, n - q - 1) + 1)
+    if cs.size < 3:
+        return 0.0
+    taus = np.arange(1, q + 1)
+    cost = np.array([float(np.sum((a[c + taus] - a[c - taus]) ** 2)) for c in cs])
+    j = int(np.argmin(cost))
+    shift = float(cs[j] - k)
+    if 0 < j < cost.size - 1:  # a parabola through the three lowest points
+        den = cost[j - 1] - 2.0 * cost[j] + cost[j + 1]
+        if den > 0:
+            shift += 0.5 * (cost[j - 1] - cost[j + 1]) / den
+    return shift
