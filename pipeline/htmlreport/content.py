@@ -31,6 +31,8 @@ class Quantity:
     note: str = ""  # e.g. "(at bound)", shown after the unit
 
     def text(self) -> str:
+        if self.value is None:
+            return "–"
         t = quantity_text(self.value, self.unit, digits=self.digits, readable=self.readable)
         return f"{t} {self.note}".rstrip()
 

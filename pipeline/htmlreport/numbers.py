@@ -93,8 +93,10 @@ def quantity_text(value: float | None, unit: str, *, digits: int = 4, readable: 
     return f"{format_number(v, digits)} {shown}"
 
 
-def interval_text(lower: float | None, upper: float | None, unit: str, *, digits: int = 4) -> str:
-    """A 95 % interval in the readable unit of its larger end: ``"[12.0, 1386] MPa"``, ``"unbounded"``."""
+def interval_text(lower: float | None, upper: float | None, unit: str, *, digits: int = 4,
+                  like: float | None = None) -> str:
+    """An interval in the readable unit of *like* (its estimate), else of its larger finite end:
+    ``"[12.0, 1386] MPa"``, ``"[0, ∞] GPa"``, ``"unbounded"``."""
     lo = None if lower is None or not math.isfinite(float(lower)) else float(lower)
     hi = None if upper is None or not math.isfinite(float(upper)) else float(upper)
     if lo is None and hi is None:
@@ -102,7 +104,7 @@ def interval_text(lower: float | None, upper: float | None, unit: str, *, digits
     if unit in (DIMENSIONLESS, "", "-"):
         shown, fac = "(dimensionless)", 1.0
     else:
-        shown, fac = readable_unit([lo, hi], unit)
+        shown, fac = readable_unit([like] if like is not None else [lo, hi], unit)
     lo_t = "−∞" if lo is None else format_number(lo / fac, digits)
     hi_t = "∞" if hi is None else format_number(hi / fac, digits)
     return f"[{lo_t}, {hi_t}] {shown}"
