@@ -93,7 +93,9 @@ def previous_run(folder: str | os.PathLike) -> PreviousRun | None:
         kind, files = "discover", []
     else:
         kind, files = "calibrate", []
-    files += batch_files + [folder / n for n in KNOWN.get(kind, ())]
+    # every name esmm's runs write, whatever the kind recorded: a folder written by several runs (or by the
+    # library, without a record) is cleared of all of them
+    files += batch_files + [folder / n for names in KNOWN.values() for n in names]
     files += [p for p in folder.glob("esmm-batch-*.log")]
     seen, existing = set(), []
     for p in files:

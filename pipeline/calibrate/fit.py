@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -65,7 +65,9 @@ class ParameterEstimate:
     kind: str
     direction: str | None = None  # None = shared (isotropic or not directional)
     at_bound: bool = False
-    identifiable: bool = True  # False: a wide or unbounded interval, or a correlation beyond HIGH_CORRELATION
+    #: False: a wide or unbounded 95 % interval. A correlation beyond HIGH_CORRELATION is warned but does not
+    #: by itself make a parameter undetermined: its marginal interval already carries the correlation.
+    identifiable: bool = True
 
     @property
     def unit(self) -> str:
@@ -358,8 +360,6 @@ def _estimates(prob: FitProblem, sol, rho: float) -> tuple[list[ParameterEstimat
                     f"{keys[i]} and {keys[j]} are correlated at {corr[i, j]:+.3f}: the data "
                     "determine a combination of them, not each one"
                 )
-                for k in (i, j):
-                    estimates[k] = replace(estimates[k], identifiable=False)
     return estimates, corr, warnings
 
 
