@@ -146,6 +146,7 @@ def test_a_stop_at_a_force_limit_is_censored_and_not_averaged():
     s = F.group_summary(fs)
     assert (s["failed"], s["censored"]) == (1, 1)
     assert s["stats"]["ultimate_stress"]["n"] == 1
+    assert s["stats"]["linear_modulus"]["n"] == 2                      # a modulus is measured before the stop
     assert s["stats"]["ultimate_stress"]["mean"] == pytest.approx(fs[1].ultimate_stress)
     assert s["censored_at"] == [pytest.approx(float(_ab(x)[-1]))]
     relax = _test(np.r_[x, np.full(300, x[-1])], np.r_[_ab(x), _ab(x)[-1] * np.linspace(1, 0.7, 300)])

@@ -277,18 +277,24 @@ METRICS = (("ultimate_stress", "Pa"), ("ultimate_stretch", "1"), ("rupture_stret
            ("toe_end_stretch", "1"), ("toe_modulus", "Pa"), ("linear_modulus", "Pa"))
 
 
-def group_summary(failures: Sequence[FailureTest]) -> dict[str, Any]:
-    """Mean, SD and count of each metric over the tests that failed; the censored ones apart.
+#: metrics a test that stopped before failing (censored) measures as well as one that failed
+UNCENSORED = ("toe_end_stretch", "toe_modulus", "linear_modulus")
 
-    A censored test's ultimate stress is only a lower bound: averaging it with the
-    failed tests' would bias the strength low, so it is counted and its largest
-    stress reported (``censored_at``), never averaged.
+
+def group_summary(failures: Sequence[FailureTest]) -> dict[str, Any]:
+    """Mean, SD and count of each metric: strengths over the tests that failed, moduli over every failure test.
+
+    A censored test's ultimate stress (and stretch) is only a lower bound: averaging
+    it with the failed tests' would bias the strength low, so it is counted and its
+    largest stress reported (``censored_at``), never averaged. Its toe and linear
+    moduli, read before it stopped, are measurements like any other and are averaged.
     """
     failed = [f for f in failures if f.failed]
+    tested = [f for f in failures if f.kind != "none"]
     stats: dict[str, Any] = {}
     for key, unit in METRICS:
-        vals = [float(getattr(f, key)) for f in failed if getattr(f, key) is not None
-                and math.isfinite(float(getattr(f, key)))]
+        vals = [float(getattr(f, key)) for f in (tested if key in UNCENSORED else failed)
+                if getattr(f, key) is not None and math.isfinite(float(getattr(f, key)))]
         stats[key] = {"mean": float(np.mean(vals)) if vals else None,
                       "sd": float(np.std(vals, ddof=1)) if len(vals) > 1 else None, "n": len(vals), "unit": unit}
     cens = [f for f in failures if f.censored]

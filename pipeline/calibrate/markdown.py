@@ -105,7 +105,7 @@ def group_sentences(cal: Calibration) -> list[str]:
     """The group's failure statistics in words, with units (mean ± SD over the tests that failed)."""
     s = cal.failure_summary
     out = []
-    if s["failed"]:
+    if s["failed"] or s["censored"]:
         names = {"ultimate_stress": "ultimate stress", "ultimate_stretch": "stretch at ultimate",
                  "linear_modulus": "linear modulus", "toe_modulus": "toe modulus"}
         parts = []
@@ -116,9 +116,9 @@ def group_sentences(cal: Calibration) -> list[str]:
                     " (dimensionless)", "")
                 parts.append(f"{label} {quantity_text(st['mean'], st['unit']).replace(' (dimensionless)', '')}{sd} "
                              f"(n = {st['n']})")
-        head = (f"Over the {s['failed']} tests that failed, mean ± SD: " if s["failed"] > 1
-                else "The test that failed: ")
-        out.append(head + "; ".join(parts) + ".")
+        if parts:
+            out.append("Mean ± SD (n: the tests each rests on; strengths over the tests that failed, moduli over "
+                       "every failure test): " + "; ".join(parts) + ".")
     if s["censored"]:
         lo = min(s["censored_at"])
         out.append(f"{s['censored']} test(s) stopped before failing (censored, at least "

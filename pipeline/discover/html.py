@@ -37,8 +37,8 @@ def verdict_of(doc: dict[str, Any]) -> tuple[str, str, list[str], list[str]]:
     """
     b, f = doc["base"], doc["final"]
     kept = doc.get("effects", [])
-    change = f"error {_pct(b.get('nrmse'))} → {_pct(f.get('nrmse'))} of the stress range " \
-             f"(held out {_pct(b.get('heldout_nrmse'))} → {_pct(f.get('heldout_nrmse'))})"
+    change = (f"Error {_pct(b.get('nrmse'))} → {_pct(f.get('nrmse'))} of the stress range, held out "
+              f"{_pct(b.get('heldout_nrmse'))} → {_pct(f.get('heldout_nrmse'))}.")
     unident = [k for k, p in f.get("parameters", {}).items() if p.get("not_identifiable")]
     reasons, advice = [], []
     if doc.get("outcome"):
@@ -50,8 +50,8 @@ def verdict_of(doc: dict[str, Any]) -> tuple[str, str, list[str], list[str]]:
         advice.append("do not report or average those values")
     found = ("found: " + ", ".join(kept).replace("_", " ")) if kept else "nothing to add"
     level = "poor" if reasons else "good"
-    head = {"good": f"Good: {found}; what is left is the records' noise ({change}).",
-            "poor": f"Poor: {found}, but not everything is explained ({change})."}[level]
+    head = {"good": f"Good: {found}; what is left is the records' noise. {change}",
+            "poor": f"Poor: {found}, but not everything is explained. {change}"}[level]
     return level, head, reasons, advice
 
 
