@@ -12,7 +12,7 @@ LOCK    ?= requirements.lock
 PIN     := $(if $(LOCK),-c $(LOCK),)
 
 .DEFAULT_GOAL := help
-.PHONY: help install check-system test test-fast demo bench results lint lock clean
+.PHONY: help install check-system test test-fast demo bench bench-discover results lint lock clean
 
 help: ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  make %-13s %s\n", $$1, $$2}'
@@ -46,6 +46,16 @@ bench: install ## run the benchmarks, write benchmarks/results.json, render benc
 
 results: ## render benchmarks/RESULTS.md and the README's table from the committed JSON (no measuring)
 	$(PYTHON) benchmarks/results_md.py
+
+# The independent population (benchmarks/population): discovery's false-positive rate on clean
+# cases and its confusion table; one `esmm calibrate --discover` per case, BENCH_JOBS at a time.
+BENCH_CASES ?= 300
+BENCH_SEED ?= 0
+BENCH_JOBS ?= 2
+BENCH_DISCOVER_OUT ?= benchmarks/population_results.json
+bench-discover: install ## discovery on an independent population: 300 cases (200 clean), JSON in benchmarks/
+	$(BIN)/python benchmarks/bench_discover_population.py --cases $(BENCH_CASES) --seed $(BENCH_SEED) \
+		--jobs $(BENCH_JOBS) --clean-fraction 0.6666666667 --timeout 300 --out "$(BENCH_DISCOVER_OUT)"
 
 lock: ## refresh requirements.lock: the newest releases pyproject.toml allows, installed and frozen
 	bash scripts/lock.sh "$(PYTHON)" requirements.lock

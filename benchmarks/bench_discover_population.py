@@ -1,0 +1,286 @@
+"""Discovery on an independent population: its false-positive rate on clean cases and its
+confusion table on cases with one effect.
+
+The population comes from ``benchmarks/population`` (a generator written from the literature,
+recording through realistic acquisition chains and exporting in machine formats; it shares no
+code with esmm). Each case is run the way a user runs it, ``esmm calibrate <files> --discover
+--out <dir> --json <file>`` (the esmm installed beside this Python), one process per case, ``J``
+at a time, each with a time limit; the score reads the JSON's ``effects`` (what discovery kept)
+and ``final.terms`` (which of those are elastic-law terms).
+
+Scoring:
+
+* clean cases: a false positive is any history effect or artefact kept; elastic-law terms are
+  counted separately (the base laws are not esmm's, so a term may be right). The rate has a 95 %
+  Clopper-Pearson interval.
+* effect cases: strict = the true effect kept and no other effect or artefact; lenient = the
+  true effect among those kept. ``nonlinear_viscoelastic`` includes ``viscoelastic`` (stretch-
+  dependent relaxation is relaxation), so for a true ``nonlinear_viscoelastic`` a kept
+  ``viscoelastic`` beside it is not an extra; named as plain ``viscoelastic`` alone it is counted
+  in its own column ("viscoelastic, not nonlinear"), not as right.
+* runtimes, timeouts, errors (non-zero exits with their last message line), seeds.
+
+``python benchmarks/bench_discover_population.py --cases N --seed S --jobs J --out results.json
+[--timeout 300] [--clean-fraction 0.5] [--work DIR]`` (the cases, with esmm's outputs beside them,
+stay in ``--work``, by default a new temporary folder named in the JSON); ``make bench-discover``
+runs 300 cases, 200 of them clean. ``run()`` is what ``benchmarks/run.py`` (``make bench``) calls:
+a smaller population (``BENCH_CASES``) in a temporary folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+if str(HERE) not in sys.path:
+    sys.path.insert(0, str(HERE))
+
+from population import CLASSES, GENERATOR_VERSION, generate  # noqa: E402
+
+#: ``make bench``'s population (override with ESMM_BENCH_POPULATION_CASES); ``make bench-discover``
+#: runs 300 cases, two thirds of them clean.
+BENCH_CASES, BENCH_SEED, BENCH_CLEAN = 60, 0, 2.0 / 3.0
+NL, VE = "nonlinear_viscoelastic", "viscoelastic"
+PLAIN_VE = "viscoelastic, not nonlinear"
+
+
+def esmm_command() -> str:
+    exe = Path(sys.executable).parent / "esmm"
+    return str(exe) if exe.exists() else (shutil.which("esmm") or "esmm")
+
+
+def _last_line(text: str) -> str:
+    lines = [ln.strip() for ln in (text or "").splitlines() if ln.strip()]
+    return lines[-1][:500] if lines else ""
+
+
+def run_case(case: Path, files: list[str], *, timeout: float, exe: str, threads: int) -> dict:
+    """Run discovery on one case folder; returns status, seconds, kept effects and terms."""
+    out, js = case / "esmm_out", case / "esmm.json"
+    js.unlink(missing_ok=True)
+    env = dict(os.environ)
+    for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        env[k] = str(threads)
+    cmd = [exe, "calibrate", *files, "--discover", "--out", str(out), "--json", str(js)]
+    t0 = time.perf_counter()
+    try:
+        p = subprocess.run(cmd, cwd=case, capture_output=True, text=True, timeout=timeout, env=env)
+    except subprocess.TimeoutExpired:
+        return {"status": "timeout", "seconds": round(time.perf_counter() - t0, 2)}
+    sec = round(time.perf_counter() - t0, 2)
+    if p.returncode != 0 or not js.exists():
+        return {"status": "error", "seconds": sec, "rc": p.returncode,
+                "message": _last_line(p.stderr) or _last_line(p.stdout)}
+    doc = json.loads(js.read_text())
+    terms = list((doc.get("final") or {}).get("terms") or [])
+    kept = list(doc.get("effects") or [])
+    return {"status": "ok", "seconds": sec, "effects": [k for k in kept if k not in terms],
+            "terms": [k for k in kept if k in terms], "ruptures": sorted(doc.get("ruptures") or {}),
+            "warnings": len(doc.get("warnings") or [])}
+
+
+def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float | None, float | None]:
+    """Exact binomial interval of a rate k/n."""
+    if n == 0:
+        return None, None
+    from scipy.stats import beta
+
+    a = 1.0 - level
+    lo = 0.0 if k == 0 else float(beta.ppf(a / 2, k, n - k + 1))
+    hi = 1.0 if k == n else float(beta.ppf(1 - a / 2, k + 1, n - k))
+    return lo, hi
+
+
+def judge(true: str, effects: list[str]) -> tuple[bool, bool, list[str]]:
+    """(strict, lenient, confusion columns) of one effect case (module docstring)."""
+    kept = set(effects)
+    if true == NL and NL in kept:
+        kept.discard(VE)
+    cols = sorted(kept)
+    if true == NL and NL not in kept and VE in kept:
+        cols = [PLAIN_VE if c == VE else c for c in cols]
+    return kept == {true}, true in kept, cols or ["nothing"]
+
+
+def _by(rows: list[dict], key) -> dict:
+    """{value: [cases, false positives]} of the clean cases by one attribute."""
+    out: dict = {}
+    for r in rows:
+        v = str(key(r))
+        n, k = out.get(v, [0, 0])
+        out[v] = [n + 1, k + int(bool(r["effects"]))]
+    return dict(sorted(out.items()))
+
+
+def _bin(v: float, edges: tuple[float, float], what: str) -> str:
+    lo, hi = edges
+    return (f"< {100 * lo:g} % {what}" if v < lo else f"{100 * lo:g}-{100 * hi:g} % {what}" if v < hi
+            else f">= {100 * hi:g} % {what}")
+
+
+def score_clean(rows: list[dict]) -> dict:
+    ok = [r for r in rows if r["status"] == "ok"]
+    fp = [r for r in ok if r["effects"]]
+    lo, hi = clopper_pearson(len(fp), len(ok))
+    invented: dict[str, int] = {}
+    terms: dict[str, int] = {}
+    for r in ok:
+        for e in r["effects"]:
+            invented[e] = invented.get(e, 0) + 1
+        for e in r["terms"]:
+            terms[e] = terms.get(e, 0) + 1
+    return {"cases": len(rows), "ran": len(ok), "false_positives": len(fp),
+            "fp_rate": len(fp) / len(ok) if ok else None, "fp_ci95": [lo, hi],
+            "invented": dict(sorted(invented.items(), key=lambda kv: -kv[1])),
+            "with_terms": sum(1 for r in ok if r["terms"]), "terms": terms,
+            "fp_by_protocol": _by(ok, lambda r: r["protocol"]), "fp_by_mode": _by(ok, lambda r: r["mode"]),
+            "fp_by_format": _by(ok, lambda r: r["format"]), "fp_by_filter": _by(ok, lambda r: r["chain"]["filter"]),
+            "fp_by_bits": _by(ok, lambda r: r["chain"]["bits"]),
+            "fp_by_quantize_at": _by(ok, lambda r: r["chain"]["quantize_at"]),
+            "fp_by_hum": _by(ok, lambda r: r["chain"]["hum_of_noise"] > 0),
+            "fp_by_family": _by(ok, lambda r: r["family"]),
+            "fp_by_force_lag": _by(ok, lambda r: _bin(r["chain"]["force_lag_of_segment"], (1e-3, 1e-2), "of segment")),
+            "fp_by_acquisition_error": _by(ok, lambda r: _bin(r["acquisition_error_of_range"], (1e-3, 1e-2), "of range")),
+            "fp_cases": [r["case"] for r in fp]}
+
+
+def score_effects(rows: list[dict]) -> dict:
+    ok = [r for r in rows if r["status"] == "ok"]
+    confusion: dict[str, dict[str, int]] = {}
+    by_class: dict[str, dict] = {}
+    for r in ok:
+        strict, lenient, cols = judge(r["class"], r["effects"])
+        r["strict"], r["lenient"] = strict, lenient
+        row = confusion.setdefault(r["class"], {})
+        for c in cols:
+            row[c] = row.get(c, 0) + 1
+    for cls in CLASSES:
+        rs = [r for r in rows if r["class"] == cls]
+        good = [r for r in rs if r["status"] == "ok"]
+        if not rs:
+            continue
+        by_class[cls] = {"cases": len(rs), "ran": len(good),
+                         "strict": sum(r["strict"] for r in good), "lenient": sum(r["lenient"] for r in good),
+                         "strict_rate": sum(r["strict"] for r in good) / len(good) if good else None,
+                         "lenient_rate": sum(r["lenient"] for r in good) / len(good) if good else None}
+    n = len(ok)
+    return {"cases": len(rows), "ran": n, "strict_rate": sum(r["strict"] for r in ok) / n if n else None,
+            "lenient_rate": sum(r["lenient"] for r in ok) / n if n else None, "by_class": by_class,
+            "confusion": {k: confusion[k] for k in sorted(confusion)}}
+
+
+def _row(t: dict, res: dict) -> dict:
+    """One case's record: its truth in brief and what discovery did."""
+    ch = t["files"][0]["chain"]
+    return {"case": t["case"], "class": t["class"], "protocol": t["protocol"]["kind"], "mode": t["mode"],
+            "family": t["family"], "law": t["base_law"]["name"], "format": t["format"],
+            "variant": (t["effect"] or {}).get("variant"), "effect_size": (t["effect"] or {}).get("size"),
+            "files": len(t["files"]), "samples": sum(f["samples"] for f in t["files"]),
+            "acquisition_error_of_range": max(f["acquisition_error_of_range"] for f in t["files"]),
+            "chain": {k: ch.get(k) for k in ("filter", "order", "f_out", "bits", "quantize_at", "hum_of_noise",
+                                             "decimator", "position", "force_lag_s", "force_lag_of_segment")},
+            "seed": t["seed"], **{"effects": [], "terms": []}, **res}
+
+
+def evaluate(n_cases: int, seed: int, *, jobs: int, timeout: float, work: Path, clean_fraction: float) -> dict:
+    """Generate the population into ``work``, run discovery on every case, score it."""
+    index = generate(seed, n_cases, work, clean_fraction=clean_fraction)
+    exe = esmm_command()
+    threads = max(1, (os.cpu_count() or 1) // max(jobs, 1))
+    truths = [json.loads((work / c["case"] / "truth.json").read_text()) for c in index]
+
+    def one(t: dict) -> dict:
+        res = run_case(work / t["case"], [f["file"] for f in t["files"]], timeout=timeout, exe=exe, threads=threads)
+        print(f"[population] {t['case']} {t['class']}: {res['status']} {res['seconds']} s "
+              f"{res.get('effects', res.get('message', ''))}", file=sys.stderr, flush=True)
+        return _row(t, res)
+
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(max_workers=max(jobs, 1)) as pool:
+        rows = list(pool.map(one, truths))
+    wall = time.perf_counter() - t0
+    secs = [r["seconds"] for r in rows if r["status"] != "timeout"]
+    return {"population": {"seed": seed, "cases": n_cases, "clean_fraction": clean_fraction,
+                           "generator_version": GENERATOR_VERSION, "folder": str(work)},
+            "esmm": exe, "jobs": jobs, "timeout_s": timeout, "wall_s": round(wall, 1),
+            "clean": score_clean([r for r in rows if r["class"] == "clean"]),
+            "effects": score_effects([r for r in rows if r["class"] != "clean"]),
+            "runtime": {"median_s": statistics.median(secs) if secs else None, "max_s": max(secs) if secs else None,
+                        "timeouts": [r["case"] for r in rows if r["status"] == "timeout"]},
+            "errors": [{"case": r["case"], "class": r["class"], "rc": r["rc"], "message": r["message"]}
+                       for r in rows if r["status"] == "error"],
+            "cases": rows}
+
+
+def _pct(v) -> str:
+    return "-" if v is None else f"{100 * v:.1f} %"
+
+
+def table(res: dict) -> str:
+    c, e, rt = res["clean"], res["effects"], res["runtime"]
+    lo, hi = c["fp_ci95"]
+    lines = [f"population seed {res['population']['seed']}: {res['population']['cases']} cases, "
+             f"generator {res['population']['generator_version']}; esmm {res['esmm']}; cases in "
+             f"{res['population']['folder']}",
+             f"clean: false positives {c['false_positives']}/{c['ran']} = {_pct(c['fp_rate'])} "
+             f"(95 % CI {_pct(lo)} - {_pct(hi)}); elastic terms added on {c['with_terms']}/{c['ran']}",
+             "  invented: " + (", ".join(f"{k} {v}" for k, v in c["invented"].items()) or "nothing"),
+             f"effect cases: strict {_pct(e['strict_rate'])}, lenient {_pct(e['lenient_rate'])} of {e['ran']}",
+             f"  {'true class':24s} {'n':>3s} {'strict':>7s} {'lenient':>8s}  kept"]
+    for cls, b in e["by_class"].items():
+        kept = ", ".join(f"{k} {v}" for k, v in sorted(e["confusion"].get(cls, {}).items(), key=lambda kv: -kv[1]))
+        lines.append(f"  {cls:24s} {b['ran']:3d} {b['strict']:7d} {b['lenient']:8d}  {kept}")
+    lines.append(f"runtime: median {rt['median_s']} s, max {rt['max_s']} s, timeouts {len(rt['timeouts'])}, "
+                 f"errors {len(res['errors'])}, wall {res['wall_s']} s with {res['jobs']} jobs")
+    lines += [f"  error {x['case']} ({x['class']}): {x['message']}" for x in res["errors"]]
+    return "\n".join(lines)
+
+
+def run() -> dict:
+    """``make bench``: a smaller population (ESMM_BENCH_POPULATION_CASES, default BENCH_CASES)."""
+    n = int(os.environ.get("ESMM_BENCH_POPULATION_CASES", BENCH_CASES))
+    with tempfile.TemporaryDirectory(prefix="esmm-population-") as work:
+        res = evaluate(n, BENCH_SEED, jobs=max(1, os.cpu_count() or 1), timeout=300.0, work=Path(work),
+                       clean_fraction=BENCH_CLEAN)
+    res.pop("cases")
+    return res
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--cases", type=int, default=300)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--jobs", type=int, default=max(1, os.cpu_count() or 1))
+    ap.add_argument("--timeout", type=float, default=300.0, help="per case [s]")
+    ap.add_argument("--clean-fraction", type=float, default=0.5, help="at least 0.5")
+    ap.add_argument("--out", default=str(HERE / "population_results.json"))
+    ap.add_argument("--work", default=None, help="folder for the cases, kept (default: a new temporary folder)")
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="esmm-population-"))
+    if work.exists() and any(work.iterdir()):
+        if not (work / "index.json").exists():
+            ap.error(f"--work {work}: not empty and not a population folder (no index.json); give a new folder")
+        shutil.rmtree(work)  # an earlier population: regenerated from its seed
+    res = evaluate(args.cases, args.seed, jobs=args.jobs, timeout=args.timeout, work=work,
+                   clean_fraction=args.clean_fraction)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(res, indent=1) + "\n")
+    os.replace(tmp, out)
+    print(table(res))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,309 @@
+"""A case: one folder of 1-6 files of one material, and its truth.json.
+
+``make_case`` draws a material family, a test shape and protocol, a base law, the effect of the
+case (none for a clean case), the specimens and the machine, simulates every file on the
+converter's fine grid, records it through the acquisition chain and writes it in one export
+format. Everything comes from one seed, so a case is reproduced bit for bit.
+
+A clean case is the base law alone (no history effect, no artefact): the machine's acquisition
+chain (filters, converter, noise, encoder) is still there, as in every real record, and its
+parameters are in truth.json. A failure test ruptures in clean cases too: the force falls to the
+residual of broken fibres and then to the tared zero.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from . import effects as E
+from .acquisition import record_force, record_position
+from .draws import (
+    FAMILIES,
+    SHAPES,
+    draw_law,
+    draw_range,
+    draw_specimen,
+    loguniform,
+    pick,
+    replicate,
+)
+from .exports import allowed, measured_area, measured_length, write
+from .machine import draw_levels, draw_timing
+from .protocols import KINDS, Protocol, build, command, motion
+
+GENERATOR_VERSION = "2"
+MAX_DURATION, MIN_DURATION = 6000.0, 15.0
+
+
+def _choose(rng, cls: str, kind: str | None) -> tuple[str, str, str]:
+    """(family, shape, protocol kind) of a case."""
+    if cls == "clean":
+        family = pick(rng, {f: 1.0 for f in FAMILIES})
+        shapes = dict(FAMILIES[family]["shapes"])
+        if kind == "failure":
+            shapes = {"tension": 1.0}
+        return family, pick(rng, shapes), kind
+    kinds, shapes = E.PLAN[cls]
+    shape = pick(rng, shapes)
+    family = pick(rng, {f: 1.0 for f, v in FAMILIES.items() if shape in v["shapes"]})
+    return family, shape, pick(rng, kinds)
+
+
+def _protocol(rng, kind: str, x0: float, hi: float, lo, rate: float, gauge: float) -> Protocol:
+    """Build the protocol at a crosshead speed of 0.05-1000 mm/min and 15-6000 s per file."""
+    speed = rate * gauge * 6e4  # mm/min
+    rate *= float(np.clip(speed, 0.05, 1000.0) / speed)
+    for _ in range(8):
+        state = rng.bit_generator.state
+        p = build(kind, rng, x0=x0, hi=hi, lo=lo, rate=rate)
+        longest = max(p.duration(k) for k in range(len(p.files)))
+        shortest = min(p.duration(k) for k in range(len(p.files)))
+        if longest > MAX_DURATION:
+            rate *= longest / (0.8 * MAX_DURATION)
+        elif shortest < MIN_DURATION and longest < MAX_DURATION / 4:
+            rate *= shortest / (1.5 * MIN_DURATION)
+        else:
+            return p
+        rng.bit_generator.state = state
+    return p
+
+
+def _times(p: Protocol) -> tuple[float, float]:
+    """(shortest moving segment, longest hold or else longest file) [s]."""
+    holds = [t1 - t0 for wp in p.files for (t0, x0), (t1, x1) in zip(wp[:-1], wp[1:]) if x1 == x0]
+    longest_file = max(p.duration(k) for k in range(len(p.files)))
+    long_hold = max(holds) if holds else 0.0
+    return p.shortest_segment(), long_hold if long_hold > 0.1 * longest_file else longest_file
+
+
+def _rupture(rng, kind: str, p: Protocol) -> dict | None:
+    if kind != "failure":
+        return None
+    return {"x": p.info["rupture_x"], "fall_s": loguniform(rng, 0.002, 0.03),
+            "residual_of_peak": float(rng.uniform(0.0, 0.05)), "residual_tau_s": loguniform(rng, 0.05, 0.5)}
+
+
+def _survival(t: np.ndarray, x: np.ndarray, r: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(factor on the stress, residual fraction of the peak stress) after a rupture at x = r['x']."""
+    hit = np.flatnonzero(x >= r["x"])
+    if hit.size == 0:
+        return np.ones_like(t), np.zeros_like(t)
+    tr = t[hit[0]]
+    s = np.clip(1.0 - (t - tr) / r["fall_s"], 0.0, 1.0)
+    after = t > tr
+    res = np.where(after, r["residual_of_peak"] * np.exp(-np.maximum(t - tr, 0.0) / r["residual_tau_s"]), 0.0)
+    res = res * (1.0 - s)
+    return s, res
+
+
+def _true_force(rng, wp, ch, el: E.Elastic, spec: dict, x0: float, cls: str, prm: dict, rup: dict | None) -> dict:
+    """The true force [N] (and the effect-free reference) on the fine grid of one file."""
+    fs = ch.fs
+    n = int(np.ceil(wp[-1][0] * fs / ch.ratio)) * ch.ratio
+    x = motion(command(wp, fs, n), fs, accel_s=ch.accel_s, ripple=ch.velocity_ripple, ripple_hz=ch.ripple_Hz,
+               noise=ch.velocity_noise, rng=rng)
+    t = np.arange(n) / fs
+    xs, slips = (E.slipped(prm, el, x, t) if cls == "grip_slip" else (x, []))
+    cap = (lambda v: np.minimum(v, rup["x"])) if rup else (lambda v: v)
+    if cls == "slack":
+        p = E.slack_stress(prm, el, cap(xs))
+        ref = el.stress(cap(x / (1.0 + prm["delta"])))
+    else:
+        p = E.material_stress(cls, prm, el, cap(xs), 1.0 / fs)
+        ref = el.stress(cap(x))
+    if rup:
+        s, res = _survival(t, x, rup)
+        p = p * s + res * np.max(p)
+        ref = ref * s + res * np.max(ref)
+    area = spec["area"]
+    return {"t": t, "x": x, "force": p * area, "ref": ref * area, "slips_s": slips, "n": n}
+
+
+def _stated(spec: dict, error: float) -> tuple[dict, float]:
+    """The geometry the lab writes (its chosen keys, as measured: :func:`measured_length`) and the
+    area it gives; a misstated cross-section (``error``) goes into the thickness, the diameter or
+    the area."""
+    how, f = spec["stated"], 1.0 + error
+    if how == "diameter":
+        d = measured_length(spec["diameter"] * np.sqrt(f))
+        return {"diameter": d}, np.pi * d * d / 4
+    if how == "width x thickness":
+        w, th = measured_length(spec["width"]), measured_length(spec["thickness"] * f)
+        return {"width": w, "thickness": th}, w * th
+    a = measured_area(spec["area"] * f)
+    return {"area": a}, a
+
+
+def _plain(v):
+    """JSON for numpy values."""
+    if isinstance(v, dict):
+        return {str(k): _plain(u) for k, u in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(u) for u in v]
+    if isinstance(v, np.ndarray):
+        return [_plain(u) for u in v.tolist()]
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def _scale_errors(rng, cls: str, m: int) -> list[float]:
+    if cls != "specimen_scale":
+        return [0.0] * m
+    wrong = rng.permutation(m)[: int(rng.integers(1, m))]
+    return [float(rng.choice([-1, 1]) * rng.uniform(0.1, 0.4)) if k in wrong else 0.0 for k in range(m)]
+
+
+def _draw_material(rng, cls: str, family: str, shape: str, kind: str):
+    """Mode, reference, peak(s), the base law and the slack (drawn first: the crosshead then goes
+    further, ``hi (1 + delta)``, so that the specimen still reaches the peak)."""
+    mode, x0 = SHAPES[shape]
+    hi, lo = draw_range(rng, family, shape)
+    if kind not in ("cycles", "rising", "multirate", "replicates"):
+        lo = None
+    pre = E.draw_artefact("slack", rng, hi - x0) if cls == "slack" else {}
+    top = hi * (1.0 + pre["delta"]) if pre else hi
+    lo_all, hi_all = min(x0, top, lo if lo is not None else x0), max(x0, top, lo if lo is not None else x0)
+    law = draw_law(rng, family, mode, x0, lo_all, hi_all)
+    return mode, x0, hi, lo, law, pre, (lo_all, hi_all)
+
+
+def make_case(seq: np.random.SeedSequence, cls: str, folder: Path, *, kind: str | None = None) -> dict:
+    """Draw, simulate, record and write one case into ``folder``; returns its truth."""
+    rng = np.random.default_rng(seq)
+    family, shape, kind = _choose(rng, cls, kind)
+    mode, x0, hi, lo, law, pre, (lo_all, hi_all) = _draw_material(rng, cls, family, shape, kind)
+    hi_cmd = hi * (1.0 + pre["delta"]) if cls == "slack" else hi
+    specs = [draw_specimen(rng, family, shape)]
+    proto = _protocol(rng, kind, x0, hi_cmd, lo, loguniform(rng, *FAMILIES[family]["rate"]), specs[0]["gauge_length"])
+    specs += [replicate(rng, specs[0]) for _ in range(1, len(proto.files) if kind == "replicates" else 1)]
+    el = E.Elastic(law, mode, lo_all, hi_all)
+    t_move, t_long = _times(proto)
+    prm = pre or (E.draw(cls, rng, E.Ctx(el, x0, hi, t_move, t_long)) if cls != "clean" else {})
+    rup = _rupture(rng, kind, proto)
+    chains = draw_timing(rng, [proto.duration(k) for k in range(len(proto.files))], t_move)
+    spec_of = [specs[k] if kind == "replicates" else specs[0] for k in range(len(proto.files))]
+    sims = [_true_force(rng, wp, ch, el, sp, x0, cls, prm, rup) for wp, ch, sp in zip(proto.files, chains, spec_of)]
+    peak = max(float(np.max(np.abs(s["force"]))) for s in sims)
+    chains = draw_levels(rng, chains, peak)
+    errors = _scale_errors(rng, cls, len(specs))
+    if cls == "specimen_scale":
+        prm["errors"] = errors
+    fmt = pick(rng, allowed(mode))
+    folder.mkdir(parents=True, exist_ok=True)
+    ks = [k if kind == "replicates" else 0 for k in range(len(sims))]
+    files = [_record_file(rng, folder, k, s, ch, sp, ks[k], errors[ks[k]], fmt, mode, x0, family, proto, cls,
+                          prm, peak) for k, (s, ch, sp) in enumerate(zip(sims, chains, spec_of))]
+    size = _effect_size(cls, prm, sims, peak)
+    truth = {"schema": "population-case/1", "generator_version": GENERATOR_VERSION, "case": folder.name,
+             "seed": {"entropy": seq.entropy, "spawn_key": list(seq.spawn_key)}, "class": cls,
+             "effect": None if cls == "clean" else {"name": cls, **prm, "size": size},
+             "family": family, "shape": shape, "mode": mode, "base_law": law.describe(),
+             "protocol": {"kind": kind, **proto.info, "shortest_segment_s": t_move, "longest_hold_s": t_long},
+             "rupture": rup, "format": fmt,
+             "specimens": specs, "files": files}
+    truth = _plain(truth)
+    (folder / "truth.json").write_text(json.dumps(truth, indent=1, sort_keys=True) + "\n", encoding="utf-8")
+    return truth
+
+
+def _effect_size(cls: str, prm: dict, sims: list[dict], peak: float) -> float | None:
+    """How large the effect is in the true signals: the RMS change of the force it makes, over the
+    force range (offset: the RMS offset; specimen scale: the largest area error)."""
+    if cls == "clean":
+        return None
+    if cls == "specimen_scale":
+        return float(max(abs(e) for e in prm["errors"]))
+    ref = np.concatenate([s["ref"] for s in sims])
+    span = float(np.ptp(ref)) or 1.0
+    if cls == "sensor_offset":
+        off = np.concatenate([E.offset_force(prm, s["t"], peak) for s in sims])
+        return float(np.sqrt(np.mean(off ** 2)) / span)
+    f = np.concatenate([s["force"] for s in sims])
+    return float(np.sqrt(np.mean((f - ref) ** 2)) / span)
+
+
+def _record_file(rng, folder: Path, k: int, sim: dict, ch, spec: dict, ks: int, error: float, fmt: str, mode: str,
+                 x0: float, family: str, proto: Protocol, cls: str, prm: dict, peak: float) -> dict:
+    """Record one file through the chain and write it; returns its part of truth.json."""
+    force = sim["force"] + (E.offset_force(prm, sim["t"], peak) if cls == "sensor_offset" else 0.0)
+    gauge = spec["gauge_length"]
+    pos = (sim["x"] - x0) * gauge
+    f_out = record_force(force, ch, rng)
+    f_clean = record_force(force, ch, None)
+    d_out = record_position(pos, ch)
+    t_out = sim["t"][ch.ratio - 1:: ch.ratio] - sim["t"][ch.ratio - 1]  # the controller's clock starts at 0
+    t_start = float(np.round(rng.uniform(0.0, 30.0), 2)) if rng.uniform() < 0.3 else 0.0
+    stated, area_stated = _stated(spec, error)
+    name = f"{folder.name}_s{ks + 1}_{k + 1}" if proto.kind == "replicates" else f"{folder.name}_{k + 1}"
+    gauge_stated = measured_length(gauge)
+    lsb = ch.span_N / 2.0 ** ch.bits
+    rec = {"time_s": t_out + t_start, "disp_m": d_out, "force_N": f_out, "mode": mode,
+           "specimen": f"{folder.name}-{ks + 1}", "gauge_length": gauge_stated, "stated": stated,
+           "area_stated_m2": area_stated, "tissue": family.replace("_", " "),
+           "notes": f"{proto.kind} test", "time_step_s": 1.0 / ch.f_out,
+           "disp_step_m": ch.encoder_step_m, "force_step_N": min(lsb, ch.noise_sd_of_capacity * ch.capacity_N),
+           "speed_mm_per_min": abs(proto.info.get("rate_per_s", proto.info.get("rates_per_s", [0.0])[0])) * gauge * 6e4}
+    path = folder / f"{name}.csv"
+    info = write(fmt, path, rec, rng)
+    return {"file": path.name, "specimen": rec["specimen"], "gauge_length_m": gauge, "gauge_length_stated_m": gauge_stated,
+            "area_m2": spec["area"], "area_stated_m2": area_stated, "area_error": error, "stated": stated,
+            "samples": int(t_out.size), "duration_s": float(sim["t"][-1]), "fine_samples": sim["n"],
+            "acquisition_error_sd_N": float(np.std(f_out - f_clean)),
+            "acquisition_error_of_range": float(np.std(f_out - f_clean) / (np.ptp(f_clean) or 1.0)),
+            "time_start_s": t_start, "slips_s": sim["slips_s"], "chain": _lag(ch.describe(), proto), "export": info}
+
+
+def _lag(chain: dict, proto: Protocol) -> dict:
+    """The chain plus the force's lag behind the position [s] (the analog filter's delay, and the
+    decimator's when the position is latched rather than averaged alike), and that lag over the
+    shortest loading segment: a lag makes an elastic record's loops open."""
+    lag = chain["filter_delay_s"] + (chain["decimator_delay_s"] if chain["position"] == "latched" else 0.0)
+    return {**chain, "force_lag_s": lag, "force_lag_of_segment": lag / proto.shortest_segment()}
+
+
+def plan(seed: int, n_cases: int, clean_fraction: float = 0.5) -> list[tuple[str, str | None]]:
+    """(class, protocol kind of a clean case) of every case of a population.
+
+    At least half the cases are clean (``clean_fraction`` >= 0.5); clean protocols are taken in
+    turn from every kind, the effect classes in turn (a shuffled order), so the population is
+    balanced; the order of the cases is shuffled.
+    """
+    if not 0.5 <= clean_fraction <= 1.0:
+        raise ValueError(f"clean_fraction {clean_fraction}: at least half of a population must be clean (0.5-1)")
+    rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(2 ** 31,)))
+    n_clean = int(np.ceil(clean_fraction * n_cases - 1e-9))
+    order = [str(c) for c in rng.permutation(E.CLASSES)]
+    classes = ["clean"] * n_clean + [order[i % len(order)] for i in range(n_cases - n_clean)]
+    classes = [classes[i] for i in rng.permutation(n_cases)]
+    kinds = [str(k) for k in rng.permutation(KINDS)]
+    out, c = [], 0
+    for cls in classes:
+        if cls == "clean":
+            out.append((cls, kinds[c % len(kinds)]))
+            c += 1
+        else:
+            out.append((cls, None))
+    return out
+
+
+def generate(seed: int, n_cases: int, out_dir, *, clean_fraction: float = 0.5) -> list[dict]:
+    """Write ``n_cases`` case folders (``case_0000`` ...) under ``out_dir`` and ``index.json``;
+    returns the index. Case i depends only on (seed, i) and its line of :func:`plan`, so a
+    population is reproduced exactly from its seed."""
+    todo = plan(seed, n_cases, clean_fraction)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    seqs = np.random.SeedSequence(seed).spawn(n_cases)
+    index = []
+    for i, ((cls, kind), seq) in enumerate(zip(todo, seqs)):
+        truth = make_case(seq, cls, out / f"case_{i:04d}", kind=kind)
+        index.append({"case": truth["case"], "class": truth["class"], "protocol": truth["protocol"]["kind"],
+                      "files": [f["file"] for f in truth["files"]]})
+    doc = {"schema": "population/1", "generator_version": GENERATOR_VERSION, "seed": seed, "n_cases": n_cases,
+           "clean_fraction": clean_fraction, "cases": index}
+    (out / "index.json").write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    return index
