@@ -137,3 +137,26 @@ def test_chain_energy_derivative_is_beta_and_finite_near_locking():
     # logarithmic divergence: ln(2/(1-x)) - 1 + O(1-x)
     assert e[2] == pytest.approx(np.log(2 / 1e-6) - 1, abs=1e-5)
     assert np.isfinite(e[3])
+
+
+
+def test_compiled_inverse_langevin_gives_the_numpy_bits(monkeypatch):
+    """The compiled path (long arrays) is the numpy form's arithmetic in loops: the same bits."""
+    from esmm.pipeline.materials import langevin as lv
+
+    rng = np.random.default_rng(7)
+    x = np.concatenate([
+        rng.uniform(0.0, 1.0, 4000), 1.0 - np.exp(-rng.uniform(0.0, 36.0, 4000)),  # up to the locking
+        np.exp(-rng.uniform(0.0, 700.0, 2000)), rng.uniform(0.07, 0.09, 2000),  # series branch and its edge
+        [0.0, 5e-324, 0.5, np.nextafter(0.5, 1.0), 1.0 - 2.0**-53],
+    ])
+    kernels = lv._compiled_kernels()
+    assert kernels is not None and x.size >= lv._COMPILED_MIN
+    compiled = lv._inverse_langevin_compiled(x, *kernels)
+    monkeypatch.setattr(lv, "_COMPILED_MIN", x.size + 1)
+    with np.errstate(all="ignore"):
+        numpy_form = lv._inverse_langevin_pos(x)
+    # equal_nan: both forms give NaN at the subnormal 5e-324 (1/beta overflows there)
+    assert np.array_equal(compiled, numpy_form, equal_nan=True)
+    monkeypatch.undo()
+    assert np.array_equal(inverse_langevin(-x[:-5]), -compiled[:-5])  # the public function takes this path

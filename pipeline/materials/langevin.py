@@ -29,6 +29,7 @@ Rheol. Acta 54 (2015) 29-39.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -184,7 +185,15 @@ def inverse_langevin(x):
 
 
 def _inverse_langevin_pos(x: np.ndarray) -> np.ndarray:
-    """L^-1 for 0 <= x < 1 (1-D): Halley steps on the Jedynak (2015) guess."""
+    """L^-1 for 0 <= x < 1 (1-D): Halley steps on the Jedynak (2015) guess.
+
+    Arrays of :data:`_COMPILED_MIN` values or more take the compiled path
+    (:func:`_inverse_langevin_compiled`), which gives the same bits.
+    """
+    if x.size >= _COMPILED_MIN:
+        kernels = _compiled_kernels()
+        if kernels is not None:
+            return _inverse_langevin_compiled(x, *kernels)
     omx = 1.0 - x  # exact for x >= 1/2 (Sterbenz lemma)
     beta = x * (3.0 - 2.6 * x + 0.7 * x * x) / (omx * (1.0 + 0.1 * x))
     near = x > 0.5
@@ -197,6 +206,76 @@ def _inverse_langevin_pos(x: np.ndarray) -> np.ndarray:
         # round-off near b -> 0 or infinity does not affect convergence)
         d2l = np.where(beta > 0.0, -2.0 * dl * (lang + inv) + 2.0 * lang * inv * inv, 0.0)
         beta = beta - 2.0 * r * dl / (2.0 * dl * dl - r * d2l)
+    return beta
+
+
+#: arrays at least this long take the compiled path (shorter ones: numpy; numba is imported on first use)
+_COMPILED_MIN = 32
+
+
+def _guess_loop(x, beta):  # pragma: no cover - compiled by numba (checked in tests/test_langevin.py)
+    """The Jedynak guess of :func:`_inverse_langevin_pos`, element by element, into *beta*."""
+    for i in range(x.shape[0]):
+        xi = x[i]
+        beta[i] = xi * (3.0 - 2.6 * xi + 0.7 * xi * xi) / ((1.0 - xi) * (1.0 + 0.1 * xi))
+
+
+def _halley_loop(x, beta, e, ome, coef, out):  # pragma: no cover - compiled by numba
+    """One Halley step of :func:`_inverse_langevin_pos` into *out*, element by element.
+
+    The same operations in the same order as the numpy form (:func:`_kernel`
+    and the step), with ``e = exp(-2 max(β, 1/4))`` and ``ome = -expm1(...)``
+    computed by numpy: every value is bit for bit the numpy one.
+    """
+    n_coef = coef.shape[0]
+    for i in range(x.shape[0]):
+        xi, b = x[i], beta[i]
+        if b < _SMALL:
+            z = b * b
+            poly = coef[n_coef - 1]
+            for j in range(n_coef - 2, -1, -1):
+                poly = poly * z + coef[j]
+            lang = b * poly
+            oml = 1.0 - lang
+            dl = 1.0 - lang * (lang + 2.0 / b) if b > 0.0 else 1.0 / 3.0
+        else:
+            inv_b = 1.0 / b
+            oml = inv_b - 2.0 * e[i] / ome[i]
+            dl = inv_b * inv_b - 4.0 * e[i] / (ome[i] * ome[i])
+            lang = 1.0 - oml
+        r = (1.0 - xi) - oml if xi > 0.5 else lang - xi
+        inv = 1.0 / (b if b > 0.0 else 1.0)
+        d2l = -2.0 * dl * (lang + inv) + 2.0 * lang * inv * inv if b > 0.0 else 0.0
+        out[i] = b - 2.0 * r * dl / (2.0 * dl * dl - r * d2l)
+
+
+@functools.cache
+def _compiled_kernels():
+    """(guess, Halley step) compiled by numba (imported on first use, cached on disk); None without numba."""
+    try:
+        from numba import njit
+    except ImportError:  # pragma: no cover
+        return None
+    jit = njit(cache=True, nogil=True, error_model="numpy")
+    return jit(_guess_loop), jit(_halley_loop)
+
+
+def _inverse_langevin_compiled(x: np.ndarray, guess, halley) -> np.ndarray:
+    """:func:`_inverse_langevin_pos` with its arithmetic in one compiled loop per step.
+
+    The exponentials stay numpy's (its vectorised ``exp``/``expm1`` differ
+    from the C library's in the last bit for some arguments), so the result
+    is identical to the numpy form while about a tenth of the array passes
+    are made.
+    """
+    x = np.ascontiguousarray(x, dtype=float)
+    beta = np.empty_like(x)
+    guess(x, beta)
+    for _ in range(_HALLEY_STEPS):
+        arg = -2.0 * np.maximum(beta, _SMALL)
+        step = np.empty_like(x)
+        halley(x, beta, np.exp(arg), -np.expm1(arg), _C, step)
+        beta = step
     return beta
 
 
