@@ -66,7 +66,7 @@ from ..materials.effects import (
     relaxation_strength,
     set_stretch,
 )
-from ..materials.loading import energy_density, invariants, nominal_stress
+from ..materials.loading import energy_density, invariants, nominal_stress, path_kinematics
 from ..materials.terms import TERM_NAMES, TERMS
 from .records import (
     Record,
@@ -208,6 +208,8 @@ class Values:
     slack: np.ndarray | None = None  # (n_files,) relative slack delta = s / L0
     scale: np.ndarray | None = None  # (n_files,) specimen stress scale
     slips: list[np.ndarray] = field(default_factory=list)  # per file: extension losses (stretch units)
+    #: per record: the elastic cache key of :class:`ForwardModel` at these values (filled on first use)
+    memo: dict = field(default_factory=dict, repr=False, compare=False)
 
     def material_effects(self) -> MaterialEffects:
         v = m = d = c = p = None
@@ -454,6 +456,18 @@ class ParameterLayout:
 
 
 # --------------------------------------------------------------------------- forward model
+@dataclass(frozen=True)
+class _Path:
+    """A batch of true-stretch arrays of one mode, after the permanent set: what the elastic law is evaluated on."""
+
+    mode: str
+    x: np.ndarray  # (n,) the arrays' elastic stretches, concatenated
+    kin: tuple  # path_kinematics(mode, x)
+    lam_s: list  # per array: the set stretch (or None)
+    cuts: np.ndarray  # where to split x back into the arrays
+    xis: list  # per array: the uniaxial-equivalent stretch (or None where no effect needs it)
+
+
 class ForwardModel:
     """The model stress of each record at decoded :class:`Values` (steps 1-7 of the module docstring).
 
@@ -484,13 +498,18 @@ class ForwardModel:
                     self.n_offset[k] = 2 if (spec.sensor_offset == 2 and drift_applicable(r)) else 1
                     self.pinned[k] = rest_reading(r)
         self._cache: list[dict] = [dict() for _ in self.records]
+        self._paths: dict = {}
 
     def _key(self, k: int, st: Values):
-        r = self.records[k]
-        params = st.base[r.key if self.directions else None]
-        delta = float(st.slack[k]) if st.slack is not None else 0.0
-        slips = tuple(float(v) for v in st.slips[k]) if st.slips else ()
-        return (tuple(sorted(params.items())), delta, slips, st.set_fraction), params
+        """(cache key of record k's elastic response at *st*, its elastic-law parameters), memoised on *st*."""
+        hit = st.memo.get(k)
+        if hit is None:
+            r = self.records[k]
+            params = st.base[r.key if self.directions else None]
+            delta = float(st.slack[k]) if st.slack is not None else 0.0
+            slips = tuple(float(v) for v in st.slips[k]) if st.slips else ()
+            hit = st.memo[k] = (tuple(sorted(params.items())), delta, slips, st.set_fraction), params
+        return hit
 
     def _x_true(self, k: int, st: Values, idx: np.ndarray) -> np.ndarray:
         """The specimen's stretch at samples *idx* after the slips and the slack."""
@@ -502,34 +521,42 @@ class ForwardModel:
         delta = float(st.slack[k]) if st.slack is not None else 0.0
         return np.maximum(x / (1.0 + delta), 1.0) if delta > 0.0 else x
 
-    def _compute_elastic(self, mode: str, params, xs: list[np.ndarray], set_fraction: float):
-        """(P_e, W, ξ) for several true-stretch arrays of one mode and parameter set, in one call each."""
+    def _path(self, mode: str, xs: list[np.ndarray], set_fraction: float) -> _Path:
+        """The loading path of several true-stretch arrays of one mode (after the set), evaluated once."""
         lam_s = [set_stretch(np.maximum.accumulate(x), set_fraction) for x in xs] if set_fraction > 0 \
             and mode != "simple_shear" else [None] * len(xs)
         xe = [x if s is None else x / s for x, s in zip(xs, lam_s)]
         x = np.concatenate(xe) if len(xe) > 1 else xe[0]
-        need_w = self.spec.mullins or self.spec.cyclic_softening
         need_xi = self.spec.damage or self.spec.nonlinear_viscoelastic
+        xis = [_xi(mode, xx) for xx in xs] if need_xi else [None] * len(xs)
+        return _Path(mode, x, path_kinematics(mode, x), lam_s, np.cumsum([a.size for a in xs])[:-1], xis)
+
+    def _compute_elastic(self, path: _Path, params) -> list[tuple]:
+        """(P_e, W, ξ) of each array of *path* at one parameter set, in one call each."""
+        need_w = self.spec.mullins or self.spec.cyclic_softening
         with np.errstate(all="ignore"):
-            pe = np.asarray(nominal_stress(self.model, params, mode, x), float)
-            w = np.asarray(energy_density(self.model, params, mode, x), float) if need_w else None
-        cuts = np.cumsum([a.size for a in xs])[:-1]
+            pe = np.asarray(nominal_stress(self.model, params, path.mode, path.x, kinematics=path.kin), float)
+            w = np.asarray(energy_density(self.model, params, path.mode, path.x, kinematics=path.kin), float) \
+                if need_w else None
+        n = len(path.lam_s)
 
         def split(a):
-            return [None] * len(xs) if a is None else np.split(a, cuts)
+            return [None] * n if a is None else np.split(a, path.cuts) if n > 1 else [a]
 
-        pes = [p if s is None else p / s for p, s in zip(split(pe), lam_s)]
-        xis = [_xi(mode, xx) for xx in xs] if need_xi else [None] * len(xs)
-        return list(zip(pes, split(w), xis))
+        pes = [p if s is None else p / s for p, s in zip(split(pe), path.lam_s)]
+        return list(zip(pes, split(w), path.xis))
 
-    def _remember(self, k: int, key, value) -> None:
-        c = self._cache[k]
-        c[key] = value
-        while len(c) > 24:
-            c.pop(next(iter(c)))
+    def _remember(self, cache: dict, key, value, size: int) -> None:
+        cache[key] = value
+        while len(cache) > size:
+            cache.pop(next(iter(cache)))
 
     def prefetch(self, st: Values, ks) -> None:
-        """Compute the elastic responses of records *ks* missing from the cache, batched by mode."""
+        """Compute the elastic responses of records *ks* missing from the cache, batched by mode.
+
+        The loading path of each batch (true stretches, set, kinematics) is
+        kept too: perturbing an elastic-law parameter evaluates the law on it.
+        """
         groups: dict = {}
         for k in ks:
             key, params = self._key(k, st)
@@ -540,9 +567,14 @@ class ForwardModel:
             gk = (self.records[k].test.mode, key[0])
             groups.setdefault(gk, (params, []))[1].append((k, key))
         for (mode, _), (params, items) in groups.items():
-            xs = [self._x_true(k, st, self.records[k].fit_idx) for k, _ in items]
-            for (k, key), val in zip(items, self._compute_elastic(mode, params, xs, st.set_fraction)):
-                self._remember(k, key, val)
+            pkey = (mode, tuple((k, key[1:]) for k, key in items))
+            path = self._paths.get(pkey)
+            if path is None:
+                xs = [self._x_true(k, st, self.records[k].fit_idx) for k, _ in items]
+                path = self._path(mode, xs, st.set_fraction)
+                self._remember(self._paths, pkey, path, 16)
+            for (k, key), val in zip(items, self._compute_elastic(path, params)):
+                self._remember(self._cache[k], key, val, 24)
 
     def _elastic(self, k: int, st: Values, idx: np.ndarray, use_cache: bool):
         """(P_e, W, ξ) on samples *idx* of record k (after slips, slack and set)."""
@@ -554,8 +586,8 @@ class ForwardModel:
                 hit = self._cache[k][key]
             return hit
         _, params = self._key(k, st)
-        return self._compute_elastic(self.records[k].test.mode, params, [self._x_true(k, st, idx)],
-                                     st.set_fraction)[0]
+        mode = self.records[k].test.mode
+        return self._compute_elastic(self._path(mode, [self._x_true(k, st, idx)], st.set_fraction), params)[0]
 
     def predict(self, k: int, st: Values, idx: np.ndarray | None = None, *, use_cache: bool = True) -> np.ndarray:
         """Model stress of record k on samples *idx* (default: its fitting samples), before offsets."""

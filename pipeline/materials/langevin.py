@@ -175,6 +175,10 @@ def inverse_langevin(x):
     """
     xa = _as_float_array(x)
     flat = np.atleast_1d(xa).ravel()
+    kernels = _compiled_kernels() if flat.size >= _COMPILED_MIN else None
+    if kernels is not None:
+        out = _inverse_langevin_compiled(flat, *kernels).reshape(xa.shape)
+        return float(out) if out.ndim == 0 else out
     ax = np.abs(flat)
     ok = ax < 1.0
     xs = np.where(ok, ax, 0.5)  # placeholder value outside the domain
@@ -185,15 +189,7 @@ def inverse_langevin(x):
 
 
 def _inverse_langevin_pos(x: np.ndarray) -> np.ndarray:
-    """L^-1 for 0 <= x < 1 (1-D): Halley steps on the Jedynak (2015) guess.
-
-    Arrays of :data:`_COMPILED_MIN` values or more take the compiled path
-    (:func:`_inverse_langevin_compiled`), which gives the same bits.
-    """
-    if x.size >= _COMPILED_MIN:
-        kernels = _compiled_kernels()
-        if kernels is not None:
-            return _inverse_langevin_compiled(x, *kernels)
+    """L^-1 for 0 <= x < 1 (1-D): Halley steps on the Jedynak (2015) guess."""
     omx = 1.0 - x  # exact for x >= 1/2 (Sterbenz lemma)
     beta = x * (3.0 - 2.6 * x + 0.7 * x * x) / (omx * (1.0 + 0.1 * x))
     near = x > 0.5
@@ -213,11 +209,22 @@ def _inverse_langevin_pos(x: np.ndarray) -> np.ndarray:
 _COMPILED_MIN = 32
 
 
-def _guess_loop(x, beta):  # pragma: no cover - compiled by numba (checked in tests/test_langevin.py)
-    """The Jedynak guess of :func:`_inverse_langevin_pos`, element by element, into *beta*."""
+def _guess_loop(x, xs, beta):  # pragma: no cover - compiled by numba (checked in tests/test_langevin.py)
+    """|x| folded into the domain (0.5 outside it) into *xs*, and the Jedynak guess of
+    :func:`_inverse_langevin_pos` on it into *beta*, element by element."""
     for i in range(x.shape[0]):
-        xi = x[i]
+        ax = abs(x[i])
+        xi = ax if ax < 1.0 else 0.5
+        xs[i] = xi
         beta[i] = xi * (3.0 - 2.6 * xi + 0.7 * xi * xi) / ((1.0 - xi) * (1.0 + 0.1 * xi))
+
+
+def _finish_loop(x, beta, out):  # pragma: no cover - compiled by numba
+    """β with the sign of *x*; ``inf`` at ``|x| == 1``, NaN beyond (as :func:`inverse_langevin`)."""
+    for i in range(x.shape[0]):
+        ax = abs(x[i])
+        b = beta[i] if ax < 1.0 else (math.inf if ax == 1.0 else math.nan)
+        out[i] = math.copysign(b, x[i])
 
 
 def _halley_loop(x, beta, e, ome, coef, out):  # pragma: no cover - compiled by numba
@@ -251,32 +258,33 @@ def _halley_loop(x, beta, e, ome, coef, out):  # pragma: no cover - compiled by 
 
 @functools.cache
 def _compiled_kernels():
-    """(guess, Halley step) compiled by numba (imported on first use, cached on disk); None without numba."""
+    """The loops above compiled by numba (imported on first use, cached on disk); None without numba."""
     try:
         from numba import njit
     except ImportError:  # pragma: no cover
         return None
     jit = njit(cache=True, nogil=True, error_model="numpy")
-    return jit(_guess_loop), jit(_halley_loop)
+    return jit(_guess_loop), jit(_halley_loop), jit(_finish_loop)
 
 
-def _inverse_langevin_compiled(x: np.ndarray, guess, halley) -> np.ndarray:
-    """:func:`_inverse_langevin_pos` with its arithmetic in one compiled loop per step.
+def _inverse_langevin_compiled(x: np.ndarray, guess, halley, finish) -> np.ndarray:
+    """:func:`inverse_langevin` of a 1-D array with its arithmetic in compiled loops.
 
-    The exponentials stay numpy's (its vectorised ``exp``/``expm1`` differ
-    from the C library's in the last bit for some arguments), so the result
-    is identical to the numpy form while about a tenth of the array passes
-    are made.
+    The same operations in the same order as the numpy form; the
+    exponentials stay numpy's (its vectorised ``exp``/``expm1`` differ from
+    the C library's in the last bit for some arguments), so the result is
+    identical while about a tenth of the array passes are made.
     """
     x = np.ascontiguousarray(x, dtype=float)
-    beta = np.empty_like(x)
-    guess(x, beta)
+    xs, beta = np.empty_like(x), np.empty_like(x)
+    guess(x, xs, beta)
     for _ in range(_HALLEY_STEPS):
         arg = -2.0 * np.maximum(beta, _SMALL)
         step = np.empty_like(x)
-        halley(x, beta, np.exp(arg), -np.expm1(arg), _C, step)
+        halley(xs, beta, np.exp(arg), -np.expm1(arg), _C, step)
         beta = step
-    return beta
+    finish(x, beta, xs)
+    return xs
 
 
 def inverse_langevin_derivative(x):
