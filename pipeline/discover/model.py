@@ -97,6 +97,8 @@ VARIANTS = {
 EFFECTS: tuple[str, ...] = tuple(VARIANTS)
 #: every candidate: effects, artefacts and strain-energy terms
 CANDIDATES: tuple[str, ...] = EFFECTS + TERM_NAMES
+#: the material effects decoded from shared slots, in the order :meth:`ParameterLayout.values` decodes them
+_DECODED = ("viscoelastic", "nonlinear_viscoelastic", "mullins", "damage", "cyclic_softening", "permanent_set")
 #: Prony weights are stick-broken fractions u_i in [0, U_MAX]
 U_MAX = 0.995
 #: weight of the row that holds the specimen scales' geometric mean at 1
@@ -416,30 +418,58 @@ class ParameterLayout:
     def values(self, z_full: np.ndarray) -> Values:
         """The parameter values *z_full* stands for (Prony weights from their stick-broken fractions)."""
         st = Values(base=self.layout.to_params(z_full[: self.n_base]))
-        sp = self.spec
-        if sp.viscoelastic:
-            v = self._shared(z_full, "viscoelastic")
+        for effect in _DECODED:
+            if getattr(self.spec, effect):
+                self._decode(st, z_full, effect)
+        self._file_state(st, z_full)
+        return st
+
+    def perturbed(self, st: Values, z_full: np.ndarray, i: int) -> Values:
+        """``values(z_full)`` where *z_full* differs from the vector of *st* in slot *i* only.
+
+        Only the part of *st* that slot stands for is decoded again (the same
+        operations as :meth:`values`, so the same numbers); the rest is shared.
+        """
+        new = replace(st, memo={})
+        if i < self.n_base:
+            new.base = self.layout.to_params(z_full[: self.n_base])
+        elif i < self.n_shared:
+            self._decode(new, z_full, self.slots[i].effect)
+        else:
+            s = self.slots[i]
+            if s.effect == "slack":
+                new.slack = st.slack.copy()
+                new.slack[s.file] = z_full[i]
+            elif s.effect == "grip_slip":
+                new.slips = list(st.slips)
+                new.slips[s.file] = st.slips[s.file].copy()
+                new.slips[s.file][int(s.name[5:-1])] = z_full[i]
+            elif s.effect == "specimen_scale":
+                new.scale = st.scale.copy()
+                new.scale[list(s.group)] = math.exp(z_full[i])
+        return new
+
+    def _decode(self, st: Values, z_full: np.ndarray, effect: str) -> None:
+        """Write material *effect*'s values from *z_full* into *st*."""
+        v = self._shared(z_full, effect)
+        if effect == "viscoelastic":
+            n = self.spec.viscoelastic
             g, rest = [], 1.0
-            for j in range(sp.viscoelastic):
+            for j in range(n):
                 g.append(rest * v[f"u[{j}]"])
                 rest *= 1.0 - v[f"u[{j}]"]
             st.g = np.array(g)
-            st.tau = np.exp(np.array([v[f"tau[{j}]"] for j in range(sp.viscoelastic)]))
-        if sp.nonlinear_viscoelastic:
-            st.kappa = self._shared(z_full, "nonlinear_viscoelastic")["kappa"]
-        if sp.mullins:
-            v = self._shared(z_full, "mullins")
+            st.tau = np.exp(np.array([v[f"tau[{j}]"] for j in range(n)]))
+        elif effect == "nonlinear_viscoelastic":
+            st.kappa = v["kappa"]
+        elif effect == "mullins":
             st.mullins = (1.0 / max(v["s"], 1e-12), math.exp(v["m"]), v.get("beta", 0.0))
-        if sp.damage:
-            v = self._shared(z_full, "damage")
+        elif effect == "damage":
             st.damage = (v["onset"], math.exp(v["scale"]), v["shape"])
-        if sp.cyclic_softening:
-            v = self._shared(z_full, "cyclic_softening")
+        elif effect == "cyclic_softening":
             st.cyclic = (v["d_inf"], math.exp(v["eta"]))
-        if sp.permanent_set:
-            st.set_fraction = self._shared(z_full, "permanent_set")["fraction"]
-        self._file_state(st, z_full)
-        return st
+        elif effect == "permanent_set":
+            st.set_fraction = v["fraction"]
 
     def _file_state(self, st: Values, z_full: np.ndarray) -> None:
         m = len(self.records)
@@ -499,6 +529,8 @@ class ForwardModel:
                     self.pinned[k] = rest_reading(r)
         self._cache: list[dict] = [dict() for _ in self.records]
         self._paths: dict = {}
+        #: per record: the time of its fitting samples
+        self._t_fit = [None if r.t is None else np.ascontiguousarray(r.t[r.fit_idx]) for r in self.records]
 
     def _key(self, k: int, st: Values):
         """(cache key of record k's elastic response at *st*, its elastic-law parameters), memoised on *st*."""
@@ -592,14 +624,15 @@ class ForwardModel:
     def predict(self, k: int, st: Values, idx: np.ndarray | None = None, *, use_cache: bool = True) -> np.ndarray:
         """Model stress of record k on samples *idx* (default: its fitting samples), before offsets."""
         r = self.records[k]
-        if idx is None:
+        fit = idx is None
+        if fit:
             idx = r.fit_idx
         else:
             use_cache = False
         pe, w, xi = self._elastic(k, st, idx, use_cache)
         p = self._softened(k, st, pe, w, xi)
         if st.g is not None and r.t is not None:
-            q = qlv_stress(r.t[idx], p, st.g, st.tau)
+            q = qlv_stress(self._t_fit[k] if fit else r.t[idx], p, st.g, st.tau)
             if st.kappa:
                 with np.errstate(invalid="ignore"):
                     q = p - relaxation_strength(xi, st.kappa, float(np.sum(st.g))) * (p - q)
@@ -729,6 +762,10 @@ class Problem:
             self.n_train[k] = n
             self.factor[k] = math.sqrt(r.weight / n) if n else 0.0
         self._X = [self._design(k) for k in range(m)]
+        #: per record: the data on its training samples
+        self._y = [r.y[r.fit_idx] if pos is None else r.y[r.fit_idx][pos] for r, pos in zip(self.records, self.train)]
+        #: the most recent evaluation (see :meth:`_evaluated`)
+        self._last = None
 
     def _design(self, k: int):
         X = self.forward.free_offset_columns(k, self.records[k].fit_idx)
@@ -742,20 +779,21 @@ class Problem:
         """Within: the offsets are not eliminated in closed form (derivatives at fixed offsets)."""
         saved = self._X
         self._X = [None] * len(self.records)
+        self._last = None
         try:
             yield
         finally:
             self._X = saved
+            self._last = None
 
     def residual_block(self, k: int, st: Values) -> tuple[np.ndarray, np.ndarray | None]:
         """Normalised residual block of record k (training samples) and its offset coefficients."""
         r = self.records[k]
         pred = self.forward.predict(k, st)
         pos = self.train[k]
-        y = r.y[r.fit_idx]
         if pos is not None:
-            pred, y = pred[pos], y[pos]
-        res = pred - y
+            pred = pred[pos]
+        res = pred - self._y[k]
         coef = None
         X = self._X[k]
         n_offset = self.forward.n_offset[k]
@@ -795,15 +833,26 @@ class Problem:
         self.forward.prefetch(st, self._trained())
         return [self.residual_block(k, st)[0] if self.n_train[k] else np.zeros(0) for k in range(len(self.records))]
 
+    def _evaluated(self, zf: np.ndarray) -> tuple[Values, list[np.ndarray]]:
+        """(values, residual blocks) at *zf*; the optimiser asks for the Jacobian where it has just
+        evaluated the residuals, so the most recent evaluation is kept and reused."""
+        key = zf.tobytes()
+        if self._last is not None and self._last[0] == key:
+            return self._last[1], self._last[2]
+        st = self.params.values(zf)
+        blocks = self._blocks(st)
+        self._last = (key, st, blocks)
+        return st, blocks
+
     def residuals(self, z: np.ndarray) -> np.ndarray:
         zf = self._full(z)
-        blocks = self._blocks(self.params.values(zf))
+        _, blocks = self._evaluated(zf)
         return np.concatenate(blocks + [self.constraint_residual(zf)])
 
     def jac(self, z: np.ndarray) -> np.ndarray:
         """Forward differences, per block: a slot perturbs only the residuals of the records it acts on."""
         zf = self._full(z)
-        base_blocks = self._blocks(self.params.values(zf))
+        st0, base_blocks = self._evaluated(zf)
         offs = np.concatenate([[0], np.cumsum([b.size for b in base_blocks])])
         n_c = self.constraint_residual(zf).size
         J = np.zeros((int(offs[-1]) + n_c, len(self.active)))
@@ -814,7 +863,7 @@ class Problem:
                 h = -h
             zp = zf.copy()
             zp[i] += h
-            stp = self.params.values(zp)
+            stp = self.params.perturbed(st0, zp, i)
             files = [k for k in (s.records or self._trained()) if self.n_train[k]]
             self.forward.prefetch(stp, files)
             for k in files:

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import MaterialModel, Parameter
+from .base import MaterialModel, Parameter, broadcast_zeros
 from .langevin import chain_energy, inverse_langevin, langevin_derivative
 
 __all__ = ["ArrudaBoyce", "energy", "dW", "d2W", "max_I1", "chain_energy_difference"]
@@ -108,7 +108,7 @@ def dW(I1, I2, mu, N):
     # beta / r -> 3 as r -> 0 (series branch of L^-1 keeps the ratio exact)
     ratio = np.where(r > 0.0, beta / np.where(r > 0.0, r, 1.0), 3.0)
     w1 = mu * ratio / 6.0
-    return w1, np.zeros(np.broadcast_shapes(I1.shape, np.shape(I2)))
+    return w1, broadcast_zeros(I1, I2)
 
 
 def d2W(I1, I2, mu, N):
@@ -119,7 +119,7 @@ def d2W(I1, I2, mu, N):
     dbeta = 1.0 / langevin_derivative(beta)
     rs = np.where(r > 0.0, r, 1.0)
     w11 = np.where(r > 0.0, mu * (rs * dbeta - beta) / (36.0 * N * rs**3), mu / (10.0 * N))
-    z = np.zeros(np.broadcast_shapes(I1.shape, np.shape(I2)))
+    z = broadcast_zeros(I1, I2)
     return w11 + z, z, z
 
 

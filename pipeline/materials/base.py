@@ -19,6 +19,7 @@ Conventions
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -28,10 +29,16 @@ import numpy as np
 
 from ..errors import ConfigError
 
-__all__ = ["Parameter", "MaterialModel", "PARAMETER_KINDS"]
+__all__ = ["Parameter", "MaterialModel", "PARAMETER_KINDS", "broadcast_zeros"]
 
 #: The kinds of parameter a model may declare.
 PARAMETER_KINDS = ("stress", "dimensionless")
+
+
+def broadcast_zeros(I1, I2) -> np.ndarray:
+    """Zeros of the broadcast shape of *I1* and *I2* (equal shapes, the usual case, without broadcasting)."""
+    s1, s2 = np.shape(I1), np.shape(I2)
+    return np.zeros(s1 if s1 == s2 else np.broadcast_shapes(s1, s2))
 
 
 @dataclass(frozen=True)
@@ -135,7 +142,7 @@ class MaterialModel:
         return float(self._max_I1(**self._args(params)))
 
     # -------------------------------------------------------------- helpers
-    @property
+    @functools.cached_property
     def parameter_names(self) -> tuple[str, ...]:
         """Names of the parameters, in declaration order."""
         return tuple(p.name for p in self.parameters)

@@ -45,7 +45,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import arruda_boyce as ab
-from .base import MaterialModel, Parameter
+from .base import MaterialModel, Parameter, broadcast_zeros
 
 __all__ = ["ESEDF", "energy", "dW", "d2W", "max_I1"]
 
@@ -67,14 +67,14 @@ def dW(I1, I2, mu, N, A1, A2, f):
     w1 = f * (A1 + 2.0 * A2 * q) / 3.0
     if _matrix_active(mu, f):
         w1 = w1 + (1.0 - f) * ab.dW(I1, I2, mu, N)[0]
-    z = np.zeros(np.broadcast_shapes(I1.shape, np.shape(I2)))
+    z = broadcast_zeros(I1, I2)
     return w1 + z, z
 
 
 def d2W(I1, I2, mu, N, A1, A2, f):
     """(W11, W12, W22) [Pa]."""
     I1 = np.asarray(I1, float)
-    z = np.zeros(np.broadcast_shapes(I1.shape, np.shape(I2)))
+    z = broadcast_zeros(I1, I2)
     w11 = 2.0 * f * A2 / 9.0 + z
     if _matrix_active(mu, f):
         w11 = w11 + (1.0 - f) * ab.d2W(I1, I2, mu, N)[0]

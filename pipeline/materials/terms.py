@@ -90,7 +90,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .base import Parameter
+from .base import Parameter, broadcast_zeros
 from .effects import equivalent_stretch
 
 __all__ = ["Term", "TERMS", "TERM_NAMES", "get_term"]
@@ -137,7 +137,7 @@ class Term:
 
 
 def _z(I1, I2):
-    return np.zeros(np.broadcast_shapes(np.shape(I1), np.shape(I2)))
+    return broadcast_zeros(I1, I2)
 
 
 # --------------------------------------------------------------------------- mooney
