@@ -62,6 +62,7 @@ from ..materials.effects import (
     damage_factor,
     equivalent_stretch,
     mullins_factor,
+    qlv_decay,
     qlv_stress,
     relaxation_strength,
     set_stretch,
@@ -430,7 +431,9 @@ class ParameterLayout:
         Only the part of *st* that slot stands for is decoded again (the same
         operations as :meth:`values`, so the same numbers); the rest is shared.
         """
-        new = replace(st, memo={})
+        new = object.__new__(Values)  # a shallow copy (dataclasses.replace is slow for this hot path)
+        new.__dict__.update(st.__dict__)
+        new.memo = {}
         if i < self.n_base:
             new.base = self.layout.to_params(z_full[: self.n_base])
         elif i < self.n_shared:
@@ -531,6 +534,7 @@ class ForwardModel:
         self._paths: dict = {}
         #: per record: the time of its fitting samples
         self._t_fit = [None if r.t is None else np.ascontiguousarray(r.t[r.fit_idx]) for r in self.records]
+        self._decays: list[dict] = [dict() for _ in self.records]
 
     def _key(self, k: int, st: Values):
         """(cache key of record k's elastic response at *st*, its elastic-law parameters), memoised on *st*."""
@@ -632,7 +636,8 @@ class ForwardModel:
         pe, w, xi = self._elastic(k, st, idx, use_cache)
         p = self._softened(k, st, pe, w, xi)
         if st.g is not None and r.t is not None:
-            q = qlv_stress(self._t_fit[k] if fit else r.t[idx], p, st.g, st.tau)
+            q = qlv_stress(self._t_fit[k], p, st.g, st.tau, decay=self._decay(k, st.tau)) if fit \
+                else qlv_stress(r.t[idx], p, st.g, st.tau)
             if st.kappa:
                 with np.errstate(invalid="ignore"):
                     q = p - relaxation_strength(xi, st.kappa, float(np.sum(st.g))) * (p - q)
@@ -640,6 +645,16 @@ class ForwardModel:
         if r.tension_only:
             p = np.maximum(p, 0.0)
         return p * st.scale[k] if st.scale is not None else p
+
+    def _decay(self, k: int, tau: np.ndarray) -> tuple:
+        """The QLV factors of record k's fitting samples at relaxation times *tau* (kept: only the
+        relaxation times' own Jacobian columns change them)."""
+        key = tau.tobytes()
+        hit = self._decays[k].get(key)
+        if hit is None:
+            hit = qlv_decay(self._t_fit[k], tau)
+            self._remember(self._decays[k], key, hit, 8)
+        return hit
 
     def _softened(self, k: int, st: Values, pe, w, xi) -> np.ndarray:
         """Elastic stress after damage, Mullins and cyclic softening (before relaxation)."""
