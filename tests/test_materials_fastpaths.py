@@ -77,3 +77,32 @@ def test_broadcast_zeros_has_the_broadcast_shape():
     assert broadcast_zeros(np.ones((4, 1)), np.ones(3)).shape == (4, 3)
     assert broadcast_zeros(3.0, np.ones(2)).shape == (2,)
     assert broadcast_zeros(3.0, 3.0).shape == ()
+
+
+@pytest.mark.parametrize("model", ["esedf", "arruda-boyce", "esedf+mooney+i2exp+i1exp+yeoh",
+                                   "esedf+gent+i2log+fibreexp+toe", "arruda-boyce+toe+gent"])
+@pytest.mark.parametrize("mode", MODES)
+def test_parameter_arrays_give_each_rows_scalar_result(model, mode):
+    """array_parameters: m parameter sets as (m, 1) arrays give, row by row, the scalar parameters' stress."""
+    m = get_model(model)
+    assert m.array_parameters
+    rng = np.random.default_rng(11)
+    base = m.defaults()
+    base.update({"mu": 3e4, "N": 6.0, "A1": 1e4, "A2": 5e4, "f": 0.3})
+    sets = []
+    for j in range(6):
+        p = {k: v * (1.0 + 0.1 * rng.standard_normal()) for k, v in base.items()}
+        p["N"] = base["N"] * (1.0 + 0.05 * j)
+        sets.append(p)
+    if "mu" in base and "f" in base:
+        sets[2]["mu"] = 0.0  # a row without the matrix term (ESEDF), beside rows with it
+        sets[3]["f"] = 1.0
+    x = np.linspace(-0.4, 0.4, 97) if mode == "simple_shear" else np.linspace(0.7, 1.6, 97)
+    stacked = {k: np.array([p[k] for p in sets])[:, None] for k in base}
+    kin = path_kinematics(mode, x)
+    with np.errstate(all="ignore"):
+        rows = nominal_stress(m, stacked, mode, x, kinematics=kin)
+        each = np.stack([nominal_stress(m, p, mode, x) for p in sets])
+    assert rows.shape == (6, x.size)
+    assert np.array_equal(rows, each, equal_nan=True)
+    assert np.isfinite(each).sum() > 0.5 * each.size

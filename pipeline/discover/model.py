@@ -567,13 +567,28 @@ class ForwardModel:
         xis = [_xi(mode, xx) for xx in xs] if need_xi else [None] * len(xs)
         return _Path(mode, x, path_kinematics(mode, x), lam_s, np.cumsum([a.size for a in xs])[:-1], xis)
 
-    def _compute_elastic(self, path: _Path, params) -> list[tuple]:
-        """(P_e, W, ξ) of each array of *path* at one parameter set, in one call each."""
+    def _compute_elastic(self, path: _Path, params_list: list) -> list[list[tuple]]:
+        """Per parameter set of *params_list*: (P_e, W, ξ) of each array of *path*.
+
+        Several parameter sets are evaluated in one call where the law takes
+        parameter arrays (``array_parameters``: each row the scalar result, bit
+        for bit) and no effect needs the energy.
+        """
         need_w = self.spec.mullins or self.spec.cyclic_softening
+        mode, x, kin = path.mode, path.x, path.kin
         with np.errstate(all="ignore"):
-            pe = np.asarray(nominal_stress(self.model, params, path.mode, path.x, kinematics=path.kin), float)
-            w = np.asarray(energy_density(self.model, params, path.mode, path.x, kinematics=path.kin), float) \
-                if need_w else None
+            if len(params_list) > 1 and self.model.array_parameters and not need_w:
+                stacked = {n: np.array([p[n] for p in params_list], dtype=float)[:, None] for n in params_list[0]}
+                pes = list(np.asarray(nominal_stress(self.model, stacked, mode, x, kinematics=kin), float))
+            else:
+                pes = [np.asarray(nominal_stress(self.model, p, mode, x, kinematics=kin), float) for p in params_list]
+            ws = [np.asarray(energy_density(self.model, p, mode, x, kinematics=kin), float) if need_w else None
+                  for p in params_list]
+        return [self._split(path, pe, w) for pe, w in zip(pes, ws)]
+
+    @staticmethod
+    def _split(path: _Path, pe: np.ndarray, w: np.ndarray | None) -> list[tuple]:
+        """(P_e, W, ξ) of each array of *path* from the stress and energy on the whole path."""
         n = len(path.lam_s)
 
         def split(a):
@@ -593,24 +608,37 @@ class ForwardModel:
         The loading path of each batch (true stretches, set, kinematics) is
         kept too: perturbing an elastic-law parameter evaluates the law on it.
         """
-        groups: dict = {}
-        for k in ks:
-            key, params = self._key(k, st)
-            c = self._cache[k]
-            if key in c:
-                c[key] = c.pop(key)  # most recently used
-                continue
-            gk = (self.records[k].test.mode, key[0])
-            groups.setdefault(gk, (params, []))[1].append((k, key))
-        for (mode, _), (params, items) in groups.items():
-            pkey = (mode, tuple((k, key[1:]) for k, key in items))
+        self.prefetch_many([(st, ks)])
+
+    def prefetch_many(self, requests) -> None:
+        """:meth:`prefetch` for several ``(values, records)`` at once (a Jacobian's columns).
+
+        The parameter sets that meet on one loading path are evaluated in one
+        call (see :meth:`_compute_elastic`).
+        """
+        batches: dict = {}
+        for st, ks in requests:
+            groups: dict = {}
+            for k in ks:
+                key, params = self._key(k, st)
+                c = self._cache[k]
+                if key in c:
+                    c[key] = c.pop(key)  # most recently used
+                    continue
+                groups.setdefault((self.records[k].test.mode, key[0]), (params, []))[1].append((k, key))
+            for (mode, pk), (params, items) in groups.items():
+                pkey = (mode, tuple((k, key[1:]) for k, key in items))
+                batches.setdefault(pkey, (st, {}))[1].setdefault(pk, (params, items))
+        size = max([24] + [len(rows) + 1 for _, rows in batches.values()])
+        for pkey, (st, rows) in batches.items():
             path = self._paths.get(pkey)
             if path is None:
-                xs = [self._x_true(k, st, self.records[k].fit_idx) for k, _ in items]
-                path = self._path(mode, xs, st.set_fraction)
+                xs = [self._x_true(k, st, self.records[k].fit_idx) for k, _ in pkey[1]]
+                path = self._path(pkey[0], xs, st.set_fraction)
                 self._remember(self._paths, pkey, path, 16)
-            for (k, key), val in zip(items, self._compute_elastic(path, params)):
-                self._remember(self._cache[k], key, val, 24)
+            for (_, items), vals in zip(rows.values(), self._compute_elastic(path, [p for p, _ in rows.values()])):
+                for (k, key), val in zip(items, vals):
+                    self._remember(self._cache[k], key, val, size)
 
     def _elastic(self, k: int, st: Values, idx: np.ndarray, use_cache: bool):
         """(P_e, W, ξ) on samples *idx* of record k (after slips, slack and set)."""
@@ -623,7 +651,7 @@ class ForwardModel:
             return hit
         _, params = self._key(k, st)
         mode = self.records[k].test.mode
-        return self._compute_elastic(self._path(mode, [self._x_true(k, st, idx)], st.set_fraction), params)[0]
+        return self._compute_elastic(self._path(mode, [self._x_true(k, st, idx)], st.set_fraction), [params])[0][0]
 
     def predict(self, k: int, st: Values, idx: np.ndarray | None = None, *, use_cache: bool = True) -> np.ndarray:
         """Model stress of record k on samples *idx* (default: its fitting samples), before offsets."""
@@ -871,16 +899,18 @@ class Problem:
         offs = np.concatenate([[0], np.cumsum([b.size for b in base_blocks])])
         n_c = self.constraint_residual(zf).size
         J = np.zeros((int(offs[-1]) + n_c, len(self.active)))
-        for c, i in enumerate(self.active):
-            s = self.slots[i]
+        steps = []
+        for i in self.active:
             h = 1e-6 * max(1.0, abs(zf[i]))
             if zf[i] + h > self.upper[i]:
                 h = -h
             zp = zf.copy()
             zp[i] += h
-            stp = self.params.perturbed(st0, zp, i)
-            files = [k for k in (s.records or self._trained()) if self.n_train[k]]
-            self.forward.prefetch(stp, files)
+            files = [k for k in (self.slots[i].records or self._trained()) if self.n_train[k]]
+            steps.append((i, h, self.params.perturbed(st0, zp, i), files))
+        # the elastic responses of every step first: the elastic-law steps in one call per loading path
+        self.forward.prefetch_many([(stp, files) for _, _, stp, files in steps])
+        for c, (i, h, stp, files) in enumerate(steps):
             for k in files:
                 J[offs[k]:offs[k + 1], c] = (self.residual_block(k, stp)[0] - base_blocks[k]) / h
             if n_c and i in self.scale_ref:

@@ -136,6 +136,7 @@ class ArrudaBoyce(MaterialModel):
     """
 
     name = "arruda-boyce"
+    array_parameters = True
     equation = "W = mu*N*[lr*beta + ln(beta/sinh(beta))] - c,  lr = sqrt(I1/(3N)),  beta = Linv(lr)"
     parameters = (
         Parameter("mu", "stress", 1.0e5, 0.0, 1.0e10,

@@ -86,6 +86,11 @@ class Parameter:
             raise ValueError(f"Parameter {self.name!r}: default outside [lower, upper]")
 
 
+def _parameter_value(v):
+    """A parameter as the model functions take it: a float, or a float array (see ``array_parameters``)."""
+    return np.asarray(v, dtype=float) if isinstance(v, np.ndarray) else float(v)
+
+
 class MaterialModel:
     """Base class of the incompressible isotropic strain-energy models.
 
@@ -110,6 +115,11 @@ class MaterialModel:
     #: Names that users may carry over from a source paper but that are not
     #: parameters of this model -> why (used in the "unknown parameter" error).
     not_parameters: ClassVar[dict[str, str]] = {}
+    #: True when :meth:`energy`, :meth:`dW` and :meth:`d2W` take parameter arrays
+    #: of shape (m, 1) (m parameter sets, one per row of the result, each row
+    #: what the scalar parameters give, bit for bit): a fitter evaluates its
+    #: finite-difference steps in one call.
+    array_parameters: ClassVar[bool] = False
 
     # ------------------------------------------------------------------ API
     def energy(self, I1, I2, params: Mapping[str, float]):
@@ -235,7 +245,7 @@ class MaterialModel:
     # --------------------------------------------------------- for subclasses
     def _args(self, params: Mapping[str, float]) -> dict[str, float]:
         try:
-            return {n: float(params[n]) for n in self.parameter_names}
+            return {n: _parameter_value(params[n]) for n in self.parameter_names}
         except KeyError as exc:
             raise ConfigError(
                 f"parameter {exc.args[0]!r} of model {self.name!r} is missing; "
