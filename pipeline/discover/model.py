@@ -433,13 +433,14 @@ class ParameterLayout:
         """
         new = object.__new__(Values)  # a shallow copy (dataclasses.replace is slow for this hot path)
         new.__dict__.update(st.__dict__)
-        new.memo = {}
+        s = self.slots[i]
+        if i < self.n_base or s.effect in ("permanent_set", "slack", "grip_slip"):
+            new.memo = {}  # the elastic responses' keys change; the other slots keep them (memo shared)
         if i < self.n_base:
             new.base = self.layout.to_params(z_full[: self.n_base])
         elif i < self.n_shared:
             self._decode(new, z_full, self.slots[i].effect)
         else:
-            s = self.slots[i]
             if s.effect == "slack":
                 new.slack = st.slack.copy()
                 new.slack[s.file] = z_full[i]
@@ -535,6 +536,7 @@ class ForwardModel:
         #: per record: the time of its fitting samples
         self._t_fit = [None if r.t is None else np.ascontiguousarray(r.t[r.fit_idx]) for r in self.records]
         self._decays: list[dict] = [dict() for _ in self.records]
+        self._soft: list[dict] = [dict() for _ in self.records]
 
     def _key(self, k: int, st: Values):
         """(cache key of record k's elastic response at *st*, its elastic-law parameters), memoised on *st*."""
@@ -570,14 +572,15 @@ class ForwardModel:
     def _compute_elastic(self, path: _Path, params_list: list) -> list[list[tuple]]:
         """Per parameter set of *params_list*: (P_e, W, ξ) of each array of *path*.
 
-        Several parameter sets are evaluated in one call where the law takes
-        parameter arrays (``array_parameters``: each row the scalar result, bit
-        for bit) and no effect needs the energy.
+        The stresses of several parameter sets are evaluated in one call where
+        the law takes parameter arrays (``array_parameters``: each row the
+        scalar result, bit for bit); the energies (Mullins, cyclic softening)
+        one set at a time.
         """
         need_w = self.spec.mullins or self.spec.cyclic_softening
         mode, x, kin = path.mode, path.x, path.kin
         with np.errstate(all="ignore"):
-            if len(params_list) > 1 and self.model.array_parameters and not need_w:
+            if len(params_list) > 1 and self.model.array_parameters:
                 stacked = {n: np.array([p[n] for p in params_list], dtype=float)[:, None] for n in params_list[0]}
                 pes = list(np.asarray(nominal_stress(self.model, stacked, mode, x, kinematics=kin), float))
             else:
@@ -662,7 +665,7 @@ class ForwardModel:
         else:
             use_cache = False
         pe, w, xi = self._elastic(k, st, idx, use_cache)
-        p = self._softened(k, st, pe, w, xi)
+        p = self._softened_cached(k, st, pe, w, xi) if use_cache else self._softened(k, st, pe, w, xi)
         if st.g is not None and r.t is not None:
             q = qlv_stress(self._t_fit[k], p, st.g, st.tau, decay=self._decay(k, st.tau)) if fit \
                 else qlv_stress(r.t[idx], p, st.g, st.tau)
@@ -683,6 +686,18 @@ class ForwardModel:
             hit = qlv_decay(self._t_fit[k], tau)
             self._remember(self._decays[k], key, hit, 8)
         return hit
+
+    def _softened_cached(self, k: int, st: Values, pe, w, xi) -> np.ndarray:
+        """:meth:`_softened` of a cached elastic response, kept for the Jacobian's steps that leave
+        the elastic response and the softening as they are (relaxation, scales)."""
+        if st.damage is None and st.mullins is None and st.cyclic is None:
+            return pe
+        key = (id(pe), st.damage, st.mullins, st.cyclic)
+        hit = self._soft[k].get(key)
+        if hit is None or hit[0] is not pe:  # (the array itself kept: its id is not reused meanwhile)
+            hit = (pe, self._softened(k, st, pe, w, xi))
+            self._remember(self._soft[k], key, hit, 8)
+        return hit[1]
 
     def _softened(self, k: int, st: Values, pe, w, xi) -> np.ndarray:
         """Elastic stress after damage, Mullins and cyclic softening (before relaxation)."""
