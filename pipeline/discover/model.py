@@ -37,6 +37,7 @@ parameter reuses the cached elastic stresses.
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -677,6 +678,30 @@ class ForwardModel:
             p = np.maximum(p, 0.0)
         return p * st.scale[k] if st.scale is not None else p
 
+    def fitted_residual(self, k: int, st: Values, pos: np.ndarray, y: np.ndarray, pin: float | None,
+                        norm: tuple[float, float] | None) -> np.ndarray:
+        """``predict(k, st)[pos] - y`` (plus the held offset *pin*), normalised as ``factor * r / scale``
+        with non-finite values replaced by the penalty where *norm* = (factor, scale) is given.
+
+        What :meth:`predict` and :meth:`Problem.residual_block` compute, bit for bit, in one
+        compiled pass after the (cached) elastic response and softening.
+        """
+        r = self.records[k]
+        pe, w, xi = self._elastic(k, st, r.fit_idx, True)
+        p = np.ascontiguousarray(self._softened_cached(k, st, pe, w, xi), dtype=float)
+        g, (a, b), s = _NO_TERMS, (_NO_DECAY, _NO_DECAY), _NO_TERMS
+        if st.g is not None and r.t is not None:
+            g, (a, b) = np.ascontiguousarray(st.g, dtype=float), self._decay(k, st.tau)
+            if st.kappa:
+                with np.errstate(invalid="ignore"):
+                    s = np.ascontiguousarray(relaxation_strength(xi, st.kappa, float(np.sum(st.g))), dtype=float)
+        flags = np.array([r.tension_only, st.scale is not None, pin is not None, norm is not None])
+        consts = np.array([float(st.scale[k]) if st.scale is not None else 1.0, pin or 0.0,
+                           *(norm or (1.0, 1.0)), NAN_PENALTY])
+        out = np.empty(pos.size)
+        _residual_kernel()(p, g, a, b, s, pos, y, flags, consts, out)
+        return out
+
     def _decay(self, k: int, tau: np.ndarray) -> tuple:
         """The QLV factors of record k's fitting samples at relaxation times *tau* (kept: only the
         relaxation times' own Jacobian columns change them)."""
@@ -822,6 +847,9 @@ class Problem:
         self._X = [self._design(k) for k in range(m)]
         #: per record: the data on its training samples
         self._y = [r.y[r.fit_idx] if pos is None else r.y[r.fit_idx][pos] for r, pos in zip(self.records, self.train)]
+        #: per record: the positions of its training samples within its fitting samples
+        self._pos = [np.arange(r.fit_idx.size) if pos is None else _positions(pos)
+                     for r, pos in zip(self.records, self.train)]
         #: the most recent evaluation (see :meth:`_evaluated`)
         self._last = None
 
@@ -847,24 +875,22 @@ class Problem:
     def residual_block(self, k: int, st: Values) -> tuple[np.ndarray, np.ndarray | None]:
         """Normalised residual block of record k (training samples) and its offset coefficients."""
         r = self.records[k]
-        pred = self.forward.predict(k, st)
-        pos = self.train[k]
-        if pos is not None:
-            pred = pred[pos]
-        res = pred - self._y[k]
         coef = None
         X = self._X[k]
         n_offset = self.forward.n_offset[k]
         pin = self.forward.pinned[k] if n_offset else None
         if pin is not None:
-            res = res + pin
             coef = np.array([pin] + [0.0] * (n_offset - 1))
-        if X is not None and res.size:
-            good = np.isfinite(res)
-            if good.sum() > X.shape[1]:
-                c, *_ = np.linalg.lstsq(X[good], -res[good], rcond=None)
-                res = res + X @ c
-                coef = c if pin is None else np.concatenate([[pin], c])
+        fused = X is None or not self._pos[k].size
+        res = self.forward.fitted_residual(k, st, self._pos[k], self._y[k], pin,
+                                           (self.factor[k], r.scale) if fused else None)
+        if fused:  # normalised in the pass
+            return res, coef
+        good = np.isfinite(res)
+        if good.sum() > X.shape[1]:
+            c, *_ = np.linalg.lstsq(X[good], -res[good], rcond=None)
+            res = res + X @ c
+            coef = c if pin is None else np.concatenate([[pin], c])
         out = self.factor[k] * res / r.scale
         bad = ~np.isfinite(out)
         if bad.any():
@@ -990,6 +1016,64 @@ class Problem:
                                        if self.n_train[j]))
         return k - (1 if len(self.scale_ref) >= 2 else 0)
 
+
+def _residual_loop(soft, g, a, b, s, pos, y, flags, consts, out):  # pragma: no cover - compiled by numba
+    """:meth:`ForwardModel.predict` after the softening and :meth:`Problem.residual_block` before the
+    offsets' elimination, as one loop (the same operations in the same order: the same bits).
+
+    *flags*: (tension only, has a scale, has a held offset, normalise); *consts*: (scale, held
+    offset, factor, stress scale of the record, NaN penalty). ``g`` empty: no relaxation; ``s``
+    empty: no stretch-dependent strength. Writes ``out[j]`` for the samples ``pos[j]``.
+    """
+    n, m = soft.shape[0], g.shape[0]
+    pred = soft.copy()
+    if m and n:
+        ginf = 1.0 - g.sum()
+        h = np.full(m, soft[0])
+        for k in range(1, n):
+            dp = soft[k] - soft[k - 1]
+            acc = ginf * soft[k]
+            for i in range(m):
+                h[i] = a[k, i] * h[i] + b[k, i] * dp
+                acc += g[i] * h[i]
+            pred[k] = acc
+        if s.shape[0]:
+            for k in range(n):
+                pred[k] = soft[k] - s[k] * (soft[k] - pred[k])
+    for j in range(pos.shape[0]):
+        v = pred[pos[j]]
+        if flags[0] and not (v >= 0.0 or v != v):  # np.maximum(v, 0): NaN stays NaN
+            v = 0.0
+        if flags[1]:
+            v = v * consts[0]
+        r = v - y[j]
+        if flags[2]:
+            r = r + consts[1]
+        if flags[3]:
+            r = consts[2] * r / consts[3]
+            if not math.isfinite(r):
+                r = consts[4]
+        out[j] = r
+
+
+@functools.cache
+def _residual_kernel():
+    """:func:`_residual_loop` compiled (numba, on first use, cached on disk); the plain loop without numba."""
+    try:
+        from numba import njit
+    except ImportError:  # pragma: no cover
+        return _residual_loop
+    return njit(cache=True, nogil=True, error_model="numpy")(_residual_loop)
+
+
+def _positions(pos) -> np.ndarray:
+    """Training positions as int64 (a boolean mask as the positions it selects)."""
+    a = np.asarray(pos)
+    return np.flatnonzero(a) if a.dtype == bool else a.astype(np.int64).reshape(-1)
+
+
+_NO_TERMS = np.zeros(0)
+_NO_DECAY = np.zeros((0, 0))
 
 _XI_CACHE: dict = {}
 
