@@ -538,6 +538,7 @@ class ForwardModel:
         self._t_fit = [None if r.t is None else np.ascontiguousarray(r.t[r.fit_idx]) for r in self.records]
         self._decays: list[dict] = [dict() for _ in self.records]
         self._soft: list[dict] = [dict() for _ in self.records]
+        self._strengths: list[dict] = [dict() for _ in self.records]
 
     def _key(self, k: int, st: Values):
         """(cache key of record k's elastic response at *st*, its elastic-law parameters), memoised on *st*."""
@@ -693,14 +694,24 @@ class ForwardModel:
         if st.g is not None and r.t is not None:
             g, (a, b) = np.ascontiguousarray(st.g, dtype=float), self._decay(k, st.tau)
             if st.kappa:
-                with np.errstate(invalid="ignore"):
-                    s = np.ascontiguousarray(relaxation_strength(xi, st.kappa, float(np.sum(st.g))), dtype=float)
+                s = self._strength(k, xi, st)
         flags = np.array([r.tension_only, st.scale is not None, pin is not None, norm is not None])
         consts = np.array([float(st.scale[k]) if st.scale is not None else 1.0, pin or 0.0,
                            *(norm or (1.0, 1.0)), NAN_PENALTY])
         out = np.empty(pos.size)
         _residual_kernel()(p, g, a, b, s, pos, y, flags, consts, out)
         return out
+
+    def _strength(self, k: int, xi: np.ndarray, st: Values) -> np.ndarray:
+        """The relaxed amount's scale s(ξ) of record k (:func:`relaxation_strength`), kept per (ξ, κ, g)."""
+        key = (id(xi), st.kappa, st.g.tobytes())
+        hit = self._strengths[k].get(key)
+        if hit is None or hit[0] is not xi:
+            with np.errstate(invalid="ignore"):
+                s = np.ascontiguousarray(relaxation_strength(xi, st.kappa, float(np.sum(st.g))), dtype=float)
+            hit = (xi, s)
+            self._remember(self._strengths[k], key, hit, 8)
+        return hit[1]
 
     def _decay(self, k: int, tau: np.ndarray) -> tuple:
         """The QLV factors of record k's fitting samples at relaxation times *tau* (kept: only the
