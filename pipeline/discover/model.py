@@ -831,19 +831,32 @@ class Problem:
         self.params = ParameterLayout(self.model, self.records, spec, fixed=self.fixed, directions=directions,
                                       bounds=bounds, free_scales=free_scales)
         self.forward = ForwardModel(self.model, self.records, spec, directions=directions)
+        self._setup(train)
+
+    def _setup(self, train) -> None:
+        """Everything that depends on the training set (and the neutral starting point)."""
         slots = self.slots = self.params.slots
         self.lower, self.upper = self.params.lower, self.params.upper
         self.set_train(train)
         # the specimens whose scales the constraint holds: those with training samples now
-        self.scale_ref = [] if free_scales else [i for i, s in enumerate(slots) if s.effect == "specimen_scale"
-                                                 and any(self.n_train[k] for k in s.group)]
+        self.scale_ref = [] if self.free_scales else [i for i, s in enumerate(slots) if s.effect == "specimen_scale"
+                                                      and any(self.n_train[k] for k in s.group)]
         self.active = np.arange(len(slots))
         self.z_full = self.params.default_z()
 
     def derived(self, spec: Spec | None = None, *, train=None) -> Problem:
-        """The problem of the same records, base and bounds with another *spec* and/or training set."""
-        return Problem(self.base_model, self.records, self.spec if spec is None else spec, fixed=self.fixed,
-                       directions=self.directions, bounds=self.bounds, train=train, free_scales=self.free_scales)
+        """The problem of the same records, base and bounds with another *spec* and/or training set.
+
+        With the same spec (a held-out fold) the parameter layout and the forward model, with
+        its caches, are shared: they do not depend on the training set.
+        """
+        if spec is not None and spec != self.spec:
+            return Problem(self.base_model, self.records, spec, fixed=self.fixed, directions=self.directions,
+                           bounds=self.bounds, train=train, free_scales=self.free_scales)
+        new = object.__new__(Problem)
+        new.__dict__.update(self.__dict__)
+        new._setup(train)
+        return new
 
     def set_train(self, train) -> None:
         """Use the samples *train* (see the class docstring) in the objective."""
