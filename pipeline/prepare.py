@@ -58,7 +58,7 @@ from .network.springs import (
     network_from_skeleton,
     network_from_tets,
 )
-from .network.tables import GridOptions, StiffnessTables, build_tables, grid_options
+from .network.tables import GridOptions, StiffnessTables, build_tables, grid_note, grid_options
 from .network.volume import DEFAULT_POISSON, POISSON_RANGE, VolumeSpec, bulk_modulus
 from .progress import ensure
 from .units import factor
@@ -586,7 +586,9 @@ def _tables(mat: Material, cfg: PrepareConfig, run: _Run) -> StiffnessTables:
     g = cfg.grid
     tables = run.stage("tables", build_tables, mat, n=g.n, law=g.law, lam_min=g.lam_min, lam_max=g.lam_max)
     run.rep.step(f"tables: {tables.n} points on stretch {tables.lam_min:.3g}..{tables.lam_max:.3g} "
-                 f"({run.timings['tables']:.2f} s)")
+                 f"({run.timings['tables']:.2f} s; {grid_note(tables)})")
+    if tables.metadata["grid"].get("warning"):
+        run.warn(tables.metadata["grid"]["warning"])
     return tables
 
 
