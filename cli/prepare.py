@@ -120,6 +120,23 @@ def _options(args) -> dict:
     )
 
 
+class _FlagReporter:
+    """The UI as prepare's reporter, a warning's leading library parameter name (``unit:``) shown as the
+    option that sets it (``--unit:``), as errors are (:func:`esmm.cli.main.flag_message`)."""
+
+    FLAGS = {"unit": "--unit", "label": "--label", "density": "--density", "material": "--material"}
+
+    def __init__(self, ui) -> None:
+        self._ui = ui
+
+    def __getattr__(self, name):
+        return getattr(self._ui, name)
+
+    def warn(self, message: str) -> None:
+        head, sep, rest = message.partition(":")
+        self._ui.warn(self.FLAGS[head] + sep + rest if sep and head in self.FLAGS else message)
+
+
 def run(args, ui) -> int:
     from esmm.pipeline.prepare import prepare
 
@@ -148,7 +165,7 @@ def run(args, ui) -> int:
     if args.redo or args.scheduler or args.workers:
         raise ConfigError("--redo, --scheduler and --jobs apply to a batch: give --out DIR")
     try:
-        result = prepare(args.inputs[0], output=args.output, reporter=ui, argv=argv, **options)
+        result = prepare(args.inputs[0], output=args.output, reporter=_FlagReporter(ui), argv=argv, **options)
     except QualityError as exc:
         raise QualityError(f"{exc} (--force)") from None
     for line in _summary_lines(result):

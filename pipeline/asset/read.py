@@ -32,7 +32,7 @@ from .provenance import Provenance
 from .schema import ASSET_TYPE, ASSET_VERSION, CHECKSUM_ATTR, DATASETS, GROUPS, KNOWN_UNITS
 from .tables import read_tables
 from .volume import read_volume, volume_problems
-from .xdmf import check_sidecar, sidecar_path
+from .xdmf import check_sidecar, sidecar_paths
 
 ADVICE = "re-create it with 'esmm prepare'"
 
@@ -569,7 +569,7 @@ def validate_asset(path: str | os.PathLike) -> list[str]:
             raise
         problems.append(" ".join(f"damaged asset ({type(exc).__name__}: {exc})".split())[:300])
         return problems
-    side = sidecar_path(p)
-    if side.exists():
-        problems += check_sidecar(side)
+    for side in sidecar_paths(p).values():
+        if side.exists():
+            problems += check_sidecar(side)
     return problems

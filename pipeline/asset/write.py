@@ -19,7 +19,7 @@ from .provenance import Provenance, collect_provenance, utc_now
 from .schema import ASSET_TYPE, ASSET_VERSION, GROUPS
 from .tables import write_tables
 from .volume import write_volume
-from .xdmf import dtype_for_indices, sidecar_path, xdmf_text
+from .xdmf import dtype_for_indices, sidecar_paths, xdmf_texts
 
 VOLUME_RULES = {
     "tetra": "V_ij = sum over the tets t containing edge ij of V_t / 6 (sum of V_ij = mesh volume)",
@@ -135,6 +135,17 @@ def _write_groups(f: h5py.File, network: SpringNetwork, *, material, tables: Sti
                                                 "relative_volume_change"))
 
 
+def _write_sidecars(path: Path, texts: dict[str, str]) -> None:
+    """Write the XDMF sidecars (each atomically) and remove any other sidecar of *path* an earlier
+    asset of that name left (it would describe arrays this asset does not have)."""
+    for key, side in sidecar_paths(path).items():
+        if key in texts:
+            with atomic_path(side) as tmp:
+                tmp.write_text(texts[key], encoding="utf-8")
+        elif texts and side.is_file():
+            side.unlink()
+
+
 def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=None,
                 tables: StiffnessTables | None = None,
                 quality=None, cleaning=None, provenance: Provenance | None = None,
@@ -142,7 +153,8 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
     """Write *network* and what goes with it to an HDF5 asset (docs/reference/asset-format.md).
 
     The file is written to a temporary name and renamed when complete; the
-    XDMF sidecar ``<name>.xdmf`` likewise. Every dataset gets a ``units`` and a
+    XDMF sidecars (``<name>.xdmf``, the mesh, and ``<name>.springs.xdmf``,
+    ``<name>.surface.xdmf``; :mod:`.xdmf`) likewise. Every dataset gets a ``units`` and a
     ``sha256`` attribute and the root a checksum over all attributes, and the
     file starts with a 512-byte user block holding the SHA-256 and length of
     every later byte, so that :func:`~esmm.pipeline.asset.read.read_asset`
@@ -168,7 +180,7 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
     fixed_region : str
         Description of how the fixed nodes were chosen.
     xdmf : bool
-        Also write the ParaView sidecar.
+        Also write the ParaView (and meshio) sidecars.
 
     Returns
     -------
@@ -198,10 +210,8 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
                               quality_floors=quality_floors, fixed_region=fixed_region)
                 _write_provenance(f, prov)
                 hdf5.seal(f)
-                text = xdmf_text(f, path.name) if xdmf else None
-            if text is not None:
-                with atomic_path(sidecar_path(path)) as tmp_x:
-                    tmp_x.write_text(text, encoding="utf-8")
+                texts = xdmf_texts(f, path.name) if xdmf else {}
+            _write_sidecars(path, texts)
     except OSError as exc:
         raise AssetError(f"{path}: cannot write the asset ({exc.strerror or exc}); check the folder "
                          f"is writable and has space") from None

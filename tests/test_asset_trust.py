@@ -1,0 +1,152 @@
+"""How far an asset can be trusted, and the failures of the simulation engineer's runs mended:
+an organ of implausible size for its name is warned about, any calibrate fit prepares, the
+XDMF files open in meshio."""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+from esmm.cli.main import main
+from esmm.pipeline.mesh.organsize import check_organ_size, generic_band_ml, organ_of, reference_ml
+from esmm.pipeline.mesh.readers import read_surface, write_stl
+from esmm.pipeline.mesh.surface import Surface
+from esmm.pipeline.mesh.synthetic import box_tets
+from esmm.pipeline.network.springs import network_from_tets
+from esmm.pipeline.progress import ListReporter
+from esmm.pipeline.simulate.history import History, HistoryWriter
+
+DATA = Path(__file__).resolve().parent.parent / "data" / "meshes"
+LIVER = DATA / "ts_liver_3mm_closed.stl"
+
+
+@pytest.fixture(scope="module")
+def liver_in_cm(tmp_path_factory) -> Path:
+    """The bundled liver written in centimetres (19.5 across, 1.04 in cm^3 read as mL)."""
+    s = read_surface(LIVER)
+    out = tmp_path_factory.mktemp("cm") / "liver.stl"
+    return write_stl(Surface(s.points * 0.1, s.faces, "liver in cm"), out, unit="mm")
+
+
+# -- an organ's size against its name -----------------------------------------------------------
+
+def test_a_liver_in_cm_read_as_mm_gets_a_warning_naming_the_unit(liver_in_cm):
+    rep = ListReporter()
+    s = read_surface(liver_in_cm, reporter=rep)
+    assert s.extent() * 1e3 == pytest.approx(19.5, abs=0.1)
+    (w,) = rep.warnings
+    assert w.startswith("unit: a liver of 1.04 mL (19.5 mm across, read in mm) is implausibly small")
+    assert "read it with unit cm (the organ is then 1 042 mL)" in w and "ICRP Publication 89" in w
+    rep = ListReporter()
+    read_surface(liver_in_cm, unit="cm", reporter=rep)     # the right unit: no warning
+    assert rep.warnings == []
+    rep = ListReporter()
+    read_surface(LIVER, reporter=rep)                      # the liver in mm, 1 042 mL: no warning
+    assert rep.warnings == []
+
+
+def test_organs_of_the_shared_data_are_plausible(shared_data):
+    for name, organ in (("openhelp_Kidney_left.stl", "kidney"), ("openhelp_Spleen.stl", "spleen"),
+                        ("sofa_liver.stl", "liver"), ("ts_liver_partial_1mm.stl", "")):
+        rep = ListReporter()
+        read_surface(shared_data / "meshes" / name, reporter=rep)
+        assert organ_of(name) == organ and rep.warnings == [], name
+
+
+def test_organ_names_and_the_bands():
+    assert organ_of("openhelp_Kidney_left.stl") == "kidney" and organ_of("Brain_T1.nii.gz") == "brain"
+    assert organ_of("liver_segment_4.stl") == "" and organ_of("box.stl") == ""   # a part; no organ
+    lo, hi = reference_ml("liver")
+    assert lo == pytest.approx(1400 / 1.05) and hi == pytest.approx(1800 / 1.05)
+    assert generic_band_ml() == pytest.approx((17 / 1.05 / 10, 1800 / 1.05 * 10))
+    # at the edge of the band: a tenth of the smaller adult reference passes, below it does not
+    assert check_organ_size(lo / 10 * 1e-6 * 1.001, 0.05, name="liver.stl", unit="mm").plausible
+    assert not check_organ_size(lo / 10 * 1e-6 * 0.999, 0.05, name="liver.stl", unit="mm").plausible
+    # a big liver (hepatomegaly, 4 L) is fine; 30 L is not
+    assert check_organ_size(4e-3, 0.3, name="liver.stl", unit="mm").plausible
+    big = check_organ_size(30e-3, 0.39, name="liver.stl", unit="mm")
+    assert "implausibly large" in big.message and big.message.startswith("unit:")
+
+
+def test_an_unknown_organ_gets_the_generic_band():
+    thin = check_organ_size(10e-3 * 10e-3 * 0.1e-3, 0.01, name="plate.stl", unit="mm")   # 0.01 mL
+    assert thin.organ == "" and "implausibly small: organs are" in thin.message
+    assert check_organ_size(20e-3**3, 0.02, name="cube.stl", unit="mm").plausible          # 8 mL
+
+
+@pytest.mark.slow
+def test_prepare_warns_with_the_option_on_the_command_line(liver_in_cm, tmp_path, capsys):
+    rc = main(["prepare", str(liver_in_cm), "--config", "coarse", "--no-compensate", "-o",
+               str(tmp_path / "liver.h5")])
+    err = capsys.readouterr().err
+    assert rc == 0
+    assert "warning: --unit: a liver of 1.04 mL" in " ".join(err.split())
+
+
+# -- the simulation history in meshio -----------------------------------------------------------
+
+def test_the_history_reads_with_meshios_time_series_reader(tmp_path):
+    """``meshio.xdmf.TimeSeriesReader`` reads the history (it failed: the frames' displacement was a
+    hyperslab, which meshio cannot read, in XDMF 2, which it does not read as a series)."""
+    meshio = pytest.importorskip("meshio")
+    net = network_from_tets(box_tets(2, 2, 2, (0.02, 0.02, 0.02)))
+    rng = np.random.default_rng(3)
+    frames = [rng.normal(scale=1e-3, size=(net.n_nodes, 3)) for _ in range(4)]
+    p = tmp_path / "history.h5"
+    with HistoryWriter(p, points=net.points, cells=net.tets, surface=net.surface_faces, fixed=[0]) as w:
+        for k, d in enumerate(frames):
+            w.add_frame(k / 30, d)
+    with meshio.xdmf.TimeSeriesReader(tmp_path / "history.xdmf") as r:
+        points, cells = r.read_points_cells()
+        assert r.num_steps == 4 and cells[0].type == "tetra"
+        np.testing.assert_array_equal(cells[0].data, net.tets)
+        np.testing.assert_allclose(points, net.points + frames[0], atol=1e-9)   # the first frame's positions
+        with History(p) as h:
+            for k in range(4):
+                t, point_data, _ = r.read_data(k)
+                assert t == pytest.approx(k / 30)
+                np.testing.assert_array_equal(point_data["displacement"], h.displacement(k).astype(np.float32))
+    root = ET.parse(tmp_path / "history.xdmf").getroot()        # valid XDMF 3: one temporal collection
+    assert root.attrib["Version"] == "3.0"
+    (domain,) = list(root)
+    (series,) = list(domain)
+    assert series.attrib["CollectionType"] == "Temporal" and len(list(series)) == 4
+    assert all(i.attrib["Format"] == "HDF" for i in root.iter("DataItem"))
+
+
+# -- any calibrate fit prepares -------------------------------------------------------------------
+
+#: A params.toml as ``esmm calibrate --by specimen`` writes it for the Budday et al. (2017) basal ganglia
+#: data (budday2017_brain): the chain count at its bound puts the locking stretch at about 7 900.
+BRAIN_PARAMS = """# model esedf; RMSE 37.8 Pa; NRMSE 4.1%; R2 0.95
+[material]
+model = "esedf"
+name = "budday2017-basal_ganglia"
+stress_unit = "MPa"
+
+[material.parameters]
+mu = 1.6129306952624201e-15
+N = 20727568.702826597
+A1 = 0.49506550023784673
+A2 = 15.834950390136049
+f = 0.0019
+"""
+
+
+@pytest.mark.slow
+def test_prepare_takes_a_brain_fit_whose_lock_is_far_away(tmp_path):
+    """It stopped with "the tables' grid (stretch 0.5..512 ...) is too coarse"."""
+    from esmm.pipeline.asset import read_asset
+    from esmm.pipeline.prepare import prepare
+
+    params = tmp_path / "params.toml"
+    params.write_text(BRAIN_PARAMS)
+    rep = ListReporter()
+    res = prepare(LIVER, output=tmp_path / "brain.h5", config="coarse", material=str(params), compensate=False,
+                  reporter=rep)
+    assert res.tables.lam_min == 0.5 and 1.99 < res.tables.lam_max <= 2.0
+    step = next(s for s in rep.steps if s.startswith("tables:"))
+    assert "lam_max 2: the bound 2 (100 % strain)" in step and "locks only at 7886" in step
+    assert read_asset(res.asset).tables.lam_max == res.tables.lam_max
