@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from . import config as _config
+from .asset.accuracy import fit_record
 from .asset.material import material_effects, storable_effects
 from .asset.provenance import collect_provenance
 from .asset.write import write_asset
@@ -643,7 +644,7 @@ def _write(out: Path, inp: Path, net: SpringNetwork, mat: Material, tables: Stif
                                      "mesh_log": [str(x) for x in structure.log[-50:]]})
     run.stage("write", write_asset, out, net, material=mat, tables=tables, quality=structure.quality,
               cleaning=cleaning, provenance=prov, quality_floors=structure.floors,
-              fixed_region=cfg.fixed.describe())
+              fixed_region=cfg.fixed.describe(), fit=fit_record(cfg.material, loaded=mat))
     run.rep.step(f"write: {out} ({run.timings['write']:.2f} s)")
 
 

@@ -149,4 +149,108 @@ def test_prepare_takes_a_brain_fit_whose_lock_is_far_away(tmp_path):
     assert res.tables.lam_min == 0.5 and 1.99 < res.tables.lam_max <= 2.0
     step = next(s for s in rep.steps if s.startswith("tables:"))
     assert "lam_max 2: the bound 2 (100 % strain)" in step and "locks only at 7886" in step
-    assert read_asset(res.asset).tables.lam_max == res.tables.lam_max
+    a = read_asset(res.asset)
+    assert a.tables.lam_max == res.tables.lam_max
+    assert a.accuracy.fit["rmse_pa"] == 37.8 and a.accuracy.fit["source"].endswith("/params.toml")
+
+
+# -- the asset states its accuracy ----------------------------------------------------------------
+
+def _reference_inputs():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("make_reference", Path(__file__).parent / "data" / "assets"
+                                                  / "make_reference.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.inputs()
+
+
+FIT = {"schema": "esmm.asset-fit/1", "source": "brain/params.toml", "model": "esedf", "rmse_pa": 102.5,
+       "nrmse": 0.0606, "r2": 0.909, "files": ["cortex_simple_shear.csv"], "read_from": "fit.json",
+       "verdict": "poor", "reasons": ["mu is not identifiable from these data"]}
+
+
+@pytest.fixture()
+def box_asset(tmp_path):
+    from esmm.pipeline.asset import write_asset
+
+    net, material, tables, prov = _reference_inputs()
+    return write_asset(tmp_path / "box.h5", net, material=material, tables=tables, provenance=prov, fit=FIT)
+
+
+def test_the_fit_error_is_stored_and_said(box_asset, capsys):
+    from esmm.pipeline.asset import read_asset, validate_asset
+
+    assert validate_asset(box_asset) == []
+    a = read_asset(box_asset)
+    assert a.accuracy.fit == FIT and a.accuracy.validation is None and a.accuracy.compensation is None
+    assert main(["info", str(box_asset)]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "trust how far to trust this asset: the network is not compensated and not validated" in out
+    assert ("fit: the material follows its tensile data on cortex_simple_shear.csv with a normalised RMS error "
+            "of 6.06 % (RMSE 102.5 Pa, R² 0.909); calibrate's verdict: poor (mu is not identifiable") in out
+    assert "continuum: not yet compared with a finite-element continuum of this organ" in out
+
+
+def test_validate_records_its_figures_in_the_asset(box_asset, capsys):
+    """``esmm validate ASSET`` writes its figures into the asset, each case's latest; ``esmm info`` says them."""
+    from esmm.pipeline.asset import read_asset, update_asset_tables, validate_asset
+    from esmm.pipeline.fidelity.validate import validate_asset as validate
+
+    first = validate(box_asset, cases=["tension"])
+    second = validate(box_asset, cases=["shear"])
+    assert validate_asset(box_asset) == []
+    cases = read_asset(box_asset).accuracy.validation["cases"]
+    assert sorted(cases) == ["shear", "tension"]       # the second run kept the first's case
+    assert cases["tension"]["l2_error"] == pytest.approx(first.results[0].l2_error, rel=1e-12)
+    assert cases["shear"]["force_error"] == pytest.approx(second.results[0].force_error, rel=1e-12)
+    assert cases["shear"]["volume_term"] == "off" and cases["shear"]["law"] == "secant"
+    assert main(["info", str(box_asset)]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    worst_u = max(first.results[0].l2_error, second.results[0].l2_error)
+    assert f"the network is within {100 * worst_u:.3g} % of a finite-element continuum in displacement" in out
+    assert f"tension: {100 * first.results[0].l2_error:.3g} % in displacement (L2)" in out
+    # new tables make the figures stale: they are dropped
+    update_asset_tables(box_asset, read_asset(box_asset).tables)
+    a = read_asset(box_asset)
+    assert a.accuracy.validation is None and a.accuracy.fit == FIT
+
+
+def test_a_damaged_accuracy_record_is_reported(box_asset):
+    import h5py
+    from esmm.pipeline.asset import hdf5, read_asset, validate_asset
+    from esmm.pipeline.errors import AssetError
+
+    with h5py.File(box_asset, "r+") as f:
+        del f["/accuracy/fit/record"]
+        hdf5.put_text(f["/accuracy/fit"], "record", '{"schema": "esmm.asset-fit/1", "rmse_pa": "low"}')
+        hdf5.seal(f)
+    assert validate_asset(box_asset) == ["/accuracy/fit/record: rmse_pa is not a number ('low')"]
+    with pytest.raises(AssetError, match="rmse_pa is not a number"):
+        read_asset(box_asset)
+
+
+def test_the_fit_record_of_a_calibrate_output(tmp_path):
+    import json
+
+    from esmm.pipeline.asset import fit_record
+    from esmm.pipeline.materials.material import load_material
+
+    params = tmp_path / "brain" / "params.toml"
+    params.parent.mkdir()
+    params.write_text("# files: a.csv, b.csv\n# verdict: poor: N at its bound; mu not identifiable\n" + BRAIN_PARAMS)
+    rec = fit_record(params)                          # from the header lines
+    assert rec["rmse_pa"] == 37.8 and rec["nrmse"] == pytest.approx(0.041) and rec["r2"] == 0.95
+    assert rec["files"] == ["a.csv", "b.csv"] and rec["source"] == "brain/params.toml"
+    assert rec["verdict"] == "poor" and rec["reasons"] == ["N at its bound", "mu not identifiable"]
+    mat = load_material(params)
+    doc = {"errors": {"rmse": 40.1, "nrmse": 0.05, "r2": 0.9}, "material": {"params": dict(mat.params)},
+           "model": "esedf", "files": ["/x/a.csv"], "verdict": {"level": "unusable", "reasons": [{"text": "why"}]}}
+    (params.parent / "fit.json").write_text(json.dumps(doc))
+    rec = fit_record(params, loaded=mat)              # the same fit: calibrate's fit.json beside it
+    assert (rec["rmse_pa"], rec["verdict"], rec["reasons"]) == (40.1, "unusable", ["why"])
+    doc["material"]["params"]["N"] = 3.0               # another fit's fit.json: the header again
+    (params.parent / "fit.json").write_text(json.dumps(doc))
+    assert fit_record(params, loaded=mat)["rmse_pa"] == 37.8
+    assert fit_record("porcine_liver_paper") is None

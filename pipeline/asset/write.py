@@ -14,6 +14,7 @@ from ..errors import AssetError, InputError
 from ..network.springs import NODE_KIND_NAMES, SpringNetwork, affine_elasticity
 from ..network.tables import StiffnessTables
 from . import hdf5
+from .accuracy import write_fit
 from .material import write_material
 from .provenance import Provenance, collect_provenance, utc_now
 from .schema import ASSET_TYPE, ASSET_VERSION, GROUPS
@@ -118,8 +119,9 @@ def _write_core(f: h5py.File, net: SpringNetwork, fixed_region: str) -> None:
 
 
 def _write_groups(f: h5py.File, network: SpringNetwork, *, material, tables: StiffnessTables | None, quality,
-                  cleaning, quality_floors: dict | None, fixed_region: str) -> None:
-    """The network and each optional group that is given (material, tables, volume, reports), in file order."""
+                  cleaning, quality_floors: dict | None, fixed_region: str, fit: dict | None) -> None:
+    """The network and each optional group that is given (material, tables, volume, reports, the fit's
+    error), in file order."""
     _write_core(f, network, fixed_region)
     if material is not None:
         write_material(f, material)
@@ -133,6 +135,8 @@ def _write_groups(f: h5py.File, network: SpringNetwork, *, material, tables: Sti
     if cleaning is not None:
         _report_group(f, "cleaning", cleaning, ("volume_before", "volume_after", "bodies_found",
                                                 "relative_volume_change"))
+    if fit is not None:
+        write_fit(f, fit)
 
 
 def _write_sidecars(path: Path, texts: dict[str, str]) -> None:
@@ -149,7 +153,8 @@ def _write_sidecars(path: Path, texts: dict[str, str]) -> None:
 def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=None,
                 tables: StiffnessTables | None = None,
                 quality=None, cleaning=None, provenance: Provenance | None = None,
-                quality_floors: dict | None = None, fixed_region: str = "", xdmf: bool = True) -> Path:
+                quality_floors: dict | None = None, fixed_region: str = "", xdmf: bool = True,
+                fit: dict | None = None) -> Path:
     """Write *network* and what goes with it to an HDF5 asset (docs/reference/asset-format.md).
 
     The file is written to a temporary name and renamed when complete; the
@@ -181,6 +186,9 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
         Description of how the fixed nodes were chosen.
     xdmf : bool
         Also write the ParaView (and meshio) sidecars.
+    fit : dict, optional
+        The material fit's error (:func:`~esmm.pipeline.asset.accuracy.fit_record`) for
+        ``/accuracy/fit``; None to omit.
 
     Returns
     -------
@@ -207,7 +215,7 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
             # seal() when the file is closed, before the rename (docs/reference/asset-format.md).
             with hdf5.create(tmp) as f:
                 _write_groups(f, network, material=material, tables=tables, quality=quality, cleaning=cleaning,
-                              quality_floors=quality_floors, fixed_region=fixed_region)
+                              quality_floors=quality_floors, fixed_region=fixed_region, fit=fit)
                 _write_provenance(f, prov)
                 hdf5.seal(f)
                 texts = xdmf_texts(f, path.name) if xdmf else {}
