@@ -254,3 +254,38 @@ def test_the_fit_record_of_a_calibrate_output(tmp_path):
     (params.parent / "fit.json").write_text(json.dumps(doc))
     assert fit_record(params, loaded=mat)["rmse_pa"] == 37.8
     assert fit_record("porcine_liver_paper") is None
+
+
+# -- the simulation's messages ---------------------------------------------------------------------
+
+def test_real_time_in_words():
+    from esmm.pipeline.simulate.summary import real_time_words
+
+    assert real_time_words(0.269) == "0.27x real time: 3.7 times slower than real time"
+    assert real_time_words(5.75) == "5.75x real time: 5.8 times faster than real time"
+    assert real_time_words(1.03) == "1.03x real time: 1.03 times faster than real time"
+    assert real_time_words(1.001) == "1x real time: as fast as real time"
+
+
+@pytest.mark.slow
+def test_simulate_says_the_scene_replaced_the_fixed_nodes_and_the_speed_in_words(run_cli, tmp_path):
+    """The default scene holds its own band (the lowest 5 % along gravity), not the asset's fixed nodes:
+    the run says so, with both counts; the real-time factor says slower or faster."""
+    import json
+
+    from esmm.pipeline.asset import write_asset
+
+    net = network_from_tets(box_tets(6, 3, 2, (0.06, 0.03, 0.015)))
+    net = net.with_fixed(np.flatnonzero(net.points[:, 0] < 1e-9))     # the asset's: the face x = 0
+    _, material, tables, _ = _reference_inputs()
+    asset = write_asset(tmp_path / "slab.h5", net, material=material, tables=tables)
+    code, out, err = run_cli("simulate", asset, "--duration", "100 ms", "--threads", "1", "--out", tmp_path / "run")
+    assert code == 0, err
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert s["fixed"]["source"] == "scene" and s["fixed"]["asset_nodes"] == net.fixed.size
+    assert s["fixed_nodes"] != net.fixed.size
+    text = " ".join(out.split())
+    assert (f"fixed: {s['fixed_nodes']} fixed nodes from the scene's [fixed] region (band at the min end of "
+            "the normal") in text and f"in place of the asset's {net.fixed.size}" in text
+    factor = s["real_time_factor"]
+    assert f"{'slower' if factor < 1 else 'faster'} than real time" in text

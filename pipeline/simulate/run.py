@@ -93,7 +93,7 @@ def _run_into(out: Path, network, tables, scene: Scene, video, rep, asset_label:
         writer.add_frame(0.0, run.sim.displacement(), tip=None)      # the rest shape, or the equilibrium
         log = run_frames(run.sim, run.schedule, spec, plan, writer, range_check, rep)
         summary = summarize(run, scene, log, range_check, plan=plan, settle=settle, asset_label=asset_label,
-                            effects_available=effects)
+                            effects_available=effects, asset_fixed=int(np.asarray(network.fixed).size))
         writer.set_attrs(summary=summary.to_dict())
     rep.step(summary.describe())
     force_png = None if plan is None else plot_forces(hist_path, out / "grasper_force.png", plan=plan)
