@@ -165,7 +165,7 @@ def _decode(raw: bytes, label: str, enc_entry: M.Entry | None) -> tuple[str, str
             raise InputError(
                 f"{label}: not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line}){hint}; state its encoding: "
                 f"encoding = \"...\" in the sidecar {M.sidecar_path(Path(label)).name}, "
-                f"a '# encoding: ...' first line, or the reader's encoding option"
+                f"a '# encoding: ...' first line, or the reader's encoding option", parameter="encoding"
             ) from None
     if text.startswith("\ufeff"):
         text = text[1:]
