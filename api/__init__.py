@@ -17,7 +17,7 @@ file is ``api/__init__.py`` (pyproject.toml, ``[tool.setuptools.package-dir]``).
 
 #: The public names and the module that holds each.
 _API = {"calibrate": "esmm.pipeline.api", "prepare": "esmm.pipeline.api", "load_asset": "esmm.pipeline.api",
-        "simulate": "esmm.pipeline.api", "Calibration": "esmm.pipeline.api", "__version__": "esmm.pipeline"}
+        "simulate": "esmm.pipeline.api", "CalibrationResult": "esmm.pipeline.api", "__version__": "esmm.pipeline"}
 
 __all__ = sorted(_API)
 

@@ -6,7 +6,7 @@ to an optional ``reporter``, :mod:`esmm.pipeline.progress`)::
 
     import esmm
 
-    fit = esmm.calibrate(["tension.csv", "shear.csv"], out="fit")     # -> Calibration
+    fit = esmm.calibrate(["tension.csv", "shear.csv"], out="fit")     # -> CalibrationResult
     made = esmm.prepare("liver.stl", output="liver.h5", material=fit.params_toml)   # -> PrepareResult
     asset = esmm.load_asset("liver.h5")                                # -> Asset (asset.accuracy)
     run = esmm.simulate("liver.h5", duration="1 s")                    # -> SimulationResult
@@ -25,9 +25,12 @@ from pathlib import Path
 from typing import Any
 
 from .asset import Asset, read_asset
+from .calibrate.calibration import Calibration
+from .calibrate.calibration import calibrate as calibrate_tests
 from .calibrate.config import load_calibrate_config
-from .calibrate.fit import FitResult, fit_material
+from .calibrate.fit import FitResult
 from .calibrate.report import write_outputs
+from .calibrate.verdict import Verdict
 from .materials.material import Material
 from .prepare import PrepareResult
 from .prepare import prepare as _prepare_stage
@@ -36,31 +39,43 @@ from .simulate.run import simulate as _simulate_stage
 from .tensile.data import TensileTest
 from .tensile.files import read_tests
 
-__all__ = ["Calibration", "calibrate", "load_asset", "prepare", "simulate"]
+__all__ = ["CalibrationResult", "calibrate", "load_asset", "prepare", "simulate"]
 
 
 @dataclass(frozen=True)
-class Calibration:
+class CalibrationResult:
     """What :func:`calibrate` found.
 
     Attributes
     ----------
     material : Material
-        The fitted material (SI parameters), ready for :func:`prepare` once written
-        (``params_toml``) or as it is.
-    fit : FitResult
-        Parameters with their 95 % intervals, errors per file, warnings.
-    tests : list of TensileTest
-        The records fitted, as read.
+        The fitted material (SI parameters).
+    calibration : Calibration
+        The fit of the intact parts, each record's failure analysis and the verdict
+        (:class:`esmm.pipeline.calibrate.calibration.Calibration`).
     outputs : dict of str to Path
-        The files written into ``out`` (``params``, ``plot``, ``report``, ``json``); empty
-        when no folder was given.
+        The files written into ``out`` (``params``, ``plot``, ``report``, ``html``,
+        ``json``); empty when no folder was given.
     """
 
     material: Material
-    fit: FitResult
-    tests: list[TensileTest]
+    calibration: Calibration
     outputs: dict[str, Path] = field(default_factory=dict)
+
+    @property
+    def fit(self) -> FitResult:
+        """Parameters with their 95 % intervals, errors per file, warnings."""
+        return self.calibration.result
+
+    @property
+    def tests(self) -> list[TensileTest]:
+        """The records as read."""
+        return list(self.calibration.tests)
+
+    @property
+    def verdict(self) -> Verdict:
+        """Good, poor or unusable, with the reasons (``verdict.level``, ``verdict.short()``)."""
+        return self.calibration.verdict
 
     @property
     def params_toml(self) -> Path | None:
@@ -83,17 +98,18 @@ class Calibration:
         return float(self.fit.r2)
 
     def summary(self) -> str:
-        """One line: the model, the files and the errors, each with its unit."""
+        """One line: the model, the files, the errors with their units, and the verdict."""
         return (f"{self.fit.model} fitted to {len(self.tests)} file(s): RMSE {self.rmse_pa:.4g} Pa, "
-                f"NRMSE {100 * self.nrmse:.3g} %, R² {self.r2:.3f}")
+                f"NRMSE {100 * self.nrmse:.3g} %, R² {self.r2:.3f}; verdict {self.verdict.level}")
 
 
 def calibrate(files: str | os.PathLike | Sequence[str | os.PathLike], *, out: str | os.PathLike | None = None,
               model: str | None = None, config: str | os.PathLike | None = None, loss: str | None = None,
               n_starts: int | None = None, seed: int | None = None, weights: Mapping[str, Any] | None = None,
               fixed: Mapping[str, Any] | None = None, free: Sequence[str] | None = None,
-              metadata: Mapping[str, Any] | None = None, reporter=None) -> Calibration:
-    """Fit one material to tensile-test files jointly (``esmm calibrate``).
+              metadata: Mapping[str, Any] | None = None, reporter=None) -> CalibrationResult:
+    """Fit one material to tensile-test files jointly, as ``esmm calibrate`` does: a record that
+    failed is fitted up to its ultimate stress, and the fit gets a verdict.
 
     Parameters
     ----------
@@ -101,7 +117,8 @@ def calibrate(files: str | os.PathLike | Sequence[str | os.PathLike], *, out: st
         Tensile records (CSV-like text; docs/reference/tensile-input.md), any mix of
         loading modes.
     out : path, optional
-        Write ``params.toml``, ``fit.png``, ``report.md`` and ``fit.json`` there.
+        Write ``params.toml``, ``fit.png``, ``report.md``, ``report.html`` and
+        ``fit.json`` there (an empty or new folder).
     model : str, optional
         ``"esedf"`` (default) or ``"arruda-boyce"``.
     config : path, optional
@@ -117,7 +134,7 @@ def calibrate(files: str | os.PathLike | Sequence[str | os.PathLike], *, out: st
 
     Returns
     -------
-    Calibration
+    CalibrationResult
 
     Raises
     ------
@@ -128,11 +145,11 @@ def calibrate(files: str | os.PathLike | Sequence[str | os.PathLike], *, out: st
     options = load_calibrate_config(config, model=model, loss=loss, n_starts=n_starts, seed=seed,
                                     weights=weights, fixed=fixed, free=free)
     tests = read_tests(paths, overrides=dict(metadata) if metadata else None, reporter=reporter)
-    fit = fit_material(tests, **options.fit_kwargs(), reporter=reporter)
-    outputs = write_outputs(out, fit, tests) if out is not None else {}
+    cal = calibrate_tests(tests, **options.fit_kwargs(), reporter=reporter)
+    outputs = write_outputs(out, cal.result, tests, calibration=cal) if out is not None else {}
     name = f"fit of {', '.join(sorted({t.specimen for t in tests}))}"
-    material = fit.material(name=name, source="esmm.calibrate " + " ".join(t.source.name for t in tests))
-    return Calibration(material=material, fit=fit, tests=tests, outputs=dict(outputs))
+    material = cal.result.material(name=name, source="esmm.calibrate " + " ".join(t.source.name for t in tests))
+    return CalibrationResult(material=material, calibration=cal, outputs=dict(outputs))
 
 
 def prepare(organ: str | os.PathLike, *, output: str | os.PathLike | None = None, **options) -> PrepareResult:
@@ -148,7 +165,7 @@ def prepare(organ: str | os.PathLike, *, output: str | os.PathLike | None = None
     **options
         The keyword options of :func:`esmm.pipeline.prepare.prepare`: ``config``
         (``"coarse"``, ``"paper"``, ``"fine"`` or a TOML file), ``material`` (a preset
-        name or a ``params.toml``, e.g. :attr:`Calibration.params_toml`), ``unit``,
+        name or a ``params.toml``, e.g. :attr:`CalibrationResult.params_toml`), ``unit``,
         ``size`` [m], ``nodes``, ``elements``, ``split``, ``compensate``, ``volume``,
         ``force``, ``reporter``, ...
 

@@ -55,7 +55,9 @@ def test_calibrate_returns_the_fit_and_prints_nothing(tmp_path, capsys):
     assert fit.params_toml == tmp_path / "fit" / "params.toml" and fit.params_toml.is_file()
     assert 0 < fit.nrmse < 0.5 and 0 < fit.r2 <= 1 and fit.rmse_pa > 0
     assert fit.material.model == "esedf" and len(fit.tests) == 2
+    assert fit.verdict.level in ("good", "poor", "unusable") and (tmp_path / "fit" / "report.html").is_file()
     assert fit.summary().startswith("esedf fitted to 2 file(s): RMSE ")
+    assert fit.summary().endswith(f"verdict {fit.verdict.level}")
     assert esmm.calibrate(BRAIN / "cortex_simple_shear.csv", n_starts=1).outputs == {}   # no out: no files
 
 
