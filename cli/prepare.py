@@ -94,7 +94,9 @@ def _summary_lines(result) -> list[str]:
     lines.append("time        " + ", ".join(f"{k} {v:.1f} s" for k, v in result.timings.items())
                  + f" (total {sum(result.timings.values()):.1f} s)")
     lines.append(f"wrote       {result.asset}")
-    lines.append(f"            {result.xdmf} (open in ParaView)")
+    lines.append(f"            {result.xdmf} (open in ParaView or meshio; .springs.xdmf, .surface.xdmf beside it)")
+    if result.report is not None:
+        lines.append(f"            {result.report} (how far to trust it, in a browser)")
     return lines
 
 

@@ -10,6 +10,7 @@ outputs (in --out DIR, default ASSET-sim/ beside the asset):
                              tip per frame and grasper force per integration step
   grasper_force.png          force of the tissue on the grasper vs time
   summary.json               time step, stability bound, timings, real-time factor
+  report.html                the run in one page: its verdict, the speed in words, the grasper force
   --video OUT.mp4            off-screen rendering (no display or GPU needed)
 
 scenes: 'default' (bundled: the organ lies on a sticking bed, its lowest 5 % held; a grasper
@@ -88,4 +89,6 @@ def run(args, ui) -> int:
     if res.video is not None:
         ui.info(f"video: {res.video}")
     ui.info(f"summary: {res.summary_path}")
+    if res.report is not None:
+        ui.info(f"report: {res.report} (the run in one page, in a browser)")
     return 0

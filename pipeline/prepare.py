@@ -33,6 +33,7 @@ from . import config as _config
 from .asset.accuracy import fit_record
 from .asset.material import material_effects, storable_effects
 from .asset.provenance import collect_provenance
+from .asset.report import report_path, write_asset_report
 from .asset.write import write_asset
 from .asset.xdmf import sidecar_path
 from .atomicio import unwritable_file
@@ -188,6 +189,8 @@ class PrepareResult:
     config : PrepareConfig
         The resolved configuration.
     warnings : list of str
+    report : Path or None
+        The asset's HTML report (``NAME.report.html``: how far to trust it, quality, material).
     """
 
     asset: Path
@@ -202,6 +205,7 @@ class PrepareResult:
     mesher: str
     config: PrepareConfig
     warnings: list[str] = field(default_factory=list)
+    report: Path | None = None
 
 
 # -- configuration ------------------------------------------------------------------------
@@ -646,6 +650,7 @@ def _write(out: Path, inp: Path, net: SpringNetwork, mat: Material, tables: Stif
               cleaning=cleaning, provenance=prov, quality_floors=structure.floors,
               fixed_region=cfg.fixed.describe(), fit=fit_record(cfg.material, loaded=mat))
     run.rep.step(f"write: {out} ({run.timings['write']:.2f} s)")
+    run.rep.step(f"report: {run.stage('report', write_asset_report, out)}")
 
 
 def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None = None,
@@ -726,4 +731,5 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
     _write(out, inp, net, mat, tables, shape, cleaning, cfg, run, argv)
     return PrepareResult(asset=out, xdmf=sidecar_path(out), network=net, quality=shape.quality,
                          quality_passed=shape.passed, cleaning=cleaning, tables=tables, material=mat,
-                         timings=run.timings, mesher=shape.mesher, config=cfg, warnings=run.warnings)
+                         timings=run.timings, mesher=shape.mesher, config=cfg, warnings=run.warnings,
+                         report=report_path(out))

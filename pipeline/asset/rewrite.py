@@ -20,6 +20,7 @@ from .hdf5 import seal
 from .material import write_material
 from .provenance import utc_now
 from .read import read_asset, validate_asset
+from .report import report_path, write_asset_report
 from .tables import write_per_spring, write_tables
 from .volume import write_volume
 
@@ -122,7 +123,8 @@ def record_validation(path: str | os.PathLike, figures: dict, *, scene: str = "d
     Each case of *figures* (the validation's JSON document: ``cases``, ``failed``,
     ``law``, ``volume_term``, ``element``) replaces the asset's record of that case;
     the other cases recorded stay. The asset is verified first and the rewritten
-    file validated before it replaces the original.
+    file validated before it replaces the original; the asset's report
+    (``NAME.report.html``), when there is one, is written again.
 
     Parameters
     ----------
@@ -145,4 +147,6 @@ def record_validation(path: str | os.PathLike, figures: dict, *, scene: str = "d
         _, old = read_records(f)
     record = validation_record(figures, old=old, scene=str(scene), utc_time=utc_now(), version=__version__)
     _rewrite(p, skip=set(), drop=("accuracy/validation",), fill=lambda dst: write_validation(dst, record))
+    if report_path(p).is_file():       # the asset's report says how far to trust it: renew it
+        write_asset_report(p)
     return p

@@ -70,9 +70,10 @@ class Accuracy:
             return "the network is not compensated: it is several times softer than the material"
         lo, hi = (c.get("stretch_range") or [None, None])[:2]
         where = f" over stretches {lo:.2f}-{hi:.2f}" if lo is not None and hi is not None else ""
-        shear = ", ".join(f"{_pct(v)} in {k} shear" for k, v in sorted(c.get("shear_max", {}).items()))
-        return (f"the network follows the material within {_pct(c.get('uniaxial_max'))} in tension and "
-                f"compression{' and ' + shear if shear else ''}{where} (the compensation's virtual tests, "
+        parts = [f"{_pct(c.get('uniaxial_max'))} in tension and compression"]
+        parts += [f"{_pct(v)} in {k} shear" for k, v in sorted(c.get("shear_max", {}).items())]
+        within = parts[0] if len(parts) == 1 else ", ".join(parts[:-1]) + " and " + parts[-1]
+        return (f"the network follows the material within {within}{where} (the compensation's virtual tests, "
                 f"{c.get('law')} law)")
 
     def own_cases(self) -> dict[str, dict]:
@@ -122,3 +123,48 @@ class Accuracy:
         return [f"how far to trust this asset: {self.headline()}",
                 f"fit: {self.fit_words()}", f"network: {self.compensation_words()}",
                 f"continuum: {self.validation_words()}"]
+
+
+#: Largest uniaxial error of the compensation's virtual tests for a usable asset (a fraction): the
+#: calibration leaves about 1 % on the bundled liver (docs/guide/prepare.md, "How far to trust it"); five
+#: times that is a network whose stress-stretch curve visibly departs from its material's.
+COMPENSATION_POOR = 0.05
+#: Largest validated displacement (L2) or force error for a "good" asset (a fraction): the paper preset's
+#: liver, stiff where the field bends over few elements, is 16.65 % off in force under a 20 mm lift and
+#: --split brings it within 2 % (docs/guide/validate.md); above 10 % the advice is that refinement.
+VALIDATION_POOR = 0.10
+
+
+def judge(accuracy: Accuracy, *, quality_passes: bool | None = None) -> tuple[str, list[str], list[str]]:
+    """The asset's verdict: (level ``good`` / ``poor`` / ``unusable``, reasons, what to do), each reason
+    with its figure and unit. Thresholds: :data:`COMPENSATION_POOR`, :data:`VALIDATION_POOR`; the fit's
+    verdict is calibrate's."""
+    reasons: list[tuple[str, str, str]] = []
+    c = accuracy.compensation
+    if not c:
+        reasons.append(("unusable", "the network is not compensated: its forces are several times too small",
+                        "compensate it: esmm tables ASSET --compensate"))
+    elif (c.get("uniaxial_max") or 0) > COMPENSATION_POOR:
+        reasons.append(("poor", f"the network departs from its material by {_pct(c['uniaxial_max'])} in the "
+                        f"virtual tests (above {_pct(COMPENSATION_POOR)})",
+                        "check the material's curve over stretches 0.9-1.3 (a fit far outside its data)"))
+    level = (accuracy.fit or {}).get("verdict", "")
+    if level in ("poor", "unusable"):
+        reasons.append((level, f"calibrate's verdict on the material's fit is {level}",
+                        "see the fit's report.html; refit or use another material"))
+    for name, case in sorted(accuracy.own_cases().items()):
+        worst = max(v for v in (case.get("l2_error"), case.get("force_error"), 0.0) if v is not None)
+        if worst > VALIDATION_POOR:
+            reasons.append(("poor", f"{name}: {_pct(worst)} from the finite-element continuum (above "
+                            f"{_pct(VALIDATION_POOR)})", "a finer network: esmm prepare --split (or --config fine)"))
+    if quality_passes is False:
+        reasons.append(("poor", "the mesh is below the quality floors (written with --force)",
+                        "another mesh size, or repair the surface"))
+    if not accuracy.own_cases():
+        reasons.append(("good", "not compared with a finite-element continuum of this organ yet",
+                        "run esmm validate ASSET (minutes); it records the figures in the asset"))
+    order = ("good", "poor", "unusable")
+    verdict = max((r[0] for r in reasons), key=order.index, default="good")
+    shown = [r for r in reasons if r[0] != "good" or verdict == "good"]
+    advice = list(dict.fromkeys(r[2] for r in reasons))
+    return verdict, [r[1] for r in shown], advice

@@ -44,6 +44,7 @@ from .cases import (
 )
 from .compare import CaseResult, compare
 from .continuum import NEAR_LOCKING, solve_continuum
+from .html import write_validation_html
 from .material import DEFAULT_BULK_RATIO, bulk_modulus, check_continuum
 from .network_solve import solve_network
 from .report import plot_case, table_markdown, write_fields
@@ -376,6 +377,7 @@ def _write(report: ValidationReport, out: Path) -> None:
             + "\n")
     report.files["table"] = str(write_text(out / "validation.md", text))
     report.files["json"] = str(write_json(out / "validation.json", report.figures()))
+    report.files["html"] = str(write_validation_html(report, out))
 
 
 def validate_asset(path, *, cases=None, **options) -> ValidationReport:
