@@ -172,4 +172,7 @@ def run(args, ui) -> int:
         raise QualityError(f"{exc} (--force)") from None
     for line in _summary_lines(result):
         ui.info(line)
+    from esmm.pipeline.asset import read_asset
+
+    ui.info("trust       how far to trust this asset: " + read_asset(result.asset, verify=False).accuracy.headline())
     return 0

@@ -18,12 +18,12 @@ PAGES = (REPO / "README.md", REPO / "docs" / "guide" / "python.md")
 
 
 def python_blocks() -> list[tuple[str, str]]:
-    """(page, code) of every ``python`` block of the README and the Python guide."""
-    out = []
+    """(page, code) of every distinct ``python`` block of the README and the Python guide."""
+    out: dict[str, str] = {}
     for page in PAGES:
         for code in re.findall(r"^```python\n(.*?)^```", page.read_text(encoding="utf-8"), flags=re.S | re.M):
-            out.append((page.name, code))
-    return out
+            out.setdefault(code, page.name)        # the same example on two pages runs once
+    return [(page, code) for code, page in out.items()]
 
 
 def test_the_four_names_are_there_keyword_only():

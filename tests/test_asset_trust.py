@@ -80,9 +80,12 @@ def test_an_unknown_organ_gets_the_generic_band():
 def test_prepare_warns_with_the_option_on_the_command_line(liver_in_cm, tmp_path, capsys):
     rc = main(["prepare", str(liver_in_cm), "--config", "coarse", "--no-compensate", "-o",
                str(tmp_path / "liver.h5")])
-    err = capsys.readouterr().err
+    out, err = capsys.readouterr()
     assert rc == 0
     assert "warning: --unit: a liver of 1.04 mL" in " ".join(err.split())
+    # prepare says how far to trust the asset, and writes its report beside it
+    assert "trust how far to trust this asset: the network is not compensated" in " ".join(out.split())
+    assert (tmp_path / "liver.report.html").is_file() and f"{tmp_path / 'liver.report.html'}" in out
 
 
 # -- the simulation history in meshio -----------------------------------------------------------
