@@ -8,7 +8,6 @@ import shutil
 from pathlib import Path
 
 import pytest
-
 from esmm.pipeline.batch.discover import effect_counts, effect_parameters
 from esmm.pipeline.batch.jobs import BatchSummary, JobOutcome
 from esmm.pipeline.batch.tables import params_table
@@ -113,3 +112,24 @@ def test_discovery_in_batch_one_per_group_and_the_summary_across(run_cli, bundle
     assert tau["unit"] == "s" and tau["q1 (25 %)"] == tau["q3 (75 %)"] == tau["median"]
     assert "viscoelastic: found in 2 of 2" in stdout
     assert Path(out / "report.html").is_file()
+
+
+@pytest.mark.slow
+def test_discovery_in_batch_on_a_dask_cluster(bundled_data, tmp_path):
+    """The same jobs on a Dask cluster: each group's discovery in its folder, the tables across groups."""
+    pytest.importorskip("distributed")
+    import distributed
+    from esmm.pipeline.batch.discover import discover_batch
+
+    src = bundled_data / "tensile" / "tendon_instron" / "relax_incubated_3_truncated.csv"
+    data = tmp_path / "r1.csv"
+    shutil.copy(src, data)
+    out = tmp_path / "out"
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None, silence_logs=50) as cluster:
+        s = discover_batch([data], out_dir=out, options={"n_starts": 2}, scheduler=cluster.scheduler_address)
+    assert s.exit_code == 0 and s.scheduler.startswith("dask ")
+    (o,) = s.outcomes
+    assert o.status == "done" and "viscoelastic" in o.summary["effects"]
+    assert (out / "r1" / "discover.json").is_file() and (out / "r1" / "report.html").is_file()
+    assert "viscoelastic" in (out / "effects.csv").read_text()

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from esmm.pipeline.calibrate import failure as F
 from esmm.pipeline.calibrate.calibration import calibrate
 from esmm.pipeline.materials import get_model

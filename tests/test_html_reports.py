@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from htmlkit import browser_or_skip, check_page
-
 from esmm.pipeline.calibrate.calibration import calibrate
 from esmm.pipeline.calibrate.fit import predict
 from esmm.pipeline.calibrate.plots import draw_mode, mode_figure, modes
 from esmm.pipeline.calibrate.report import write_outputs
 from esmm.pipeline.tensile import read
+from htmlkit import browser_or_skip, check_page
 
 
 @pytest.fixture(scope="module")

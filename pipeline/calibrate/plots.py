@@ -101,17 +101,19 @@ def _label_mode(axes, mode: str, unit: str, has_time: bool, legend: bool) -> Non
         axes[3].set(xlabel="time [s]", ylabel=f"model − data [{unit}]", title=f"{title}: residual vs time")
     else:
         for ax in axes[2:]:
-            ax.set_axis_off()
-            ax.text(0.5, 0.5, "no time column", ha="center", va="center", transform=ax.transAxes, color="0.5")
+            if ax is not None:
+                ax.set_axis_off()
+                ax.text(0.5, 0.5, "no time column", ha="center", va="center", transform=ax.transAxes, color="0.5")
     if legend:
         axes[0].legend(fontsize=7, loc="best")
 
 
 def mode_figure(cal: Calibration, mode: str):
-    """One figure of four panels for the records of *mode*."""
+    """One figure for the records of *mode*: four panels, or two when none of them has a time column."""
     plt = _pyplot()
-    fig, axes = plt.subplots(1, 4, figsize=(17, 4.2), constrained_layout=True)
-    draw_mode(axes, cal, mode)
+    timed = any(t.time is not None for t in cal.tests if t.mode == mode)
+    fig, axes = plt.subplots(1, 4 if timed else 2, figsize=(17 if timed else 9, 4.2), constrained_layout=True)
+    draw_mode(list(axes) + ([] if timed else [None, None]), cal, mode)
     return fig
 
 
