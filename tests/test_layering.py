@@ -4,7 +4,7 @@ The library is two stacks on a common ground, with the stages that combine
 them, the batch runner and the command line on top::
 
     cli
-    batch
+    batch, api (the public Python API)
     prepare, retable (the stages), fidelity (the validation)
     discover            simulate        compensation
     calibrate           asset
@@ -60,6 +60,9 @@ ALLOWED: dict[str, set[str]] = {
     "fidelity": {"mesh", "network", "compensation", "asset", "simulate", "materials"},
     "batch": {"tensile", "materials", "calibrate", "discover", "mesh", "network", "compensation", "asset",
               "simulate", "prepare"},
+    # the public Python API (what `import esmm` gives): thin over the stages
+    "api": {"tensile", "materials", "calibrate", "mesh", "network", "compensation", "asset", "simulate",
+            "prepare"},
     "cli": None,  # on top: anything of the library
 }
 
