@@ -192,12 +192,15 @@ def _row(t: dict, res: dict) -> dict:
             "seed": t["seed"], **{"effects": [], "terms": []}, **res}
 
 
-def evaluate(n_cases: int, seed: int, *, jobs: int, timeout: float, work: Path, clean_fraction: float) -> dict:
-    """Generate the population into ``work``, run discovery on every case, score it."""
+def evaluate(n_cases: int, seed: int, *, jobs: int, timeout: float, work: Path, clean_fraction: float,
+             shard: tuple[int, int] = (0, 1)) -> dict:
+    """Generate the population into ``work``, run discovery on every case (or on shard ``k`` of ``n``: the
+    cases whose index is ``k`` modulo ``n``), score it."""
     index = generate(seed, n_cases, work, clean_fraction=clean_fraction)
     exe = esmm_command()
     threads = max(1, (os.cpu_count() or 1) // max(jobs, 1))
-    truths = [json.loads((work / c["case"] / "truth.json").read_text()) for c in index]
+    k, n = shard
+    truths = [json.loads((work / c["case"] / "truth.json").read_text()) for i, c in enumerate(index) if i % n == k]
 
     def one(t: dict) -> dict:
         res = run_case(work / t["case"], [f["file"] for f in t["files"]], timeout=timeout, exe=exe, threads=threads)
@@ -209,11 +212,17 @@ def evaluate(n_cases: int, seed: int, *, jobs: int, timeout: float, work: Path, 
     with ThreadPoolExecutor(max_workers=max(jobs, 1)) as pool:
         rows = list(pool.map(one, truths))
     wall = time.perf_counter() - t0
+    res = {"population": {"seed": seed, "cases": n_cases, "clean_fraction": clean_fraction,
+                          "generator_version": GENERATOR_VERSION, "folder": str(work),
+                          "shard": f"{k}/{n}"},
+           "esmm": exe, "jobs": jobs, "timeout_s": timeout, "wall_s": round(wall, 1)}
+    return {**res, **score(rows)}
+
+
+def score(rows: list[dict]) -> dict:
+    """The clean cases' false-positive rate, the effect cases' confusion table, runtimes and errors of *rows*."""
     secs = [r["seconds"] for r in rows if r["status"] != "timeout"]
-    return {"population": {"seed": seed, "cases": n_cases, "clean_fraction": clean_fraction,
-                           "generator_version": GENERATOR_VERSION, "folder": str(work)},
-            "esmm": exe, "jobs": jobs, "timeout_s": timeout, "wall_s": round(wall, 1),
-            "clean": score_clean([r for r in rows if r["class"] == "clean"]),
+    return {"clean": score_clean([r for r in rows if r["class"] == "clean"]),
             "effects": score_effects([r for r in rows if r["class"] != "clean"]),
             "runtime": {"median_s": statistics.median(secs) if secs else None, "max_s": max(secs) if secs else None,
                         "timeouts": [r["case"] for r in rows if r["status"] == "timeout"]},
@@ -265,7 +274,18 @@ def main(argv=None) -> int:
     ap.add_argument("--clean-fraction", type=float, default=0.5, help="at least 0.5")
     ap.add_argument("--out", default=str(HERE / "population_results.json"))
     ap.add_argument("--work", default=None, help="folder for the cases, kept (default: a new temporary folder)")
+    ap.add_argument("--shard", default="0/1", help="K/N: run only the cases whose index is K modulo N")
+    ap.add_argument("--merge", nargs="+", default=None, metavar="JSON",
+                    help="score the shards' results together (one population, every shard once) into --out")
     args = ap.parse_args(argv)
+    if args.merge:
+        return merge(args.merge, Path(args.out))
+    try:
+        k, n = (int(v) for v in args.shard.split("/"))
+        if not 0 <= k < n:
+            raise ValueError
+    except ValueError:
+        ap.error(f"--shard {args.shard!r}: give K/N with 0 <= K < N, e.g. 0/2")
     out = Path(args.out)
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="esmm-population-"))
     if work.exists() and any(work.iterdir()):
@@ -273,11 +293,37 @@ def main(argv=None) -> int:
             ap.error(f"--work {work}: not empty and not a population folder (no index.json); give a new folder")
         shutil.rmtree(work)  # an earlier population: regenerated from its seed
     res = evaluate(args.cases, args.seed, jobs=args.jobs, timeout=args.timeout, work=work,
-                   clean_fraction=args.clean_fraction)
+                   clean_fraction=args.clean_fraction, shard=(k, n))
+    _write(out, res)
+    print(table(res))
+    return 0
+
+
+def _write(out: Path, res: dict) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(res, indent=1) + "\n")
     os.replace(tmp, out)
+
+
+def merge(paths: list[str], out: Path) -> int:
+    """Score the shards *paths* of one population together; refuses shards of different populations or
+    esmm versions, and a case met twice."""
+    docs = [json.loads(Path(p).read_text()) for p in paths]
+    pops = {(d["population"]["seed"], d["population"]["cases"], d["population"]["clean_fraction"],
+             d["population"]["generator_version"]) for d in docs}
+    if len(pops) != 1:
+        raise SystemExit(f"--merge: the shards come from different populations {sorted(pops)}")
+    rows = [r for d in docs for r in d["cases"]]
+    names = [r["case"] for r in rows]
+    if len(set(names)) != len(names):
+        raise SystemExit("--merge: a case appears in two shards")
+    first = docs[0]
+    res = {"population": {**first["population"], "shard": "+".join(d["population"]["shard"] for d in docs),
+                          "folder": [d["population"]["folder"] for d in docs]},
+           "esmm": [d["esmm"] for d in docs], "jobs": [d["jobs"] for d in docs], "timeout_s": first["timeout_s"],
+           "wall_s": [d["wall_s"] for d in docs], **score(sorted(rows, key=lambda r: r["case"]))}
+    _write(out, res)
     print(table(res))
     return 0
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 from esmm.cli.tensile_options import add_metadata_options, metadata_overrides
@@ -16,8 +17,14 @@ examples:
   esmm calibrate --by specimen data/*.csv --out batch/ --scheduler tcp://10.0.0.5:8786   (on a Dask cluster)
   esmm calibrate raw.csv --gauge-length "30 mm" --area "22 mm2" --out fit/
 
+  esmm calibrate lab/specimens/ --out fit/                           (a folder: its test files)
+  esmm calibrate --discover --by specimen data/*.csv --out disc/     (one discovery per specimen)
+
 Outputs in --out: params.toml (a material config, readable back with --material),
-fit.png (data vs model, residuals vs stretch and vs time), report.md, fit.json.
+fit.png (one row per loading mode: data vs model, residual model - data against
+stretch and time), report.html (the verdict first), report.md, fit.json.
+A folder that holds an earlier run is refused unless --overwrite (which removes that
+run's files first); a batch into its own earlier folder reuses what is done.
 """
 
 
@@ -30,12 +37,16 @@ def add_parser(sub) -> None:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("files", nargs="+", metavar="FILE", help="tensile-test files (CSV-like text)")
+    p.add_argument("files", nargs="+", metavar="FILE",
+                   help="tensile-test files (CSV-like text), or folders (their test files)")
     p.add_argument("--model", default=None, help="material model: esedf (default) or arruda-boyce")
     p.add_argument("--config", metavar="C", help="calibrate config (TOML with a [calibrate] table; "
                    "docs/reference/configuration.md); the options below override it")
     p.add_argument("--out", metavar="DIR", help="folder for params.toml, fit.png, report.md, fit.json")
     p.add_argument("--json", metavar="PATH", help="also write the JSON result here")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into an --out that holds an earlier run, removing that run's files first "
+                        "(by default such a folder is refused)")
     p.add_argument("--loss", default=None, help="robust loss: linear (default), soft_l1, huber, cauchy, arctan")
     p.add_argument("--starts", dest="n_starts", type=int, default=None, metavar="N",
                    help="number of starting points (default 8)")
@@ -82,12 +93,20 @@ def _config(args):
                                  fixed=_pairs(args.fixed, "--fix"), free=args.free)
 
 
-def check_outputs(args) -> None:
-    """Refuse, before reading and fitting, an --out or --json path that could not be written at the end."""
-    from esmm.cli.outputs import check_out_dir, check_out_file
+def run_kind(args) -> str:
+    """The kind of run (what its --out folder will hold)."""
+    return ("discover" if args.discover else "calibrate") + ("-batch" if args.by else "")
 
+
+def check_outputs(args) -> None:
+    """Refuse, before reading and fitting, an --out or --json path that could not be written at the end,
+    and an --out that holds an earlier run (unless --overwrite); nothing is created here."""
+    from esmm.cli.outputs import check_out_dir, check_out_file, check_run_folder
+
+    args.previous_run = None
     if args.out:
         check_out_dir(args.out, "--out")
+        args.previous_run = check_run_folder(args.out, "--out", kind=run_kind(args), overwrite=args.overwrite)
     if args.json:
         check_out_file(args.json, "--json", "fit.json")
 
@@ -96,6 +115,8 @@ def run(args, ui) -> int:
     check_outputs(args)
     overrides = metadata_overrides(args)
     fit_kwargs = _config(args).fit_kwargs()
+    if args.discover and args.by:
+        return run_discover_batch(args, ui, fit_kwargs=fit_kwargs, overrides=overrides)
     if args.discover:
         return run_discover(args, ui, fit_kwargs=fit_kwargs, overrides=overrides)
     if args.by:
@@ -103,47 +124,92 @@ def run(args, ui) -> int:
     return run_fit(args, ui, fit_kwargs=fit_kwargs, overrides=overrides)
 
 
+def clear_previous(args, ui) -> None:
+    """Remove the earlier run's files from --out (only with --overwrite; checked before any work)."""
+    from esmm.pipeline.batch.runfolder import clear_run
+
+    if args.out and args.previous_run is not None:
+        removed = clear_run(args.out, args.previous_run)
+        ui.detail(f"--overwrite: removed {len(removed)} file(s) of the earlier run in {args.out}")
+
+
+def record(args, outputs) -> None:
+    """Record in --out what this run wrote (the next run into the folder reads it)."""
+    from esmm.pipeline.batch.runfolder import record_run
+
+    if args.out:
+        record_run(args.out, kind=run_kind(args), outputs=list(outputs))
+
+
 def run_fit(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) -> int:
-    """One joint fit of every file: print the parameters, write --out and --json."""
+    """One joint fit of every file (failures cut at their ultimate stress): print the parameters, the
+    failure tests and the verdict; write --out and --json."""
     from esmm.pipeline.atomicio import write_json
-    from esmm.pipeline.calibrate.fit import fit_material
-    from esmm.pipeline.calibrate.report import display_stress_unit, result_to_dict, write_outputs
+    from esmm.pipeline.calibrate.calibration import calibrate, failure_lines, verdict_lines
+    from esmm.pipeline.calibrate.report import result_to_dict, write_outputs
     from esmm.pipeline.tensile.files import read_tests
 
     tests = read_tests(args.files, overrides=overrides, reporter=ui)
-    result = fit_material(tests, **fit_kwargs, reporter=ui)
-
-    unit, fac = display_stress_unit([abs(e.value) for e in result.estimates if e.kind == "stress"] or [1.0])
-    ui.info(f"model {result.model}: {len(tests)} file(s), {sum(t.n for t in tests)} samples")
-    for e in result.estimates:
-        f, u = (fac, unit) if e.kind == "stress" else (1.0, "")
-        ui.info(f"  {e.key:>10} = {e.value / f:<12.6g} 95% CI [{e.lower / f:.4g}, {e.upper / f:.4g}] {u}")
-    sunit, sfac = display_stress_unit([float(abs(t.stress).max()) for t in tests])
-    ui.info(f"  RMSE {result.rmse / sfac:.4g} {sunit}   NRMSE {result.nrmse:.2%}   R² {result.r2:.4f}")
+    cal = calibrate(tests, **fit_kwargs, reporter=ui)
+    for line in result_lines(cal) + failure_lines(cal) + verdict_lines(cal):
+        ui.info(line)
     if args.out:
-        written = write_outputs(args.out, result, tests, json_path=args.json)
+        clear_previous(args, ui)
+        written = write_outputs(args.out, cal.result, tests, calibration=cal, json_path=args.json)
+        record(args, [p for k, p in written.items() if k != "json_extra"])
         ui.info("outputs: " + ", ".join(str(p) for k, p in written.items() if k != "json_extra"))
     elif args.json:
-        write_json(args.json, result_to_dict(result, tests))
+        write_json(args.json, result_to_dict(cal.result, tests, calibration=cal))
     if args.json:
         ui.info(f"json: {args.json}")
     return 0
 
 
+def result_lines(cal) -> list[str]:
+    """The fit for a console: each parameter in its readable unit with its interval, then the errors."""
+    from esmm.pipeline.htmlreport import interval_text, quantity_text
+
+    r = cal.result
+    lines = [f"model {r.model}: {len(cal.tests)} file(s), {sum(t.n for t in cal.fitted)} samples fitted"]
+    for e in r.estimates:
+        flag = "" if e.identifiable else "   (not determined by the data)"
+        lines.append(f"  {e.key:>10} = {quantity_text(e.value, e.unit, digits=6):<24} 95% CI "
+                     f"{interval_text(e.lower, e.upper, e.unit, like=e.value)}{flag}")
+    lines.append(f"  RMSE {quantity_text(r.rmse, 'Pa')}   NRMSE {r.nrmse:.2%}   R² {r.r2:.4f}")
+    return lines
+
+
 def run_batch(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) -> int:
     """``--by``: one fit per group of files, in parallel, cached (docs/guide/batch.md)."""
     from esmm.pipeline.atomicio import write_json
-    from esmm.pipeline.batch.calibrate import batch_document, calibrate_batch
+    from esmm.pipeline.batch.calibrate import batch_document, calibrate_jobs, write_tables
+    from esmm.pipeline.batch.runner import run_jobs
 
     if not args.out:
         raise ConfigError("--by: give --out DIR; each group's outputs, the cache and the batch log go there")
-    summary = calibrate_batch(args.files, out_dir=args.out, by=args.by, read_kwargs={"overrides": overrides},
-                              fit_kwargs=fit_kwargs, scheduler=args.scheduler, workers=args.workers,
-                              force=args.redo, reporter=ui)
+    # calibrate_batch's three steps, with the earlier run cleared once the inputs are read
+    jobs = calibrate_jobs(args.files, by=args.by, out_dir=args.out, read_kwargs={"overrides": overrides},
+                          fit_kwargs=fit_kwargs, reporter=ui)
+    clear_previous(args, ui)
+    summary = run_jobs(jobs, out_dir=args.out, scheduler=args.scheduler, workers=args.workers, force=args.redo,
+                       reporter=ui, title="calibrating")
+    write_tables(summary, by=args.by)
+    return finish_batch(args, ui, summary, batch_document(summary, by=args.by), write_json)
+
+
+def finish_batch(args, ui, summary, document, write_json) -> int:
+    """Print the table and each group's verdict, record the run, write --json; the batch's exit code."""
     ui.info(summary.table())
+    for o in summary.outcomes:
+        v = o.summary.get("verdict")
+        if v and o.status in ("done", "cached"):
+            ui.info(f"  {o.name}: {v.get('text', v.get('level', ''))}")
     if args.json:
-        write_json(args.json, batch_document(summary, by=args.by))
-    ui.info(f"outputs in {summary.out_dir}: one folder per group, summary.csv (parameters), "
+        write_json(args.json, document)
+    record(args, [summary.out_dir / p for o in summary.outcomes for p in o.outputs]
+           + [summary.out_dir / n for n in ("summary.csv", "batch-summary.csv", "report.html", "effects.csv",
+                                             "effect-parameters.csv") if (summary.out_dir / n).exists()])
+    ui.info(f"outputs in {summary.out_dir}: one folder per group, summary.csv, report.html, "
             f"batch-summary.csv, {summary.log_path.name if summary.log_path else 'the batch log'}")
     report_batch_problems(summary, ui)
     return summary.exit_code
@@ -160,32 +226,70 @@ def report_batch_problems(summary, ui) -> None:
     ui.error(summary.problem_line())
 
 
-def run_discover(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) -> int:
-    """``--discover``: find what the model misses, report before and after (docs/guide/discover.md).
-
-    Reads the files, runs :func:`esmm.pipeline.discover.discover_and_save` with the calibrate
-    options (model, starts, seed, weights, --fix, --free), writes the outputs to ``--out`` and
-    ``--json``, and prints the before/after summary.
-    """
-    from esmm.pipeline.discover import discover_and_save, summary_lines
-    from esmm.pipeline.tensile.files import read_tests
-
-    if args.by:
-        raise ConfigError("--discover analyses one group of files at a time and cannot be combined with --by; "
-                          "run it once per specimen")
+def discover_options(fit_kwargs: dict[str, Any], ui) -> dict[str, Any]:
+    """The discovery's options from the calibrate options (the linear loss only: a robust one is ignored)."""
     kw = dict(fit_kwargs)
     loss = kw.pop("loss", "linear")
     if loss not in (None, "linear"):
         ui.warn(f"--discover compares models by likelihood and held-out error with the linear loss; "
                 f"--loss {loss} is ignored")
+    return kw
+
+
+def run_discover(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) -> int:
+    """``--discover``: find what the model misses, report before and after (docs/guide/discover.md).
+
+    Reads the files, runs :func:`esmm.pipeline.discover.discover` with the calibrate options
+    (model, starts, seed, weights, --fix, --free), clears an earlier run from ``--out``
+    (with --overwrite), writes the outputs (:func:`esmm.pipeline.discover.write_outputs`)
+    and report.html, and prints the before/after summary.
+    """
+    from esmm.pipeline.discover import discover, result_to_dict, summary_lines, write_outputs
+    from esmm.pipeline.discover.html import verdict_of, write_discover_html
+    from esmm.pipeline.tensile.files import read_tests
+
     tests = read_tests(args.files, overrides=overrides, reporter=ui)
-    res = discover_and_save(tests, out_dir=args.out, json_path=args.json, reporter=ui, **kw)
+    res = discover(tests, reporter=ui, **discover_options(fit_kwargs, ui))
+    if args.out:
+        clear_previous(args, ui)
+    written = write_outputs(args.out, res, json_path=args.json)
+    doc = result_to_dict(res)
     for line in summary_lines(res):
         ui.info(line)
+    ui.info("verdict: " + verdict_of(doc)[1])
     if args.out:
-        ui.info(f"outputs in {args.out}: params.toml (with the kept effects), params_base.toml, discover.json, "
-                "discover.md, residuals_before.png, residuals_after.png"
+        html = write_discover_html(Path(args.out) / "report.html", res, doc)
+        outs = [html] + [p for k, p in written.items() if k not in ("json_extra", "corrected")]
+        corrected = written.get("corrected")
+        record(args, outs + (sorted(Path(corrected).iterdir()) if corrected else []))
+        ui.info(f"outputs in {args.out}: report.html, params.toml (with the kept effects), params_base.toml, "
+                "discover.json, discover.md, residuals_before.png, residuals_after.png"
                 + (", corrected/" if any(n in ("slack", "sensor_offset") for n in res.kept) else ""))
     if args.json:
         ui.info(f"json: {args.json}")
     return 0
+
+
+def run_discover_batch(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, Any]) -> int:
+    """``--discover --by``: one discovery per group, on the local pool or a Dask cluster, and what the groups
+    share (docs/guide/batch.md, "Discovery in batch")."""
+    from esmm.pipeline.atomicio import write_json
+    from esmm.pipeline.batch import discover as bd
+    from esmm.pipeline.batch.runner import run_jobs
+
+    if not args.out:
+        raise ConfigError("--by: give --out DIR; each group's outputs, the cache and the batch log go there")
+    jobs = bd.discover_jobs(args.files, by=args.by, out_dir=args.out, read_kwargs={"overrides": overrides},
+                            options=discover_options(fit_kwargs, ui), reporter=ui)
+    clear_previous(args, ui)
+    summary = run_jobs(jobs, out_dir=args.out, scheduler=args.scheduler, workers=args.workers, force=args.redo,
+                       reporter=ui, title="discovering")
+    bd.write_tables(summary, by=args.by)
+    for r in bd.effect_counts(summary):
+        if r["found"]:
+            ui.info(f"  {r['effect']}: found in {r['found']} of {r['testable']} group(s) where it can be found"
+                    + (f" ({r['tissue']})" if r["tissue"] != bd.NO_TISSUE else ""))
+    doc = {"schema": "esmm.discover-batch/1", "by": args.by, "exit_code": summary.exit_code,
+           "groups": [o.to_dict() for o in summary.outcomes], "effects": bd.effect_counts(summary),
+           "parameters": bd.effect_parameters(summary)}
+    return finish_batch(args, ui, summary, doc, write_json)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import textwrap
 from pathlib import Path
 
 from esmm.pipeline.errors import AssetError
@@ -23,7 +24,8 @@ def add_parser(sub) -> None:
         "info",
         help="summarise and validate asset files",
         description="Print what an asset holds (nodes, springs, tets, volume, quality, material, "
-        "tables, volume term, provenance) and check it: schema, checksums, shapes, NaNs, index ranges, "
+        "tables, volume term, provenance), how far to trust it (the fit's, the compensation's and, once "
+        "'esmm validate' ran on it, the validation's errors) and check it: schema, checksums, shapes, NaNs, index ranges, "
         "positive tet volumes and masses, direction cosines, the volume term's rest volumes, the XDMF sidecar.",
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -77,10 +79,22 @@ def _text(s: dict) -> list[str]:
         md = q.get("min_dihedral_deg")
         lines.append(f"  quality      min dihedral {md:.1f} deg, {verdict}" if isinstance(md, (int, float))
                      else f"  quality      {verdict}")
+    lines += _trust_lines(s.get("accuracy"))
     lines.append(f"  made         {s['created_utc']} by esmm {s['esmm_version']} from {s['input'] or '(no file)'}")
     if s["input_sha256"]:
         lines.append(f"  input sha256 {s['input_sha256']}")
     return lines
+
+
+def _trust_lines(accuracy: dict | None) -> list[str]:
+    """How far to trust the asset, in words, wrapped under the "trust" label."""
+    if not accuracy:
+        return []
+    out = []
+    for k, text in enumerate(accuracy["lines"]):
+        out += textwrap.wrap(text, width=100, initial_indent="  trust        " if k == 0 else " " * 15,
+                             subsequent_indent=" " * (15 if k == 0 else 17))
+    return out
 
 
 def run(args, ui) -> int:

@@ -122,19 +122,25 @@ def flag_message(exc: EsmmError, parser: argparse.ArgumentParser, command: str) 
     ``nodes: expected a whole number >= 10`` becomes ``--nodes: ...`` when the
     command has a ``--nodes`` option (an argparse ``dest`` equal to the parameter).
     """
+    from esmm.pipeline.tensile.metadata import MissingMetadataError
+
     msg = str(exc)
+    sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+    cmd = sub.choices.get(command) if sub is not None else None
+
+    def flag_of(name: str) -> str | None:
+        for action in cmd._actions if cmd is not None else ():
+            if action.dest == name and action.option_strings:
+                return max(action.option_strings, key=len)
+        return None
+
+    if isinstance(exc, MissingMetadataError):  # every missing key: its option beside its sidecar key
+        return exc.text(flag_of)
     param = getattr(exc, "parameter", None)
     if not param or not msg.startswith(f"{param}:"):
         return msg
-    sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
-    cmd = sub.choices.get(command) if sub is not None else None
-    if cmd is None:
-        return msg
-    for action in cmd._actions:
-        if action.dest == param and action.option_strings:
-            flag = max(action.option_strings, key=len)
-            return flag + msg[len(param):]
-    return msg
+    flag = flag_of(param)
+    return msg if flag is None else flag + msg[len(param):]
 
 
 def run() -> None:  # console-script entry point

@@ -94,7 +94,9 @@ def _summary_lines(result) -> list[str]:
     lines.append("time        " + ", ".join(f"{k} {v:.1f} s" for k, v in result.timings.items())
                  + f" (total {sum(result.timings.values()):.1f} s)")
     lines.append(f"wrote       {result.asset}")
-    lines.append(f"            {result.xdmf} (open in ParaView)")
+    lines.append(f"            {result.xdmf} (open in ParaView or meshio; .springs.xdmf, .surface.xdmf beside it)")
+    if result.report is not None:
+        lines.append(f"            {result.report} (how far to trust it, in a browser)")
     return lines
 
 
@@ -118,6 +120,23 @@ def _options(args) -> dict:
         density=None if args.density is None else number_text(args.density, "density"),
         force=args.force, compensate=args.compensate, volume=args.volume, split=args.split,
     )
+
+
+class _FlagReporter:
+    """The UI as prepare's reporter, a warning's leading library parameter name (``unit:``) shown as the
+    option that sets it (``--unit:``), as errors are (:func:`esmm.cli.main.flag_message`)."""
+
+    FLAGS = {"unit": "--unit", "label": "--label", "density": "--density", "material": "--material"}
+
+    def __init__(self, ui) -> None:
+        self._ui = ui
+
+    def __getattr__(self, name):
+        return getattr(self._ui, name)
+
+    def warn(self, message: str) -> None:
+        head, sep, rest = message.partition(":")
+        self._ui.warn(self.FLAGS[head] + sep + rest if sep and head in self.FLAGS else message)
 
 
 def run(args, ui) -> int:
@@ -148,9 +167,12 @@ def run(args, ui) -> int:
     if args.redo or args.scheduler or args.workers:
         raise ConfigError("--redo, --scheduler and --jobs apply to a batch: give --out DIR")
     try:
-        result = prepare(args.inputs[0], output=args.output, reporter=ui, argv=argv, **options)
+        result = prepare(args.inputs[0], output=args.output, reporter=_FlagReporter(ui), argv=argv, **options)
     except QualityError as exc:
         raise QualityError(f"{exc} (--force)") from None
     for line in _summary_lines(result):
         ui.info(line)
+    from esmm.pipeline.asset import read_asset
+
+    ui.info("trust       how far to trust this asset: " + read_asset(result.asset, verify=False).accuracy.headline())
     return 0

@@ -30,8 +30,10 @@ from typing import Any
 import numpy as np
 
 from . import config as _config
+from .asset.accuracy import fit_record
 from .asset.material import material_effects, storable_effects
 from .asset.provenance import collect_provenance
+from .asset.report import report_path, write_asset_report
 from .asset.write import write_asset
 from .asset.xdmf import sidecar_path
 from .atomicio import unwritable_file
@@ -58,7 +60,7 @@ from .network.springs import (
     network_from_skeleton,
     network_from_tets,
 )
-from .network.tables import GridOptions, StiffnessTables, build_tables, grid_options
+from .network.tables import GridOptions, StiffnessTables, build_tables, grid_note, grid_options
 from .network.volume import DEFAULT_POISSON, POISSON_RANGE, VolumeSpec, bulk_modulus
 from .progress import ensure
 from .units import factor
@@ -187,6 +189,8 @@ class PrepareResult:
     config : PrepareConfig
         The resolved configuration.
     warnings : list of str
+    report : Path or None
+        The asset's HTML report (``NAME.report.html``: how far to trust it, quality, material).
     """
 
     asset: Path
@@ -201,6 +205,7 @@ class PrepareResult:
     mesher: str
     config: PrepareConfig
     warnings: list[str] = field(default_factory=list)
+    report: Path | None = None
 
 
 # -- configuration ------------------------------------------------------------------------
@@ -586,7 +591,9 @@ def _tables(mat: Material, cfg: PrepareConfig, run: _Run) -> StiffnessTables:
     g = cfg.grid
     tables = run.stage("tables", build_tables, mat, n=g.n, law=g.law, lam_min=g.lam_min, lam_max=g.lam_max)
     run.rep.step(f"tables: {tables.n} points on stretch {tables.lam_min:.3g}..{tables.lam_max:.3g} "
-                 f"({run.timings['tables']:.2f} s)")
+                 f"({run.timings['tables']:.2f} s; {grid_note(tables)})")
+    if tables.metadata["grid"].get("warning"):
+        run.warn(tables.metadata["grid"]["warning"])
     return tables
 
 
@@ -641,8 +648,9 @@ def _write(out: Path, inp: Path, net: SpringNetwork, mat: Material, tables: Stif
                                      "mesh_log": [str(x) for x in structure.log[-50:]]})
     run.stage("write", write_asset, out, net, material=mat, tables=tables, quality=structure.quality,
               cleaning=cleaning, provenance=prov, quality_floors=structure.floors,
-              fixed_region=cfg.fixed.describe())
+              fixed_region=cfg.fixed.describe(), fit=fit_record(cfg.material, loaded=mat))
     run.rep.step(f"write: {out} ({run.timings['write']:.2f} s)")
+    run.rep.step(f"report: {run.stage('report', write_asset_report, out)}")
 
 
 def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None = None,
@@ -723,4 +731,5 @@ def prepare(input_path: str | os.PathLike, *, output: str | os.PathLike | None =
     _write(out, inp, net, mat, tables, shape, cleaning, cfg, run, argv)
     return PrepareResult(asset=out, xdmf=sidecar_path(out), network=net, quality=shape.quality,
                          quality_passed=shape.passed, cleaning=cleaning, tables=tables, material=mat,
-                         timings=run.timings, mesher=shape.mesher, config=cfg, warnings=run.warnings)
+                         timings=run.timings, mesher=shape.mesher, config=cfg, warnings=run.warnings,
+                         report=report_path(out))

@@ -18,7 +18,7 @@ from esmm.pipeline.asset import (
     validate_asset,
     write_asset,
 )
-from esmm.pipeline.asset.xdmf import check_sidecar, referenced_datasets, sidecar_path
+from esmm.pipeline.asset.xdmf import check_sidecar, referenced_datasets, sidecar_path, sidecar_paths
 from esmm.pipeline.errors import AssetError, InputError
 from esmm.pipeline.mesh.synthetic import box_tets  # noqa: E402
 from esmm.pipeline.network.springs import network_from_skeleton, network_from_tets
@@ -247,68 +247,100 @@ def test_missing_group_and_dataset(asset):
     assert "/springs/volume_weight: required dataset is missing" in problems
 
 
-def test_xdmf_sidecar_refers_to_existing_datasets(asset, network):
-    side = sidecar_path(asset)
-    assert side.exists() and side.name == "organ.xdmf"
-    assert check_sidecar(side) == []
-    refs = referenced_datasets(side)
-    paths = {r[1] for r in refs}
+def test_xdmf_sidecars_refer_to_existing_datasets(asset, network):
+    sides = sidecar_paths(asset)
+    assert sorted(p.name for p in asset.parent.glob("*.xdmf")) == ["organ.springs.xdmf", "organ.surface.xdmf",
+                                                                    "organ.xdmf"]
+    paths = set()
+    for side in sides.values():
+        assert check_sidecar(side) == []
+        refs = referenced_datasets(side)
+        paths |= {r[1] for r in refs}
+        assert all(r[0] == "organ.h5" for r in refs)
+        with h5py.File(asset, "r") as f:
+            for _, path, dims, _, _ in refs:
+                assert f[path].shape == dims
     assert {"/mesh/points", "/mesh/tets", "/springs/pairs", "/nodes/mass", "/nodes/fixed_mask",
-            "/springs/rest_length", "/springs/volume_weight"} <= paths
-    assert all(r[0] == "organ.h5" for r in refs)
-    with h5py.File(asset, "r") as f:
-        for _, path, dims, _, _ in refs:
-            assert f[path].shape == dims
+            "/springs/rest_length", "/springs/volume_weight", "/mesh/surface_faces"} <= paths
     # a sidecar pointing at a dataset that is gone is reported
     with h5py.File(asset, "r+") as f:
         del f["/springs/volume_weight"]
-    assert any("volume_weight, which does not exist" in p for p in check_sidecar(side))
+    assert any("volume_weight, which does not exist" in p for p in check_sidecar(sides["springs"]))
 
 
-def test_xdmf_opens_in_vtk(asset, network):
-    """VTK's XDMF reader (what ParaView uses) sees the tets, the springs and the surface."""
+def _vtk_blocks(path):
+    """The grids VTK's XDMF reader (what ParaView uses) finds in one file: name -> dataset."""
     vtk = pytest.importorskip("vtkmodules.vtkIOXdmf2")
     from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet
 
     r = vtk.vtkXdmfReader()
-    r.SetFileName(str(sidecar_path(asset)))
+    r.SetFileName(str(path))
     r.Update()
     out = r.GetOutputDataObject(0)
+    if not out.IsA("vtkCompositeDataSet"):
+        return {r.GetOutputInformation(0).Get(vtkCompositeDataSet.NAME()) or "grid": out}
     blocks = {}
     it = out.NewIterator()
     it.InitTraversal()
     while not it.IsDoneWithTraversal():
         blocks[it.GetCurrentMetaData().Get(vtkCompositeDataSet.NAME())] = it.GetCurrentDataObject()
         it.GoToNextItem()
-    assert set(blocks) == {"tetrahedra", "springs", "surface"}
-    tet = blocks["tetrahedra"]
+    return blocks
+
+
+def test_xdmf_opens_in_vtk(asset, network):
+    """VTK's XDMF reader (what ParaView uses) opens each sidecar: the tets, the springs, the surface."""
+    sides = sidecar_paths(asset)
+    (tet,) = _vtk_blocks(sides[""]).values()
     assert tet.GetNumberOfCells() == network.n_tets and tet.GetNumberOfPoints() == network.n_nodes
     assert tet.GetCellType(0) == 10  # VTK_TETRA
     fixed = tet.GetPointData().GetArray("fixed")
     assert sum(fixed.GetValue(i) for i in range(fixed.GetNumberOfTuples())) == network.fixed.size
-    springs = blocks["springs"]
+    (springs,) = _vtk_blocks(sides["springs"]).values()
     assert springs.GetNumberOfCells() == network.n_springs
     rl = springs.GetCellData().GetArray("rest_length")
     assert rl.GetValue(7) == pytest.approx(network.rest_length[7])
-    assert blocks["surface"].GetNumberOfCells() == network.surface_faces.shape[0]
+    (surface,) = _vtk_blocks(sides["surface"]).values()
+    assert surface.GetNumberOfCells() == network.surface_faces.shape[0]
 
 
-def test_xdmf_grids_read_by_meshio(asset, network, tmp_path):
-    """meshio reads one grid per file: each grid of the sidecar, on its own, is valid XDMF for it."""
+def test_meshio_reads_the_asset_sidecars(asset, network):
+    """``meshio.read("organ.xdmf")`` gives the mesh with its node fields; each other sidecar its grid
+    (meshio reads one grid per file: the three grids in one file failed with "Only supports one grid")."""
+    import xml.etree.ElementTree as ET
+
     meshio = pytest.importorskip("meshio")
-    text = sidecar_path(asset).read_text()
-    head = text[: text.index("    <Grid")]
-    grids = re.findall(r"    <Grid.*?</Grid>\n", text, re.S)
-    seen = {}
-    for g in grids:
-        single = asset.parent / "single.xdmf"
-        single.write_text(head + g + "  </Domain>\n</Xdmf>\n")
-        m = meshio.read(single)
-        seen[m.cells[0].type] = m
-    assert seen["tetra"].cells[0].data.shape == (network.n_tets, 4)
-    assert seen["line"].cells[0].data.shape == (network.n_springs, 2)
-    np.testing.assert_allclose(seen["line"].cell_data["volume_weight"][0], network.volume_weight)
-    np.testing.assert_array_equal(seen["tetra"].point_data["fixed"], network.fixed_mask().astype(np.uint8))
+    sides = sidecar_paths(asset)
+    m = meshio.read(sides[""])
+    assert [c.type for c in m.cells] == ["tetra"] and m.cells[0].data.shape == (network.n_tets, 4)
+    np.testing.assert_array_equal(m.cells[0].data, network.tets)
+    np.testing.assert_allclose(m.points, network.points)
+    np.testing.assert_array_equal(m.point_data["fixed"], network.fixed_mask().astype(np.uint8))
+    np.testing.assert_allclose(m.point_data["mass"], network.mass)
+    lines = meshio.read(sides["springs"])
+    assert lines.cells[0].type == "line" and lines.cells[0].data.shape == (network.n_springs, 2)
+    np.testing.assert_allclose(lines.cell_data["volume_weight"][0], network.volume_weight)
+    assert meshio.read(sides["surface"]).cells[0].data.shape == network.surface_faces.shape
+    for side in sides.values():      # valid XDMF 3: one Domain, one uniform Grid with its Topology and Geometry
+        root = ET.parse(side).getroot()
+        assert root.tag == "Xdmf" and root.attrib["Version"] == "3.0"
+        (domain,) = list(root)
+        (grid,) = list(domain)
+        assert grid.tag == "Grid" and grid.attrib["GridType"] == "Uniform"
+        assert [c.tag for c in grid][:2] == ["Topology", "Geometry"]
+
+
+def test_a_new_asset_removes_the_sidecars_an_earlier_one_left(tmp_path, network):
+    write_asset(tmp_path / "organ.h5", network)
+    assert (tmp_path / "organ.springs.xdmf").is_file()
+    g = (1 + 5**0.5) / 2
+    v = np.array([[0, 1, g], [0, -1, g], [0, 1, -g], [0, -1, -g], [1, g, 0], [-1, g, 0], [1, -g, 0],
+                  [-1, -g, 0], [g, 0, 1], [-g, 0, 1], [g, 0, -1], [-g, 0, -1]], float) * 0.01
+    edges = [[0, k] for k in range(1, 13)] + [[k, k + 1] for k in range(1, 12)]
+    sk = network_from_skeleton(np.vstack([[0, 0, 0], v]), np.array(edges), volume=4e-6).with_fixed([0])
+    write_asset(tmp_path / "organ.h5", sk)          # the skeleton: its mesh is the springs
+    assert sorted(p.name for p in tmp_path.glob("*.xdmf")) == ["organ.xdmf"]
+    assert validate_asset(tmp_path / "organ.h5") == []
 
 
 def test_skeleton_asset_round_trip(tmp_path):

@@ -394,11 +394,14 @@ def test_calibrate_batch_equals_direct_fits_and_reruns_from_cache(tmp_path):
         direct = fit_material([read(p) for p in _brain(spec)], **fit)
         row = rows[f"budday2017-{spec}"]
         for e in direct.estimates:
-            assert float(row[f"{e.key} [SI]"]) == pytest.approx(e.value, rel=1e-7)
-        assert float(row["r2"]) == pytest.approx(direct.r2, rel=1e-6)
+            unit = "Pa" if e.kind == "stress" else "1"
+            assert float(row[f"{e.key} [{unit}]"]) == pytest.approx(e.value, rel=1e-7)
+            assert row[f"{e.key} determined"] == ("yes" if e.identifiable else "no")
+        assert float(row["r2 [1]"]) == pytest.approx(direct.r2, rel=1e-6)
+        assert row["verdict"] in ("good", "poor", "unusable") and row["reason"].startswith(row["verdict"])
         for f in ("params.toml", "fit.png", "report.md", "fit.json"):
             assert (out / f"budday2017-{spec}" / f).is_file()
-    assert rows["mean"]["status"] == "2 group(s)"
+    assert rows["mean"]["status"].startswith("2 usable group(s)")
 
     assert rows[str(bad)]["status"] == "unreadable" and rows["budday2017-cortex"]["cached"] == ""
     s2 = calibrate_batch(files, out_dir=out, fit_kwargs=fit, workers=2)
@@ -406,8 +409,8 @@ def test_calibrate_batch_equals_direct_fits_and_reruns_from_cache(tmp_path):
     rows2 = {r["group"]: r for r in read_csv(out / "summary.csv")}
     assert rows2["budday2017-cortex"]["cached"] == "yes"
     for g in rows:  # the same numbers from the cache
-        assert {k: v for k, v in rows2[g].items() if k not in ("seconds", "cached")} == \
-            {k: v for k, v in rows[g].items() if k not in ("seconds", "cached")}
+        assert {k: v for k, v in rows2[g].items() if k not in ("seconds [s]", "cached")} == \
+            {k: v for k, v in rows[g].items() if k not in ("seconds [s]", "cached")}
     # A changed option recomputes.
     s3 = calibrate_batch(_brain("cortex"), out_dir=out, fit_kwargs={**fit, "n_starts": 3}, workers=1)
     assert [o.status for o in s3.outcomes] == ["done"]
@@ -626,11 +629,14 @@ def test_group_names_avoid_the_batch_files_failed_rows_and_keep_unicode(tmp_path
     (a / "t.csv").write_text(UNIAXIAL)
     cwd = os.getcwd()
     os.chdir(tmp_path)
-    try:  # "a" is both a folder given as a file (failed row) and the group of a/t.csv
-        jobs = calibrate_jobs(["a", "a/t.csv"], by="folder", out_dir=tmp_path / "o")
+    try:  # "t" is both a missing file (failed row) and the group (specimen) of a/t.csv
+        jobs = calibrate_jobs(["t", "a/t.csv"], by="specimen", out_dir=tmp_path / "o")
+        # a folder given means its files: "a" is a/t.csv, read once
+        folder_jobs = calibrate_jobs(["a", "a/t.csv"], by="folder", out_dir=tmp_path / "o")
     finally:
         os.chdir(cwd)
-    assert sorted((j.name, j.error is None) for j in jobs) == sorted([("a", True), (str(a), False)])
+    assert sorted((j.name, j.error is None) for j in jobs) == sorted([("t", True), (str(tmp_path / "t"), False)])
+    assert [(j.name, j.error) for j in folder_jobs] == [("a", None)]
 
 
 def test_a_fit_error_names_the_files_of_its_group(tmp_path):

@@ -97,6 +97,15 @@ def cli_case(row_id: str, tmp: Path) -> list[str]:
         return ["calibrate", f("t.csv", "time [s],displacement [mm],force [N]\n0,0,0\n1,1,1\n")]
     if row_id == "calibrate-unknown-model":
         return ["calibrate", f("t.csv", "stretch,stress [kPa]\n1,0\n1.1,1\n"), "--model", "ogden9"]
+    if row_id == "tensile-missing-metadata":
+        return ["calibrate", f("t.csv", "时间,位移,力\n(s),(mm),(N)\n0,0,0\n1,1,1\n".encode("gbk"))]
+    if row_id == "calibrate-folder-without-tests":
+        (tmp / "tests" / "day1").mkdir(parents=True)
+        return ["calibrate", str(tmp / "tests")]
+    if row_id == "calibrate-out-holds-a-run":
+        (tmp / "fit").mkdir()
+        (tmp / "fit" / "fit.json").write_text("{}")
+        return ["calibrate", f("t.csv", "stretch,stress [kPa]\n1,0\n1.1,1\n1.2,2\n"), "--out", str(tmp / "fit")]
     out = ["-o", str(tmp / "out.h5")]
     if row_id == "mesh-missing":
         return ["prepare", str(tmp / "absent.stl"), *out]

@@ -164,7 +164,7 @@ def test_batch_by_specimen_skips_bad_file(run_cli, bundled_data, tmp_path):
     rows = [r.split(",")[:2] for r in summary[1:]]
     assert sum(r[1] == "ok" for r in rows) == 3
     assert any(r[1] == "unreadable" for r in rows)
-    assert any(r[0] == "mean" for r in rows) and any(r[0] == "std" for r in rows)
+    assert any(r[0] == "mean" for r in rows) and any(r[0] == "sd" for r in rows) and any(r[0] == "n" for r in rows)
     assert len([p for p in out.iterdir() if p.is_dir() and not p.name.startswith(".")]) == 3
 
 

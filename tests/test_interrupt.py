@@ -164,9 +164,10 @@ def check_no_partial_output(out: Path, *, allow_temp: bool) -> dict:
             continue
         check_complete(p)
         counts["files"] += 1
-    # An XDMF sidecar only beside its asset.
+    # An XDMF sidecar only beside its asset (NAME.xdmf, NAME.springs.xdmf, NAME.surface.xdmf: NAME.h5).
     for x in out.rglob("*.xdmf"):
-        assert x.with_suffix(".h5").is_file(), f"{x} without its asset"
+        stem = x.name[: -len(".xdmf")].removesuffix(".springs").removesuffix(".surface")
+        assert (x.parent / f"{stem}.h5").is_file(), f"{x} without its asset"
     return counts
 
 

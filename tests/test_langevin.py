@@ -137,3 +137,27 @@ def test_chain_energy_derivative_is_beta_and_finite_near_locking():
     # logarithmic divergence: ln(2/(1-x)) - 1 + O(1-x)
     assert e[2] == pytest.approx(np.log(2 / 1e-6) - 1, abs=1e-5)
     assert np.isfinite(e[3])
+
+
+
+
+def test_compiled_inverse_langevin_gives_the_numpy_bits(monkeypatch):
+    """The compiled path (long arrays) is the numpy form's arithmetic in loops: the same bits."""
+    from esmm.pipeline.materials import langevin as lv
+
+    rng = np.random.default_rng(7)
+    x = np.concatenate([
+        rng.uniform(0.0, 1.0, 4000), 1.0 - np.exp(-rng.uniform(0.0, 36.0, 4000)),  # up to the locking
+        np.exp(-rng.uniform(0.0, 700.0, 2000)), rng.uniform(0.07, 0.09, 2000),  # series branch and its edge
+        [0.0, -0.0, 5e-324, 0.5, np.nextafter(0.5, 1.0), 1.0 - 2.0**-53, 1.0, -1.0, 1.5, -2.0, np.nan, np.inf],
+    ])
+    x[::3] *= -1.0  # odd function: both signs
+    assert lv._compiled_kernels() is not None and x.size >= lv._COMPILED_MIN
+    with np.errstate(all="ignore"):
+        compiled = inverse_langevin(x)
+        monkeypatch.setattr(lv, "_COMPILED_MIN", x.size + 1)
+        numpy_form = inverse_langevin(x)
+    # the same bits (NaN where both give NaN: outside the domain, and at the subnormal 5e-324)
+    assert np.array_equal(compiled.view(np.int64)[np.isfinite(numpy_form) | np.isinf(numpy_form)],
+                          numpy_form.view(np.int64)[np.isfinite(numpy_form) | np.isinf(numpy_form)])
+    assert np.array_equal(np.isnan(compiled), np.isnan(numpy_form))

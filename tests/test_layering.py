@@ -4,13 +4,14 @@ The library is two stacks on a common ground, with the stages that combine
 them, the batch runner and the command line on top::
 
     cli
-    batch
+    batch, api (the public Python API)
     prepare, retable (the stages), fidelity (the validation)
     discover            simulate        compensation
     calibrate           asset
     materials   <-      network
     tensile             mesh
-    ground: errors, progress, atomicio, blas, interrupts, cache, units, config, checks, linalg
+    ground: errors, progress, atomicio, blas, interrupts, cache, units, config, checks, linalg,
+            htmlreport
 
 Checked from the source text (no import is run):
 
@@ -39,7 +40,9 @@ GROUND = {"pipeline": set(), "errors": set(), "progress": set(), "atomicio": set
           "cache": set(),
           "units": {"errors"}, "config": {"errors"}, "checks": {"errors", "units"},
           # the sparse linear algebra: a ground package (supernodal LDLT, Newton helpers, solves, L-BFGS)
-          "linalg": {"errors", "blas"}}
+          "linalg": {"errors", "blas"},
+          # the self-contained HTML report writer every stage's report uses
+          "htmlreport": {"atomicio"}}
 
 #: package -> the packages (above the ground) it may import.
 ALLOWED: dict[str, set[str]] = {
@@ -57,6 +60,9 @@ ALLOWED: dict[str, set[str]] = {
     "fidelity": {"mesh", "network", "compensation", "asset", "simulate", "materials"},
     "batch": {"tensile", "materials", "calibrate", "discover", "mesh", "network", "compensation", "asset",
               "simulate", "prepare"},
+    # the public Python API (what `import esmm` gives): thin over the stages
+    "api": {"tensile", "materials", "calibrate", "mesh", "network", "compensation", "asset", "simulate",
+            "prepare"},
     "cli": None,  # on top: anything of the library
 }
 

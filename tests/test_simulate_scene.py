@@ -416,7 +416,7 @@ def test_simulate_network_outputs(tmp_path, slab):
     rep = ListReporter()
     res = simulate_network(slab, stiff_tables(), short_scene(), tmp_path, reporter=rep, asset_label="slab")
     names = sorted(x.name for x in tmp_path.iterdir())
-    assert names == ["grasper_force.png", "history.h5", "history.xdmf", "summary.json"]
+    assert names == ["grasper_force.png", "history.h5", "history.xdmf", "report.html", "summary.json"]
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["springs"] == slab.n_springs and s["threads"] == 1
     assert s["step_mode"] == "adaptive" and s["dt_min_s"] >= s["dt_table_bound_s"] * s["safety"] * (1 - 1e-12)
@@ -617,7 +617,8 @@ def test_cli_refuses_unusable_outputs_up_front_and_drops_a_stale_force_plot(run_
     assert (tmp_path / "run" / "grasper_force.png").is_file()
     code, out, err = run_cli("simulate", asset, "--scene", without, "--out", tmp_path / "run")
     assert code == 0, err
-    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["history.h5", "history.xdmf", "summary.json"]
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["history.h5", "history.xdmf", "report.html",
+                                                                       "summary.json"]
 
 
 def test_start_at_equilibrium_has_no_transient(tmp_path, slab):

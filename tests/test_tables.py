@@ -156,12 +156,50 @@ class _SofteningMaterial:
         return np.where(np.abs(lam - 1) < 1e-9, 3000.0, out)
 
 
-def test_softening_material_is_refused():
-    with pytest.raises(InputError, match="does not increase"):
-        build_tables(_SofteningMaterial(), n=200)
-    # but a grid where it still stiffens is fine
-    t = build_tables(_SofteningMaterial(), n=50, lam_min=0.8, lam_max=1.2)
+def test_softening_material_narrows_the_default_grid_and_refuses_a_given_one():
+    # P = W' of W = mu ln(lam^2 + 2/lam - 2) peaks where d/dlam[(2 lam - 2/lam^2)/(lam^2 + 2/lam - 2)] = 0
+    lam = np.linspace(1.0, 2.0, 200001)
+    p = (2 * lam - 2 / lam**2) / (lam**2 + 2 / lam - 2)
+    peak = lam[np.argmax(p)]
+    t = build_tables(_SofteningMaterial(), n=200)
     assert np.all(np.diff(t.stress[0]) > 0)
+    assert peak - 0.05 < t.lam_max < peak       # ends just inside the peak, not at the default 2
+    grid = t.metadata["grid"]
+    assert "stops increasing" in grid["why"]["lam_max"] and "stops increasing" in grid["warning"]
+    assert grid["why"]["lam_min"].startswith("the bound 0.5")
+    with pytest.raises(InputError, match="stops increasing"):     # a grid the user gave is not changed
+        build_tables(_SofteningMaterial(), n=200, lam_min=0.5, lam_max=2.0)
+    t = build_tables(_SofteningMaterial(), n=50, lam_min=0.8, lam_max=1.2)   # a given grid where it stiffens
+    assert np.all(np.diff(t.stress[0]) > 0) and t.metadata["grid"]["why"] == {"lam_min": "given",
+                                                                               "lam_max": "given"}
+
+
+#: The fit of the Budday et al. (2017) basal ganglia data that ``esmm calibrate --by specimen`` writes
+#: (params.toml, in MPa): the chain count N at 2e7 puts the locking stretch at about 7 900.
+BRAIN_FIT = {"mu": 1.6129306952624201e-15 * 1e6, "N": 20727568.702826597, "A1": 0.49506550023784673e6,
+             "A2": 15.834950390136049e6, "f": 0.0019}
+
+
+def test_a_lock_far_beyond_the_tissue_ends_the_grid_at_stretch_2():
+    """A fit whose locking stretch lies thousands away gets the grid [0.5, 2]: fine enough to calibrate
+    the compensation near 1 (the grid to its lock left no point between 1 and 1.3)."""
+    from esmm.pipeline.compensation.calibration import calibration_stretches
+
+    brain = Material(model="esedf", params=BRAIN_FIT, name="brain fit")
+    assert brain.stretch_range(None)[1] > 5000
+    t = build_tables(brain)
+    assert t.lam_min == 0.5 and 1.99 < t.lam_max <= 2.0 and t.dlam < 0.0015
+    assert "locks only at 7886" in t.metadata["grid"]["why"]["lam_max"]
+    assert "warning" not in t.metadata["grid"]
+    assert calibration_stretches(t) == (0.9, 1.3)
+    np.testing.assert_allclose(t.stress[0], nominal_stress(brain.model_obj, brain.params_for(None), "uniaxial",
+                                                           t.lam), rtol=1e-12)
+
+
+def test_a_lock_inside_the_bounds_still_ends_the_grid(liver, tables):
+    lo, hi = liver.stretch_range(None)
+    assert hi < 2.0 and tables.lam_max == pytest.approx(hi - 0.02 * (hi - 1), rel=1e-3)
+    assert tables.metadata["grid"]["why"]["lam_max"].startswith("2% inside the material's locking stretch")
 
 
 def test_compensation_rows_and_material_recovery(tables):

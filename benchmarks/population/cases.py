@@ -34,7 +34,7 @@ from .exports import allowed, measured_area, measured_length, write
 from .machine import draw_levels, draw_timing
 from .protocols import KINDS, Protocol, build, command, motion
 
-GENERATOR_VERSION = "1"
+GENERATOR_VERSION = "2"
 MAX_DURATION, MIN_DURATION = 6000.0, 15.0
 
 

@@ -102,12 +102,14 @@ def _isotropic(name: str, rng, mu: float, e1: float, family: str) -> Law:
 
 def _fibre(name: str, rng, family: str, x_max: float) -> Law:
     if name == "toe":
+        # s0 = 0: the lab zeroes the extension at a small preload, where the first fibres are just
+        # straight; a start free of force would be slack (of the fibres), not a clean record.
         if family == "tendon":
-            s0, eta = rng.uniform(0.0, 0.3) * (x_max - 1), rng.uniform(0.15, 0.45) * (x_max - 1)
-            return WeibullToe(mu=loguniform(rng, 1e4, 1e6), e_f=loguniform(rng, 2e8, 1.5e9), s0=s0, eta=eta,
+            eta = rng.uniform(0.15, 0.45) * (x_max - 1)
+            return WeibullToe(mu=loguniform(rng, 1e4, 1e6), e_f=loguniform(rng, 2e8, 1.5e9), s0=0.0, eta=eta,
                               k=rng.uniform(1.5, 4.0))
-        s0, eta = rng.uniform(0.0, 0.3) * (x_max - 1), rng.uniform(0.2, 0.6) * (x_max - 1)
-        return WeibullToe(mu=loguniform(rng, 2e3, 1e5), e_f=loguniform(rng, 2e6, 1e8), s0=s0, eta=eta,
+        eta = rng.uniform(0.2, 0.6) * (x_max - 1)
+        return WeibullToe(mu=loguniform(rng, 2e3, 1e5), e_f=loguniform(rng, 2e6, 1e8), s0=0.0, eta=eta,
                           k=rng.uniform(1.5, 4.0))
     theta = 0.0 if (family == "tendon" or rng.uniform() < 0.35) else float(np.radians(rng.uniform(5.0, 45.0)))
     kappa = 0.0 if rng.uniform() < 0.5 else float(rng.uniform(0.0, 0.25))

@@ -9,13 +9,18 @@ stiffness tables (and material) of an existing asset.
 Modules: :mod:`.schema` (types, versions, units), :mod:`.hdf5` (typed groups,
 text, content hashes, the sealed file header), :mod:`.material` (``/material``),
 :mod:`.tables` (``/tables``), :mod:`.provenance`, :mod:`.xdmf` (the ParaView
-sidecar), :mod:`.write`, :mod:`.read` and :mod:`.rewrite`.
+sidecars), :mod:`.accuracy` (``/accuracy``: the fit's and the validation's errors) and
+:mod:`.trust` (:class:`Accuracy`: how far to trust the asset, in words), :mod:`.write`,
+:mod:`.read` and :mod:`.rewrite` (``record_validation``: ``esmm validate``'s figures into
+the asset).
 """
 
+from .accuracy import fit_record
 from .provenance import Provenance, collect_provenance
 from .read import Asset, read_asset, validate_asset
-from .rewrite import update_asset_tables
+from .rewrite import record_validation, update_asset_tables
+from .trust import Accuracy
 from .write import write_asset
 
-__all__ = ["Asset", "Provenance", "collect_provenance", "read_asset", "update_asset_tables", "validate_asset",
-           "write_asset"]
+__all__ = ["Accuracy", "Asset", "Provenance", "collect_provenance", "fit_record", "read_asset",
+           "record_validation", "update_asset_tables", "validate_asset", "write_asset"]

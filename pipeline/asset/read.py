@@ -27,12 +27,14 @@ from ..materials.effects import MaterialEffects
 from ..network.springs import SpringNetwork
 from ..network.tables import StiffnessTables
 from . import hdf5
+from .accuracy import accuracy_problems, compensation_summary, read_records
 from .material import material_effects, material_from_toml, read_effects, storable_effects
 from .provenance import Provenance
 from .schema import ASSET_TYPE, ASSET_VERSION, CHECKSUM_ATTR, DATASETS, GROUPS, KNOWN_UNITS
 from .tables import read_tables
+from .trust import Accuracy
 from .volume import read_volume, volume_problems
-from .xdmf import check_sidecar, sidecar_path
+from .xdmf import check_sidecar, sidecar_paths
 
 ADVICE = "re-create it with 'esmm prepare'"
 
@@ -62,6 +64,9 @@ class Asset:
     schema_version : int
     attrs : dict
         The root attributes (sizes, volume, creation time).
+    accuracy : Accuracy
+        How far to trust the asset: the fit's, the compensation's and the validation's
+        errors, as far as the asset records them (:mod:`.trust`).
     """
 
     path: Path
@@ -77,6 +82,7 @@ class Asset:
     fixed_region: str = ""
     schema_version: int = ASSET_VERSION
     attrs: dict = field(default_factory=dict)
+    accuracy: Accuracy = field(default_factory=Accuracy)
 
     def summary(self) -> dict[str, Any]:
         """Figures for ``esmm info`` (JSON-serialisable)."""
@@ -99,6 +105,7 @@ class Asset:
                 "volume_factor": getattr(self.tables, "volume_factor", 1.0),
                 "default_law": getattr(self.tables, "default_law", "")},
             "quality_passes": self.quality_passes,
+            "accuracy": self.accuracy.summary(),
             "created_utc": hdf5.attr_str(self.attrs.get("created_utc", "")),
             "input": self.provenance.input_path, "input_sha256": self.provenance.input_sha256,
             "esmm_version": self.provenance.packages.get("esmm", ""),
@@ -432,6 +439,15 @@ def _provenance(f: h5py.File) -> Provenance:
     )
 
 
+def _accuracy(f: h5py.File, asset: Asset) -> Accuracy:
+    """The asset's :class:`Accuracy` (its records checked by :func:`accuracy_problems` before)."""
+    fit, validation = read_records(f)
+    tables = asset.tables
+    return Accuracy(fit=fit, compensation=compensation_summary(tables), validation=validation,
+                    material=_material_name(asset.material_toml), law=tables.default_law if tables else "",
+                    volume_term=asset.network.volume_term is not None)
+
+
 # -- public API -----------------------------------------------------------------------------
 
 def read_asset(path: str | os.PathLike, *, verify: bool = True) -> Asset:
@@ -465,7 +481,7 @@ def read_asset(path: str | os.PathLike, *, verify: bool = True) -> Asset:
             if not probs:
                 probs = _shape_problems(f)
             if not probs:
-                probs = volume_problems(f)
+                probs = volume_problems(f) + accuracy_problems(f)
             if probs:
                 more = f" (and {len(probs) - 1} more; run 'esmm info' to list them)" if len(probs) > 1 else ""
                 raise AssetError(f"{p}: {probs[0]}{more}; {ADVICE}")
@@ -484,6 +500,7 @@ def read_asset(path: str | os.PathLike, *, verify: bool = True) -> Asset:
                 schema_version=hdf5.attr_int(f.attrs.get("esmm_version")),
                 attrs={k: (v.item() if isinstance(v, np.generic) else v) for k, v in f.attrs.items()},
             )
+            asset.accuracy = _accuracy(f, asset)
     except _DAMAGE as exc:
         if not _is_damage(exc):
             raise
@@ -564,12 +581,13 @@ def validate_asset(path: str | os.PathLike) -> list[str]:
                     problems.append(str(exc))
             problems += _effects_problems(f)
             problems += volume_problems(f)
+            problems += accuracy_problems(f)
     except _DAMAGE as exc:
         if not _is_damage(exc):
             raise
         problems.append(" ".join(f"damaged asset ({type(exc).__name__}: {exc})".split())[:300])
         return problems
-    side = sidecar_path(p)
-    if side.exists():
-        problems += check_sidecar(side)
+    for side in sidecar_paths(p).values():
+        if side.exists():
+            problems += check_sidecar(side)
     return problems

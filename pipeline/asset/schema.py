@@ -30,6 +30,9 @@ GROUPS: dict[str, tuple[str, int, bool]] = {
     "/volume": ("volume_term", 1, False),        # asset/volume.py: the network's volume elements
     "/quality": ("quality", 1, False),
     "/cleaning": ("cleaning", 1, False),
+    "/accuracy": ("accuracy", 1, False),                 # asset/accuracy.py: how far to trust the asset
+    "/accuracy/fit": ("fit_accuracy", 1, False),         # the material fit's error (prepare)
+    "/accuracy/validation": ("validation_accuracy", 1, False),  # against a continuum (esmm validate)
     "/provenance": ("provenance", 1, True),
 }
 
@@ -64,6 +67,8 @@ DATASETS: dict[str, tuple[str, str, bool]] = {
     "/volume/shear_modulus": ("Pa", "f", False),
     "/quality/report": ("text", "OS", True),
     "/cleaning/report": ("text", "OS", True),
+    "/accuracy/fit/record": ("text", "OS", True),
+    "/accuracy/validation/record": ("text", "OS", True),
     "/provenance/config_toml": ("text", "OS", True),
     "/provenance/command_line": ("text", "OS", True),
     "/provenance/packages": ("text", "OS", True),

@@ -14,12 +14,13 @@ from ..errors import AssetError, InputError
 from ..network.springs import NODE_KIND_NAMES, SpringNetwork, affine_elasticity
 from ..network.tables import StiffnessTables
 from . import hdf5
+from .accuracy import write_fit
 from .material import write_material
 from .provenance import Provenance, collect_provenance, utc_now
 from .schema import ASSET_TYPE, ASSET_VERSION, GROUPS
 from .tables import write_tables
 from .volume import write_volume
-from .xdmf import dtype_for_indices, sidecar_path, xdmf_text
+from .xdmf import dtype_for_indices, sidecar_paths, xdmf_texts
 
 VOLUME_RULES = {
     "tetra": "V_ij = sum over the tets t containing edge ij of V_t / 6 (sum of V_ij = mesh volume)",
@@ -118,8 +119,9 @@ def _write_core(f: h5py.File, net: SpringNetwork, fixed_region: str) -> None:
 
 
 def _write_groups(f: h5py.File, network: SpringNetwork, *, material, tables: StiffnessTables | None, quality,
-                  cleaning, quality_floors: dict | None, fixed_region: str) -> None:
-    """The network and each optional group that is given (material, tables, volume, reports), in file order."""
+                  cleaning, quality_floors: dict | None, fixed_region: str, fit: dict | None) -> None:
+    """The network and each optional group that is given (material, tables, volume, reports, the fit's
+    error), in file order."""
     _write_core(f, network, fixed_region)
     if material is not None:
         write_material(f, material)
@@ -133,16 +135,31 @@ def _write_groups(f: h5py.File, network: SpringNetwork, *, material, tables: Sti
     if cleaning is not None:
         _report_group(f, "cleaning", cleaning, ("volume_before", "volume_after", "bodies_found",
                                                 "relative_volume_change"))
+    if fit is not None:
+        write_fit(f, fit)
+
+
+def _write_sidecars(path: Path, texts: dict[str, str]) -> None:
+    """Write the XDMF sidecars (each atomically) and remove any other sidecar of *path* an earlier
+    asset of that name left (it would describe arrays this asset does not have)."""
+    for key, side in sidecar_paths(path).items():
+        if key in texts:
+            with atomic_path(side) as tmp:
+                tmp.write_text(texts[key], encoding="utf-8")
+        elif texts and side.is_file():
+            side.unlink()
 
 
 def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=None,
                 tables: StiffnessTables | None = None,
                 quality=None, cleaning=None, provenance: Provenance | None = None,
-                quality_floors: dict | None = None, fixed_region: str = "", xdmf: bool = True) -> Path:
+                quality_floors: dict | None = None, fixed_region: str = "", xdmf: bool = True,
+                fit: dict | None = None) -> Path:
     """Write *network* and what goes with it to an HDF5 asset (docs/reference/asset-format.md).
 
     The file is written to a temporary name and renamed when complete; the
-    XDMF sidecar ``<name>.xdmf`` likewise. Every dataset gets a ``units`` and a
+    XDMF sidecars (``<name>.xdmf``, the mesh, and ``<name>.springs.xdmf``,
+    ``<name>.surface.xdmf``; :mod:`.xdmf`) likewise. Every dataset gets a ``units`` and a
     ``sha256`` attribute and the root a checksum over all attributes, and the
     file starts with a 512-byte user block holding the SHA-256 and length of
     every later byte, so that :func:`~esmm.pipeline.asset.read.read_asset`
@@ -168,7 +185,10 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
     fixed_region : str
         Description of how the fixed nodes were chosen.
     xdmf : bool
-        Also write the ParaView sidecar.
+        Also write the ParaView (and meshio) sidecars.
+    fit : dict, optional
+        The material fit's error (:func:`~esmm.pipeline.asset.accuracy.fit_record`) for
+        ``/accuracy/fit``; None to omit.
 
     Returns
     -------
@@ -195,13 +215,11 @@ def write_asset(path: str | os.PathLike, network: SpringNetwork, *, material=Non
             # seal() when the file is closed, before the rename (docs/reference/asset-format.md).
             with hdf5.create(tmp) as f:
                 _write_groups(f, network, material=material, tables=tables, quality=quality, cleaning=cleaning,
-                              quality_floors=quality_floors, fixed_region=fixed_region)
+                              quality_floors=quality_floors, fixed_region=fixed_region, fit=fit)
                 _write_provenance(f, prov)
                 hdf5.seal(f)
-                text = xdmf_text(f, path.name) if xdmf else None
-            if text is not None:
-                with atomic_path(sidecar_path(path)) as tmp_x:
-                    tmp_x.write_text(text, encoding="utf-8")
+                texts = xdmf_texts(f, path.name) if xdmf else {}
+            _write_sidecars(path, texts)
     except OSError as exc:
         raise AssetError(f"{path}: cannot write the asset ({exc.strerror or exc}); check the folder "
                          f"is writable and has space") from None

@@ -1,16 +1,19 @@
-"""The XDMF sidecar of an asset: lets ParaView (and VTK, meshio) open the HDF5 arrays.
+"""The XDMF sidecars of an asset: let ParaView (and VTK, meshio) open the HDF5 arrays.
 
-``asset.xdmf`` (XDMF 3 syntax, also read by the XDMF 2 reader of VTK/ParaView)
-holds up to three uniform grids that all point into ``asset.h5``:
+One grid per file, so that meshio (whose XDMF reader takes one grid per file) reads
+each, and ParaView opens each (File > Open, "Xdmf Reader"):
 
-* ``tetrahedra`` - the tet mesh (``structure="tetra"``) with the node fields
-  ``mass``, ``fixed``, ``node_kind``;
-* ``springs`` - one line cell per spring with the cell fields ``rest_length``,
-  ``volume``, ``volume_weight`` and the node fields;
-* ``surface`` - the boundary triangles with the node fields.
+* ``asset.xdmf`` - the mesh: the tetrahedra (``structure="tetra"``), or the springs
+  as line cells for the skeleton structure (which has no tetrahedra), with the node
+  fields ``mass``, ``fixed``, ``node_kind``; ``meshio.read("asset.xdmf")`` gives it;
+* ``asset.springs.xdmf`` - one line cell per spring with the cell fields
+  ``rest_length``, ``volume``, ``volume_weight`` and the node fields (tetra only: for
+  the skeleton this is ``asset.xdmf``);
+* ``asset.surface.xdmf`` - the boundary triangles with the node fields.
 
-Data are referenced, never copied, by the file name of the ``.h5`` relative
-to the sidecar, so the two files must stay together.
+XDMF 3 syntax, also read by the XDMF 2 reader of VTK/ParaView. Data are referenced,
+never copied, by the file name of the ``.h5`` relative to the sidecar, so the files
+must stay together.
 """
 
 from __future__ import annotations
@@ -71,25 +74,42 @@ def _grid(f, h5name, name, topo_type, topo_path, per, cell_fields) -> str:
     return "".join(out)
 
 
-def xdmf_text(f: h5py.File, h5name: str) -> str:
-    """The XDMF document describing the open asset *f*, whose file will be called *h5name*."""
-    grids = []
+def xdmf_texts(f: h5py.File, h5name: str) -> dict[str, str]:
+    """The XDMF documents of the open asset *f*, whose file will be called *h5name*: suffix -> text.
+
+    Suffixes as :func:`sidecar_paths` names the files: ``""`` (the mesh), ``"springs"``, ``"surface"``.
+    """
+    grids = {}
+    springs = _grid(f, h5name, "springs", "Polyline", "/springs/pairs", 2, SPRING_FIELDS)
     if "/mesh/tets" in f and f["/mesh/tets"].shape[0]:
-        grids.append(_grid(f, h5name, "tetrahedra", "Tetrahedron", "/mesh/tets", 4, ()))
-    grids.append(_grid(f, h5name, "springs", "Polyline", "/springs/pairs", 2, SPRING_FIELDS))
+        grids[""] = _grid(f, h5name, "tetrahedra", "Tetrahedron", "/mesh/tets", 4, ())
+        grids["springs"] = springs
+    else:
+        grids[""] = springs
     if "/mesh/surface_faces" in f and f["/mesh/surface_faces"].shape[0]:
-        grids.append(_grid(f, h5name, "surface", "Triangle", "/mesh/surface_faces", 3, ()))
+        grids["surface"] = _grid(f, h5name, "surface", "Triangle", "/mesh/surface_faces", 3, ())
+    return {k: _document(grid, h5name) for k, grid in grids.items()}
+
+
+def _document(grid: str, h5name: str) -> str:
     return ('<?xml version="1.0" encoding="utf-8"?>\n'
             '<!-- esmm asset sidecar: open this file in ParaView; the data stay in '
-            f'{escape(h5name)} (keep both files together). -->\n'
+            f'{escape(h5name)} (keep the files together). -->\n'
             '<Xdmf Version="3.0" xmlns:xi="http://www.w3.org/2001/XInclude">\n'
-            '  <Domain>\n' + "".join(grids) + '  </Domain>\n</Xdmf>\n')
+            '  <Domain>\n' + grid + '  </Domain>\n</Xdmf>\n')
 
 
 def sidecar_path(h5_path: str | os.PathLike) -> Path:
-    """``asset.h5`` -> ``asset.xdmf`` (same folder)."""
+    """``asset.h5`` -> ``asset.xdmf`` (same folder): the mesh's sidecar."""
     p = Path(h5_path)
     return p.with_suffix(".xdmf")
+
+
+def sidecar_paths(h5_path: str | os.PathLike) -> dict[str, Path]:
+    """Every sidecar an asset may have: suffix of :func:`xdmf_texts` -> ``asset.xdmf``,
+    ``asset.springs.xdmf``, ``asset.surface.xdmf``."""
+    main = sidecar_path(h5_path)
+    return {"": main, **{k: main.with_name(f"{main.stem}.{k}.xdmf") for k in ("springs", "surface")}}
 
 
 def referenced_datasets(xdmf: str | os.PathLike) -> list[tuple[str, str, tuple[int, ...], str, int]]:

@@ -3,9 +3,12 @@
 * :class:`Job`, :func:`cache_key`, :class:`BatchSummary` (:mod:`.jobs`);
 * :func:`run_jobs` (:mod:`.runner`): runs jobs, skips cached ones, survives
   failures, crashes of workers and Ctrl-C, writes a log and a summary table;
-* :func:`calibrate_batch` (:mod:`.calibrate`) and :func:`prepare_batch`
-  (:mod:`.prepare`): the ``esmm calibrate --by`` and multi-file ``esmm prepare``
-  batches built on it.
+* :func:`calibrate_batch` (:mod:`.calibrate`), :func:`discover_batch`
+  (:mod:`.discover`) and :func:`prepare_batch` (:mod:`.prepare`): the
+  ``esmm calibrate --by``, ``esmm calibrate --discover --by`` and multi-file
+  ``esmm prepare`` batches built on it (groups of files: :mod:`.groups`; the tables
+  across groups: :mod:`.tables`; what an output folder holds from an earlier run:
+  :mod:`.runfolder`).
 
 See docs/guide/batch.md.
 """

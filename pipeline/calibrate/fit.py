@@ -29,6 +29,7 @@ from scipy import optimize, stats
 
 from ..blas import single_threaded_blas
 from ..errors import FitError
+from ..htmlreport import DIMENSIONLESS, interval_text, quantity_text
 from ..materials import get_model
 from ..materials.loading import nominal_stress
 from ..materials.material import DIRECTIONS, Material
@@ -64,6 +65,14 @@ class ParameterEstimate:
     kind: str
     direction: str | None = None  # None = shared (isotropic or not directional)
     at_bound: bool = False
+    #: False: a wide or unbounded 95 % interval. A correlation beyond HIGH_CORRELATION is warned but does not
+    #: by itself make a parameter undetermined: its marginal interval already carries the correlation.
+    identifiable: bool = True
+
+    @property
+    def unit(self) -> str:
+        """The SI unit of the value: ``"Pa"`` for stress-like parameters, ``"1"`` (dimensionless) otherwise."""
+        return "Pa" if self.kind == "stress" else DIMENSIONLESS
 
     @property
     def key(self) -> str:
@@ -111,6 +120,11 @@ class FitResult:
         """The fitted material as a :class:`~esmm.pipeline.materials.material.Material`."""
         return Material(model=self.model, params=dict(self.params), directions=self.directions,
                         name=name, source=source)
+
+    def held(self) -> list[tuple[str, float, str]]:
+        """The parameters held at a value: (name, SI value, unit: ``"Pa"`` or ``"1"``)."""
+        kinds = {p.name: p.kind for p in get_model(self.model).parameters}
+        return [(k, float(v), "Pa" if kinds.get(k) == "stress" else DIMENSIONLESS) for k, v in self.fixed.items()]
 
     def params_for(self, direction: str | None) -> dict[str, float]:
         if direction is None or self.directions is None:
@@ -190,7 +204,7 @@ def _fit_material(tests, *, model, loss, f_scale, n_starts, weights, fixed, init
         rep.warn(msg)
     rep.step(
         f"fitted {m.name} to {len(tests)} file(s), {sum(t.n for t in tests)} samples: "
-        f"RMSE {result.rmse:.4g} Pa, NRMSE {result.nrmse:.3%}, R² {result.r2:.4f} "
+        f"RMSE {quantity_text(result.rmse, 'Pa')}, NRMSE {result.nrmse:.3%}, R² {result.r2:.4f} "
         f"({result.seconds:.2f} s)"
     )
     return result
@@ -367,13 +381,16 @@ def _estimate(s, zi: float, half: float, warnings: list[str]) -> ParameterEstima
         val = float(zi)
         lo_v, hi_v = val - half, val + half
         wide = (not math.isfinite(half)) or (2 * half > WIDE_REL_WIDTH * max(abs(val), 1e-12))
+    unit = "Pa" if s.kind == "stress" else DIMENSIONLESS
     if wide:
         bounded = math.isfinite(half) and (half < 46.0 or not s.log)  # 20 decades
-        span = f"[{lo_v:.4g}, {hi_v:.4g}]" if bounded else "unbounded"
-        warnings.append(f"{s.key} is not identifiable from these data: 95 % interval {span} around {val:.4g}")
+        span = interval_text(lo_v, hi_v, unit, like=val) if bounded else "unbounded"
+        warnings.append(f"{s.key} is not identifiable from these data: 95 % interval {span} around "
+                        f"{quantity_text(val, unit)}")
     if at_bound:
-        warnings.append(f"{s.key} = {val:.4g} sits at its bound; the optimum may lie outside the allowed range")
-    return ParameterEstimate(s.name, val, lo_v, hi_v, s.kind, s.direction, at_bound)
+        warnings.append(f"{s.key} = {quantity_text(val, unit)} sits at its bound; the optimum may lie outside "
+                        "the allowed range")
+    return ParameterEstimate(s.name, val, lo_v, hi_v, s.kind, s.direction, at_bound, identifiable=not wide)
 
 
 def _all_directions(prob: FitProblem, per_dir, warnings: list[str]) -> dict[str, dict[str, float]] | None:

@@ -225,7 +225,15 @@ class ParameterLayout:
         return hi * (1 + 1e-6)
 
     def to_params(self, z: np.ndarray) -> dict[str | None, dict[str, float]]:
-        """Parameter values (SI) per fibre direction from a vector; key None: the shared ones."""
+        """Parameter values (SI) per fibre direction from a vector.
+
+        Key None: a full parameter set for the material as a whole, the one a
+        material file's ``[material.parameters]`` holds. In an anisotropic fit
+        its directional parameters are the mean over the fitted directions
+        (the value an untested direction is given, see
+        :func:`esmm.pipeline.calibrate.fit.fit_material`), so that the set is
+        complete even when a single direction was tested.
+        """
         base = dict(self.fixed)
         shared: dict[str, float] = {}
         directional: dict[str, dict[str, float]] = {}
@@ -239,6 +247,9 @@ class ParameterLayout:
         per_dir: dict[str | None, dict[str, float]] = {}
         for d in self.directions or ():
             per_dir[d] = {**base, **directional.get(d, {})}
+        if directional:
+            names = {k for vals in directional.values() for k in vals}
+            base = {**base, **{k: float(np.mean([per_dir[d][k] for d in self.directions])) for k in sorted(names)}}
         per_dir[None] = base
         return per_dir
 

@@ -37,6 +37,7 @@ parameter reuses the cached elastic stresses.
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -62,11 +63,12 @@ from ..materials.effects import (
     damage_factor,
     equivalent_stretch,
     mullins_factor,
+    qlv_decay,
     qlv_stress,
     relaxation_strength,
     set_stretch,
 )
-from ..materials.loading import energy_density, invariants, nominal_stress
+from ..materials.loading import energy_density, invariants, nominal_stress, path_kinematics
 from ..materials.terms import TERM_NAMES, TERMS
 from .records import (
     Record,
@@ -97,6 +99,8 @@ VARIANTS = {
 EFFECTS: tuple[str, ...] = tuple(VARIANTS)
 #: every candidate: effects, artefacts and strain-energy terms
 CANDIDATES: tuple[str, ...] = EFFECTS + TERM_NAMES
+#: the material effects decoded from shared slots, in the order :meth:`ParameterLayout.values` decodes them
+_DECODED = ("viscoelastic", "nonlinear_viscoelastic", "mullins", "damage", "cyclic_softening", "permanent_set")
 #: Prony weights are stick-broken fractions u_i in [0, U_MAX]
 U_MAX = 0.995
 #: weight of the row that holds the specimen scales' geometric mean at 1
@@ -208,6 +212,8 @@ class Values:
     slack: np.ndarray | None = None  # (n_files,) relative slack delta = s / L0
     scale: np.ndarray | None = None  # (n_files,) specimen stress scale
     slips: list[np.ndarray] = field(default_factory=list)  # per file: extension losses (stretch units)
+    #: per record: the elastic cache key of :class:`ForwardModel` at these values (filled on first use)
+    memo: dict = field(default_factory=dict, repr=False, compare=False)
 
     def material_effects(self) -> MaterialEffects:
         v = m = d = c = p = None
@@ -414,30 +420,61 @@ class ParameterLayout:
     def values(self, z_full: np.ndarray) -> Values:
         """The parameter values *z_full* stands for (Prony weights from their stick-broken fractions)."""
         st = Values(base=self.layout.to_params(z_full[: self.n_base]))
-        sp = self.spec
-        if sp.viscoelastic:
-            v = self._shared(z_full, "viscoelastic")
+        for effect in _DECODED:
+            if getattr(self.spec, effect):
+                self._decode(st, z_full, effect)
+        self._file_state(st, z_full)
+        return st
+
+    def perturbed(self, st: Values, z_full: np.ndarray, i: int) -> Values:
+        """``values(z_full)`` where *z_full* differs from the vector of *st* in slot *i* only.
+
+        Only the part of *st* that slot stands for is decoded again (the same
+        operations as :meth:`values`, so the same numbers); the rest is shared.
+        """
+        new = object.__new__(Values)  # a shallow copy (dataclasses.replace is slow for this hot path)
+        new.__dict__.update(st.__dict__)
+        s = self.slots[i]
+        if i < self.n_base or s.effect in ("permanent_set", "slack", "grip_slip"):
+            new.memo = {}  # the elastic responses' keys change; the other slots keep them (memo shared)
+        if i < self.n_base:
+            new.base = self.layout.to_params(z_full[: self.n_base])
+        elif i < self.n_shared:
+            self._decode(new, z_full, self.slots[i].effect)
+        else:
+            if s.effect == "slack":
+                new.slack = st.slack.copy()
+                new.slack[s.file] = z_full[i]
+            elif s.effect == "grip_slip":
+                new.slips = list(st.slips)
+                new.slips[s.file] = st.slips[s.file].copy()
+                new.slips[s.file][int(s.name[5:-1])] = z_full[i]
+            elif s.effect == "specimen_scale":
+                new.scale = st.scale.copy()
+                new.scale[list(s.group)] = math.exp(z_full[i])
+        return new
+
+    def _decode(self, st: Values, z_full: np.ndarray, effect: str) -> None:
+        """Write material *effect*'s values from *z_full* into *st*."""
+        v = self._shared(z_full, effect)
+        if effect == "viscoelastic":
+            n = self.spec.viscoelastic
             g, rest = [], 1.0
-            for j in range(sp.viscoelastic):
+            for j in range(n):
                 g.append(rest * v[f"u[{j}]"])
                 rest *= 1.0 - v[f"u[{j}]"]
             st.g = np.array(g)
-            st.tau = np.exp(np.array([v[f"tau[{j}]"] for j in range(sp.viscoelastic)]))
-        if sp.nonlinear_viscoelastic:
-            st.kappa = self._shared(z_full, "nonlinear_viscoelastic")["kappa"]
-        if sp.mullins:
-            v = self._shared(z_full, "mullins")
+            st.tau = np.exp(np.array([v[f"tau[{j}]"] for j in range(n)]))
+        elif effect == "nonlinear_viscoelastic":
+            st.kappa = v["kappa"]
+        elif effect == "mullins":
             st.mullins = (1.0 / max(v["s"], 1e-12), math.exp(v["m"]), v.get("beta", 0.0))
-        if sp.damage:
-            v = self._shared(z_full, "damage")
+        elif effect == "damage":
             st.damage = (v["onset"], math.exp(v["scale"]), v["shape"])
-        if sp.cyclic_softening:
-            v = self._shared(z_full, "cyclic_softening")
+        elif effect == "cyclic_softening":
             st.cyclic = (v["d_inf"], math.exp(v["eta"]))
-        if sp.permanent_set:
-            st.set_fraction = self._shared(z_full, "permanent_set")["fraction"]
-        self._file_state(st, z_full)
-        return st
+        elif effect == "permanent_set":
+            st.set_fraction = v["fraction"]
 
     def _file_state(self, st: Values, z_full: np.ndarray) -> None:
         m = len(self.records)
@@ -454,6 +491,18 @@ class ParameterLayout:
 
 
 # --------------------------------------------------------------------------- forward model
+@dataclass(frozen=True)
+class _Path:
+    """A batch of true-stretch arrays of one mode, after the permanent set: what the elastic law is evaluated on."""
+
+    mode: str
+    x: np.ndarray  # (n,) the arrays' elastic stretches, concatenated
+    kin: tuple  # path_kinematics(mode, x)
+    lam_s: list  # per array: the set stretch (or None)
+    cuts: np.ndarray  # where to split x back into the arrays
+    xis: list  # per array: the uniaxial-equivalent stretch (or None where no effect needs it)
+
+
 class ForwardModel:
     """The model stress of each record at decoded :class:`Values` (steps 1-7 of the module docstring).
 
@@ -484,13 +533,23 @@ class ForwardModel:
                     self.n_offset[k] = 2 if (spec.sensor_offset == 2 and drift_applicable(r)) else 1
                     self.pinned[k] = rest_reading(r)
         self._cache: list[dict] = [dict() for _ in self.records]
+        self._paths: dict = {}
+        #: per record: the time of its fitting samples
+        self._t_fit = [None if r.t is None else np.ascontiguousarray(r.t[r.fit_idx]) for r in self.records]
+        self._decays: list[dict] = [dict() for _ in self.records]
+        self._soft: list[dict] = [dict() for _ in self.records]
+        self._strengths: list[dict] = [dict() for _ in self.records]
 
     def _key(self, k: int, st: Values):
-        r = self.records[k]
-        params = st.base[r.key if self.directions else None]
-        delta = float(st.slack[k]) if st.slack is not None else 0.0
-        slips = tuple(float(v) for v in st.slips[k]) if st.slips else ()
-        return (tuple(sorted(params.items())), delta, slips, st.set_fraction), params
+        """(cache key of record k's elastic response at *st*, its elastic-law parameters), memoised on *st*."""
+        hit = st.memo.get(k)
+        if hit is None:
+            r = self.records[k]
+            params = st.base[r.key if self.directions else None]
+            delta = float(st.slack[k]) if st.slack is not None else 0.0
+            slips = tuple(float(v) for v in st.slips[k]) if st.slips else ()
+            hit = st.memo[k] = (tuple(sorted(params.items())), delta, slips, st.set_fraction), params
+        return hit
 
     def _x_true(self, k: int, st: Values, idx: np.ndarray) -> np.ndarray:
         """The specimen's stretch at samples *idx* after the slips and the slack."""
@@ -502,47 +561,89 @@ class ForwardModel:
         delta = float(st.slack[k]) if st.slack is not None else 0.0
         return np.maximum(x / (1.0 + delta), 1.0) if delta > 0.0 else x
 
-    def _compute_elastic(self, mode: str, params, xs: list[np.ndarray], set_fraction: float):
-        """(P_e, W, ξ) for several true-stretch arrays of one mode and parameter set, in one call each."""
+    def _path(self, mode: str, xs: list[np.ndarray], set_fraction: float) -> _Path:
+        """The loading path of several true-stretch arrays of one mode (after the set), evaluated once."""
         lam_s = [set_stretch(np.maximum.accumulate(x), set_fraction) for x in xs] if set_fraction > 0 \
             and mode != "simple_shear" else [None] * len(xs)
         xe = [x if s is None else x / s for x, s in zip(xs, lam_s)]
         x = np.concatenate(xe) if len(xe) > 1 else xe[0]
-        need_w = self.spec.mullins or self.spec.cyclic_softening
         need_xi = self.spec.damage or self.spec.nonlinear_viscoelastic
+        xis = [_xi(mode, xx) for xx in xs] if need_xi else [None] * len(xs)
+        return _Path(mode, x, path_kinematics(mode, x), lam_s, np.cumsum([a.size for a in xs])[:-1], xis)
+
+    def _compute_elastic(self, path: _Path, params_list: list) -> list[list[tuple]]:
+        """Per parameter set of *params_list*: (P_e, W, ξ) of each array of *path*.
+
+        The stresses of several parameter sets are evaluated in one call where
+        the law takes parameter arrays (``array_parameters``: each row the
+        scalar result, bit for bit); the energies (Mullins, cyclic softening)
+        one set at a time.
+        """
+        need_w = self.spec.mullins or self.spec.cyclic_softening
+        mode, x, kin = path.mode, path.x, path.kin
         with np.errstate(all="ignore"):
-            pe = np.asarray(nominal_stress(self.model, params, mode, x), float)
-            w = np.asarray(energy_density(self.model, params, mode, x), float) if need_w else None
-        cuts = np.cumsum([a.size for a in xs])[:-1]
+            if len(params_list) > 1 and self.model.array_parameters:
+                stacked = {n: np.array([p[n] for p in params_list], dtype=float)[:, None] for n in params_list[0]}
+                pes = list(np.asarray(nominal_stress(self.model, stacked, mode, x, kinematics=kin), float))
+            else:
+                pes = [np.asarray(nominal_stress(self.model, p, mode, x, kinematics=kin), float) for p in params_list]
+            ws = [np.asarray(energy_density(self.model, p, mode, x, kinematics=kin), float) if need_w else None
+                  for p in params_list]
+        return [self._split(path, pe, w) for pe, w in zip(pes, ws)]
+
+    @staticmethod
+    def _split(path: _Path, pe: np.ndarray, w: np.ndarray | None) -> list[tuple]:
+        """(P_e, W, ξ) of each array of *path* from the stress and energy on the whole path."""
+        n = len(path.lam_s)
 
         def split(a):
-            return [None] * len(xs) if a is None else np.split(a, cuts)
+            return [None] * n if a is None else np.split(a, path.cuts) if n > 1 else [a]
 
-        pes = [p if s is None else p / s for p, s in zip(split(pe), lam_s)]
-        xis = [_xi(mode, xx) for xx in xs] if need_xi else [None] * len(xs)
-        return list(zip(pes, split(w), xis))
+        pes = [p if s is None else p / s for p, s in zip(split(pe), path.lam_s)]
+        return list(zip(pes, split(w), path.xis))
 
-    def _remember(self, k: int, key, value) -> None:
-        c = self._cache[k]
-        c[key] = value
-        while len(c) > 24:
-            c.pop(next(iter(c)))
+    def _remember(self, cache: dict, key, value, size: int) -> None:
+        cache[key] = value
+        while len(cache) > size:
+            cache.pop(next(iter(cache)))
 
     def prefetch(self, st: Values, ks) -> None:
-        """Compute the elastic responses of records *ks* missing from the cache, batched by mode."""
-        groups: dict = {}
-        for k in ks:
-            key, params = self._key(k, st)
-            c = self._cache[k]
-            if key in c:
-                c[key] = c.pop(key)  # most recently used
-                continue
-            gk = (self.records[k].test.mode, key[0])
-            groups.setdefault(gk, (params, []))[1].append((k, key))
-        for (mode, _), (params, items) in groups.items():
-            xs = [self._x_true(k, st, self.records[k].fit_idx) for k, _ in items]
-            for (k, key), val in zip(items, self._compute_elastic(mode, params, xs, st.set_fraction)):
-                self._remember(k, key, val)
+        """Compute the elastic responses of records *ks* missing from the cache, batched by mode.
+
+        The loading path of each batch (true stretches, set, kinematics) is
+        kept too: perturbing an elastic-law parameter evaluates the law on it.
+        """
+        self.prefetch_many([(st, ks)])
+
+    def prefetch_many(self, requests) -> None:
+        """:meth:`prefetch` for several ``(values, records)`` at once (a Jacobian's columns).
+
+        The parameter sets that meet on one loading path are evaluated in one
+        call (see :meth:`_compute_elastic`).
+        """
+        batches: dict = {}
+        for st, ks in requests:
+            groups: dict = {}
+            for k in ks:
+                key, params = self._key(k, st)
+                c = self._cache[k]
+                if key in c:
+                    c[key] = c.pop(key)  # most recently used
+                    continue
+                groups.setdefault((self.records[k].test.mode, key[0]), (params, []))[1].append((k, key))
+            for (mode, pk), (params, items) in groups.items():
+                pkey = (mode, tuple((k, key[1:]) for k, key in items))
+                batches.setdefault(pkey, (st, {}))[1].setdefault(pk, (params, items))
+        size = max([24] + [len(rows) + 1 for _, rows in batches.values()])
+        for pkey, (st, rows) in batches.items():
+            path = self._paths.get(pkey)
+            if path is None:
+                xs = [self._x_true(k, st, self.records[k].fit_idx) for k, _ in pkey[1]]
+                path = self._path(pkey[0], xs, st.set_fraction)
+                self._remember(self._paths, pkey, path, 16)
+            for (_, items), vals in zip(rows.values(), self._compute_elastic(path, [p for p, _ in rows.values()])):
+                for (k, key), val in zip(items, vals):
+                    self._remember(self._cache[k], key, val, size)
 
     def _elastic(self, k: int, st: Values, idx: np.ndarray, use_cache: bool):
         """(P_e, W, ξ) on samples *idx* of record k (after slips, slack and set)."""
@@ -554,20 +655,22 @@ class ForwardModel:
                 hit = self._cache[k][key]
             return hit
         _, params = self._key(k, st)
-        return self._compute_elastic(self.records[k].test.mode, params, [self._x_true(k, st, idx)],
-                                     st.set_fraction)[0]
+        mode = self.records[k].test.mode
+        return self._compute_elastic(self._path(mode, [self._x_true(k, st, idx)], st.set_fraction), [params])[0][0]
 
     def predict(self, k: int, st: Values, idx: np.ndarray | None = None, *, use_cache: bool = True) -> np.ndarray:
         """Model stress of record k on samples *idx* (default: its fitting samples), before offsets."""
         r = self.records[k]
-        if idx is None:
+        fit = idx is None
+        if fit:
             idx = r.fit_idx
         else:
             use_cache = False
         pe, w, xi = self._elastic(k, st, idx, use_cache)
-        p = self._softened(k, st, pe, w, xi)
+        p = self._softened_cached(k, st, pe, w, xi) if use_cache else self._softened(k, st, pe, w, xi)
         if st.g is not None and r.t is not None:
-            q = qlv_stress(r.t[idx], p, st.g, st.tau)
+            q = qlv_stress(self._t_fit[k], p, st.g, st.tau, decay=self._decay(k, st.tau)) if fit \
+                else qlv_stress(r.t[idx], p, st.g, st.tau)
             if st.kappa:
                 with np.errstate(invalid="ignore"):
                     q = p - relaxation_strength(xi, st.kappa, float(np.sum(st.g))) * (p - q)
@@ -575,6 +678,62 @@ class ForwardModel:
         if r.tension_only:
             p = np.maximum(p, 0.0)
         return p * st.scale[k] if st.scale is not None else p
+
+    def fitted_residual(self, k: int, st: Values, pos: np.ndarray, y: np.ndarray, pin: float | None,
+                        norm: tuple[float, float] | None) -> np.ndarray:
+        """``predict(k, st)[pos] - y`` (plus the held offset *pin*), normalised as ``factor * r / scale``
+        with non-finite values replaced by the penalty where *norm* = (factor, scale) is given.
+
+        What :meth:`predict` and :meth:`Problem.residual_block` compute, bit for bit, in one
+        compiled pass after the (cached) elastic response and softening.
+        """
+        r = self.records[k]
+        pe, w, xi = self._elastic(k, st, r.fit_idx, True)
+        p = np.ascontiguousarray(self._softened_cached(k, st, pe, w, xi), dtype=float)
+        g, (a, b), s = _NO_TERMS, (_NO_DECAY, _NO_DECAY), _NO_TERMS
+        if st.g is not None and r.t is not None:
+            g, (a, b) = np.ascontiguousarray(st.g, dtype=float), self._decay(k, st.tau)
+            if st.kappa:
+                s = self._strength(k, xi, st)
+        flags = np.array([r.tension_only, st.scale is not None, pin is not None, norm is not None])
+        consts = np.array([float(st.scale[k]) if st.scale is not None else 1.0, pin or 0.0,
+                           *(norm or (1.0, 1.0)), NAN_PENALTY])
+        out = np.empty(pos.size)
+        _residual_kernel()(p, g, a, b, s, pos, y, flags, consts, out)
+        return out
+
+    def _strength(self, k: int, xi: np.ndarray, st: Values) -> np.ndarray:
+        """The relaxed amount's scale s(ξ) of record k (:func:`relaxation_strength`), kept per (ξ, κ, g)."""
+        key = (id(xi), st.kappa, st.g.tobytes())
+        hit = self._strengths[k].get(key)
+        if hit is None or hit[0] is not xi:
+            with np.errstate(invalid="ignore"):
+                s = np.ascontiguousarray(relaxation_strength(xi, st.kappa, float(np.sum(st.g))), dtype=float)
+            hit = (xi, s)
+            self._remember(self._strengths[k], key, hit, 8)
+        return hit[1]
+
+    def _decay(self, k: int, tau: np.ndarray) -> tuple:
+        """The QLV factors of record k's fitting samples at relaxation times *tau* (kept: only the
+        relaxation times' own Jacobian columns change them)."""
+        key = tau.tobytes()
+        hit = self._decays[k].get(key)
+        if hit is None:
+            hit = qlv_decay(self._t_fit[k], tau)
+            self._remember(self._decays[k], key, hit, 8)
+        return hit
+
+    def _softened_cached(self, k: int, st: Values, pe, w, xi) -> np.ndarray:
+        """:meth:`_softened` of a cached elastic response, kept for the Jacobian's steps that leave
+        the elastic response and the softening as they are (relaxation, scales)."""
+        if st.damage is None and st.mullins is None and st.cyclic is None:
+            return pe
+        key = (id(pe), st.damage, st.mullins, st.cyclic)
+        hit = self._soft[k].get(key)
+        if hit is None or hit[0] is not pe:  # (the array itself kept: its id is not reused meanwhile)
+            hit = (pe, self._softened(k, st, pe, w, xi))
+            self._remember(self._soft[k], key, hit, 8)
+        return hit[1]
 
     def _softened(self, k: int, st: Values, pe, w, xi) -> np.ndarray:
         """Elastic stress after damage, Mullins and cyclic softening (before relaxation)."""
@@ -672,19 +831,32 @@ class Problem:
         self.params = ParameterLayout(self.model, self.records, spec, fixed=self.fixed, directions=directions,
                                       bounds=bounds, free_scales=free_scales)
         self.forward = ForwardModel(self.model, self.records, spec, directions=directions)
+        self._setup(train)
+
+    def _setup(self, train) -> None:
+        """Everything that depends on the training set (and the neutral starting point)."""
         slots = self.slots = self.params.slots
         self.lower, self.upper = self.params.lower, self.params.upper
         self.set_train(train)
         # the specimens whose scales the constraint holds: those with training samples now
-        self.scale_ref = [] if free_scales else [i for i, s in enumerate(slots) if s.effect == "specimen_scale"
-                                                 and any(self.n_train[k] for k in s.group)]
+        self.scale_ref = [] if self.free_scales else [i for i, s in enumerate(slots) if s.effect == "specimen_scale"
+                                                      and any(self.n_train[k] for k in s.group)]
         self.active = np.arange(len(slots))
         self.z_full = self.params.default_z()
 
     def derived(self, spec: Spec | None = None, *, train=None) -> Problem:
-        """The problem of the same records, base and bounds with another *spec* and/or training set."""
-        return Problem(self.base_model, self.records, self.spec if spec is None else spec, fixed=self.fixed,
-                       directions=self.directions, bounds=self.bounds, train=train, free_scales=self.free_scales)
+        """The problem of the same records, base and bounds with another *spec* and/or training set.
+
+        With the same spec (a held-out fold) the parameter layout and the forward model, with
+        its caches, are shared: they do not depend on the training set.
+        """
+        if spec is not None and spec != self.spec:
+            return Problem(self.base_model, self.records, spec, fixed=self.fixed, directions=self.directions,
+                           bounds=self.bounds, train=train, free_scales=self.free_scales)
+        new = object.__new__(Problem)
+        new.__dict__.update(self.__dict__)
+        new._setup(train)
+        return new
 
     def set_train(self, train) -> None:
         """Use the samples *train* (see the class docstring) in the objective."""
@@ -697,6 +869,13 @@ class Problem:
             self.n_train[k] = n
             self.factor[k] = math.sqrt(r.weight / n) if n else 0.0
         self._X = [self._design(k) for k in range(m)]
+        #: per record: the data on its training samples
+        self._y = [r.y[r.fit_idx] if pos is None else r.y[r.fit_idx][pos] for r, pos in zip(self.records, self.train)]
+        #: per record: the positions of its training samples within its fitting samples
+        self._pos = [np.arange(r.fit_idx.size) if pos is None else _positions(pos)
+                     for r, pos in zip(self.records, self.train)]
+        #: the most recent evaluation (see :meth:`_evaluated`)
+        self._last = None
 
     def _design(self, k: int):
         X = self.forward.free_offset_columns(k, self.records[k].fit_idx)
@@ -710,33 +889,32 @@ class Problem:
         """Within: the offsets are not eliminated in closed form (derivatives at fixed offsets)."""
         saved = self._X
         self._X = [None] * len(self.records)
+        self._last = None
         try:
             yield
         finally:
             self._X = saved
+            self._last = None
 
     def residual_block(self, k: int, st: Values) -> tuple[np.ndarray, np.ndarray | None]:
         """Normalised residual block of record k (training samples) and its offset coefficients."""
         r = self.records[k]
-        pred = self.forward.predict(k, st)
-        pos = self.train[k]
-        y = r.y[r.fit_idx]
-        if pos is not None:
-            pred, y = pred[pos], y[pos]
-        res = pred - y
         coef = None
         X = self._X[k]
         n_offset = self.forward.n_offset[k]
         pin = self.forward.pinned[k] if n_offset else None
         if pin is not None:
-            res = res + pin
             coef = np.array([pin] + [0.0] * (n_offset - 1))
-        if X is not None and res.size:
-            good = np.isfinite(res)
-            if good.sum() > X.shape[1]:
-                c, *_ = np.linalg.lstsq(X[good], -res[good], rcond=None)
-                res = res + X @ c
-                coef = c if pin is None else np.concatenate([[pin], c])
+        fused = X is None or not self._pos[k].size
+        res = self.forward.fitted_residual(k, st, self._pos[k], self._y[k], pin,
+                                           (self.factor[k], r.scale) if fused else None)
+        if fused:  # normalised in the pass
+            return res, coef
+        good = np.isfinite(res)
+        if good.sum() > X.shape[1]:
+            c, *_ = np.linalg.lstsq(X[good], -res[good], rcond=None)
+            res = res + X @ c
+            coef = c if pin is None else np.concatenate([[pin], c])
         out = self.factor[k] * res / r.scale
         bad = ~np.isfinite(out)
         if bad.any():
@@ -763,30 +941,48 @@ class Problem:
         self.forward.prefetch(st, self._trained())
         return [self.residual_block(k, st)[0] if self.n_train[k] else np.zeros(0) for k in range(len(self.records))]
 
+    def _evaluated(self, zf: np.ndarray) -> tuple[Values, list[np.ndarray]]:
+        """(values, residual blocks) at *zf*; the optimiser asks for the Jacobian where it has just
+        evaluated the residuals, so the most recent evaluation is kept and reused."""
+        key = zf.tobytes()
+        if self._last is not None and self._last[0] == key:
+            return self._last[1], self._last[2]
+        st = self.params.values(zf)
+        blocks = self._blocks(st)
+        self._last = (key, st, blocks)
+        return st, blocks
+
     def residuals(self, z: np.ndarray) -> np.ndarray:
         zf = self._full(z)
-        blocks = self._blocks(self.params.values(zf))
+        _, blocks = self._evaluated(zf)
         return np.concatenate(blocks + [self.constraint_residual(zf)])
 
     def jac(self, z: np.ndarray) -> np.ndarray:
         """Forward differences, per block: a slot perturbs only the residuals of the records it acts on."""
         zf = self._full(z)
-        base_blocks = self._blocks(self.params.values(zf))
+        st0, base_blocks = self._evaluated(zf)
         offs = np.concatenate([[0], np.cumsum([b.size for b in base_blocks])])
         n_c = self.constraint_residual(zf).size
         J = np.zeros((int(offs[-1]) + n_c, len(self.active)))
-        for c, i in enumerate(self.active):
-            s = self.slots[i]
+        steps = []
+        for i in self.active:
             h = 1e-6 * max(1.0, abs(zf[i]))
             if zf[i] + h > self.upper[i]:
                 h = -h
             zp = zf.copy()
             zp[i] += h
-            stp = self.params.values(zp)
-            files = [k for k in (s.records or self._trained()) if self.n_train[k]]
-            self.forward.prefetch(stp, files)
-            for k in files:
-                J[offs[k]:offs[k + 1], c] = (self.residual_block(k, stp)[0] - base_blocks[k]) / h
+            files = [k for k in (self.slots[i].records or self._trained()) if self.n_train[k]]
+            steps.append((i, h, self.params.perturbed(st0, zp, i), files))
+        # the elastic responses of every step first: the elastic-law steps in one call per loading path
+        self.forward.prefetch_many([(stp, files) for _, _, stp, files in steps])
+        trained = self._trained()
+        base_all = np.concatenate(base_blocks)
+        for c, (i, h, stp, files) in enumerate(steps):
+            if len(files) > 1 and files == trained:  # every training row at once (the same numbers)
+                J[:base_all.size, c] = (np.concatenate([self.residual_block(k, stp)[0] for k in files]) - base_all) / h
+            else:
+                for k in files:
+                    J[offs[k]:offs[k + 1], c] = (self.residual_block(k, stp)[0] - base_blocks[k]) / h
             if n_c and i in self.scale_ref:
                 J[-1, c] = SCALE_CONSTRAINT / len(self.scale_ref)
         return J
@@ -849,6 +1045,64 @@ class Problem:
                                        if self.n_train[j]))
         return k - (1 if len(self.scale_ref) >= 2 else 0)
 
+
+def _residual_loop(soft, g, a, b, s, pos, y, flags, consts, out):  # pragma: no cover - compiled by numba
+    """:meth:`ForwardModel.predict` after the softening and :meth:`Problem.residual_block` before the
+    offsets' elimination, as one loop (the same operations in the same order: the same bits).
+
+    *flags*: (tension only, has a scale, has a held offset, normalise); *consts*: (scale, held
+    offset, factor, stress scale of the record, NaN penalty). ``g`` empty: no relaxation; ``s``
+    empty: no stretch-dependent strength. Writes ``out[j]`` for the samples ``pos[j]``.
+    """
+    n, m = soft.shape[0], g.shape[0]
+    pred = soft.copy()
+    if m and n:
+        ginf = 1.0 - g.sum()
+        h = np.full(m, soft[0])
+        for k in range(1, n):
+            dp = soft[k] - soft[k - 1]
+            acc = ginf * soft[k]
+            for i in range(m):
+                h[i] = a[k, i] * h[i] + b[k, i] * dp
+                acc += g[i] * h[i]
+            pred[k] = acc
+        if s.shape[0]:
+            for k in range(n):
+                pred[k] = soft[k] - s[k] * (soft[k] - pred[k])
+    for j in range(pos.shape[0]):
+        v = pred[pos[j]]
+        if flags[0] and not (v >= 0.0 or v != v):  # np.maximum(v, 0): NaN stays NaN
+            v = 0.0
+        if flags[1]:
+            v = v * consts[0]
+        r = v - y[j]
+        if flags[2]:
+            r = r + consts[1]
+        if flags[3]:
+            r = consts[2] * r / consts[3]
+            if not math.isfinite(r):
+                r = consts[4]
+        out[j] = r
+
+
+@functools.cache
+def _residual_kernel():
+    """:func:`_residual_loop` compiled (numba, on first use, cached on disk); the plain loop without numba."""
+    try:
+        from numba import njit
+    except ImportError:  # pragma: no cover
+        return _residual_loop
+    return njit(cache=True, nogil=True, error_model="numpy")(_residual_loop)
+
+
+def _positions(pos) -> np.ndarray:
+    """Training positions as int64 (a boolean mask as the positions it selects)."""
+    a = np.asarray(pos)
+    return np.flatnonzero(a) if a.dtype == bool else a.astype(np.int64).reshape(-1)
+
+
+_NO_TERMS = np.zeros(0)
+_NO_DECAY = np.zeros((0, 0))
 
 _XI_CACHE: dict = {}
 

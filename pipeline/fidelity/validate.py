@@ -21,10 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..asset import read_asset
+from ..asset import read_asset, record_validation
 from ..atomicio import write_json, write_text
 from ..checks import choice
-from ..errors import ConfigError, SimulationError
+from ..errors import AssetError, ConfigError, SimulationError
 from ..materials.material import DEFAULT_MATERIAL, load_material
 from ..network.volume import volume_elements
 from ..progress import ensure
@@ -44,6 +44,7 @@ from .cases import (
 )
 from .compare import CaseResult, compare
 from .continuum import NEAR_LOCKING, solve_continuum
+from .html import write_validation_html
 from .material import DEFAULT_BULK_RATIO, bulk_modulus, check_continuum
 from .network_solve import solve_network
 from .report import plot_case, table_markdown, write_fields
@@ -376,15 +377,23 @@ def _write(report: ValidationReport, out: Path) -> None:
             + "\n")
     report.files["table"] = str(write_text(out / "validation.md", text))
     report.files["json"] = str(write_json(out / "validation.json", report.figures()))
+    report.files["html"] = str(write_validation_html(report, out))
 
 
 def validate_asset(path, *, cases=None, **options) -> ValidationReport:
-    """:func:`validate_network` on an asset's network, tables and material (default cases: the organ's)."""
+    """:func:`validate_network` on an asset's network, tables and material (default cases: the organ's);
+    the figures are recorded in the asset (``/accuracy/validation``, :func:`~esmm.pipeline.asset.record_validation`)."""
     asset = read_asset(path)
     if asset.tables is None or asset.material is None:
         raise ConfigError(f"{path}: the asset has no stiffness tables or material; rebuild it with 'esmm tables'")
-    return validate_network(asset.network, asset.tables, asset.material, label=str(path),
-                            cases=list(ORGAN_CASES) if cases is None else cases, **options)
+    report = validate_network(asset.network, asset.tables, asset.material, label=str(path),
+                              cases=list(ORGAN_CASES) if cases is None else cases, **options)
+    scene = getattr(options.get("loads"), "scene", None)
+    try:
+        record_validation(path, report.figures(), scene=str(getattr(scene, "source", scene) or "default"))
+    except AssetError as exc:   # a read-only asset: the figures stay in the validation's own outputs
+        ensure(options.get("reporter")).warn(f"the figures are not recorded in the asset: {exc}")
+    return report
 
 
 def validate_specimen(material=None, *, side: float = 20e-3, size: float = 2.5e-3, split: bool = False, cases=None,

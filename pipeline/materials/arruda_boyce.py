@@ -40,9 +40,11 @@ stretch behavior of rubber elastic materials", J. Mech. Phys. Solids 41 (1993)
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
-from .base import MaterialModel, Parameter
+from .base import MaterialModel, Parameter, broadcast_zeros
 from .langevin import chain_energy, inverse_langevin, langevin_derivative
 
 __all__ = ["ArrudaBoyce", "energy", "dW", "d2W", "max_I1", "chain_energy_difference"]
@@ -97,7 +99,28 @@ def energy(I1, I2, mu, N):
     """W [Pa] of the classic Arruda-Boyce model (see the module docstring)."""
     r = np.sqrt(np.asarray(I1, float) / (3.0 * N))
     r0 = np.sqrt(3.0 / (3.0 * N))  # same rounding as r, so W(3) == 0 exactly
-    return mu * N * chain_energy_difference(r, r0) + 0.0 * np.asarray(I2, float)
+    if np.ndim(r0) == 0 and _MEMO_SIZES[0] <= r.size <= _MEMO_SIZES[1]:
+        diff = _chain_difference_memo(float(r0), r.shape, r.tobytes())
+    else:
+        diff = chain_energy_difference(r, r0)
+    return mu * N * diff + 0.0 * np.asarray(I2, float)
+
+
+#: array sizes whose chain-energy differences are remembered (a fitter's samples; not tables or scalars)
+_MEMO_SIZES = (32, 65536)
+
+
+@functools.lru_cache(maxsize=16)
+def _chain_difference_memo(r0: float, shape: tuple, data: bytes) -> np.ndarray:
+    """:func:`chain_energy_difference` of the stretches *data* (read-only; the most recent 16 kept).
+
+    A fitter's finite-difference steps in μ (and in other models' or terms'
+    parameters) meet the same relative chain stretches again; only a step in
+    N changes them.
+    """
+    out = chain_energy_difference(np.frombuffer(data, dtype=float).reshape(shape), r0)
+    out.flags.writeable = False
+    return out
 
 
 def dW(I1, I2, mu, N):
@@ -108,7 +131,7 @@ def dW(I1, I2, mu, N):
     # beta / r -> 3 as r -> 0 (series branch of L^-1 keeps the ratio exact)
     ratio = np.where(r > 0.0, beta / np.where(r > 0.0, r, 1.0), 3.0)
     w1 = mu * ratio / 6.0
-    return w1, np.zeros(np.broadcast_shapes(I1.shape, np.shape(I2)))
+    return w1, broadcast_zeros(I1, I2)
 
 
 def d2W(I1, I2, mu, N):
@@ -119,7 +142,7 @@ def d2W(I1, I2, mu, N):
     dbeta = 1.0 / langevin_derivative(beta)
     rs = np.where(r > 0.0, r, 1.0)
     w11 = np.where(r > 0.0, mu * (rs * dbeta - beta) / (36.0 * N * rs**3), mu / (10.0 * N))
-    z = np.zeros(np.broadcast_shapes(I1.shape, np.shape(I2)))
+    z = broadcast_zeros(I1, I2)
     return w11 + z, z, z
 
 
@@ -136,6 +159,7 @@ class ArrudaBoyce(MaterialModel):
     """
 
     name = "arruda-boyce"
+    array_parameters = True
     equation = "W = mu*N*[lr*beta + ln(beta/sinh(beta))] - c,  lr = sqrt(I1/(3N)),  beta = Linv(lr)"
     parameters = (
         Parameter("mu", "stress", 1.0e5, 0.0, 1.0e10,

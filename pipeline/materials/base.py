@@ -19,6 +19,7 @@ Conventions
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -28,10 +29,16 @@ import numpy as np
 
 from ..errors import ConfigError
 
-__all__ = ["Parameter", "MaterialModel", "PARAMETER_KINDS"]
+__all__ = ["Parameter", "MaterialModel", "PARAMETER_KINDS", "broadcast_zeros"]
 
 #: The kinds of parameter a model may declare.
 PARAMETER_KINDS = ("stress", "dimensionless")
+
+
+def broadcast_zeros(I1, I2) -> np.ndarray:
+    """Zeros of the broadcast shape of *I1* and *I2* (equal shapes, the usual case, without broadcasting)."""
+    s1, s2 = np.shape(I1), np.shape(I2)
+    return np.zeros(s1 if s1 == s2 else np.broadcast_shapes(s1, s2))
 
 
 @dataclass(frozen=True)
@@ -79,6 +86,11 @@ class Parameter:
             raise ValueError(f"Parameter {self.name!r}: default outside [lower, upper]")
 
 
+def _parameter_value(v):
+    """A parameter as the model functions take it: a float, or a float array (see ``array_parameters``)."""
+    return np.asarray(v, dtype=float) if isinstance(v, np.ndarray) else float(v)
+
+
 class MaterialModel:
     """Base class of the incompressible isotropic strain-energy models.
 
@@ -103,6 +115,11 @@ class MaterialModel:
     #: Names that users may carry over from a source paper but that are not
     #: parameters of this model -> why (used in the "unknown parameter" error).
     not_parameters: ClassVar[dict[str, str]] = {}
+    #: True when :meth:`energy`, :meth:`dW` and :meth:`d2W` take parameter arrays
+    #: of shape (m, 1) (m parameter sets, one per row of the result, each row
+    #: what the scalar parameters give, bit for bit): a fitter evaluates its
+    #: finite-difference steps in one call.
+    array_parameters: ClassVar[bool] = False
 
     # ------------------------------------------------------------------ API
     def energy(self, I1, I2, params: Mapping[str, float]):
@@ -135,7 +152,7 @@ class MaterialModel:
         return float(self._max_I1(**self._args(params)))
 
     # -------------------------------------------------------------- helpers
-    @property
+    @functools.cached_property
     def parameter_names(self) -> tuple[str, ...]:
         """Names of the parameters, in declaration order."""
         return tuple(p.name for p in self.parameters)
@@ -228,7 +245,7 @@ class MaterialModel:
     # --------------------------------------------------------- for subclasses
     def _args(self, params: Mapping[str, float]) -> dict[str, float]:
         try:
-            return {n: float(params[n]) for n in self.parameter_names}
+            return {n: _parameter_value(params[n]) for n in self.parameter_names}
         except KeyError as exc:
             raise ConfigError(
                 f"parameter {exc.args[0]!r} of model {self.name!r} is missing; "

@@ -71,6 +71,8 @@ class CompositeModel(MaterialModel):
         self.parameters = tuple(params)
         self.equation = " + ".join([base.equation] + [t.equation for t in self.terms])
         self.not_parameters = dict(base.not_parameters)
+        # every term is written with numpy operations that broadcast over its parameters
+        self.array_parameters = base.array_parameters
 
     # the sum of the parts ------------------------------------------------------
     def _split(self, p: dict[str, float]):

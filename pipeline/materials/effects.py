@@ -115,6 +115,7 @@ __all__ = [
     "DamageEffect",
     "MaterialEffects",
     "qlv_stress",
+    "qlv_decay",
     "qlv_step",
     "mullins_factor",
     "damage_factor",
@@ -139,40 +140,83 @@ COMPOSITION = "P = VE[(1 - D) * eta * c * P_e(lam/lam_s)/lam_s]"
 
 
 # --------------------------------------------------------------------------- kernels
-def _qlv_py(t, pe, g, tau, out, state):  # pragma: no cover - used only without numba
-    n, m = t.shape[0], g.shape[0]
+def _qlv_decay_py(t, tau, a, b):  # pragma: no cover - compiled by numba (checked in tests/test_discover.py)
+    """Per step k and term i: the decay ``a = exp(-Δ/τ)`` and the ramp factor ``b = τ/Δ (1 - a)``.
+
+    Row 0 and steps without advance (Δ ≤ 0) get ``a = b = 1``: the recursion
+    then adds the stress step to ``h`` unchanged (``1·h + 1·Δp = h + Δp`` exactly).
+    """
+    n, m = t.shape[0], tau.shape[0]
+    for i in range(m):
+        a[0, i] = 1.0
+        b[0, i] = 1.0
+    for k in range(1, n):
+        dt = t[k] - t[k - 1]
+        for i in range(m):
+            if dt > 0.0:
+                x = dt / tau[i]
+                a[k, i] = math.exp(-x)
+                b[k, i] = -math.expm1(-x) / x if x > 1e-12 else 1.0 - 0.5 * x
+            else:
+                a[k, i] = 1.0
+                b[k, i] = 1.0
+
+
+def _qlv_recursion_py(pe, g, a, b, out, state):  # pragma: no cover - compiled by numba
+    """The QLV recursion on the factors of :func:`_qlv_decay_py` (module docstring)."""
+    n, m = pe.shape[0], g.shape[0]
     ginf = 1.0 - g.sum()
     h = np.full(m, pe[0])
     out[0] = pe[0]
     for k in range(1, n):
-        dt = t[k] - t[k - 1]
         dp = pe[k] - pe[k - 1]
         acc = ginf * pe[k]
         for i in range(m):
-            if dt > 0.0:
-                x = dt / tau[i]
-                a = math.exp(-x)
-                b = -math.expm1(-x) / x if x > 1e-12 else 1.0 - 0.5 * x
-                h[i] = a * h[i] + b * dp
-            else:
-                h[i] = h[i] + dp
+            h[i] = a[k, i] * h[i] + b[k, i] * dp
             acc += g[i] * h[i]
         out[k] = acc
     state[:] = h
 
 
 @functools.cache
-def _qlv_kernel():
-    """The compiled recursion (numba, imported on first use: reading an asset or a material must
-    not pay numba's start-up); the plain-Python one without numba."""
+def _qlv_kernels():
+    """(decay, recursion) compiled (numba, imported on first use: reading an asset or a material must
+    not pay numba's start-up); the plain-Python ones without numba."""
     try:
         from numba import njit
     except ImportError:  # pragma: no cover
-        return _qlv_py
-    return njit(cache=True, nogil=True)(_qlv_py)
+        return _qlv_decay_py, _qlv_recursion_py
+    jit = njit(cache=True, nogil=True)
+    return jit(_qlv_decay_py), jit(_qlv_recursion_py)
 
 
-def qlv_stress(t, pe, g, tau, *, return_state: bool = False):
+def qlv_decay(t, tau) -> tuple[np.ndarray, np.ndarray]:
+    """The factors of the QLV recursion for sample times *t* and relaxation times *tau*.
+
+    What :func:`qlv_stress` computes first: give it back as its ``decay`` to
+    evaluate many elastic histories on the same times and relaxation times.
+
+    Parameters
+    ----------
+    t : array_like, shape (n,)
+        Time [s], non-decreasing.
+    tau : array_like, shape (m,)
+        Relaxation times [s], positive.
+
+    Returns
+    -------
+    (a, b) : tuple of ndarray, each shape (n, m)
+    """
+    t = np.ascontiguousarray(t, dtype=float)
+    tau = np.ascontiguousarray(np.atleast_1d(tau), dtype=float)
+    a = np.empty((t.size, tau.size))
+    b = np.empty((t.size, tau.size))
+    if t.size:
+        _qlv_kernels()[0](t, tau, a, b)
+    return a, b
+
+
+def qlv_stress(t, pe, g, tau, *, return_state: bool = False, decay: tuple | None = None):
     """Quasi-linear viscoelastic stress history (exact for piecewise-linear ``pe``).
 
     Parameters
@@ -187,6 +231,9 @@ def qlv_stress(t, pe, g, tau, *, return_state: bool = False):
         Relaxation times [s], positive.
     return_state : bool
         Also return the internal variables ``h_i`` at the last sample.
+    decay : tuple, optional
+        ``qlv_decay(t, tau)``, computed once for many histories (then *t* and
+        *tau* are not read again).
 
     Returns
     -------
@@ -195,15 +242,14 @@ def qlv_stress(t, pe, g, tau, *, return_state: bool = False):
     h : ndarray, shape (m,)
         Only if *return_state*.
     """
-    t = np.ascontiguousarray(t, dtype=float)
     pe = np.ascontiguousarray(pe, dtype=float)
     g = np.ascontiguousarray(np.atleast_1d(g), dtype=float)
-    tau = np.ascontiguousarray(np.atleast_1d(tau), dtype=float)
     out = np.empty_like(pe)
     state = np.empty_like(g)
     if pe.size == 0:
         return (out, state) if return_state else out
-    _qlv_kernel()(t, pe, g, tau, out, state)
+    a, b = qlv_decay(t, tau) if decay is None else decay
+    _qlv_kernels()[1](pe, g, a, b, out, state)
     return (out, state) if return_state else out
 
 

@@ -45,7 +45,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import arruda_boyce as ab
-from .base import MaterialModel, Parameter
+from .base import MaterialModel, Parameter, broadcast_zeros
 
 __all__ = ["ESEDF", "energy", "dW", "d2W", "max_I1"]
 
@@ -55,8 +55,7 @@ def energy(I1, I2, mu, N, A1, A2, f):
     I1 = np.asarray(I1, float)
     q = (I1 - 3.0) / 3.0  # isotropized fibre invariant minus one
     w = f * (A1 * q + A2 * q * q)
-    if _matrix_active(mu, f):
-        w = w + (1.0 - f) * ab.energy(I1, I2, mu, N)
+    w = _with_matrix(w, mu, f, lambda: (1.0 - f) * ab.energy(I1, I2, mu, N))
     return w + 0.0 * np.asarray(I2, float)
 
 
@@ -65,30 +64,45 @@ def dW(I1, I2, mu, N, A1, A2, f):
     I1 = np.asarray(I1, float)
     q = (I1 - 3.0) / 3.0
     w1 = f * (A1 + 2.0 * A2 * q) / 3.0
-    if _matrix_active(mu, f):
-        w1 = w1 + (1.0 - f) * ab.dW(I1, I2, mu, N)[0]
-    z = np.zeros(np.broadcast_shapes(I1.shape, np.shape(I2)))
+    w1 = _with_matrix(w1, mu, f, lambda: (1.0 - f) * ab.dW(I1, I2, mu, N)[0])
+    z = broadcast_zeros(I1, I2)
     return w1 + z, z
 
 
 def d2W(I1, I2, mu, N, A1, A2, f):
     """(W11, W12, W22) [Pa]."""
     I1 = np.asarray(I1, float)
-    z = np.zeros(np.broadcast_shapes(I1.shape, np.shape(I2)))
+    z = broadcast_zeros(I1, I2)
     w11 = 2.0 * f * A2 / 9.0 + z
-    if _matrix_active(mu, f):
-        w11 = w11 + (1.0 - f) * ab.d2W(I1, I2, mu, N)[0]
+    w11 = _with_matrix(w11, mu, f, lambda: (1.0 - f) * ab.d2W(I1, I2, mu, N)[0])
     return w11, z, z
 
 
 def max_I1(mu, N, A1, A2, f):
     """Locking of the eight-chain matrix at I1 = 3N (the fibre term is finite)."""
-    return 3.0 * N if _matrix_active(mu, f) else np.inf
+    return np.where(_matrix_active(mu, f), 3.0 * N, np.inf) if np.ndim(mu) or np.ndim(f) else \
+        (3.0 * N if _matrix_active(mu, f) else np.inf)
 
 
-def _matrix_active(mu, f) -> bool:
-    """The matrix term exists (and locks) only when (1 - f) * mu > 0."""
+def _matrix_active(mu, f):
+    """The matrix term exists (and locks) only when (1 - f) * mu > 0 (per row for parameter arrays)."""
     return (1.0 - f) * mu > 0.0
+
+
+def _with_matrix(w, mu, f, matrix):
+    """*w* plus the matrix term ``matrix()`` where the matrix is active.
+
+    With parameter arrays (one parameter set per row, see
+    :attr:`~esmm.pipeline.materials.base.MaterialModel.array_parameters`) each
+    row gets what the scalar form gives it: the sum where active, *w* alone
+    where not.
+    """
+    active = _matrix_active(mu, f)
+    if np.all(active):
+        return w + matrix()
+    if not np.any(active):
+        return w
+    return np.where(active, w + matrix(), w)
 
 
 class ESEDF(MaterialModel):
@@ -101,6 +115,7 @@ class ESEDF(MaterialModel):
     """
 
     name = "esedf"
+    array_parameters = True
     equation = (
         "W = (1-f)*{mu*N*[lr*beta + ln(beta/sinh(beta))] - c} + f*[A1*(I4-1) + A2*(I4-1)^2],"
         "  I4 = I1/3,  lr = sqrt(I1/(3N)),  beta = Linv(lr)"

@@ -54,6 +54,7 @@ __all__ = [
     "MODES",
     "STRETCH_MODES",
     "invariants",
+    "path_kinematics",
     "energy_density",
     "nominal_stress",
     "stress_tangent",
@@ -132,6 +133,27 @@ def _kinematics(mode: str, x):
     return u, v, du, dv, d2u, d2v
 
 
+def path_kinematics(mode: str, x) -> tuple:
+    """The kinematics of a loading path, for evaluating many parameter sets on it.
+
+    Parameters
+    ----------
+    mode : str
+        One of :data:`MODES`.
+    x : array_like, shape (n,)
+        Stretch λ, or γ for ``simple_shear``.
+
+    Returns
+    -------
+    tuple of ndarray, each shape (n,)
+        ``(u, v, du, dv, d2u, d2v)``: the invariant increments ``I1 - 3``,
+        ``I2 - 3`` and their first and second derivatives along the path; pass
+        it as ``kinematics`` to :func:`nominal_stress` and :func:`energy_density`
+        (what they compute from ``x`` otherwise, the same numbers).
+    """
+    return _kinematics(_check_mode(mode), x)
+
+
 def invariants(mode: str, x):
     """First and second invariants of C for a homogeneous deformation.
 
@@ -167,7 +189,7 @@ def _near_mask(model: MaterialModel, params, u, v) -> np.ndarray:
         )
 
 
-def energy_density(model: MaterialModel, params: Mapping[str, float], mode: str, x):
+def energy_density(model: MaterialModel, params: Mapping[str, float], mode: str, x, *, kinematics=None):
     """Strain energy per unit reference volume along a loading path.
 
     Parameters
@@ -179,6 +201,8 @@ def energy_density(model: MaterialModel, params: Mapping[str, float], mode: str,
         One of :data:`MODES`.
     x : array_like, shape (...)
         Stretch λ, or γ for ``simple_shear``.
+    kinematics : tuple, optional
+        :func:`path_kinematics` of *x* (1-D), computed once for many parameter sets.
 
     Returns
     -------
@@ -186,7 +210,9 @@ def energy_density(model: MaterialModel, params: Mapping[str, float], mode: str,
         W [Pa]; NaN outside the admissible range, ``inf`` at locking.
     """
     shape = np.shape(x)
-    u, v, *_ = _kinematics(_check_mode(mode), np.ravel(np.asarray(x, dtype=float)))
+    if kinematics is None:
+        kinematics = _kinematics(_check_mode(mode), np.ravel(np.asarray(x, dtype=float)))
+    u, v = kinematics[0], kinematics[1]
     with np.errstate(invalid="ignore", divide="ignore"):
         w = np.array(model.energy(3.0 + u, 3.0 + v, params), dtype=float)
     near = _near_mask(model, params, u, v)
@@ -196,7 +222,7 @@ def energy_density(model: MaterialModel, params: Mapping[str, float], mode: str,
     return w.reshape(shape) if shape else float(w[0])
 
 
-def nominal_stress(model: MaterialModel, params: Mapping[str, float], mode: str, x):
+def nominal_stress(model: MaterialModel, params: Mapping[str, float], mode: str, x, *, kinematics=None):
     """Nominal (first Piola-Kirchhoff) stress in the loading direction.
 
     Parameters
@@ -208,6 +234,8 @@ def nominal_stress(model: MaterialModel, params: Mapping[str, float], mode: str,
         One of :data:`MODES`.
     x : array_like, shape (...)
         Stretch λ, or γ for ``simple_shear`` (then the shear stress P12).
+    kinematics : tuple, optional
+        :func:`path_kinematics` of *x*, computed once for many parameter sets.
 
     Returns
     -------
@@ -216,7 +244,7 @@ def nominal_stress(model: MaterialModel, params: Mapping[str, float], mode: str,
         dominated by the inverse Langevin function).
     """
     mode = _check_mode(mode)
-    u, v, du, dv, _, _ = _kinematics(mode, x)
+    u, v, du, dv, _, _ = _kinematics(mode, x) if kinematics is None else kinematics
     with np.errstate(invalid="ignore"):
         w1, w2 = model.dW(3.0 + u, 3.0 + v, params)
         p = (w1 * du + w2 * dv) / _STRESS_DIVISOR[mode]

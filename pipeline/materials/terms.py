@@ -17,7 +17,10 @@ structure each addresses is in :data:`TERMS` (``addresses``) and in
 docs/design/discovery.md. The library follows the model-discovery literature
 (constitutive artificial neural networks, Linka & Kuhl 2023; EUCLID, Flaschel et
 al. 2021): invariant-based terms, linear in a modulus, with at most one
-nonlinear shape parameter each.
+nonlinear shape parameter each. Every function is written with numpy operations
+that broadcast over its parameters as well as over the invariants (a parameter
+may be an array of shape (m, 1): m parameter sets at once, as
+:attr:`~esmm.pipeline.materials.base.MaterialModel.array_parameters` promises).
 
 ``mooney`` — Mooney-Rivlin :math:`I_2` term
     :math:`W = C_2 (I_2 - 3)`; :math:`W_2 = C_2`.
@@ -90,7 +93,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .base import Parameter
+from .base import Parameter, broadcast_zeros
 from .effects import equivalent_stretch
 
 __all__ = ["Term", "TERMS", "TERM_NAMES", "get_term"]
@@ -137,7 +140,7 @@ class Term:
 
 
 def _z(I1, I2):
-    return np.zeros(np.broadcast_shapes(np.shape(I1), np.shape(I2)))
+    return broadcast_zeros(I1, I2)
 
 
 # --------------------------------------------------------------------------- mooney

@@ -4,7 +4,9 @@ Every reader returns a :class:`~esmm.pipeline.mesh.surface.Surface` in metres.
 The file's unit is never guessed: ``unit`` says what the coordinates are in
 (``"mm"`` by default, as InVesalius and 3D Slicer write), and the size check
 (:func:`check_unit_sanity`) refuses an organ whose largest extent is not
-between 10 and 400 mm, suggesting the ``unit`` that would make it plausible.
+between 10 and 400 mm, suggesting the ``unit`` that would make it plausible; an organ
+whose volume is implausible for the organ its file name names (a liver of 1 mL: a file
+in cm read as mm) gets a warning naming ``unit`` (:mod:`.organsize`).
 
 Formats
 -------
@@ -42,6 +44,7 @@ from ..errors import InputError
 from ..progress import ensure
 from ..units import factor, normalise_unit
 from .gmsh_worker import GmshFailure, GmshTimeout, run_worker
+from .organsize import check_organ_size
 from .surface import Surface
 
 #: Plausible organ size: largest bounding-box extent in mm.
@@ -129,6 +132,9 @@ def read_surface(path: str | os.PathLike, *, unit: str | None = None, label: int
     check_unit_sanity(surf, unit=unit, where=f"{p} (unit from its header)" if from_header else str(p))
     rep.step(f"read {p.name}: {what}, {surf.n_points} points, {surf.n_faces} triangles, "
              f"extent {surf.extent() * 1e3:.1f} mm")
+    size = check_organ_size(surf.volume(), surf.extent(), name=p.name, unit=unit)
+    if not size.plausible:
+        rep.warn(size.message)
     return surf
 
 

@@ -71,7 +71,12 @@ from ..materials.material import DIRECTIONS
 LAWS = ("secant", "energy")
 #: Default number of grid points.
 DEFAULT_N = 1024
-#: Default grid ends when the material has no locking stretch.
+#: The default grid never reaches beyond these stretches (a material that locks nearer to 1 ends before
+#: them). Stretch 2 (100 % strain) is past the rupture of soft organ tissue in tension and 0.5 past any
+#: compression an organ survives, so a grid beyond them tabulates no tissue; on 1 024 points [0.5, 2]
+#: gives a step of 0.0015, 270 points over the compensation's calibration range 0.9-1.3. A fit whose
+#: locking stretch lies far beyond its data (a chain count at its bound) would otherwise stretch the grid
+#: to hundreds and leave no point between 1 and 1.3 (docs/design/tables.md, "Grid rule").
 DEFAULT_LAM_MIN = 0.5
 DEFAULT_LAM_MAX = 2.0
 #: Fraction of the distance between 1 and a locking stretch kept free at each end.
@@ -80,10 +85,11 @@ LOCK_MARGIN = 0.02
 # The three texts below describe the tables where they are stored (the /tables group of an
 # asset, docs/reference/asset-format.md): the grid, the extrapolation and the force laws.
 GRID_RULE = (
-    "uniform grid of n points from lam_min to lam_max; defaults: "
+    "uniform grid of n points from lam_min to lam_max; defaults from the material: "
     f"lam_min = max({DEFAULT_LAM_MIN}, lower admissible stretch + {LOCK_MARGIN:g}*(1 - lower)), "
-    f"lam_max = upper admissible stretch - {LOCK_MARGIN:g}*(upper - 1) "
-    f"(or {DEFAULT_LAM_MAX} when the material does not lock); the step is then shortened "
+    f"lam_max = min({DEFAULT_LAM_MAX}, upper admissible stretch - {LOCK_MARGIN:g}*(upper - 1)), "
+    "then narrowed to the stretches around 1 where the material's uniaxial stress is finite and "
+    "increasing (metadata 'grid' says why each end is where it is); the step is then shortened "
     "(lam_max lowered, by less than one step per point above 1) so that stretch 1 is a grid node"
 )
 EXTRAPOLATION = (
@@ -407,14 +413,36 @@ def _admissible(material, direction: str | None) -> tuple[float, float]:
 
 
 def default_grid(material) -> tuple[float, float]:
-    """The default (lam_min, lam_max) for *material* (see :data:`GRID_RULE`)."""
+    """The default (lam_min, lam_max) for *material* from its admissible range (see :data:`GRID_RULE`),
+    before :func:`build_tables` narrows it to where the stress increases."""
+    lo, hi, _ = _default_ends(material)
+    return lo, hi
+
+
+def _default_ends(material) -> tuple[float, float, dict[str, str]]:
+    """The default grid ends and, per end, why it is there (the locking stretch or the bound)."""
     lo_all, hi_all = 0.0, math.inf
     for d in sorted(set(_material_directions(material)), key=str):
         lo, hi = _admissible(material, d)
         lo_all, hi_all = max(lo_all, lo), min(hi_all, hi)
-    lam_min = DEFAULT_LAM_MIN if lo_all <= 0 else max(DEFAULT_LAM_MIN, lo_all + LOCK_MARGIN * (1 - lo_all))
-    lam_max = DEFAULT_LAM_MAX if not math.isfinite(hi_all) else hi_all - LOCK_MARGIN * (hi_all - 1)
-    return lam_min, lam_max
+    lock_lo = lo_all + LOCK_MARGIN * (1 - lo_all) if lo_all > 0 else -math.inf
+    lock_hi = hi_all - LOCK_MARGIN * (hi_all - 1) if math.isfinite(hi_all) else math.inf
+    why = {}
+    if lock_lo > DEFAULT_LAM_MIN:
+        lam_min, why["lam_min"] = lock_lo, f"{LOCK_MARGIN:.0%} inside the material's locking stretch {lo_all:.4g}"
+    else:
+        lam_min, why["lam_min"] = DEFAULT_LAM_MIN, (f"the bound {DEFAULT_LAM_MIN:g}, past any compression an organ "
+                                                    "survives" + _lock_note(lo_all))
+    if lock_hi < DEFAULT_LAM_MAX:
+        lam_max, why["lam_max"] = lock_hi, f"{LOCK_MARGIN:.0%} inside the material's locking stretch {hi_all:.4g}"
+    else:
+        lam_max, why["lam_max"] = DEFAULT_LAM_MAX, (f"the bound {DEFAULT_LAM_MAX:g} (100 % strain), past the "
+                                                    "rupture of soft tissue" + _lock_note(hi_all))
+    return lam_min, lam_max, why
+
+
+def _lock_note(lock: float) -> str:
+    return "" if lock <= 0 or not math.isfinite(lock) else f" (the material locks only at {lock:.4g})"
 
 
 def material_toml_text(material) -> str:
@@ -476,9 +504,12 @@ def build_tables(material, *, n: int = DEFAULT_N, lam_min: float | None = None,
     n : int
         Number of grid points (>= 3).
     lam_min, lam_max : float, optional
-        Grid ends; default from the material's admissible uniaxial range (see
-        :data:`GRID_RULE`). Both must lie in that range with
-        ``lam_min < 1 < lam_max``.
+        Grid ends; default from the material (see :data:`GRID_RULE`): inside its
+        admissible uniaxial range, within [0.5, 2], and narrowed to the stretches
+        around 1 where its uniaxial stress is finite and increasing
+        (``metadata["grid"]`` records why each end is where it is, and a
+        ``warning`` when the grid was narrowed). Given ends must lie in that
+        range with ``lam_min < 1 < lam_max``.
     law : {"secant", "energy"}
         The default force law recorded in the tables.
 
@@ -491,17 +522,53 @@ def build_tables(material, *, n: int = DEFAULT_N, lam_min: float | None = None,
     ConfigError
         Bad grid options.
     InputError
-        The material's energy is not finite on the grid, or its uniaxial
+        The material's energy is not finite on a given grid, or its uniaxial
         stress does not increase with stretch there (the network would be
-        unstable); narrow the grid.
+        unstable); narrow the grid. With the default grid: the stress
+        increases on no interval around 1.
     """
     grid = grid_options(n=n, law=law, lam_min=lam_min, lam_max=lam_max)
     n, law = grid.n, grid.law
-    d_lo, d_hi = default_grid(material)
-    lo = d_lo if grid.lam_min is None else grid.lam_min
-    hi = d_hi if grid.lam_max is None else grid.lam_max
     name = getattr(material, "name", None) or getattr(material, "model", "material")
     dirs = _material_directions(material)
+    lo, hi, why = _default_ends(material)
+    if grid.lam_min is not None:
+        lo, why["lam_min"] = grid.lam_min, "given"
+    if grid.lam_max is not None:
+        hi, why["lam_max"] = grid.lam_max, "given"
+    _check_admissible(material, dirs, lo, hi, name)
+    lam, curves = _tabulate(material, dirs, lo, hi, n)
+    narrowed: dict[str, str] = {}
+    for _ in range(4):   # narrow the default ends to where the stress increases (each pass on a finer grid)
+        bad = _first_bad(lam, curves)
+        if bad is None:
+            break
+        side, k, what = bad
+        if why[side] == "given" or not _narrowable(lam, side, k):
+            raise _curve_error(name, side, lam, k, what, given=why[side] == "given")
+        narrowed[side] = what
+        lo, hi = (float(lam[k + 2]), hi) if side == "lam_min" else (lo, float(lam[k - 2]))
+        lam, curves = _tabulate(material, dirs, lo, hi, n)
+    else:
+        raise _curve_error(name, side, lam, k, what, given=False)
+    stress = np.vstack([curves[d][0] for d in dirs])
+    values = np.vstack([curves[d][1] for d in dirs])
+    grid_note = {"lam_min": float(lam[0]), "lam_max": float(lam[-1]), "why": why}
+    for side, what in narrowed.items():
+        end, where = (lam[0], "below") if side == "lam_min" else (lam[-1], "beyond")
+        why[side] = f"narrowed: the material's uniaxial {what} just {where} it"
+        grid_note["warning"] = (f"{name}: the tables end at stretch {end:.4g} because the material's uniaxial "
+                                f"{what} just {where} it; springs stretched past it keep the end's stiffness "
+                                "(a stable network there, where the tissue as fitted is not)")
+    meta = {"material_name": str(name), "grid": grid_note,
+            "units": {"lam": "1", "mu_e": "Pa", "stress": "Pa", "energy": "Pa"}}
+    return StiffnessTables(lam_min=lam[0], lam_max=lam[-1], n=n, values=values, stress=stress,
+                           energy=_integrate_from_one(lam, stress), default_law=law,
+                           material_toml=material_toml_text(material), metadata=meta)
+
+
+def _check_admissible(material, dirs, lo: float, hi: float, name: str) -> None:
+    """Refuse grid ends outside the material's admissible uniaxial range."""
     for d in sorted(set(dirs), key=str):
         a_lo, a_hi = _admissible(material, d)
         if lo <= a_lo or hi >= a_hi:
@@ -510,41 +577,67 @@ def build_tables(material, *, n: int = DEFAULT_N, lam_min: float | None = None,
                 f"({a_lo:.4g}, {a_hi:.4g}) of {name}"
                 + (f" along {d}" if d else "") + "; choose a grid inside it"
             )
+
+
+def _tabulate(material, dirs, lo: float, hi: float, n: int):
+    """The grid through 1 on [lo, hi] (hi lowered) and, per direction, the stress and mu_e on it."""
     lo, hi = _grid_through_one(lo, hi, n)
     lam = np.linspace(lo, hi, n)
     lam[int(round((1.0 - lo) / ((hi - lo) / (n - 1))))] = 1.0
-    rows_mu, rows_P = [], []
-    cache: dict[str | None, tuple[np.ndarray, np.ndarray]] = {}
+    curves: dict[str | None, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     for d in dirs:
-        if d not in cache:
+        if d not in curves:
             W, P, mu = _material_curves(material, lam, d)
-            where = f"{name}" + (f" along {d}" if d else "")
-            if not (np.all(np.isfinite(W)) and np.all(np.isfinite(P)) and np.all(np.isfinite(mu))):
-                bad = lam[~(np.isfinite(W) & np.isfinite(P) & np.isfinite(mu))]
-                raise InputError(f"{where}: uniaxial energy is not finite at stretch {bad[0]:.4g}; "
-                                 "narrow the grid (lam_min/lam_max)")
-            if np.any(np.diff(P) <= 0):
-                k = int(np.argmax(np.diff(P) <= 0))
-                raise InputError(
-                    f"{where}: uniaxial nominal stress does not increase near stretch {lam[k]:.4g} "
-                    "(a spring network would be unstable there); narrow the grid (lam_min/lam_max) "
-                    "or check the material parameters"
-                )
-            if np.any(mu <= 0):
-                k = int(np.argmax(mu <= 0))
-                raise InputError(f"{where}: mu_e is not positive at stretch {lam[k]:.4g}; "
-                                 "check the material parameters")
-            cache[d] = (P, mu)
-        P, mu = cache[d]
-        rows_P.append(P)
-        rows_mu.append(mu)
-    stress = np.vstack(rows_P)
-    values = np.vstack(rows_mu)
-    energy = _integrate_from_one(lam, stress)
-    meta = {"material_name": str(name), "units": {"lam": "1", "mu_e": "Pa", "stress": "Pa",
-                                                   "energy": "Pa"}}
-    return StiffnessTables(lam_min=lo, lam_max=hi, n=n, values=values, stress=stress, energy=energy,
-                           default_law=law, material_toml=material_toml_text(material), metadata=meta)
+            curves[d] = (P, mu, W)
+    return lam, curves
+
+
+def _first_bad(lam: np.ndarray, curves) -> tuple[str, int, str] | None:
+    """The node nearest to 1 (on either side) where a curve is not usable, as (side, index, what), or None.
+
+    Not usable: the energy, stress or mu_e not finite, mu_e not positive, or the stress not
+    increasing on the segment that ends at that node (counted from 1 outwards).
+    """
+    i1 = int(np.argmin(np.abs(lam - 1.0)))
+    worst: tuple[int, str, int, str] | None = None
+    for P, mu, W in curves.values():
+        finite = np.isfinite(W) & np.isfinite(P) & np.isfinite(mu)
+        for side, order in (("lam_max", range(i1 + 1, lam.size)), ("lam_min", range(i1 - 1, -1, -1))):
+            prev = i1
+            for k in order:
+                what = ("energy is not finite" if not finite[k] else "mu_e is not positive" if mu[k] <= 0 else
+                        "stress stops increasing" if (P[k] - P[prev]) * (k - prev) <= 0 else "")
+                if what:
+                    if worst is None or abs(k - i1) < worst[0]:
+                        worst = (abs(k - i1), side, k, what)
+                    break
+                prev = k
+    return None if worst is None else worst[1:]
+
+
+def _narrowable(lam: np.ndarray, side: str, k: int) -> bool:
+    """Whether an end moved two nodes inside *k* still leaves two steps between it and 1."""
+    i1 = int(np.argmin(np.abs(lam - 1.0)))
+    return (k + 2 <= i1 - 2) if side == "lam_min" else (k - 2 >= i1 + 2)
+
+
+def _curve_error(name: str, side: str, lam: np.ndarray, k: int, what: str, *, given: bool) -> InputError:
+    """The message for a material whose curve is not usable near stretch ``lam[k]``."""
+    if given:
+        return InputError(f"{name}: uniaxial {what} near stretch {lam[k]:.4g} (a spring network would be "
+                          "unstable there); narrow the grid (lam_min/lam_max) or check the material parameters")
+    return InputError(f"{name}: uniaxial {what} near stretch {lam[k]:.4g}, too close to 1 for a spring "
+                      "network; check the material parameters (a fit far outside its data, or a parameter at "
+                      "its bound)")
+
+
+def grid_note(tables: StiffnessTables) -> str:
+    """Why the tables' grid ends where it does, in words ("" when not recorded)."""
+    g = tables.metadata.get("grid") if isinstance(tables.metadata, dict) else None
+    if not isinstance(g, dict) or not isinstance(g.get("why"), dict):
+        return ""
+    why = g["why"]
+    return "; ".join(f"{end} {g.get(end, 0):.4g}: {why[end]}" for end in ("lam_min", "lam_max") if end in why)
 
 
 def _grid_through_one(lo: float, hi: float, n: int) -> tuple[float, float]:

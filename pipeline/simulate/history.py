@@ -9,19 +9,24 @@
     /time                 (F,)  float64    frame times [s]
     /displacement         (F, n, 3) float32  node displacement from rest [m]
     /position/<k>         (n, 3) float32     node position of frame k [m] (the XDMF geometry)
+    /frame_displacement/<k> (n, 3) float32   displacement of frame k [m] (the XDMF attribute)
     /grasper/tip          (F, 3) float64   tip position per frame [m] (NaN when open)
     /grasper/time         (S,)  float64    time of every integration step [s]
     /grasper/force        (S, 3) float64   force of the tissue on the grasper [N]
     /grasper/nodes        (g,)  int64      held nodes
     attrs: esmm_type = "simulation_history", esmm_version, dt, law, scene, asset, ...
 
-``history.xdmf`` is an XDMF 2 temporal collection: one grid per frame whose
-geometry is ``position/<k>`` and which carries the hyperslab
-``displacement[k]`` as a node vector, so ParaView (XDMF reader) replays the
-deformation directly. The geometry is a plain dataset per frame: VTK's XDMF
-reader evaluates a Function ``points + displacement`` or a HyperSlab geometry
-correctly but logs an error for each frame. Both files are written to
-temporary names and renamed when complete.
+``history.xdmf`` is an XDMF 3 temporal collection: one grid per frame whose
+geometry is ``position/<k>`` and which carries ``frame_displacement/<k>`` as a
+node vector, so ParaView (XDMF reader) replays the deformation directly and
+meshio's time-series reader (``meshio.xdmf.TimeSeriesReader``) reads it: the mesh
+of the first frame (its positions, so the rest shape is those points minus the
+first frame's displacement), then each frame's time and displacement. Every
+piece of data is a plain dataset: VTK's XDMF reader evaluates a Function
+``points + displacement`` or a HyperSlab geometry correctly but logs an error for
+each frame, and meshio reads neither (hence the per-frame copy of
+``displacement``). Both files are written to temporary names and renamed when
+complete.
 """
 
 from __future__ import annotations
@@ -99,6 +104,8 @@ class HistoryWriter:
         self._disp.attrs["units"] = "m"
         self._pos = f.create_group("position")
         self._pos.attrs["units"] = "m"
+        self._fdisp = f.create_group("frame_displacement")
+        self._fdisp.attrs["units"] = "m"
         g = f.create_group("grasper")
         self._tip = g.create_dataset("tip", shape=(0, 3), maxshape=(None, 3), dtype="f8", chunks=(256, 3))
         self._tip.attrs["units"] = "m"
@@ -117,9 +124,11 @@ class HistoryWriter:
         self._time.resize((k + 1,))
         self._time[k] = t
         self._disp.resize((k + 1,) + self._disp.shape[1:])
-        self._disp[k] = displacement.astype(self.dtype, copy=False)
+        d = displacement.astype(self.dtype, copy=False)
+        self._disp[k] = d
         self._pos.create_dataset(f"{k}", data=(self.points + displacement).astype(self.dtype, copy=False),
                                  compression="gzip", compression_opts=1, shuffle=True)
+        self._fdisp.create_dataset(f"{k}", data=d, compression="gzip", compression_opts=1, shuffle=True)
         self._tip.resize((k + 1, 3))
         self._tip[k] = np.full(3, np.nan) if tip is None else tip
         self.n_frames = k + 1
@@ -179,33 +188,30 @@ def _attr(value):
 
 
 def xdmf_text(h5_name: str, *, n_nodes: int, cells: np.ndarray, times: np.ndarray, disp_dtype) -> str:
-    """The XDMF 2 temporal collection for a history file named *h5_name* (same folder)."""
+    """The XDMF 3 temporal collection for a history file named *h5_name* (same folder)."""
     c = np.asarray(cells)
     kind = "Tetrahedron" if c.shape[1] == 4 else "Triangle"
-    nf = int(len(times))
     prec = np.dtype(disp_dtype).itemsize
     h5 = escape(h5_name)
-    out = ['<?xml version="1.0" ?>', '<!DOCTYPE Xdmf SYSTEM "Xdmf.dtd" []>', '<Xdmf Version="2.0">', " <Domain>",
+
+    def item(path: str, dims: str, number: str = "Float", precision: int = prec) -> str:
+        return (f'<DataItem Dimensions="{dims}" NumberType="{number}" Precision="{precision}" '
+                f'Format="HDF">{h5}:{path}</DataItem>')
+
+    out = ['<?xml version="1.0" ?>', '<Xdmf Version="3.0">', " <Domain>",
            '  <Grid Name="organ" GridType="Collection" CollectionType="Temporal">']
     for k, t in enumerate(times):
-        def slab(name, k=k):
-            return (f'<DataItem ItemType="HyperSlab" Dimensions="{n_nodes} 3" Type="HyperSlab">'
-                    f'<DataItem Dimensions="3 3" Format="XML">{k} 0 0 1 1 1 1 {n_nodes} 3</DataItem>'
-                    f'<DataItem Dimensions="{nf} {n_nodes} 3" NumberType="Float" Precision="{prec}" '
-                    f'Format="HDF">{h5}:/{name}</DataItem></DataItem>')
         out += [
             f'   <Grid Name="frame_{k}" GridType="Uniform">',
             f'    <Time Value="{float(t):.17g}"/>',
             f'    <Topology TopologyType="{kind}" NumberOfElements="{c.shape[0]}">',
-            f'     <DataItem Dimensions="{c.shape[0]} {c.shape[1]}" NumberType="Int" Precision="8" '
-            f'Format="HDF">{h5}:/mesh/cells</DataItem>',
+            f'     {item("/mesh/cells", f"{c.shape[0]} {c.shape[1]}", "Int", 8)}',
             "    </Topology>",
             '    <Geometry GeometryType="XYZ">',
-            f'     <DataItem Dimensions="{n_nodes} 3" NumberType="Float" Precision="{prec}" '
-            f'Format="HDF">{h5}:/position/{k}</DataItem>',
+            f'     {item(f"/position/{k}", f"{n_nodes} 3")}',
             "    </Geometry>",
             '    <Attribute Name="displacement" AttributeType="Vector" Center="Node">',
-            f"     {slab('displacement')}",
+            f'     {item(f"/frame_displacement/{k}", f"{n_nodes} 3")}',
             "    </Attribute>",
             "   </Grid>",
         ]

@@ -7,6 +7,7 @@ Outputs in the output folder (each written atomically):
   (:mod:`.history`);
 * ``grasper_force.png``: force of the tissue on the grasper vs time (:mod:`.plots`);
 * ``summary.json``: the figures of the run (:class:`~.summary.SimulationSummary`);
+* ``report.html``: the run in one page, its verdict first (:mod:`.report`);
 * the video, when asked for (:mod:`.render`).
 """
 
@@ -26,6 +27,7 @@ from .grasper import GraspPlan
 from .history import HistoryWriter
 from .plots import plot_forces
 from .render import render_video
+from .report import write_simulation_html
 from .runsetup import RunSetup, plan_grasper, plan_steps, prepare_run, settle_at_start
 from .scene import Scene, load_scene
 from .summary import SimulationSummary, VideoSummary, summarize
@@ -44,6 +46,7 @@ class SimulationResult:
     summary_path: Path
     summary: SimulationSummary
     video: Path | None = None
+    report: Path | None = None      #: report.html: the run's verdict, speed in words, the grasper's force
 
 
 def simulate_network(network, tables, scene: Scene, out_dir, *, video=None, reporter=None,
@@ -93,7 +96,7 @@ def _run_into(out: Path, network, tables, scene: Scene, video, rep, asset_label:
         writer.add_frame(0.0, run.sim.displacement(), tip=None)      # the rest shape, or the equilibrium
         log = run_frames(run.sim, run.schedule, spec, plan, writer, range_check, rep)
         summary = summarize(run, scene, log, range_check, plan=plan, settle=settle, asset_label=asset_label,
-                            effects_available=effects)
+                            effects_available=effects, asset_fixed=int(np.asarray(network.fixed).size))
         writer.set_attrs(summary=summary.to_dict())
     rep.step(summary.describe())
     force_png = None if plan is None else plot_forces(hist_path, out / "grasper_force.png", plan=plan)
@@ -107,9 +110,10 @@ def _run_into(out: Path, network, tables, scene: Scene, video, rep, asset_label:
     if video is not None:
         summary.video = _render(hist_path, video, scene, rep)
         summary_path = write_json(out / "summary.json", summary.to_dict())
+    report = write_simulation_html(summary, out, force_plot=force_png)
     return SimulationResult(out_dir=out, history=hist_path, xdmf=hist_path.with_suffix(".xdmf"),
                             force_plot=force_png, summary_path=summary_path, summary=summary,
-                            video=None if video is None else Path(video))
+                            video=None if video is None else Path(video), report=report)
 
 
 def default_out_dir(asset_path) -> Path:

@@ -106,6 +106,22 @@ class SimulationSummary:
     integrator: dict | None = None
     video: VideoSummary | None = None
     volume: dict | None = None
+    fixed: dict | None = None
+
+    @property
+    def real_time(self) -> str:
+        """The real-time factor in words (:func:`real_time_words`)."""
+        return real_time_words(self.real_time_factor)
+
+    def fixed_words(self) -> str:
+        """Where the fixed nodes came from, in words: the asset's, or the scene's region in place of them."""
+        fx = self.fixed or {}
+        if fx.get("source") != "scene":
+            return f"{self.fixed_nodes} fixed nodes: the asset's own"
+        asset = fx.get("asset_nodes")
+        instead = "" if asset is None else f" in place of the asset's {asset}"
+        return (f"{self.fixed_nodes} fixed nodes from the scene's [fixed] region ({fx.get('region', '')}){instead}; "
+                "[fixed] kind = \"asset\" keeps the asset's")
 
     @property
     def effect_names(self) -> list[str]:
@@ -122,13 +138,29 @@ class SimulationSummary:
     def describe(self) -> str:
         """One line for the reporter."""
         line = (f"simulated {self.simulated_s:g} s in {self.stepping_wall_s:.3g} s of stepping (real-time factor "
-                f"{self.real_time_factor:.3g}, {self.method}, ")
+                f"{self.real_time_factor:.3g}, {self.real_time}; {self.method}, ")
         it = self.integrator
         if self.method == "implicit" and it:
             return line + (f"{self.steps} steps of {self.dt_max_s * 1e3:.4g} ms, {iterations_per_step(it)} and "
                            f"{it['solves'] / max(1, it['steps']):.3g} solves per step, "
                            f"{it['factorizations']} factorizations; grasper force at {it['haptic_rate_hz']:g} Hz)")
         return line + f"{self.ns_per_spring_step:.3g} ns per spring per step)"
+
+
+def real_time_words(factor: float) -> str:
+    """Simulated over stepping time, in words: ``0.27x real time: 3.7 times slower than real time``.
+
+    Above 1 the simulation keeps up with the clock (what an interactive simulator needs); below 1
+    a second of simulated time takes more than a second.
+    """
+    if not math.isfinite(factor) or factor <= 0:
+        return f"real-time factor {factor:g}: not measured (no stepping time)"
+    head = f"{factor:.2g}x real time" if factor < 1 else f"{factor:.3g}x real time"
+    if abs(factor - 1.0) < 0.005:
+        return f"{head}: as fast as real time"
+    ratio = factor if factor > 1 else 1 / factor
+    times = f"{ratio:.3g}" if ratio < 2 else f"{ratio:.2g}" if ratio < 100 else f"{ratio:.0f}"
+    return f"{head}: {times} times {'faster' if factor > 1 else 'slower'} than real time"
 
 
 def iterations_per_step(stats: dict) -> str:
@@ -142,8 +174,9 @@ def iterations_per_step(stats: dict) -> str:
 
 def summarize(run: RunSetup, scene: Scene, log: FrameLog, range_check: RangeCheck, *,
               plan: GraspPlan | None, settle: dict | None, asset_label: str,
-              effects_available=None) -> SimulationSummary:
-    """The summary of a finished run (*run* as it ends, its frames' *log*)."""
+              effects_available=None, asset_fixed: int | None = None) -> SimulationSummary:
+    """The summary of a finished run (*run* as it ends, its frames' *log*; *asset_fixed*: how many
+    fixed nodes the asset itself has, said when the scene's region replaces them)."""
     sim, springs = run.sim, run.sim.model.springs
     sim_time = scene.n_frames * (1.0 / scene.frame_rate)
     table = run.schedule.table
@@ -176,6 +209,8 @@ def summarize(run: RunSetup, scene: Scene, log: FrameLog, range_check: RangeChec
             force_at_max_N=log.max_force.tolist()),
         integrator=_integrator(run, scene),
         volume=_volume_summary(run, scene),
+        fixed={"source": "asset", "asset_nodes": asset_fixed} if scene.fixed is None else
+        {"source": "scene", "region": scene.fixed.describe(), "asset_nodes": asset_fixed},
     )
 
 

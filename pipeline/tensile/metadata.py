@@ -435,3 +435,58 @@ def geometry(md: Metadata, *, label: str) -> Geometry:
                     f"{other * 1e6:.6g} mm2 ({other_where}); remove one of them or correct it"
                 )
     return Geometry(vals["gauge_length"], area, w, t, area_from, d)
+
+
+# ---------------------------------------------------------------------------
+# metadata a file needs and does not state: all of it in one message
+
+#: What to write for each key a file may miss (sidecar syntax), and what it is needed for.
+NEEDED = {
+    "encoding": ('"gbk"', "the file is not UTF-8 text"),
+    "gauge_length": ('"30 mm"', "stretch from displacement"),
+    "area": ('"22 mm2" (or width and thickness, or diameter)', "stress from force"),
+}
+
+
+@dataclass(frozen=True)
+class Missing:
+    """One key a file needs: its name, why, and an example value in sidecar syntax."""
+
+    key: str
+    why: str
+    example: str
+
+
+class MissingMetadataError(InputError):
+    """Metadata that files need and do not state, every key of every file at once.
+
+    Attributes
+    ----------
+    missing : list of (file, sidecar name, list of Missing)
+    """
+
+    def __init__(self, missing: list[tuple[str, str, list[Missing]]]):
+        self.missing = missing
+        super().__init__(self.text(None))
+
+    def text(self, flag_of) -> str:
+        """The message; *flag_of(key)* gives the command-line option of a key (None: name no option)."""
+        groups: dict[tuple[str, ...], list[tuple[str, str, list[Missing]]]] = {}
+        for item in self.missing:
+            groups.setdefault(tuple(m.key for m in item[2]), []).append(item)
+        parts = []
+        for keys, items in groups.items():
+            files = [f for f, _, _ in items]
+            shown = ", ".join(files[:3]) + (f" and {len(files) - 3} more" if len(files) > 3 else "")
+            miss = items[0][2]
+            what = ", ".join(f"{m.key} ({m.why})" for m in miss)
+            side = ", ".join(f"{m.key} = {m.example}" for m in miss)
+            where = f"in the sidecar {items[0][1]}" + (" (one per file)" if len(files) > 1 else "")
+            opts = [flag_of(k) for k in keys] if flag_of else []
+            also = (" or with " + ", ".join(o for o in opts if o)) if any(opts) else ", or as overrides"
+            geometry = [m for m in miss if m.key != "encoding"]
+            kind = ("missing geometry" if len(geometry) == len(miss) else
+                    "missing metadata and geometry" if geometry else "missing metadata")
+            parts.append(f"{shown}: {kind}, {len(miss)} item{'s' if len(miss) > 1 else ''}: {what}; "
+                         f"state {'them' if len(miss) > 1 else 'it'} {where}{also}, e.g. {side}")
+        return "; ".join(parts)

@@ -165,7 +165,7 @@ def _decode(raw: bytes, label: str, enc_entry: M.Entry | None) -> tuple[str, str
             raise InputError(
                 f"{label}: not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line}){hint}; state its encoding: "
                 f"encoding = \"...\" in the sidecar {M.sidecar_path(Path(label)).name}, "
-                f"a '# encoding: ...' first line, or the reader's encoding option"
+                f"a '# encoding: ...' first line, or the reader's encoding option", parameter="encoding"
             ) from None
     if text.startswith("\ufeff"):
         text = text[1:]
@@ -944,11 +944,25 @@ def _used(plan: _Plan) -> dict[str, _Column]:
     return used
 
 
-def _time(t_col: _Column, t: np.ndarray | None, factor: float, linenos: list[int], label: str):
-    """Time from the first sample; refuse time that goes backwards."""
+def _time(t_col: _Column, t: np.ndarray | None, factor: float, linenos: list[int], label: str, *,
+          layout: _Layout | None = None, decimal: str = ".", warnings: list[str] | None = None):
+    """Time from the first sample; refuse time that goes backwards.
+
+    A time column whose decimals were written without their leading zeros
+    (``40.9, 40.10, 40.11`` for 40.09, 40.10, 40.11 s: a spreadsheet's
+    number format) is read as meant where that reading, and only it, runs
+    forward (:func:`_digits_time`); a warning says so.
+    """
     if t is None:
         return None
     back = np.flatnonzero(np.diff(t) < 0)
+    if back.size and layout is not None:
+        fixed = _digits_time(layout, t_col, decimal)
+        if fixed is not None:
+            t, note = fixed[0] * factor, fixed[1]
+            back = np.flatnonzero(np.diff(t) < 0)
+            if warnings is not None and not back.size:
+                warnings.append(f"{t_col.where(label)}: {note}")
     if back.size:
         i = back[0] + 1
         u = t_col.unit or "s"
@@ -958,6 +972,46 @@ def _time(t_col: _Column, t: np.ndarray | None, factor: float, linenos: list[int
             f"split joined records into separate files"
         )
     return t - t[0]
+
+
+_DIGITS = re.compile(r'^\s*"?\s*(\d+)(?:[.,](\d*))?\s*"?\s*$')
+
+
+def _digits_time(layout: _Layout, t_col: _Column, decimal: str) -> tuple[np.ndarray, str] | None:
+    """The time column read with its decimals' leading zeros restored, or None where that is not the pattern.
+
+    Every cell is ``I.F`` (digits only); with *d* the most decimal digits of
+    any cell, the time is ``I + F / 10**d`` (a cell with *d* decimals keeps
+    its value). The reading is taken only where it explains the file: some
+    cells have fewer than *d* decimals (the zeros lost) and the time so read
+    never goes backwards, while the numbers as written do. Records joined
+    into one file, or times out of order, stay backwards and are refused.
+    """
+    ints, fracs = [], []
+    for line in layout.data_lines:
+        cells = _split(line, layout.delimiter)
+        m = _DIGITS.match(cells[t_col.index]) if t_col.index < len(cells) else None
+        if m is None or (decimal == "." and "," in cells[t_col.index]):
+            return None
+        ints.append(m.group(1))
+        fracs.append(m.group(2) or "")
+    d = max(len(f) for f in fracs)
+    changed = [k for k, f in enumerate(fracs) if len(f) < d and int(f or "0")]
+    if d < 2 or not changed:
+        return None
+    # the number as meant, written out and parsed (the value a correct export gives, to the last bit)
+    meant = [f"{i}.{int(f or '0'):0{d}d}" for i, f in zip(ints, fracs)]
+    t = np.array([float(v) for v in meant])
+    if np.any(np.diff(t) < 0):
+        return None
+    step = float(np.median(np.diff(t)))
+    k = changed[0]
+    sep = "," if decimal == "," else "."
+    note = (f"time repaired: {len(changed)} of {len(t)} cells were written without the leading zeros of their "
+            f"{d} decimals, as a spreadsheet's number format writes them (e.g. {ints[k]}{sep}{fracs[k]} on line "
+            f"{layout.data_linenos[k]} is read as {meant[k]}); so read, the time runs forward in steps of "
+            f"{step:.{d}g} (median); check the export's number format")
+    return t, note
 
 
 def _x_of(q: str, v: np.ndarray) -> tuple[np.ndarray, str]:
@@ -1076,7 +1130,9 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
     col_of = {k: arr[:, i] * factors[k] for i, k in enumerate(order)}
     linenos = layout.data_linenos
     meta_extra: dict[str, Any] = {}
-    time = _time(plan.t_col, col_of.get("time"), factors.get("time", 1.0), linenos, label)
+    time = _time(plan.t_col, col_of.get("time"), factors.get("time", 1.0), linenos, label,
+                 layout=None if plan.t_col is None or plan.t_col.index in clock else layout, decimal=decimal,
+                 warnings=warnings)
     if time is not None:
         meta_extra["time_start"] = float(col_of["time"][0])
         if plan.t_col.index in clock:
