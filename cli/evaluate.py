@@ -14,8 +14,10 @@ examples:
 
 Reports, per file and over all files, the error of the base model alone (before) and of the
 final model with the effects the discovery kept (after): RMSE, NRMSE (RMSE / range of the
-measured stress) and the largest error. Measurement artefacts (slack, load-cell offset and
-drift) are re-estimated on each file; the material is not refitted.
+measured stress) and the largest error. Nothing is refitted: the material as saved, and no
+measurement artefact applied (a new file's slack, load-cell offset, specimen scale and slips are
+its own). --refit-artefacts re-estimates the artefacts the discovery kept on each file, the
+material held, and says so in the output.
 """
 
 
@@ -32,6 +34,9 @@ def add_parser(sub) -> None:
                    "fit.json or params.toml)")
     p.add_argument("files", nargs="+", metavar="FILE", help="tensile-test files to predict")
     p.add_argument("--json", metavar="PATH", help="write the result as JSON (schema esmm.evaluate/1)")
+    p.add_argument("--refit-artefacts", action="store_true",
+                   help="re-estimate the kept measurement artefacts (slack, load-cell offset and drift, specimen "
+                   "scale, grip slips) on each file, the material held (default: none applied)")
     add_metadata_options(p, specimen=False)
     p.set_defaults(func=run)
 
@@ -47,7 +52,7 @@ def run(args, ui) -> int:
     saved = load_fit(args.fit)
     overrides = metadata_overrides(args)
     tests = [read(p, overrides=overrides, reporter=ui) for p in args.files]
-    ev = evaluate(saved, tests, reporter=ui)
+    ev = evaluate(saved, tests, refit_artefacts=args.refit_artefacts, reporter=ui)
     for line in summary_lines(ev):
         ui.info(line)
     if args.json:

@@ -146,9 +146,12 @@ def _tests(tmp_path, protocols, truth, **kw):
 
 
 def _check_found(res, name):
+    """*name* kept; the error halved on all samples and on the held-out data it was judged on (a per-file
+    artefact on blocks of its own file: a held-out file keeps its artefacts neutral)."""
     assert name in res.kept, (res.kept, {n: c.reason for n, c in res.candidates.items()})
     assert res.final.errors.nrmse <= 0.5 * res.base.errors.nrmse
-    assert res.final.heldout.nrmse <= 0.5 * res.base.heldout.nrmse
+    key = "artefact" if res.candidates[name].kind == "artefact" else "material"
+    assert res.final.cv[key].nrmse <= 0.5 * res.base.cv[key].nrmse
 
 
 def test_viscoelasticity_found_in_multirate_load_unload(tmp_path):
@@ -169,7 +172,7 @@ def test_mullins_found_in_cycles_to_rising_maxima(tmp_path):
     res = discover(_tests(tmp_path, [syn.cycles(0.05, [1.2, 1.35, 1.5])], truth), **FAST)
     _check_found(res, "mullins")
     assert res.material_effects.mullins.r == pytest.approx(2.0, rel=0.1)
-    assert res.scheme == "leave one cycle out"
+    assert res.scheme.startswith("leave one cycle out, the first always fitted")
 
 
 def test_slack_found_and_corrected_per_file(tmp_path):
@@ -268,8 +271,8 @@ def test_outputs_json_schema_and_params_toml(tmp_path):
 def test_bad_options_are_refused():
     with pytest.raises(ConfigError, match="unknown effect"):
         discover([_dummy()], candidates=["plasticity"])
-    with pytest.raises(ConfigError, match="heldout_z"):
-        discover([_dummy()], heldout_z=-1.0)
+    with pytest.raises(ConfigError, match="alpha"):
+        discover([_dummy()], alpha=-1.0)
 
 
 def _dummy():
@@ -289,7 +292,7 @@ def test_brain_asymmetry_explained_by_an_elastic_term(shared_data):
     assert not res.candidates["slack"].applicable  # processed curves: no artefact corrected
     assert [n for n in res.kept if res.candidates[n].kind != "elastic"] == []
     assert {"mooney", "i2exp", "i2log"} & set(res.kept), res.kept
-    assert res.final.errors.nrmse < 0.8 * res.base.errors.nrmse
+    assert res.final.errors.nrmse < res.base.errors.nrmse
     assert res.final.heldout.nrmse < res.base.heldout.nrmse
     assert res.final_model.startswith("esedf+")
 

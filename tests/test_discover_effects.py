@@ -9,7 +9,12 @@ import numpy as np
 import pytest
 from esmm.pipeline.discover import synthetic as syn
 from esmm.pipeline.discover.records import prepare, rest_reading
-from esmm.pipeline.discover.statistics import autocorrelation_time, noise_test, paired_heldout
+from esmm.pipeline.discover.statistics import (
+    HeldoutSegment,
+    autocorrelation_time,
+    heldout_test,
+    noise_test,
+)
 from esmm.pipeline.errors import ConfigError
 from esmm.pipeline.materials.effects import (
     CyclicSofteningEffect,
@@ -24,6 +29,7 @@ from esmm.pipeline.materials.effects import (
 )
 from esmm.pipeline.tensile import read
 from esmm.pipeline.tensile.events import noise_sd
+from scipy import signal
 
 BASE = {"mu": 20e3, "N": 4.0}
 
@@ -134,14 +140,64 @@ def test_noise_test_penalises_parameters_not_samples():
     assert better["dbic"] < 0 and better["dchi2"] == pytest.approx(400 * 9, rel=0.1)
 
 
-def test_paired_heldout_sign_and_mean():
+def _ar_noise(rng, n: int, phi: float) -> np.ndarray:
+    """Unit-variance AR(1) noise (scipy.signal), its transient dropped."""
+    e = signal.lfilter([1.0], [1.0, -phi], rng.standard_normal(n + 500))[500:]
+    return e * np.sqrt(1.0 - phi * phi)
+
+
+def test_heldout_test_signs_and_size():
     rng = np.random.default_rng(4)
     y = rng.standard_normal(2000)
-    p0 = y + 0.5 + 0.1 * rng.standard_normal(2000)  # biased
-    p1 = y + 0.1 * rng.standard_normal(2000)  # unbiased
-    good = paired_heldout([(y, p0, p1, 10.0, 0.1)])
-    assert good["z"] > 5 and good["z_mean"] > 5 and good["noise_units"] > 10
-    bad = paired_heldout([(y, p1, p0, 10.0, 0.1)])
-    assert bad["z"] < -5 and bad["noise_units"] < 0
-    same = paired_heldout([(y, p1, p1 + 1e-6, 10.0, 0.1)])
-    assert same["decided"] == 0 and same["z"] == 0.0  # predictions indistinguishable at the noise level
+    truth = np.zeros(2000)
+    y = truth + 0.1 * rng.standard_normal(2000)
+    p0, p1 = truth + 0.5, truth  # the current model biased by 5 noise SDs, the candidate right
+    good = heldout_test([HeldoutSegment("f", y, p0, p1, 10.0, 0.1)])
+    assert good["p"] < 1e-12 and good["noise_units"] == pytest.approx(25.0, rel=0.05)
+    bad = heldout_test([HeldoutSegment("f", y, p1, p0, 10.0, 0.1)])
+    assert bad["p"] > 0.999 and bad["noise_units"] < 0
+    same = heldout_test([HeldoutSegment("f", y, p1, p1 + 1e-9, 10.0, 0.1)])
+    assert 0.01 < same["p"] < 0.99 and abs(same["noise_units"]) < 1e-3
+
+
+@pytest.mark.parametrize("phi", [0.0, 0.9])
+def test_heldout_test_is_calibrated_under_correlated_noise(phi):
+    """At the null's boundary (two predictions equally wrong, on either side of the truth) both one-sided
+    statistics reject at 5 % in 5 % of 600 records within binomial error, white or AR(1) noise (the noise
+    test given the noise model's σ and correlation length, the replication check from the data alone);
+    the same statistic with an independent-samples variance rejects far more often under AR(1) noise."""
+    rng = np.random.default_rng(12)
+    n, a = 1000, 0.05
+    length = -1.0 / np.log(phi) if phi else 0.0
+    hits, hits_rep, naive = 0, 0, 0
+    for _ in range(600):
+        y = 0.1 * _ar_noise(rng, n, phi)
+        segs = [HeldoutSegment("f", y[:500], np.full(500, a), np.full(500, -a), 1.0, 0.1, 0.1, length),
+                HeldoutSegment("f", y[500:], np.full(500, a), np.full(500, -a), 1.0, 0.1, 0.1, length)]
+        h = heldout_test(segs)
+        hits += h["p"] <= 0.05
+        hits_rep += h["p_replication"] <= 0.05
+        d = (a - y) ** 2 - (-a - y) ** 2
+        naive += d.mean() / (d.std(ddof=1) / np.sqrt(n)) >= 1.645
+    assert 13 <= hits <= 48, hits  # binomial(600, 0.05): 30 +- 3 sd
+    assert 13 <= hits_rep <= 48, hits_rep
+    if phi:
+        assert naive > 100, naive
+
+
+def test_replication_check_rejects_an_improvement_small_next_to_the_misfit_left():
+    """A candidate that moves the prediction by a tenth of a smooth misfit it leaves: far beyond the noise
+    (the noise test passes), but not replicated across the held-out segments."""
+    rng = np.random.default_rng(3)
+    t = np.linspace(0.0, 1.0, 2000)
+    truth = np.zeros_like(t)
+    misfit = 0.05 * np.sin(2 * np.pi * 3 * t)  # what both models miss, smooth
+    y = truth + 1e-3 * rng.standard_normal(t.size)
+    p0 = truth + misfit + 0.006
+    p1 = truth + misfit + 0.001 * np.cos(2 * np.pi * 5 * t)
+    segs = [HeldoutSegment("f", y[i:i + 400], p0[i:i + 400], p1[i:i + 400], 1.0, 1e-3, 1e-3, 0.0)
+            for i in range(0, 2000, 400)]
+    h = heldout_test(segs)
+    assert h["p"] < 1e-6 and h["p_replication"] > 0.05
+
+

@@ -21,11 +21,13 @@ from ..materials.effects import equivalent_stretch
 from ..materials.loading import invariants
 from ..tensile.data import TensileTest
 from ..tensile.events import runs as _runs
+from ..tensile.noise import lag_profile, quantum
 
 #: |rate| below this fraction of the largest (smoothed) |rate| of the test is a hold
 HOLD_FRACTION = 0.03
-#: a hold must last at least this many samples
-HOLD_MIN_SAMPLES = 3
+#: the rate is smoothed over the time in which the stretch, at the test's mean speed, advances by this many of
+#: its resolution steps (the larger of its quantisation step and its noise): a window in strain, not in samples
+RATE_STEPS = 4.0
 #: toe region: the first loading up to this fraction of the test's stretch span
 TOE_FRACTION = 0.10
 #: high-stretch end: above this fraction of the span, on the primary loading path
@@ -74,6 +76,8 @@ class Covariates:
     toe: np.ndarray
     high: np.ndarray
     virgin: np.ndarray
+    #: samples of the rate's smoothing window (:data:`RATE_STEPS`); a pause shorter than it is not a hold
+    window: int = 1
 
     @property
     def n_cycles(self) -> int:
@@ -107,7 +111,7 @@ class Covariates:
         out = []
         seg = _runs(self.direction)
         for s, e, d in seg:
-            if d != 0 and e - s >= HOLD_MIN_SAMPLES:
+            if d != 0 and e - s >= max(self.window, 3):
                 out.append(float(np.median(np.abs(self.rate[s:e]))))
         return np.unique(np.array([float(f"{v:.2g}") for v in out if v > 0]))
 
@@ -140,8 +144,10 @@ def covariates(test: TensileTest) -> Covariates:
     drive = drive_of(test)
     mag = np.abs(x - ref)
     has_time = test.time is not None and n > 1 and float(test.time[-1] - test.time[0]) > 0
+    window = 1
     if has_time:
-        elapsed, rate, direction, hold_time = _timed_segments(x, mag, np.asarray(test.time, float))
+        window = rate_window(x, np.asarray(test.time, float))
+        elapsed, rate, direction, hold_time = _timed_segments(x, mag, np.asarray(test.time, float), window)
     else:
         elapsed, rate, direction, hold_time = _untimed_segments(mag)
     cycle = _cycles(direction)
@@ -159,25 +165,51 @@ def covariates(test: TensileTest) -> Covariates:
     return Covariates(
         has_time=has_time, drive=drive, rate=rate, direction=direction, hold_time=hold_time,
         cycle=cycle, max_so_far=max_so_far, below_max=below, elapsed=elapsed, toe=toe, high=high,
-        virgin=virgin,
+        virgin=virgin, window=window,
     )
 
 
-def _timed_segments(x: np.ndarray, mag: np.ndarray, t: np.ndarray):
-    """(elapsed, rate, direction, hold time) of a record with time: directions from the smoothed rate."""
+def rate_window(x: np.ndarray, t: np.ndarray) -> int:
+    """Samples of the rate's smoothing window: the time in which the stretch, at the test's mean speed,
+    advances by :data:`RATE_STEPS` of its resolution (odd, 1 to n/20).
+
+    The resolution is the larger of the stretch's quantisation step (the
+    encoder's, :func:`~esmm.pipeline.tensile.noise.quantum`) and its
+    sample-to-sample noise (the robust scale of its lag-1 third differences,
+    :func:`~esmm.pipeline.tensile.noise.lag_profile`); the mean speed is the
+    path length over the duration, measured on a grid of 200 points (so that
+    the noise does not lengthen it).
+    """
+    n = x.size
+    T = float(t[-1] - t[0])
+    if n < 8 or T <= 0:
+        return 1
+    prof = lag_profile(x)
+    res = max(quantum(x), prof[0][1] if prof else 0.0)
+    grid = np.linspace(0, n - 1, min(n, 200)).round().astype(int)
+    speed = float(np.sum(np.abs(np.diff(x[grid])))) / T
+    dt = T / (n - 1)
+    if speed <= 0 or res <= 0:
+        return 1
+    w = int(round(RATE_STEPS * res / speed / dt))
+    w = max(1, min(w, n // 20))
+    return w if w % 2 else w + 1
+
+
+def _timed_segments(x: np.ndarray, mag: np.ndarray, t: np.ndarray, w: int):
+    """(elapsed, rate, direction, hold time) of a record with time: directions from the rate smoothed over
+    *w* samples (:func:`rate_window`)."""
     n = x.size
     elapsed = t - t[0]
-    # a short moving average (7 samples) against displacement quantisation
-    w = 7
     rate = np.gradient(_smooth(x, w), t) if n > 2 else np.zeros(n)
     rate = np.where(np.isfinite(rate), rate, 0.0)
     mag_rate = np.gradient(_smooth(mag, w), t) if n > 2 else np.zeros(n)
     mag_rate = np.where(np.isfinite(mag_rate), mag_rate, 0.0)
     tol = HOLD_FRACTION * (float(np.max(np.abs(rate))) if n else 0.0)
     direction = np.where(mag_rate > tol, 1, np.where(mag_rate < -tol, -1, 0)).astype(np.int8)
-    # holds shorter than HOLD_MIN_SAMPLES inherit the previous direction
+    # a pause shorter than the smoothing window is the rate's noise: it inherits the previous direction
     for s, e, d in _runs(direction):
-        if d == 0 and e - s < HOLD_MIN_SAMPLES and s > 0:
+        if d == 0 and e - s < max(w, 3) and s > 0:
             direction[s:e] = direction[s - 1]
     hold_time = np.zeros(n)
     for s, e, d in _runs(direction):

@@ -16,6 +16,12 @@ high-stretch end, against time) explain the ranking in words; :func:`structure`
 says where a residual is largest and what it follows, for the honest outcome
 when nothing explains it.
 
+The residual is called **noise** (:attr:`Diagnosis.white`) when its mean square is within
+:data:`WHITE_CHI2` noise variances per sample, or within :data:`WHITE_Z` standard errors of one
+(the standard error of a mean of n squared noise samples, √(2τ/n), counts the noise's correlation τ
+at the fitting samples' spacing). Its lag-1 autocorrelation and runs test are reported; they do
+not decide (filtered noise is correlated however good the model).
+
 The residual here is *measured − model* (what the model misses).
 """
 
@@ -36,8 +42,11 @@ from .statistics import runs_test
 
 #: strength used for the finite-difference signatures (in each effect's own coordinate)
 _EPS = 1e-3
-#: a residual within this many noise variances per sample (RMS 0.7 σ) is at the record's resolution
+#: a residual within this many noise variances per sample (RMS 1.2 σ) is at the record's resolution
 WHITE_CHI2 = 1.5
+#: ... or within this many standard errors of one noise variance per sample (its standard error counts the
+#: noise's correlation at the fitting samples' spacing)
+WHITE_Z = 3.0
 
 
 @dataclass
@@ -79,8 +88,9 @@ def _covariate_table(problem: Problem, z_full: np.ndarray) -> tuple[np.ndarray, 
                                              "drive", "cycle", "compression", "timed")}
     E, N = [], []
     for k, r in enumerate(problem.records):
-        idx = r.fit_idx
-        e = r.y[idx] - problem.forward.add_offsets(k, problem.forward.predict(k, st), coefs[k])
+        pos = positions(problem, k)
+        idx = r.fit_idx[pos]
+        e = (r.y[r.fit_idx] - problem.forward.add_offsets(k, problem.forward.predict(k, st), coefs[k]))[pos]
         c = r.cov
         E.append(e / r.scale)
         N.append(e / r.sigma)
@@ -185,6 +195,12 @@ def structure(en: np.ndarray, cat: dict[str, np.ndarray]) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- signatures
+def positions(prob: Problem, k: int) -> np.ndarray:
+    """Positions, within record *k*'s fitting samples, of those in *prob*'s objective (all by default)."""
+    t = prob.train[k]
+    return np.arange(prob.records[k].fit_idx.size) if t is None else np.asarray(t, dtype=int)
+
+
 class _Signatures:
     """The noise-normalised residual of the current model, its Jacobian's span, and candidate signatures."""
 
@@ -193,13 +209,14 @@ class _Signatures:
         st = prob.params.values(z_full)
         self.coefs = prob.offsets(z_full)
         self.base_pred, resid, self.w = [], [], []
+        self.pos = [positions(prob, k) for k in range(len(prob.records))]
         for k, r in enumerate(prob.records):
             p = prob.forward.add_offsets(k, prob.forward.predict(k, st), self.coefs[k])
             self.base_pred.append(p)
             self.w.append(1.0 / r.sigma)
-            resid.append(np.nan_to_num((r.y[r.fit_idx] - p) / r.sigma))
+            resid.append(np.nan_to_num((r.y[r.fit_idx] - p) / r.sigma)[self.pos[k]])
         self.e = np.concatenate(resid)
-        self.sizes = [r.fit_idx.size for r in prob.records]
+        self.sizes = [p.size for p in self.pos]
         self.Q = self._basis()
         self.e_perp = self.e - self.Q @ (self.Q.T @ self.e)
         self.ss = float(self.e @ self.e) or 1e-300
@@ -219,8 +236,8 @@ class _Signatures:
         extra = []
         off = np.concatenate([[0], np.cumsum(self.sizes)])
         for k in range(len(prob.records)):
-            X = prob.forward.offset_columns(k, prob.records[k].fit_idx)
-            if X is not None:
+            X = prob.forward.offset_columns(k, prob.records[k].fit_idx[self.pos[k]])
+            if X is not None and self.sizes[k]:
                 block = np.zeros((J.shape[0], X.shape[1]))
                 block[off[k]:off[k + 1]] = X / prob.records[k].sigma
                 extra.append(block)
@@ -257,8 +274,7 @@ class _Signatures:
         z = p2.params.transfer(prob.params, self.z_full)
         z = _set_slots(p2, z, values or {})
         st2 = p2.params.values(z)
-        out = [_finite((prob.forward.add_offsets(k, p2.forward.predict(k, st2), self.coefs[k]) - self.base_pred[k]) * self.w[k])
-               for k in range(len(prob.records))]
+        out = [self._change(p2, st2, k) for k in range(len(prob.records))]
         if per_record:
             return out
         return np.concatenate(out)
@@ -278,12 +294,17 @@ class _Signatures:
             parts = []
             for k in range(len(prob.records)):
                 if k in s.records:
-                    parts.append(_finite((prob.forward.add_offsets(k, p2.forward.predict(k, st2), self.coefs[k])
-                                          - self.base_pred[k]) * self.w[k]))
+                    parts.append(self._change(p2, st2, k))
                 else:
                     parts.append(np.zeros(self.sizes[k]))
             sigs.append(np.concatenate(parts))
         return sigs
+
+
+    def _change(self, p2: Problem, st2, k: int) -> np.ndarray:
+        """The change of record k's prediction (noise units, objective samples) from the current model to *p2*."""
+        new = self.prob.forward.add_offsets(k, p2.forward.predict(k, st2), self.coefs[k])
+        return _finite((new - self.base_pred[k]) * self.w[k])[self.pos[k]]
 
 
 def _finite(a: np.ndarray) -> np.ndarray:
@@ -360,9 +381,10 @@ def _score_offset(sig: _Signatures) -> float:
     for k, r in enumerate(sig.prob.records):
         if not offset_applicable(r):
             continue
-        cols = [np.ones(r.fit_idx.size)]
+        idx = r.fit_idx[sig.pos[k]]
+        cols = [np.ones(idx.size)]
         if r.t is not None:
-            cols.append((r.t[r.fit_idx] - r.t[0]) / (r.T or 1.0))
+            cols.append((r.t[idx] - r.t[0]) / (r.T or 1.0))
         for c in cols:
             full = np.zeros(sig.e.size)
             full[off[k]:off[k + 1]] = c * sig.w[k]
@@ -425,11 +447,18 @@ def diagnose(problem: Problem, z_full: np.ndarray, *, candidates: list[str] | No
     gains, ss = _scores(problem, z_full, names)
     scores = {n: g / ss for n, g in gains.items()}
     why = _explain(problem, facts, scores, names)
-    white = chi2 <= WHITE_CHI2 or (rho < 0.3 and runs_z > -3.0)
+    white = chi2 <= max(WHITE_CHI2, 1.0 + WHITE_Z * math.sqrt(2.0 * _noise_tau(problem) / max(en.size, 1)))
     ranking = sorted(names, key=lambda n: -gains.get(n, 0.0))
     rmse = errors.rmse if errors is not None else float("nan")
     nrmse = errors.nrmse if errors is not None else float("nan")
     return Diagnosis(rmse, nrmse, rho, runs_z, white, chi2, facts, scores, gains, why, ranking, structure(en, cat))
+
+
+def _noise_tau(problem: Problem) -> float:
+    """The median over records of their noise's integrated autocorrelation time at the fitting spacing."""
+    taus = [r.noise.tau(float(np.median(np.diff(r.fit_idx))) if r.fit_idx.size > 1 else 1.0)
+            for r in problem.records]
+    return float(np.median(taus)) if taus else 1.0
 
 
 def _explain(problem: Problem, f: dict[str, Any], scores: dict[str, float], names: list[str]) -> dict[str, str]:

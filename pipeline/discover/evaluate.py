@@ -8,12 +8,16 @@ discovery (RMSE, NRMSE = RMSE / range of the measured stress, max error) for
 * **before** — the base model alone, as ``esmm calibrate`` fitted it, with
   no correction of the data; and
 * **after** — the final model: the base model refitted with the kept material
-  effects (viscoelasticity, Mullins softening, damage), and the kept
-  measurement artefacts (slack, load-cell offset and drift) *re-estimated on
-  each new file*, because they belong to a test, not to the material.
+  effects (viscoelasticity, Mullins softening, damage, ...) and strain-energy
+  terms, as saved.
 
-Nothing of the material is refitted. The JSON document (schema
-``esmm.evaluate/1``) is described in docs/reference/outputs.md.
+Nothing is refitted by default: the material as saved, and no measurement
+artefact (a new file's slack, offset, specimen scale and slips are its own and
+unknown, so none is applied). With ``refit_artefacts=True``
+(``esmm evaluate --refit-artefacts``) the artefacts the discovery kept are
+re-estimated on each new file with the material held, and the report says so
+(those errors then use the new files' own data for the corrections). The JSON
+document (schema ``esmm.evaluate/1``) is described in docs/reference/outputs.md.
 """
 
 from __future__ import annotations
@@ -158,6 +162,7 @@ class Evaluation:
     after: Errors
     artefacts: dict[str, dict[str, Any]]
     warnings: list[str]
+    artefacts_refitted: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -171,19 +176,25 @@ class Evaluation:
             "files": list(self.files),
             "before": self.before.to_dict(),
             "after": self.after.to_dict(),
+            "artefacts_refitted": self.artefacts_refitted,
             "artefacts": self.artefacts,
             "warnings": list(self.warnings),
         }
 
 
-def evaluate(fit: SavedFit | str | Path, tests: list[TensileTest], *, reporter: Reporter | None = None) -> Evaluation:
-    """Predict *tests* with a saved fit; re-estimate per-test artefacts only.
+def evaluate(fit: SavedFit | str | Path, tests: list[TensileTest], *, refit_artefacts: bool = False,
+             reporter: Reporter | None = None) -> Evaluation:
+    """Predict *tests* with a saved fit, refitting nothing (module docstring).
 
     Parameters
     ----------
     fit : SavedFit or path
         From :func:`load_fit`, or a folder/file it accepts.
     tests : list of TensileTest
+    refit_artefacts : bool
+        Re-estimate the kept measurement artefacts (slack, load-cell offset and
+        drift, specimen scale, grip slips) on each new file, the material held.
+        Off by default: the prediction is then the material's alone.
 
     Returns
     -------
@@ -206,9 +217,13 @@ def evaluate(fit: SavedFit | str | Path, tests: list[TensileTest], *, reporter: 
     pb = Problem(m, records, base_spec, fixed=dict(saved.fixed), directions=saved.directions, bounds=bounds,
                  free_scales=True)
     before = full_errors(pb, pb.params.encode(_per_direction(saved.base)))
-    # after: final material + effects; artefacts re-estimated per file
+    # after: final material + effects; artefacts re-estimated per file only when asked
+    if not refit_artefacts:
+        spec = _without_artefacts(spec)
     pa = pb.derived(spec)
-    za = _artefacts_refitted(pa, pa.params.encode(_per_direction(saved.final), effects))
+    za = pa.params.encode(_per_direction(saved.final), effects)
+    if refit_artefacts:
+        za = _artefacts_refitted(pa, za)
     after = full_errors(pa, za)
     fitted = Fitted(spec, pa, za, {}, after)
     artefacts = {n: effect_params(fitted, n) for n in ARTEFACTS if spec.variant(n)}
@@ -218,7 +233,7 @@ def evaluate(fit: SavedFit | str | Path, tests: list[TensileTest], *, reporter: 
              f"{before.nrmse:.2%} (base) -> {after.nrmse:.2%} (with {', '.join(saved.effects) or 'nothing more'})")
     if not math.isfinite(after.rmse):
         warnings.append("the model cannot predict some samples (outside its admissible range)")
-    return Evaluation(saved, [str(t.source) for t in tests], before, after, artefacts, warnings)
+    return Evaluation(saved, [str(t.source) for t in tests], before, after, artefacts, warnings, refit_artefacts)
 
 
 def _check_orientations(saved: SavedFit, tests: list[TensileTest]) -> None:
@@ -253,6 +268,13 @@ def _not_applied(spec: Spec, records) -> list[str]:
     return warnings
 
 
+def _without_artefacts(spec: Spec) -> Spec:
+    """*spec* with every measurement artefact off (the material's prediction alone)."""
+    for n in ARTEFACTS:
+        spec = spec.with_(n, 0)
+    return spec
+
+
 def _artefacts_refitted(prob: Problem, z: np.ndarray) -> np.ndarray:
     """*z* with the per-file artefact parameters re-estimated, the material held."""
     own = [i for i, s in enumerate(prob.slots) if s.file is not None]
@@ -270,7 +292,9 @@ def summary_lines(ev: Evaluation) -> list[str]:
         return "–" if v is None or not math.isfinite(v) else f"{100 * v:.2f} %"
 
     eff = ", ".join(ev.fit.effects) or "nothing more"
-    lines = [f"fit: {ev.fit.path} ({ev.fit.kind}, {ev.fit.model}; effects: {eff})",
+    how = ("the kept artefacts re-estimated on each file (--refit-artefacts)" if ev.artefacts_refitted
+           else "nothing refitted")
+    lines = [f"fit: {ev.fit.path} ({ev.fit.kind}, {ev.fit.model}; effects: {eff}; {how})",
              f"{'file':<28} {'NRMSE before':>13} {'NRMSE after':>12} {'RMSE after [Pa]':>16} {'max after [Pa]':>15}"]
     for b, a in zip(ev.before.per_file, ev.after.per_file):
         lines.append(f"{Path(a['file']).name[:28]:<28} {pct(b['nrmse']):>13} {pct(a['nrmse']):>12} "

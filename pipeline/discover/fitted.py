@@ -25,6 +25,7 @@ class Fitted:
     errors: Errors  # on all samples of the fitting files
     heldout: Errors | None = None
     estimates: list[Estimate] = field(default_factory=list)
+    cv: dict[str, Errors] = field(default_factory=dict)  # held-out errors per fold set (material, artefact)
 
     @property
     def values(self) -> Values:

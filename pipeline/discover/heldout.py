@@ -1,13 +1,26 @@
 """Held-out errors: which data a model is tested on without being fitted to them, and how.
 
-Held-out schemes, in order of preference (:func:`make_folds`): leave one
-loading-rate group out (several rates); leave one of five consecutive blocks of
-every file out when the files are different specimens that each hold or unload
-after their first loading (the effects tested within each specimen); leave
-one file out (several files of a loading mode); leave one cycle out (one file
-with several cycles); leave one of five consecutive blocks of every file out. A file is never held out if it is
-the only one of its loading mode (that would test extrapolation between modes,
-not effects).
+Two fold sets (docs/design/discovery.md, "Held-out data: the folds, and what is refitted"):
+
+* the **material scheme** (:func:`make_folds`), in order of preference: leave one
+  loading-rate group out (several strain rates); leave one of five consecutive
+  blocks of every file out when the files are different specimens that each
+  hold or unload after their first loading; leave one file out (several files
+  of a loading mode); leave one cycle out (one file with several cycles, its
+  first loading always fitted); leave one of five consecutive blocks of every
+  file out. A file is never held out if it is the only one of its loading mode
+  (that would test extrapolation between modes, not effects).
+* the **artefact scheme** (:func:`artefact_folds`): five consecutive blocks of
+  every file, the first loading always fitted. A per-file artefact (slack, grip
+  slips, a specimen's stress scale, a load-cell offset and drift) is estimated
+  on the training samples *of the same file* and judged on its held-out
+  samples; on a held-out file it could only be estimated from that file's own
+  data, which the base model has no such freedom to use.
+
+What a fold refits: every parameter on the fold's training samples; a record
+without training samples (a held-out file) keeps its per-file parameters at
+their neutral values (no slack, no slip, scale 1, no offset): nothing is
+estimated on held-out data.
 """
 
 from __future__ import annotations
@@ -23,8 +36,17 @@ from .fitted import Fitted
 from .records import Record
 from .statistics import Errors, error_measures
 
+#: a fold's refit from the full-data optimum: at most this many evaluations per parameter (plus two) ...
+FOLD_NFEV = 5
+#: ... to this relative tolerance of the cost
+FOLD_FTOL = 1e-5
 #: most folds of any held-out scheme
 MAX_FOLDS = 5
+#: blocks of the block schemes
+BLOCKS = 5
+#: a record is cut in blocks after its first loading only when at least this many samples follow it
+#: (BLOCKS blocks of ten samples or more); else the whole record is cut
+MIN_AFTER = 10 * BLOCKS
 
 
 @dataclass
@@ -32,6 +54,30 @@ class Fold:
     name: str
     train: list  # per record: None (all fitting samples) or positions (possibly empty)
     test: list  # per record: None (not tested) or a boolean mask over all samples
+
+
+@dataclass
+class FoldSet:
+    """A held-out scheme: its name (``scheme``), its folds, and the key under which errors are cached."""
+
+    key: str  # "material" or "artefact"
+    scheme: str
+    folds: list[Fold]
+
+
+def artefact_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
+    """The artefact scheme: five consecutive blocks of every file, the first loading always fitted."""
+    return _block_folds(records)
+
+
+def fold_sets(records: Sequence[Record]) -> tuple[FoldSet, FoldSet]:
+    """(material scheme, artefact scheme); one object when both are the block scheme."""
+    scheme, folds = make_folds(records)
+    mat = FoldSet("material", scheme, folds)
+    if scheme.startswith("leave one of"):  # the block scheme already
+        return mat, mat
+    a_scheme, a_folds = artefact_folds(records)
+    return mat, FoldSet("artefact", a_scheme, a_folds)
 
 
 def make_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
@@ -110,15 +156,23 @@ def _file_folds(records: Sequence[Record]) -> tuple[str, list[Fold]] | None:
 
 
 def _cycle_folds(records: Sequence[Record]) -> tuple[str, list[Fold]] | None:
-    """Leave one cycle out of a single file with several cycles."""
-    if len(records) != 1 or not records[0].history or records[0].cov.n_cycles < 2:
+    """Leave one cycle out of a single file with three cycles or more; the first cycle is always fitted.
+
+    The first cycle (the first loading) is what determines the elastic law:
+    held out, its prediction would test the law's extrapolation from softened
+    cycles, not the effects (a softening from cycle to cycle is then confounded
+    with a softer law). Every later cycle is predicted with the history of the
+    whole record run through the model.
+    """
+    if len(records) != 1 or not records[0].history or records[0].cov.n_cycles < 3:
         return None
     r = records[0]
-    nc = r.cov.n_cycles
-    groups = [list(range(c, nc, min(nc, MAX_FOLDS))) for c in range(min(nc, MAX_FOLDS))]
+    later = list(range(1, r.cov.n_cycles))
+    nf = min(len(later), MAX_FOLDS)
+    groups = [later[j::nf] for j in range(nf)]
     folds = [_block_fold(f"cycle {', '.join(str(c + 1) for c in g)}", records, {0: np.isin(r.cov.cycle, g)})
              for g in groups]
-    return "leave one cycle out", folds
+    return "leave one cycle out, the first always fitted", folds
 
 
 def _block_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
@@ -131,17 +185,17 @@ def _block_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
     """
     folds = []
     after = [_after_first_loading(r) for r in records]
-    for j in range(5):
+    for j in range(BLOCKS):
         masks = {}
         for k, r in enumerate(records):
             n = r.test.n
             a = after[k]
-            edges = (a + np.linspace(0, n - a, 6)).round().astype(int)
+            edges = (a + np.linspace(0, n - a, BLOCKS + 1)).round().astype(int)
             mask = np.zeros(n, bool)
             mask[edges[j]:edges[j + 1]] = True
             masks[k] = mask
-        folds.append(_block_fold(f"block {j + 1}/5", records, masks))
-    scheme = "leave one of 5 consecutive blocks out" + (" (of every file)" if len(records) > 1 else "")
+        folds.append(_block_fold(f"block {j + 1}/{BLOCKS}", records, masks))
+    scheme = f"leave one of {BLOCKS} consecutive blocks out" + (" (of every file)" if len(records) > 1 else "")
     if any(after):
         scheme += ", the first loading always fitted"
     return scheme, folds
@@ -153,7 +207,7 @@ def _after_first_loading(r: Record) -> int:
     if not r.history:
         return 0
     k = int(np.argmax(r.cov.drive)) + 1
-    return k if r.test.n - k >= 50 else 0
+    return k if r.test.n - k >= MIN_AFTER else 0
 
 
 def _file_fold(name: str, records, held: list[int]) -> Fold:
@@ -177,30 +231,33 @@ def _block_fold(name: str, records, masks: dict[int, np.ndarray]) -> Fold:
 
 
 def heldout(fitted: Fitted, folds: Sequence[Fold]) -> Errors:
-    """Held-out errors of *fitted*'s model: refit per fold, predict what was left out.
+    """Held-out errors of *fitted*'s model: refit per fold on its training samples, predict what was left out.
 
-    Per-test artefact parameters (slack, offsets) of a held-out *file* are
-    re-estimated on that file with the material fixed (as ``esmm evaluate``
-    does); a held-out *block* keeps those fitted on the rest of its file.
+    A held-out *file* keeps its per-file parameters neutral (no slack, slip,
+    scale or offset is estimated on it); a held-out *block* is predicted with
+    the history of its whole file and the per-file parameters estimated on the
+    rest of that file. ``samples`` holds, per record index, (sample indices,
+    data, prediction, fold number) in time order.
     """
     prob = fitted.problem
-    per_file: dict[int, tuple[list, list, list]] = {}
-    for fold in folds:
+    per_file: dict[int, tuple[list, list, list, list]] = {}
+    for j, fold in enumerate(folds):
         z, fp = _fold_fit(fitted, fold)
         coefs = fp.offsets(z)
         for k, mask in enumerate(fold.test):
             if mask is None:
                 continue
             p = fp.full_prediction(k, z, coefs[k])
-            idx, ys, ps = per_file.setdefault(k, ([], [], []))
+            idx, ys, ps, fs = per_file.setdefault(k, ([], [], [], []))
             idx.append(np.flatnonzero(mask))
             ys.append(fp.records[k].y[mask])
             ps.append(p[mask])
+            fs.append(np.full(int(mask.sum()), j))
     samples = {}
-    for k, (idx, ys, ps) in per_file.items():
+    for k, (idx, ys, ps, fs) in per_file.items():
         i = np.concatenate(idx)
         order = np.argsort(i, kind="stable")
-        samples[k] = (i[order], np.concatenate(ys)[order], np.concatenate(ps)[order])
+        samples[k] = (i[order], np.concatenate(ys)[order], np.concatenate(ps)[order], np.concatenate(fs)[order])
     items = [(prob.records[k].name, v[1], v[2]) for k, v in sorted(samples.items())]
     spans = [(float(np.min(prob.records[k].y)), float(np.max(prob.records[k].y))) for k in sorted(samples)]
     out = error_measures(items, spans)
@@ -208,12 +265,27 @@ def heldout(fitted: Fitted, folds: Sequence[Fold]) -> Errors:
     return out
 
 
+def cached_heldout(fitted: Fitted, fs: FoldSet) -> Errors:
+    """:func:`heldout` of *fitted* on the fold set *fs*, computed once (kept in ``fitted.cv``); the
+    material scheme's errors are also ``fitted.heldout``."""
+    got = fitted.cv.get(fs.key)
+    if got is None:
+        got = fitted.heldout if fs.key == "material" and fitted.heldout is not None \
+            and fitted.heldout.samples is not None else heldout(fitted, fs.folds)
+        fitted.cv[fs.key] = got
+    if fs.key == "material":
+        fitted.heldout = got
+    return got
+
+
 def _fold_fit(fitted: Fitted, fold: Fold):
     """The whole model refitted on a fold's training samples (warm start), and that fold's problem.
 
-    A slot whose records are all held out (a held-out file's slack, slips,
-    specimen scale) is not fitted with the rest; it is re-estimated afterwards on
-    the held-out file with the material fixed, as ``esmm evaluate`` does.
+    The slots that act only on records without training samples (a held-out
+    file's slack, slips, specimen scale) are set to their neutral value (0: no
+    slack, no slip, scale e^0 = 1) and not fitted: nothing is estimated on
+    held-out data. (Its offset is not applied either: offsets are estimated on
+    training samples only.)
     """
     fp = fitted.problem.derived(train=fold.train)
     excluded = {k for k, t in enumerate(fold.train) if t is not None and len(t) == 0}
@@ -221,17 +293,12 @@ def _fold_fit(fitted: Fitted, fold: Fold):
     def own(s) -> bool:
         return bool(s.records) and all(k in excluded for k in s.records)
 
-    active = [i for i, s in enumerate(fp.slots) if not own(s)]
+    z0 = fitted.z.copy()
+    mine = [i for i, s in enumerate(fp.slots) if own(s)]
+    z0[mine] = 0.0
+    active = [i for i in range(len(fp.slots)) if i not in set(mine)]
     try:
-        z, _ = fp.solve(fitted.z.copy(), active=active, max_nfev=5 * (len(active) + 2), ftol=1e-5)
+        z, _ = fp.solve(z0, active=active, max_nfev=FOLD_NFEV * (len(active) + 2), ftol=FOLD_FTOL)
     except FitError:
-        z = fitted.z.copy()
-    if excluded:
-        fp.set_train([None if k in excluded else np.zeros(0, dtype=int) for k in range(len(fp.records))])
-        mine = [i for i, s in enumerate(fp.slots) if own(s)]
-        if mine:
-            try:
-                z, _ = fp.solve(z, active=mine, max_nfev=10 * (len(mine) + 2), ftol=1e-5)
-            except FitError:
-                pass
+        z = z0
     return z, fp

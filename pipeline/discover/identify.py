@@ -135,8 +135,15 @@ def _artefacts(records: Sequence[Record]) -> dict[str, Verdict]:
     processed = ("not applicable: artefacts are corrected on machine records (with a time column); a curve "
                  "without time has been processed already (digitised or averaged)")
     out: dict[str, Verdict] = {}
-    if any(slack_applicable(r) for r in records):
-        out["slack"] = (True, True, "applicable: tension tests from the undeformed state")
+    slack_files = sum(1 for r in records if slack_applicable(r))
+    if slack_files >= 2:
+        out["slack"] = (True, True, f"applicable: {slack_files} tension tests from the undeformed state (each "
+                        "mounting has its own slack)")
+    elif slack_files == 1:
+        out["slack"] = (True, False, "not identifiable from these data: in one test a slack (a specimen that "
+                        "carries no load until taut, or whose fibres become taut one after another) is the same "
+                        "curve as a material whose fibres start to straighten above the reference length; "
+                        "tests whose slacks differ (another mounting) would tell them apart")
     else:
         out["slack"] = (False, False, processed if not machine else "not applicable: slack is an artefact of "
                         "tension tests that start from zero displacement; these data have none")

@@ -2,9 +2,10 @@
 
 :func:`prepare` turns every :class:`~esmm.pipeline.tensile.TensileTest` into a
 :class:`Record`: the record is cut at a rupture (what follows a break is not
-the material's response), its measurement noise is estimated without a model
-(:func:`~esmm.pipeline.tensile.events.noise_sd`), grip slips are located,
-the covariates computed and the fitting samples chosen.
+the material's response), a force channel that lags the stretch is advanced
+(:func:`undo_force_lag`), its measurement noise is modelled without a model of
+the material (:func:`~esmm.pipeline.tensile.noise.noise_model`), grip slips are
+located, the covariates computed and the fitting samples chosen.
 
 The applicability rules of the artefacts (docs/design/discovery.md, "The extended model") live here:
 artefacts are corrected on *machine records* only — files with a time column,
@@ -16,15 +17,18 @@ told from the material law.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 from ..calibrate.problem import stress_scale
 from ..tensile.data import TensileTest
-from ..tensile.events import noise_sd, rupture_index, slip_events
+from ..tensile.events import SLIP_ALPHA, force_lag, rupture_index, slip_events
+from ..tensile.noise import Noise, noise_model
 from .covariates import Covariates, covariates, thin
 
 
@@ -54,6 +58,8 @@ class Record:
     fit_idx: np.ndarray
     weight: float = 1.0
     cut: dict[str, Any] = field(default_factory=dict)
+    #: ``{"seconds", "dropped"}`` when the force channel lagged the stretch and was advanced, else empty
+    lag: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self):
         t = self.test
@@ -69,10 +75,12 @@ class Record:
         self.area = t.metadata.get("area")
         self.gauge = t.metadata.get("gauge_length")
         self.T = float(self.t[-1] - self.t[0]) if self.t is not None else 0.0
-        #: white measurement noise of the stress [Pa], from the record alone
-        self.sigma = noise_sd(self.y)
+        #: the measurement noise of the stress, from the record alone (size [Pa], correlation, quantisation)
+        self.noise: Noise = noise_model(self.y, self.t)
+        #: its per-sample standard deviation [Pa]
+        self.sigma = self.noise.sigma
         #: samples where the grip slipped (the stretch is shifted from each on)
-        self.slips = slip_events(self.x, self.y, self.cov.direction) if self.history and self.tension_only else []
+        self.slips = slip_events(self.x, self.y, self.cov.direction, noise=self.noise) if self.history and self.tension_only else []
 
     @property
     def name(self) -> str:
@@ -111,21 +119,50 @@ class Record:
 
 def prepare(tests: Sequence[TensileTest], *, max_points: int = 600,
             weights: Sequence[float] | None = None) -> list[Record]:
-    """Records of *tests*: cut at ruptures, covariates, thinned fitting samples, noise."""
+    """Records of *tests*: cut at ruptures, the force's lag behind the stretch taken off, covariates, thinned
+    fitting samples, noise."""
     out = []
     for i, t in enumerate(tests):
         t, cut = cut_at_rupture(t)
         cov = covariates(t)
+        t, lag = undo_force_lag(t, cov)
+        if lag:
+            cov = covariates(t)
         idx = thin(t, max_points, cov=cov)
-        out.append(Record(t, cov, idx, 1.0 if weights is None else float(weights[i]), cut))
+        out.append(Record(t, cov, idx, 1.0 if weights is None else float(weights[i]), cut, lag))
     return out
+
+
+def undo_force_lag(t: TensileTest, cov: Covariates) -> tuple[TensileTest, dict[str, Any]]:
+    """*t* with its force channel advanced by the lag it shows behind the stretch
+    (:func:`~esmm.pipeline.tensile.events.force_lag`), and what was done (empty: no lag).
+
+    The stress at time t is read at t + d (linear interpolation); the samples of
+    the last d seconds, which have no stress reading any more, are dropped.
+    """
+    if t.time is None or t.mode == "simple_shear" or t.n < 8:
+        return t, {}
+    time_, y = np.asarray(t.time, float), np.asarray(t.stress, float)
+    d = force_lag(t.stretch, y, time_, cov.direction)
+    if d <= 0:
+        return t, {}
+    keep = np.flatnonzero(time_ + d <= time_[-1])
+    shifted = view_test(t, keep)
+
+    def advance(a):
+        return None if a is None else np.interp(time_[keep] + d, time_, np.asarray(a, float))
+
+    out = TensileTest(source=t.source, mode=t.mode, stretch=shifted.stretch, stress=advance(t.stress),
+                      time=shifted.time, displacement=shifted.displacement, force=advance(t.force),
+                      metadata=t.metadata)
+    return out, {"seconds": float(d), "dropped": int(t.n - keep.size)}
 
 
 def cut_at_rupture(t: TensileTest) -> tuple[TensileTest, dict[str, Any]]:
     """*t* without the samples from its rupture on (:func:`~esmm.pipeline.tensile.events.rupture_index`), and what was cut."""
     if t.time is None or t.mode == "simple_shear":
         return t, {}
-    k = rupture_index(t.stretch, t.stress, noise_sd(t.stress))
+    k = rupture_index(t.stretch, t.stress, noise_model(t.stress).sigma)
     if k is None or k < 10:
         return t, {}
     cut = {"index": int(k), "stretch": float(t.stretch[k]), "time": float(t.time[k]),
@@ -255,18 +292,27 @@ def set_applicable(rec: Record) -> bool:
     return float(np.min(after_peak)) - 1.0 <= 0.5 * span
 
 
-def strain_softening(rec: Record) -> bool:
-    """While the stretch increases on its first loading, the stress falls more than 10 noise standard
-    deviations below its maximum so far and does not come back: a descending branch that no stable
-    elastic law makes (a softening only damage explains)."""
+def strain_softening(rec: Record, alpha: float = SLIP_ALPHA) -> bool:
+    """While the stretch increases on a loading run, the stress falls below its maximum so far by more than
+    the noise can make it, and does not come back: a descending branch that no stable elastic law makes
+    (a softening only damage explains).
+
+    "More than the noise can make": the fall exceeds z √2 σ, √2 σ the largest
+    standard deviation of the noise's difference across any lag
+    (:meth:`~esmm.pipeline.tensile.noise.Noise.difference_sd`) and z the normal
+    quantile of *alpha* over the record's samples (Bonferroni: a clean record is
+    called softening with probability at most *alpha*).
+    """
     if not rec.tension_only:
         return False
+    z = float(stats.norm.isf(alpha / max(rec.y.size, 1)))
+    drop = z * math.sqrt(2.0) * rec.sigma
     d = rec.cov.direction
     for s0, e0 in [(a, b) for a, b, v in _runs_of(d) if v > 0]:
         y = rec.y[s0:e0]
         top = np.maximum.accumulate(y)
         later = np.maximum.accumulate(y[::-1])[::-1]
-        if np.any((y < top - 10.0 * rec.sigma) & (later < top)):
+        if np.any((y < top - drop) & (later < top)):
             return True
     return False
 

@@ -31,6 +31,7 @@ from ..materials.terms import TERMS
 from .covariates import thin
 from .fitted import Fitted
 from .search import DiscoverResult, discover
+from .statistics import resolution
 
 JSON_SCHEMA = "esmm.discover/1"
 MODEL_SCHEMA = "esmm.discover-model/1"
@@ -56,6 +57,12 @@ def _params_doc(f: Fitted) -> dict[str, Any]:
     if f.problem.directions:
         out["directions"] = {d: dict(st.base[d]) for d in f.problem.directions}
     return out
+
+
+def _nested_nrmse(res: DiscoverResult, which: str) -> float | None:
+    """The nested held-out NRMSE before or after (None when not computed)."""
+    n = res.nested
+    return n[which]["nrmse"] if n and n.get(which) else None
 
 
 def _errors_doc(f: Fitted) -> dict[str, Any]:
@@ -86,6 +93,19 @@ def saved_model(res: DiscoverResult) -> dict[str, Any]:
     }
 
 
+def _noise_doc(r) -> dict[str, Any]:
+    """A record's noise model for the JSON: SD, quantisation step, correlation, at rest (SI units)."""
+    m = r.noise
+    spacing = float(np.median(np.diff(r.fit_idx))) if r.fit_idx.size > 1 else 1.0
+    pre = r.preload()
+    return {"sd_Pa": r.sigma, "sd_of_range": r.sigma / r.range, "quantum_Pa": m.quantum,
+            "correlation_samples": m.length,
+            "correlation_time_s": m.correlation_time if math.isfinite(m.correlation_time) else None,
+            "tau_at_fitting_spacing": m.tau(spacing), "separable": m.separable,
+            "resolution_Pa": resolution(r.y, r.sigma), "force_lag_s": r.lag.get("seconds", 0.0),
+            "at_rest": dict(zip(("mean_Pa", "sd_Pa", "samples"), pre)) if pre is not None else None}
+
+
 def result_to_dict(res: DiscoverResult) -> dict[str, Any]:
     """The JSON document of a discovery (schema ``esmm.discover/1``, docs/reference/outputs.md)."""
     fin, base = res.final, res.base
@@ -99,17 +119,17 @@ def result_to_dict(res: DiscoverResult) -> dict[str, Any]:
         "samples": int(sum(r.test.n for r in res.records)),
         "fitting_samples": int(sum(r.fit_idx.size for r in res.records)),
         "base": {"model": res.model, **_errors_doc(base), **_params_doc(base),
+                 "nested_heldout_nrmse": _nested_nrmse(res, "before"),
                  "lag1": d0.lag1 if d0 else None, "runs_z": d0.runs_z if d0 else None,
                  "chi2_per_sample": d0.chi2 if d0 else None},
         "effects": list(res.kept),
-        "noise": {r.name: {"sd_Pa": r.sigma, "sd_of_range": r.sigma / r.range,
-                           "at_rest": (dict(zip(("mean_Pa", "sd_Pa", "samples"), r.preload()))
-                                       if r.preload() is not None else None)} for r in res.records},
+        "noise": {r.name: _noise_doc(r) for r in res.records},
         "ruptures": res.cuts,
         "slips": {r.name: [int(k) for k in r.slips] for r in res.records if r.slips},
         "outcome": res.outcome,
         "final": {
             "model": res.final_model, "terms": res.terms, **_errors_doc(fin), **_params_doc(fin),
+            "nested_heldout_nrmse": _nested_nrmse(res, "after"),
             "effects": res.material_effects.to_dict(),
             "artefacts": {n: res.candidates[n].params for n in res.kept if n in ARTEFACTS},
             "parameters": {e.key: e.to_dict() for e in fin.estimates},
@@ -118,7 +138,9 @@ def result_to_dict(res: DiscoverResult) -> dict[str, Any]:
         },
         "candidates": [c.to_dict() for c in res.candidates.values()],
         "not_identifiable": list(res.not_identifiable),
-        "heldout": {"scheme": res.scheme, "folds": list(res.folds)},
+        "heldout": {"scheme": res.scheme, "folds": list(res.folds), "artefact_scheme": res.artefact_scheme,
+                    "alpha": res.settings.get("alpha"), "levels": [lv.to_dict() for lv in res.levels],
+                    "nested": res.nested},
         "diagnosis": [d.to_dict() for d in res.diagnoses],
         "summary": plain_language(res),
         "warnings": list(res.warnings),
@@ -232,6 +254,11 @@ def plain_language(res: DiscoverResult) -> str:
     for name, cut in res.cuts.items():
         words.append(f"{name} ruptured at stretch {cut['stretch']:.4g}; the {cut['dropped']} samples after the "
                      "rupture are not the material's response and were left out.")
+    for r in res.records:
+        if r.lag:
+            words.append(f"In {r.name} the force lags the stretch by {r.lag['seconds']:.3g} s where the loading "
+                         "turns (the acquisition's filters; a material's stress never peaks after its strain): the "
+                         "force was advanced by that much.")
     d0 = res.diagnoses[0] if res.diagnoses else None
     if d0 is not None:
         if d0.white:
@@ -243,8 +270,12 @@ def plain_language(res: DiscoverResult) -> str:
                          "systematic.")
     if res.kept:
         parts = [_effect_sentence(res, n) for n in res.kept]
+        na = _nested_nrmse(res, "after")
+        held = (f"{_pct(na)} on data held out of the whole selection, {_pct(_nested_nrmse(res, 'before'))} "
+                "before" if na is not None and res.nested.get("selection_rerun")
+                else f"{_pct(f.heldout.nrmse if f.heldout else None)} held out")
         words.append("Adding what the data show — " + "; ".join(parts) + " — brings the error to "
-                     f"{_pct(f.errors.nrmse)} ({_pct(f.heldout.nrmse if f.heldout else None)} held out).")
+                     f"{_pct(f.errors.nrmse)} ({held}).")
         words += _kinds_sentences(res)
     elif d0 is not None and d0.white:
         words.append("Nothing more to add: what is left is noise.")
@@ -273,6 +304,9 @@ def summary_lines(res: DiscoverResult) -> list[str]:
         f"  final (+{', '.join(res.kept) or 'nothing'}):  RMSE {f.errors.rmse:.4g} Pa  NRMSE {_pct(f.errors.nrmse)}  "
         f"max {f.errors.max_abs:.4g} Pa  held-out NRMSE {_pct(f.heldout.nrmse if f.heldout else None)}",
     ]
+    nb, na = _nested_nrmse(res, "before"), _nested_nrmse(res, "after")
+    if nb is not None and res.nested.get("selection_rerun"):
+        lines.append(f"  nested held-out NRMSE (the selection run again inside each fold): {_pct(nb)} -> {_pct(na)}")
     for c in res.candidates.values():
         lines.append(f"  {'+' if c.kept else '-'} {c.name:<22} {c.reason}")
     if res.outcome:
@@ -282,52 +316,12 @@ def summary_lines(res: DiscoverResult) -> list[str]:
 
 def markdown(res: DiscoverResult, *, plots: bool = True) -> str:
     """The discovery report (Markdown)."""
-    b, f = res.base, res.final
     L = [f"# What the {res.model} model is missing", "",
          f"esmm {__version__}; {len(res.records)} file(s), {sum(r.test.n for r in res.records)} samples "
          f"({sum(r.fit_idx.size for r in res.records)} used for fitting); {res.seconds:.1f} s.", "",
-         "## In plain words", "", plain_language(res), "",
-         "## Error before and after", "",
-         f"Held-out scheme: {res.scheme} ({len(res.folds)} folds: {'; '.join(res.folds)}). NRMSE = RMSE / "
-         "range of the measured stress; every file counts equally; errors on all samples.", "",
-         "| model | RMSE [Pa] | NRMSE | max error [Pa] | held-out RMSE [Pa] | held-out NRMSE | held-out max [Pa] |",
-         "| --- | --- | --- | --- | --- | --- | --- |"]
-    for label, m in ((f"base ({res.model})", b), (f"final (+{', '.join(res.kept) or 'nothing'})", f)):
-        h = m.heldout
-        L.append(f"| {label} | {m.errors.rmse:.4g} | {_pct(m.errors.nrmse)} | {m.errors.max_abs:.4g} | "
-                 f"{h.rmse if h else float('nan'):.4g} | {_pct(h.nrmse if h else None)} | "
-                 f"{h.max_abs if h else float('nan'):.4g} |")
-    L += ["", "Per file (fit data):", "", "| file | NRMSE before | NRMSE after | held-out before | held-out after |",
-          "| --- | --- | --- | --- | --- |"]
-    hb = {e["file"]: e for e in (b.heldout.per_file if b.heldout else [])}
-    hf = {e["file"]: e for e in (f.heldout.per_file if f.heldout else [])}
-    for e0, e1 in zip(b.errors.per_file, f.errors.per_file):
-        n = e0["file"]
-        L.append(f"| {n} | {_pct(e0['nrmse'])} | {_pct(e1['nrmse'])} | {_pct(hb.get(n, {}).get('nrmse'))} | "
-                 f"{_pct(hf.get(n, {}).get('nrmse'))} |")
-    L += ["", "## Candidates", "", "Fitted Δχ²: the fit's improvement in noise variances (noise estimated from each "
-          "record alone); penalty ln N per parameter. Held-out z: the held-out improvement in standard errors "
-          "(needs 2). docs/design/discovery.md, 'The two tests, and their assumptions'.", "",
-          "| candidate | kind | kept | variant | fitted Δχ² | noise BIC | held-out NRMSE | held-out z | ΔAICc | reason |",
-          "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for c in res.candidates.values():
-        L.append(f"| {c.name} | {c.kind} | {'yes' if c.kept else 'no'} | {c.variant or '–'} | {_num(c.dchi2)} | "
-                 f"{_num(c.dbic_noise, '+.1f')} | {_pct(c.heldout_nrmse)} | {_num(c.heldout_z, '+.1f')} | "
-                 f"{_num(c.delta_aicc, '+.1f')} | {c.reason} |")
-    L += ["", "## Final parameters (95 % confidence intervals)", "", "| parameter | value | 95 % interval | unit |",
-          "| --- | --- | --- | --- |"]
-    for e in f.estimates:
-        flag = " (not identifiable)" if e.wide else ""
-        L.append(f"| {e.key} | {e.value:.6g}{flag} | [{e.lower:.4g}, {e.upper:.4g}] | {e.unit or '–'} |")
-    for k, v in res.settings["fixed"].items():
-        L.append(f"| {k} | {v:.6g} (held) | – | – |")
-    L += ["", "## Measurement noise (from each record alone)", "",
-          "| file | noise sd | of the range | at rest before loading |", "| --- | --- | --- | --- |"]
-    for r in res.records:
-        pre = r.preload()
-        L.append(f"| {r.name} | {r.sigma:.4g} Pa | {100 * r.sigma / r.range:.3g} % | "
-                 f"{'–' if pre is None else f'{pre[0]:.4g} ± {pre[1]:.3g} Pa ({pre[2]} samples)'} |")
-    L += ["", "## Residual structure by round", ""]
+         "## In plain words", "", plain_language(res), ""]
+    L += _md_errors(res) + _md_candidates(res) + _md_parameters(res) + _md_noise(res)
+    L += ["## Residual structure by round", ""]
     for i, d in enumerate(res.diagnoses, start=1):
         L.append(f"Round {i}: {d.chi2:.3g} noise variances per sample, lag-1 autocorrelation {d.lag1:.2f}, "
                  f"runs-test z {d.runs_z:.1f}{' (at the noise level)' if d.white else ''}.")
@@ -337,9 +331,91 @@ def markdown(res: DiscoverResult, *, plots: bool = True) -> str:
     if res.warnings:
         L += ["## Warnings", ""] + [f"- {w}" for w in res.warnings] + [""]
     if plots:
-        L += ["## Plots", "", "![residuals before](residuals_before.png)", "",
+        L += ["## Plots", "", "Top: stress against stretch (moving samples) and against time; bottom: the residual "
+              "model − data against time and stretch.", "", "![residuals before](residuals_before.png)", "",
               "![residuals after](residuals_after.png)", ""]
     return "\n".join(L)
+
+
+def _md_errors(res: DiscoverResult) -> list[str]:
+    """The error table: fitted, held out (the material scheme) and nested."""
+    b, f = res.base, res.final
+    n = res.nested or {}
+    L = ["## Error before and after", "",
+         f"Held-out scheme: {res.scheme} ({len(res.folds)} folds: {'; '.join(res.folds)}); per-file artefacts "
+         f"judged on: {res.artefact_scheme}. NRMSE = RMSE / range of the measured stress; every file counts "
+         "equally; errors on all samples. *Nested*: the whole selection run again inside each fold on its "
+         "training samples, the model it chose predicting the fold's held-out samples"
+         + ("" if n.get("selection_rerun") else " (nothing was kept: the base model's held-out error)") + ".", "",
+         "| model | RMSE [Pa] | NRMSE | max error [Pa] | held-out NRMSE | nested held-out RMSE [Pa] | "
+         "nested held-out NRMSE |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    for label, m, key in ((f"base ({res.model})", b, "before"), (f"final (+{', '.join(res.kept) or 'nothing'})", f,
+                                                                   "after")):
+        h, nd = m.heldout, n.get(key) or {}
+        L.append(f"| {label} | {m.errors.rmse:.4g} | {_pct(m.errors.nrmse)} | {m.errors.max_abs:.4g} | "
+                 f"{_pct(h.nrmse if h else None)} | {_num(nd.get('rmse'))} | {_pct(nd.get('nrmse'))} |")
+    if n.get("selection_rerun"):
+        L += ["", "Kept inside each outer fold: " + "; ".join(
+            f"{name}: {', '.join(k) or 'nothing'}" for name, k in zip(res.folds, n["kept_per_fold"])) + "."]
+    L += ["", "Per file (fit data):", "", "| file | NRMSE before | NRMSE after | held-out before | held-out after |",
+          "| --- | --- | --- | --- | --- |"]
+    hb = {e["file"]: e for e in (b.heldout.per_file if b.heldout else [])}
+    hf = {e["file"]: e for e in (f.heldout.per_file if f.heldout else [])}
+    for e0, e1 in zip(b.errors.per_file, f.errors.per_file):
+        name = e0["file"]
+        L.append(f"| {name} | {_pct(e0['nrmse'])} | {_pct(e1['nrmse'])} | {_pct(hb.get(name, {}).get('nrmse'))} | "
+                 f"{_pct(hf.get(name, {}).get('nrmse'))} |")
+    return L + [""]
+
+
+def _md_candidates(res: DiscoverResult) -> list[str]:
+    """Every candidate's statistics and verdict, with the search-wide levels."""
+    alpha = res.settings.get("alpha")
+    L = ["## Candidates", "",
+         f"A candidate is kept when its held-out one-sided p-value is at most its level (the search adds anything to "
+         f"records the model already explains with probability at most α = {alpha:g}: α/2^r in round r, split "
+         "equally over every candidate, variant and pair that round could test) and it lowers the held-out mean "
+         "squared error by at least one squared resolution per sample (the larger of the noise and 0.5 % of the "
+         "reading). Fitted Δχ²: the pre-screen, the fit's improvement in noise variances (the noise's correlation "
+         "counted; penalty ln N per parameter); it decides nothing, nor does ΔAICc. docs/design/discovery.md.", "",
+         "| candidate | kind | kept | variant | fitted Δχ² | held-out NRMSE | t | p | level | ΔAICc | reason |",
+         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for c in res.candidates.values():
+        L.append(f"| {c.name} | {c.kind} | {'yes' if c.kept else 'no'} | {c.variant or '–'} | {_num(c.dchi2)} | "
+                 f"{_pct(c.heldout_nrmse)} | {_num(c.heldout_z, '+.2f')} | {_num(c.heldout_p, '.2g')} | "
+                 f"{_num(c.heldout_level, '.2g')} | {_num(c.delta_aicc, '+.1f')} | {c.reason} |")
+    if res.levels:
+        L += ["", "Levels by round: " + "; ".join(
+            f"round {lv.round}: α_r {lv.round_alpha:.3g} over {lv.singles} candidates"
+            + (f" and {lv.pairs} pairs" if lv.pairs else "") + f" (each {lv.single:.2g})" for lv in res.levels) + "."]
+    return L + [""]
+
+
+def _md_parameters(res: DiscoverResult) -> list[str]:
+    L = ["## Final parameters (95 % confidence intervals)", "", "| parameter | value | 95 % interval | unit |",
+         "| --- | --- | --- | --- |"]
+    for e in res.final.estimates:
+        flag = " (not identifiable)" if e.wide else ""
+        L.append(f"| {e.key} | {e.value:.6g}{flag} | [{e.lower:.4g}, {e.upper:.4g}] | {e.unit or '–'} |")
+    for k, v in res.settings["fixed"].items():
+        L.append(f"| {k} | {v:.6g} (held) | – | – |")
+    return L + [""]
+
+
+def _md_noise(res: DiscoverResult) -> list[str]:
+    L = ["## Measurement noise (from each record alone)", "",
+         "| file | noise sd | of the range | quantisation step | correlation time | τ at the fitting spacing | "
+         "force lag (taken off) | at rest before loading |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in res.records:
+        d = _noise_doc(r)
+        pre = d["at_rest"]
+        ct = d["correlation_time_s"]
+        rest = "–" if pre is None else f"{pre['mean_Pa']:.4g} ± {pre['sd_Pa']:.3g} Pa ({pre['samples']} samples)"
+        L.append(f"| {r.name} | {r.sigma:.4g} Pa{'' if d['separable'] else ' (noise and signal not separable)'} | "
+                 f"{100 * r.sigma / r.range:.3g} % | {d['quantum_Pa']:.3g} Pa | "
+                 f"{'–' if ct is None else f'{ct:.3g} s'} ({d['correlation_samples']:.3g} samples) | "
+                 f"{d['tau_at_fitting_spacing']:.3g} | {d['force_lag_s']:.3g} s | {rest} |")
+    return L + [""]
 
 
 # --------------------------------------------------------------------------- TOML
@@ -381,7 +457,15 @@ def params_toml(res: DiscoverResult, *, which: str = "final", stress_unit: str |
 
 # --------------------------------------------------------------------------- plots
 def plot_residuals(path: str | Path, res: DiscoverResult, *, which: str = "base") -> Path:
-    """Data vs model and the residual against time, stretch and loading segment (one PNG)."""
+    """Data and model, and the residual (model − data, as calibrate's fit.png), against stretch and time.
+
+    Top: stress against stretch over the moving samples (loading and
+    unloading), and stress against time over every sample (a hold is a
+    relaxation in time, not a vertical smear at one stretch). Bottom: the
+    residual model − data against time and against stretch (moving samples).
+    Files follow one another on the time axis; a file without a time column
+    is drawn against its sample index.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -390,59 +474,48 @@ def plot_residuals(path: str | Path, res: DiscoverResult, *, which: str = "base"
     f = res.base if which == "base" else res.final
     unit, fac = display_stress_unit([r.scale for r in res.records])
     fig, ax = plt.subplots(2, 2, figsize=(13, 8.5), constrained_layout=True)
-    seg_res = _draw_records(ax, res, f, fac, plt.get_cmap("tab10"))
-    what = 'base ' + res.model if which == 'base' else 'final: +' + (', '.join(res.kept) or 'nothing')
-    ax[0, 0].set(xlabel="stretch λ (γ for shear)", ylabel=f"nominal stress [{unit}]")
+    timed = _draw_records(ax, res, f, fac, plt.get_cmap("tab10"))
+    what = "base " + res.model if which == "base" else "final: +" + (", ".join(res.kept) or "nothing")
+    tlabel = "time [s] (files one after another)" if timed else "sample index (no time column)"
+    ax[0, 0].set(xlabel="stretch λ [-] (γ for shear), moving samples", ylabel=f"nominal stress [{unit}]")
     ax[0, 0].set_title(f"{what}: data (dots) and model (lines)", fontsize=9 if len(what) > 40 else None, wrap=True)
     if len(res.records) <= 12:
         ax[0, 0].legend(fontsize=6, loc="best")
-    ax[0, 1].axhline(0, color="k", lw=0.5)
-    ax[0, 1].set(xlabel="file index + fraction of its duration", ylabel=f"data − model [{unit}]",
-                 title=f"residual along each test (NRMSE {_pct(f.errors.nrmse)})")
-    ax[1, 0].axhline(0, color="k", lw=0.5)
-    ax[1, 0].set(xlabel="stretch λ (γ for shear)", ylabel=f"data − model [{unit}]", title="residual vs stretch")
-    labels, data = [], []
-    for name, parts in seg_res.items():
-        v = np.concatenate(parts) if parts else np.zeros(0)
-        v = v[np.isfinite(v)]
-        if v.size:
-            labels.append(f"{name}\n(n={v.size})")
-            data.append(v)
-    if data:
-        ax[1, 1].boxplot(data, showfliers=False)
-        ax[1, 1].set_xticks(range(1, len(labels) + 1), labels, fontsize=8)
-    ax[1, 1].axhline(0, color="k", lw=0.5)
-    ax[1, 1].set(ylabel=f"data − model [{unit}]", title="residual by segment")
+    ax[0, 1].set(xlabel=tlabel, ylabel=f"nominal stress [{unit}]", title="stress against time (holds included)")
+    for a in (ax[1, 0], ax[1, 1]):
+        a.axhline(0, color="k", lw=0.5)
+    ax[1, 0].set(xlabel=tlabel, ylabel=f"model − data [{unit}]",
+                 title=f"residual: RMSE {f.errors.rmse / fac:.4g} {unit}, NRMSE {_pct(f.errors.nrmse)} of the range")
+    ax[1, 1].set(xlabel="stretch λ [-] (γ for shear), moving samples", ylabel=f"model − data [{unit}]",
+                 title="residual against stretch")
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
     plt.close(fig)
     return Path(path)
 
 
-def _draw_records(ax, res: DiscoverResult, f: Fitted, fac: float, cmap) -> dict[str, list[np.ndarray]]:
-    """Draw every record's data, model and residual; return the residuals by loading segment."""
+def _draw_records(ax, res: DiscoverResult, f: Fitted, fac: float, cmap) -> bool:
+    """Draw every record's data, model and residual (model − data); True when the records have time."""
     prob = f.problem
     coefs = prob.offsets(f.z)
-    seg_res: dict[str, list[np.ndarray]] = {"loading": [], "unloading": [], "hold": [], "toe": [], "high end": []}
+    offset, timed = 0.0, all(r.t is not None for r in res.records)
     for k, r in enumerate(res.records):
         c = cmap(k % 10)
         p = prob.full_prediction(k, f.z, coefs[k])
-        e = (r.y - p) / fac
+        e = (p - r.y) / fac
         sl = thin(r.test, 3000, cov=r.cov)  # arc-length thinning: ramps and holds both drawn
+        moving = sl[r.cov.direction[sl] != 0] if r.history else sl
         label = r.name if len(res.records) <= 12 else None
-        ax[0, 0].plot(r.x[sl], r.y[sl] / fac, ".", ms=1.5, color=c, alpha=0.35, label=label)
-        ax[0, 0].plot(r.x[sl], p[sl] / fac, "-", lw=1.0, color=c)
-        tt = r.cov.elapsed
-        tn = tt / (float(tt[-1]) or 1.0) + k
-        ax[0, 1].plot(tn[sl], e[sl], "-", lw=0.7, color=c)
-        ax[1, 0].plot(r.x[sl], e[sl], ".", ms=1.2, color=c, alpha=0.5)
-        d = r.cov.direction
-        seg_res["loading"].append(e[d > 0])
-        seg_res["unloading"].append(e[d < 0])
-        seg_res["hold"].append(e[d == 0])
-        seg_res["toe"].append(e[r.cov.toe])
-        seg_res["high end"].append(e[r.cov.high])
-    return seg_res
+        ax[0, 0].plot(r.x[moving], r.y[moving] / fac, ".", ms=1.5, color=c, alpha=0.35, label=label)
+        ax[0, 0].plot(r.x[moving], p[moving] / fac, "-", lw=1.0, color=c)
+        tt = (r.t - r.t[0]) if (timed and r.t is not None) else np.arange(r.test.n, dtype=float)
+        tt = tt + offset
+        offset = float(tt[-1]) + 0.02 * (float(tt[-1] - tt[0]) or 1.0)
+        ax[0, 1].plot(tt[sl], r.y[sl] / fac, ".", ms=1.5, color=c, alpha=0.35)
+        ax[0, 1].plot(tt[sl], p[sl] / fac, "-", lw=1.0, color=c)
+        ax[1, 0].plot(tt[sl], e[sl], "-", lw=0.7, color=c)
+        ax[1, 1].plot(r.x[moving], e[moving], ".", ms=1.2, color=c, alpha=0.5)
+    return timed
 
 
 # --------------------------------------------------------------------------- corrected data

@@ -1,39 +1,23 @@
-"""Statistics of a discovery: residual structure, the two tests a candidate must pass, error measures.
+"""Statistics of a discovery: residual structure, the pre-screen, the held-out test, error measures.
 
-A candidate is judged by two statistics whose assumptions real records meet
-(docs/design/discovery.md, "The two tests, and their assumptions"):
+docs/design/discovery.md, "The held-out test, and its assumptions":
 
-* :func:`noise_test` — the **fitted** improvement in units of the measurement
-  noise, which is estimated from each record alone
-  (:func:`~esmm.pipeline.tensile.events.noise_sd`), not from any model's
-  residual: ``Δχ² = Σ_f ΔRSS_f / σ_f²`` must exceed the Schwarz (BIC) penalty
-  ``Δk ln N`` of the parameters it adds. With the noise variance known, this is
-  the BIC of a Gaussian likelihood; its penalty grows as ln N, so it does not
-  explode on dense records, and on data the current model already explains to
-  the noise level ``Δχ²`` is a χ²(Δk) variable, which exceeds ``Δk ln N`` with
-  probability below 0.3 % for N ≥ 400.
-* :func:`paired_heldout` — the **held-out** improvement, on data left out of
-  the fit: (a) on average, the squared prediction error must fall by at least
-  one noise variance per sample (an effect that changes the prediction by less
-  than the measurement's own noise is not established by it); and (b)
-  beyond chance, by two standard errors (one-sided p ≈ 0.02) of either of two
-  paired statistics whose standard errors count their serial correlation
-  (integrated autocorrelation time, Geyer's initial positive sequence): the
-  mean difference of squared errors (the Diebold-Mariano test of predictive
-  accuracy), or a sign test — among the held-out samples where the two
-  predictions differ by more than the noise, the candidate is the closer one
-  more often than not. The sign test establishes a consistent improvement when
-  the mean's standard error is inflated by a few held-out segments of very
-  different size (cycles of rising amplitude); the mean establishes a large
-  improvement concentrated where the effect acts (the high-stretch end). Either
-  passing roughly doubles the false-positive rate of one test (about 4 %), and
-  the candidate must also have passed the noise test of its fit. (c) Not only
-  more often closer: when the sign test decides, the mean improvement must
-  still be at least one of its standard errors — a candidate closer on most
-  samples but no better on average changes the prediction without improving it.
+* :func:`noise_test` — the **pre-screen**: the fitted improvement in units of the
+  measurement noise (each record's χ² divided by its noise's autocorrelation time
+  at the fitting spacing) must exceed the Schwarz penalty ``Δk ln N``. It saves
+  the held-out check of candidates that cannot pay for themselves on the data
+  they were fitted to; it decides nothing.
+* :func:`heldout_test` — what **decides**: on data held out of the fit, a
+  one-sided p-value that the candidate predicts better beyond the measurement
+  noise (its variance from the record's noise model, the two models' predictions
+  fixed), judged at the search-wide level of :mod:`.levels`; a replication check
+  across the held-out segments (heteroskedasticity- and autocorrelation-consistent,
+  Student's t with Welch–Satterthwaite degrees of freedom, at
+  :data:`REPLICATION_LEVEL`); and a size of at least one squared resolution per
+  sample (the larger of the noise and :data:`FORCE_ACCURACY` of the reading).
 
-AICc and BIC on effective sample sizes (:func:`information`) are computed
-and reported for comparison; they do not decide.
+AICc and BIC on effective sample sizes (:func:`information`) are computed and
+reported for comparison; they decide nothing.
 """
 
 from __future__ import annotations
@@ -44,6 +28,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy import signal, stats
 
 from ..calibrate.intervals import lag1
 
@@ -102,24 +87,32 @@ def information(res: Sequence[np.ndarray], n_eff: Sequence[float], k: int) -> di
             "n_eff": N, "k": k}
 
 
-def noise_chi2(res: Sequence[np.ndarray], sigma: Sequence[float]) -> float:
-    """χ² = Σ_f Σ_k r_fk² / σ_f² of residuals (model - data, Pa) against each record's noise σ_f."""
+def noise_chi2(res: Sequence[np.ndarray], sigma: Sequence[float], tau: Sequence[float] | None = None) -> float:
+    """χ² = Σ_f Σ_k r_fk² / (σ_f² τ_f) of residuals (model - data, Pa) against each record's noise σ_f.
+
+    τ_f (default 1) is the integrated autocorrelation time of the record's noise
+    at its fitting samples' spacing: n correlated samples carry the information
+    of n/τ independent ones.
+    """
     tot = 0.0
-    for r, s in zip(res, sigma):
+    for f, (r, s) in enumerate(zip(res, sigma)):
         r = r[np.isfinite(r)]
-        tot += float(r @ r) / max(s, 1e-300) ** 2
+        tot += float(r @ r) / max(s, 1e-300) ** 2 / (tau[f] if tau is not None else 1.0)
     return tot
 
 
 def noise_test(res0: Sequence[np.ndarray], res1: Sequence[np.ndarray], sigma: Sequence[float],
-               dk: int) -> dict[str, float]:
-    """The fitted improvement of a candidate (res1) over the current model (res0) in noise units.
+               dk: int, tau: Sequence[float] | None = None) -> dict[str, float]:
+    """The pre-screen: the fitted improvement of a candidate (res1) over the current model (res0) in noise units.
 
     Returns ``{"dchi2", "penalty", "dbic"}``: ``dbic = -Δχ² + Δk ln N`` (negative: the
-    improvement pays for the parameters), N the number of fitting samples.
+    improvement pays for the parameters), N the number of fitting samples, Δχ²
+    with each record's χ² divided by its noise's autocorrelation time *tau*.
+    Only a pre-screen (it saves the held-out check of candidates that cannot
+    pay for themselves on the data they were fitted to); it decides nothing.
     """
     n = sum(int(np.isfinite(r).sum()) for r in res1)
-    d = noise_chi2(res0, sigma) - noise_chi2(res1, sigma)
+    d = noise_chi2(res0, sigma, tau) - noise_chi2(res1, sigma, tau)
     pen = max(dk, 0) * math.log(max(n, 2))
     return {"dchi2": d, "penalty": pen, "dbic": pen - d}
 
@@ -152,64 +145,193 @@ def autocorrelation_time(d: np.ndarray) -> float:
     return float(min(max(tau, 1.0), n))
 
 
-def paired_heldout(pairs: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, float, float]],
-                   ) -> dict[str, float]:
-    """The held-out improvement of a candidate over the current model (module docstring).
+def segment_mean(d: np.ndarray) -> tuple[float, float, float]:
+    """(mean, variance of the mean, degrees of freedom) of a serially correlated series *d*.
+
+    The variance of the mean is heteroskedasticity- and autocorrelation-consistent:
+    var(d) τ / n with τ the integrated autocorrelation time
+    (:func:`autocorrelation_time`); its degrees of freedom are those of n/τ
+    effective samples, n/τ − 1 (at least 1): a smooth series of n samples counts
+    as few.
+    """
+    d = np.asarray(d, float)
+    n = d.size
+    if n == 0:
+        return 0.0, 0.0, 1.0
+    if n == 1:
+        return float(d[0]), math.inf, 1.0
+    tau = autocorrelation_time(d)
+    return float(d.mean()), float(np.var(d, ddof=1)) * tau / n, max(n / tau - 1.0, 1.0)
+
+
+def heldout_test(segments: Sequence[HeldoutSegment]) -> dict[str, float]:
+    """The held-out comparison of a candidate with the current model: two one-sided p-values and a size.
+
+    Per held-out sample the loss difference is d = e₀² − e₁² (current minus
+    candidate squared error; e = prediction − data), > 0 where the candidate
+    predicts better, in units of the file's stress range² (files of any stress
+    level count alike). With Δ = p₀ − p₁ the difference of the two
+    predictions, d = Δ² + 2Δe₁. Per file, d is averaged over its held-out
+    samples, each segment (one fold's contiguous held-out samples of one file)
+    weighing by its samples; G = the mean over files, each counting equally.
+
+    * ``p`` — **beyond the measurement noise** (decides, at the search-wide
+      level). Both models were fitted on other data, so Δ is fixed and the
+      only randomness of d is the held-out data's noise ε, in 2Δε: its
+      variance σ² ΔᵀRΔ/n² per segment, R the noise model's correlation
+      (:func:`noise_variance`; σ and ρ(k) = e^{−k/ℓ} from the record alone,
+      :mod:`esmm.pipeline.tensile.noise`); T = G/se(G), normal reference.
+      Under the null "the candidate predicts no better" this p-value is valid
+      whatever the models' misfit, given the noise model.
+    * ``p_replication`` — **replicated across the held-out data** (a check at
+      :data:`REPLICATION_LEVEL`). The same G, its variance now that of the mean
+      of 2Δe₁ with e₁ the candidate's whole held-out residual, heteroskedasticity-
+      and autocorrelation-consistent per segment (:func:`segment_mean`),
+      Student's t with the Welch–Satterthwaite degrees of freedom,
+      ν = (Σ v)² / Σ (v²/ν_s), ν_s = n_s/τ_s − 1. What the candidate leaves
+      unexplained counts as variation here (the Diebold–Mariano view): an
+      improvement that is small next to the misfit left, or carried by a few
+      segments, does not replicate.
+    * **Size.** ``resolution_units``: the mean over files of the fall of the
+      held-out mean squared error in units of each file's resolution squared,
+      r_f = max(σ_f, :data:`FORCE_ACCURACY` × RMS of its stress) — the larger of
+      its noise and the accuracy of a testing machine's force channel; the
+      search requires at least one. A candidate that changes the prediction by
+      less than what the measurement can resolve is not established by it,
+      however many samples make the change significant. ``noise_units``: the same
+      in units of σ_f² alone (reported).
 
     Parameters
     ----------
-    pairs : sequence of (y, p0, p1, range, sigma)
-        Per file: held-out data, the current model's and the candidate's
-        predictions (time order), the file's stress range and noise σ [Pa].
+    segments : sequence of HeldoutSegment
 
     Returns
     -------
     dict
-        ``noise_units``: mean over files of ΔMSE_f / σ_f² (the held-out
-        improvement in noise variances per sample; > 0: the candidate predicts
-        better); ``gain``: the same per range² (NRMSE units); ``z``: the sign test —
-        among the held-out samples where the two predictions differ by more than
-        the noise, how much more often the candidate is the closer one, in
-        standard errors (the signs' serial correlation included); ``z_mean``:
-        the mean improvement in its standard errors; ``decided``: the samples
-        where the predictions differ; ``relative``: the fall of the held-out mean
-        squared error as a fraction of the current model's; ``relative_se``: that
-        error's own relative standard error (its sampling uncertainty, serial
-        correlation included).
+        ``p``, ``t``; ``p_replication``, ``t_replication``, ``dof``; ``gain`` (G,
+        the fall of the held-out MSE per range²); ``noise_units``,
+        ``resolution_units``; ``relative`` (the fall as a fraction of the current
+        model's held-out MSE); ``samples``.
     """
-    gains, units, var_mean = [], [], 0.0
-    sign_sum, sign_var, decided = 0.0, 0.0, 0
-    mse0, var0 = 0.0, 0.0
-    for y, p0, p1, rng, sig in pairs:
-        good = np.isfinite(p0) & np.isfinite(p1) & np.isfinite(y)
+    per_file: dict[str, list] = {}
+    for sg in segments:
+        good = np.isfinite(sg.p0) & np.isfinite(sg.p1) & np.isfinite(sg.y)
         if not good.any():
             continue
-        e0, e1 = np.abs(p0[good] - y[good]), np.abs(p1[good] - y[good])
-        d = e0 * e0 - e1 * e1
-        dn = d / max(rng, 1e-300) ** 2
-        gains.append(float(dn.mean()))
-        units.append(float(d.mean()) / max(sig, 1e-300) ** 2)
-        var_mean += float(np.var(dn)) * autocorrelation_time(dn) / dn.size
-        q0 = (e0 / max(rng, 1e-300)) ** 2
-        mse0 += float(q0.mean())
-        var0 += float(np.var(q0)) * autocorrelation_time(q0) / q0.size
-        differ = np.abs(p1[good] - p0[good]) > sig
-        if differ.sum() >= 2:
-            signs = np.sign(e0[differ] - e1[differ])
-            sign_sum += float(signs.sum())
-            sign_var += float(signs.size) * autocorrelation_time(signs)
-            decided += int(signs.size)
-    if not gains:
-        return {"gain": 0.0, "noise_units": 0.0, "z": 0.0, "z_mean": 0.0, "decided": 0, "relative": 0.0,
-                "relative_se": math.inf}
-    m = len(gains)
-    gain = float(np.mean(gains))
-    se = math.sqrt(var_mean) / m
-    return {"gain": gain, "noise_units": float(np.mean(units)),
-            "z": sign_sum / math.sqrt(sign_var) if sign_var > 0 else 0.0,
-            "z_mean": gain / se if se > 0 else 0.0, "decided": decided,
-            "relative": gain * m / mse0 if mse0 > 0 else 0.0,
-            "relative_se": math.sqrt(var0) / mse0 if mse0 > 0 else math.inf}
+        rng = max(sg.range, 1e-300)
+        delta = (sg.p0[good] - sg.p1[good]) / rng
+        e1 = (sg.p1[good] - sg.y[good]) / rng
+        mu, v, nu = segment_mean(delta * e1)
+        e0 = delta + e1
+        per_file.setdefault(sg.file, []).append(_Seg(
+            int(good.sum()), float(np.mean(delta * delta)) + 2.0 * mu, 4.0 * v, nu,
+            4.0 * noise_variance(delta, sg.sigma / rng, sg.length), float(np.mean(e0 * e0)),
+            (rng / max(sg.sigma, 1e-300)) ** 2, (rng / max(sg.resolution, sg.sigma, 1e-300)) ** 2))
+    return _combine(per_file)
+
+
+@dataclass
+class _Seg:
+    """A held-out segment's summary (see :func:`heldout_test`)."""
+
+    n: int
+    mean: float  # mean of d [range²]
+    var_hac: float  # variance of that mean, HAC of 2Δe1
+    dof: float  # its degrees of freedom
+    var_noise: float  # variance of that mean under the noise model
+    mse0: float  # the current model's held-out MSE [range²]
+    per_noise: float  # range² / σ²
+    per_resolution: float  # range² / r²
+
+
+def _combine(per_file: dict[str, list[_Seg]]) -> dict[str, float]:
+    """The statistics and the size from per-file lists of segment summaries (:func:`heldout_test`)."""
+    if not per_file:
+        return {"p": 1.0, "t": 0.0, "p_replication": 1.0, "t_replication": 0.0, "dof": 0.0, "gain": 0.0,
+                "noise_units": 0.0, "resolution_units": 0.0, "relative": 0.0, "samples": 0}
+    F = len(per_file)
+    gain = units = res_units = mse0 = var_hac = var_noise = ws_den = 0.0
+    total = 0
+    for segs in per_file.values():
+        n_f = sum(sg.n for sg in segs)
+        total += n_f
+        m_f = sum(sg.n * sg.mean for sg in segs) / n_f
+        gain += m_f / F
+        units += m_f * segs[0].per_noise / F
+        res_units += m_f * segs[0].per_resolution / F
+        mse0 += sum(sg.n * sg.mse0 for sg in segs) / n_f / F
+        for sg in segs:
+            w = (sg.n / n_f / F) ** 2
+            var_noise += w * sg.var_noise
+            c = w * sg.var_hac
+            var_hac += c
+            ws_den += c * c / sg.dof if math.isfinite(c) else math.inf
+    dof = var_hac * var_hac / ws_den if ws_den > 0 and math.isfinite(ws_den) else 1.0
+    t_n, p_n = _one_sided(gain, var_noise, math.inf)
+    t_h, p_h = _one_sided(gain, var_hac, dof)
+    return {"p": p_n, "t": t_n, "p_replication": p_h, "t_replication": t_h, "dof": float(dof), "gain": float(gain),
+            "noise_units": float(units), "resolution_units": float(res_units),
+            "relative": gain / mse0 if mse0 > 0 else 0.0, "samples": total}
+
+
+def _one_sided(gain: float, var: float, dof: float) -> tuple[float, float]:
+    """(t, one-sided p) of a mean *gain* with variance *var*: normal when *dof* is infinite, else Student's t."""
+    se = math.sqrt(var) if math.isfinite(var) and var >= 0 else math.inf
+    if se > 0 and math.isfinite(se):
+        t = gain / se
+    else:
+        t = math.inf if (gain > 0 and se == 0) else 0.0
+    if not math.isfinite(t):
+        return float(t), (0.0 if t > 0 else 1.0)
+    p = stats.norm.sf(t) if math.isinf(dof) else stats.t.sf(t, max(dof, 1.0))
+    return float(t), float(p)
+
+
+#: the level of the replication check (one-sided, not adjusted for multiplicity: the search-wide control is
+#: carried by the noise test; this check only removes candidates)
+REPLICATION_LEVEL = 0.05
+
+
+def noise_variance(delta: np.ndarray, sigma: float, length: float) -> float:
+    """Variance of the mean of Δε for noise ε of SD *sigma* and correlation ρ(k) = e^{−k/length}: σ² ΔᵀRΔ / n².
+
+    ΔᵀRΔ = Σ_k Δ_k² + 2 Σ_k Δ_k Σ_{l<k} ρ^{k−l} Δ_l, the inner sum a first-order recursion.
+    """
+    n = delta.size
+    if n == 0:
+        return math.inf
+    r = math.exp(-1.0 / length) if length > 0 else 0.0
+    quad = float(delta @ delta)
+    if r > 0:
+        s = signal.lfilter([0.0, r], [1.0, -r], delta)
+        quad += 2.0 * float(delta @ s)
+    return sigma * sigma * max(quad, 0.0) / (n * n)
+
+
+@dataclass
+class HeldoutSegment:
+    """One fold's contiguous held-out samples of one file: data, the two predictions, scale and noise."""
+
+    file: str
+    y: np.ndarray
+    p0: np.ndarray  # the current model's prediction [Pa]
+    p1: np.ndarray  # the candidate's prediction [Pa]
+    range: float  # the file's stress range [Pa]
+    sigma: float  # the file's noise standard deviation [Pa]
+    resolution: float = 0.0  # what the measurement resolves [Pa]: max(sigma, FORCE_ACCURACY x RMS stress)
+    length: float = 0.0  # the noise's correlation length [samples]
+
+
+#: the relative accuracy of a testing machine's force channel: ISO 7500-1 class 0.5 (the indicated force within
+#: 0.5 % of the reading over the calibrated range); a model change below it is not resolved by the measurement
+FORCE_ACCURACY = 0.005
+
+
+def resolution(y: np.ndarray, sigma: float) -> float:
+    """What a record resolves [Pa]: the larger of its noise σ and :data:`FORCE_ACCURACY` × the RMS of *y*."""
+    y = np.asarray(y, float)
+    y = y[np.isfinite(y)]
+    return max(float(sigma), FORCE_ACCURACY * (float(np.sqrt(np.mean(y * y))) if y.size else 0.0))
 
 
 @dataclass

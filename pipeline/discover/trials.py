@@ -1,32 +1,54 @@
-"""Fitting a candidate against the current model, and the two tests it must pass.
+"""Fitting a candidate against the current model, the pre-screen, and the held-out test that decides.
 
 A :class:`Trial` is a candidate model (current model + one candidate, every
-parameter refitted) with its fitted improvement in units of the measurement
-noise (:func:`~esmm.pipeline.discover.statistics.noise_test`) and, once
-checked, its held-out improvement
-(:func:`~esmm.pipeline.discover.statistics.paired_heldout`). AICc and BIC on
-effective sample sizes are computed for the report (they do not decide).
+parameter refitted) with
+
+* its **pre-screen** (:func:`~esmm.pipeline.discover.statistics.noise_test`):
+  the fitted improvement in units of the measurement noise, each record's χ²
+  divided by its noise's autocorrelation time at the fitting samples' spacing;
+  a candidate that cannot pay for its parameters on the data it was fitted to
+  is not checked further. It decides nothing;
+* once checked, its **held-out test**
+  (:func:`~esmm.pipeline.discover.statistics.heldout_test`): a one-sided
+  p-value of "the candidate predicts held-out data no better", from a
+  heteroskedasticity- and autocorrelation-consistent statistic, and the size
+  of the improvement in squared resolutions (the larger of the noise and the
+  force channel's accuracy). The search keeps a candidate when the p-value is
+  below the level its family-wise control gives it (:mod:`.levels`) and the
+  size is at least :data:`MIN_RESOLUTION_UNITS`.
+
+Material effects and strain-energy terms are judged on the material scheme's
+folds, per-file artefacts on the artefact scheme's (:mod:`.heldout`). AICc
+and BIC on effective sample sizes are computed for the report; they decide
+nothing.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from ..errors import FitError
+from ..materials.effects import ARTEFACTS
 from .fitted import Fitted, fit_spec
-from .heldout import Fold, heldout
-from .statistics import information, n_effective, noise_test, paired_heldout
+from .heldout import FoldSet, cached_heldout
+from .statistics import (
+    REPLICATION_LEVEL,
+    HeldoutSegment,
+    heldout_test,
+    information,
+    n_effective,
+    noise_test,
+    resolution,
+)
 
-#: a candidate must predict held-out data better by this many standard errors (one-sided p = 0.05)
-HELDOUT_Z = 1.645
-#: ... and by at least this many noise variances per held-out sample
-MIN_NOISE_UNITS = 1.0
-#: ... and, when the sign test establishes it, better on average by at least one standard error too
-MEAN_AT_LEAST = 1.0
+#: a candidate must lower the held-out mean squared error by at least this many squared resolutions per sample
+#: (:func:`~esmm.pipeline.discover.statistics.heldout_test`: the larger of the noise and the force accuracy)
+MIN_RESOLUTION_UNITS = 1.0
 
 
 @dataclass
@@ -35,10 +57,10 @@ class Trial:
 
     name: str
     fit: Fitted
-    noise: dict[str, float]  # noise_test against the current model
+    noise: dict[str, float]  # the pre-screen against the current model
     info: dict[str, float]
     ref: dict[str, float]  # the current model's AICc/BIC, on the candidate's effective sample sizes
-    heldout: dict[str, float] = field(default_factory=dict)  # paired_heldout, once checked
+    heldout: dict[str, Any] = field(default_factory=dict)  # heldout_test, once checked
 
     @property
     def dbic(self) -> float:
@@ -53,6 +75,11 @@ class Trial:
     def d_bic(self) -> float:
         return self.info["bic"] - self.ref["bic"]
 
+    @property
+    def screened(self) -> bool:
+        """The pre-screen passed: the fitted improvement pays for the parameters."""
+        return math.isfinite(self.dbic) and self.dbic < 0
+
     def summary(self) -> dict[str, Any]:
         return {"dchi2": self.noise["dchi2"], "penalty": self.noise["penalty"], "dbic_noise": self.dbic,
                 "delta_aicc": self.d_aicc, "delta_bic": self.d_bic, **{f"heldout_{k}": v for k, v in
@@ -63,26 +90,40 @@ def sigmas(f: Fitted) -> list[float]:
     return [r.sigma for r in f.problem.records]
 
 
+def noise_taus(f: Fitted) -> list[float]:
+    """Per record: the integrated autocorrelation time of its noise at its fitting samples' median spacing."""
+    out = []
+    for r in f.problem.records:
+        m = float(np.median(np.diff(r.fit_idx))) if r.fit_idx.size > 1 else 1.0
+        out.append(r.noise.tau(m))
+    return out
+
+
 def compared(name: str, f: Fitted, current: Fitted) -> Trial:
-    """*f* against *current*: noise test, and AICc/BIC on *f*'s effective sample sizes (for the report)."""
+    """*f* against *current*: the pre-screen, and AICc/BIC on *f*'s effective sample sizes (for the report)."""
     res1 = f.problem.fit_residuals(f.z)
     res0 = current.problem.fit_residuals(current.z)
     dk = f.problem.n_params() - current.problem.n_params()
     nu = n_effective(res1)
-    return Trial(name, f, noise_test(res0, res1, sigmas(f), dk), information(res1, nu, f.problem.n_params()),
-                 information(res0, nu, current.problem.n_params()))
+    return Trial(name, f, noise_test(res0, res1, sigmas(f), dk, noise_taus(f)),
+                 information(res1, nu, f.problem.n_params()), information(res0, nu, current.problem.n_params()))
 
 
-def best_variant(name: str, variants, current: Fitted, *, upgrade: bool = False) -> Trial | None:
+def best_variant(name: str, variants, current: Fitted, *, upgrade: bool = False,
+                 warm: Mapping[Any, Fitted] | None = None) -> Trial | None:
     """Fit the variants of *name* in order; a richer variant must pay for its parameters against the simpler.
 
-    Returns the best variant by the noise test (None if no fit succeeded).
+    Each fit starts from the fit of the same spec in *warm* when there is one
+    (the full search's, for an inner selection), else from the previous variant.
+    Returns the best variant by the pre-screen (None if no fit succeeded).
     """
     best: Trial | None = None
     prev: Trial | None = None
     for v in variants:
+        spec = current.spec.with_(name, v)
+        start = (warm or {}).get(spec) or (prev.fit if prev is not None else None)
         try:
-            f = fit_spec(current.spec.with_(name, v), current, init_from=prev.fit if prev is not None else None)
+            f = fit_spec(spec, current, init_from=start)
         except FitError:
             break
         t = compared(name, f, current)
@@ -96,28 +137,45 @@ def best_variant(name: str, variants, current: Fitted, *, upgrade: bool = False)
     return best
 
 
-def check_heldout(t: Trial, current: Fitted, folds: list[Fold], *, z: float = HELDOUT_Z,
-                  noise_units: float = MIN_NOISE_UNITS) -> bool:
-    """Run the held-out check of *t* against *current*; True when it passes (``t.heldout`` filled)."""
-    f = t.fit
-    if f.heldout is None or f.heldout.samples is None:
-        f.heldout = heldout(f, folds)
-    t.heldout = paired_heldout(_pairs(current, f))
-    h = t.heldout
-    return max(h["z"], h["z_mean"]) >= z and h["z_mean"] >= MEAN_AT_LEAST and h["noise_units"] >= noise_units
+def judged_on(names: str | list[str], material: FoldSet, artefact: FoldSet) -> FoldSet:
+    """The fold set a candidate is judged on: the artefact scheme when every name is a per-file artefact."""
+    names = [names] if isinstance(names, str) else names
+    return artefact if all(n in ARTEFACTS for n in names) else material
 
 
-def _pairs(current: Fitted, f: Fitted):
-    """Per record: (held-out data, current prediction, candidate prediction, range, noise), aligned by sample."""
+def check_heldout(t: Trial, current: Fitted, fs: FoldSet) -> dict[str, Any]:
+    """The held-out test of *t* against *current* on the fold set *fs* (fills and returns ``t.heldout``)."""
+    e0 = cached_heldout(current, fs)
+    e1 = cached_heldout(t.fit, fs)
+    t.heldout = {**heldout_test(segments(t.fit, e0, e1)), "scheme": fs.scheme, "fold_set": fs.key}
+    return t.heldout
+
+
+def passes(h: dict[str, Any], level: float, min_units: float = MIN_RESOLUTION_UNITS) -> bool:
+    """The decision: the noise test's p-value at most *level*, the replication check's at most
+    :data:`~esmm.pipeline.discover.statistics.REPLICATION_LEVEL`, and the improvement at least *min_units*
+    squared resolutions."""
+    return (bool(h) and h["p"] <= level and h["p_replication"] <= REPLICATION_LEVEL
+            and h["resolution_units"] >= min_units)
+
+
+def segments(f: Fitted, e0, e1) -> list[HeldoutSegment]:
+    """The held-out segments (one fold's contiguous held-out samples of one record) of two models' errors."""
     out = []
-    a, b = current.heldout.samples or {}, f.heldout.samples or {}
-    for k, (idx0, y0, p0) in a.items():
+    a, b = e0.samples or {}, e1.samples or {}
+    for k, (idx0, y0, p0, fold0) in a.items():
         if k not in b:
             continue
-        idx1, _, p1 = b[k]
-        common, i0, i1 = np.intersect1d(idx0, idx1, return_indices=True)
+        idx1, _, p1, _ = b[k]
+        _, i0, i1 = np.intersect1d(idx0, idx1, return_indices=True)
+        idx, y, q0, q1, fold = idx0[i0], y0[i0], p0[i0], p1[i1], fold0[i0]
         r = f.problem.records[k]
-        out.append((y0[i0], p0[i0], p1[i1], r.range, r.sigma))
+        res = resolution(r.y, r.sigma)
+        cuts = np.flatnonzero((np.diff(idx) > 1) | (np.diff(fold) != 0)) + 1
+        for part in np.split(np.arange(idx.size), cuts):
+            if part.size:
+                out.append(HeldoutSegment(r.name, y[part], q0[part], q1[part], r.range, r.sigma, res,
+                                          r.noise.length))
     return out
 
 

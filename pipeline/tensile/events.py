@@ -1,4 +1,4 @@
-"""Events in a tensile record that a model must not fit: measurement noise, ruptures, grip slips.
+"""Events in a tensile record that a model must not fit: measurement noise, ruptures, grip slips, a force lag.
 
 Shared by the calibrate fit and the discovery (:mod:`esmm.pipeline.discover`): what a record says
 about itself, without any model of the material.
@@ -7,13 +7,19 @@ about itself, without any model of the material.
 from __future__ import annotations
 
 import numpy as np
+from scipy import stats
+
+from .noise import Noise, noise_model, robust_sd
 
 #: a rupture falls faster than this many times the test's mean secant stiffness (largest stress / span)
 SUDDEN_STEEPNESS = 10.0
 #: a sudden drop below this fraction of the stress before it is a rupture (a slip loses less)
 RUPTURE_FRACTION = 0.5
-#: a slip must lose more than this many noise standard deviations of stress
-SLIP_SIGMAS = 6.0
+#: the probability of one false slip anywhere in a clean record (Bonferroni over its loading samples)
+SLIP_ALPHA = 0.01
+#: a lag longer than this fraction of the runs at a reversal is not an acquisition delay (filters delay by a few
+#: samples)
+LAG_OF_RUN = 0.05
 
 
 def runs(a: np.ndarray) -> list[tuple[int, int, int]]:
@@ -27,44 +33,14 @@ def runs(a: np.ndarray) -> list[tuple[int, int, int]]:
 
 
 def noise_sd(y: np.ndarray) -> float:
-    r"""Standard deviation of the white measurement noise of a record, estimated without a model.
+    """Per-sample standard deviation of the measurement noise of a record *y* (time order) [units of *y*].
 
-    The third difference at lag 1, normalised to unit gain for white noise,
-    :math:`e_k = (y_{k+3} - 3y_{k+2} + 3y_{k+1} - y_k)/\sqrt{20}`, annihilates every
-    locally quadratic signal, so on a record sampled densely compared with its
-    curvature it is pure noise; its robust scale (1.4826 × median absolute
-    deviation) ignores the few samples at turning points, slips and breaks. A
-    quantised record (most differences exactly zero) is floored at the
-    quantisation noise q/√12, q the smallest step between samples.
-
-    Parameters
-    ----------
-    y : ndarray, shape (n,)
-        Stress in sample (time) order [Pa].
-
-    Returns
-    -------
-    float
-        σ [Pa] (at least 1e-12 of the record's largest |y|).
+    From :func:`~esmm.pipeline.tensile.noise.noise_model`: robust to filtered,
+    decimated, quantised and partly 1/f noise (third differences at growing
+    lags, the plateau between the noise's correlation and the signal). At least
+    1e-12 of the record's largest |y|.
     """
-    y = np.asarray(y, float)
-    y = y[np.isfinite(y)]
-    floor = 1e-12 * (float(np.max(np.abs(y))) if y.size else 1.0) or 1e-300
-    if y.size < 8:
-        return floor
-    mad = _third_difference_sd(y)
-    steps = np.abs(np.diff(y))
-    steps = steps[steps > 0]
-    quant = float(np.min(steps)) / np.sqrt(12.0) if steps.size else 0.0
-    return max(mad, quant, floor)
-
-
-def _third_difference_sd(y: np.ndarray) -> float:
-    """1.4826 × MAD of the normalised third differences of *y* (0 with fewer than 8 samples)."""
-    if y.size < 8:
-        return 0.0
-    e = (y[3:] - 3.0 * y[2:-1] + 3.0 * y[1:-2] - y[:-3]) / np.sqrt(20.0)
-    return 1.4826 * float(np.median(np.abs(e - np.median(e))))
+    return noise_model(y).sigma
 
 
 def _falls(x: np.ndarray, y: np.ndarray, k0: int, k1: int, slope: float) -> bool:
@@ -118,43 +94,195 @@ def rupture_index(x: np.ndarray, y: np.ndarray, sigma: float = 0.0) -> int | Non
     return None
 
 
-def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray) -> list[int]:
+def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, noise: Noise | None = None,
+                alpha: float = SLIP_ALPHA) -> list[int]:
     """Samples where the grip slipped: the bottom of each sudden, sustained drop of stress during loading.
 
-    A slip: during a loading run, the stress falls monotonically while the
-    stretch advances, faster than it rose over the five samples before (a
-    sawtooth, not a smooth maximum); the fall
-    exceeds :data:`SLIP_SIGMAS` local noise standard deviations (the
-    third-difference estimate of :func:`noise_sd` over the 50 samples around it:
-    a step that large between two noisy samples is 4.2 standard deviations of
-    their difference, about one chance in 10^5 per sample) and ends more than 2σ
-    below the level three samples before the fall began (a spike falls back to the
-    trend, a slip below it); it loses less than a rupture; and the same run later
-    climbs back above the stress before the fall (the curve continues, shifted).
+    A slip: during a loading run, the stress falls monotonically from sample k
+    to m while the stretch advances, and
+
+    * the fall loses more than z s'_h (below), and it is sudden against the record's own noise: the
+      second difference
+      across it, g = (y_m − y_k) − (y_k − y_{k−h}) with h = m − k (the fall plus the
+      rise the trend would have made over the same samples), is below
+      −z s_h, where s_h is the larger of the robust standard deviation of the
+      same second difference at lag h over every loading sample of the record
+      and the noise model's (:meth:`~esmm.pipeline.tensile.noise.Noise.second_difference_sd`):
+      whatever the noise's correlation, filtering or quantisation, a fall over
+      h samples is judged against the noise's falls over h samples, as the
+      record shows them and as its noise model predicts them; z is the normal
+      quantile of *alpha* / (loading samples): the chance of one false slip
+      anywhere in a clean record is at most *alpha* (Bonferroni);
+    * it is not a toggle: when the rise over the h samples before the fall is
+      itself a jump (it differs from the rise over the h samples before those
+      by more than z s'_h, s'_h the larger of the record's robust standard
+      deviation of lag-2h differences, less their median, and the noise
+      model's), the fall must take the curve below where that jump started (a
+      converter toggling between two levels, a spike, rises and falls back to
+      where it was; a slip falls below it);
+    * it is sustained: the mean stress over the h + 1 samples after the fall
+      stays below the level before it by more than half the fall (a spike falls
+      back at once);
+    * it loses less than :data:`RUPTURE_FRACTION` of the stress (else a rupture),
+      and the same run then loads again, the stress rising after the fall by more
+      than z s'_h (a softening keeps falling or levels off).
+
+    Two falls closer than either's duration are one slip (the filter's ringing
+    splits a fall). No window counts samples: the fall's own duration sets the lag.
+
+    Parameters
+    ----------
+    x, y : ndarray, shape (n,)
+        Stretch and stress in time order.
+    direction : ndarray of int, shape (n,)
+        +1 loading, -1 unloading, 0 hold (:class:`~esmm.pipeline.discover.covariates.Covariates`).
+    noise : Noise, optional
+        The record's noise model (default: :func:`~esmm.pipeline.tensile.noise.noise_model` of *y*).
+    alpha : float
+        Probability of a false slip in a clean record.
+
+    Returns
+    -------
+    list of int
+        The last sample of each slip's fall.
     """
     x = np.asarray(x, float)
     y = np.asarray(y, float)
-    out: list[int] = []
-    for s, e, d in runs(np.asarray(direction)):
-        if d <= 0:
-            continue
+    d = np.asarray(direction)
+    loading = [(s, e) for s, e, v in runs(d) if v > 0 and e - s >= 4]
+    n_load = sum(e - s for s, e in loading)
+    if n_load < 8:
+        return []
+    z = float(stats.norm.isf(alpha / n_load))
+    noise = noise if noise is not None else noise_model(y)
+    scales: dict[int, float] = {}
+    falls: list[tuple[int, int]] = []
+    for s, e in loading:
         k = s
         while k < e - 1:
             m = k
             while m + 1 < e and y[m + 1] < y[m]:
                 m += 1
-            if m > k and _is_slip(x, y, s, e, k, m):
-                out.append(int(m))
+            if m > k and _is_slip(x, y, s, e, k, m, z, scales, loading, noise):
+                if falls and k - falls[-1][1] <= max(m - k, falls[-1][1] - falls[-1][0]):
+                    falls[-1] = (falls[-1][0], m)  # one slip whose fall the filter's ringing split in two
+                else:
+                    falls.append((k, m))
             k = m + 1
+    return [int(m) for _, m in falls]
+
+
+def _lag_scale(y: np.ndarray, h: int, loading: list[tuple[int, int]], second: bool) -> float:
+    """Robust standard deviation over the loading samples of y_{j+h} − 2y_j + y_{j−h} (*second*) or of
+    y_{j+2h} − y_j less its median (the trend), 0 when too few."""
+    if second:
+        vals = [y[s + 2 * h:e] - 2.0 * y[s + h:e - h] + y[s:e - 2 * h] for s, e in loading if e - s > 2 * h]
+    else:
+        vals = [y[s + 2 * h:e] - y[s:e - 2 * h] for s, e in loading if e - s > 2 * h]
+    if not vals:
+        return 0.0
+    g = np.concatenate(vals)
+    return robust_sd(g - np.median(g)) if g.size >= 8 else 0.0
+
+
+def _is_slip(x, y, s: int, e: int, k: int, m: int, z: float, scales: dict, loading, noise: Noise) -> bool:
+    """Whether the fall from sample k to m of the loading run [s, e) is a slip (see :func:`slip_events`)."""
+    h = m - k
+    if k - h < s or y[m] <= RUPTURE_FRACTION * y[k]:
+        return False
+    if h not in scales:
+        scales[h] = (max(_lag_scale(y, h, loading, True), noise.second_difference_sd(h)),
+                     max(_lag_scale(y, h, loading, False), noise.difference_sd(2 * h)))
+    floor = 1e-12 * float(np.max(np.abs(y)))
+    s2, s1 = z * max(scales[h][0], floor), z * max(scales[h][1], floor)
+    g = (y[m] - y[k]) - (y[k] - y[k - h])
+    if not (g < -s2 and y[k] - y[m] > s1):
+        return False
+    # a fall back to where a sudden rise started is a toggle or a spike, not a slip
+    jump_before = k - 2 * h >= s and abs((y[k] - y[k - h]) - (y[k - h] - y[k - 2 * h])) > s1
+    if jump_before and not y[m] - y[k - h] < -s1:
+        return False
+    after = y[m:min(e, m + h + 1)]
+    if not float(np.mean(after)) < y[k] - 0.5 * (y[k] - y[m]):
+        return False
+    return bool(_falls(x, y, k, m, 0.0) and float(np.max(y[m:e])) - y[m] > s1)
+
+
+def force_lag(x: np.ndarray, y: np.ndarray, t: np.ndarray, direction: np.ndarray) -> float:
+    """How long the force channel lags the stretch [s] (0 when it does not), from the record's reversals.
+
+    Where the stretch reverses from loading to unloading at one speed, a
+    rate-independent material's stress is symmetric in time about the same
+    moment as the stretch (elastic, damage and Mullins laws give the same
+    stress on either side of the peak at first order), and a viscoelastic
+    stress peaks earlier (it relaxes as the rate falls to zero) and falls
+    faster after it: a stress that is symmetric about a *later* moment is the
+    acquisition chain's delay (a low-pass filter's and a decimating filter's
+    group delays, a force channel read after the position). At each reversal
+    (a loading run followed directly by an unloading run) the centre of
+    symmetry of each channel is the shift c minimising Σ_τ (y_{c+τ} − y_{c−τ})²
+    over τ up to an eighth of the shorter run (every sample of the window
+    contributes, so the noise averages out), refined between samples by a
+    parabola; the lag is the stress's centre less the stretch's. The record's
+    lag is the median over its reversals when it is positive at most of them
+    and at least one sampling interval, and shorter than :data:`LAG_OF_RUN` of
+    the runs (a filter delays by a few samples); else 0.
+
+    Parameters
+    ----------
+    x, y, t : ndarray, shape (n,)
+        Stretch, stress and time [s] in time order (nearly uniform sampling).
+    direction : ndarray of int, shape (n,)
+        +1 loading, -1 unloading, 0 hold.
+    """
+    x, y, t = (np.asarray(a, float) for a in (x, y, t))
+    lags, lengths = [], []
+    for k, length in _reversals(runs(np.asarray(direction))):
+        q = length // 8
+        if q < 3:
+            continue
+        lags.append(_symmetry_centre(y, k, q) - _symmetry_centre(x, k, q))
+        lengths.append(length)
+    if not lags:
+        return 0.0
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    lag = np.array(lags) * dt
+    d = float(np.median(lag))
+    ok = d >= dt > 0 and float(np.mean(lag > 0)) > 0.5 and d <= LAG_OF_RUN * min(lengths) * dt
+    return d if ok else 0.0
+
+
+def _reversals(rr: list[tuple[int, int, int]]) -> list[tuple[int, int]]:
+    """(sample, shorter run's length) of each reversal: a loading run followed by an unloading run, directly or
+    through a pause shorter than an eighth of either (the crosshead turning)."""
+    out = []
+    for i in range(len(rr) - 1):
+        s0, e0, v0 = rr[i]
+        if v0 <= 0:
+            continue
+        s1, e1, v1 = rr[i + 1]
+        if v1 < 0:
+            out.append((e0, min(e0 - s0, e1 - s1)))
+        elif v1 == 0 and i + 2 < len(rr) and rr[i + 2][2] < 0:
+            s2, e2, _ = rr[i + 2]
+            length = min(e0 - s0, e2 - s2)
+            if e1 - s1 < length // 8:
+                out.append(((s1 + e1) // 2, length))
     return out
 
 
-def _is_slip(x, y, s: int, e: int, k: int, m: int) -> bool:
-    """Whether the fall from sample k to m of the loading run [s, e) is a slip (see :func:`slip_events`)."""
-    lo, hi = max(0, k - 25), min(y.size, m + 26)
-    sigma = max(_third_difference_sd(y[lo:hi]), 1e-12 * float(np.max(np.abs(y))))
-    k0 = max(s, k - 5)
-    rise = (y[k] - y[k0]) / (x[k] - x[k0]) if x[k] > x[k0] else 0.0
-    ref = y[max(s, k - 3)]
-    return bool(y[k] - y[m] > SLIP_SIGMAS * sigma and ref - y[m] > 2.0 * sigma and y[m] > RUPTURE_FRACTION * y[k]
-                and _falls(x, y, k, m, max(rise, 0.0)) and np.any(y[m:e] > y[k]))
+def _symmetry_centre(a: np.ndarray, k: int, q: int) -> float:
+    """The shift c (samples, relative to *k*, within ±q) about which *a* is most nearly symmetric over ±q samples."""
+    n = a.size
+    cs = np.arange(max(k - q, q), min(k + q, n - q - 1) + 1)
+    if cs.size < 3:
+        return 0.0
+    taus = np.arange(1, q + 1)
+    cost = np.array([float(np.sum((a[c + taus] - a[c - taus]) ** 2)) for c in cs])
+    j = int(np.argmin(cost))
+    shift = float(cs[j] - k)
+    if 0 < j < cost.size - 1:  # a parabola through the three lowest points
+        den = cost[j - 1] - 2.0 * cost[j] + cost[j + 1]
+        if den > 0:
+            shift += 0.5 * (cost[j - 1] - cost[j + 1]) / den
+    return shift

@@ -1,0 +1,391 @@
+"""One round of the search, pairs, and the backward elimination (docs/design/discovery.md, "The loop").
+
+A round (:func:`run_round`): diagnose the current model; fit every candidate
+whose first-order gain can pay for one parameter (:func:`candidate_order`), in
+each of its variants, and the richer variants of kept effects; those whose
+fitted improvement passes the pre-screen go, best first, to the held-out test
+at the round's level (:mod:`.levels`); the first that passes is kept. When
+none passes, the residual is not noise and two more effects are allowed,
+pairs of effects and artefacts are tested at the pairs' level. The state of
+the search is :class:`~esmm.pipeline.discover.search.Search`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from ..errors import FitError
+from ..materials.terms import TERMS
+from .diagnose import Diagnosis, diagnose
+from .fitted import Fitted, effect_params, fit_spec
+from .heldout import FoldSet, cached_heldout
+from .levels import Levels, round_levels
+from .model import VARIANTS
+from .records import Record
+from .state import Candidate, Criteria, Search, start_search
+from .statistics import REPLICATION_LEVEL
+from .trials import Trial, best_variant, check_heldout, compared, judged_on, noise_taus, passes
+
+#: the most strain-energy terms fitted per round (the best by their first-order gain)
+TERMS_PER_ROUND = 3
+#: the most candidates checked on held-out data per round (the best by their fitted improvement)
+CHECKS_PER_ROUND = 5
+#: the pair pool: the most single candidates pairs are formed from
+PAIR_POOL = 4
+
+
+def run_round(s: Search, rnd: int, rep) -> bool:
+    """Diagnose, try every candidate (and richer variants of kept effects), keep the first that passes.
+
+    Returns False when the search is over.
+    """
+    remaining = [n for n in s.testable if n not in s.kept]
+    diag = diagnose(s.current.problem, s.current.z, candidates=remaining, errors=s.current.errors)
+    s.diagnoses.append(diag)
+    upgradable = [n for n in s.kept if n in VARIANTS and s.current.spec.variant(n) < max(VARIANTS[n])]
+    if (not remaining and not upgradable) or len(s.kept) >= s.crit.max_effects:
+        return False
+    pairable = len(s.kept) + 2 <= s.crit.max_effects
+    lv = round_levels(s.crit.alpha, rnd, len(remaining) + len(upgradable),
+                      sum(1 for n in remaining if n not in TERMS) if pairable else 0)
+    s.levels.append(lv)
+    order = candidate_order(s, remaining, diag, rnd)
+    with rep.task(f"round {rnd}: trying {', '.join(order + [u + ' (more terms)' for u in upgradable])}",
+                  total=len(order) + len(upgradable)) as adv:
+        trials, singles = _try_candidates(s, order, rnd, adv)
+        trials += _try_upgrades(s, upgradable, adv)
+    trials = elastic_first(trials)
+    winner = _heldout_winner(s, trials, rnd, lv)
+    for t in trials:  # candidates never reached by the held-out check this round
+        c = s.candidates[t.name]
+        if winner is not None and t.name != winner.name and t.name not in s.kept and c.reason.endswith("pending"):
+            c.reason = f"fitted improvement Δχ² {t.noise['dchi2']:.4g}, but {winner.name} was kept first in round {rnd}"
+    if winner is None and not diag.white and lv.pairs:
+        pair = _try_pairs(singles, s, lv)
+        if pair is not None:
+            _keep_pair(s, pair, rnd, rep)
+            return True
+    if winner is None:
+        return False
+    _keep(s, winner, rnd, rep)
+    return True
+
+
+def elastic_first(trials: list[Trial]) -> list[Trial]:
+    """The order of the held-out checks: strain-energy terms first, then effects and artefacts, each by
+    fitted improvement (of two nested candidates the simpler first).
+
+    Elastic first: the base law is an approximation of the material's, and a
+    history effect or an artefact fitted to an elastic misfit also predicts
+    held-out data of the same kind (the same stretch range, the same protocol)
+    better; a residual that a strain-energy term explains on held-out data
+    needs no history, and that explanation is the simpler one. A history
+    effect is then judged on what the richer law leaves.
+    """
+    terms = sorted((t for t in trials if t.name in TERMS), key=lambda t: t.dbic)
+    rest = sorted((t for t in trials if t.name not in TERMS), key=lambda t: t.dbic)
+    _nested_after(rest, "nonlinear_viscoelastic", "viscoelastic")
+    return terms + rest
+
+
+def _nested_after(trials: list[Trial], rich: str, simple: str) -> None:
+    """Check the simpler of two nested candidates first: the richer one (which always fits at least as
+    well) is kept only when the simpler one does not pass."""
+    names = [t.name for t in trials]
+    if rich in names and simple in names and names.index(rich) < names.index(simple):
+        trials.insert(names.index(simple), trials.pop(names.index(rich)))
+
+
+def candidate_order(s: Search, remaining: list[str], diag: Diagnosis, rnd: int) -> list[str]:
+    """Candidates to fit this round, best first-order gain first; those that cannot pay are not fitted.
+
+    A candidate whose first-order gain (in noise variances, divided by the
+    noise's autocorrelation time at the fitting spacing, as the pre-screen) is
+    below the Schwarz penalty of one parameter (ln N) cannot pay for itself; of
+    the strain-energy terms only the :data:`TERMS_PER_ROUND` best are fitted
+    (they overlap: the score test ranks them).
+    """
+    n_fit = sum(r.fit_idx.size for r in s.current.problem.records)
+    penalty = math.log(max(n_fit, 2))
+    tau = float(np.median(noise_taus(s.current))) if s.current.problem.records else 1.0
+    order, n_terms = [], 0
+    for n in sorted(remaining, key=lambda n: -diag.gains.get(n, 0.0)):
+        c = s.candidates[n]
+        c.round, c.score, c.gain_chi2 = rnd, diag.scores.get(n, 0.0), diag.gains.get(n, 0.0)
+        if c.gain_chi2 / tau < penalty:
+            _too_small(c, s.kept, rnd, penalty, tau)
+            continue
+        if n in TERMS:
+            n_terms += 1
+            if n_terms > TERMS_PER_ROUND:
+                c.reason = (f"not fitted in round {rnd}: {TERMS_PER_ROUND} strain-energy terms with larger "
+                            "first-order gains were tried first")
+                continue
+        order.append(n)
+    return order
+
+
+def _try_candidates(s: Search, order: list[str], rnd: int, advance) -> tuple[list[Trial], dict[str, Trial]]:
+    """Fit every candidate of this round; those that pass the pre-screen go to the held-out check (the trials)."""
+    trials: list[Trial] = []
+    singles: dict[str, Trial] = {}
+    for n in order:
+        c = s.candidates[n]
+        t = best_variant(n, VARIANTS.get(n, (1,)), s.current, warm=s.warm)
+        advance(1)
+        if t is not None:
+            s.remember(t.fit)
+        if t is None:
+            c.reason = "the fit with this candidate failed"
+            continue
+        _record(c, t)
+        singles[n] = t
+        if not math.isfinite(t.dbic):
+            c.reason = "rejected: the fit's improvement could not be computed"
+        elif t.dbic >= 0:
+            c.reason = (f"rejected by the pre-screen: its fitted improvement (Δχ² {t.noise['dchi2']:.1f} noise "
+                        f"variances, the noise's correlation counted) does not pay for its parameters (penalty "
+                        f"{t.noise['penalty']:.1f}): it fits noise")
+        else:
+            c.reason = (f"fitted improvement Δχ² {t.noise['dchi2']:.4g} (penalty {t.noise['penalty']:.1f}); "
+                        "held-out check pending")
+            trials.append(t)
+    return trials, singles
+
+
+def _too_small(c: Candidate, kept: list[str], rnd: int, penalty: float, tau: float) -> None:
+    """The verdict on a candidate whose first-order gain cannot pay for one parameter."""
+    why = (f"its first-order signature would remove {c.gain_chi2 / tau:.3g} noise variances (the noise's "
+           f"correlation counted), less than the penalty of one parameter ({penalty:.1f})")
+    if c.dbic_noise is not None or c.reason.startswith("rejected"):
+        c.reason = f"{c.reason.split('; in round')[0]}; in round {rnd}, after {', '.join(kept) or 'the base'}, {why}"
+    else:
+        c.reason = f"rejected without a fit: {why}"
+
+
+def _record(c: Candidate, t: Trial) -> None:
+    """Write a fitted candidate's variant, statistics and parameters into its verdict."""
+    c.variant = t.fit.spec.variant_text(c.name)
+    c.delta_aicc = t.d_aicc if math.isfinite(t.d_aicc) else None
+    c.delta_bic = t.d_bic if math.isfinite(t.d_bic) else None
+    c.dbic_noise = t.dbic if math.isfinite(t.dbic) else None
+    c.dchi2 = t.noise["dchi2"]
+    c.params = effect_params(t.fit, c.name)
+    c.heldout_nrmse = c.heldout_gain = c.heldout_z = c.heldout_noise_units = c.heldout_p = None
+    c.heldout_level = c.heldout_p_replication = None
+
+
+def _try_upgrades(s: Search, upgradable: list[str], advance) -> list[Trial]:
+    """Richer variants (another Prony term, beta, a drift) of the kept effects that pass the pre-screen."""
+    trials = []
+    for n in upgradable:
+        nxt = [v for v in VARIANTS[n] if v > s.current.spec.variant(n)]
+        t = best_variant(n, nxt, s.current, upgrade=True, warm=s.warm)
+        advance(1)
+        if t is not None:
+            s.remember(t.fit)
+        if t is not None and t.screened:
+            trials.append(t)
+    return trials
+
+
+def _check(s: Search, t: Trial, names) -> dict:
+    """The held-out test of *t* against the current model, on the fold set its names are judged on."""
+    return check_heldout(t, s.current, judged_on(names, s.material, s.artefact))
+
+
+def _heldout_winner(s: Search, trials: list[Trial], rnd: int, lv: Levels) -> Trial | None:
+    """The held-out check, best pre-screen first: the first trial that passes wins (None: none passes).
+
+    The terms (at most :data:`TERMS_PER_ROUND` fitted) and at most
+    :data:`CHECKS_PER_ROUND` others are checked (each check refits every
+    fold); the family-wise level counts every candidate of the round all the
+    same.
+    """
+    n_terms = sum(1 for t in trials if t.name in TERMS)
+    checked, skipped = trials[:n_terms + CHECKS_PER_ROUND], trials[n_terms + CHECKS_PER_ROUND:]
+    for t in skipped:
+        if t.name not in s.kept:
+            s.candidates[t.name].reason = (
+                f"fitted improvement Δχ² {t.noise['dchi2']:.4g}, but not checked on held-out data in round {rnd}: "
+                f"{CHECKS_PER_ROUND} candidates with larger fitted improvements were checked first")
+    for t in checked:
+        h = _check(s, t, t.name)
+        ok = passes(h, lv.single, s.crit.min_resolution_units)
+        if t.name in s.kept:  # a variant upgrade of a kept effect
+            if ok:
+                s.upgrades.append(f"round {rnd}: {t.name} extended to {t.fit.spec.variant_text(t.name)} "
+                                  f"(held-out p {h['p']:.2g} at level {lv.single:.2g})")
+                return t
+            continue
+        c = s.candidates[t.name]
+        _heldout_fields(c, t, lv.single, s)
+        if not ok:
+            c.reason = _rejected_text(t, h, lv.single, s)
+            continue
+        return t
+    return None
+
+
+def _heldout_fields(c: Candidate, t: Trial, level: float, s: Search) -> None:
+    h = t.heldout
+    e = t.fit.cv.get(h["fold_set"])
+    c.heldout_nrmse = e.nrmse if e is not None else None
+    ref = s.current.cv.get(h["fold_set"])
+    c.heldout_gain = 1.0 - e.nrmse / max(ref.nrmse, 1e-300) if e is not None and ref is not None else None
+    c.heldout_z, c.heldout_p, c.heldout_level = h["t"], h["p"], level
+    c.heldout_p_replication = h["p_replication"]
+    c.heldout_noise_units = h["noise_units"]
+
+
+def _rejected_text(t: Trial, h: dict, level: float, s: Search) -> str:
+    ref = s.current.cv[h["fold_set"]].nrmse
+    new = t.fit.cv[h["fold_set"]].nrmse
+    return (f"rejected: the fit improves (Δχ² {t.noise['dchi2']:.4g}) but it does not predict data it was not "
+            f"fitted to well enough ({h['scheme']}): held-out NRMSE {ref:.2%} -> {new:.2%}; beyond the noise "
+            f"p {h['p']:.2g} (needs <= {level:.2g}); replicated across the held-out segments p "
+            f"{h['p_replication']:.2g} (t {h['t_replication']:+.2f} on {h['dof']:.1f} degrees of freedom; needs <= "
+            f"{REPLICATION_LEVEL:g}); {h['resolution_units']:+.3g} squared resolutions per sample (needs "
+            f"{s.crit.min_resolution_units:g})")
+
+
+def _keep(s: Search, t: Trial, rnd: int, rep) -> None:
+    """Make the trial's model (the current model plus its candidate) the current model."""
+    f, winner = t.fit, t.name
+    if winner in s.kept:
+        rep.step(s.upgrades[-1])
+        s.current = f
+        return
+    c = s.candidates[winner]
+    c.kept = True
+    kind = {"artefact": "corrected in the data", "material": "added to the material",
+            "elastic": "added to the strain energy"}[c.kind]
+    h = t.heldout
+    ref, new = s.current.cv[h["fold_set"]].nrmse, f.cv[h["fold_set"]].nrmse
+    c.reason = (f"kept ({kind}) in round {rnd}: fitted Δχ² {t.noise['dchi2']:.4g} noise variances; held-out NRMSE "
+                f"{ref:.2%} -> {new:.2%} ({h['scheme']}); beyond the noise p {h['p']:.2g} <= {c.heldout_level:.2g}, "
+                f"replicated p {h['p_replication']:.2g} <= {REPLICATION_LEVEL:g}; {h['resolution_units']:.3g} "
+                "squared resolutions per sample")
+    rep.step(f"round {rnd}: kept {winner} ({c.variant}): NRMSE {s.current.errors.nrmse:.2%} -> "
+             f"{f.errors.nrmse:.2%}, held-out {ref:.2%} -> {new:.2%} (p {h['p']:.2g})")
+    s.kept.append(winner)
+    s.kept_round[winner] = rnd
+    s.current = f
+    sync_kept(s, rnd)
+
+
+def sync_kept(s: Search, rnd: int) -> None:
+    """Name what the current model holds without having been kept by name: the relaxation that
+    stretch-dependent relaxation brings with it."""
+    for n in s.current.spec.names():
+        if n not in s.kept:
+            c = s.candidates[n]
+            c.kept, c.variant = True, s.current.spec.variant_text(n)
+            c.reason = f"kept in round {rnd}: brought in by nonlinear_viscoelastic, which contains it"
+            s.kept.append(n)
+            s.kept_round[n] = rnd
+
+
+def _try_pairs(singles: dict[str, Trial], s: Search, lv: Levels):
+    """When no single candidate passes and the residual is not noise, two effects or artefacts at once
+    (effects that mask each other's signature: slack hiding a rate effect, specimen scales hiding a
+    relaxation), from a pool of the two whose held-out error fell most alone and the two that fitted best.
+
+    Each pair is tested at the pairs' level, whose family counts every pair the round's effects and
+    artefacts could form (:mod:`.levels`). Returns ((a, b), trial) of the passing pair with the smallest
+    p-value, or None.
+    """
+    current = s.current
+    fitted = [n for n, t in singles.items() if t.screened and n not in TERMS]
+    by_gain = sorted((n for n in fitted if singles[n].heldout),
+                     key=lambda n: -singles[n].heldout["noise_units"])
+    by_fit = sorted(fitted, key=lambda n: singles[n].dbic)
+    pool = list(dict.fromkeys(by_gain[:PAIR_POOL // 2] + by_fit[:PAIR_POOL // 2]))
+    passed = []
+    for i in range(len(pool)):
+        for j in range(i + 1, len(pool)):
+            a, b = pool[i], pool[j]
+            spec = current.spec.with_(a, singles[a].fit.spec.variant(a)).with_(b, singles[b].fit.spec.variant(b))
+            try:
+                t = compared(f"{a}+{b}", fit_spec(spec, current, init_from=s.warm.get(spec)), current)
+            except FitError:
+                continue
+            s.remember(t.fit)
+            if t.screened and passes(_check(s, t, [a, b]), lv.pair, s.crit.min_resolution_units):
+                passed.append(((a, b), t))
+    return min(passed, key=lambda p: p[1].heldout["p"]) if passed else None
+
+
+def _keep_pair(s: Search, pair, rnd: int, rep) -> None:
+    """Keep two candidates that only passed together."""
+    (a, b), t = pair
+    f, h = t.fit, t.heldout
+    ref, new = s.current.cv[h["fold_set"]].nrmse, f.cv[h["fold_set"]].nrmse
+    for n, other in ((a, b), (b, a)):
+        c = s.candidates[n]
+        c.kept = True
+        c.variant = f.spec.variant_text(n)
+        _heldout_fields(c, t, s.levels[-1].pair, s)
+        kind = "corrected in the data" if c.kind == "artefact" else "added to the material"
+        c.reason = (f"kept ({kind}) in round {rnd} together with {other}: neither alone passed, together fitted "
+                    f"Δχ² {t.noise['dchi2']:.4g} and held-out NRMSE {ref:.2%} -> {new:.2%} ({h['scheme']}), "
+                    f"one-sided p {h['p']:.2g} <= {s.levels[-1].pair:.2g}")
+        s.kept_round[n] = rnd
+    rep.step(f"round {rnd}: kept {a} and {b} together: NRMSE {s.current.errors.nrmse:.2%} -> "
+             f"{f.errors.nrmse:.2%}, held-out {ref:.2%} -> {new:.2%} (p {h['p']:.2g})")
+    s.kept += [a, b]
+    s.current = f
+    sync_kept(s, rnd)
+
+
+def backward(s: Search, rep) -> None:
+    """Backward elimination: a kept candidate that, given the others, no longer passes goes.
+
+    The forward search adds one candidate at a time, and what was kept early
+    (or in a pair) may have been only a proxy for what came later. Each kept
+    candidate, latest first, is judged again against the model without it, at
+    the level it was kept at.
+    """
+    for name in list(reversed(s.kept)):
+        if len(s.kept) < 2 or (name == "viscoelastic" and "nonlinear_viscoelastic" in s.kept):
+            continue
+        spec = s.current.spec.with_(name, 0)
+        try:
+            reduced = fit_spec(spec, s.current, init_from=s.warm.get(spec))
+        except FitError:
+            continue
+        t = compared(name, s.current, reduced)
+        fs = judged_on(name, s.material, s.artefact)
+        h = check_heldout(t, reduced, fs)
+        level = s.candidates[name].heldout_level or s.levels[max(s.kept_round.get(name, 1), 1) - 1].single
+        if t.screened and passes(h, level, s.crit.min_resolution_units):
+            continue
+        c = s.candidates[name]
+        c.kept = False
+        c.reason = (f"kept in round {c.round}, then removed: given {', '.join(n for n in s.kept if n != name)}, it "
+                    f"no longer predicts held-out data better (held-out NRMSE {reduced.cv[fs.key].nrmse:.2%} without "
+                    f"it, {s.current.cv[fs.key].nrmse:.2%} with it; p {h['p']:.2g}, level {level:.2g})")
+        rep.step(f"removed {name}: the others explain what it did")
+        s.kept.remove(name)
+        s.current = reduced
+        sync_kept(s, c.round)
+
+
+def run_search(start: Fitted, material: FoldSet, artefact: FoldSet, records: list[Record],
+               candidates: Sequence[str], criteria: Criteria, rep, *, warm: dict | None = None) -> Search:
+    """The rounds and the backward elimination from the model *start* (:mod:`.rounds`).
+
+    *warm*: fits to start from, by spec, read but not added to (an inner selection's, :mod:`.nested`).
+    """
+    search = start_search(start, material, artefact, records, candidates, criteria)
+    if warm is not None:
+        search.warm, search.record = warm, False
+    rnd = 1
+    while run_round(search, rnd, rep):
+        rnd += 1
+    backward(search, rep)
+    cached_heldout(search.current, material)
+    return search
