@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import queue
 import shutil
 import statistics
 import subprocess
@@ -64,8 +65,10 @@ def _last_line(text: str) -> str:
     return lines[-1][:500] if lines else ""
 
 
-def run_case(case: Path, files: list[str], *, timeout: float, exe: str, threads: int) -> dict:
-    """Run discovery on one case folder; returns status, seconds, kept effects and terms."""
+def run_case(case: Path, files: list[str], *, timeout: float, exe: str, threads: int,
+             cores: set[int] | None = None) -> dict:
+    """Run discovery on one case folder (confined to *cores* where given); returns status, seconds, kept
+    effects and terms."""
     out, js = case / "esmm_out", case / "esmm.json"
     js.unlink(missing_ok=True)
     env = dict(os.environ)
@@ -74,7 +77,8 @@ def run_case(case: Path, files: list[str], *, timeout: float, exe: str, threads:
     cmd = [exe, "calibrate", *files, "--discover", "--out", str(out), "--json", str(js)]
     t0 = time.perf_counter()
     try:
-        p = subprocess.run(cmd, cwd=case, capture_output=True, text=True, timeout=timeout, env=env)
+        p = subprocess.run(cmd, cwd=case, capture_output=True, text=True, timeout=timeout, env=env,
+                           preexec_fn=None if cores is None else (lambda: os.sched_setaffinity(0, cores)))
     except subprocess.TimeoutExpired:
         return {"status": "timeout", "seconds": round(time.perf_counter() - t0, 2)}
     sec = round(time.perf_counter() - t0, 2)
@@ -192,6 +196,20 @@ def _row(t: dict, res: dict) -> dict:
             "seed": t["seed"], **{"effects": [], "terms": []}, **res}
 
 
+def _core_slots(jobs: int, threads: int) -> queue.Queue | None:
+    """One set of *threads* cores per job, so that concurrent cases never share a core (each case sees only
+    its own cores and starts no more workers than it has); None where the platform cannot confine a process."""
+    if not hasattr(os, "sched_setaffinity"):
+        return None
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < jobs * threads:
+        return None
+    q: queue.Queue = queue.Queue()
+    for j in range(jobs):
+        q.put(set(cpus[j * threads:(j + 1) * threads]))
+    return q
+
+
 def evaluate(n_cases: int, seed: int, *, jobs: int, timeout: float, work: Path, clean_fraction: float,
              shard: tuple[int, int] = (0, 1)) -> dict:
     """Generate the population into ``work``, run discovery on every case (or on shard ``k`` of ``n``: the
@@ -202,8 +220,16 @@ def evaluate(n_cases: int, seed: int, *, jobs: int, timeout: float, work: Path, 
     k, n = shard
     truths = [json.loads((work / c["case"] / "truth.json").read_text()) for i, c in enumerate(index) if i % n == k]
 
+    slots = _core_slots(jobs, threads)
+
     def one(t: dict) -> dict:
-        res = run_case(work / t["case"], [f["file"] for f in t["files"]], timeout=timeout, exe=exe, threads=threads)
+        cores = slots.get() if slots else None
+        try:
+            res = run_case(work / t["case"], [f["file"] for f in t["files"]], timeout=timeout, exe=exe,
+                           threads=threads, cores=cores)
+        finally:
+            if slots:
+                slots.put(cores)
         print(f"[population] {t['case']} {t['class']}: {res['status']} {res['seconds']} s "
               f"{res.get('effects', res.get('message', ''))}", file=sys.stderr, flush=True)
         return _row(t, res)

@@ -208,12 +208,22 @@ def _worker(j: int):
         return _outer(_SHARED, j)
 
 
+def _usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the platform says, else the machine's)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 def _run_folds(ctx: _Context, rep) -> list[tuple[dict, dict, list[str]]]:
-    """Every outer fold, in worker processes where the machine has cores to spare (forked: they share the
-    context without copying it), else one after the other."""
+    """Every outer fold, in worker processes where the process may use more than one core (forked: they share
+    the context without copying it), else one after the other. The cores counted are those this process may
+    run on (its affinity), so a run confined to one core by its caller (a batch's or a benchmark's jobs) does
+    not fork."""
     global _SHARED
     n = len(ctx.material.folds)
-    workers = min(n, os.cpu_count() or 1)
+    workers = min(n, _usable_cores())
     with rep.task("nested held-out errors: the selection run again inside each outer fold", total=n) as adv:
         if workers > 1 and "fork" in multiprocessing.get_all_start_methods():
             _SHARED = ctx
