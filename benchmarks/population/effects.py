@@ -52,7 +52,20 @@ class Elastic:
         if law.name in ("hgo", "toe"):
             span = hi - lo
             x = np.linspace(lo - 0.1 * span, hi + 0.1 * span, 3001)
-            self._tab = (x[0], x[-1], CubicSpline(x, law.stress(x, mode)), CubicSpline(x, law.energy(x, mode)))
+            p, w = law.stress(x, mode), law.energy(x, mode)
+            # the margin beyond the test's range only pads the spline: where the law is not defined there
+            # (a fibre law below its reference) or runs away (an exponential beyond ten times its largest
+            # value on the test), the table starts or ends at the last sample before
+            on = (x >= lo) & (x <= hi)
+            with np.errstate(invalid="ignore"):
+                big_p, big_w = 10.0 * np.nanmax(np.abs(p[on])), 10.0 * np.nanmax(np.abs(w[on]))
+                bad = np.flatnonzero(~(np.isfinite(p) & np.isfinite(w) & (np.abs(p) <= big_p)
+                                       & (np.abs(w) <= big_w)))
+            inside = np.searchsorted(x, 0.5 * (lo + hi))
+            first = int(bad[bad < inside].max()) + 1 if np.any(bad < inside) else 0
+            last = int(bad[bad > inside].min()) if np.any(bad > inside) else x.size
+            x, p, w = x[first:last], p[first:last], w[first:last]
+            self._tab = (x[0], x[-1], CubicSpline(x, p), CubicSpline(x, w))
 
     def stress(self, x) -> np.ndarray:
         if self._tab is None:
