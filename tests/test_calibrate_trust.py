@@ -72,6 +72,23 @@ def test_a_noisy_record_of_the_right_model_is_not_blamed_on_the_model():
     assert cal.verdict.level != "unusable" and any(r.code == "noisy" for r in cal.verdict.reasons)
 
 
+def test_a_noiseless_curve_is_judged_against_the_machine_accuracy_not_a_vanishing_noise():
+    """A digitised or averaged curve (no time column, no sample-to-sample noise): its misfit is measured in
+    units of 0.5 % of its RMS stress (a class 0.5 machine), not of a noise estimate of ~1e-9 Pa; the
+    ratio is exactly RMSE over that resolution."""
+    x = np.linspace(1.0, 2.0, 200)
+    y = 1e5 * (x - 1.0) ** 0.5  # concave: a stiffening law misses it a little
+    cal = calibrate([_test(x, y, time=False)], model="arruda-boyce", n_starts=3)
+    nz = cal.verdict.noise["t.csv"]
+    expect = 0.005 * float(np.sqrt(np.mean(y * y)))
+    assert nz["sd_Pa"] < 0.05 * expect
+    assert nz["resolution_Pa"] == pytest.approx(expect, rel=1e-12)
+    assert nz["ratio"] == pytest.approx(cal.result.files[0].rmse / expect, rel=1e-12)
+    assert nz["ratio"] > 2.0 and cal.result.nrmse > 0.05
+    misfit = [r.text for r in cal.verdict.reasons if r.code == "misfit"]
+    assert misfit and "times its resolution" in misfit[0] and "0.5 % of its RMS stress" in misfit[0]
+
+
 def test_undetermined_parameters_make_a_fit_poor_and_say_which():
     """Small stretches never approach locking: N is not determined (an unbounded interval), and the
     warning carries its unit."""

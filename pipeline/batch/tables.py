@@ -82,7 +82,7 @@ def _header(keys) -> list[str]:
     cols = ["group", "status", "verdict", "reason", "files"]
     for k, u in keys:
         cols += [f"{k} [{u}]", f"{k} determined"]
-    cols += ["rmse [Pa]", "nrmse [%]", "r2 [1]", "rmse/noise [1]", "failed tests", "censored tests",
+    cols += ["rmse [Pa]", "nrmse [%]", "r2 [1]", "rmse/resolution [1]", "failed tests", "censored tests",
              "censored at [Pa]"]
     cols += [f"{title} [{u}]" for _, title, u in FAILURE_COLUMNS]
     return cols + ["seconds [s]", "cached"]

@@ -3,7 +3,7 @@
 Built with :mod:`esmm.pipeline.htmlreport`: the verdict and what to do, the data and the
 model (one figure per loading mode, residual = model − data, stress against time beside
 stress against stretch), the parameters in readable units with whether the data
-determine them, the errors per file against the file's own noise, the failure tests,
+determine them, the errors per file against what the file resolves, the failure tests,
 and how each file was read.
 """
 
@@ -92,12 +92,13 @@ def _errors(doc: Document, cal: Calibration) -> None:
     for fe, t in zip(r.files, cal.fitted):
         nz = v.noise.get(t.name, {})
         rows.append([t.name, fe.mode, fe.n, Quantity(fe.rmse, "Pa"), fe.nrmse, fe.r2,
-                     Quantity(nz.get("sd_Pa"), "Pa", digits=3), nz.get("ratio"), v.files.get(t.name, "–")])
+                     Quantity(nz.get("resolution_Pa"), "Pa", digits=3), nz.get("ratio"), v.files.get(t.name, "–")])
     doc.table([Column("file"), Column("mode"), Column("samples fitted", unit="1", digits=9), Column("RMSE"),
                Column("NRMSE", unit="%", digits=3), Column("R²", unit=DIMENSIONLESS),
-               Column("noise σ"), Column("RMSE / σ", unit=DIMENSIONLESS, digits=3), Column("verdict")], rows,
-              caption="σ: the file's own measurement noise, estimated from the record alone; RMSE/σ near 1 means "
-                      "the misfit is the noise.")
+               Column("resolution r"), Column("RMSE / r", unit=DIMENSIONLESS, digits=3), Column("verdict")],
+              rows, caption="r: what the record resolves, the larger of its own measurement noise (estimated from "
+                            "the record alone) and 0.5 % of its RMS stress (a class 0.5 testing machine's "
+                            "accuracy); RMSE/r near 1 means the misfit is what the measurement cannot resolve.")
 
 
 def _failures(doc: Document, cal: Calibration) -> None:

@@ -58,14 +58,15 @@ def _errors(cal: Calibration) -> list[str]:
     unit, fac = readable_unit([float(abs(t.stress).max()) for t in cal.fitted], "Pa")
     lines = ["", "## Errors", "",
              f"Overall: RMSE {quantity_text(r.rmse, 'Pa')}, NRMSE (RMSE / range of the measured stress) "
-             f"{r.nrmse:.2%}, R² {r.r2:.4f} (dimensionless). Noise σ: the record's own measurement noise; "
-             "RMSE/σ near 1 means the misfit is the noise.", "",
-             f"| file | mode | orientation | samples fitted | RMSE [{unit}] | NRMSE [%] | R² [–] | noise σ [{unit}] | "
-             f"RMSE/σ [–] | max abs error [{unit}] | verdict |", "| --- |" * 1 + " --- |" * 10]
+             f"{r.nrmse:.2%}, R² {r.r2:.4f} (dimensionless). Resolution r: the larger of the record's own measurement "
+             "noise and 0.5 % of its RMS stress (a class 0.5 testing machine's accuracy); RMSE/r near 1 means the "
+             "misfit is what the measurement cannot resolve.", "",
+             f"| file | mode | orientation | samples fitted | RMSE [{unit}] | NRMSE [%] | R² [–] | resolution r [{unit}] | "
+             f"RMSE/r [–] | max abs error [{unit}] | verdict |", "| --- |" * 1 + " --- |" * 10]
     for fe, t in zip(r.files, cal.fitted):
         nz = v.noise.get(t.name, {})
         lines.append(f"| {t.name} | {fe.mode} | {fe.orientation or '–'} | {fe.n} | {format_number(fe.rmse / fac)} | "
-                     f"{format_number(100 * fe.nrmse, 3)} | {fe.r2:.4f} | {format_number(nz.get('sd_Pa', float('nan')) / fac, 3)} | "
+                     f"{format_number(100 * fe.nrmse, 3)} | {fe.r2:.4f} | {format_number(nz.get('resolution_Pa', float('nan')) / fac, 3)} | "
                      f"{format_number(nz.get('ratio'), 3)} | {format_number(fe.max_abs / fac)} | {v.files.get(t.name, '–')} |")
     return lines
 

@@ -3,11 +3,15 @@
 The rules and their reasons (docs/design/calibration.md, "The verdict"; for a reader,
 docs/guide/trust.md):
 
-* **Misfit against the record's own noise.** σ is the record's noise
-  (:func:`esmm.pipeline.tensile.events.noise_sd`, from the record alone). A model
-  whose RMSE is within :data:`NOISE_RATIO` σ reproduces the file as closely as its
-  noise lets anyone tell (its systematic part is then at most √3 σ, the size of one
-  sample's scatter); beyond that the residual is the model's.
+* **Misfit against what the record resolves.** The resolution r is the larger of
+  the record's noise σ (:func:`esmm.pipeline.tensile.events.noise_sd`, from the
+  record alone) and a class 0.5 testing machine's accuracy, 0.5 % of the RMS stress
+  (:func:`esmm.pipeline.tensile.noise.resolution`, the same measure the discovery
+  uses): a smoothed, averaged or digitised curve has almost no sample-to-sample
+  noise, yet its stresses are no more accurate than the machine that measured them.
+  A model whose RMSE is within :data:`NOISE_RATIO` r reproduces the file as closely
+  as the measurement lets anyone tell (its systematic part is then at most √3 r);
+  beyond that the residual is the model's.
 * **Unusable: R² < R2_USABLE** with a misfit beyond the noise. Below one half the model
   leaves more of the data's variation unexplained than it explains: a stress predicted
   from it is wrong by more than the variation it reproduces. (When the misfit is within
@@ -42,6 +46,7 @@ import numpy as np
 from ..htmlreport import quantity_text
 from ..tensile import events
 from ..tensile.data import TensileTest
+from ..tensile.noise import resolution
 from .failure import FailureTest
 from .fit import FitResult
 
@@ -132,14 +137,18 @@ def judge(result: FitResult, tests: Sequence[TensileTest], failures: Sequence[Fa
 
 
 def _noise(t: TensileTest, rmse: float) -> dict[str, float]:
-    sd = float(events.noise_sd(np.asarray(t.stress, float)))
-    return {"sd_Pa": sd, "ratio": rmse / sd if sd > 0 else math.inf}
+    y = np.asarray(t.stress, float)
+    sd = float(events.noise_sd(y))
+    res = resolution(y, sd)
+    return {"sd_Pa": sd, "resolution_Pa": res, "ratio": rmse / res if res > 0 else math.inf}
 
 
 def _file_reasons(name: str, fe, noise: dict[str, float]) -> list[Reason]:
     """The rules on one file's errors: R², NRMSE, both against the file's own noise."""
     within_noise = noise["ratio"] <= NOISE_RATIO
-    ratio = f"{noise['ratio']:.3g} times its noise ({quantity_text(noise['sd_Pa'], 'Pa', digits=3)})"
+    by_noise = noise["resolution_Pa"] <= noise["sd_Pa"]
+    ratio = (f"{noise['ratio']:.3g} times its {'noise' if by_noise else 'resolution'} "
+             f"({quantity_text(noise['resolution_Pa'], 'Pa', digits=3)}{'' if by_noise else ', 0.5 % of its RMS stress'})")
     if fe.r2 < R2_USABLE and not within_noise:
         return [Reason("no_fit", UNUSABLE,
                        f"{name}: R² {fe.r2:.3f} (below {R2_USABLE}): the model explains less of the data than it "

@@ -31,6 +31,7 @@ import numpy as np
 from scipy import signal, stats
 
 from ..calibrate.intervals import lag1
+from ..tensile.noise import FORCE_ACCURACY, resolution  # noqa: F401 (part of this module's interface)
 
 
 def runs_test(r: np.ndarray) -> tuple[int, float]:
@@ -322,16 +323,6 @@ class HeldoutSegment:
     length: float = 0.0  # the noise's correlation length [samples]
 
 
-#: the relative accuracy of a testing machine's force channel: ISO 7500-1 class 0.5 (the indicated force within
-#: 0.5 % of the reading over the calibrated range); a model change below it is not resolved by the measurement
-FORCE_ACCURACY = 0.005
-
-
-def resolution(y: np.ndarray, sigma: float) -> float:
-    """What a record resolves [Pa]: the larger of its noise σ and :data:`FORCE_ACCURACY` × the RMS of *y*."""
-    y = np.asarray(y, float)
-    y = y[np.isfinite(y)]
-    return max(float(sigma), FORCE_ACCURACY * (float(np.sqrt(np.mean(y * y))) if y.size else 0.0))
 
 
 @dataclass
