@@ -268,6 +268,20 @@ def test_an_ambiguous_decimal_comma_in_the_files_geometry(tmp_path):
     assert "line 1: gauge_length: '1,500 mm' is ambiguous" in msg and '"1.500 mm" or "1500 mm"' in msg
 
 
+def test_a_three_digit_decimal_comma_in_a_file_whose_data_use_decimal_commas(tmp_path):
+    """A European export (';' between cells, ',' in the numbers): its header's '4,773 mm2' is 4.773 mm², the
+    file's own convention, not a thousands separator; the same header beside point-decimal data is refused."""
+    body = "Time [s];Extension [mm];Force [N]\n0,0;0,000;0,000\n1,0;0,500;1,250\n2,0;1,000;2,750\n"
+    p = tmp_path / "eu.csv"
+    p.write_text("# gauge_length: 77,10 mm\n# area: 4,773 mm2\n" + body, encoding="utf-8")
+    t = read(p)
+    assert t.metadata["area"] == pytest.approx(4.773e-6, rel=1e-12)
+    assert t.stress[-1] == pytest.approx(2.75 / 4.773e-6, rel=1e-12)
+    msg = refuse(tmp_path, "# gauge_length: 77,10 mm\n# area: 4,773 mm2\n"
+                 "Time [s];Extension [mm];Force [N]\n0.0;0.000;0.000\n1.0;0.500;1.250\n2.0;1.000;2.750\n")
+    assert "area: '4,773 mm2' is ambiguous" in msg
+
+
 # ---------------------------------------------------------------------------
 # second adversarial sweep
 

@@ -308,14 +308,16 @@ def encoding_value(e: Entry) -> str:
 _DECIMAL_COMMA = re.compile(r"^\s*([-+]?\d+),(\d+)(\s*[^\d.,].*)?$", re.S)
 
 
-def _decimal_comma(e: Entry) -> Any:
+def _decimal_comma(e: Entry, decimal: str | None = None) -> Any:
     """A file's own value written with a decimal comma (``30,5 mm``, Bluehill's ``"30,00000",mm`` in a
-    European export) with a decimal point; three digits after the comma are ambiguous and refused."""
+    European export) with a decimal point. Three digits after the comma are ambiguous (``4,773 mm2``: a
+    thousands separator?) unless the file's data write their numbers with a decimal comma (*decimal* is
+    ``","``): one file has one convention. Refused otherwise."""
     m = _DECIMAL_COMMA.match(e.value) if e.level == COMMENT and isinstance(e.value, str) else None
     if m is None:
         return e.value
     whole, frac, unit = m.group(1), m.group(2), (m.group(3) or "").strip()
-    if len(frac) == 3:
+    if len(frac) == 3 and decimal != ",":
         raise e.error(
             f"{e.where}: {e.value!r} is ambiguous (a decimal comma, or a thousands separator?); write it "
             f"with a decimal point and no grouping, e.g. \"{whole}.{frac} {unit}\" or \"{whole}{frac} {unit}\""
@@ -323,10 +325,11 @@ def _decimal_comma(e: Entry) -> Any:
     return f"{whole}.{frac} {unit}".strip()
 
 
-def length_value(e: Entry, kind: str = "length") -> float:
-    """A positive dimensional value in SI (``"30 mm" -> 0.03``; in the file's own lines also ``"30,5 mm"``)."""
+def length_value(e: Entry, kind: str = "length", *, decimal: str | None = None) -> float:
+    """A positive dimensional value in SI (``"30 mm" -> 0.03``; in the file's own lines also ``"30,5 mm"``;
+    *decimal*: the decimal mark of the file's data, where known)."""
     try:
-        v = _units.parse_quantity(_decimal_comma(e), kind, where=e.where)
+        v = _units.parse_quantity(_decimal_comma(e, decimal), kind, where=e.where)
     except InputError as exc:
         raise e.error(str(exc)) from None
     if not (v > 0 and math.isfinite(v)):
@@ -404,14 +407,16 @@ class Geometry:
     diameter: float | None = None
 
 
-def geometry(md: Metadata, *, label: str) -> Geometry:
+def geometry(md: Metadata, *, label: str, decimal: str | None = None) -> Geometry:
     """Gauge length and cross-section from the merged metadata.
 
     The cross-section is ``area``, or ``width`` x ``thickness``, or a circle of
     ``diameter`` (area = pi d^2 / 4). Two of them may both be stated; they must then
     agree within 1 %, otherwise the input is refused (the two cannot both be right).
+    *decimal*: the decimal mark of the file's data, where known (its header's values
+    are read the same way).
     """
-    vals = {k: (length_value(md.entries[k]) if k in md.entries else None) for k in LENGTH_KEYS}
+    vals = {k: (length_value(md.entries[k], decimal=decimal) if k in md.entries else None) for k in LENGTH_KEYS}
     w, t, d = vals["width"], vals["thickness"], vals["diameter"]
     if (w is None) != (t is None) and "area" not in md.entries and d is None:
         have, miss = ("width", "thickness") if w is not None else ("thickness", "width")
@@ -420,7 +425,8 @@ def geometry(md: Metadata, *, label: str) -> Geometry:
         )
     stated = []  # (area, how, where) in order of preference
     if "area" in md.entries:
-        stated.append((length_value(md.entries["area"], "area"), "area", md.entries["area"].described))
+        stated.append((length_value(md.entries["area"], "area", decimal=decimal), "area",
+                       md.entries["area"].described))
     if w is not None and t is not None:
         stated.append((w * t, "width x thickness", md.entries["width"].described))
     if d is not None:
