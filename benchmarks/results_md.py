@@ -160,15 +160,25 @@ def comparison_lines(doc: dict) -> list[str]:
 # -- experiments --------------------------------------------------------------------------------
 
 def discover_lines(doc: dict) -> list[str]:
-    """``scripts/discover_results.py``: one row per data set, then the generated populations."""
+    """``scripts/discover_results.py``: one row per data set (beside its recorded ``before`` row), then the
+    generated populations."""
+    was = doc.get("before", {}).get("rows", {})
     rows = []
-    for r in doc["rows"].values():
+    for key, r in doc["rows"].items():
+        b = was.get(key, {})
         rows.append([fmt(r["label"]), fmt(" ".join(r.get("patterns", []))), fmt(r.get("samples")),
-                     f"{pct(r.get('base_nrmse'))} ({pct(r.get('base_heldout_nrmse'))})",
-                     f"{pct(r.get('final_nrmse'))} ({pct(r.get('final_heldout_nrmse'))})",
-                     fmt(", ".join(r.get("kept", []))), fmt(r.get("discover_s"))])
+                     f"{pct(r.get('base_nrmse'))} ({pct(r.get('base_heldout_nrmse'))}; "
+                     f"{pct(r.get('base_nested_nrmse'))})",
+                     f"{pct(b.get('final_nrmse'))} ({pct(b.get('final_heldout_nrmse'))})",
+                     f"{pct(r.get('final_nrmse'))} ({pct(r.get('final_heldout_nrmse'))}; "
+                     f"{pct(r.get('final_nested_nrmse'))})",
+                     fmt(", ".join(b.get("kept", [])) if b else None), fmt(", ".join(r.get("kept", []))),
+                     fmt(r.get("discover_s")), fmt(r.get("command_s"))])
     out = table(["data", "files (under data/tensile/ or ../shared/data/tensile/)", "samples",
-                 "base NRMSE (held out)", "final NRMSE (held out)", "kept", "discover [s]"], rows)
+                 "base NRMSE (held out; nested)", "final NRMSE before (held out)",
+                 "final NRMSE (held out; nested)", "kept before", "kept", "discover [s]", "command [s]"], rows)
+    if was:
+        out += ["", f"Before: {fmt(doc['before'].get('note'))}"]
     out += ["", "What is left, per data set:", ""]
     out += [f"- {fmt(r['label'])}: {fmt(r.get('outcome') or 'noise')}" for r in doc["rows"].values()]
     for seed, pop in doc.get("population", {}).items():

@@ -7,11 +7,15 @@ Usage::
         [--seeds 1 2] [--out docs/figures/discover_results.json]
 
 Each row runs the command a user would (``esmm calibrate FILES --discover --out DIR``, the
-defaults) and reads its ``discover.json``: NRMSE before and after (fitted and held out), the kept
-names, the discovery's own time. ``--seeds`` also runs the generated population
-(:func:`esmm.pipeline.discover.population.score`, 114 cases) for each seed given. Prints the
+defaults) and reads its ``discover.json``: NRMSE before and after (fitted, held out, and nested:
+held out of the whole selection), the kept names, the discovery's own time and the command's
+wall time. ``--from DIR`` reads ``DIR/<row>.json`` instead of running (the ``--json`` of that
+same command, run by hand; its wall time from ``DIR/<row>.wall`` if there). ``--seeds`` also runs
+the in-house generated population (:func:`esmm.pipeline.discover.population.score`, 114 cases;
+a regression check of the machinery, not a figure to quote) for each seed given. Prints the
 markdown table and writes every figure to ``--out`` (rows and seeds not run are kept from an
-existing file). The rows and each seed take minutes.
+existing file, and so is its ``before`` block: the same rows as recorded by the selection that
+docs/design/discovery.md, "On the shared real records", compares against). The rows take minutes.
 """
 
 from __future__ import annotations
@@ -71,31 +75,72 @@ def run_row(data: Path, patterns: list[str]) -> dict:
         if proc.returncode != 0:
             return {"ok": False, "error": (proc.stderr or proc.stdout).strip().splitlines()[-1:]}
         d = json.loads((Path(tmp) / "discover.json").read_text())
+    return row_figures(d, wall)
+
+
+def row_figures(d: dict, wall: float | None) -> dict:
+    """The figures of one row from a ``discover.json`` (schema ``esmm.discover/1``)."""
     b, f = d["base"], d["final"]
     return {"ok": True, "files": len(d["files"]), "samples": d["samples"],
             "base_nrmse": b["nrmse"], "base_heldout_nrmse": b["heldout_nrmse"],
+            "base_nested_nrmse": b.get("nested_heldout_nrmse"),
             "final_nrmse": f["nrmse"], "final_heldout_nrmse": f["heldout_nrmse"],
-            "kept": list(d["effects"]), "discover_s": round(d["seconds"], 1), "command_s": round(wall, 1),
-            "outcome": d.get("outcome", "")}
+            "final_nested_nrmse": f.get("nested_heldout_nrmse"),
+            "kept": list(d["effects"]), "discover_s": round(d["seconds"], 1),
+            "command_s": round(wall, 1) if wall is not None else None,
+            "ruptures": sorted(d.get("ruptures", {})), "slips": {k: len(v) for k, v in d.get("slips", {}).items()},
+            "not_identifiable": d.get("not_identifiable", []), "outcome": d.get("outcome", "")}
+
+
+def read_row(folder: Path, key: str) -> dict:
+    """A row from ``folder/<key>.json`` written by the row's command with ``--json``."""
+    wall = folder / f"{key}.wall"
+    return row_figures(json.loads((folder / f"{key}.json").read_text()),
+                       float(wall.read_text()) if wall.exists() else None)
 
 
 def _pct(x: float) -> str:
     return f"{100 * x:.2f} %"
 
 
-def table(rows: dict) -> str:
-    """The markdown table of section 10 from the rows' figures."""
-    lines = ["| data | base NRMSE (held out) | final NRMSE (held out) | kept | time |",
-             "| --- | --- | --- | --- | --- |"]
+def _errors(r: dict, which: str, nested: bool) -> str:
+    out = f"{_pct(r[which + '_nrmse'])} / {_pct(r[which + '_heldout_nrmse'])}"
+    n = r.get(which + "_nested_nrmse")
+    return out + (f" / {_pct(n)}" if nested and n is not None else (" / –" if nested else ""))
+
+
+def table(rows: dict, before: dict | None = None) -> str:
+    """The markdown table of docs/design/discovery.md, "On the shared real records": before and after.
+
+    Errors are NRMSE fitted / held out / nested (held out of the whole selection); the
+    recorded ``before`` rows have no nested error.
+    """
+    before = before or {}
+    lines = ["| data | kept before | kept now | base: fitted / held out / nested | final before: fitted / "
+             "held out | final now: fitted / held out / nested | time before → now (discovery; command) |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
     for key, label, patterns in ROWS:
-        r = rows.get(key)
+        r, b = rows.get(key), before.get(key)
         if not r or not r.get("ok"):
             continue
         files = " ".join(f"`{p}`" for p in patterns)
-        lines.append(f"| {label}: {files} | {_pct(r['base_nrmse'])} ({_pct(r['base_heldout_nrmse'])}) | "
-                     f"{_pct(r['final_nrmse'])} ({_pct(r['final_heldout_nrmse'])}) | "
-                     f"{', '.join(r['kept']) or 'nothing'} | {r['discover_s']:.0f} s |")
+        was = (", ".join(b["kept"]) or "nothing") if b else "–"
+        fin_was = _errors(b, "final", False) if b else "–"
+        t_was = f"{b['discover_s']:.0f} s" if b else "–"
+        cmd = f"; {r['command_s']:.0f} s" if r.get("command_s") is not None else ""
+        lines.append(f"| {label}: {files} | {was} | {', '.join(r['kept']) or 'nothing'} | "
+                     f"{_errors(r, 'base', True)} | {fin_was} | {_errors(r, 'final', True)} | "
+                     f"{t_was} → {r['discover_s']:.0f} s{cmd} |")
     return "\n".join(lines)
+
+
+def _write(out: Path, rows: dict, population: dict, before: dict | None) -> None:
+    from esmm.pipeline.atomicio import write_json
+
+    doc = {"rows": rows, "population": population}
+    if before is not None:
+        doc["before"] = before
+    write_json(out, doc)
 
 
 def main(argv=None) -> int:
@@ -106,25 +151,32 @@ def main(argv=None) -> int:
                                               "'none' runs no row")
     ap.add_argument("--seeds", type=int, nargs="*", default=[], help="population seeds to run (114 cases each)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "figures" / "discover_results.json")
+    ap.add_argument("--from", dest="src", type=Path, default=None,
+                    help="read each row from DIR/<row>.json (the row's command run by hand with --json)")
     args = ap.parse_args(argv)
-    from esmm.pipeline.atomicio import write_json
 
     old = json.loads(args.out.read_text()) if args.out.exists() else {}
-    rows, population = old.get("rows", {}), old.get("population", {})
+    rows, population, before = old.get("rows", {}), old.get("population", {}), old.get("before")
     only = [s for s in args.only.split(",") if s]
     for key, label, patterns in ROWS:
         if only and not any(key.startswith(p) for p in only):
             continue
         print(f"[discover_results] {key} ...", file=sys.stderr, flush=True)
-        rows[key] = {"label": label, "patterns": patterns, **run_row(args.data, patterns)}
-        write_json(args.out, {"rows": rows, "population": population})
+        if args.src is not None:
+            if not (args.src / f"{key}.json").exists():
+                continue
+            figures = read_row(args.src, key)
+        else:
+            figures = run_row(args.data, patterns)
+        rows[key] = {"label": label, "patterns": patterns, **figures}
+        _write(args.out, rows, population, before)
     for seed in args.seeds:
         from esmm.pipeline.discover.population import score
 
         print(f"[discover_results] population seed {seed} ...", file=sys.stderr, flush=True)
         population[str(seed)] = score(114, seed)
-        write_json(args.out, {"rows": rows, "population": population})
-    print(table(rows))
+        _write(args.out, rows, population, before)
+    print(table(rows, (before or {}).get("rows")))
     for seed, p in sorted(population.items()):
         print(f"population seed {seed}: {p['right']}/{p['cases']} right ({100 * p['right_rate']:.1f} %), "
               f"halved {100 * p['halved_rate']:.1f} %, {p['seconds']} s; wrong: {p['wrong']}")
