@@ -186,6 +186,33 @@ def discover_lines(doc: dict) -> list[str]:
     return out
 
 
+def population_lines(doc: dict) -> list[str]:
+    """``bench_discover_population.py``: the clean cases' false-positive rate with its interval and what was
+    invented, the effect cases by class, runtimes; per case in the JSON."""
+    pop, c, e, rt = doc["population"], doc["clean"], doc["effects"], doc["runtime"]
+    lo, hi = c["fp_ci95"]
+    out = [f"Population seed {fmt(pop['seed'])}, {fmt(pop['cases'])} cases (generator "
+           f"{fmt(pop['generator_version'])}, clean fraction {fmt(pop['clean_fraction'])}); command: "
+           f"`{fmt(doc.get('command'))}`.", ""]
+    out += table(["clean cases run", "false positives", "rate", "95 % interval (Clopper-Pearson)",
+                  "elastic terms added"],
+                 [[fmt(c["ran"]), fmt(c["false_positives"]), pct(c["fp_rate"]), f"{pct(lo)} - {pct(hi)}",
+                   fmt(c["with_terms"])]])
+    out += ["", "Invented on clean cases: " + (", ".join(f"{k} {v}" for k, v in c["invented"].items()) or "nothing")
+            + "."]
+    rows = []
+    for cls, b in e["by_class"].items():
+        kept = ", ".join(f"{k} {v}" for k, v in sorted(e["confusion"].get(cls, {}).items(), key=lambda kv: -kv[1]))
+        rows.append([fmt(cls), fmt(b["ran"]), fmt(b["strict"]), fmt(b["lenient"]), pct(b["strict_rate"]),
+                     fmt(kept)])
+    out += [""] + table(["true class", "cases run", "named alone", "named", "named alone [%]", "kept (cases)"], rows)
+    out += ["", f"Effect cases: named alone {pct(e['strict_rate'])}, named among others {pct(e['lenient_rate'])} "
+                f"of {fmt(e['ran'])}. Runtime per case: median {fmt(rt['median_s'])} s, largest {fmt(rt['max_s'])} s, "
+                f"{len(rt['timeouts'])} past the {fmt(doc.get('timeout_s'))} s limit, {len(doc.get('errors', []))} "
+                "stopped with an error."]
+    return out
+
+
 def organs_lines(doc: dict) -> list[str]:
     """``scripts/implicit_organs.py``: implicit against explicit stepper per organ and scene."""
     out = [f"Command: `{fmt(doc.get('command'))}`; load average at the start {fmt(doc.get('load_average_at_start'))}.",
@@ -215,6 +242,8 @@ def figure_lines(stem: str, doc: Any) -> list[str]:
         return discover_lines(doc)
     if stem == "implicit_organs":
         return organs_lines(doc)
+    if stem.startswith("discover_population"):
+        return population_lines(doc)
     return key_values(doc)
 
 
