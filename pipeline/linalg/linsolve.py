@@ -265,7 +265,8 @@ class Constraints:
     R: np.ndarray | None = None         #: rows (factor order) where a column of Y is nonzero, (r,)
     Y: np.ndarray | None = None         #: ``L^-1 P_o J^T`` on R, (r, c)
     cap_inv: np.ndarray | None = None
-    _dY: np.ndarray | None = field(default=None, repr=False)   #: D^-1 Y on R (r, c)
+    _Yt: np.ndarray | None = field(default=None, repr=False)   #: Y^T (c, r), in the factor's precision
+    _dY: np.ndarray | None = field(default=None, repr=False)   #: D^-1 Y (r, c), in the factor's precision
     _hard: tuple | None = field(default=None, repr=False)   #: hard rows' nodes, directions, orthonormal
     solves: int = 0             #: the preconditioner's applications (one solve each)
     solve_s: float = 0.0        #: seconds spent in them
@@ -301,14 +302,18 @@ class Constraints:
         self._hard_rows()
         c = self.node.size
         if c == 0:
-            self.R, self.Y, self._dY, self.cap_inv = None, None, None, None
+            self.R, self.Y, self._Yt, self._dY, self.cap_inv = None, None, None, None, None
             return
         self.columns(self.node)
-        R = np.unique(np.concatenate([self._cols[int(a)][0] for a in self.node]))
+        cols = [self._cols[int(a)] for a in self.node]
+        on = np.zeros(self.factor.dinv.size, bool)          # the union of the rows' paths, sorted
+        for rows, _ in cols:
+            on[rows] = True
+        R = np.flatnonzero(on)
+        pos = np.cumsum(on) - 1                              # row of R of each factor row on it
         Y = np.zeros((R.size, c))
-        for m in range(c):
-            rows, Ya = self._cols[int(self.node[m])]
-            Y[np.searchsorted(R, rows), m] = Ya @ self.e[m]
+        for m, (rows, Ya) in enumerate(cols):
+            Y[pos[rows], m] = Ya @ self.e[m]
         dY = self.factor.dinv[R].astype(np.float64)[:, None] * Y
         cap = Y.T @ dY + np.diag(self.comp)
         cap = 0.5 * (cap + cap.T)
@@ -316,7 +321,9 @@ class Constraints:
             cap_inv = np.linalg.inv(cap)
         except np.linalg.LinAlgError:
             raise SimulationError("the implicit step's constraints are dependent (a node held twice?)") from None
-        self.R, self.Y, self._dY, self.cap_inv = R, Y, dY, cap_inv
+        self.R, self.Y, self.cap_inv = R, Y, cap_inv
+        dtype = self.factor.dinv.dtype                       # the correction in the factor's precision
+        self._Yt, self._dY = np.ascontiguousarray(Y.T, dtype=dtype), dY.astype(dtype)
 
     def _hard_rows(self) -> None:
         """The hard rows (node, direction) and whether each node's are orthonormal (the grasp's and the
@@ -365,7 +372,7 @@ class Constraints:
             y = self.factor.forward(r)
             y *= self.factor.dinv
             yR = y[self.R]
-            y[self.R] = yR - self._dY @ (self.cap_inv @ (self.Y.T @ yR))
+            y[self.R] = yR - self._dY @ (self.cap_inv @ (self._Yt @ yR)).astype(y.dtype)
             z = self.factor.backward(y)
         dt = time.perf_counter() - t
         self.solve_s += dt
