@@ -268,6 +268,8 @@ class Constraints:
     _Yt: np.ndarray | None = field(default=None, repr=False)   #: Y^T (c, r), in the factor's precision
     _dY: np.ndarray | None = field(default=None, repr=False)   #: D^-1 Y (r, c), in the factor's precision
     _hard: tuple | None = field(default=None, repr=False)   #: hard rows' nodes, directions, orthonormal
+    _G: np.ndarray | None = field(default=None, repr=False)       #: Y^T D^-1 Y of the rows in use
+    _gram_of: dict = field(default_factory=dict, repr=False)       #: row (node, direction) -> its row of _G
     solves: int = 0             #: the preconditioner's applications (one solve each)
     solve_s: float = 0.0        #: seconds spent in them
     apply_s: list = field(default_factory=list, repr=False)   #: each of them [s]
@@ -315,8 +317,7 @@ class Constraints:
         for m, (rows, Ya) in enumerate(cols):
             Y[pos[rows], m] = Ya @ self.e[m]
         dY = self.factor.dinv[R].astype(np.float64)[:, None] * Y
-        cap = Y.T @ dY + np.diag(self.comp)
-        cap = 0.5 * (cap + cap.T)
+        cap = self._gram(Y, dY) + np.diag(self.comp)
         try:
             cap_inv = np.linalg.inv(cap)
         except np.linalg.LinAlgError:
@@ -324,6 +325,29 @@ class Constraints:
         self.R, self.Y, self.cap_inv = R, Y, cap_inv
         dtype = self.factor.dinv.dtype                       # the correction in the factor's precision
         self._Yt, self._dY = np.ascontiguousarray(Y.T, dtype=dtype), dY.astype(dtype)
+
+    def _gram(self, Y: np.ndarray, dY: np.ndarray) -> np.ndarray:
+        """``Y^T D^-1 Y`` (c, c), symmetric, for the rows in use: an entry depends on its two rows
+        alone, so the entries between rows of the last set are taken from it and only the new rows'
+        are computed (a contact that comes or goes changes a few of an organ's tens or hundreds of
+        rows: a product of c x k x r instead of c x c x r)."""
+        keys = [(int(a), d.tobytes()) for a, d in zip(self.node, self.e)]
+        old = np.array([self._gram_of.get(k, -1) for k in keys], dtype=np.int64)
+        kept, new = np.flatnonzero(old >= 0), np.flatnonzero(old < 0)
+        if kept.size == 0:
+            G = Y.T @ dY
+            G = 0.5 * (G + G.T)
+        else:
+            G = np.empty((len(keys), len(keys)))
+            G[np.ix_(kept, kept)] = self._G[np.ix_(old[kept], old[kept])]
+            if new.size:
+                B = Y.T @ dY[:, new]
+                G[:, new] = B
+                G[new, :] = B.T
+                Bnn = B[new]
+                G[np.ix_(new, new)] = 0.5 * (Bnn + Bnn.T)
+        self._G, self._gram_of = G, {k: m for m, k in enumerate(keys)}
+        return G
 
     def _hard_rows(self) -> None:
         """The hard rows (node, direction) and whether each node's are orthonormal (the grasp's and the
