@@ -33,6 +33,16 @@ scene run with the implicit and the explicit stepper in the same process
 (real-time factors and their ratio), the implicit step's cost at 100 k and
 500 k springs (Kuhn boxes), and its memory traffic per step (the GPU note).
 
+Step cost against size (``bench_step_scaling``, part "scaling"): the implicit step of 1/30 s
+on Kuhn boxes of about 10 k, 40 k, 100 k and 500 k springs (gravity, the base fixed, the
+first steps from rest), with the reused factor up to 100 k and with the Jacobi
+preconditioner at every size (the factor of 500 k springs took over an hour and 10 GB): per
+size the median wall and thread-CPU time of a step, ns per spring and step, and per series the
+growth exponent (least-squares slope of log cost over log springs, and between neighbouring
+sizes). A step whose cost grows linearly with the springs has exponent 1. Run alone:
+``python benchmarks/bench_simulate.py --parts scaling`` (about ten minutes on two cores);
+``--scaling-sizes 10k,40k`` for a quick look.
+
 Note: on a shared machine the wall times include other processes' load; CPU
 (thread) time of the single-thread runs is reported beside them.
 """
@@ -431,6 +441,55 @@ def bench_implicit(*, duration: float = 3.0, sizes=("100k", "500k-jacobi"), step
     return out
 
 
+#: Kuhn boxes of the step-cost series: cells per side (about 10 k, 40 k, 100 k and 500 k springs).
+STEP_SCALING = {"10k": 11, "40k": 17, "100k": 24, "500k": 41}
+#: The largest box factored in the step-cost series (a larger factorization took over an hour).
+FACTOR_LIMIT = 150_000
+
+
+def growth_exponent(springs, cost) -> dict:
+    """How a cost grows with the springs: the least-squares slope of log(cost) over log(springs)
+    (``exponent``; 1 is linear) and the slope between each pair of neighbouring sizes (``pairwise``)."""
+    x, y = np.log(np.asarray(springs, float)), np.log(np.asarray(cost, float))
+    if x.size < 2:
+        return {"exponent": None, "pairwise": []}
+    return {"exponent": float(np.polyfit(x, y, 1)[0]),
+            "pairwise": [float((y[i + 1] - y[i]) / (x[i + 1] - x[i])) for i in range(x.size - 1)]}
+
+
+def bench_step_scaling(*, sizes=tuple(STEP_SCALING), preconditioners=("factor", "jacobi"), steps: int = 3) -> dict:
+    """The implicit step's cost on Kuhn boxes of *sizes* (:data:`STEP_SCALING`) with each of
+    *preconditioners* (the factor only up to :data:`FACTOR_LIMIT` springs): per size the median wall
+    and CPU time of a step (:func:`_implicit_box`), ns per spring and step; per series the growth
+    exponent (:func:`growth_exponent`)."""
+    import os
+
+    out: dict = {"load_average_at_start": os.getloadavg(), "steps": steps}
+    for pre in preconditioners:
+        rows = {}
+        for name in sizes:
+            n = STEP_SCALING[name]
+            if pre == "factor" and _kuhn_springs(n) > FACTOR_LIMIT:
+                rows[name] = {"skipped": f"over {FACTOR_LIMIT} springs: the factorization takes too long"}
+                continue
+            row = _implicit_box(n, pre, steps)
+            row["ns_per_spring_step"] = row["step_ms_median"] * 1e6 / row["springs"]
+            row["cpu_ns_per_spring_step"] = row["step_cpu_ms_median"] * 1e6 / row["springs"]
+            row["load_average_after"] = os.getloadavg()
+            rows[name] = row
+        done = [r for r in rows.values() if "springs" in r]
+        springs = [r["springs"] for r in done]
+        out[pre] = {"sizes": rows,
+                    "growth_wall": growth_exponent(springs, [r["step_ms_median"] for r in done]),
+                    "growth_cpu": growth_exponent(springs, [r["step_cpu_ms_median"] for r in done])}
+    return out
+
+
+def _kuhn_springs(n: int) -> int:
+    """Springs (edges) of the Kuhn box of n cells per side: axis edges, face and body diagonals."""
+    return 3 * n * (n + 1) ** 2 + 3 * n * n * (n + 1) + n ** 3
+
+
 def _implicit_variant(asset, scene, out: Path, explicit_history, lift_end: float, figures: dict, label: str,
                       own: str, **change) -> dict:
     """The implicit run of *scene* with *change* (another iteration or factor), in the same run as the
@@ -464,25 +523,27 @@ def _implicit_box(n: int, preconditioner: str, steps: int) -> dict:
     t = time.perf_counter()
     stepper.prepare(sim.model, sim.state, sim.control)
     prefactor = time.perf_counter() - t
-    walls = []
+    walls, cpus = [], []
     for _ in range(steps):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.thread_time()
         sim.advance(1)
         walls.append(time.perf_counter() - t)
+        cpus.append(time.thread_time() - c)
     rep = stepper.report()
     return {"springs": term.n_springs, "nodes": net.n_nodes, "prefactor_s": prefactor,
             "step_ms_median": 1e3 * statistics.median(walls), "step_ms": [1e3 * w for w in walls],
+            "step_cpu_ms_median": 1e3 * statistics.median(cpus),
             "real_time_factor_at_30Hz": (1 / 30) / statistics.median(walls),
             "traffic": implicit_traffic(rep, term.n_springs, term.pattern.nnz), "integrator": rep}
 
 
-def run(*, parts=("sizes", "effects", "volume", "demo", "implicit"), sizes=None, repeats: int = 5,
-        threads: int | None = None, implicit_sizes=("100k", "500k-jacobi")) -> dict:
+def run(*, parts=("sizes", "effects", "volume", "demo", "implicit", "scaling"), sizes=None, repeats: int = 5,
+        threads: int | None = None, implicit_sizes=("100k", "500k-jacobi"), scaling_sizes=tuple(STEP_SCALING)) -> dict:
     """The benchmark's figures; ``make bench`` runs everything (see :func:`main` for a quick subset).
 
     Parameters
     ----------
-    parts : subset of {"sizes", "effects", "volume", "demo", "implicit"}
+    parts : subset of {"sizes", "effects", "volume", "demo", "implicit", "scaling"}
     sizes : subset of :data:`SIZES` keys, optional
     repeats : int
         Timed repeats per figure (medians).
@@ -490,6 +551,8 @@ def run(*, parts=("sizes", "effects", "volume", "demo", "implicit"), sizes=None,
         Threads for the multi-thread rows (default: all numba has; 1 skips them).
     implicit_sizes : subset of :data:`IMPLICIT_SIZES` keys
         Kuhn boxes of the implicit step (500k with the factor: over an hour and 10 GB here).
+    scaling_sizes : subset of :data:`STEP_SCALING` keys
+        Kuhn boxes of the step-cost series (:func:`bench_step_scaling`).
     """
     import numba
 
@@ -534,6 +597,8 @@ def run(*, parts=("sizes", "effects", "volume", "demo", "implicit"), sizes=None,
             res["implicit"] = bench_implicit(sizes=implicit_sizes)
         except Exception as exc:  # needs gmsh and the bundled liver; report, don't fail the rest
             res["implicit"] = {"error": f"{type(exc).__name__}: {exc}"}
+    if "scaling" in parts:
+        res["scaling"] = bench_step_scaling(sizes=scaling_sizes)
     res["bench_seconds"] = time.perf_counter() - t0
     return res
 
@@ -545,20 +610,23 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  epilog="quick: --parts sizes --sizes 5k,50k --threads 1 (about a minute)")
-    ap.add_argument("--parts", default="sizes,effects,volume,demo,implicit",
-                    help="any of sizes, effects, volume, demo, implicit (default: all)")
+    ap.add_argument("--parts", default="sizes,effects,volume,demo,implicit,scaling",
+                    help="any of sizes, effects, volume, demo, implicit, scaling (default: all)")
     ap.add_argument("--sizes", default=None, help=f"networks to time, any of {', '.join(SIZES)} (default: all)")
     ap.add_argument("--repeats", type=int, default=5, help="timed repeats per figure (default 5)")
     ap.add_argument("--threads", type=int, default=None, help="threads of the multi-thread rows (1: none)")
     ap.add_argument("--implicit-sizes", default="100k,500k-jacobi",
                     help=f"Kuhn boxes of the implicit step, any of {', '.join(IMPLICIT_SIZES)} "
                          "(500k with the factor: over an hour, 10 GB)")
+    ap.add_argument("--scaling-sizes", default=",".join(STEP_SCALING),
+                    help=f"Kuhn boxes of the step-cost series, any of {', '.join(STEP_SCALING)} (default: all)")
     args = ap.parse_args(argv)
     parts = tuple(p.strip() for p in args.parts.split(",") if p.strip())
     sizes = None if args.sizes is None else [s.strip() for s in args.sizes.split(",") if s.strip()]
     implicit_sizes = tuple(s.strip() for s in args.implicit_sizes.split(",") if s.strip())
+    scaling_sizes = tuple(s.strip() for s in args.scaling_sizes.split(",") if s.strip())
     print(json.dumps(run(parts=parts, sizes=sizes, repeats=args.repeats, threads=args.threads,
-                         implicit_sizes=implicit_sizes), indent=2,
+                         implicit_sizes=implicit_sizes, scaling_sizes=scaling_sizes), indent=2,
                      default=float))
     return 0
 

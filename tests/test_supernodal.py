@@ -242,3 +242,51 @@ def test_the_stepper_factors_take_one_thread_setting_for_both_phases():
     ref = spl.spsolve((A + B.T @ sp.diags(w) @ B).tocsc(), b)
     for f in mixed:
         assert np.linalg.norm(f.solve(b) - ref) <= 1e-9 * np.linalg.norm(ref)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_two_halves_of_a_solve_are_the_solve_bit_for_bit(spd, dtype, threads):
+    """``backward(dinv * forward(b))`` does the solve's operations in the solve's order: the same
+    bits, on one thread and on two."""
+    fac = LDLT.of(spd, perm=node_ordering(spd), dtype=dtype, threads=threads)
+    b = np.random.default_rng(21).standard_normal(spd.shape[0])
+    y = fac.forward(b)
+    assert y.dtype == dtype
+    y *= fac.dinv
+    np.testing.assert_array_equal(fac.backward(y), fac.solve(b))
+
+
+@pytest.mark.parametrize("order", ["nested", "random"])
+def test_columns_are_the_forward_half_of_unit_vectors_on_their_paths(spd, order):
+    """``L^-1 P e_j`` swept over the path of j's supernode to the root only equals the whole forward
+    sweep of e_j (which is zero elsewhere), and the triangular solve of an independent solver."""
+    N = spd.shape[0]
+    perm = node_ordering(spd) if order == "nested" else np.random.default_rng(22).permutation(N)
+    fac = LDLT.of(spd, perm=perm)
+    dofs = np.array([0, 5, 17, N - 1, N // 2])
+    R, Y = fac.columns(dofs)
+    assert np.all(np.diff(R) > 0)
+    if order == "nested":
+        assert R.size < N                  # a path, not the whole factor
+    for q, j in enumerate(dofs):
+        e = np.zeros(N)
+        e[j] = 1.0
+        full = fac.forward(e)
+        np.testing.assert_allclose(Y[:, q], full[R], rtol=0, atol=1e-12)
+        out = np.ones(N, bool)
+        out[R] = False
+        assert not np.any(full[out])
+    # independently: L y = P e, L the unit lower factor of P A P^T in the factor's (postordered) order
+    perm = fac.analysis.perm
+    Ap = spd[perm][:, perm].toarray()
+    Lref = np.linalg.cholesky(Ap)
+    Lunit = Lref / np.diag(Lref)
+    for q, j in enumerate(dofs):
+        e = np.zeros(N)
+        e[np.flatnonzero(perm == j)[0]] = 1.0
+        ref = np.linalg.solve(Lunit, e)
+        assert np.abs(ref[R] - Y[:, q]).max() <= 1e-10 * np.abs(ref).max()
+        out = np.ones(N, bool)
+        out[R] = False
+        assert np.abs(ref[out]).max(initial=0.0) <= 1e-12 * np.abs(ref).max()

@@ -15,7 +15,8 @@ r"""Sparse linear algebra of the implicit stepper: a reused factorization, const
   stiffness in the step's linear model (the 1 kHz grasper force);
 * :func:`pcg`: preconditioned conjugate gradients in the constraints' null
   space (the preconditioner :math:`\Pi = P^{-1} - W C^{-1} W^T`,
-  :math:`W = P^{-1}J^T`, maps any residual into it).
+  :math:`W = P^{-1}J^T`, maps any residual into it; applied as one solve whose
+  two halves are joined by the correction, :class:`Constraints`).
 
 docs/design/simulator.md ("What is factored, and when it is renewed", "Constraints by the
 capacitance matrix") explains the choices.
@@ -100,6 +101,27 @@ class SparseFactor:
         """``A^-1 b`` for *b* of shape (N,) or (N, k) (float64)."""
         return self.ldl.solve(b)
 
+    # -- a solve in two halves, for the constraints' correction between them ------------------
+    @property
+    def dinv(self) -> np.ndarray:
+        """1 / D in the factor's order (its rows: A's, then a saddle point's pressures), factor precision."""
+        return self.ldl.dinv
+
+    def forward(self, b: np.ndarray) -> np.ndarray:
+        """``L^-1 P b`` for *b* (N,), in the factor's order and precision: ``solve(b)`` is
+        ``backward(dinv * forward(b))``, bit for bit."""
+        return self.ldl.forward(b)
+
+    def backward(self, y: np.ndarray) -> np.ndarray:
+        """``P^T L^-T y`` for *y* in the factor's order (overwritten), float64 in A's order (N,)."""
+        return self.ldl.backward(y)
+
+    def columns(self, dofs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``L^-1 P e_j`` for the unit vectors at *dofs* (k,) of A, on the rows R where any is nonzero:
+        ``(R, Y)``, R (r,) sorted in the factor's order, Y (r, k) float64. Each costs the path of its
+        supernode to the root (:meth:`~esmm.pipeline.linalg.supernodal.LDLT.columns`), not a solve."""
+        return self.ldl.columns(dofs)
+
 
 def _factor(A, analysis, perm, dtype, threads) -> tuple[LDLT, float]:
     """:class:`~esmm.pipeline.linalg.supernodal.LDLT` of the stepper's matrix, factored and solved on
@@ -165,6 +187,14 @@ class MixedFactor(SparseFactor):
         pad = np.zeros((self.perm.size - self.n_dof,) + b.shape[1:])
         return super().solve(np.concatenate([b, pad]))[:self.n_dof]
 
+    def forward(self, b: np.ndarray) -> np.ndarray:
+        """:meth:`SparseFactor.forward` of *b* (3n,) with zero pressures."""
+        return super().forward(np.concatenate([b, np.zeros(self.perm.size - self.n_dof)]))
+
+    def backward(self, y: np.ndarray) -> np.ndarray:
+        """:meth:`SparseFactor.backward`, the dofs' part (3n,)."""
+        return super().backward(y)[:self.n_dof]
+
 
 def saddle_point(A, B, w: np.ndarray):
     """The scaled saddle-point matrix of :class:`MixedFactor` (CSR)."""
@@ -198,13 +228,26 @@ def mixed_ordering(A, B) -> np.ndarray:
 
 @dataclass(eq=False)
 class Constraints:
-    """Constraint rows on top of a :class:`SparseFactor` ``P`` (the capacitance method).
+    r"""Constraint rows on top of a :class:`SparseFactor` ``P = P_o^T L D L^T P_o`` (the capacitance method).
 
     Each row m acts on node ``node[m]`` along the unit vector ``e[m]`` (3,):
     a hard constraint (compliance 0: the dof does not move in the Newton
-    update) or a coupling spring (compliance ``1/k``). ``W = P^-1 J^T`` is
-    cached per row (node and direction: one solve each) until the factor
-    changes.
+    update) or a coupling spring (compliance ``1/k``). With
+    :math:`Y = L^{-1} P_o J^T` (the forward half of a solve of each row),
+
+    .. math::
+
+        C = J P^{-1} J^T + D_c = Y^T D^{-1} Y + D_c,\qquad
+        \Pi r = P_o^T L^{-T}\big(D^{-1}\mathbf y - D^{-1} Y C^{-1} Y^T D^{-1}\mathbf y\big),\quad
+        \mathbf y = L^{-1} P_o r,
+
+    which is :math:`(P^{-1} - W C^{-1} W^T) r` with :math:`W = P^{-1}J^T`, with
+    the correction made between the two halves of one solve. A column of Y is
+    nonzero only on the path of its dof's supernode to the root of the
+    supernode tree: it costs that path's sweep, where a column of W costs a
+    whole solve, and the correction touches only the union R of the rows'
+    paths. Y is cached per node (its three dofs; a sliding contact's normal
+    uses its node's) until the factor changes.
 
     Parameters
     ----------
@@ -215,43 +258,42 @@ class Constraints:
 
     factor: SparseFactor
     n: int
-    _cols: dict = field(default_factory=dict, repr=False)
+    _cols: dict = field(default_factory=dict, repr=False)   #: node -> (rows (r,), L^-1 P_o of its 3 dofs (r, 3))
     node: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     e: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     comp: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    W: np.ndarray | None = None
+    R: np.ndarray | None = None         #: rows (factor order) where a column of Y is nonzero, (r,)
+    Y: np.ndarray | None = None         #: ``L^-1 P_o J^T`` on R, (r, c)
     cap_inv: np.ndarray | None = None
+    _Yt: np.ndarray | None = field(default=None, repr=False)   #: Y^T (c, r), in the factor's precision
+    _dY: np.ndarray | None = field(default=None, repr=False)   #: D^-1 Y (r, c), in the factor's precision
     _hard: tuple | None = field(default=None, repr=False)   #: hard rows' nodes, directions, orthonormal
-    solves: int = 0
-    solve_s: float = 0.0        #: seconds spent in the preconditioner's solves
-    apply_s: list = field(default_factory=list, repr=False)   #: each of the preconditioner's solves [s]
-    columns_s: float = 0.0      #: seconds spent computing the columns of W
+    _G: np.ndarray | None = field(default=None, repr=False)       #: Y^T D^-1 Y of the rows in use
+    _gram_of: dict = field(default_factory=dict, repr=False)       #: row (node, direction) -> its row of _G
+    solves: int = 0             #: the preconditioner's applications (one solve each)
+    solve_s: float = 0.0        #: seconds spent in them
+    apply_s: list = field(default_factory=list, repr=False)   #: each of them [s]
+    columns_s: float = 0.0      #: seconds spent computing the columns of Y
 
-    def columns(self, node: np.ndarray, e: np.ndarray) -> None:
-        """Compute (once per factor) the column ``P^-1 J_m^T`` of every row (*node* (c,), unit *e* (c, 3)):
-        one solve per row (a slip contact's normal row: one, not three)."""
-        new, seen = [], set()
-        for a, d in zip(np.asarray(node, dtype=np.int64), np.asarray(e, dtype=np.float64).reshape(-1, 3)):
-            key = (int(a), d.tobytes())
-            if key not in self._cols and key not in seen:
-                seen.add(key)
-                new.append((key, int(a), d))
+    def columns(self, node: np.ndarray) -> None:
+        """Compute (once per factor) the forward half of a solve of each new node's three unit vectors,
+        kept on the rows where it is nonzero (:meth:`SparseFactor.columns`)."""
+        new = [int(a) for a in np.unique(np.asarray(node, dtype=np.int64)) if int(a) not in self._cols]
         if not new:
             return
-        E = np.zeros((3 * self.n, len(new)))
-        for q, (_, a, d) in enumerate(new):
-            E[3 * a:3 * a + 3, q] = d
         t = time.perf_counter()
-        X = self.factor.solve(E)
+        dofs = (3 * np.asarray(new, dtype=np.int64)[:, None] + np.arange(3)).ravel()
+        R, Y = self.factor.columns(dofs)
+        for q, a in enumerate(new):
+            Yq = Y[:, 3 * q:3 * q + 3]
+            nz = np.any(Yq != 0.0, axis=1)
+            self._cols[a] = (R[nz], np.ascontiguousarray(Yq[nz]))
         self.columns_s += time.perf_counter() - t
-        self.solves += len(new)
-        for q, (key, _, _) in enumerate(new):
-            self._cols[key] = np.ascontiguousarray(X[:, q])
 
     def set_rows(self, node: np.ndarray, e: np.ndarray, comp: np.ndarray) -> None:
-        """Use rows (*node* (c,), unit *e* (c, 3), compliance *comp* (c,)); builds W and the capacitance inverse
-        (kept where the rows are the ones in use: a step whose grasp and contacts did not change, where
-        rebuilding them, W's copy of 3n x c entries, would be most of the call)."""
+        """Use rows (*node* (c,), unit *e* (c, 3), compliance *comp* (c,)); builds Y on R and the
+        capacitance inverse (kept where the rows are the ones in use: a step whose grasp and contacts
+        did not change)."""
         node = np.asarray(node, dtype=np.int64)
         e = np.asarray(e, dtype=np.float64).reshape(-1, 3)
         comp = np.asarray(comp, dtype=np.float64)
@@ -262,19 +304,50 @@ class Constraints:
         self._hard_rows()
         c = self.node.size
         if c == 0:
-            self.W, self.cap_inv = None, None
+            self.R, self.Y, self._Yt, self._dY, self.cap_inv = None, None, None, None, None
             return
-        self.columns(self.node, self.e)
-        W = np.empty((3 * self.n, c))
-        for m in range(c):
-            W[:, m] = self._cols[(int(self.node[m]), self.e[m].tobytes())]
-        self.W = W
-        cap = self.gather(W) + np.diag(self.comp)
-        cap = 0.5 * (cap + cap.T)
+        self.columns(self.node)
+        cols = [self._cols[int(a)] for a in self.node]
+        on = np.zeros(self.factor.dinv.size, bool)          # the union of the rows' paths, sorted
+        for rows, _ in cols:
+            on[rows] = True
+        R = np.flatnonzero(on)
+        pos = np.cumsum(on) - 1                              # row of R of each factor row on it
+        Y = np.zeros((R.size, c))
+        for m, (rows, Ya) in enumerate(cols):
+            Y[pos[rows], m] = Ya @ self.e[m]
+        dY = self.factor.dinv[R].astype(np.float64)[:, None] * Y
+        cap = self._gram(Y, dY) + np.diag(self.comp)
         try:
-            self.cap_inv = np.linalg.inv(cap)
+            cap_inv = np.linalg.inv(cap)
         except np.linalg.LinAlgError:
             raise SimulationError("the implicit step's constraints are dependent (a node held twice?)") from None
+        self.R, self.Y, self.cap_inv = R, Y, cap_inv
+        dtype = self.factor.dinv.dtype                       # the correction in the factor's precision
+        self._Yt, self._dY = np.ascontiguousarray(Y.T, dtype=dtype), dY.astype(dtype)
+
+    def _gram(self, Y: np.ndarray, dY: np.ndarray) -> np.ndarray:
+        """``Y^T D^-1 Y`` (c, c), symmetric, for the rows in use: an entry depends on its two rows
+        alone, so the entries between rows of the last set are taken from it and only the new rows'
+        are computed (a contact that comes or goes changes a few of an organ's tens or hundreds of
+        rows: a product of c x k x r instead of c x c x r)."""
+        keys = [(int(a), d.tobytes()) for a, d in zip(self.node, self.e)]
+        old = np.array([self._gram_of.get(k, -1) for k in keys], dtype=np.int64)
+        kept, new = np.flatnonzero(old >= 0), np.flatnonzero(old < 0)
+        if kept.size == 0:
+            G = Y.T @ dY
+            G = 0.5 * (G + G.T)
+        else:
+            G = np.empty((len(keys), len(keys)))
+            G[np.ix_(kept, kept)] = self._G[np.ix_(old[kept], old[kept])]
+            if new.size:
+                B = Y.T @ dY[:, new]
+                G[:, new] = B
+                G[new, :] = B.T
+                Bnn = B[new]
+                G[np.ix_(new, new)] = 0.5 * (Bnn + Bnn.T)
+        self._G, self._gram_of = G, {k: m for m, k in enumerate(keys)}
+        return G
 
     def _hard_rows(self) -> None:
         """The hard rows (node, direction) and whether each node's are orthonormal (the grasp's and the
@@ -311,17 +384,25 @@ class Constraints:
         return out.ravel()
 
     def apply(self, r: np.ndarray, fixed: np.ndarray | None = None) -> np.ndarray:
-        """The constrained preconditioner ``(P^-1 - W C^-1 W^T) r`` (zero on *fixed* dofs)."""
+        """The constrained preconditioner ``(P^-1 - W C^-1 W^T) r`` (zero on *fixed* dofs): one solve, its
+        two halves joined by the capacitance correction on the rows R (class docstring); without rows,
+        the factor's solve itself."""
         if fixed is not None:
             r = np.where(fixed, 0.0, r)
         t = time.perf_counter()
-        z = self.factor.solve(r)
+        if self.Y is None:
+            z = self.factor.solve(r)
+        else:
+            y = self.factor.forward(r)
+            y *= self.factor.dinv
+            yR = y[self.R]
+            y[self.R] = yR - self._dY @ (self.cap_inv @ (self._Yt @ yR)).astype(y.dtype)
+            z = self.factor.backward(y)
         dt = time.perf_counter() - t
         self.solve_s += dt
         self.solves += 1
         self.apply_s.append(dt)
-        if self.W is not None:
-            z = z - self.W @ (self.cap_inv @ self.gather(z))
+        if self.Y is not None:
             self._project_hard(z.reshape(self.n, 3))     # exactly in the null space (the factor may be float32)
         if fixed is not None:
             z[fixed] = 0.0

@@ -273,6 +273,14 @@ class Analysis:
                    a_indices=A.indices.copy(), stack_size=int(_stack_size(nchild, nr - nc)),
                    max_rows=int(nr.max()) if n else 0, nnz=int(ptr[n]), seconds=time.perf_counter() - t)
 
+    def snode_parent(self) -> np.ndarray:
+        """The supernode tree: each supernode's parent, -1 at a root (from ``kids``)."""
+        ns = self.start.size - 1
+        parent = np.full(ns, -1, np.int64)
+        owner = np.repeat(np.arange(ns), np.diff(self.kid_ptr))
+        parent[self.kids] = owner
+        return parent
+
     def matches(self, A) -> bool:
         """Whether the canonical CSR *A* has the pattern analysed."""
         return (A.shape[0] == self.n and np.array_equal(A.indptr, self.a_indptr)
@@ -656,6 +664,56 @@ def _solve(start, rows, row_ptr, blk, block_ptr, dinv, X, tmp):
 
 
 @nb.njit(fastmath=True, **_JIT)
+def _forward_many(seq, start, rows, row_ptr, blk, block_ptr, X, T):
+    """``X <- L^-1 X`` over the supernodes *seq* (ascending: a postorder's), for X (n, k) with the k
+    right-hand sides in the inner (contiguous) dimension: each entry of L read once for all of them and
+    applied to k values in one vectorised loop. T (max_rows, k): scratch. Where X is zero outside the
+    columns of *seq* and *seq* holds every ancestor of its supernodes (a unit vector's path to the
+    root, :meth:`LDLT.columns`), the other supernodes would change nothing."""
+    k = X.shape[1]
+    for s in seq:
+        f = start[s]
+        nc = start[s + 1] - f
+        r0 = row_ptr[s]
+        nr = row_ptr[s + 1] - r0
+        b0 = block_ptr[s]
+        no = nr - nc
+        for c in range(nc):
+            base = _column(b0, nr, c)
+            for i in range(nc - c - 1):
+                lv = blk[base + i]
+                for q in range(k):
+                    X[f + c + 1 + i, q] -= lv * X[f + c, q]
+        if no == 0:
+            continue
+        T[:no, :] = 0.0
+        for c in range(nc):
+            pc = _column(b0, nr, c) + nc - c - 1
+            for i in range(no):
+                lv = blk[pc + i]
+                for q in range(k):
+                    T[i, q] += lv * X[f + c, q]
+        for i in range(no):
+            r = rows[r0 + nc + i]
+            for q in range(k):
+                X[r, q] -= T[i, q]
+
+
+@nb.njit(fastmath=True, **_JIT)
+def _forward_one(start, rows, row_ptr, blk, block_ptr, x, tmp):
+    """``x <- L^-1 x`` (one right-hand side, :func:`_forward_block` supernode by supernode)."""
+    for s in range(start.size - 1):
+        _forward_block(s, start, rows, row_ptr, blk, block_ptr, x, tmp)
+
+
+@nb.njit(fastmath=True, **_JIT)
+def _backward_one(start, rows, row_ptr, blk, block_ptr, x, tmp):
+    """``x <- L^-T x`` (one right-hand side)."""
+    for s in range(start.size - 2, -1, -1):
+        _backward_block(s, start, rows, row_ptr, blk, block_ptr, x, tmp)
+
+
+@nb.njit(fastmath=True, **_JIT)
 def _forward_part(g, part, start, rows, row_ptr, blk, block_ptr, X, tmp):
     """The forward sweep over the supernodes of part g (:func:`_two_parts`), in order."""
     for s in range(start.size - 1):
@@ -701,6 +759,24 @@ def _solve_two(start, rows, row_ptr, blk, block_ptr, dinv, part, X, XX, tmp2):
     for q in range(X.shape[0]):
         for j in range(X.shape[1]):
             X[q, j] *= dinv[j]
+    _backward_part(-1, part, start, rows, row_ptr, blk, block_ptr, X, tmp2[0])
+    for g in nb.prange(2):
+        _backward_part(g, part, start, rows, row_ptr, blk, block_ptr, X, tmp2[g])
+
+
+@nb.njit(parallel=True, **_JIT)
+def _forward_two(start, rows, row_ptr, blk, block_ptr, part, X, XX, tmp2):
+    """The forward half of :func:`_solve_two`: ``X <- L^-1 X``."""
+    for g in nb.prange(2):
+        XX[g] = X
+        _forward_part(g, part, start, rows, row_ptr, blk, block_ptr, XX[g], tmp2[g])
+    _merge_parts(part, start, X, XX)
+    _forward_part(-1, part, start, rows, row_ptr, blk, block_ptr, X, tmp2[0])
+
+
+@nb.njit(parallel=True, **_JIT)
+def _backward_two(start, rows, row_ptr, blk, block_ptr, part, X, tmp2):
+    """The backward half of :func:`_solve_two`: ``X <- L^-T X``."""
     _backward_part(-1, part, start, rows, row_ptr, blk, block_ptr, X, tmp2[0])
     for g in nb.prange(2):
         _backward_part(g, part, start, rows, row_ptr, blk, block_ptr, X, tmp2[g])
@@ -765,6 +841,64 @@ class LDLT:
         out = np.empty((an.n, X.shape[0]))
         out[an.perm] = X.T
         return out.reshape(np.shape(b))
+
+    # -- the two halves of a solve, for corrections between them (the constraints' capacitance) ----
+    def forward(self, b: np.ndarray) -> np.ndarray:
+        """``y = L^-1 P b`` for *b* (N,): the forward half of :meth:`solve`, in the factor's order and
+        precision (``solve(b) = backward(dinv * y)``)."""
+        an = self.analysis
+        x = np.ascontiguousarray(np.asarray(b)[an.perm], dtype=self.dtype)
+        if self.threads > 1:
+            X = x.reshape(1, -1)
+            _forward_two(an.start, an.rows, an.row_ptr, self.blk, an.block_ptr, an.part, X,
+                         np.empty((2,) + X.shape, self.dtype), np.empty((2, max(an.max_rows, 1)), self.dtype))
+        else:
+            _forward_one(an.start, an.rows, an.row_ptr, self.blk, an.block_ptr, x,
+                         np.empty(max(an.max_rows, 1), self.dtype))
+        return x
+
+    def backward(self, y: np.ndarray) -> np.ndarray:
+        """``P^T L^-T y`` for *y* (N,) in the factor's order (overwritten), in float64 in the matrix's order."""
+        an = self.analysis
+        x = np.ascontiguousarray(y, dtype=self.dtype)
+        if self.threads > 1:
+            _backward_two(an.start, an.rows, an.row_ptr, self.blk, an.block_ptr, an.part, x.reshape(1, -1),
+                          np.empty((2, max(an.max_rows, 1)), self.dtype))
+        else:
+            _backward_one(an.start, an.rows, an.row_ptr, self.blk, an.block_ptr, x,
+                          np.empty(max(an.max_rows, 1), self.dtype))
+        out = np.empty(an.n)
+        out[an.perm] = x
+        return out
+
+    def columns(self, dofs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``Y = L^-1 P E`` for the unit vectors E at *dofs* (k,) of the matrix, as ``(R, Y_R)``: the
+        rows R (factor order, sorted) where any column can be nonzero, and Y there (len(R), k; float64).
+
+        ``L^-1 e_j`` is zero outside the supernodes on the path from j's supernode to the root of
+        the supernode tree, so only those are swept (:func:`_forward_many`): each column costs its
+        path, not the whole factor."""
+        an = self.analysis
+        ns = an.start.size - 1
+        pos = np.empty(an.n, np.int64)
+        pos[an.perm] = np.arange(an.n)
+        cols = pos[np.asarray(dofs, dtype=np.int64)]
+        snode = np.searchsorted(an.start, cols, side="right") - 1
+        parent = an.snode_parent()
+        on = np.zeros(ns, bool)
+        for s0 in np.unique(snode):
+            s_ = int(s0)
+            while s_ >= 0 and not on[s_]:
+                on[s_] = True
+                s_ = int(parent[s_])
+        seq = np.flatnonzero(on)
+        R = np.concatenate([np.arange(an.start[s_], an.start[s_ + 1]) for s_ in seq]) if seq.size else \
+            np.zeros(0, np.int64)
+        X = np.zeros((an.n, cols.size), self.dtype)
+        X[cols, np.arange(cols.size)] = 1.0
+        _forward_many(seq.astype(np.int64), an.start, an.rows, an.row_ptr, self.blk, an.block_ptr, X,
+                      np.empty((max(an.max_rows, 1), max(cols.size, 1)), self.dtype))
+        return R, X[R].astype(np.float64)
 
 
 def _factor_one(an: Analysis, vals, blk, d) -> int:
