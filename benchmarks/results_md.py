@@ -210,6 +210,15 @@ def population_lines(doc: dict) -> list[str]:
                 f"of {fmt(e['ran'])}. Runtime per case: median {fmt(rt['median_s'])} s, largest {fmt(rt['max_s'])} s, "
                 f"{len(rt['timeouts'])} past the {fmt(doc.get('timeout_s'))} s limit, {len(doc.get('errors', []))} "
                 "stopped with an error."]
+    b = doc.get("before")
+    if b:
+        lo, hi = b["fp_ci95"]
+        out += ["", f"Before ({fmt(b['note'])}): false positives {fmt(b['false_positives'])}/{fmt(b['clean_ran'])} = "
+                    f"{pct(b['fp_rate'])} ({pct(lo)} - {pct(hi)}), invented "
+                    + ", ".join(f"{k} {v}" for k, v in b["invented"].items())
+                    + f"; effect cases named alone {pct(b['strict_rate'])}, named {pct(b['lenient_rate'])} of "
+                    f"{fmt(b['effect_cases_ran'])}; {fmt(b['timeouts'])} past the time limit; median "
+                    f"{fmt(b['median_s'])} s."]
     return out
 
 
