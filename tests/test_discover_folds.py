@@ -134,3 +134,24 @@ def test_artefacts_are_judged_on_blocks_of_their_own_file():
     assert judged_on("viscoelastic", material, artefact) is material
     assert judged_on(["viscoelastic", "slack"], material, artefact) is material
     assert Spec().names() == []
+
+
+def _cores_in_child(q):
+    from esmm.pipeline.discover import nested
+
+    q.put(nested._usable_cores())
+
+
+def test_nested_folds_do_not_fork_inside_a_daemonic_worker():
+    """A pool's or a Dask worker's process is daemonic and may not start processes: the nested folds then run
+    one after the other (a discovery in a Dask batch stopped with 'daemonic processes are not allowed to have
+    children')."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("spawn")
+    q = ctx.Queue()
+    p = ctx.Process(target=_cores_in_child, args=(q,), daemon=True)
+    p.start()
+    got = q.get(timeout=120)
+    p.join(timeout=60)
+    assert got == 1

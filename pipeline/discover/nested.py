@@ -209,7 +209,10 @@ def _worker(j: int):
 
 
 def _usable_cores() -> int:
-    """The cores this process may run on (its CPU affinity where the platform says, else the machine's)."""
+    """The cores this process may run on (its CPU affinity where the platform says, else the machine's); 1 in
+    a daemonic process (a process pool's or a Dask worker), which may not start processes of its own."""
+    if multiprocessing.current_process().daemon:
+        return 1
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):
