@@ -148,10 +148,10 @@ def test_nested_folds_do_not_fork_inside_a_daemonic_worker():
     children')."""
     import multiprocessing
 
-    ctx = multiprocessing.get_context("spawn")
+    ctx = multiprocessing.get_context("fork")
     q = ctx.Queue()
     p = ctx.Process(target=_cores_in_child, args=(q,), daemon=True)
     p.start()
-    got = q.get(timeout=120)
+    got = q.get(timeout=60)
     p.join(timeout=60)
     assert got == 1
