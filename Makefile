@@ -49,13 +49,13 @@ results: ## render benchmarks/RESULTS.md and the README's table from the committ
 
 # The independent population (benchmarks/population): discovery's false-positive rate on clean
 # cases and its confusion table; one `esmm calibrate --discover` per case, BENCH_JOBS at a time.
-BENCH_CASES ?= 300
+BENCH_CASES ?= 303
 BENCH_SEED ?= 0
 BENCH_JOBS ?= 2
 BENCH_DISCOVER_OUT ?= benchmarks/population_results.json
-bench-discover: install ## discovery on an independent population: 300 cases (200 clean), JSON in benchmarks/
+bench-discover: install ## discovery on an independent population: 303 cases (200 clean, 103 with an effect), JSON in benchmarks/
 	$(BIN)/python benchmarks/bench_discover_population.py --cases $(BENCH_CASES) --seed $(BENCH_SEED) \
-		--jobs $(BENCH_JOBS) --clean-fraction 0.6666666667 --timeout 300 --out "$(BENCH_DISCOVER_OUT)"
+		--jobs $(BENCH_JOBS) --clean-fraction 0.66 --timeout 300 --out "$(BENCH_DISCOVER_OUT)"
 
 lock: ## refresh requirements.lock: the newest releases pyproject.toml allows, installed and frozen
 	bash scripts/lock.sh "$(PYTHON)" requirements.lock

@@ -23,7 +23,7 @@ Scoring:
 ``python benchmarks/bench_discover_population.py --cases N --seed S --jobs J --out results.json
 [--timeout 300] [--clean-fraction 0.5] [--work DIR]`` (the cases, with esmm's outputs beside them,
 stay in ``--work``, by default a new temporary folder named in the JSON); ``make bench-discover``
-runs 300 cases, 200 of them clean. ``run()`` is what ``benchmarks/run.py`` (``make bench``) calls:
+runs 303 cases, 200 of them clean. ``run()`` is what ``benchmarks/run.py`` (``make bench``) calls:
 a smaller population (``BENCH_CASES``) in a temporary folder.
 """
 
@@ -49,7 +49,7 @@ if str(HERE) not in sys.path:
 from population import CLASSES, GENERATOR_VERSION, generate  # noqa: E402
 
 #: ``make bench``'s population (override with ESMM_BENCH_POPULATION_CASES); ``make bench-discover``
-#: runs 300 cases, two thirds of them clean.
+#: runs 303 cases, 200 of them clean (103 with an effect).
 BENCH_CASES, BENCH_SEED, BENCH_CLEAN = 60, 0, 2.0 / 3.0
 NL, VE = "nonlinear_viscoelastic", "viscoelastic"
 PLAIN_VE = "viscoelastic, not nonlinear"
