@@ -230,6 +230,21 @@ def _block_fold(name: str, records, masks: dict[int, np.ndarray]) -> Fold:
     return Fold(name, train, test)
 
 
+def add_predictions(prob, z: np.ndarray, fold: Fold, j: int, out: dict) -> None:
+    """Append to *out* ({record: (sample indices, data, predictions, fold numbers)}) the predictions of
+    *prob* at *z* on *fold*'s held-out samples, fold *j*."""
+    coefs = prob.offsets(z)
+    for k, mask in enumerate(fold.test):
+        if mask is None:
+            continue
+        p = prob.full_prediction(k, z, coefs[k])
+        idx, ys, ps, fs = out.setdefault(k, ([], [], [], []))
+        idx.append(np.flatnonzero(mask))
+        ys.append(prob.records[k].y[mask])
+        ps.append(p[mask])
+        fs.append(np.full(int(mask.sum()), j))
+
+
 def heldout(fitted: Fitted, folds: Sequence[Fold]) -> Errors:
     """Held-out errors of *fitted*'s model: refit per fold on its training samples, predict what was left out.
 
@@ -243,16 +258,7 @@ def heldout(fitted: Fitted, folds: Sequence[Fold]) -> Errors:
     per_file: dict[int, tuple[list, list, list, list]] = {}
     for j, fold in enumerate(folds):
         z, fp = _fold_fit(fitted, fold)
-        coefs = fp.offsets(z)
-        for k, mask in enumerate(fold.test):
-            if mask is None:
-                continue
-            p = fp.full_prediction(k, z, coefs[k])
-            idx, ys, ps, fs = per_file.setdefault(k, ([], [], [], []))
-            idx.append(np.flatnonzero(mask))
-            ys.append(fp.records[k].y[mask])
-            ps.append(p[mask])
-            fs.append(np.full(int(mask.sum()), j))
+        add_predictions(fp, z, fold, j, per_file)
     samples = {}
     for k, (idx, ys, ps, fs) in per_file.items():
         i = np.concatenate(idx)

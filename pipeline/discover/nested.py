@@ -48,7 +48,7 @@ from ..blas import single_threaded_blas
 from ..errors import FitError
 from ..progress import SILENT
 from .fitted import Fitted, finish
-from .heldout import Fold, FoldSet, fold_sets
+from .heldout import Fold, FoldSet, add_predictions, fold_sets
 from .model import Problem, Spec
 from .records import prepare
 from .rounds import run_search
@@ -254,16 +254,7 @@ def _predict(f: Fitted, outer: Fold, j: int, out: dict) -> None:
     for i, s in enumerate(prob.slots):
         if s.records and all(k in empty for k in s.records):
             z[i] = 0.0
-    coefs = prob.offsets(z)
-    for k, mask in enumerate(outer.test):
-        if mask is None:
-            continue
-        p = prob.full_prediction(k, z, coefs[k])
-        idx, ys, ps, fs = out.setdefault(k, ([], [], [], []))
-        idx.append(np.flatnonzero(mask))
-        ys.append(prob.records[k].y[mask])
-        ps.append(p[mask])
-        fs.append(np.full(int(mask.sum()), j))
+    add_predictions(prob, z, outer, j, out)
 
 
 def _errors(records, got: dict):

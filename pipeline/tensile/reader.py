@@ -737,17 +737,13 @@ def _refuse_repeated_header(layout: _Layout, r: int, label: str) -> None:
         )
 
 
-def _data_decimal(layout: _Layout, cols: list[_Column], md: M.Metadata) -> str | None:
-    """The decimal mark the data's numbers use, where they say so without doubt: the sidecar's ``decimal``,
-    else ``","`` when the cells hold commas and no point and the delimiter is not a comma; else None."""
-    e = md.get("decimal")
-    if e is not None:
-        return M.decimal_value(e)
-    if layout.delimiter == ",":
+def _data_decimal(layout: _Layout, cols: list[_Column], md: M.Metadata, label: str) -> str | None:
+    """The decimal mark the data's numbers use (:func:`_decimal`), None where they mix both: the
+    header's values are then read without it, and the data's own reading reports the mix."""
+    try:
+        return _decimal(layout, cols, md, label)
+    except InputError:
         return None
-    want = {c.index for c in cols}
-    cells = [v for line in layout.data_lines[:200] for i, v in enumerate(_split(line, layout.delimiter)) if i in want]
-    return "," if any("," in v for v in cells) and not any("." in v for v in cells) else None
 
 
 def _decimal(layout: _Layout, cols: list[_Column], md: M.Metadata, label: str) -> str:
@@ -1132,7 +1128,7 @@ def _assemble(p: Path, label: str, layout: _Layout, md: M.Metadata, enc: str,
               warnings: list[str], rep: Reporter) -> TensileTest:
     cols = _columns(label, layout, md, warnings)
     by_q, notes = _by_quantity(cols, label)
-    geo = M.geometry(md, label=label, decimal=_data_decimal(layout, cols, md))
+    geo = M.geometry(md, label=label, decimal=_data_decimal(layout, cols, md, label))
     plan = _plan(label, layout, md, cols, by_q, geo)
     used = _used(plan)
     clock = _clock_columns(layout, list(used.values()))
