@@ -17,6 +17,7 @@ from .records import (
     Record,
     largest_span,
     offset_applicable,
+    reloads_below_max,
     repeated_cycles,
     scale_applicable,
     set_applicable,
@@ -121,11 +122,14 @@ def _cyclic(records: Sequence[Record]) -> Verdict:
 
 def _set(records: Sequence[Record], ve: Verdict) -> Verdict:
     if any(set_applicable(r) for r in records):
-        if ve[1] and len(_rate_groups(records)) < 2:
+        reload = any(set_applicable(r) and reloads_below_max(r) for r in records)
+        if ve[1] and len(_rate_groups(records)) < 2 and not reload:
             return (True, False, "not identifiable from these data: at one loading rate a residual strain cannot be "
                     "told from slow viscoelastic recovery (the specimen may recover given time); test at a second "
-                    "rate, or wait at zero force before reloading")
-        return (True, True, "identifiable: tension records unload back towards the reference state")
+                    "rate, reload after unloading, or wait at zero force before reloading")
+        why = ("; they reload below the previous maximum, where a set gives one path down and up and relaxation "
+               "a loop between them" if reload else "")
+        return (True, True, "identifiable: tension records unload back towards the reference state" + why)
     return (True, False, "not identifiable from these data: no tension record with time unloads back towards its "
             "reference state, where a residual strain would show")
 

@@ -292,6 +292,13 @@ def set_applicable(rec: Record) -> bool:
     return float(np.min(after_peak)) - 1.0 <= 0.5 * span
 
 
+def reloads_below_max(rec: Record) -> bool:
+    """The record loads again below a previous maximum (2 % of the stretch below it or more) after unloading:
+    the path down and the path up again between the same stretches, which a rate-independent history (a set,
+    Mullins softening) makes coincide and relaxation makes a loop."""
+    return rec.history and bool(np.any((rec.cov.direction > 0) & (rec.cov.below_max > 0.02)))
+
+
 def strain_softening(rec: Record, alpha: float = SLIP_ALPHA) -> bool:
     """While the stretch increases on a loading run, the stress falls below its maximum so far by more than
     the noise can make it, and does not come back: a descending branch that no stable elastic law makes

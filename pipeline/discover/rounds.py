@@ -19,6 +19,7 @@ import numpy as np
 
 from ..errors import FitError
 from ..materials.terms import TERMS
+from .artefacts import artefact_reason
 from .diagnose import Diagnosis, diagnose
 from .fitted import Fitted, effect_params, fit_spec
 from .heldout import FoldSet, cached_heldout
@@ -226,6 +227,10 @@ def _heldout_winner(s: Search, trials: list[Trial], rnd: int, lv: Levels) -> Tri
         if not ok:
             c.reason = _rejected_text(t, h, lv.single, s)
             continue
+        why = artefact_reason(t.fit, t.name)
+        if why:
+            c.reason = why
+            continue
         return t
     return None
 
@@ -314,7 +319,8 @@ def _try_pairs(singles: dict[str, Trial], s: Search, lv: Levels):
             except FitError:
                 continue
             s.remember(t.fit)
-            if t.screened and passes(_check(s, t, [a, b]), lv.pair, s.crit.min_resolution_units):
+            if t.screened and passes(_check(s, t, [a, b]), lv.pair, s.crit.min_resolution_units) \
+                    and not artefact_reason(t.fit, (a, b)):
                 passed.append(((a, b), t))
     return min(passed, key=lambda p: p[1].heldout["p"]) if passed else None
 
