@@ -61,6 +61,10 @@ def add_parser(sub) -> None:
                    help="also find what the model misses (rate dependence, Mullins softening, damage, slack, "
                         "load-cell offset), add what the data support and report the error before and after "
                         "(docs/guide/discover.md)")
+    p.add_argument("--no-nested", dest="nested", action="store_false",
+                   help="with --discover: skip the nested held-out errors (the whole selection run again inside "
+                        "each fold; most of a discovery's time). What is kept does not change; the report then "
+                        "gives the held-out errors of the chosen model only, which are optimistic")
     p.add_argument("--by", choices=["specimen", "folder"], help="batch: fit each group of files on its own")
     p.add_argument("--jobs", type=int, default=None, metavar="N", dest="workers",
                    help="batch: local worker processes (default: all cores)")
@@ -112,6 +116,9 @@ def check_outputs(args) -> None:
 
 
 def run(args, ui) -> int:
+    if not args.nested and not args.discover:
+        raise ConfigError("--no-nested: the nested held-out errors belong to a discovery; add --discover, or drop "
+                          "--no-nested")
     check_outputs(args)
     overrides = metadata_overrides(args)
     fit_kwargs = _config(args).fit_kwargs()
@@ -226,9 +233,9 @@ def report_batch_problems(summary, ui) -> None:
     ui.error(summary.problem_line())
 
 
-def discover_options(fit_kwargs: dict[str, Any], ui) -> dict[str, Any]:
+def discover_options(fit_kwargs: dict[str, Any], ui, *, nested: bool = True) -> dict[str, Any]:
     """The discovery's options from the calibrate options (the linear loss only: a robust one is ignored)."""
-    kw = dict(fit_kwargs)
+    kw = dict(fit_kwargs, nested=nested)
     loss = kw.pop("loss", "linear")
     if loss not in (None, "linear"):
         ui.warn(f"--discover compares models by likelihood and held-out error with the linear loss; "
@@ -249,7 +256,7 @@ def run_discover(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[str, A
     from esmm.pipeline.tensile.files import read_tests
 
     tests = read_tests(args.files, overrides=overrides, reporter=ui)
-    res = discover(tests, reporter=ui, **discover_options(fit_kwargs, ui))
+    res = discover(tests, reporter=ui, **discover_options(fit_kwargs, ui, nested=args.nested))
     if args.out:
         clear_previous(args, ui)
     written = write_outputs(args.out, res, json_path=args.json)
@@ -280,7 +287,7 @@ def run_discover_batch(args, ui, *, fit_kwargs: dict[str, Any], overrides: dict[
     if not args.out:
         raise ConfigError("--by: give --out DIR; each group's outputs, the cache and the batch log go there")
     jobs = bd.discover_jobs(args.files, by=args.by, out_dir=args.out, read_kwargs={"overrides": overrides},
-                            options=discover_options(fit_kwargs, ui), reporter=ui)
+                            options=discover_options(fit_kwargs, ui, nested=args.nested), reporter=ui)
     clear_previous(args, ui)
     summary = run_jobs(jobs, out_dir=args.out, scheduler=args.scheduler, workers=args.workers, force=args.redo,
                        reporter=ui, title="discovering")
