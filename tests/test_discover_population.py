@@ -28,14 +28,6 @@ def test_population_quick_cases(name):
 #: Slice cases the search gets wrong where the data do separate the truth (docs/design/discovery.md,
 #: "Assumptions and limits", a per-file artefact or a toe kept as a proxy): strict, so a fix shows.
 PROXY_KEPT = {
-    # No slack in the truth: a scale per specimen (two specimens, each at two rates) and a relaxation.
-    # Round 1: the relaxation, held out by rate, fails only the replication check (18.8 -> 13.8 %,
-    # p 0.06 on a few segments: what is left is the specimens' +-25 % scale); a slack per file then
-    # passes on blocks within each file as a proxy for the scale, and with it kept the relaxation
-    # predicts the held-out rate worse (20.1 -> 24.4 %: a held-out file has no slack of its own).
-    # A slack shifts a curve along the stretch, a scale multiplies it: the data tell them apart.
-    "specimen_scale + viscoelastic": "a slack per file is kept as a proxy for the specimens' scales; the "
-                                     "relaxation, masked by them, is then not established",
     # Truth: a slack per file (found) and a relaxation (g 0.59) at one rate. A toe term (elastic, tried
     # first) is kept in round 1; the relaxation, kept in round 2, is removed by the backward elimination
     # (held out one file of two: 22.1 -> 15.1 %, noise test p 0, replication p 0.13 on two files'

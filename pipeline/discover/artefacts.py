@@ -3,7 +3,9 @@
 An artefact (slack, grip slips, a load-cell offset or drift, per-specimen
 scales) is a correction of the data, one value per file or specimen. Beside
 the held-out test every candidate passes, an artefact must show two things
-in the fit that proposes it:
+in the final model (after the backward elimination,
+:func:`~esmm.pipeline.discover.rounds.drop_unsupported_artefacts`: earlier,
+the misfit of effects not yet found would inflate its standard errors):
 
 1. **Its size is determined.** Its per-file parameters, jointly, differ from
    their neutral values (no slack, no slip, no offset or drift, scale 1): the
@@ -13,6 +15,7 @@ in the fit that proposes it:
    the residual's serial correlation; a scale's on the log scale). A drift
    whose every file's interval holds zero is the noise's slow wander (1/f
    amplifier noise), which a fold of consecutive blocks can still reward.
+   Offsets read at rest are measured, not fitted, and are not tested here.
 2. **A slack differs between mountings.** Each specimen is clamped with its
    own slack; slacks that agree across every file describe the curve of every
    specimen starting to carry load the same distance above its reference
@@ -93,6 +96,19 @@ def heterogeneity(rows: list[tuple[float, float]]) -> float:
     return float(stats.chi2.sf(float(np.sum(w * (v - mean) ** 2)), len(rows) - 1))
 
 
+def shared_slack_reason(f: Fitted) -> str | None:
+    """Why the per-file slack of *f* is not an artefact (its files' slacks agree), or None."""
+    rows = _rows(_estimates(f), "slack")
+    if len(rows) < 2:
+        return None
+    ph = heterogeneity(rows)
+    if ph <= LEVEL:
+        return None
+    return (f"the {len(rows)} files' slacks agree within their errors (Cochran's heterogeneity p {ph:.2g} > "
+            f"{LEVEL:g}); a slack every specimen shares is the material's curve starting above its reference "
+            "length (a toe the elastic law lacks), not an artefact of each mounting")
+
+
 def artefact_reason(f: Fitted, names) -> str | None:
     """Why an artefact among *names* that *f* adds is not kept (module docstring), or None."""
     todo = [n for n in ([names] if isinstance(names, str) else names) if n in _NEUTRAL]
@@ -105,16 +121,14 @@ def artefact_reason(f: Fitted, names) -> str | None:
             continue
         p = determined(rows)
         if p > LEVEL:
-            return (f"not kept: the fit does not determine its size: its {len(rows)} per-file value(s) do not differ "
+            return (f"the fit does not determine its size: its {len(rows)} per-file value(s) do not differ "
                     f"from none jointly (Wald p {p:.2g} > {LEVEL:g}); what it fits is the noise's slow wander or "
                     "the fold design's luck")
-        if name == "slack" and len(rows) >= 2:
-            ph = heterogeneity(rows)
-            if ph > LEVEL:
-                return (f"not kept: the {len(rows)} files' slacks agree within their errors (Cochran's heterogeneity "
-                        f"p {ph:.2g} > {LEVEL:g}); a slack every specimen shares is the material's curve starting "
-                        "above its reference length (a toe the elastic law lacks), not an artefact of each mounting")
+        if name == "slack":
+            shared = shared_slack_reason(f)
+            if shared:
+                return shared
     return None
 
 
-__all__ = ["LEVEL", "artefact_reason", "determined", "heterogeneity"]
+__all__ = ["LEVEL", "artefact_reason", "determined", "heterogeneity", "shared_slack_reason"]

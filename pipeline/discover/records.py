@@ -270,9 +270,9 @@ def rest_reading(rec: Record) -> float | None:
 
 def reads_compression(rec: Record, alpha: float = SLIP_ALPHA) -> bool:
     """The record reads a compressive force beyond its noise: some sample's stress, less the reading at rest
-    (the load cell's offset, where the record has one), is below -z σ, z the normal quantile of *alpha* over
-    the record's samples (Bonferroni: a record whose true force never goes below zero is called compressive
-    with probability at most *alpha*).
+    (the load cell's offset, the mean of the n samples before the crosshead moves, where the record has
+    them), is below -z σ √(1 + 1/n), z the normal quantile of *alpha* over the record's samples (Bonferroni:
+    a record whose true force never goes below zero is called compressive with probability at most *alpha*).
 
     A tension strip unloaded faster than it recovers buckles and carries nothing, which is what the model's
     clamp at zero force describes; a record that reads compression shows a specimen (or fixture) that
@@ -281,7 +281,9 @@ def reads_compression(rec: Record, alpha: float = SLIP_ALPHA) -> bool:
     if rec.y.size == 0 or not math.isfinite(rec.sigma) or rec.sigma <= 0:
         return False
     z = float(stats.norm.isf(alpha / rec.y.size))
-    return bool(np.min(rec.y - (rest_reading(rec) or 0.0)) < -z * rec.sigma)
+    rest = rest_reading(rec)
+    n = rec.preload()[2] if rest is not None else math.inf
+    return bool(np.min(rec.y - (rest or 0.0)) < -z * rec.sigma * math.sqrt(1.0 + 1.0 / n))
 
 
 def slip_applicable(rec: Record) -> bool:

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import FitError
 from ..materials.terms import TERMS
-from .artefacts import artefact_reason
+from .artefacts import artefact_reason, shared_slack_reason
 from .diagnose import Diagnosis, diagnose
 from .fitted import Fitted, effect_params, fit_spec
 from .heldout import FoldSet, cached_heldout
@@ -227,9 +227,9 @@ def _heldout_winner(s: Search, trials: list[Trial], rnd: int, lv: Levels) -> Tri
         if not ok:
             c.reason = _rejected_text(t, h, lv.single, s)
             continue
-        why = artefact_reason(t.fit, t.name)
-        if why:
-            c.reason = why
+        shared = shared_slack_reason(t.fit) if t.name == "slack" else None
+        if shared:
+            c.reason = f"not kept: {shared}"
             continue
         return t
     return None
@@ -320,7 +320,7 @@ def _try_pairs(singles: dict[str, Trial], s: Search, lv: Levels):
                 continue
             s.remember(t.fit)
             if t.screened and passes(_check(s, t, [a, b]), lv.pair, s.crit.min_resolution_units) \
-                    and not artefact_reason(t.fit, (a, b)):
+                    and not ("slack" in (a, b) and shared_slack_reason(t.fit)):
                 passed.append(((a, b), t))
     return min(passed, key=lambda p: p[1].heldout["p"]) if passed else None
 
@@ -380,6 +380,66 @@ def backward(s: Search, rep) -> None:
         sync_kept(s, c.round)
 
 
+def drop_unsupported_artefacts(s: Search, rep) -> None:
+    """After the backward elimination: a kept artefact whose size the final fit does not determine, or a slack
+    every file shares, goes (:mod:`.artefacts`), latest first, one at a time, the model refitted without it.
+    Offsets read at rest are measured, not fitted: of a sensor offset that holds them only an undetermined
+    drift goes.
+
+    At the end, not when a candidate enters: the fit's standard errors are
+    inflated for the residual's serial correlation, and before the other
+    effects are in, their misfit inflates them too (a true slack fitted in
+    round 1 beside a relaxation not yet found is not determined then).
+    """
+    while True:
+        for name in reversed([n for n in s.kept if s.candidates[n].kind == "artefact"]):
+            why = artefact_reason(s.current, name)
+            if not why:
+                continue
+            c = s.candidates[name]
+            measured = name == "sensor_offset" and s.current.spec.sensor_offset == 2 and \
+                any(v is not None for v in s.current.problem.forward.pinned)
+            spec = s.current.spec.with_(name, 1 if measured else 0)
+            try:
+                reduced = fit_spec(spec, s.current, init_from=s.warm.get(spec))
+            except FitError:
+                continue
+            if measured and _still_passes(s, name, reduced):  # the offsets read at rest stay, the drift goes
+                s.current = reduced
+                c.variant = spec.variant_text(name)
+                c.reason += f"; its drift then removed from the final model: {why}"
+                rep.step(f"removed the drift of {name}: {why}")
+                break
+            if measured:
+                try:
+                    reduced = fit_spec(s.current.spec.with_(name, 0), s.current)
+                except FitError:
+                    continue
+                why += "; without the drift, the offsets read at rest do not pass the held-out test"
+            s.current = reduced
+            c.kept = False
+            c.reason = f"kept in round {c.round}, then removed from the final model: {why}"
+            rep.step(f"removed {name}: {why}")
+            s.kept.remove(name)
+            sync_kept(s, c.round)
+            break
+        else:
+            return
+
+
+def _still_passes(s: Search, name: str, f: Fitted) -> bool:
+    """Does *name* in *f* still pass its held-out test against *f* without it, at the level it was kept at?"""
+    spec = f.spec.with_(name, 0)
+    try:
+        without = fit_spec(spec, f, init_from=s.warm.get(spec))
+    except FitError:
+        return True
+    t = compared(name, f, without)
+    h = check_heldout(t, without, judged_on(name, s.material, s.artefact))
+    level = s.candidates[name].heldout_level or s.levels[max(s.kept_round.get(name, 1), 1) - 1].single
+    return t.screened and passes(h, level, s.crit.min_resolution_units)
+
+
 def run_search(start: Fitted, material: FoldSet, artefact: FoldSet, records: list[Record],
                candidates: Sequence[str], criteria: Criteria, rep, *, warm: dict | None = None) -> Search:
     """The rounds and the backward elimination from the model *start* (:mod:`.rounds`).
@@ -393,5 +453,6 @@ def run_search(start: Fitted, material: FoldSet, artefact: FoldSet, records: lis
     while run_round(search, rnd, rep):
         rnd += 1
     backward(search, rep)
+    drop_unsupported_artefacts(search, rep)
     cached_heldout(search.current, material)
     return search
