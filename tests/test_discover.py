@@ -330,3 +330,23 @@ def test_cli_calibrate_discover(run_cli, tmp_path):
     assert (out / "params.toml").is_file() and (out / "discover.md").is_file()
     code, stdout, stderr = run_cli("calibrate", *paths, "--discover", "--by", "specimen")
     assert code == 2 and "--by" in stderr and stderr.count("\n") == 1
+
+
+def test_cli_discover_without_nested_errors_keeps_the_same(run_cli, tmp_path):
+    """--no-nested: the same kept effects and fitted errors, no nested errors in the JSON; refused without
+    --discover in one line."""
+    truth = syn.Truth("arruda-boyce", BASE, viscoelastic={"g": [0.4], "tau": [3.0]})
+    paths = syn.write_set(tmp_path / "data", [syn.load_unload(0.02, 1.5), syn.load_unload(0.2, 1.5)], truth, seed=3)
+    docs = []
+    for flags in ((), ("--no-nested",)):
+        js = tmp_path / f"o{len(flags)}.json"
+        code, _, stderr = run_cli("calibrate", *paths, "--discover", "--model", "arruda-boyce", "--starts", "2",
+                                  "--json", js, "--out", tmp_path / f"out{len(flags)}", *flags)
+        assert code == 0, stderr
+        docs.append(json.loads(js.read_text()))
+    full, quick = docs
+    assert quick["effects"] == full["effects"] and quick["final"]["nrmse"] == full["final"]["nrmse"]
+    assert full["heldout"]["nested"]["selection_rerun"] and quick["heldout"]["nested"] is None
+    assert "not computed, `--no-nested`" in (tmp_path / "out1" / "discover.md").read_text()
+    code, _, stderr = run_cli("calibrate", *paths, "--no-nested")
+    assert code == 2 and "--no-nested" in stderr and stderr.count("\n") == 1

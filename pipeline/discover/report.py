@@ -346,7 +346,9 @@ def _md_errors(res: DiscoverResult) -> list[str]:
          f"judged on: {res.artefact_scheme}. NRMSE = RMSE / range of the measured stress; every file counts "
          "equally; errors on all samples. *Nested*: the whole selection run again inside each fold on its "
          "training samples, the model it chose predicting the fold's held-out samples"
-         + ("" if n.get("selection_rerun") else " (nothing was kept: the base model's held-out error)") + ".", "",
+         + (" (not computed, `--no-nested`: the held-out errors chose the model and are optimistic)"
+            if res.nested is None else "" if n.get("selection_rerun")
+            else " (nothing was kept: the base model's held-out error)") + ".", "",
          "| model | RMSE [Pa] | NRMSE | max error [Pa] | held-out NRMSE | nested held-out RMSE [Pa] | "
          "nested held-out NRMSE |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for label, m, key in ((f"base ({res.model})", b, "before"), (f"final (+{', '.join(res.kept) or 'nothing'})", f,
