@@ -109,26 +109,18 @@ def shared_slack_reason(f: Fitted) -> str | None:
             "length (a toe the elastic law lacks), not an artefact of each mounting")
 
 
-def artefact_reason(f: Fitted, names) -> str | None:
-    """Why an artefact among *names* that *f* adds is not kept (module docstring), or None."""
-    todo = [n for n in ([names] if isinstance(names, str) else names) if n in _NEUTRAL]
-    if not todo:
+def artefact_reason(f: Fitted, name: str) -> str | None:
+    """Why the artefact *name* of *f* does not belong in the final model (module docstring), or None."""
+    if name not in _NEUTRAL:
         return None
-    est = _estimates(f)
-    for name in todo:
-        rows = _rows(est, name)
-        if not rows:
-            continue
+    rows = _rows(_estimates(f), name)
+    if rows:
         p = determined(rows)
         if p > LEVEL:
             return (f"the fit does not determine its size: its {len(rows)} per-file value(s) do not differ "
                     f"from none jointly (Wald p {p:.2g} > {LEVEL:g}); what it fits is the noise's slow wander or "
                     "the fold design's luck")
-        if name == "slack":
-            shared = shared_slack_reason(f)
-            if shared:
-                return shared
-    return None
+    return shared_slack_reason(f) if name == "slack" else None
 
 
 __all__ = ["LEVEL", "artefact_reason", "determined", "heterogeneity", "shared_slack_reason"]
