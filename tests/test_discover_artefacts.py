@@ -70,39 +70,3 @@ def test_a_slack_both_mountings_share_is_not_an_artefact(tmp_path):
     assert "slack" not in full.kept
     assert all(res.candidates[n].kind == "elastic" for n in full.kept), full.kept
 
-
-# --------------------------------------------------------------------------- the clamp at zero force
-def _cycle(rng, *, undershoot: bool, sd: float = 300.0):
-    """A load-unload triangle to stretch 1.4 and back at 0.02 /s after 2 s at rest, 4000 samples; with
-    *undershoot* the stress is a relaxing response (QLV, g 0.5 at 5 s) that goes compressive on the way
-    down, else the elastic one; white noise of *sd* Pa."""
-    from esmm.pipeline.materials.effects import qlv_stress
-    from esmm.pipeline.tensile.data import TensileTest
-
-    t = np.linspace(0.0, 42.0, 4000)
-    x = 1.0 + np.clip(np.minimum(0.02 * (t - 2.0), 0.8 - 0.02 * (t - 2.0)), 0.0, None)
-    pe = 1e5 * (x - 1.0)
-    p = qlv_stress(t, pe, np.array([0.5]), np.array([5.0])) if undershoot else pe
-    return TensileTest(source=Path("c.csv"), mode="uniaxial", stretch=x, stress=p + rng.normal(0.0, sd, t.size),
-                       time=t)
-
-
-def test_a_record_that_reads_compression_is_not_clamped():
-    from esmm.pipeline.discover.records import prepare
-
-    rng = np.random.default_rng(0)
-    relaxing = prepare([_cycle(rng, undershoot=True)])[0]
-    assert float(np.min(relaxing.y)) < -5e3  # the relaxation's compression on the way down
-    assert relaxing.tension_only and not relaxing.clamp
-    assert prepare([_cycle(rng, undershoot=False)])[0].clamp
-
-
-def test_compression_is_seen_in_noise_alone_at_most_at_its_level():
-    """Elastic cycles whose true force never goes below zero, noise only: called compressive in at most
-    SLIP_ALPHA = 1 % of 150 records (within 3 binomial standard errors)."""
-    from esmm.pipeline.discover.records import prepare, reads_compression
-    from esmm.pipeline.tensile.events import SLIP_ALPHA
-
-    rng = np.random.default_rng(1)
-    hits = sum(reads_compression(r) for r in prepare([_cycle(rng, undershoot=False) for _ in range(150)]))
-    assert hits / 150 <= SLIP_ALPHA + 3 * np.sqrt(SLIP_ALPHA * (1 - SLIP_ALPHA) / 150)

@@ -675,7 +675,7 @@ class ForwardModel:
                 with np.errstate(invalid="ignore"):
                     q = p - relaxation_strength(xi, st.kappa, float(np.sum(st.g))) * (p - q)
             p = q
-        if r.clamp:
+        if r.tension_only:
             p = np.maximum(p, 0.0)
         return p * st.scale[k] if st.scale is not None else p
 
@@ -695,7 +695,7 @@ class ForwardModel:
             g, (a, b) = np.ascontiguousarray(st.g, dtype=float), self._decay(k, st.tau)
             if st.kappa:
                 s = self._strength(k, xi, st)
-        flags = np.array([r.clamp, st.scale is not None, pin is not None, norm is not None])
+        flags = np.array([r.tension_only, st.scale is not None, pin is not None, norm is not None])
         consts = np.array([float(st.scale[k]) if st.scale is not None else 1.0, pin or 0.0,
                            *(norm or (1.0, 1.0)), NAN_PENALTY])
         out = np.empty(pos.size)
