@@ -96,9 +96,10 @@ def heterogeneity(rows: list[tuple[float, float]]) -> float:
     return float(stats.chi2.sf(float(np.sum(w * (v - mean) ** 2)), len(rows) - 1))
 
 
-def shared_slack_reason(f: Fitted) -> str | None:
-    """Why the per-file slack of *f* is not an artefact (its files' slacks agree), or None."""
-    rows = _rows(_estimates(f), "slack")
+def shared_slack_reason(f: Fitted, est: list[Estimate] | None = None) -> str | None:
+    """Why the per-file slack of *f* is not an artefact (its files' slacks agree), or None (*est*: the estimates
+    of *f*, when already computed)."""
+    rows = _rows(_estimates(f) if est is None else est, "slack")
     if len(rows) < 2:
         return None
     ph = heterogeneity(rows)
@@ -113,14 +114,15 @@ def artefact_reason(f: Fitted, name: str) -> str | None:
     """Why the artefact *name* of *f* does not belong in the final model (module docstring), or None."""
     if name not in _NEUTRAL:
         return None
-    rows = _rows(_estimates(f), name)
+    est = _estimates(f)
+    rows = _rows(est, name)
     if rows:
         p = determined(rows)
         if p > LEVEL:
             return (f"the fit does not determine its size: its {len(rows)} per-file value(s) do not differ "
                     f"from none jointly (Wald p {p:.2g} > {LEVEL:g}); what it fits is the noise's slow wander or "
                     "the fold design's luck")
-    return shared_slack_reason(f) if name == "slack" else None
+    return shared_slack_reason(f, est) if name == "slack" else None
 
 
 __all__ = ["LEVEL", "artefact_reason", "determined", "heterogeneity", "shared_slack_reason"]

@@ -358,17 +358,13 @@ def backward(s: Search, rep) -> None:
     for name in list(reversed(s.kept)):
         if len(s.kept) < 2 or (name == "viscoelastic" and "nonlinear_viscoelastic" in s.kept):
             continue
-        spec = s.current.spec.with_(name, 0)
-        try:
-            reduced = fit_spec(spec, s.current, init_from=s.warm.get(spec))
-        except FitError:
+        judged = _judged_without(s, name, s.current)
+        if judged is None:
             continue
-        t = compared(name, s.current, reduced)
+        ok, reduced, h, level = judged
+        if ok:
+            continue
         fs = judged_on(name, s.material, s.artefact)
-        h = check_heldout(t, reduced, fs)
-        level = s.candidates[name].heldout_level or s.levels[max(s.kept_round.get(name, 1), 1) - 1].single
-        if t.screened and passes(h, level, s.crit.min_resolution_units):
-            continue
         c = s.candidates[name]
         c.kept = False
         c.reason = (f"kept in round {c.round}, then removed: given {', '.join(n for n in s.kept if n != name)}, it "
@@ -427,17 +423,24 @@ def drop_unsupported_artefacts(s: Search, rep) -> None:
             return
 
 
-def _still_passes(s: Search, name: str, f: Fitted) -> bool:
-    """Does *name* in *f* still pass its held-out test against *f* without it, at the level it was kept at?"""
+def _judged_without(s: Search, name: str, f: Fitted):
+    """*name* in *f* judged again against *f* refitted without it, at the level it was kept at:
+    (passes, the fit without it, the held-out test, the level), or None when that fit fails."""
     spec = f.spec.with_(name, 0)
     try:
         without = fit_spec(spec, f, init_from=s.warm.get(spec))
     except FitError:
-        return True
+        return None
     t = compared(name, f, without)
     h = check_heldout(t, without, judged_on(name, s.material, s.artefact))
     level = s.candidates[name].heldout_level or s.levels[max(s.kept_round.get(name, 1), 1) - 1].single
-    return t.screened and passes(h, level, s.crit.min_resolution_units)
+    return t.screened and passes(h, level, s.crit.min_resolution_units), without, h, level
+
+
+def _still_passes(s: Search, name: str, f: Fitted) -> bool:
+    """Does *name* in *f* still pass its held-out test against *f* without it (True when that fit fails)?"""
+    judged = _judged_without(s, name, f)
+    return judged is None or judged[0]
 
 
 def run_search(start: Fitted, material: FoldSet, artefact: FoldSet, records: list[Record],
