@@ -18,6 +18,15 @@ Scoring:
   dependent relaxation is relaxation), so for a true ``nonlinear_viscoelastic`` a kept
   ``viscoelastic`` beside it is not an extra; named as plain ``viscoelastic`` alone it is counted
   in its own column ("viscoelastic, not nonlinear"), not as right.
+* a Mullins effect drawn as Miehe's discontinuous damage, ``P = (1 - D(max W0)) P_e``, is by its
+  equations esmm's ``damage`` class (``P = (1 - D(max xi)) P_e``: the primary curve lowered too, the
+  driver a running maximum of a monotone function of the stretch in these uniaxial tests), not its
+  ``mullins`` (Ogden-Roxburgh: the primary curve is the elastic one); either name is right for it.
+  Continuum damage (Simo 1987) must be named ``damage``.
+* every effect case carries its detectability (``population/cases.py``, ``_detectability``: the
+  signal-to-noise ratio of the known effect in the recorded force, correlated noise counted as the
+  fewer independent samples it is); the effect cases are also scored by detectability bins, so that
+  misses below the noise are told from misses of an effect that stands out of it.
 * runtimes, timeouts, errors (non-zero exits with their last message line), seeds.
 
 ``python benchmarks/bench_discover_population.py --cases N --seed S --jobs J --out results.json
@@ -105,9 +114,18 @@ def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float | None, 
     return lo, hi
 
 
-def judge(true: str, effects: list[str]) -> tuple[bool, bool, list[str]]:
+#: (class, variant) -> the other name that is right for it (module docstring).
+SAME_CLASS = {("mullins", "discontinuous_damage"): "damage"}
+#: detectability bins of the effect cases (signal-to-noise ratio of the known effect).
+DETECT_BINS = (3.0, 30.0)
+
+
+def judge(true: str, effects: list[str], variant: str | None = None) -> tuple[bool, bool, list[str]]:
     """(strict, lenient, confusion columns) of one effect case (module docstring)."""
     kept = set(effects)
+    alias = SAME_CLASS.get((true, variant))
+    if alias is not None and alias in kept and true not in kept:
+        kept = (kept - {alias}) | {true}
     if true == NL and NL in kept:
         kept.discard(VE)
     cols = sorted(kept)
@@ -163,10 +181,10 @@ def score_effects(rows: list[dict]) -> dict:
     confusion: dict[str, dict[str, int]] = {}
     by_class: dict[str, dict] = {}
     for r in ok:
-        strict, lenient, cols = judge(r["class"], r["effects"])
+        strict, lenient, _ = judge(r["class"], r["effects"], r.get("variant"))
         r["strict"], r["lenient"] = strict, lenient
         row = confusion.setdefault(r["class"], {})
-        for c in cols:
+        for c in judge(r["class"], r["effects"])[2]:
             row[c] = row.get(c, 0) + 1
     for cls in CLASSES:
         rs = [r for r in rows if r["class"] == cls]
@@ -180,7 +198,21 @@ def score_effects(rows: list[dict]) -> dict:
     n = len(ok)
     return {"cases": len(rows), "ran": n, "strict_rate": sum(r["strict"] for r in ok) / n if n else None,
             "lenient_rate": sum(r["lenient"] for r in ok) / n if n else None, "by_class": by_class,
-            "confusion": {k: confusion[k] for k in sorted(confusion)}}
+            "by_detectability": _by_detectability(ok), "confusion": {k: confusion[k] for k in sorted(confusion)}}
+
+
+def _by_detectability(ok: list[dict]) -> dict:
+    """{bin: {cases, strict, lenient}} of the effect cases by their effect's detectability."""
+    lo, hi = DETECT_BINS
+    keys = (f"d < {lo:g}", f"{lo:g} <= d < {hi:g}", f"d >= {hi:g}", "unknown")
+    out: dict = {k: {"cases": 0, "strict": 0, "lenient": 0} for k in keys}
+    for r in ok:
+        d = r.get("detectability")
+        b = out[keys[3] if d is None else keys[0] if d < lo else keys[1] if d < hi else keys[2]]
+        b["cases"] += 1
+        b["strict"] += int(r["strict"])
+        b["lenient"] += int(r["lenient"])
+    return {k: v for k, v in out.items() if v["cases"]}
 
 
 def _row(t: dict, res: dict) -> dict:
@@ -189,6 +221,7 @@ def _row(t: dict, res: dict) -> dict:
     return {"case": t["case"], "class": t["class"], "protocol": t["protocol"]["kind"], "mode": t["mode"],
             "family": t["family"], "law": t["base_law"]["name"], "format": t["format"],
             "variant": (t["effect"] or {}).get("variant"), "effect_size": (t["effect"] or {}).get("size"),
+            "detectability": (t["effect"] or {}).get("detectability"),
             "files": len(t["files"]), "samples": sum(f["samples"] for f in t["files"]),
             "acquisition_error_of_range": max(f["acquisition_error_of_range"] for f in t["files"]),
             "chain": {k: ch.get(k) for k in ("filter", "order", "f_out", "bits", "quantize_at", "hum_of_noise",
@@ -275,6 +308,8 @@ def table(res: dict) -> str:
     for cls, b in e["by_class"].items():
         kept = ", ".join(f"{k} {v}" for k, v in sorted(e["confusion"].get(cls, {}).items(), key=lambda kv: -kv[1]))
         lines.append(f"  {cls:24s} {b['ran']:3d} {b['strict']:7d} {b['lenient']:8d}  {kept}")
+    lines.append("  by detectability: " + "; ".join(f"{k}: {v['strict']}/{v['lenient']} of {v['cases']}"
+                                                    for k, v in e.get("by_detectability", {}).items()))
     lines.append(f"runtime: median {rt['median_s']} s, max {rt['max_s']} s, timeouts {len(rt['timeouts'])}, "
                  f"errors {len(res['errors'])}, wall {res['wall_s']} s with {res['jobs']} jobs")
     lines += [f"  error {x['case']} ({x['class']}): {x['message']}" for x in res["errors"]]
@@ -303,9 +338,13 @@ def main(argv=None) -> int:
     ap.add_argument("--shard", default="0/1", help="K/N: run only the cases whose index is K modulo N")
     ap.add_argument("--merge", nargs="+", default=None, metavar="JSON",
                     help="score the shards' results together (one population, every shard once) into --out")
+    ap.add_argument("--rescore", default=None, metavar="JSON",
+                    help="score a finished run's esmm outputs again with this version's judge and truths into --out")
     args = ap.parse_args(argv)
     if args.merge:
         return merge(args.merge, Path(args.out))
+    if args.rescore:
+        return rescore(Path(args.rescore), Path(args.out))
     try:
         k, n = (int(v) for v in args.shard.split("/"))
         if not 0 <= k < n:
@@ -351,6 +390,35 @@ def merge(paths: list[str], out: Path) -> int:
            "wall_s": [d["wall_s"] for d in docs], **score(sorted(rows, key=lambda r: r["case"]))}
     _write(out, res)
     print(table(res))
+    return 0
+
+
+#: what a row holds of esmm's run (the rest is the case's truth, :func:`_row`)
+RUN_KEYS = ("status", "seconds", "effects", "terms", "ruptures", "warnings", "rc", "message")
+
+
+def rescore(path: Path, out: Path) -> int:
+    """Score the esmm outputs of a finished run (*path*) again: its population regenerated from its seed
+    (a temporary folder), each row rebuilt from the case's truth of this generator and the run's own result.
+    Refuses a population whose records differ from the run's (sample counts per case)."""
+    doc = json.loads(path.read_text())
+    pop = doc["population"]
+    with tempfile.TemporaryDirectory(prefix="esmm-rescore-") as work:
+        generate(pop["seed"], pop["cases"], Path(work), clean_fraction=pop["clean_fraction"])
+        truths = {r["case"]: json.loads((Path(work) / r["case"] / "truth.json").read_text()) for r in doc["cases"]}
+    rows = [_row(truths[r["case"]], {k: r[k] for k in RUN_KEYS if k in r}) for r in doc["cases"]]
+    moved = [r["case"] for r, old in zip(rows, doc["cases"]) if r["samples"] != old["samples"]]
+    if moved:
+        raise SystemExit(f"--rescore: this generator writes other records than the run's ({', '.join(moved[:5])})")
+    kept = {k: v for k, v in doc.items() if k not in ("clean", "effects", "runtime", "errors", "cases")}
+    res = {**kept, "population": {**pop, "generator_version": GENERATOR_VERSION,
+                                  "run_generator_version": pop.get("run_generator_version",
+                                                                   pop["generator_version"])},
+           "rescore_command": f"python benchmarks/bench_discover_population.py --rescore {path} --out {out}",
+           **score(rows)}
+    _write(out, res)
+    print(table({"esmm": "-", "jobs": "-", "wall_s": "-", **res,
+                 "population": {**res["population"], "folder": "-"}}))
     return 0
 
 

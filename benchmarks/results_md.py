@@ -206,6 +206,12 @@ def population_lines(doc: dict) -> list[str]:
         rows.append([fmt(cls), fmt(b["ran"]), fmt(b["strict"]), fmt(b["lenient"]), pct(b["strict_rate"]),
                      fmt(kept)])
     out += [""] + table(["true class", "cases run", "named alone", "named", "named alone [%]", "kept (cases)"], rows)
+    det = e.get("by_detectability")
+    if det:
+        out += ["", "By the effect's detectability d (its signal-to-noise ratio in the recorded force, "
+                    "`benchmarks/population/cases.py`):", ""]
+        out += table(["detectability", "cases", "named alone", "named"],
+                     [[fmt(k), fmt(v["cases"]), fmt(v["strict"]), fmt(v["lenient"])] for k, v in det.items()])
     out += ["", f"Effect cases: named alone {pct(e['strict_rate'])}, named among others {pct(e['lenient_rate'])} "
                 f"of {fmt(e['ran'])}. Runtime per case: median {fmt(rt['median_s'])} s, largest {fmt(rt['max_s'])} s, "
                 f"{len(rt['timeouts'])} past the {fmt(doc.get('timeout_s'))} s limit, {len(doc.get('errors', []))} "

@@ -452,3 +452,82 @@ def test_scoring_counts_plain_viscoelastic_apart_for_stretch_dependent_relaxatio
     assert B.judge("slack", ["slack", "sensor_offset"])[:2] == (False, True)
     lo, hi = B.clopper_pearson(0, 20)
     assert lo == 0.0 and hi == pytest.approx(1 - 0.025 ** (1 / 20))  # the exact bound at k = 0
+
+
+def test_scoring_takes_discontinuous_damage_mullins_as_damage_and_only_that():
+    import bench_discover_population as B
+
+    # P = (1 - D(max W0)) P_e is esmm's damage class by its equations
+    assert B.judge("mullins", ["damage"], "discontinuous_damage")[:2] == (True, True)
+    assert B.judge("mullins", ["mullins"], "discontinuous_damage")[:2] == (True, True)
+    assert B.judge("mullins", ["damage", "viscoelastic"], "discontinuous_damage")[:2] == (False, True)
+    # Ogden-Roxburgh keeps the elastic primary curve: damage is not its name; nor is Mullins Simo's damage
+    assert B.judge("mullins", ["damage"], "ogden_roxburgh")[:2] == (False, False)
+    assert B.judge("damage", ["mullins"], "simo1987")[:2] == (False, False)
+    # the confusion columns name what was kept
+    assert B.judge("mullins", ["damage"], "discontinuous_damage")[2] == ["mullins"]
+
+
+def test_integrated_time_of_white_and_ar1_noise():
+    from population.cases import integrated_time
+
+    rng = np.random.default_rng(3)
+    assert integrated_time(rng.standard_normal(200_000)) == pytest.approx(1.0, abs=0.05)
+    phi, e = 0.8, rng.standard_normal(400_000)
+    ar = signal.lfilter([1.0], [1.0, -phi], e)
+    assert integrated_time(ar) == pytest.approx((1 + phi) / (1 - phi), rel=0.05)  # AR(1): (1 + phi)/(1 - phi)
+
+
+def test_detectability_is_reproduced_and_leaves_the_records_unchanged(tmp_path, monkeypatch):
+    from population import cases as C
+
+    def seq():
+        return np.random.SeedSequence(11).spawn(3)[2]
+
+    truth = C.make_case(seq(), "sensor_offset", tmp_path / "a" / "case")
+    again = C.make_case(seq(), "sensor_offset", tmp_path / "b" / "case")
+    d = truth["effect"]["detectability"]
+    assert d == again["effect"]["detectability"] and d > 0.0
+    monkeypatch.setattr(C, "_detectability", lambda *a, **k: None)  # its extra noise draw taken away
+    bare = C.make_case(seq(), "sensor_offset", tmp_path / "c" / "case")
+    for f in truth["files"]:
+        assert (tmp_path / "a" / "case" / f["file"]).read_bytes() == (tmp_path / "c" / "case" / f["file"]).read_bytes()
+    assert bare["effect"]["detectability"] is None
+    assert C.make_case(seq(), "clean", tmp_path / "d", kind="ramp")["effect"] is None
+
+
+@pytest.mark.slow
+def test_rescore_rebuilds_rows_from_the_truths_and_scores_them_again(tmp_path):
+    import json
+
+    import bench_discover_population as B
+
+    work = tmp_path / "pop"
+    index = generate(0, 5, work, clean_fraction=0.5)
+    truths = {c["case"]: json.loads((work / c["case"] / "truth.json").read_text()) for c in index}
+    said = {"sensor_offset": ["sensor_offset"], "clean": ["viscoelastic"], "grip_slip": [],
+            "mullins": ["damage"]}
+    rows = [B._row(t, {"status": "ok", "seconds": 1.0, "effects": said[t["class"]], "terms": []})
+            for t in truths.values()]
+    for r in rows:  # a run scored before the truths had a detectability
+        r.pop("detectability")
+    run = {"population": {"seed": 0, "cases": 5, "clean_fraction": 0.5, "generator_version": "2"},
+           "command": "the run", **B.score(rows)}
+    src, out = tmp_path / "run.json", tmp_path / "again.json"
+    src.write_text(json.dumps(run))
+    assert B.main(["--rescore", str(src), "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["command"] == "the run" and doc["population"]["run_generator_version"] == "2"
+    classes = [t["class"] for t in truths.values()]
+    assert doc["clean"]["false_positives"] == classes.count("clean")  # every clean case "kept" viscoelastic
+    for cls, r in zip(classes, doc["cases"]):
+        if cls != "clean":
+            v = truths[r["case"]]["effect"]["variant"]
+            right = cls == "sensor_offset" or (cls == "mullins" and v == "discontinuous_damage")
+            assert (r["strict"], r["detectability"] > 0) == (right, True)
+    n_eff = len(classes) - classes.count("clean")
+    assert n_eff >= 2 and sum(v["cases"] for v in doc["effects"]["by_detectability"].values()) == n_eff
+    run["cases"][0]["samples"] += 1  # records that are not the run's are refused
+    src.write_text(json.dumps(run))
+    with pytest.raises(SystemExit, match="other records"):
+        B.main(["--rescore", str(src), "--out", str(out)])

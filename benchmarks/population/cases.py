@@ -34,7 +34,7 @@ from .exports import allowed, measured_area, measured_length, write
 from .machine import draw_levels, draw_timing
 from .protocols import KINDS, Protocol, build, command, motion
 
-GENERATOR_VERSION = "2"
+GENERATOR_VERSION = "2.1"  # records bit for bit as "2"; truth.json adds the effect's detectability
 MAX_DURATION, MIN_DURATION = 6000.0, 15.0
 
 
@@ -198,9 +198,10 @@ def make_case(seq: np.random.SeedSequence, cls: str, folder: Path, *, kind: str 
     files = [_record_file(rng, folder, k, s, ch, sp, ks[k], errors[ks[k]], fmt, mode, x0, family, proto, cls,
                           prm, peak) for k, (s, ch, sp) in enumerate(zip(sims, chains, spec_of))]
     size = _effect_size(cls, prm, sims, peak)
+    detect = _detectability(seq, cls, prm, sims, chains, peak, [errors[k] for k in ks])
     truth = {"schema": "population-case/1", "generator_version": GENERATOR_VERSION, "case": folder.name,
              "seed": {"entropy": seq.entropy, "spawn_key": list(seq.spawn_key)}, "class": cls,
-             "effect": None if cls == "clean" else {"name": cls, **prm, "size": size},
+             "effect": None if cls == "clean" else {"name": cls, **prm, "size": size, "detectability": detect},
              "family": family, "shape": shape, "mode": mode, "base_law": law.describe(),
              "protocol": {"kind": kind, **proto.info, "shortest_segment_s": t_move, "longest_hold_s": t_long},
              "rupture": rup, "format": fmt,
@@ -224,6 +225,55 @@ def _effect_size(cls: str, prm: dict, sims: list[dict], peak: float) -> float | 
         return float(np.sqrt(np.mean(off ** 2)) / span)
     f = np.concatenate([s["force"] for s in sims])
     return float(np.sqrt(np.mean((f - ref) ** 2)) / span)
+
+
+def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, peak: float,
+                   errors: list[float]) -> float | None:
+    """How far the effect stands out of the acquisition noise in the recorded force: the signal-to-noise
+    ratio of the best test there is for it (the effect known exactly, its absence the alternative),
+
+        d = sqrt( sum_files sum_i Delta_i^2 / (sigma^2 tau) ),
+
+    with ``Delta`` the recorded (noise-free) force with the effect minus without it, ``sigma`` the
+    standard deviation of the recorded acquisition error (noise, hum, quantization) and ``tau`` its
+    integrated autocorrelation time in samples (:func:`integrated_time`), so that filtered, correlated
+    noise counts as the fewer independent samples it is. An effect with d below 2-3 cannot be told
+    from the noise by any method, whatever its size over the force range; d says nothing about whether
+    an elastic law can absorb the effect (a slack is measured against the law at the longer
+    reference length, so what it adds over that re-parametrization is all that counts).
+    The noise is a fresh realization from the case's seed (spawn key extended), so the case's own
+    files are unchanged.
+    """
+    if cls == "clean":
+        return None
+    rng = np.random.default_rng(np.random.SeedSequence(seq.entropy, spawn_key=(*seq.spawn_key, 2 ** 30)))
+    total = 0.0
+    for s, ch, err in zip(sims, chains, errors):
+        force = s["force"] + (E.offset_force(prm, s["t"], peak) if cls == "sensor_offset" else 0.0)
+        rec = record_force(force, ch, None)
+        delta = rec * err if cls == "specimen_scale" else rec - record_force(s["ref"], ch, None)
+        noise = record_force(force, ch, rng) - rec
+        var = float(np.var(noise))
+        if var <= 0.0:
+            continue
+        total += float(np.sum(delta ** 2)) / (var * integrated_time(noise))
+    return float(np.sqrt(total))
+
+
+def integrated_time(v: np.ndarray, c: float = 5.0) -> float:
+    """Integrated autocorrelation time of a series in samples, ``1 + 2 sum_k rho_k``, summed up to the
+    smallest window ``M >= c tau(M)`` (Sokal 1997, "Monte Carlo methods in statistical mechanics",
+    automatic windowing); 1 for white noise."""
+    v = np.asarray(v, dtype=float) - float(np.mean(v))
+    n = v.size
+    f = np.fft.rfft(v, 2 * n)
+    acf = np.fft.irfft(f * np.conj(f))[:n]
+    if acf[0] <= 0.0:
+        return 1.0
+    tau = 2.0 * np.cumsum(acf / acf[0]) - 1.0
+    ok = np.arange(n) >= c * tau
+    m = int(np.argmax(ok)) if ok.any() else n - 1
+    return float(max(tau[m], 1.0))
 
 
 def _record_file(rng, folder: Path, k: int, sim: dict, ch, spec: dict, ks: int, error: float, fmt: str, mode: str,
