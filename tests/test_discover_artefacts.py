@@ -70,3 +70,59 @@ def test_a_slack_both_mountings_share_is_not_an_artefact(tmp_path):
     assert "slack" not in full.kept
     assert all(res.candidates[n].kind == "elastic" for n in full.kept), full.kept
 
+
+
+# --------------------------------------------------------------------------- the clamp at zero force
+def _cycle(rng, *, undershoot: bool, sd: float = 300.0, buckle: bool = False):
+    """A load-unload triangle to stretch 1.4 and back at 0.02 /s after 2 s at rest, 4000 samples; with
+    *undershoot* the stress is a relaxing response (QLV, g 0.5 at 5 s) that goes compressive on the way
+    down (or, with *buckle*, is cut at zero as a strip that buckles does), else the elastic one; white
+    noise of *sd* Pa."""
+    from esmm.pipeline.materials import get_model
+    from esmm.pipeline.materials.effects import qlv_stress
+    from esmm.pipeline.materials.loading import nominal_stress
+    from esmm.pipeline.tensile.data import TensileTest
+
+    t = np.linspace(0.0, 42.0, 4000)
+    x = 1.0 + np.clip(np.minimum(0.02 * (t - 2.0), 0.8 - 0.02 * (t - 2.0)), 0.0, None)
+    pe = np.asarray(nominal_stress(get_model("arruda-boyce"), {"mu": 3e4, "N": 4.0}, "uniaxial", x), float)
+    p = qlv_stress(t, pe, np.array([0.5]), np.array([5.0])) if undershoot else pe
+    if buckle:
+        p = np.maximum(p, 0.0)
+    return TensileTest(source=Path("c.csv"), mode="uniaxial", stretch=x, stress=p + rng.normal(0.0, sd, t.size),
+                       time=t)
+
+
+def test_a_record_that_reads_compression_is_called_compressive():
+    from esmm.pipeline.discover.records import prepare
+
+    rng = np.random.default_rng(0)
+    relaxing = prepare([_cycle(rng, undershoot=True)])[0]
+    assert float(np.min(relaxing.y)) < -3e3  # the relaxation's compression on the way down
+    assert relaxing.tension_only and relaxing.compressive
+    assert not prepare([_cycle(rng, undershoot=False)])[0].compressive
+    assert not prepare([_cycle(rng, undershoot=True, buckle=True)])[0].compressive
+
+
+def test_compression_is_seen_in_noise_alone_at_most_at_its_level():
+    """Elastic cycles whose true force never goes below zero, noise only: called compressive in at most
+    SLIP_ALPHA = 1 % of 150 records (within 3 binomial standard errors)."""
+    from esmm.pipeline.discover.records import prepare, reads_compression
+    from esmm.pipeline.tensile.events import SLIP_ALPHA
+
+    rng = np.random.default_rng(1)
+    hits = sum(reads_compression(r) for r in prepare([_cycle(rng, undershoot=False) for _ in range(150)]))
+    assert hits / 150 <= SLIP_ALPHA + 3 * np.sqrt(SLIP_ALPHA * (1 - SLIP_ALPHA) / 150)
+
+
+@pytest.mark.slow
+def test_a_relaxing_specimen_that_carries_compression_is_left_unclamped_and_needs_no_offset():
+    """The relaxation's undershoot below zero is the specimen's: the relaxation is kept unclamped, and no
+    offset or drift takes the compression instead; the clamp is kept where the strip buckles."""
+    rng = np.random.default_rng(2)
+    carried = discover([_cycle(rng, undershoot=True)], nested=False, **FAST)
+    assert carried.kept == ["viscoelastic"] and carried.final.spec.compression == 1
+    assert carried.final.problem.forward.clamp == [False]
+    spec = carried.final.spec
+    assert spec.with_("viscoelastic", 0).compression == 0  # the choice goes with the relaxation
+    assert type(spec).from_dict(spec.to_dict()) == spec

@@ -24,7 +24,8 @@ Prediction of one file, in this order (docs/design/discovery.md, "The extended m
 3. ``P_e = nominal_stress(elastic law, x_true/λ_s) / λ_s``;
 4. damage ``× (1 - D(ξ_max))``, Mullins ``× η(W, W_max)``, cyclic softening ``× c(α)``;
 5. viscoelastic: ``P = QLV[P_e]`` (with κ: the relaxed part scaled by s(ξ));
-6. a tension-only specimen cannot carry compression: ``P = max(P, 0)``;
+6. a tension-only specimen cannot carry compression: ``P = max(P, 0)`` (a strip that
+   buckles), except, with ``Spec.compression``, on a record that reads compression;
 7. per-specimen stress scale: ``× c_s`` (the scales' geometric mean is held at 1);
 8. load-cell offset and drift: ``+ o_f + d_f (t - t_0)/T_f`` — linear, eliminated
    in closed form (variable projection) at every evaluation.
@@ -122,6 +123,11 @@ class Spec:
     specimen_scale: int = 0
     grip_slip: int = 0
     terms: tuple[str, ...] = ()
+    #: 1: tension records that read compression beyond their noise (``Record.compressive``) are not clamped
+    #: at zero force, so a relaxing specimen carries the compression it reads on the way down; 0: every
+    #: tension record is clamped (a strip that buckles). Only a relaxation makes the two differ, so it goes
+    #: with ``viscoelastic`` and is chosen by the fit when a relaxation is proposed.
+    compression: int = 0
 
     def variant(self, name: str) -> int:
         """The variant of effect or term *name* (0 = absent)."""
@@ -140,6 +146,8 @@ class Spec:
         out = replace(self, **{name: int(variant)})
         if name == "nonlinear_viscoelastic" and variant and not out.viscoelastic:
             out = replace(out, viscoelastic=1)
+        if not out.viscoelastic and out.compression:
+            out = replace(out, compression=0)
         return out
 
     def variant_text(self, name: str) -> str:
@@ -162,12 +170,13 @@ class Spec:
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {n: getattr(self, n) for n in EFFECTS}
         d["terms"] = list(self.terms)
+        d["compression"] = self.compression
         return d
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Spec:
         terms = tuple(t for t in TERM_NAMES if t in set(d.get("terms") or ()))
-        return cls(**{n: int(d.get(n, 0)) for n in EFFECTS}, terms=terms)
+        return cls(**{n: int(d.get(n, 0)) for n in EFFECTS}, terms=terms, compression=int(d.get("compression", 0)))
 
 
 # --------------------------------------------------------------------------- slots
@@ -525,6 +534,8 @@ class ForwardModel:
         self.spec = spec
         self.directions = directions
         self.n_offset = [0] * len(self.records)
+        #: per record: the prediction clamped at zero force (``Spec.compression``)
+        self.clamp = [r.tension_only and not (spec.compression and r.compressive) for r in self.records]
         #: per record: the offset read at rest before loading (held, not fitted), or None
         self.pinned: list[float | None] = [None] * len(self.records)
         if spec.sensor_offset:
@@ -675,7 +686,7 @@ class ForwardModel:
                 with np.errstate(invalid="ignore"):
                     q = p - relaxation_strength(xi, st.kappa, float(np.sum(st.g))) * (p - q)
             p = q
-        if r.tension_only:
+        if self.clamp[k]:
             p = np.maximum(p, 0.0)
         return p * st.scale[k] if st.scale is not None else p
 
@@ -695,7 +706,7 @@ class ForwardModel:
             g, (a, b) = np.ascontiguousarray(st.g, dtype=float), self._decay(k, st.tau)
             if st.kappa:
                 s = self._strength(k, xi, st)
-        flags = np.array([r.tension_only, st.scale is not None, pin is not None, norm is not None])
+        flags = np.array([self.clamp[k], st.scale is not None, pin is not None, norm is not None])
         consts = np.array([float(st.scale[k]) if st.scale is not None else 1.0, pin or 0.0,
                            *(norm or (1.0, 1.0)), NAN_PENALTY])
         out = np.empty(pos.size)

@@ -81,6 +81,9 @@ class Record:
         self.sigma = self.noise.sigma
         #: samples where the grip slipped (the stretch is shifted from each on)
         self.slips = slip_events(self.x, self.y, self.cov.direction, noise=self.noise) if self.history and self.tension_only else []
+        #: a tension record that reads a compressive force beyond its noise (:func:`reads_compression`): the
+        #: model may leave it unclamped (``Spec.compression``)
+        self.compressive = self.tension_only and reads_compression(self)
 
     @property
     def name(self) -> str:
@@ -265,6 +268,24 @@ def rest_reading(rec: Record) -> float | None:
     return pre[0]
 
 
+def reads_compression(rec: Record, alpha: float = SLIP_ALPHA) -> bool:
+    """The record reads a compressive force beyond its noise: some sample's stress, less the reading at rest
+    (the load cell's offset, the mean of the n samples before the crosshead moves, where the record has
+    them), is below -z σ √(1 + 1/n), z the normal quantile of *alpha* over the record's samples (Bonferroni:
+    a record whose true force never goes below zero is called compressive with probability at most *alpha*
+    under white noise).
+
+    Only such a record can tell a specimen that carries compression on the way down from a strip that
+    buckles; which of the two it is, the data decide (``Spec.compression``).
+    """
+    if rec.y.size == 0 or not math.isfinite(rec.sigma) or rec.sigma <= 0:
+        return False
+    z = float(stats.norm.isf(alpha / rec.y.size))
+    rest = rest_reading(rec)
+    n = rec.preload()[2] if rest is not None else math.inf
+    return bool(np.min(rec.y - (rest or 0.0)) < -z * rec.sigma * math.sqrt(1.0 + 1.0 / n))
+
+
 def slip_applicable(rec: Record) -> bool:
     """Grip slip is corrected where the record shows one (:func:`~esmm.pipeline.tensile.events.slip_events`)."""
     return machine_record(rec) and bool(rec.slips)
@@ -368,5 +389,5 @@ def largest_span(records: Sequence[Record]) -> float:
 
 
 __all__ = ["Record", "prepare", "view_test", "fitting_view", "cut_at_rupture", "reference", "machine_record",
-           "slack_applicable", "offset_applicable", "drift_applicable", "rest_reading", "slip_applicable", "specimen_groups",
+           "slack_applicable", "offset_applicable", "drift_applicable", "rest_reading", "reads_compression", "slip_applicable", "specimen_groups",
            "scale_applicable", "set_applicable", "strain_softening", "repeated_cycles", "stretch_levels", "largest_span"]

@@ -123,6 +123,7 @@ def result_to_dict(res: DiscoverResult) -> dict[str, Any]:
                  "lag1": d0.lag1 if d0 else None, "runs_z": d0.runs_z if d0 else None,
                  "chi2_per_sample": d0.chi2 if d0 else None},
         "effects": list(res.kept),
+        "unclamped_files": unclamped(res),
         "noise": {r.name: _noise_doc(r) for r in res.records},
         "ruptures": res.cuts,
         "slips": {r.name: [int(k) for k in r.slips] for r in res.records if r.slips},
@@ -277,6 +278,7 @@ def plain_language(res: DiscoverResult) -> str:
         words.append("Adding what the data show — " + "; ".join(parts) + " — brings the error to "
                      f"{_pct(f.errors.nrmse)} ({held}).")
         words += _kinds_sentences(res)
+        words += _compression_sentences(res)
     elif d0 is not None and d0.white:
         words.append("Nothing more to add: what is left is noise.")
     if res.outcome:
@@ -291,6 +293,21 @@ def plain_language(res: DiscoverResult) -> str:
         if "caution" in res.candidates[n].reason:
             words.append("Caution: " + res.candidates[n].reason.split("caution: ", 1)[1] + ".")
     return " ".join(words)
+
+
+def unclamped(res: DiscoverResult) -> list[str]:
+    """The files whose prediction the final model does not clamp at zero force (``Spec.compression``)."""
+    clamp = res.final.problem.forward.clamp
+    return [r.name for r, c in zip(res.records, clamp) if r.tension_only and not c]
+
+
+def _compression_sentences(res: DiscoverResult) -> list[str]:
+    names = unclamped(res)
+    if not names:
+        return []
+    return [f"{', '.join(names)} read{'s' if len(names) == 1 else ''} a compressive force on the way down, and the "
+            "relaxation fits it better as the specimen's own (carried, not buckled): the model is not clamped at "
+            "zero force there."]
 
 
 def summary_lines(res: DiscoverResult) -> list[str]:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 
@@ -314,6 +315,8 @@ def _try_pairs(singles: dict[str, Trial], s: Search, lv: Levels):
         for j in range(i + 1, len(pool)):
             a, b = pool[i], pool[j]
             spec = current.spec.with_(a, singles[a].fit.spec.variant(a)).with_(b, singles[b].fit.spec.variant(b))
+            if spec.viscoelastic and (singles[a].fit.spec.compression or singles[b].fit.spec.compression):
+                spec = replace(spec, compression=1)  # as the relaxation's single trial chose
             try:
                 t = compared(f"{a}+{b}", fit_spec(spec, current, init_from=s.warm.get(spec)), current)
             except FitError:

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -36,6 +36,7 @@ from ..errors import FitError
 from ..materials.effects import ARTEFACTS
 from .fitted import Fitted, fit_spec
 from .heldout import FoldSet, cached_heldout
+from .model import Spec
 from .statistics import (
     REPLICATION_LEVEL,
     HeldoutSegment,
@@ -121,12 +122,14 @@ def best_variant(name: str, variants, current: Fitted, *, upgrade: bool = False,
     prev: Trial | None = None
     for v in variants:
         spec = current.spec.with_(name, v)
+        if prev is not None and prev.fit.spec.compression:  # a richer relaxation keeps the simpler one's choice
+            spec = replace(spec, compression=1)
         start = (warm or {}).get(spec) or (prev.fit if prev is not None else None)
         try:
-            f = fit_spec(spec, current, init_from=start)
+            t = _clamp_or_not(name, spec, current, start, warm)
         except FitError:
             break
-        t = compared(name, f, current)
+        f = t.fit
         if prev is not None and compared(name, f, prev.fit).dbic >= 0:
             break
         if best is None or t.dbic < best.dbic:
@@ -135,6 +138,23 @@ def best_variant(name: str, variants, current: Fitted, *, upgrade: bool = False,
             break  # the simplest variant does not pay: the richer ones will not either
         prev = t
     return best
+
+
+def _clamp_or_not(name: str, spec: Spec, current: Fitted, start: Fitted | None,
+                  warm: Mapping[Any, Fitted] | None) -> Trial:
+    """*spec* fitted as it is and, for a relaxation proposed where a tension record reads compression and
+    the model still clamps it, also unclamped (``Spec.compression``): the trial whose fit pays better
+    (BIC). Both have the same parameters; what differs is whether the specimen carries the compression
+    that its record reads on the way down, or buckles. Raises FitError when the spec as it is fails."""
+    t = compared(name, fit_spec(spec, current, init_from=start), current)
+    if spec.compression or not spec.viscoelastic or not any(r.compressive for r in current.problem.records):
+        return t
+    other = replace(spec, compression=1)
+    try:
+        u = compared(name, fit_spec(other, current, init_from=(warm or {}).get(other) or t.fit), current)
+    except FitError:
+        return t
+    return u if u.dbic < t.dbic else t
 
 
 def judged_on(names: str | list[str], material: FoldSet, artefact: FoldSet) -> FoldSet:
