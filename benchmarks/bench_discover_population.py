@@ -30,7 +30,9 @@ Scoring:
 * runtimes, timeouts, errors (non-zero exits with their last message line), seeds.
 
 ``python benchmarks/bench_discover_population.py --cases N --seed S --jobs J --out results.json
-[--timeout 300] [--clean-fraction 0.5] [--work DIR]`` (the cases, with esmm's outputs beside them,
+[--timeout 300] [--clean-fraction 0.5] [--work DIR] [--no-nested]`` (``--no-nested``: esmm skips the nested
+held-out errors, which only report, so the scores are the same and the runtimes the choice's alone; the
+cases, with esmm's outputs beside them,
 stay in ``--work``, by default a new temporary folder named in the JSON); ``make bench-discover``
 runs 303 cases, 200 of them clean. ``run()`` is what ``benchmarks/run.py`` (``make bench``) calls:
 a smaller population (``BENCH_CASES``) in a temporary folder.
@@ -75,7 +77,7 @@ def _last_line(text: str) -> str:
 
 
 def run_case(case: Path, files: list[str], *, timeout: float, exe: str, threads: int,
-             cores: set[int] | None = None) -> dict:
+             cores: set[int] | None = None, nested: bool = True) -> dict:
     """Run discovery on one case folder (confined to *cores* where given); returns status, seconds, kept
     effects and terms."""
     out, js = case / "esmm_out", case / "esmm.json"
@@ -84,6 +86,8 @@ def run_case(case: Path, files: list[str], *, timeout: float, exe: str, threads:
     for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
         env[k] = str(threads)
     cmd = [exe, "calibrate", *files, "--discover", "--out", str(out), "--json", str(js)]
+    if not nested:
+        cmd.append("--no-nested")
     t0 = time.perf_counter()
     try:
         p = subprocess.run(cmd, cwd=case, capture_output=True, text=True, timeout=timeout, env=env,
@@ -244,7 +248,7 @@ def _core_slots(jobs: int, threads: int) -> queue.Queue | None:
 
 
 def evaluate(n_cases: int, seed: int, *, jobs: int, timeout: float, work: Path, clean_fraction: float,
-             shard: tuple[int, int] = (0, 1)) -> dict:
+             shard: tuple[int, int] = (0, 1), nested: bool = True) -> dict:
     """Generate the population into ``work``, run discovery on every case (or on shard ``k`` of ``n``: the
     cases whose index is ``k`` modulo ``n``), score it."""
     index = generate(seed, n_cases, work, clean_fraction=clean_fraction)
@@ -259,7 +263,7 @@ def evaluate(n_cases: int, seed: int, *, jobs: int, timeout: float, work: Path, 
         cores = slots.get() if slots else None
         try:
             res = run_case(work / t["case"], [f["file"] for f in t["files"]], timeout=timeout, exe=exe,
-                           threads=threads, cores=cores)
+                           threads=threads, cores=cores, nested=nested)
         finally:
             if slots:
                 slots.put(cores)
@@ -274,7 +278,7 @@ def evaluate(n_cases: int, seed: int, *, jobs: int, timeout: float, work: Path, 
     res = {"population": {"seed": seed, "cases": n_cases, "clean_fraction": clean_fraction,
                           "generator_version": GENERATOR_VERSION, "folder": str(work),
                           "shard": f"{k}/{n}"},
-           "esmm": exe, "jobs": jobs, "timeout_s": timeout, "wall_s": round(wall, 1)}
+           "esmm": exe, "jobs": jobs, "timeout_s": timeout, "nested": nested, "wall_s": round(wall, 1)}
     return {**res, **score(rows)}
 
 
@@ -338,6 +342,9 @@ def main(argv=None) -> int:
     ap.add_argument("--shard", default="0/1", help="K/N: run only the cases whose index is K modulo N")
     ap.add_argument("--merge", nargs="+", default=None, metavar="JSON",
                     help="score the shards' results together (one population, every shard once) into --out")
+    ap.add_argument("--no-nested", action="store_true",
+                    help="run esmm with --no-nested: the same choices without the nested errors, which only report "
+                         "(the runtimes are then the choice's alone)")
     ap.add_argument("--rescore", default=None, metavar="JSON",
                     help="score a finished run's esmm outputs again with this version's judge and truths into --out")
     args = ap.parse_args(argv)
@@ -358,7 +365,7 @@ def main(argv=None) -> int:
             ap.error(f"--work {work}: not empty and not a population folder (no index.json); give a new folder")
         shutil.rmtree(work)  # an earlier population: regenerated from its seed
     res = evaluate(args.cases, args.seed, jobs=args.jobs, timeout=args.timeout, work=work,
-                   clean_fraction=args.clean_fraction, shard=(k, n))
+                   clean_fraction=args.clean_fraction, shard=(k, n), nested=not args.no_nested)
     _write(out, res)
     print(table(res))
     return 0
