@@ -142,12 +142,15 @@ def best_variant(name: str, variants, current: Fitted, *, upgrade: bool = False,
 
 def _clamp_or_not(name: str, spec: Spec, current: Fitted, start: Fitted | None,
                   warm: Mapping[Any, Fitted] | None) -> Trial:
-    """*spec* fitted as it is and, for a relaxation proposed where a tension record reads compression and
-    the model still clamps it, also unclamped (``Spec.compression``): the trial whose fit pays better
-    (BIC). Both have the same parameters; what differs is whether the specimen carries the compression
-    that its record reads on the way down, or buckles. Raises FitError when the spec as it is fails."""
+    """*spec* fitted as it is and, for a relaxation (plain or stretch-dependent) proposed where a tension record
+    reads compression and the model still clamps it, also unclamped (``Spec.compression``): the trial whose
+    fit pays better (BIC). Both have the same parameters; what differs is whether the specimen carries the
+    compression that its record reads on the way down, or buckles. The choice is the relaxation's own: other
+    candidates are fitted with the model's clamp as it is, so that no gain of a flipped clamp is credited to
+    them. Raises FitError when the spec as it is fails."""
     t = compared(name, fit_spec(spec, current, init_from=start), current)
-    if spec.compression or not spec.viscoelastic or not any(r.compressive for r in current.problem.records):
+    if name not in ("viscoelastic", "nonlinear_viscoelastic") or spec.compression \
+            or not any(r.compressive for r in current.problem.records):
         return t
     other = replace(spec, compression=1)
     try:
