@@ -118,34 +118,36 @@ def test_continuum_simple_shear_matches_analytic(block, liver, gamma):
 def test_condensed_mini_solves_the_whole_system(block, liver):
     """The MINI system with its bubbles condensed element by element gives the whole LU's answer."""
     import felupe as fem
-    from esmm.pipeline.fidelity.continuum import _CondensedMini, _discretise, _lu_solve
+    from esmm.pipeline.fidelity.continuum import _discretise
+    from esmm.pipeline.fidelity.linear import CondensedMini, lu_solve
 
     case = uniaxial_case(*block, stretch=1.1)
     field, solid, _, mask, _, ncells = _discretise(fem, case, liver, bulk_modulus(liver), "mini")
     dof1 = np.flatnonzero(~np.concatenate([mask.ravel(), np.zeros(field.fieldsizes[1] * 2, bool)]))
     A = solid.assemble.matrix(field).tocsr()[dof1][:, dof1]
     b = np.cos(np.arange(A.shape[0]))
-    solver = _CondensedMini(dof1, case.n_nodes, ncells)
+    solver = CondensedMini(dof1, case.n_nodes, ncells)
     x = solver(A, b)
     assert solver.count == 1 and np.abs(A @ x - b).max() < 1e-10 * abs(A).max() * np.abs(x).max()
-    assert np.abs(x - _lu_solve(A, b)).max() < 1e-6 * np.abs(x).max()
+    assert np.abs(x - lu_solve(A, b)).max() < 1e-6 * np.abs(x).max()
 
 
 def test_p2_factorization_in_node_order_is_the_lu(block, liver):
     """The P2 system's LDLᵀ in nested-dissection order gives the LU's answer, with less fill than its COLAMD."""
     import felupe as fem
     import scipy.sparse.linalg as spl
-    from esmm.pipeline.fidelity.continuum import _discretise, _lu_solve, _NodeDissection
+    from esmm.pipeline.fidelity.continuum import _discretise
+    from esmm.pipeline.fidelity.linear import NodeDissection, lu_solve
 
     case = shear_case(*block, gamma=0.2)
     field, solid, _, mask, _, _ = _discretise(fem, case, liver, bulk_modulus(liver), "p2")
     dof1 = np.flatnonzero(~mask.ravel())
     A = solid.assemble.matrix(field).tocsr()[dof1][:, dof1]
     b = np.cos(np.arange(A.shape[0]))
-    solver = _NodeDissection(dof1)
+    solver = NodeDissection(dof1)
     x = solver(A, b)
     assert solver.count == 1 and solver.fallbacks == 0
-    assert np.abs(x - _lu_solve(A, b)).max() < 1e-8 * np.abs(x).max()
+    assert np.abs(x - lu_solve(A, b)).max() < 1e-8 * np.abs(x).max()
     p = solver.perm
     assert np.array_equal(np.sort(p), np.arange(A.shape[0]))
     ours = spl.splu(A[p][:, p].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
@@ -156,10 +158,10 @@ def test_p2_factorization_in_node_order_is_the_lu(block, liver):
 def test_p2_factorization_falls_back_to_the_lu_on_a_tiny_pivot():
     """An indefinite matrix whose diagonal pivots grow without bound is solved by the LU instead."""
     import scipy.sparse as sp
-    from esmm.pipeline.fidelity.continuum import _NodeDissection
+    from esmm.pipeline.fidelity.linear import NodeDissection
 
     A = sp.bmat([[1e-17 * sp.identity(3), sp.identity(3)], [sp.identity(3), None]]).tocsr()
-    solver = _NodeDissection(np.arange(6))
+    solver = NodeDissection(np.arange(6))
     x = solver(A, np.arange(6.0))
     assert solver.fallbacks == 1 and np.allclose(x, [3, 4, 5, 0, 1, 2])
 
