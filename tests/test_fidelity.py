@@ -508,3 +508,44 @@ def test_a_solve_from_a_lighter_load_level_ramps_the_body_force_from_there(small
     monkeypatch.setattr(N._Problem, "scale", lambda self, t: seen.append(real_scale(self, t)) or seen[-1])
     solve_network(case, net, tables, start=half_n, steps=2)
     assert min(seen) == pytest.approx(0.75) and max(seen) == pytest.approx(1.0)   # before: 1 throughout
+
+
+def test_cases_at_once_give_the_serial_figures_and_messages(small_network, liver):
+    """Cases solved in forked workers (jobs 2) give the serial run's figures exactly, its messages in order."""
+    from esmm.pipeline.progress import ListReporter
+
+    net, tables = small_network
+    runs = {}
+    for jobs in (1, 2):
+        rec = ListReporter()
+        rep = validate_network(net, tables, liver, cases=["tension", "shear"], element="p2", jobs=jobs, reporter=rec)
+        runs[jobs] = (rep, rec)
+    (serial, rec1), (forked, rec2) = runs[1], runs[2]
+
+    def untimed(fig):
+        return {k: {kk: vv for kk, vv in v.items() if kk != "seconds"} if k in ("continuum", "network") else v
+                for k, v in fig.items()}
+
+    assert [untimed(r.figures()) for r in serial.results] == [untimed(r.figures()) for r in forked.results]
+    for a, b in zip(serial.results, forked.results, strict=True):
+        assert np.array_equal(a.continuum.displacement, b.continuum.displacement)
+        assert np.array_equal(a.network.displacement, b.network.displacement)
+    assert rec1.steps == rec2.steps and rec1.warnings == rec2.warnings
+    assert set(forked.info["case_seconds"]) == {"tension", "shear"}
+
+
+def test_cases_at_once_raise_a_worker_error():
+    """An error other than a solver's (a defect) raised in a worker is raised by the caller."""
+    from esmm.pipeline.fidelity.workers import map_cases
+    from esmm.pipeline.progress import ListReporter
+
+    def fn(item, rep):
+        rep.step(f"item {item}")
+        if item == 2:
+            raise ValueError("two")
+        return item * 10
+
+    rec = ListReporter()
+    assert map_cases(fn, [1, 3], jobs=2, reporter=rec) == [10, 30] and rec.steps == ["item 1", "item 3"]
+    with pytest.raises(ValueError, match="two"):
+        map_cases(fn, [1, 2], jobs=2, reporter=ListReporter())
