@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 
 import numpy as np
 import pytest
@@ -549,3 +550,58 @@ def test_cases_at_once_raise_a_worker_error():
     assert map_cases(fn, [1, 3], jobs=2, reporter=rec) == [10, 30] and rec.steps == ["item 1", "item 3"]
     with pytest.raises(ValueError, match="two"):
         map_cases(fn, [1, 2], jobs=2, reporter=ListReporter())
+
+
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is *pid* (Linux's /proc)."""
+    import os
+
+    out = []
+    for name in os.listdir("/proc"):
+        if name.isdigit():
+            try:
+                fields = open(f"/proc/{name}/stat").read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid and fields[0] not in ("Z", "X"):
+                out.append(int(name))
+    return out
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the parent-death signal is Linux's")
+def test_case_workers_end_with_a_killed_parent():
+    """Workers of a killed validation do not solve on for nobody: they end with the process that forked them."""
+    import os
+    import signal
+    import time
+
+    from esmm.pipeline.fidelity.workers import map_cases
+    from esmm.pipeline.progress import ListReporter
+
+    def slow(item, rep):
+        time.sleep(300)                              # far beyond the test's deadline
+        return item
+
+    pid = os.fork()
+    if pid == 0:                                       # the "validation": forks two workers, then is killed
+        try:
+            map_cases(slow, [1, 2], jobs=2, reporter=ListReporter())
+        finally:
+            os._exit(0)
+    deadline = time.monotonic() + 60
+    kids = []
+    while time.monotonic() < deadline and len(kids) < 2:
+        time.sleep(0.2)
+        kids = [k for k in _children(pid) if k != pid]
+    os.kill(pid, signal.SIGKILL)
+    os.waitpid(pid, 0)
+
+    def running(k):
+        try:
+            return open(f"/proc/{k}/stat").read().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+        except OSError:
+            return False
+
+    while time.monotonic() < deadline and any(running(k) for k in kids):
+        time.sleep(0.2)
+    assert len(kids) == 2 and not any(running(k) for k in kids)

@@ -57,6 +57,20 @@ class _Recorder:
 _SHARED: tuple | None = None
 
 
+def _die_with_parent(parent: int) -> None:
+    """Linux: the worker is sent SIGTERM when the process that forked it ends (a parent that is killed cannot
+    shut its pool down, and its workers would otherwise solve their cases on for nobody)."""
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))     # PR_SET_PDEATHSIG
+    except (OSError, AttributeError, TypeError):
+        return
+    if os.getppid() != parent:          # the parent ended before the request
+        os._exit(1)
+
+
 def _worker(i: int):
     fn, items = _SHARED
     rec = _Recorder()
@@ -83,7 +97,8 @@ def map_cases(fn: Callable, items: Sequence, *, jobs: int | None = None, reporte
     _SHARED = (fn, items)
     try:
         with reporter.task(f"{n} cases in {workers} processes", total=n) as advance, \
-                ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
+                ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
+                                    initializer=_die_with_parent, initargs=(os.getpid(),)) as pool:
             got = []
             for out in pool.map(_worker, range(n)):
                 got.append(out)
