@@ -202,17 +202,24 @@ def _on_the_floor(case, solve, max_rounds: int, rep):
     one; a node that goes below the floor is pinned at the point of the plane
     under where it was at the previous level (it touched the floor within
     the level; it sticks there), and the level is solved again, until no node
-    goes below. Returns the solution and the number of pins.
+    goes below. A round solves the level again from the previous round's
+    equilibrium, with the new pins moved from where that round put them to
+    their place: the same equilibrium as from the previous level (the
+    problem is elastic, its loads and constraints the same), reached in a few
+    Newton iterations instead of the level's whole increment again. Returns the
+    solution and the number of pins.
     """
     c, sol = case, None
     for k in range(1, _LEVELS + 1):
+        start = sol
         for _ in range(max_rounds):
-            trial = solve(at_load(c, k / _LEVELS), sol)
+            trial = solve(at_load(c, k / _LEVELS), start)
             held = c.constraint("floor").nodes if any(g.name == "floor" for g in c.constraints) else []
             new = np.setdiff1d(_below(c, (trial,)), held)
             if new.size == 0:
                 break
             c = with_floor_pins(c, new, case.points[new] + (0.0 if sol is None else sol.displacement[new]))
+            start = trial     # the level again from this round's equilibrium: only the new pins move
         else:
             rep.warn(f"{case.name}: nodes still reach the floor after {max_rounds} rounds of pins at load level "
                      f"{k}/{_LEVELS}; the figures include a small penetration")
