@@ -19,7 +19,7 @@ Why not SuperLU for P2 (docs/design/validation.md, "The continuum reference"):
 SuperLU in symmetric mode without pivoting in the same order keeps
 ``U = D Lᵀ`` beside L and factors supernode by supernode with its own
 kernels; the multifrontal LDLᵀ factors the same fill with one dense matrix
-product per front, about three times less work on an organ's P2 system.
+product per front, in less than half the time on an organ's P2 system.
 """
 
 from __future__ import annotations

@@ -296,6 +296,30 @@ def _continuum_elements(network, element: str, rep) -> tuple[str, tuple[str, ...
     return element, elements
 
 
+def _solve_cases(cases, network, tables, material, *, jobs, rep, **options) -> tuple[list, dict, dict]:
+    """:func:`_solve_case` of every case, at once where *jobs* allows (:func:`~.workers.map_cases`):
+    ``(results, failed, case_seconds)``, a case without an equilibrium in *failed* with the reason (the
+    other cases still run)."""
+    def one(c, rep_):
+        t_case = time.perf_counter()
+        try:
+            res = _solve_case(c, network, tables, material, rep=rep_, **options)
+        except SimulationError as exc:
+            rep_.warn(f"{c.name}: {exc}")
+            return c.name, None, str(exc), time.perf_counter() - t_case
+        res.continuum.state = None          # felupe's checkpoint: for warm starts within the case only
+        return c.name, res, None, time.perf_counter() - t_case
+
+    results, failed, case_seconds = [], {}, {}
+    for name, res, err, seconds in map_cases(one, cases, jobs=jobs, reporter=rep):
+        case_seconds[name] = seconds
+        if res is None:
+            failed[name] = err
+        else:
+            results.append(res)
+    return results, failed, case_seconds
+
+
 def validate_network(network, tables, material, *, cases=None, label: str = "network", loads: LoadOptions | None = None,
                      volume_term: str = "auto", law: str | None = None, element: str = "auto",
                      bulk_ratio: float = DEFAULT_BULK_RATIO, out_dir=None, max_rounds: int = 10,
@@ -356,25 +380,9 @@ def validate_network(network, tables, material, *, cases=None, label: str = "net
     bulk = bulk_modulus(material, ratio=bulk_ratio)
     law = tables.check_law(law)
     loads = LoadOptions() if loads is None else loads
-
-    def one(c, rep_):
-        t_case = time.perf_counter()
-        try:
-            res = _solve_case(c, network, tables, material, law=law, terms=terms, bulk=bulk, elements=elements,
-                              max_rounds=max_rounds, rep=rep_)
-        except SimulationError as exc:     # the other cases still run; the report says which failed and why
-            rep_.warn(f"{c.name}: {exc}")
-            return c.name, None, str(exc), time.perf_counter() - t_case
-        res.continuum.state = None          # felupe's checkpoint: for warm starts within the case only
-        return c.name, res, None, time.perf_counter() - t_case
-
-    results, failed, case_seconds = [], {}, {}
-    for name, res, err, seconds in map_cases(one, _cases_for(network, names, loads), jobs=jobs, reporter=rep):
-        case_seconds[name] = seconds
-        if res is None:
-            failed[name] = err
-        else:
-            results.append(res)
+    results, failed, case_seconds = _solve_cases(_cases_for(network, names, loads), network, tables, material,
+                                                 jobs=jobs, rep=rep, law=law, terms=terms, bulk=bulk,
+                                                 elements=elements, max_rounds=max_rounds)
     info = {"failed": failed, "material": material.name or material.model, "law": law,
             "volume_factor": float(tables.volume_factor),
             "bulk_modulus_Pa": bulk, "bulk_ratio": float(bulk_ratio), "element": element,
