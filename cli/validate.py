@@ -50,6 +50,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         "auto: p2 up to a size (docs/design/validation.md), MINI above it and for a case p2 "
                         "cannot solve")
     p.add_argument("--scene", metavar="C", default=None, help="scene of the organ cases (default 'default')")
+    p.add_argument("--jobs", metavar="N", type=int, default=None,
+                   help="cases solved at once, one process each (default: the usable cores)")
     p.add_argument("--json", metavar="OUT.json", default=None, help="also write the figures there ('-': stdout)")
     p.add_argument("--out", metavar="DIR", default=None, help="output folder")
     p.set_defaults(func=run)
@@ -93,10 +95,12 @@ def run(args, ui) -> int:
     for flag, mm in (("--side", args.side), ("--size", args.size)):
         if mm is not None and not (math.isfinite(mm) and mm > 0):
             raise ConfigError(f"{flag}: expected a positive length in mm, got {mm:g}")
+    if args.jobs is not None and args.jobs < 1:
+        raise ConfigError(f"--jobs: expected a positive number of processes, got {args.jobs}")
     if args.json not in (None, "-"):
         check_out_file(args.json, "--json", "validation.json")
     opts = {"cases": args.cases, "volume_term": args.volume_term, "law": args.law, "element": args.element,
-            "loads": LoadOptions(scene=args.scene), "reporter": ui}
+            "loads": LoadOptions(scene=args.scene), "jobs": args.jobs, "reporter": ui}
     out = Path(args.out) if args.out else default_out_dir(args.asset)
     check_out_dir(out, "--out")
     if args.specimen:

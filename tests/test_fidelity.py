@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 
 import numpy as np
 import pytest
@@ -118,34 +119,36 @@ def test_continuum_simple_shear_matches_analytic(block, liver, gamma):
 def test_condensed_mini_solves_the_whole_system(block, liver):
     """The MINI system with its bubbles condensed element by element gives the whole LU's answer."""
     import felupe as fem
-    from esmm.pipeline.fidelity.continuum import _CondensedMini, _discretise, _lu_solve
+    from esmm.pipeline.fidelity.continuum import _discretise
+    from esmm.pipeline.fidelity.linear import CondensedMini, lu_solve
 
     case = uniaxial_case(*block, stretch=1.1)
     field, solid, _, mask, _, ncells = _discretise(fem, case, liver, bulk_modulus(liver), "mini")
     dof1 = np.flatnonzero(~np.concatenate([mask.ravel(), np.zeros(field.fieldsizes[1] * 2, bool)]))
     A = solid.assemble.matrix(field).tocsr()[dof1][:, dof1]
     b = np.cos(np.arange(A.shape[0]))
-    solver = _CondensedMini(dof1, case.n_nodes, ncells)
+    solver = CondensedMini(dof1, case.n_nodes, ncells)
     x = solver(A, b)
     assert solver.count == 1 and np.abs(A @ x - b).max() < 1e-10 * abs(A).max() * np.abs(x).max()
-    assert np.abs(x - _lu_solve(A, b)).max() < 1e-6 * np.abs(x).max()
+    assert np.abs(x - lu_solve(A, b)).max() < 1e-6 * np.abs(x).max()
 
 
 def test_p2_factorization_in_node_order_is_the_lu(block, liver):
     """The P2 system's LDLᵀ in nested-dissection order gives the LU's answer, with less fill than its COLAMD."""
     import felupe as fem
     import scipy.sparse.linalg as spl
-    from esmm.pipeline.fidelity.continuum import _discretise, _lu_solve, _NodeDissection
+    from esmm.pipeline.fidelity.continuum import _discretise
+    from esmm.pipeline.fidelity.linear import NodeDissection, lu_solve
 
     case = shear_case(*block, gamma=0.2)
     field, solid, _, mask, _, _ = _discretise(fem, case, liver, bulk_modulus(liver), "p2")
     dof1 = np.flatnonzero(~mask.ravel())
     A = solid.assemble.matrix(field).tocsr()[dof1][:, dof1]
     b = np.cos(np.arange(A.shape[0]))
-    solver = _NodeDissection(dof1)
+    solver = NodeDissection(dof1)
     x = solver(A, b)
     assert solver.count == 1 and solver.fallbacks == 0
-    assert np.abs(x - _lu_solve(A, b)).max() < 1e-8 * np.abs(x).max()
+    assert np.abs(x - lu_solve(A, b)).max() < 1e-8 * np.abs(x).max()
     p = solver.perm
     assert np.array_equal(np.sort(p), np.arange(A.shape[0]))
     ours = spl.splu(A[p][:, p].tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
@@ -156,10 +159,10 @@ def test_p2_factorization_in_node_order_is_the_lu(block, liver):
 def test_p2_factorization_falls_back_to_the_lu_on_a_tiny_pivot():
     """An indefinite matrix whose diagonal pivots grow without bound is solved by the LU instead."""
     import scipy.sparse as sp
-    from esmm.pipeline.fidelity.continuum import _NodeDissection
+    from esmm.pipeline.fidelity.linear import NodeDissection
 
     A = sp.bmat([[1e-17 * sp.identity(3), sp.identity(3)], [sp.identity(3), None]]).tocsr()
-    solver = _NodeDissection(np.arange(6))
+    solver = NodeDissection(np.arange(6))
     x = solver(A, np.arange(6.0))
     assert solver.fallbacks == 1 and np.allclose(x, [3, 4, 5, 0, 1, 2])
 
@@ -210,7 +213,7 @@ def test_auto_element_solves_with_mini_a_case_p2_finds_no_equilibrium_for(small_
 
     monkeypatch.setattr(V, "solve_continuum", p2_fails_on_tension)
     net, tables = small_network
-    rep = validate_network(net, tables, liver, cases=["tension", "shear"])
+    rep = validate_network(net, tables, liver, cases=["tension", "shear"], jobs=1)   # *tried* is this process's
     assert tried == [("tension", "p2"), ("tension", "mini"), ("shear", "p2")]
     tension, shear = rep.results
     assert tension.continuum.info["element"] == "mini" and "p2: " in tension.continuum.info["element_fallback"]
@@ -506,3 +509,99 @@ def test_a_solve_from_a_lighter_load_level_ramps_the_body_force_from_there(small
     monkeypatch.setattr(N._Problem, "scale", lambda self, t: seen.append(real_scale(self, t)) or seen[-1])
     solve_network(case, net, tables, start=half_n, steps=2)
     assert min(seen) == pytest.approx(0.75) and max(seen) == pytest.approx(1.0)   # before: 1 throughout
+
+
+def test_cases_at_once_give_the_serial_figures_and_messages(small_network, liver):
+    """Cases solved in forked workers (jobs 2) give the serial run's figures exactly, its messages in order."""
+    from esmm.pipeline.progress import ListReporter
+
+    net, tables = small_network
+    runs = {}
+    for jobs in (1, 2):
+        rec = ListReporter()
+        rep = validate_network(net, tables, liver, cases=["tension", "shear"], element="p2", jobs=jobs, reporter=rec)
+        runs[jobs] = (rep, rec)
+    (serial, rec1), (forked, rec2) = runs[1], runs[2]
+
+    def untimed(fig):
+        return {k: {kk: vv for kk, vv in v.items() if kk != "seconds"} if k in ("continuum", "network") else v
+                for k, v in fig.items()}
+
+    assert [untimed(r.figures()) for r in serial.results] == [untimed(r.figures()) for r in forked.results]
+    for a, b in zip(serial.results, forked.results, strict=True):
+        assert np.array_equal(a.continuum.displacement, b.continuum.displacement)
+        assert np.array_equal(a.network.displacement, b.network.displacement)
+    assert rec1.steps == rec2.steps and rec1.warnings == rec2.warnings
+    assert set(forked.info["case_seconds"]) == {"tension", "shear"}
+
+
+def test_cases_at_once_raise_a_worker_error():
+    """An error other than a solver's (a defect) raised in a worker is raised by the caller."""
+    from esmm.pipeline.fidelity.workers import map_cases
+    from esmm.pipeline.progress import ListReporter
+
+    def fn(item, rep):
+        rep.step(f"item {item}")
+        if item == 2:
+            raise ValueError("two")
+        return item * 10
+
+    rec = ListReporter()
+    assert map_cases(fn, [1, 3], jobs=2, reporter=rec) == [10, 30] and rec.steps == ["item 1", "item 3"]
+    with pytest.raises(ValueError, match="two"):
+        map_cases(fn, [1, 2], jobs=2, reporter=ListReporter())
+
+
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is *pid* (Linux's /proc)."""
+    import os
+
+    out = []
+    for name in os.listdir("/proc"):
+        if name.isdigit():
+            try:
+                fields = open(f"/proc/{name}/stat").read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid and fields[0] not in ("Z", "X"):
+                out.append(int(name))
+    return out
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the parent-death signal is Linux's")
+def test_case_workers_end_with_a_killed_parent():
+    """Workers of a killed validation do not solve on for nobody: they end with the process that forked them."""
+    import os
+    import signal
+    import time
+
+    from esmm.pipeline.fidelity.workers import map_cases
+    from esmm.pipeline.progress import ListReporter
+
+    def slow(item, rep):
+        time.sleep(300)                              # far beyond the test's deadline
+        return item
+
+    pid = os.fork()
+    if pid == 0:                                       # the "validation": forks two workers, then is killed
+        try:
+            map_cases(slow, [1, 2], jobs=2, reporter=ListReporter())
+        finally:
+            os._exit(0)
+    deadline = time.monotonic() + 60
+    kids = []
+    while time.monotonic() < deadline and len(kids) < 2:
+        time.sleep(0.2)
+        kids = [k for k in _children(pid) if k != pid]
+    os.kill(pid, signal.SIGKILL)
+    os.waitpid(pid, 0)
+
+    def running(k):
+        try:
+            return open(f"/proc/{k}/stat").read().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+        except OSError:
+            return False
+
+    while time.monotonic() < deadline and any(running(k) for k in kids):
+        time.sleep(0.2)
+    assert len(kids) == 2 and not any(running(k) for k in kids)

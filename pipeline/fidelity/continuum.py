@@ -32,10 +32,10 @@ from io import StringIO
 import numpy as np
 
 from ..errors import ConfigError, SimulationError
-from ..linalg.newton import OrderedFactor, node_ordering, ordered_solve
 from ..mesh.refine import quadratic_tets
 from ..progress import ensure
 from .cases import LoadCase
+from .linear import CondensedMini, NodeDissection
 from .material import IsochoricMaterial, bulk_modulus
 from .solution import Solution, start_scale
 
@@ -178,7 +178,7 @@ def solve_continuum(case: LoadCase, material, *, bulk: float | None = None, elem
     body = fem.SolidBodyForce(field, values=case.density * np.asarray(case.gravity, dtype=np.float64),
                               scale=path.body(0.0))
     stepper = _Stepper(fem, solid, body, dof0, dof1, _Check(_force_scale(case, material, mask, u_full), rtol),
-                       max_iter, _linear_solver(element, dof1, case.n_nodes, ncells), residual=element == "mini")
+                       max_iter, _linear_solver(element, dof1, case.n_nodes, field.region.mesh), residual=element == "mini")
     with rep.task(f"continuum {case.name} (felupe, {ncells} tets, {element})", total=1.0) as advance:
         done_steps, cuts = _apply_load(case, stepper, path, steps=steps, max_cuts=max_cuts, budget=budget,
                                        advance=advance)
@@ -275,102 +275,12 @@ def _apply_load(case: LoadCase, stepper: _Stepper, path: _LoadPath, *, steps: in
     return done_steps, cuts
 
 
-def _linear_solver(element: str, dof1: np.ndarray, n_vertices: int, n_cells: int):
-    """The sparse solver of a Newton step: MINI with its bubbles condensed, P2 by a symmetric factorization."""
+def _linear_solver(element: str, dof1: np.ndarray, n_vertices: int, mesh):
+    """The sparse solver of a Newton step (:mod:`.linear`): MINI with its bubbles condensed, P2 by an LDLᵀ
+    in the nested-dissection order of *mesh*'s node graph."""
     if element == "mini":
-        return _CondensedMini(dof1, n_vertices, n_cells)
-    return _NodeDissection(dof1)
-
-
-def _lu_solve(A, b):
-    """SuperLU with COLAMD: faster on these systems than scipy's spsolve default, and far faster than MMD."""
-    import scipy.sparse.linalg as spl
-
-    return spl.splu(A.tocsc(), permc_spec="COLAMD").solve(np.asarray(b, dtype=np.float64).ravel())
-
-
-class _NodeDissection:
-    """The P2 system (displacements only: P0 pressure and volume ratio condensed, symmetric) by an LDLᵀ.
-
-    SuperLU without pivoting in symmetric mode on the matrix permuted by
-    METIS nested dissection of its node graph
-    (:func:`~esmm.pipeline.linalg.newton.node_ordering`, computed once: the
-    pattern stays): a factor of less than half the fill of the LU with COLAMD,
-    found several times faster
-    (docs/design/validation.md, "The continuum reference"). No pivoting is
-    exact for a positive definite matrix, which a stable equilibrium's is; a solution whose residual is not at round-off (a matrix
-    the line search took through an unstable state) is solved again by the LU.
-    """
-
-    def __init__(self, dof1: np.ndarray):
-        self.dof1, self.perm, self.count, self.fallbacks = np.asarray(dof1), None, 0, 0
-
-    def _order(self, A) -> np.ndarray:
-        import scipy.sparse as sp
-
-        n = int(self.dof1.max()) // 3 + 1
-        C = A.tocoo()            # node_ordering reads each node's first row: put every block's columns there
-        P = sp.csr_matrix((np.ones(C.nnz), (3 * (self.dof1[C.row] // 3), self.dof1[C.col])), shape=(3 * n, 3 * n))
-        pos = np.full(3 * n, -1)
-        pos[self.dof1] = np.arange(self.dof1.size)
-        p = pos[node_ordering(P)]
-        return p[p >= 0]
-
-    def __call__(self, A, b):
-        self.count += 1
-        if self.perm is None:
-            self.perm = self._order(A)
-        x, fac = ordered_solve(A.tocsr(), np.asarray(b, dtype=np.float64).ravel(), self.perm)
-        if x is None:
-            raise RuntimeError("the P2 system is exactly singular")
-        self.fallbacks += not isinstance(fac, OrderedFactor)
-        return x
-
-
-class _CondensedMini:
-    """The MINI system with its bubble unknowns condensed out, element by element.
-
-    A bubble lives in one element, so the bubble-bubble block is block
-    diagonal (3 x 3 per element) and its inverse is exact and cheap: the
-    vertex system ``S = A_ss − A_sb A_bb⁻¹ A_bs`` (displacement, pressure and
-    volume ratio at the vertices, a third of the unknowns) is factorised
-    instead of the whole one, then the bubbles follow. The same solution, several
-    times faster (docs/design/validation.md, "The continuum reference"); the
-    whole LU if a block is singular.
-    """
-
-    def __init__(self, dof1: np.ndarray, n_vertices: int, n_cells: int):
-        bubble = (dof1 >= 3 * n_vertices) & (dof1 < 3 * (n_vertices + n_cells))
-        self.b, self.s = np.flatnonzero(bubble), np.flatnonzero(~bubble)
-        nb = self.b.size // 3
-        k = 3 * np.arange(nb)[:, None, None]
-        self.rows = np.broadcast_to(k + np.arange(3)[None, :, None], (nb, 3, 3)).ravel()
-        self.cols = np.broadcast_to(k + np.arange(3)[None, None, :], (nb, 3, 3)).ravel()
-        self.count = 0
-
-    def __call__(self, A, b):
-        import scipy.sparse as sp
-        import scipy.sparse.linalg as spl
-
-        self.count += 1
-        A = A.tocsr()
-        b = np.asarray(b, dtype=np.float64).ravel()
-        Ab = A[self.b]
-        Abb, Abs = Ab[:, self.b].tocsr(), Ab[:, self.s].tocsr()
-        As = A[self.s]
-        Asb, Ass = As[:, self.b].tocsr(), As[:, self.s].tocsr()
-        nb = self.b.size // 3
-        blocks = np.asarray(Abb[self.rows, self.cols]).reshape(nb, 3, 3)
-        try:
-            inv = np.linalg.inv(blocks)
-        except np.linalg.LinAlgError:
-            return _lu_solve(A, b)
-        Binv = sp.bsr_matrix((inv, np.arange(nb), np.arange(nb + 1)), shape=Abb.shape).tocsr()
-        S = (Ass - Asb @ (Binv @ Abs)).tocsc()
-        xs = spl.splu(S, permc_spec="COLAMD").solve(b[self.s] - Asb @ (Binv @ b[self.b]))
-        x = np.empty_like(b)
-        x[self.s], x[self.b] = xs, Binv @ (b[self.b] - Abs @ xs)
-        return x
+        return CondensedMini(dof1, n_vertices, mesh.ncells)
+    return NodeDissection(dof1, mesh.cells, mesh.npoints)
 
 
 def _newton(fem, field, solid, body, dof0, dof1, ext0, check, max_iter, solver, residual):

@@ -31,8 +31,10 @@ import time
 
 import numpy as np
 
+from ..blas import single_threaded_blas
 from ..errors import SimulationError
-from ..linalg.newton import descent_direction, free_order
+from ..linalg.newton import at_round_off, descent_direction, free_order
+from ..linalg.supernodal import LDLT, ZeroPivot, canonical
 from ..network import forcelaw
 from ..network.springs import tet_volumes
 from ..progress import ensure
@@ -70,6 +72,7 @@ class _Problem:
         self.free = ~self.mask.ravel()
         self.t = 0.0
         self.order = None                 # of the free dofs, from the first tangent (the pattern stays)
+        self.analysis = None              # the LDLᵀ's symbolic analysis of the free tangent's pattern
         self.factorizations = 0
         # The path: from rest (gravity off) or from *start* (its gravity, prescribed values where they are).
         self.g0 = start_scale(start, case.gravity)
@@ -90,11 +93,26 @@ class _Problem:
         return sum(term.tangent(x) for term in self.terms).tocsr()
 
     def direction(self, K, g):
-        """Newton direction ``-K_ff^-1 g`` of the whole tangent *K* (shifted towards positive definite when needed) or None."""
+        """Newton direction ``-K_ff^-1 g`` of the whole tangent *K* (shifted towards positive definite when needed) or None.
+
+        The free tangent is factored by esmm's supernodal LDLᵀ in its nested-dissection order, the
+        symbolic analysis kept while its pattern stays (:mod:`.linear`); when that gives no descent
+        direction at round-off, :func:`~esmm.pipeline.linalg.newton.descent_direction` (SuperLU, the
+        LU with pivoting, the shifts) decides."""
         self.factorizations += 1
         if self.order is None:
             self.order = free_order(K, self.free)
-        return descent_direction(K[self.free][:, self.free], g, order=self.order)[0]
+        Kff = canonical(K[self.free][:, self.free])
+        try:
+            with single_threaded_blas():
+                fac = LDLT.of(Kff, self.analysis, perm=self.order)
+            self.analysis = fac.analysis
+            x = fac.solve(g)
+            if at_round_off(Kff, x, g) and float(g @ x) > 0:
+                return -x
+        except ZeroPivot:
+            pass
+        return descent_direction(Kff, g, order=self.order)[0]
 
     def residual_scale(self, x) -> float:
         g = self.scale(self.t) * self.fg

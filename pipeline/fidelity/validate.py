@@ -49,6 +49,7 @@ from .material import DEFAULT_BULK_RATIO, bulk_modulus, check_continuum
 from .network_solve import solve_network
 from .report import plot_case, table_markdown, write_fields
 from .specimen import cube_specimen
+from .workers import map_cases
 
 __all__ = ["VOLUME_TERM", "LoadOptions", "ValidationReport", "default_out_dir", "network_terms", "resolved_volume_term",
            "validate_asset", "validate_network", "validate_specimen"]
@@ -201,17 +202,24 @@ def _on_the_floor(case, solve, max_rounds: int, rep):
     one; a node that goes below the floor is pinned at the point of the plane
     under where it was at the previous level (it touched the floor within
     the level; it sticks there), and the level is solved again, until no node
-    goes below. Returns the solution and the number of pins.
+    goes below. A round solves the level again from the previous round's
+    equilibrium, with the new pins moved from where that round put them to
+    their place: the same equilibrium as from the previous level (the
+    problem is elastic, its loads and constraints the same), reached in a few
+    Newton iterations instead of the level's whole increment again. Returns the
+    solution and the number of pins.
     """
     c, sol = case, None
     for k in range(1, _LEVELS + 1):
+        start = sol
         for _ in range(max_rounds):
-            trial = solve(at_load(c, k / _LEVELS), sol)
+            trial = solve(at_load(c, k / _LEVELS), start)
             held = c.constraint("floor").nodes if any(g.name == "floor" for g in c.constraints) else []
             new = np.setdiff1d(_below(c, (trial,)), held)
             if new.size == 0:
                 break
             c = with_floor_pins(c, new, case.points[new] + (0.0 if sol is None else sol.displacement[new]))
+            start = trial     # the level again from this round's equilibrium: only the new pins move
         else:
             rep.warn(f"{case.name}: nodes still reach the floor after {max_rounds} rounds of pins at load level "
                      f"{k}/{_LEVELS}; the figures include a small penetration")
@@ -288,10 +296,34 @@ def _continuum_elements(network, element: str, rep) -> tuple[str, tuple[str, ...
     return element, elements
 
 
+def _solve_cases(cases, network, tables, material, *, jobs, rep, **options) -> tuple[list, dict, dict]:
+    """:func:`_solve_case` of every case, at once where *jobs* allows (:func:`~.workers.map_cases`):
+    ``(results, failed, case_seconds)``, a case without an equilibrium in *failed* with the reason (the
+    other cases still run)."""
+    def one(c, rep_):
+        t_case = time.perf_counter()
+        try:
+            res = _solve_case(c, network, tables, material, rep=rep_, **options)
+        except SimulationError as exc:
+            rep_.warn(f"{c.name}: {exc}")
+            return c.name, None, str(exc), time.perf_counter() - t_case
+        res.continuum.state = None          # felupe's checkpoint: for warm starts within the case only
+        return c.name, res, None, time.perf_counter() - t_case
+
+    results, failed, case_seconds = [], {}, {}
+    for name, res, err, seconds in map_cases(one, cases, jobs=jobs, reporter=rep):
+        case_seconds[name] = seconds
+        if res is None:
+            failed[name] = err
+        else:
+            results.append(res)
+    return results, failed, case_seconds
+
+
 def validate_network(network, tables, material, *, cases=None, label: str = "network", loads: LoadOptions | None = None,
                      volume_term: str = "auto", law: str | None = None, element: str = "auto",
                      bulk_ratio: float = DEFAULT_BULK_RATIO, out_dir=None, max_rounds: int = 10,
-                     reporter=None) -> ValidationReport:
+                     jobs: int | None = None, reporter=None) -> ValidationReport:
     """Validate *network* with *tables* against the continuum of *material*, case by case.
 
     Parameters
@@ -318,6 +350,9 @@ def validate_network(network, tables, material, *, cases=None, label: str = "net
     out_dir : path-like, optional
         Write ``validation.json``, ``validation.md`` and per case ``<case>.png``,
         ``<case>.xdmf`` + ``.h5`` there.
+    jobs : int, optional
+        Cases solved at once, each in a process of its own (:func:`~.workers.map_cases`); default the
+        cores this process may use. The figures do not depend on it.
 
     Returns
     -------
@@ -345,19 +380,14 @@ def validate_network(network, tables, material, *, cases=None, label: str = "net
     bulk = bulk_modulus(material, ratio=bulk_ratio)
     law = tables.check_law(law)
     loads = LoadOptions() if loads is None else loads
-    results, failed = [], {}
-    for c in _cases_for(network, names, loads):
-        try:
-            results.append(_solve_case(c, network, tables, material, law=law, terms=terms, bulk=bulk,
-                                       elements=elements, max_rounds=max_rounds, rep=rep))
-        except SimulationError as exc:     # the other cases still run; the report says which failed and why
-            failed[c.name] = str(exc)
-            rep.warn(f"{c.name}: {exc}")
+    results, failed, case_seconds = _solve_cases(_cases_for(network, names, loads), network, tables, material,
+                                                 jobs=jobs, rep=rep, law=law, terms=terms, bulk=bulk,
+                                                 elements=elements, max_rounds=max_rounds)
     info = {"failed": failed, "material": material.name or material.model, "law": law,
             "volume_factor": float(tables.volume_factor),
             "bulk_modulus_Pa": bulk, "bulk_ratio": float(bulk_ratio), "element": element,
             "nodes": network.n_nodes, "springs": network.n_springs, "tets": network.n_tets,
-            "seconds": time.perf_counter() - t0}
+            "seconds": time.perf_counter() - t0, "case_seconds": case_seconds}
     if network.quadratic_cells is not None:     # split: the continuum's P2 cells are these parents
         info["split_from"] = int(network.quadratic_cells.shape[0])
     report = ValidationReport(label=label, results=results, volume_term=volume_term, info=info)
@@ -372,7 +402,7 @@ def _write(report: ValidationReport, out: Path) -> None:
         report.files[f"{r.case.name}_png"] = str(plot_case(r, out / f"{r.case.name}.png"))
         report.files[f"{r.case.name}_xdmf"] = str(write_fields(r, out / f"{r.case.name}.xdmf"))
     text = (f"# esmm validate: {report.label}\n\nvolume term {report.volume_term}; "
-            + ", ".join(f"{k} {v}" for k, v in report.info.items() if k not in ("seconds", "failed")) + "\n\n"
+            + ", ".join(f"{k} {v}" for k, v in report.info.items() if k not in ("seconds", "case_seconds", "failed")) + "\n\n"
             + report.table() + "\n\n" + "\n".join(f"* {r.case.name}: {r.case.description}" for r in report.results)
             + "\n")
     report.files["table"] = str(write_text(out / "validation.md", text))
