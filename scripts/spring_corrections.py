@@ -502,6 +502,24 @@ def cmd_heldout(args):
         Path(args.json).write_text(json.dumps(out, indent=1))
 
 
+def cmd_report(args):
+    """One figures file from the fits' and the held-out runs' JSON (``--organ NAME FIT.json HELDOUT.json``)."""
+    out = {"method": "per-spring multipliers exp(theta) fitted to the linear P2 response at rest "
+                     "(scripts/spring_corrections.py fit), judged on validate's nonlinear cases (heldout)",
+           "organs": {}}
+    for name, fit, held in args.organ:
+        f = json.loads(Path(fit).read_text())
+        h = json.loads(Path(held).read_text()) if held != "-" else {}
+        lin = {tag: {r["case"]: {"before": r["before"], "after": r["after"]} for r in f[tag]}
+               for tag in ("train", "held")}
+        out["organs"][name] = {"settings": {k: f["settings"][k] for k in ("pulls", "held_pulls", "pull", "alpha",
+                                                                        "gamma", "beta_f", "bound", "maxiter")},
+                               "fit_iterations": f["iterations"], "seconds_references": f["seconds_references"],
+                               "seconds_fit": f["seconds_fit"], "multipliers_min_median_max": f["multipliers"],
+                               "linear": lin, "nonlinear": h}
+    Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -538,6 +556,10 @@ def main(argv=None):
     h.add_argument("--other-gravity", action="store_true")
     h.add_argument("--json")
     h.set_defaults(func=cmd_heldout)
+    r = sub.add_parser("report")
+    r.add_argument("--organ", nargs=3, action="append", metavar=("NAME", "FIT_JSON", "HELDOUT_JSON"), required=True)
+    r.add_argument("--out", required=True)
+    r.set_defaults(func=cmd_report)
     args = ap.parse_args(argv)
     return args.func(args)
 
