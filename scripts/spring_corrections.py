@@ -502,16 +502,38 @@ def cmd_heldout(args):
         Path(args.json).write_text(json.dumps(out, indent=1))
 
 
+def _group(case: str) -> str:
+    if case.startswith(("g-", "g+")):
+        return "gravity"
+    return "grasp patch pulls" if case.startswith("grasp") else "patch pulls"
+
+
+def _ranges(rows) -> dict:
+    """Per group of cases, the range (min, max) of the L2 and force errors before and after."""
+    out = {}
+    for group in ("gravity", "grasp patch pulls", "patch pulls"):
+        sel = [r for r in rows if _group(r["case"]) == group]
+        if sel:
+            out[group] = {"cases": len(sel), **{f"{k}_{m}": [min(r[k][i] for r in sel), max(r[k][i] for r in sel)]
+                                                 for k in ("before", "after") for i, m in enumerate(("l2", "force"))
+                                                 if not (group == "gravity" and m == "force")}}
+    return out
+
+
 def cmd_report(args):
-    """One figures file from the fits' and the held-out runs' JSON (``--organ NAME FIT.json HELDOUT.json``)."""
+    """One figures file from the fits' and the held-out runs' JSON (``--organ NAME FIT.json HELD1.json,HELD2.json``)."""
     out = {"method": "per-spring multipliers exp(theta) fitted to the linear P2 response at rest "
                      "(scripts/spring_corrections.py fit), judged on validate's nonlinear cases (heldout)",
            "organs": {}}
     for name, fit, held in args.organ:
         f = json.loads(Path(fit).read_text())
-        h = json.loads(Path(held).read_text()) if held != "-" else {}
-        lin = {tag: {r["case"]: {"before": r["before"], "after": r["after"]} for r in f[tag]}
-               for tag in ("train", "held")}
+        h = {}
+        for part in held.split(",") if held != "-" else []:    # several held-out runs' JSON, merged by case
+            for case, runs in json.loads(Path(part).read_text()).items():
+                for run, row in runs.items():                  # a run named by its theta file: "after"
+                    h.setdefault(case, {})["before" if run == "before" else "after"] = row
+        lin = {f"{tag} {group}": summary for tag in ("train", "held")
+               for group, summary in _ranges(f[tag]).items()}
         out["organs"][name] = {"settings": {k: f["settings"][k] for k in ("pulls", "held_pulls", "pull", "alpha",
                                                                         "gamma", "beta_f", "bound", "maxiter")},
                                "fit_iterations": f["iterations"], "seconds_references": f["seconds_references"],
