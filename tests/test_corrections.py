@@ -132,3 +132,13 @@ def test_without_held_nodes_is_refused(box, tables):
 
     with pytest.raises(ConfigError, match="^held"):
         LinearNetwork(box, tables, [])
+
+
+def test_smoothing_operator_vanishes_on_a_uniform_field_only(box):
+    from esmm.pipeline.network.corrections import smoothing_operator
+
+    D = smoothing_operator(box)
+    np.testing.assert_allclose(D @ np.full(box.n_springs, 0.7), 0.0, atol=1e-12)
+    bump = np.zeros(box.n_springs)
+    bump[5] = 1.0
+    assert (D @ bump)[5] > 0.5            # a lone spring differs from its neighbours' mean
