@@ -7,12 +7,17 @@ stiffness, fitted so that the network's *linearised* response to a set of traini
 load cases matches the second-order continuum's (P2, linearised at rest, on the same
 vertices), brings the network nearer to P2 on load cases it was not fitted on.
 
-Commands (each caches the continuum's solutions under ``--cache``):
+Commands (each caches the continuum's solutions under ``--cache``); the figures of
+docs/figures/spring_corrections.json, per organ asset (``esmm prepare MESH --config paper``):
 
-    python scripts/spring_corrections.py diagnose ASSET        # linear: network and MINI against P2
-    python scripts/spring_corrections.py fit ASSET --out T.npz # fit theta on the training cases
-    python scripts/spring_corrections.py heldout ASSET --theta T.npz --json OUT.json
-                                                               # validate's nonlinear cases, before/after
+    python scripts/spring_corrections.py diagnose ASSET --json diag.json
+        # linear, at rest: the network with and without its volume term (and MINI) against P2
+    python scripts/spring_corrections.py fit ASSET --pulls 16 --held-pulls 3 --maxiter 60 \
+        --out fit16.npz --json fit.json          # theta on the training cases; linear held-out table
+    python scripts/spring_corrections.py heldout ASSET --only gravity lift20 lift5 \
+        --theta fit16.npz --json held.json       # validate's nonlinear cases, before and after
+    python scripts/spring_corrections.py report --organ liver fit.json held.json [--organ ...] \
+        --out docs/figures/spring_corrections.json
 
 The fit: minimise over theta
 
