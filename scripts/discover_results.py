@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Regenerate the results of docs/design/discovery.md ("What it achieves"): ``esmm calibrate --discover`` on every real data set.
+"""Regenerate the results of docs/design/discovery-results.md ("On the shared real records"): ``esmm calibrate --discover`` on every real data set.
 
 Usage::
 
@@ -15,7 +15,7 @@ the in-house generated population (:func:`esmm.pipeline.discover.population.scor
 a regression check of the machinery, not a figure to quote) for each seed given. Prints the
 markdown table and writes every figure to ``--out`` (rows and seeds not run are kept from an
 existing file, and so is its ``before`` block: the same rows as recorded by the selection that
-docs/design/discovery.md, "On the shared real records", compares against). The rows take minutes.
+docs/design/discovery-results.md, "On the shared real records", compares against). The rows take minutes.
 """
 
 from __future__ import annotations
@@ -110,7 +110,7 @@ def _errors(r: dict, which: str, nested: bool) -> str:
 
 
 def table(rows: dict, before: dict | None = None) -> str:
-    """The markdown table of docs/design/discovery.md, "On the shared real records": before and after.
+    """The markdown table of docs/design/discovery-results.md, "On the shared real records": before and after.
 
     Errors are NRMSE fitted / held out / nested (held out of the whole selection); the
     recorded ``before`` rows have no nested error.
