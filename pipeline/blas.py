@@ -10,7 +10,8 @@ gradients and sparse triangular solves are as small (docs/design/simulator.md,
 loaded in the process to 1 for the duration of a ``with`` block and restores
 it after, using ``threadpoolctl`` when it is installed and the libraries'
 own ``*_set_num_threads`` entry points otherwise. It does nothing where neither
-is available.
+is available. :func:`usable_cores` says how many processes a parallel step may
+start (the discovery's nested folds, a validation's cases).
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import functools
+import multiprocessing
+import os
 from collections.abc import Iterator
 
 _NAMES = (
@@ -89,3 +92,14 @@ def single_threaded_blas() -> Iterator[None]:
         for s, n in saved:
             with contextlib.suppress(Exception):
                 s(max(n, 1))
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the platform says, else the machine's); 1 in
+    a daemonic process (a process pool's or a Dask worker), which may not start processes of its own."""
+    if multiprocessing.current_process().daemon:
+        return 1
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1

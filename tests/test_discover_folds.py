@@ -139,7 +139,7 @@ def test_artefacts_are_judged_on_blocks_of_their_own_file():
 def _cores_in_child(q):
     from esmm.pipeline.discover import nested
 
-    q.put(nested._usable_cores())
+    q.put(nested.usable_cores())
 
 
 def test_nested_folds_do_not_fork_inside_a_daemonic_worker():

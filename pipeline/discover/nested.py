@@ -35,7 +35,6 @@ base model's held-out error.
 from __future__ import annotations
 
 import multiprocessing
-import os
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -44,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from ..blas import single_threaded_blas
+from ..blas import single_threaded_blas, usable_cores
 from ..errors import FitError
 from ..progress import SILENT
 from .fitted import Fitted, finish
@@ -208,17 +207,6 @@ def _worker(j: int):
         return _outer(_SHARED, j)
 
 
-def _usable_cores() -> int:
-    """The cores this process may run on (its CPU affinity where the platform says, else the machine's); 1 in
-    a daemonic process (a process pool's or a Dask worker), which may not start processes of its own."""
-    if multiprocessing.current_process().daemon:
-        return 1
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
-
-
 def _run_folds(ctx: _Context, rep) -> list[tuple[dict, dict, list[str]]]:
     """Every outer fold, in worker processes where the process may use more than one core (forked: they share
     the context without copying it), else one after the other. The cores counted are those this process may
@@ -226,7 +214,7 @@ def _run_folds(ctx: _Context, rep) -> list[tuple[dict, dict, list[str]]]:
     not fork."""
     global _SHARED
     n = len(ctx.material.folds)
-    workers = min(n, _usable_cores())
+    workers = min(n, usable_cores())
     with rep.task("nested held-out errors: the selection run again inside each outer fold", total=n) as adv:
         if workers > 1 and "fork" in multiprocessing.get_all_start_methods():
             _SHARED = ctx

@@ -20,20 +20,9 @@ import multiprocessing
 import os
 from collections.abc import Callable, Iterator, Sequence
 
-from ..blas import single_threaded_blas
+from ..blas import single_threaded_blas, usable_cores
 
-__all__ = ["map_cases", "usable_cores"]
-
-
-def usable_cores() -> int:
-    """The cores this process may run on (its CPU affinity where the platform says, else the machine's); 1 in
-    a daemonic process (a process pool's or a Dask worker), which may not start processes of its own."""
-    if multiprocessing.current_process().daemon:
-        return 1
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
+__all__ = ["map_cases"]
 
 
 class _Recorder:
