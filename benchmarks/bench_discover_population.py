@@ -125,16 +125,17 @@ DETECT_BINS = (3.0, 30.0)
 
 
 def judge(true: str, effects: list[str], variant: str | None = None) -> tuple[bool, bool, list[str]]:
-    """(strict, lenient, confusion columns) of one effect case (module docstring)."""
+    """(strict, lenient, confusion columns) of one effect case (module docstring); the columns name what was
+    kept, the other right name of a variant (:data:`SAME_CLASS`) included."""
     kept = set(effects)
-    alias = SAME_CLASS.get((true, variant))
-    if alias is not None and alias in kept and true not in kept:
-        kept = (kept - {alias}) | {true}
     if true == NL and NL in kept:
         kept.discard(VE)
     cols = sorted(kept)
     if true == NL and NL not in kept and VE in kept:
         cols = [PLAIN_VE if c == VE else c for c in cols]
+    alias = SAME_CLASS.get((true, variant))
+    if alias is not None and alias in kept and true not in kept:
+        kept = (kept - {alias}) | {true}
     return kept == {true}, true in kept, cols or ["nothing"]
 
 
@@ -185,10 +186,10 @@ def score_effects(rows: list[dict]) -> dict:
     confusion: dict[str, dict[str, int]] = {}
     by_class: dict[str, dict] = {}
     for r in ok:
-        strict, lenient, _ = judge(r["class"], r["effects"], r.get("variant"))
+        strict, lenient, cols = judge(r["class"], r["effects"], r.get("variant"))
         r["strict"], r["lenient"] = strict, lenient
         row = confusion.setdefault(r["class"], {})
-        for c in judge(r["class"], r["effects"])[2]:
+        for c in cols:
             row[c] = row.get(c, 0) + 1
     for cls in CLASSES:
         rs = [r for r in rows if r["class"] == cls]

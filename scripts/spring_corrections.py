@@ -547,24 +547,25 @@ def cmd_report(args):
     Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
 
 
+def _cases_options(p) -> None:
+    """The asset, the reference cache and the training and held-out pulls (``diagnose`` and ``fit``)."""
+    p.add_argument("asset")
+    p.add_argument("--cache", default="/tmp/rtcorr/cache")
+    p.add_argument("--pulls", type=int, default=4)
+    p.add_argument("--held-pulls", type=int, default=2)
+    p.add_argument("--pull", type=float, default=1e-3)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
     d = sub.add_parser("diagnose")
-    d.add_argument("asset")
-    d.add_argument("--cache", default="/tmp/rtcorr/cache")
-    d.add_argument("--pulls", type=int, default=4)
-    d.add_argument("--held-pulls", type=int, default=2)
-    d.add_argument("--pull", type=float, default=1e-3)
+    _cases_options(d)
     d.add_argument("--mini", action="store_true")
     d.add_argument("--json")
     d.set_defaults(func=cmd_diagnose)
     f = sub.add_parser("fit")
-    f.add_argument("asset")
-    f.add_argument("--cache", default="/tmp/rtcorr/cache")
-    f.add_argument("--pulls", type=int, default=4)
-    f.add_argument("--held-pulls", type=int, default=2)
-    f.add_argument("--pull", type=float, default=1e-3)
+    _cases_options(f)
     f.add_argument("--alpha", type=float, default=1e-4)
     f.add_argument("--gamma", type=float, default=1e-3)
     f.add_argument("--beta-f", type=float, default=1.0)

@@ -465,7 +465,7 @@ def test_scoring_takes_discontinuous_damage_mullins_as_damage_and_only_that():
     assert B.judge("mullins", ["damage"], "ogden_roxburgh")[:2] == (False, False)
     assert B.judge("damage", ["mullins"], "simo1987")[:2] == (False, False)
     # the confusion columns name what was kept
-    assert B.judge("mullins", ["damage"], "discontinuous_damage")[2] == ["mullins"]
+    assert B.judge("mullins", ["damage"], "discontinuous_damage")[2] == ["damage"]
 
 
 def test_integrated_time_of_white_and_ar1_noise():
