@@ -24,6 +24,7 @@ from .artefacts import artefact_reason, shared_slack_reason
 from .diagnose import Diagnosis, diagnose
 from .fitted import Fitted, effect_params, fit_spec
 from .heldout import FoldSet, cached_heldout
+from .history import applies, history_test
 from .levels import Levels, round_levels
 from .model import VARIANTS
 from .records import Record
@@ -232,8 +233,30 @@ def _heldout_winner(s: Search, trials: list[Trial], rnd: int, lv: Levels) -> Tri
         if shared:
             c.reason = f"not kept: {shared}"
             continue
+        if not _path_dependent(s, t, [t.name], lv.single):
+            continue
         return t
     return None
+
+
+def _path_dependent(s: Search, t: Trial, names: list[str], level: float) -> bool:
+    """A history effect's (or a pair's) improvement must be history: its path-dependent part explains the
+    residual's at *level* (:mod:`.history`). Writes the verdict on the candidates that fail."""
+    if not applies(names, s.current.problem.records):
+        return True
+    h = history_test(s.current, t.fit)
+    if len(names) == 1:
+        s.candidates[names[0]].history_p, s.candidates[names[0]].history_share = h["p"], h["share"]
+    if h["p"] <= level:
+        return True
+    why = (f"not kept: it predicts held-out data better (p {t.heldout['p']:.2g}), but not by what depends on the "
+           f"path: the part of its change that no function of the stretch alone gives ({h['share']:.1%} of it) does "
+           f"not explain the part of the residual that none gives (one-sided p {h['p']:.2g}, t {h['t']:+.2f} on "
+           f"{h['dof']:.1f} degrees of freedom; needs <= {level:.2g}): on these data it stands for an elastic law "
+           "the library does not hold")
+    if len(names) == 1:  # a pair that fails is one of many formed; its members keep their own verdicts
+        s.candidates[names[0]].reason = why
+    return False
 
 
 def _heldout_fields(c: Candidate, t: Trial, level: float, s: Search) -> None:
@@ -323,7 +346,8 @@ def _try_pairs(singles: dict[str, Trial], s: Search, lv: Levels):
                 continue
             s.remember(t.fit)
             if t.screened and passes(_check(s, t, [a, b]), lv.pair, s.crit.min_resolution_units) \
-                    and not ("slack" in (a, b) and shared_slack_reason(t.fit)):
+                    and not ("slack" in (a, b) and shared_slack_reason(t.fit)) \
+                    and _path_dependent(s, t, [a, b], lv.pair):
                 passed.append(((a, b), t))
     return min(passed, key=lambda p: p[1].heldout["p"]) if passed else None
 

@@ -48,6 +48,8 @@ class Candidate:
     heldout_level: float | None = None  # the level it was judged at (search-wide control)
     heldout_p_replication: float | None = None  # the replication check's p-value
     heldout_noise_units: float | None = None
+    history_p: float | None = None  # the path-dependent part's one-sided p-value (:mod:`.history`)
+    history_share: float | None = None  # the share of the candidate's change that depends on the path
     kept: bool = False
     identifiable: bool = True
     applicable: bool = True
@@ -64,6 +66,7 @@ class Candidate:
             "heldout_z": self.heldout_z, "heldout_p": self.heldout_p, "heldout_level": self.heldout_level,
             "heldout_p_replication": self.heldout_p_replication,
             "heldout_noise_units": self.heldout_noise_units,
+            "history_p": self.history_p, "history_share": self.history_share,
             "kept": self.kept, "identifiable": self.identifiable, "applicable": self.applicable,
             "first_order_share": self.score, "first_order_chi2": self.gain_chi2, "reason": self.reason,
             "params": self.params,

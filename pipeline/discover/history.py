@@ -1,0 +1,158 @@
+r"""Is a history effect's improvement history? The test against every elastic law at once.
+
+A material history effect (relaxation, Mullins softening, damage, cyclic
+softening, a permanent set) changes the predicted stress in two ways: as a
+function of the stretch alone, which a different elastic law could also do,
+and as a function of the path (a hold that relaxes, an unloading below the
+loading, a reload below the previous maximum, a peak that falls from cycle to
+cycle), which no elastic law can do. The held-out test
+(:func:`~esmm.pipeline.discover.statistics.heldout_test`) asks whether the
+candidate predicts better; where the base law is not the material's (a tendon's
+fibre recruitment, which no term of the library draws exactly), a history
+effect fitted to the elastic misfit predicts held-out data of the same protocol
+better too, and is kept for what is an elastic law's error.
+
+:func:`history_test` asks the other question: does the part of the candidate's
+signature that no function of the stretch can give explain the part of the
+residual that no function of the stretch can give? With e the current model's
+residual (data − model) and d the candidate's change of the prediction, both
+on every sample, and P the least-squares projection onto smooth functions of
+the stretch (a cubic spline of :data:`KNOTS` intervals over the stretch range,
+one per loading mode and direction, shared by the files: one material has one
+elastic law), a = e − Pe and b = d − Pd are the path-dependent parts. Under the
+null "nothing depends on the path", a is measurement noise (any elastic misfit
+is a function of the stretch and is projected out) and S = Σ a·b has mean 0;
+its variance is that of a sum of the serially correlated products a·b,
+heteroskedasticity- and autocorrelation-consistent per record
+(:func:`~esmm.pipeline.discover.statistics.segment_mean`), so filtered and 1/f
+noise count as the fewer independent samples they are. The one-sided p of
+T = S/se(S) (Student's t, Welch–Satterthwaite degrees of freedom over the
+records) is judged at the candidate's own held-out level.
+
+A record that never returns to a stretch it has passed (one ramp at one rate)
+carries no path information: b vanishes there and so does its weight, so a
+history effect is not kept on such records alone. The one exception is damage
+where a loading run softens: a stress that falls beyond the noise while the
+stretch rises (:func:`~esmm.pipeline.discover.records.strain_softening`) is a
+function of the stretch, but of none that a stable elastic law gives, so damage
+is not subject to the test there (:func:`applies`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+from scipy import interpolate, stats
+
+from .fitted import Fitted
+from .records import Record, strain_softening
+from .statistics import segment_mean
+
+#: the material effects subject to the test: each changes the stress along the path, not only with the stretch
+HISTORY = ("viscoelastic", "nonlinear_viscoelastic", "mullins", "damage", "cyclic_softening", "permanent_set")
+#: intervals of the cubic spline in stretch that stands for every elastic law: an elastic law's stress is smooth
+#: on a twentieth of the stretch range, and more intervals only make the test stricter (more is called elastic)
+KNOTS = 24
+
+
+def applies(names: Sequence[str], records: Sequence[Record]) -> bool:
+    """Does the test judge a candidate (or a pair) whose effects are *names*?
+
+    Damage is not judged where a record's loading softens (the module's docstring).
+    """
+    judged = [n for n in names if n in HISTORY]
+    if judged == ["damage"] and any(r.history and strain_softening(r) for r in records):
+        return False
+    return bool(judged)
+
+
+def history_test(current: Fitted, candidate: Fitted) -> dict[str, float]:
+    """The path-dependent part of *candidate*'s change against the path-dependent part of *current*'s residual.
+
+    Returns
+    -------
+    dict
+        ``p`` (one-sided), ``t``, ``dof``; ``share``: the fraction of the
+        candidate's change (its sum of squares on all samples) that depends on
+        the path.
+    """
+    groups: dict[tuple, list[int]] = {}
+    prob = current.problem
+    for k, r in enumerate(prob.records):
+        groups.setdefault((r.test.mode, r.key), []).append(k)
+    e_all, d_all = _changes(current, candidate)
+    total = sum(float(d @ d) for d in d_all if d.size)
+    s = var = ws_den = path = 0.0
+    for ks in groups.values():
+        a, b = _path_parts([prob.records[k].x for k in ks], [e_all[k] for k in ks], [d_all[k] for k in ks],
+                           [1.0 / max(prob.records[k].range, 1e-300) for k in ks])
+        for ak, bk, k in zip(a, b, ks):
+            if not bk.size:
+                continue
+            path += float(bk @ bk)
+            r = prob.records[k]
+            w = 1.0 / max(r.range, 1e-300) ** 2  # every file counts alike, as in the held-out test
+            mean, v, nu = segment_mean(ak * bk)
+            n = ak.size
+            s += w * n * mean
+            c = (w * n) ** 2 * v
+            var += c
+            ws_den += c * c / nu
+    dof = var * var / ws_den if ws_den > 0 else 1.0
+    if var <= 0 or not math.isfinite(var):
+        t = math.inf if s > 0 else 0.0
+    else:
+        t = s / math.sqrt(var)
+    p = float(stats.t.sf(t, max(dof, 1.0))) if math.isfinite(t) else (0.0 if t > 0 else 1.0)
+    return {"p": p, "t": float(t), "dof": float(dof), "share": path / total if total > 0 else 0.0}
+
+
+def _changes(current: Fitted, candidate: Fitted) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per record, on every sample where both predict: the current residual (data − model) and the change of
+    the prediction (candidate − current), NaN where either model does not predict."""
+    p0, p1 = current.problem, candidate.problem
+    c0, c1 = p0.offsets(current.z), p1.offsets(candidate.z)
+    e, d = [], []
+    for k, r in enumerate(p0.records):
+        m0 = p0.full_prediction(k, current.z, c0[k])
+        m1 = p1.full_prediction(k, candidate.z, c1[k])
+        good = np.isfinite(m0) & np.isfinite(m1) & np.isfinite(r.y)
+        ek = np.where(good, r.y - m0, np.nan)
+        dk = np.where(good, m1 - m0, np.nan)
+        e.append(ek)
+        d.append(dk)
+    return e, d
+
+
+def _path_parts(xs: list[np.ndarray], es: list[np.ndarray], ds: list[np.ndarray], ws: list[float]
+                ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """e − Pe and d − Pd on one group's records (finite samples only, in time order), P the least-squares
+    projection onto one cubic spline in stretch shared by the group, each file weighted by its range."""
+    keep = [np.isfinite(e) & np.isfinite(d) & np.isfinite(x) for x, e, d in zip(xs, es, ds)]
+    x = np.concatenate([xk[m] for xk, m in zip(xs, keep)])
+    if x.size < 2 * (KNOTS + 3):
+        return [np.zeros(0)] * len(xs), [np.zeros(0)] * len(xs)
+    lo, hi = float(x.min()), float(x.max())
+    if hi <= lo:
+        return [np.zeros(0)] * len(xs), [np.zeros(0)] * len(xs)
+    inner = np.linspace(lo, hi, KNOTS + 1)
+    knots = np.concatenate([[lo] * 3, inner, [hi] * 3])
+    basis = interpolate.BSpline.design_matrix(np.clip(x, lo, hi), knots, 3).toarray()
+    e = np.concatenate([ek[m] for ek, m in zip(es, keep)])
+    d = np.concatenate([dk[m] for dk, m in zip(ds, keep)])
+    w = np.concatenate([np.full(int(m.sum()), wk) for wk, m in zip(ws, keep)])[:, None]
+    rhs = np.column_stack([e, d])
+    coef, *_ = np.linalg.lstsq(basis * w, rhs * w, rcond=None)
+    rest = rhs - basis @ coef
+    out_a, out_b, i = [], [], 0
+    for m in keep:
+        n = int(m.sum())
+        out_a.append(rest[i:i + n, 0])
+        out_b.append(rest[i:i + n, 1])
+        i += n
+    return out_a, out_b
+
+
+__all__ = ["HISTORY", "KNOTS", "applies", "history_test"]
