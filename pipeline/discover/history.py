@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from scipy import interpolate, stats
@@ -69,43 +70,66 @@ def applies(names: Sequence[str], records: Sequence[Record]) -> bool:
 
 
 def history_test(current: Fitted, candidate: Fitted) -> dict[str, float]:
-    """The path-dependent part of *candidate*'s change against the path-dependent part of *current*'s residual.
+    """The path-dependent part of *candidate*'s change against that of *current*'s residual, on every sample.
+
+    Returns
+    -------
+    dict
+        As :func:`path_dependence`.
+    """
+    prob = current.problem
+    e, d = _changes(current, candidate)
+    return path_dependence([r.x for r in prob.records], e, d, ranges=[r.range for r in prob.records],
+                           groups=[(r.test.mode, r.key) for r in prob.records])
+
+
+def path_dependence(x: Sequence[np.ndarray], e: Sequence[np.ndarray], d: Sequence[np.ndarray], *,
+                    ranges: Sequence[float], groups: Sequence[Any]) -> dict[str, float]:
+    """Does the path-dependent part of a change *d* explain that of a residual *e*? (The module's docstring.)
+
+    Parameters
+    ----------
+    x, e, d : sequences of ndarray, one per record, each of shape (n_k,) in time order
+        The stretch, the residual (data − model) and the change of the prediction; NaN where not predicted.
+    ranges : sequence of float
+        Each record's stress range (every record counts alike).
+    groups : sequence of hashable
+        Records of one group share one elastic law (a loading mode and direction).
 
     Returns
     -------
     dict
         ``p`` (one-sided), ``t``, ``dof``; ``share``: the fraction of the
-        candidate's change (its sum of squares on all samples) that depends on
-        the path.
+        change's sum of squares that depends on the path.
     """
-    groups: dict[tuple, list[int]] = {}
-    prob = current.problem
-    for k, r in enumerate(prob.records):
-        groups.setdefault((r.test.mode, r.key), []).append(k)
-    e_all, d_all = _changes(current, candidate)
-    total = sum(float(d @ d) for d in d_all if d.size)
-    s = var = ws_den = path = 0.0
-    for ks in groups.values():
-        a, b = _path_parts([prob.records[k].x for k in ks], [e_all[k] for k in ks], [d_all[k] for k in ks],
-                           [1.0 / max(prob.records[k].range, 1e-300) for k in ks])
-        for ak, bk, k in zip(a, b, ks):
-            if not bk.size:
-                continue
-            path += float(bk @ bk)
-            r = prob.records[k]
-            w = 1.0 / max(r.range, 1e-300) ** 2  # every file counts alike, as in the held-out test
-            mean, v, nu = segment_mean(ak * bk)
-            n = ak.size
-            s += w * n * mean
-            c = (w * n) ** 2 * v
-            var += c
-            ws_den += c * c / nu
+    members: dict[Any, list[int]] = {}
+    for k, g in enumerate(groups):
+        members.setdefault(g, []).append(k)
+    total = float(sum(np.nansum(np.asarray(dk, float) ** 2) for dk in d))
+    parts: list[tuple[np.ndarray, np.ndarray, float]] = []
+    for ks in members.values():
+        a, b = _path_parts([x[k] for k in ks], [e[k] for k in ks], [d[k] for k in ks],
+                           [1.0 / max(ranges[k], 1e-300) for k in ks])
+        parts += [(ak, bk, 1.0 / max(ranges[k], 1e-300) ** 2) for ak, bk, k in zip(a, b, ks) if bk.size >= 2]
+    path = sum(float(bk @ bk) for _, bk, _ in parts)
+    # the regression of a on b; its score's variance from what the regression leaves (u), so that under the
+    # alternative the effect itself does not count as noise
+    sab = sum(w * float(ak @ bk) for ak, bk, w in parts)
+    sbb = sum(w * float(bk @ bk) for _, bk, w in parts)
+    beta = sab / sbb if sbb > 0 else 0.0
+    var = ws_den = 0.0
+    for ak, bk, w in parts:
+        _, v, nu = segment_mean((ak - beta * bk) * bk)
+        c = (w * bk.size) ** 2 * v
+        var += c
+        ws_den += c * c / nu
+    s = sab
     dof = var * var / ws_den if ws_den > 0 else 1.0
-    if var <= 0 or not math.isfinite(var):
-        t = math.inf if s > 0 else 0.0
-    else:
+    if var > 0 and math.isfinite(var):
         t = s / math.sqrt(var)
-    p = float(stats.t.sf(t, max(dof, 1.0))) if math.isfinite(t) else (0.0 if t > 0 else 1.0)
+        p = float(stats.t.sf(t, max(dof, 1.0)))
+    else:
+        t, p = (math.inf, 0.0) if s > 0 else (0.0, 1.0)
     return {"p": p, "t": float(t), "dof": float(dof), "share": path / total if total > 0 else 0.0}
 
 
@@ -155,4 +179,4 @@ def _path_parts(xs: list[np.ndarray], es: list[np.ndarray], ds: list[np.ndarray]
     return out_a, out_b
 
 
-__all__ = ["HISTORY", "KNOTS", "applies", "history_test"]
+__all__ = ["HISTORY", "KNOTS", "applies", "history_test", "path_dependence"]

@@ -1,0 +1,117 @@
+"""The test that a history effect's improvement is history (pipeline/discover/history.py).
+
+Records here are made without esmm's model: an Ogden-type uniaxial stress
+written out, cycles of rising amplitude, noise filtered by scipy.signal (a
+Butterworth low-pass, as a testing machine's amplifier) or shaped 1/f in
+frequency, and a relaxation drawn by a Maxwell element's exact update. The
+false-positive rate is measured over independent noise draws.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from esmm.pipeline.discover.history import path_dependence
+
+FS = 50.0  # samples per second
+
+
+def _path(n_cycles: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Time and stretch: triangular cycles of rising amplitude (to 1.1, 1.2, ...) at a constant rate."""
+    rate = 0.01  # stretch per second
+    pts = [1.0]
+    for c in range(1, n_cycles + 1):
+        pts += [1.0 + 0.1 * c, 1.0]
+    x = [np.array([pts[0]])]
+    for a, b in zip(pts[:-1], pts[1:]):
+        m = int(round(abs(b - a) / rate * FS))
+        x.append(np.linspace(a, b, m + 1)[1:])
+    lam = np.concatenate(x)
+    return np.arange(lam.size) / FS, lam
+
+
+def _elastic(lam: np.ndarray) -> np.ndarray:
+    """Uniaxial nominal stress of a one-term Ogden solid (mu 1, alpha 5): mu/alpha-scaled, written out."""
+    a = 5.0
+    return (2.0 / a) * (lam ** (a - 1) - lam ** (-a / 2 - 1))
+
+
+def _maxwell(t: np.ndarray, s: np.ndarray, tau: float) -> np.ndarray:
+    """The overstress h of a Maxwell element driven by the elastic stress s (exact update per step)."""
+    h = np.zeros_like(s)
+    for i in range(1, s.size):
+        dt = t[i] - t[i - 1]
+        e = np.exp(-dt / tau)
+        h[i] = e * h[i - 1] + (1 - e) * tau / dt * (s[i] - s[i - 1]) if dt > 0 else h[i - 1]
+    return h
+
+
+def _filtered(rng, n: int, sd: float) -> np.ndarray:
+    b, a = signal.butter(2, 0.1)
+    w = signal.lfilter(b, a, rng.standard_normal(n + 500))[500:]
+    return sd * w / w.std()
+
+
+def _pink(rng, n: int, sd: float) -> np.ndarray:
+    f = np.fft.rfftfreq(2 * n, 1 / FS)
+    spec = (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size)) / np.sqrt(np.maximum(f, f[1]))
+    w = np.fft.irfft(spec)[:n]
+    return sd * w / w.std()
+
+
+def _rate(noise, *, misfit: bool, draws: int = 200, level: float = 0.05) -> float:
+    t, lam = _path()
+    s = _elastic(lam)
+    d = -0.05 * _maxwell(t, s, 20.0)  # a relaxation's change of the prediction
+    rng = np.random.default_rng(7)
+    hits = 0
+    for _ in range(draws):
+        e = noise(rng, lam.size, 0.01 * np.ptp(s))
+        if misfit:  # an elastic law's error: a function of the stretch alone, ten times the noise
+            e = e + 0.1 * np.ptp(s) * (lam - 1.0) ** 2 * np.sin(8 * lam)
+        h = path_dependence([lam], [e], [d], ranges=[np.ptp(s)], groups=[0])
+        hits += h["p"] <= level
+    return hits / draws
+
+
+@pytest.mark.parametrize("noise", [_filtered, _pink], ids=["butterworth", "pink"])
+@pytest.mark.parametrize("misfit", [False, True], ids=["law-right", "law-wrong"])
+def test_false_positive_rate_at_most_its_level(noise, misfit):
+    """Elastic data (the law right, or wrong by a function of the stretch ten times the noise): the test calls
+    a relaxation's change history at most at its 5 % level (binomial allowance for 200 draws: 3 SD)."""
+    rate = _rate(noise, misfit=misfit)
+    assert rate <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / 200)
+
+
+def test_a_relaxation_is_found():
+    """Data that relax (a Maxwell element, g = 0.05, as the change): found at any reasonable level."""
+    t, lam = _path()
+    s = _elastic(lam)
+    h_true = -0.05 * _maxwell(t, s, 20.0)
+    rng = np.random.default_rng(3)
+    e = h_true + _filtered(rng, lam.size, 0.01 * np.ptp(s))
+    h = path_dependence([lam], [e], [h_true], ranges=[np.ptp(s)], groups=[0])
+    assert h["p"] < 1e-6 and 0.05 < h["share"] < 1.0
+
+
+def test_a_change_of_the_law_has_no_path_part():
+    """A change that is a function of the stretch alone (a stiffer law) has no path-dependent part."""
+    t, lam = _path()
+    s = _elastic(lam)
+    rng = np.random.default_rng(5)
+    e = 0.02 * s + _filtered(rng, lam.size, 0.01 * np.ptp(s))
+    h = path_dependence([lam], [e], [0.02 * s], ranges=[np.ptp(s)], groups=[0])
+    assert h["share"] < 1e-3
+    assert h["p"] > 1e-3
+
+
+def test_one_ramp_carries_no_path_information():
+    """On one monotone ramp every change is a function of the stretch: nothing depends on the path."""
+    lam = np.linspace(1.0, 1.5, 2000)
+    t = np.arange(lam.size) / FS
+    s = _elastic(lam)
+    d = -0.05 * _maxwell(t, s, 20.0)
+    h = path_dependence([lam], [d.copy()], [d], ranges=[np.ptp(s)], groups=[0])
+    assert h["share"] < 1e-3
