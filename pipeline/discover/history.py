@@ -49,7 +49,7 @@ from scipy import interpolate, stats
 
 from .fitted import Fitted
 from .records import Record, strain_softening
-from .statistics import segment_mean
+from .statistics import resolution, segment_mean
 
 #: the material effects subject to the test: each changes the stress along the path, not only with the stretch
 HISTORY = ("viscoelastic", "nonlinear_viscoelastic", "mullins", "damage", "cyclic_softening", "permanent_set")
@@ -80,11 +80,13 @@ def history_test(current: Fitted, candidate: Fitted) -> dict[str, float]:
     prob = current.problem
     e, d = _changes(current, candidate)
     return path_dependence([r.x for r in prob.records], e, d, ranges=[r.range for r in prob.records],
-                           groups=[(r.test.mode, r.key) for r in prob.records])
+                           groups=[(r.test.mode, r.key) for r in prob.records],
+                           resolutions=[resolution(r.y, r.sigma) for r in prob.records])
 
 
 def path_dependence(x: Sequence[np.ndarray], e: Sequence[np.ndarray], d: Sequence[np.ndarray], *,
-                    ranges: Sequence[float], groups: Sequence[Any]) -> dict[str, float]:
+                    ranges: Sequence[float], groups: Sequence[Any],
+                    resolutions: Sequence[float] | None = None) -> dict[str, float]:
     """Does the path-dependent part of a change *d* explain that of a residual *e*? (The module's docstring.)
 
     Parameters
@@ -95,12 +97,18 @@ def path_dependence(x: Sequence[np.ndarray], e: Sequence[np.ndarray], d: Sequenc
         Each record's stress range (every record counts alike).
     groups : sequence of hashable
         Records of one group share one elastic law (a loading mode and direction).
+    resolutions : sequence of float, optional
+        What each record resolves [Pa] (:func:`~esmm.pipeline.tensile.noise.resolution`); default its range
+        (``resolution_units`` then reads in ranges²).
 
     Returns
     -------
     dict
         ``p`` (one-sided), ``t``, ``dof``; ``share``: the fraction of the
-        change's sum of squares that depends on the path.
+        change's sum of squares that depends on the path; ``resolution_units``:
+        the fall of the residual's sum of squares that the path-dependent part
+        explains (β² Σ b², β the regression of a on b), per sample, in squared
+        resolutions, averaged over the records.
     """
     members: dict[Any, list[int]] = {}
     for k, g in enumerate(groups):
@@ -110,15 +118,18 @@ def path_dependence(x: Sequence[np.ndarray], e: Sequence[np.ndarray], d: Sequenc
     for ks in members.values():
         a, b = _path_parts([x[k] for k in ks], [e[k] for k in ks], [d[k] for k in ks],
                            [1.0 / max(ranges[k], 1e-300) for k in ks])
-        parts += [(ak, bk, 1.0 / max(ranges[k], 1e-300) ** 2) for ak, bk, k in zip(a, b, ks) if bk.size >= 2]
-    path = sum(float(bk @ bk) for _, bk, _ in parts)
+        parts += [(ak, bk, 1.0 / max(ranges[k], 1e-300) ** 2, k) for ak, bk, k in zip(a, b, ks) if bk.size >= 2]
+    path = sum(float(bk @ bk) for _, bk, _, _ in parts)
     # the regression of a on b; its score's variance from what the regression leaves (u), so that under the
     # alternative the effect itself does not count as noise
-    sab = sum(w * float(ak @ bk) for ak, bk, w in parts)
-    sbb = sum(w * float(bk @ bk) for _, bk, w in parts)
+    sab = sum(w * float(ak @ bk) for ak, bk, w, _ in parts)
+    sbb = sum(w * float(bk @ bk) for _, bk, w, _ in parts)
     beta = sab / sbb if sbb > 0 else 0.0
     var = ws_den = 0.0
-    for ak, bk, w in parts:
+    res = list(resolutions) if resolutions is not None else list(ranges)
+    units = sum(beta * beta * float(bk @ bk) / bk.size / max(res[k], 1e-300) ** 2 for _, bk, _, k in parts)
+    units /= max(len(parts), 1)
+    for ak, bk, w, _ in parts:
         _, v, nu = segment_mean((ak - beta * bk) * bk)
         c = (w * bk.size) ** 2 * v
         var += c
@@ -130,7 +141,8 @@ def path_dependence(x: Sequence[np.ndarray], e: Sequence[np.ndarray], d: Sequenc
         p = float(stats.t.sf(t, max(dof, 1.0)))
     else:
         t, p = (math.inf, 0.0) if s > 0 else (0.0, 1.0)
-    return {"p": p, "t": float(t), "dof": float(dof), "share": path / total if total > 0 else 0.0}
+    return {"p": p, "t": float(t), "dof": float(dof), "share": path / total if total > 0 else 0.0,
+            "resolution_units": float(units)}
 
 
 def _changes(current: Fitted, candidate: Fitted) -> tuple[list[np.ndarray], list[np.ndarray]]:

@@ -247,13 +247,14 @@ def _path_dependent(s: Search, t: Trial, names: list[str], level: float) -> bool
     h = history_test(s.current, t.fit)
     if len(names) == 1:
         s.candidates[names[0]].history_p, s.candidates[names[0]].history_share = h["p"], h["share"]
-    if h["p"] <= level:
+    if h["p"] <= level and h["resolution_units"] >= s.crit.min_resolution_units:
         return True
     why = (f"not kept: it predicts held-out data better (p {t.heldout['p']:.2g}), but not by what depends on the "
-           f"path: the part of its change that no function of the stretch alone gives ({h['share']:.1%} of it) does "
-           f"not explain the part of the residual that none gives (one-sided p {h['p']:.2g}, t {h['t']:+.2f} on "
-           f"{h['dof']:.1f} degrees of freedom; needs <= {level:.2g}): on these data it stands for an elastic law "
-           "the library does not hold")
+           f"path: the part of its change that no function of the stretch alone gives ({h['share']:.2g} of it) "
+           f"explains the part of the residual that none gives with one-sided p {h['p']:.2g} (t {h['t']:+.2f} on "
+           f"{h['dof']:.1f} degrees of freedom; needs <= {level:.2g}) and by {h['resolution_units']:.3g} squared "
+           f"resolutions per sample (needs {s.crit.min_resolution_units:g}): on these data it stands for an "
+           "elastic law the library does not hold")
     if len(names) == 1:  # a pair that fails is one of many formed; its members keep their own verdicts
         s.candidates[names[0]].reason = why
     return False
