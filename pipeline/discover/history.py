@@ -99,16 +99,15 @@ def path_dependence(x: Sequence[np.ndarray], e: Sequence[np.ndarray], d: Sequenc
         Records of one group share one elastic law (a loading mode and direction).
     resolutions : sequence of float, optional
         What each record resolves [Pa] (:func:`~esmm.pipeline.tensile.noise.resolution`); default its range
-        (``resolution_units`` then reads in ranges²).
+        (``peak_resolutions`` then reads in ranges).
 
     Returns
     -------
     dict
         ``p`` (one-sided), ``t``, ``dof``; ``share``: the fraction of the
-        change's sum of squares that depends on the path; ``resolution_units``:
-        the fall of the residual's sum of squares that the path-dependent part
-        explains (β² Σ b², β the regression of a on b), per sample, in squared
-        resolutions, averaged over the records.
+        change's sum of squares that depends on the path; ``peak_resolutions``:
+        the largest path-dependent change the data support, max |β b| with β
+        the regression of a on b, in resolutions of its record.
     """
     members: dict[Any, list[int]] = {}
     for k, g in enumerate(groups):
@@ -127,8 +126,7 @@ def path_dependence(x: Sequence[np.ndarray], e: Sequence[np.ndarray], d: Sequenc
     beta = sab / sbb if sbb > 0 else 0.0
     var = ws_den = 0.0
     res = list(resolutions) if resolutions is not None else list(ranges)
-    units = sum(beta * beta * float(bk @ bk) / bk.size / max(res[k], 1e-300) ** 2 for _, bk, _, k in parts)
-    units /= max(len(parts), 1)
+    peak = max((abs(beta) * float(np.max(np.abs(bk))) / max(res[k], 1e-300) for _, bk, _, k in parts), default=0.0)
     for ak, bk, w, _ in parts:
         _, v, nu = segment_mean((ak - beta * bk) * bk)
         c = (w * bk.size) ** 2 * v
@@ -142,7 +140,7 @@ def path_dependence(x: Sequence[np.ndarray], e: Sequence[np.ndarray], d: Sequenc
     else:
         t, p = (math.inf, 0.0) if s > 0 else (0.0, 1.0)
     return {"p": p, "t": float(t), "dof": float(dof), "share": path / total if total > 0 else 0.0,
-            "resolution_units": float(units)}
+            "peak_resolutions": float(peak)}
 
 
 def _changes(current: Fitted, candidate: Fitted) -> tuple[list[np.ndarray], list[np.ndarray]]:

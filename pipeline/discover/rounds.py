@@ -247,14 +247,14 @@ def _path_dependent(s: Search, t: Trial, names: list[str], level: float) -> bool
     h = history_test(s.current, t.fit)
     if len(names) == 1:
         s.candidates[names[0]].history_p, s.candidates[names[0]].history_share = h["p"], h["share"]
-    if h["p"] <= level and h["resolution_units"] >= s.crit.min_resolution_units:
+    if h["p"] <= level and h["peak_resolutions"] >= 1.0:
         return True
     why = (f"not kept: it predicts held-out data better (p {t.heldout['p']:.2g}), but not by what depends on the "
            f"path: the part of its change that no function of the stretch alone gives ({h['share']:.2g} of it) "
            f"explains the part of the residual that none gives with one-sided p {h['p']:.2g} (t {h['t']:+.2f} on "
-           f"{h['dof']:.1f} degrees of freedom; needs <= {level:.2g}) and by {h['resolution_units']:.3g} squared "
-           f"resolutions per sample (needs {s.crit.min_resolution_units:g}): on these data it stands for an "
-           "elastic law the library does not hold")
+           f"{h['dof']:.1f} degrees of freedom; needs <= {level:.2g}), reaching {h['peak_resolutions']:.3g} "
+           "resolutions of the measurement at most (needs 1): on these data it stands for an elastic law the "
+           "library does not hold")
     if len(names) == 1:  # a pair that fails is one of many formed; its members keep their own verdicts
         s.candidates[names[0]].reason = why
     return False
