@@ -21,13 +21,19 @@ the stretch (a cubic spline of :data:`KNOTS` intervals over the stretch range,
 one per loading mode and direction, shared by the files: one material has one
 elastic law), a = e − Pe and b = d − Pd are the path-dependent parts. Under the
 null "nothing depends on the path", a is measurement noise (any elastic misfit
-is a function of the stretch and is projected out) and S = Σ a·b has mean 0;
-its variance is that of a sum of the serially correlated products a·b,
-heteroskedasticity- and autocorrelation-consistent per record
-(:func:`~esmm.pipeline.discover.statistics.segment_mean`), so filtered and 1/f
-noise count as the fewer independent samples they are. The one-sided p of
+is a function of the stretch and is projected out) and S = Σ a·b has mean 0.
+Its variance is heteroskedasticity- and autocorrelation-consistent per record
+(:func:`~esmm.pipeline.discover.statistics.segment_mean`) on the products
+(a − βb)·b, β = S/Σb² the regression coefficient (so that under the
+alternative the effect itself does not count as noise): filtered noise counts
+as the fewer independent samples it is; 1/f noise whose correlation outlasts
+the estimator's window makes the p-value optimistic. The one-sided p of
 T = S/se(S) (Student's t, Welch–Satterthwaite degrees of freedom over the
-records) is judged at the candidate's own held-out level.
+records) is judged at the replication check's level, and the largest
+path-dependent change the data support, max |βb|, must reach the record's
+resolution (:func:`~esmm.pipeline.tensile.noise.resolution`, as the held-out
+test's size): an acquisition chain's own path dependence (a force channel's
+residual lag after its correction) is real but below what the machine resolves.
 
 A record that never returns to a stretch it has passed (one ramp at one rate)
 carries no path information: b vanishes there and so does its weight, so a

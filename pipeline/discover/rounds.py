@@ -233,15 +233,18 @@ def _heldout_winner(s: Search, trials: list[Trial], rnd: int, lv: Levels) -> Tri
         if shared:
             c.reason = f"not kept: {shared}"
             continue
-        if not _path_dependent(s, t, [t.name], lv.single):
+        if not _path_dependent(s, t, [t.name]):
             continue
         return t
     return None
 
 
-def _path_dependent(s: Search, t: Trial, names: list[str], level: float) -> bool:
+def _path_dependent(s: Search, t: Trial, names: list[str]) -> bool:
     """A history effect's (or a pair's) improvement must be history: its path-dependent part explains the
-    residual's at *level* (:mod:`.history`). Writes the verdict on the candidates that fail."""
+    residual's, one-sided at :data:`REPLICATION_LEVEL`, and reaches the measurement's resolution
+    (:mod:`.history`). Like the replication check it only removes candidates (the search-wide bound is
+    the held-out test's), so it is not adjusted for multiplicity. Writes the verdict on a single that fails."""
+    level = REPLICATION_LEVEL
     if not applies(names, s.current.problem.records):
         return True
     h = history_test(s.current, t.fit)
@@ -348,7 +351,7 @@ def _try_pairs(singles: dict[str, Trial], s: Search, lv: Levels):
             s.remember(t.fit)
             if t.screened and passes(_check(s, t, [a, b]), lv.pair, s.crit.min_resolution_units) \
                     and not ("slack" in (a, b) and shared_slack_reason(t.fit)) \
-                    and _path_dependent(s, t, [a, b], lv.pair):
+                    and _path_dependent(s, t, [a, b]):
                 passed.append(((a, b), t))
     return min(passed, key=lambda p: p[1].heldout["p"]) if passed else None
 
