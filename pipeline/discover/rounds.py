@@ -178,7 +178,7 @@ def _record(c: Candidate, t: Trial) -> None:
     c.dchi2 = t.noise["dchi2"]
     c.params = effect_params(t.fit, c.name)
     c.heldout_nrmse = c.heldout_gain = c.heldout_z = c.heldout_noise_units = c.heldout_p = None
-    c.heldout_level = c.heldout_p_replication = None
+    c.heldout_level = c.heldout_p_replication = c.history_p = c.history_share = None
 
 
 def _try_upgrades(s: Search, upgradable: list[str], advance) -> list[Trial]:
