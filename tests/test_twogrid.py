@@ -106,7 +106,7 @@ def test_the_constrained_two_grid_holds_its_rows_and_solves_the_constrained_prob
     z = cons.apply(np.random.default_rng(2).normal(size=A.shape[0]))
     np.testing.assert_allclose(z[:3], 0.0, atol=1e-14)
     assert abs(z[15:18] @ normal) < 1e-12 * np.abs(z).max()
-    assert cons.has_rows and cons.block_stiffness(np.arange(3)) is None
+    assert cons.has_rows
     # conjugate gradients in the rows' null space reach the constrained direct solution
     K = A.tolil()
     K[29, 29] += 1e3
@@ -129,6 +129,18 @@ def test_the_constrained_two_grid_holds_its_rows_and_solves_the_constrained_prob
     T = T.tocsr()
     ref = T @ spla.spsolve((T.T @ K @ T).tocsc(), T.T @ b)
     assert np.linalg.norm(y - ref) <= 1e-7 * np.linalg.norm(ref)
+    # the held node's stiffness from the coarse level is the Schur complement over the parents' fields:
+    # above the split matrix's own (a subspace's minimum energy), and positive definite
+    J = np.zeros((5, 3 * n))
+    J[[0, 1, 2], [0, 1, 2]] = 1.0
+    J[3, 15:18] = normal
+    J[4, 29] = 1.0
+    C = J @ spla.spsolve(A.tocsc(), J.T) + np.diag([0, 0, 0, 0, 1e-3])
+    S_fine = np.linalg.inv(C)[:3, :3]
+    S_coarse = cons.block_stiffness(np.arange(3))
+    np.testing.assert_allclose(S_coarse, S_coarse.T, rtol=1e-10, atol=0)
+    assert np.linalg.eigvalsh(S_coarse - S_fine).min() >= -1e-8 * np.abs(S_fine).max()
+    assert np.linalg.eigvalsh(S_fine).min() > 0
 
 
 def lift(net, stepper, frames=12):

@@ -394,7 +394,8 @@ class TwoGridConstraints(Constraints):
 
     The projection the stepper needs, a preconditioner zero on the held directions, is the two-grid
     operator of the matrix with those directions eliminated (:meth:`TwoGrid.rows`); coupling springs
-    join the matrix. No capacitance matrix, so no grasped patch's stiffness (:meth:`block_stiffness`).
+    join the matrix. The grasped patch's stiffness (:meth:`block_stiffness`) is read from the coarse
+    level's capacitance matrix.
 
     Parameters
     ----------
@@ -437,11 +438,12 @@ class TwoGridConstraints(Constraints):
             z[fixed] = 0.0
         return z
 
-    def block_stiffness(self, rows: np.ndarray) -> None:
-        """None: the operator has no Schur complement to read the grasped patch's stiffness from.
-
-        With the operator in place of the inverse, ``E^T A E - (QAE)^T B_Q (QAE)`` is a difference of
-        two large terms that the operator does not make cancel (the patch came out orders of magnitude
-        too stiff), and an accurate one costs tens of applications per set of rows; the 1 kHz force
-        between solves then goes on along the last step's change (:mod:`esmm.pipeline.simulate.haptics`)."""
-        return None
+    def block_stiffness(self, rows: np.ndarray) -> np.ndarray:
+        """``sum over rows a, b of [C_c^+]_ab e_a e_b^T`` (3, 3): the stiffness of moving those rows together
+        on the coarse level (:class:`CoarseRows`' capacitance matrix; the parents' P1 fields, so stiffer
+        than the split matrix's own Schur complement, which the operator has no cheap way to read)."""
+        rows = np.asarray(rows, dtype=np.int64)
+        if self._rows is None or self._rows.coarse is None or rows.size == 0:
+            return np.zeros((3, 3))
+        E = self.e[rows]
+        return E.T @ self._rows.coarse.cap_pinv[np.ix_(rows, rows)] @ E

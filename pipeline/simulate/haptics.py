@@ -49,17 +49,14 @@ def patch_stiffness(model: Model, control: Control, cons: Constraints | None, h:
     The grasp's rows come first in *cons* (:meth:`.factorcache.FactorCache.set_rows`); their block of
     the capacitance inverse is the patch's stiffness against the factored matrix, inertia included;
     with a prescribed grasp the patch's own inertia is taken out (the grasper moves it, it does not
-    push on the grasper). Zero without a grasp or constraint rows, and where the preconditioner has no
-    Schur complement to read (the two-grid operator: the samples then go on along the last step's
-    change, :meth:`Haptics.fill`).
+    push on the grasper). Zero without a grasp or constraint rows. With the two-grid operator, the
+    Schur complement of its coarse level (:class:`~esmm.pipeline.linalg.twogrid.TwoGridConstraints`).
     """
     g_ = control.grasp
     if g_ is None or cons is None or not cons.has_rows:
         return np.zeros((3, 3))
     rows = np.arange(3 * g_.nodes.size)
     S = cons.block_stiffness(rows)
-    if S is None:               # no Schur complement to read (the two-grid operator): the last step's trend
-        return np.zeros((3, 3))
     if g_.mode == "prescribed":
         mg = float(model.mass[g_.nodes].sum())
         S = S - mg * (1.0 / (h * h) + model.mass_damping / h) * np.eye(3)
