@@ -19,12 +19,13 @@ the smoother converges and B is symmetric positive definite) and :math:`A_c` the
 factor has the parents' node count and fill, a small part of the split matrix's factor to take;
 an application costs two products with A, the coarse solve and the block products.
 
-Constraint rows (the grasp, the floor's contacts; :class:`TwoGridConstraints`) enter the smoother,
-not the coarse level: a held direction of a node is projected out of the residual, the products
-and the correction (the smoother's operator is :math:`QAQ + (I - Q)`, Q the projection off the
-held directions), a coupling spring is added to its node's block. The coarse factor, taken when
-the operator is, then does not change with them; the coarse correction is projected like the
-rest. docs/design/simulator.md, "A two-grid preconditioner on split networks", has the method's
+Constraint rows (the grasp, the floor's contacts; :class:`TwoGridConstraints`) enter both levels.
+In the smoother a held direction of a node is projected out of the residual, the products and
+the correction (its operator is :math:`QAQ + (I - Q)`, Q the projection off the held directions)
+and a coupling spring joins its node's block; on the coarse level the rows pass through the
+prolongation, :math:`G = JP`, into the coarse factor's capacitance matrix (:class:`CoarseRows`),
+so the coarse correction meets them too. The coarse factor, taken with the operator, does not
+change with the rows. docs/design/simulator.md, "A two-grid preconditioner on split networks", has the method's
 measurements against the split matrix's own factor.
 """
 

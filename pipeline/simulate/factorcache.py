@@ -14,7 +14,11 @@ long as it keeps the iterations few (docs/design/simulator.md, "What is factored
 * its constraint rows (the grasp, the floor's contacts) join it through the capacitance matrix
   (:class:`~esmm.pipeline.linalg.linsolve.Constraints`), so the factor does not change with them;
 * its threads: two threads are given up for one where their solves got slower than one thread's
-  (:meth:`FactorCache.check_threads`).
+  (:meth:`FactorCache.check_threads`);
+* on a split asset, on request, the two-grid operator on the parents in its place
+  (:class:`~esmm.pipeline.linalg.twogrid.TwoGrid`, its rows by
+  :class:`~esmm.pipeline.linalg.twogrid.TwoGridConstraints`; docs/design/simulator.md, "A two-grid
+  preconditioner on split networks").
 """
 
 from __future__ import annotations

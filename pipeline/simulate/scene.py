@@ -203,7 +203,9 @@ class Scene:
         "What is factored, and when it is renewed").
     preconditioner : {"factor", "two-grid"}
         Implicit: the reused preconditioner, the matrix's factor (default), or on a
-        split asset the two-grid operator with its parents as the coarse level
+        split asset the two-grid operator with its parents as the coarse level:
+        cheaper to renew and to apply on large splits, but more iterations and
+        solves that stop earlier, so slower at the factor's accuracy
         (docs/design/simulator.md, "A two-grid preconditioner on split networks").
     iteration : {"quasi-newton", "newton"}
         Implicit: how each step's solve iterates, L-BFGS with the reused factor
