@@ -184,3 +184,19 @@ def test_the_two_grid_needs_a_split_asset(split_box):
     assert runsetup._coarse_cells(plain, scene_from_dict({})) is None
     with pytest.raises(ConfigError, match="preconditioner"):
         scene_from_dict({"integrator": {"preconditioner": "multigrid"}})
+
+
+def test_the_volume_bound_restricted_to_the_parents_is_the_parents_own(split_box):
+    """For a field linear on a parent each child's volume changes in proportion to its rest volume, so
+    P^T K_tet P of the split mesh is K_tet of the parent mesh (at rest, same bulk modulus)."""
+    from esmm.pipeline.network.volume import VolumeSpec, volume_elements
+
+    box = box_tets(3, 2, 2, (0.03, 0.02, 0.02))
+    p, t, q = split_in_eight(box.points, box.tets)
+    spec = VolumeSpec(bulk_modulus=1.0e6, formulation="nodal")
+    K_split = volume_elements(p, t, spec).tangent_bound(p)
+    P, vertices = prolongation(q, p.shape[0])
+    parents = np.searchsorted(vertices, q[:, :4])
+    K_parent = volume_elements(p[vertices], parents, spec).tangent_bound(p[vertices])
+    ref = K_parent.toarray()
+    np.testing.assert_allclose((P.T @ K_split @ P).toarray(), ref, rtol=0, atol=1e-9 * np.abs(ref).max())
