@@ -46,8 +46,8 @@ sizes). A step whose cost grows linearly with the springs has exponent 1. Run al
 Two-grid preconditioner (``bench_two_grid``, part "twogrid", not in the default parts): the
 default scene on the bundled liver's splits (``--elements 1500 --split`` and the paper preset's
 split) with the split matrix's factor and with ``[integrator] preconditioner = "two-grid"``,
-alternating in one process after a warm-up of each (docs/design/simulator.md, "A two-grid
-preconditioner on split networks"): ``python benchmarks/bench_simulate.py --parts twogrid``
+alternating in one process after a warm-up of each (docs/design/twogrid.md):
+``python benchmarks/bench_simulate.py --parts twogrid``
 (``--two-grid-assets a.h5,b.h5`` to use split assets already prepared).
 
 Note: on a shared machine the wall times include other processes' load; CPU

@@ -25,8 +25,8 @@ the correction (its operator is :math:`QAQ + (I - Q)`, Q the projection off the 
 and a coupling spring joins its node's block; on the coarse level the rows pass through the
 prolongation, :math:`G = JP`, into the coarse factor's capacitance matrix (:class:`CoarseRows`),
 so the coarse correction meets them too. The coarse factor, taken with the operator, does not
-change with the rows. docs/design/simulator.md, "A two-grid preconditioner on split networks", has the method's
-measurements against the split matrix's own factor.
+change with the rows. docs/design/twogrid.md has the method's measurements against the split
+matrix's own factor.
 """
 
 from __future__ import annotations
@@ -46,8 +46,7 @@ from .supernodal import Analysis, canonical
 #: inverse: the smoother then converges, and the two-grid operator is positive definite).
 POWER_ITERATIONS = 8
 #: Block-Jacobi sweeps before and after the coarse correction (one each: more cost a product with A
-#: each and did not pay in the implicit step; docs/design/simulator.md, "A two-grid preconditioner on
-#: split networks").
+#: each and did not pay in the implicit step; docs/design/twogrid.md).
 SWEEPS = 1
 #: Eigenvalues of the coarse capacitance matrix below this fraction of its largest are dependent rows'.
 RANK_TOL = 1e-6

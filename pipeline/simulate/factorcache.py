@@ -17,8 +17,7 @@ long as it keeps the iterations few (docs/design/simulator.md, "What is factored
   (:meth:`FactorCache.check_threads`);
 * on a split asset, on request, the two-grid operator on the parents in its place
   (:class:`~esmm.pipeline.linalg.twogrid.TwoGrid`, its rows by
-  :class:`~esmm.pipeline.linalg.twogrid.TwoGridConstraints`; docs/design/simulator.md, "A two-grid
-  preconditioner on split networks").
+  :class:`~esmm.pipeline.linalg.twogrid.TwoGridConstraints`; docs/design/twogrid.md).
 """
 
 from __future__ import annotations

@@ -134,7 +134,7 @@ class BackwardEuler:
     coarse_cells : ndarray of int, shape (p, 10), or None
         A split network's parents (its ``quadratic_cells``): the reused preconditioner is then the
         two-grid operator on them, not the matrix's factor (:class:`.factorcache.FactorCache`;
-        docs/design/simulator.md, "A two-grid preconditioner on split networks").
+        docs/design/twogrid.md).
     """
 
     def __init__(self, step: float = DEFAULT_STEP, rtol: float = 0.01, xtol: float = 1e-4,

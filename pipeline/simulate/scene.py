@@ -75,7 +75,7 @@ METHODS = ("implicit", "explicit")
 #: it is renewed").
 FACTORS = ("bound", "exact", "mixed")
 #: The implicit stepper's reused preconditioner: the matrix's factor, or the two-grid operator on a split
-#: asset's parents (docs/design/simulator.md, "A two-grid preconditioner on split networks").
+#: asset's parents (docs/design/twogrid.md).
 PRECONDITIONERS = ("factor", "two-grid")
 #: How the implicit stepper iterates each solve (docs/design/simulator.md, "The iteration: quasi-Newton on a
 #: reused factor").
@@ -206,7 +206,7 @@ class Scene:
         split asset the two-grid operator with its parents as the coarse level:
         cheaper to renew and to apply on large splits, but more iterations and
         solves that stop earlier, so slower at the factor's accuracy
-        (docs/design/simulator.md, "A two-grid preconditioner on split networks").
+        (docs/design/twogrid.md).
     iteration : {"quasi-newton", "newton"}
         Implicit: how each step's solve iterates, L-BFGS with the reused factor
         (Newton taking over a solve it does not finish; the faster, at the same
