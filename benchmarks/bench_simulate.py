@@ -43,6 +43,13 @@ sizes). A step whose cost grows linearly with the springs has exponent 1. Run al
 ``python benchmarks/bench_simulate.py --parts scaling`` (about ten minutes on two cores);
 ``--scaling-sizes 10k,40k`` for a quick look.
 
+Two-grid preconditioner (``bench_two_grid``, part "twogrid", not in the default parts): the
+default scene on the bundled liver's splits (``--elements 1500 --split`` and the paper preset's
+split) with the split matrix's factor and with ``[integrator] preconditioner = "two-grid"``,
+alternating in one process after a warm-up of each (docs/design/twogrid.md):
+``python benchmarks/bench_simulate.py --parts twogrid``
+(``--two-grid-assets a.h5,b.h5`` to use split assets already prepared).
+
 Note: on a shared machine the wall times include other processes' load; CPU
 (thread) time of the single-thread runs is reported beside them.
 """
@@ -537,13 +544,81 @@ def _implicit_box(n: int, preconditioner: str, steps: int) -> dict:
             "traffic": implicit_traffic(rep, term.n_springs, term.pattern.nnz), "integrator": rep}
 
 
+#: The split livers of the two-grid comparison: name -> prepare keywords.
+TWO_GRID_ASSETS = {"split_1500": {"config": "paper", "elements": 1500, "split": True},
+                   "paper_split": {"config": "paper", "split": True}}
+
+
+def _force_difference(hist: Path, ref: Path, frame_dt: float) -> dict:
+    """The grasper force of *hist* against *ref*'s (same scene): largest and rms difference over the
+    largest reference force, at the solves and over all samples."""
+    from esmm.pipeline.simulate.history import History
+
+    with History(hist) as h, History(ref) as r:
+        t, F = h.forces()
+        _, Fr = r.forces()
+    k = min(len(F), len(Fr))
+    d = np.linalg.norm(F[:k] - Fr[:k], axis=1)
+    scale = float(np.linalg.norm(Fr[:k], axis=1).max())
+    solves = np.abs(t[:k] / frame_dt - np.round(t[:k] / frame_dt)) < 1e-6
+    return {"max_frac": float(d.max()) / scale, "rms_frac": float(np.sqrt(np.mean(d ** 2))) / scale,
+            "at_solves_max_frac": float(d[solves].max()) / scale,
+            "at_solves_rms_frac": float(np.sqrt(np.mean(d[solves] ** 2))) / scale}
+
+
+def bench_two_grid(*, assets=None, runs: int = 3) -> dict:
+    """The default scene on split livers with the split matrix's factor and with the two-grid
+    preconditioner: a warm-up run of each, then *runs* runs of each, alternating (pairs under the same
+    load); per preconditioner the run with the median stepping time's figures and every run's
+    real-time factor, and the two-grid's grasper force against the factor's (median runs).
+    *assets*: paths of split assets (default: :data:`TWO_GRID_ASSETS` prepared here)."""
+    import dataclasses
+    import os
+
+    from esmm.pipeline.asset import read_asset
+    from esmm.pipeline.prepare import prepare
+    from esmm.pipeline.simulate.run import simulate_network
+    from esmm.pipeline.simulate.scene import load_scene
+
+    out: dict = {"load_average_at_start": os.getloadavg()}
+    scene = load_scene("default")
+    with tempfile.TemporaryDirectory() as d:
+        if assets is None:
+            assets = {}
+            for name, kw in TWO_GRID_ASSETS.items():
+                assets[name] = Path(d) / f"liver-{name}.h5"
+                prepare(LIVER, output=assets[name], **kw)
+        else:
+            assets = {Path(a).stem: Path(a) for a in assets}
+        for name, path in assets.items():
+            asset = read_asset(path)
+            runs_of: dict = {"factor": [], "two-grid": []}
+            for i in range(runs + 1):
+                for pre in runs_of:
+                    res = simulate_network(asset.network, asset.tables,
+                                           dataclasses.replace(scene, preconditioner=pre), Path(d) / f"{name}-{pre}-{i}")
+                    if i:                                  # the first run of each is the warm-up
+                        runs_of[pre].append((_run_figures(res.summary), res.history))
+            row: dict = {"nodes": asset.network.n_nodes}
+            hist = {}
+            for pre, done in runs_of.items():
+                row[pre], hist[pre] = sorted(done, key=lambda fh: fh[0]["stepping_wall_s"])[len(done) // 2]
+                row[pre]["real_time_factor_runs"] = [f["real_time_factor"] for f, _ in done]
+            row["two_grid_force_against_factor"] = _force_difference(hist["two-grid"], hist["factor"],
+                                                                     row["factor"]["dt_max_s"])
+            row["load_average_after"] = os.getloadavg()
+            out[name] = row
+    return out
+
+
 def run(*, parts=("sizes", "effects", "volume", "demo", "implicit", "scaling"), sizes=None, repeats: int = 5,
-        threads: int | None = None, implicit_sizes=("100k", "500k-jacobi"), scaling_sizes=tuple(STEP_SCALING)) -> dict:
+        threads: int | None = None, implicit_sizes=("100k", "500k-jacobi"), scaling_sizes=tuple(STEP_SCALING),
+        two_grid_assets=None) -> dict:
     """The benchmark's figures; ``make bench`` runs everything (see :func:`main` for a quick subset).
 
     Parameters
     ----------
-    parts : subset of {"sizes", "effects", "volume", "demo", "implicit", "scaling"}
+    parts : subset of {"sizes", "effects", "volume", "demo", "implicit", "scaling", "twogrid"}
     sizes : subset of :data:`SIZES` keys, optional
     repeats : int
         Timed repeats per figure (medians).
@@ -553,6 +628,8 @@ def run(*, parts=("sizes", "effects", "volume", "demo", "implicit", "scaling"), 
         Kuhn boxes of the implicit step (500k with the factor: over an hour and 10 GB here).
     scaling_sizes : subset of :data:`STEP_SCALING` keys
         Kuhn boxes of the step-cost series (:func:`bench_step_scaling`).
+    two_grid_assets : sequence of paths, optional
+        Split assets of part "twogrid" (default: the bundled liver's splits, prepared).
     """
     import numba
 
@@ -599,6 +676,8 @@ def run(*, parts=("sizes", "effects", "volume", "demo", "implicit", "scaling"), 
             res["implicit"] = {"error": f"{type(exc).__name__}: {exc}"}
     if "scaling" in parts:
         res["scaling"] = bench_step_scaling(sizes=scaling_sizes)
+    if "twogrid" in parts:
+        res["twogrid"] = bench_two_grid(assets=two_grid_assets)
     res["bench_seconds"] = time.perf_counter() - t0
     return res
 
@@ -611,7 +690,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  epilog="quick: --parts sizes --sizes 5k,50k --threads 1 (about a minute)")
     ap.add_argument("--parts", default="sizes,effects,volume,demo,implicit,scaling",
-                    help="any of sizes, effects, volume, demo, implicit, scaling (default: all)")
+                    help="any of sizes, effects, volume, demo, implicit, scaling, twogrid (default: all but "
+                         "twogrid)")
     ap.add_argument("--sizes", default=None, help=f"networks to time, any of {', '.join(SIZES)} (default: all)")
     ap.add_argument("--repeats", type=int, default=5, help="timed repeats per figure (default 5)")
     ap.add_argument("--threads", type=int, default=None, help="threads of the multi-thread rows (1: none)")
@@ -620,13 +700,17 @@ def main(argv=None) -> int:
                          "(500k with the factor: over an hour, 10 GB)")
     ap.add_argument("--scaling-sizes", default=",".join(STEP_SCALING),
                     help=f"Kuhn boxes of the step-cost series, any of {', '.join(STEP_SCALING)} (default: all)")
+    ap.add_argument("--two-grid-assets", default=None,
+                    help="split assets of part twogrid, comma-separated (default: the bundled liver's splits, prepared)")
     args = ap.parse_args(argv)
     parts = tuple(p.strip() for p in args.parts.split(",") if p.strip())
     sizes = None if args.sizes is None else [s.strip() for s in args.sizes.split(",") if s.strip()]
     implicit_sizes = tuple(s.strip() for s in args.implicit_sizes.split(",") if s.strip())
     scaling_sizes = tuple(s.strip() for s in args.scaling_sizes.split(",") if s.strip())
     print(json.dumps(run(parts=parts, sizes=sizes, repeats=args.repeats, threads=args.threads,
-                         implicit_sizes=implicit_sizes, scaling_sizes=scaling_sizes), indent=2,
+                         implicit_sizes=implicit_sizes, scaling_sizes=scaling_sizes,
+                         two_grid_assets=None if args.two_grid_assets is None else args.two_grid_assets.split(",")),
+                     indent=2,
                      default=float))
     return 0
 

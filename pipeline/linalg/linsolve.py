@@ -275,6 +275,11 @@ class Constraints:
     apply_s: list = field(default_factory=list, repr=False)   #: each of them [s]
     columns_s: float = 0.0      #: seconds spent computing the columns of Y
 
+    @property
+    def has_rows(self) -> bool:
+        """Whether rows are in use (with them, :attr:`cap_inv` is their capacitance inverse)."""
+        return self.cap_inv is not None
+
     def columns(self, node: np.ndarray) -> None:
         """Compute (once per factor) the forward half of a solve of each new node's three unit vectors,
         kept on the rows where it is nonzero (:meth:`SparseFactor.columns`)."""

@@ -14,7 +14,10 @@ long as it keeps the iterations few (docs/design/simulator.md, "What is factored
 * its constraint rows (the grasp, the floor's contacts) join it through the capacitance matrix
   (:class:`~esmm.pipeline.linalg.linsolve.Constraints`), so the factor does not change with them;
 * its threads: two threads are given up for one where their solves got slower than one thread's
-  (:meth:`FactorCache.check_threads`).
+  (:meth:`FactorCache.check_threads`);
+* on a split asset, on request, the two-grid operator on the parents in its place
+  (:class:`~esmm.pipeline.linalg.twogrid.TwoGrid`, its rows by
+  :class:`~esmm.pipeline.linalg.twogrid.TwoGridConstraints`; docs/design/twogrid.md).
 """
 
 from __future__ import annotations
@@ -26,8 +29,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sps
 
+from ..linalg import twogrid
 from ..linalg.linsolve import Constraints, MixedFactor, SparseFactor, mixed_ordering
 from ..linalg.newton import node_ordering
+from ..linalg.twogrid import TwoGrid, TwoGridConstraints, prolongation
 from .implicit_stats import ImplicitStats, Threads
 from .implicit_system import StepSystem
 from .model import Model
@@ -50,6 +55,10 @@ class FactorCache:
         The run's threads (shared with the stepper; :meth:`check_threads` may lower ``solve``).
     stats : ImplicitStats
         Where factorizations and thread fall-backs are counted.
+    coarse_cells : ndarray of int, shape (p, 10), or None
+        A split network's parents as 10-node cells on its nodes: with them, the reused
+        preconditioner is the two-grid operator on the parents (:class:`~esmm.pipeline.linalg.twogrid.TwoGrid`;
+        the matrix as ``factor_matrix`` says, "bound" or "exact") instead of the matrix's factor.
 
     Attributes
     ----------
@@ -75,12 +84,16 @@ class FactorCache:
     solves_before: int = 0                  #: solves with the factors before the current one
     stale: bool = False
     excess: int = 0
+    coarse_cells: np.ndarray | None = field(default=None, repr=False)
+    _prolong: object = field(default=None, repr=False)   #: the two-grid's prolongation, once per run
 
     def factored(self, model: Model) -> str:
         """What the factor is taken of on *model*: with the reused factor and ``factor_matrix`` "mixed"
         or "bound", that, where a term has ``tangent_parts`` (mixed) or ``tangent_bound`` (bound);
         else "exact"."""
         if self.preconditioner != "factor" or self.factor_matrix == "exact":
+            return "exact"
+        if self.coarse_cells is not None and self.factor_matrix == "mixed":
             return "exact"
         attr = "tangent_parts" if self.factor_matrix == "mixed" else "tangent_bound"
         has = any(getattr(t, attr, None) is not None for t in model.terms if t is not model.springs)
@@ -141,7 +154,9 @@ class FactorCache:
         """Take the factor at *x*: the system's matrix assembled and factored."""
         model = system.model
         self.check_threads()
-        if self.factored(model) == "mixed":
+        if self.coarse_cells is not None:
+            fac = self._two_grid(system, x)
+        elif self.factored(model) == "mixed":
             fac = self._mixed_factor(system, x)
         else:
             A = system.matrix(x, bound=self.factored(model) == "bound")
@@ -157,7 +172,7 @@ class FactorCache:
         if self.constraints is not None:
             self.solves_before += self.constraints.solves
         self.factor, self.factor_h = fac, system.h
-        self.constraints = Constraints(fac, model.n_nodes)
+        self.constraints = (TwoGridConstraints if isinstance(fac, TwoGrid) else Constraints)(fac, model.n_nodes)
         self.stale = False
         self.excess = 0
 
@@ -175,6 +190,17 @@ class FactorCache:
             self.perm = mixed_ordering(A, B)
         return MixedFactor.of_parts(A, B, w, self.perm, single=self.single, analysis=self._analysis(),
                                     threads=self.threads.factor)
+
+    def _two_grid(self, system: StepSystem, x: np.ndarray) -> TwoGrid:
+        """The two-grid operator of the system's matrix on the parents (:class:`~esmm.pipeline.linalg.twogrid.TwoGrid`),
+        with the last one's Galerkin map and coarse analysis; the fixed nodes' rows of the prolongation zero."""
+        model = system.model
+        if self._prolong is None:
+            self._prolong, _ = prolongation(self.coarse_cells, model.n_nodes, model.movable)
+        A = system.matrix(x, bound=self.factored(model) == "bound")
+        last = self.factor if isinstance(self.factor, TwoGrid) else None
+        return TwoGrid.of(A, self._prolong, sweeps=twogrid.SWEEPS, single=self.single,
+                          previous=last, threads=self.threads.factor)
 
     def _analysis(self):
         """The last factor's symbolic analysis (its pattern's: a run's matrices share one), or None."""
@@ -212,6 +238,8 @@ class FactorCache:
         longer than a solve on one thread. The median, not the mean: a factor's first solves on two
         threads are slow (the workers waking)."""
         cons, th = self.constraints, self.threads
+        if isinstance(self.factor, TwoGrid):    # its applications are not the coarse solves the trial timed
+            return
         if th.solve > 1 and cons is not None and cons.apply_s and np.median(cons.apply_s) > th.solo_solve_s:
             th.solve = 1
             self.stats.thread_fallbacks += 1

@@ -49,10 +49,11 @@ def patch_stiffness(model: Model, control: Control, cons: Constraints | None, h:
     The grasp's rows come first in *cons* (:meth:`.factorcache.FactorCache.set_rows`); their block of
     the capacitance inverse is the patch's stiffness against the factored matrix, inertia included;
     with a prescribed grasp the patch's own inertia is taken out (the grasper moves it, it does not
-    push on the grasper). Zero without a grasp or constraint rows.
+    push on the grasper). Zero without a grasp or constraint rows. With the two-grid operator, the
+    Schur complement of its coarse level (:class:`~esmm.pipeline.linalg.twogrid.TwoGridConstraints`).
     """
     g_ = control.grasp
-    if g_ is None or cons is None or cons.cap_inv is None:
+    if g_ is None or cons is None or not cons.has_rows:
         return np.zeros((3, 3))
     rows = np.arange(3 * g_.nodes.size)
     S = cons.block_stiffness(rows)

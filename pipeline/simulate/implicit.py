@@ -131,6 +131,10 @@ class BackwardEuler:
         threads' solves get slower than that, the run goes on with one. NaN: never.
     stats : ImplicitStats, optional
         Where the steps' costs are counted (default: new).
+    coarse_cells : ndarray of int, shape (p, 10), or None
+        A split network's parents (its ``quadratic_cells``): the reused preconditioner is then the
+        two-grid operator on them, not the matrix's factor (:class:`.factorcache.FactorCache`;
+        docs/design/twogrid.md).
     """
 
     def __init__(self, step: float = DEFAULT_STEP, rtol: float = 0.01, xtol: float = 1e-4,
@@ -138,7 +142,8 @@ class BackwardEuler:
                  max_newton: int = 4, cg_rtol: float = 0.1, max_cg: int = 20, preconditioner: str = "factor",
                  haptic_rate: float = HAPTIC_RATE, haptic_drift: bool = True, definite: bool = True,
                  single: bool = True, factor_matrix: str = "bound", threads: int = 1, factor_threads: int = 1,
-                 solo_solve_s: float = math.nan, stats: ImplicitStats | None = None):
+                 solo_solve_s: float = math.nan, stats: ImplicitStats | None = None,
+                 coarse_cells: np.ndarray | None = None):
         _check_options(step, iteration, preconditioner, factor_matrix, haptic_rate)
         self.step, self.rtol, self.xtol, self.contact_rounds = step, rtol, xtol, contact_rounds
         self.iteration, self.memory, self.max_newton = iteration, memory, max_newton
@@ -148,7 +153,8 @@ class BackwardEuler:
         self.stats = ImplicitStats() if stats is None else stats
         self._threads = Threads(threads, factor_threads, solo_solve_s)
         #: The reused factor and its life cycle.
-        self.factors = FactorCache(preconditioner, factor_matrix, single, self._threads, self.stats)
+        self.factors = FactorCache(preconditioner, factor_matrix, single, self._threads, self.stats,
+                                   coarse_cells=coarse_cells)
         #: The iteration of each step's system.
         self.solver = StepSolver(self.factors, self.stats, rtol=rtol, xtol=xtol, max_newton=max_newton,
                                  quasi=self.quasi, memory=memory, cg_rtol=cg_rtol, max_cg=max_cg)
@@ -179,6 +185,7 @@ class BackwardEuler:
         self.stats.solves = self.factors.solves()
         return {"method": "implicit", "preconditioner": self.preconditioner, "step_s": self.step,
                 "haptic_rate_hz": self.haptic_rate, "rtol": self.rtol, "factor_matrix": self.factor_matrix,
+                **({"preconditioner_levels": "two-grid"} if self.factors.coarse_cells is not None else {}),
                 **self.stats.as_dict()}
 
     def ticks_per_step(self, dt: float) -> int:

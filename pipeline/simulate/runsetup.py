@@ -145,7 +145,8 @@ def prepare_run(network, tables, scene: Scene, *, effects, reporter) -> RunSetup
     floor = None if scene.floor is None else Floor.under(network.points, scene.gravity, height=scene.floor.height,
                                                          friction=scene.floor.friction)
     stepper = BackwardEuler(step=scene.solve_step, rtol=scene.newton_tol, haptic_rate=scene.haptic_rate,
-                            factor_matrix=scene.factor, iteration=scene.iteration) \
+                            factor_matrix=scene.factor, iteration=scene.iteration,
+                            coarse_cells=_coarse_cells(network, scene)) \
         if implicit else None
     sim = Simulator(springs, network.points, inertia, fixed=fixed, gravity=scene.gravity,
                     mass_damping=scene.mass_damping, safety=scene.safety, gravity_mass=network.mass, floor=floor,
@@ -154,6 +155,23 @@ def prepare_run(network, tables, scene: Scene, *, effects, reporter) -> RunSetup
         _check_floor(floor, np.asarray(network.points)[sim.free], rep)
     return RunSetup(sim=sim, law=law, fixed=fixed, scaling=scaling, build_s=build_s, warm_up_s=warm,
                     tets=getattr(network, "tets", None), start_inertia=start_inertia)
+
+
+def _coarse_cells(network, scene):
+    """The split asset's parents where the scene asks for the two-grid preconditioner, else None.
+
+    Raises
+    ------
+    ConfigError
+        ``[integrator] preconditioner = "two-grid"`` on an asset that was not split.
+    """
+    if scene.preconditioner != "two-grid":
+        return None
+    cells = getattr(network, "quadratic_cells", None)
+    if cells is None:
+        raise ConfigError("[integrator] preconditioner: \"two-grid\" needs a split asset (esmm prepare --split), "
+                          "whose parents are its coarse level; this asset was not split: use \"factor\"")
+    return np.asarray(cells, dtype=np.int64)
 
 
 def _check_floor(floor: Floor, free_points: np.ndarray, reporter) -> None:

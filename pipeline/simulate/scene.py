@@ -48,7 +48,7 @@ JAW_RADIUS = 0.004
 _TABLES = {
     "scene": {"duration", "frame_rate", "gravity", "gravity_unit", "law", "start", "effects", "volume"},
     "damping": {"dashpot", "velocity_decay"},
-    "integrator": {"method", "implicit_step", "haptic_rate", "newton_tol", "factor", "iteration", "safety", "threads", "precision",
+    "integrator": {"method", "implicit_step", "haptic_rate", "newton_tol", "factor", "preconditioner", "iteration", "safety", "threads", "precision",
                    "max_steps", "step", "window", "mass_scaling"},
     "fixed": None,  # validated by esmm.pipeline.network.regions (plus kind = "asset")
     "grasper": {"enabled", "target", "radius", "mode", "stiffness", "direction", "grasp_time",
@@ -74,6 +74,9 @@ METHODS = ("implicit", "explicit")
 #: What the implicit stepper's reused factor is taken of (docs/design/simulator.md, "What is factored, and when
 #: it is renewed").
 FACTORS = ("bound", "exact", "mixed")
+#: The implicit stepper's reused preconditioner: the matrix's factor, or the two-grid operator on a split
+#: asset's parents (docs/design/twogrid.md).
+PRECONDITIONERS = ("factor", "two-grid")
 #: How the implicit stepper iterates each solve (docs/design/simulator.md, "The iteration: quasi-Newton on a
 #: reused factor").
 ITERATIONS = ("quasi-newton", "newton")
@@ -198,6 +201,12 @@ class Scene:
         Newton's matrix as the saddle point of the springs' matrix and the
         volume term's parts (about half the exact fill; docs/design/simulator.md,
         "What is factored, and when it is renewed").
+    preconditioner : {"factor", "two-grid"}
+        Implicit: the reused preconditioner, the matrix's factor (default), or on a
+        split asset the two-grid operator with its parents as the coarse level:
+        cheaper to renew and to apply on large splits, but more iterations and
+        solves that stop earlier, so slower at the factor's accuracy
+        (docs/design/twogrid.md).
     iteration : {"quasi-newton", "newton"}
         Implicit: how each step's solve iterates, L-BFGS with the reused factor
         (Newton taking over a solve it does not finish; the faster, at the same
@@ -244,6 +253,7 @@ class Scene:
     haptic_rate: float = 1000.0
     newton_tol: float = 0.01
     factor: str = "bound"
+    preconditioner: str = "factor"
     iteration: str = "quasi-newton"
     safety: float = 0.9
     step: str = "adaptive"
@@ -477,6 +487,8 @@ def _integrator(it: dict) -> dict:
         kw["newton_tol"] = number(it["newton_tol"], "[integrator] newton_tol", lo=0.0, hi=0.5, lo_open=True)
     if "factor" in it:
         kw["factor"] = choice(it["factor"], FACTORS, "[integrator] factor")
+    if "preconditioner" in it:
+        kw["preconditioner"] = choice(it["preconditioner"], PRECONDITIONERS, "[integrator] preconditioner")
     if "iteration" in it:
         kw["iteration"] = choice(it["iteration"], ITERATIONS, "[integrator] iteration")
     if "safety" in it:
