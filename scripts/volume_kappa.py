@@ -228,24 +228,51 @@ def base_asset(organ: str, work: Path) -> Path:
     return path
 
 
-def simulate(net, tables, material, path: Path, runs: int) -> dict:
-    """The default scene on the asset of *net* and *tables*: real-time factor, CPU time, stepper counts."""
-    write_asset(path, net, material=material, tables=tables, xdmf=False)
-    rtf, cpu, wall = [], [], []
-    for k in range(runs):
-        out = path.with_suffix(f".sim{k}")
-        before = resource.getrusage(resource.RUSAGE_CHILDREN)
-        subprocess.run([str(ESMM), "simulate", str(path), "--out", str(out)], check=True,
-                       stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        after = resource.getrusage(resource.RUSAGE_CHILDREN)
-        s = json.loads((out / "summary.json").read_text())
-        rtf.append(s["real_time_factor"])
-        wall.append(s["stepping_wall_s"])
-        cpu.append((after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime))
+def run_scene(path: Path, out: Path) -> dict:
+    """One ``esmm simulate`` of the default scene on *path*: the summary's speed, the process's CPU time,
+    the implicit stepper's counts."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    subprocess.run([str(ESMM), "simulate", str(path), "--out", str(out)], check=True,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    s = json.loads((out / "summary.json").read_text())
     integ = {k: v for k, v in (s.get("integrator") or {}).items() if isinstance(v, int | float)}
-    return {"real_time_factor": statistics.median(rtf), "real_time_factor_runs": rtf,
-            "stepping_wall_s": statistics.median(wall), "process_cpu_s": statistics.median(cpu),
+    return {"real_time_factor": s["real_time_factor"], "stepping_wall_s": s["stepping_wall_s"],
+            "process_cpu_s": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime),
             "integrator": integ, "volume": s.get("volume"), "load_average": os.getloadavg()[0]}
+
+
+def simulate(net, tables, material, path: Path, runs: int) -> dict:
+    """The default scene on the asset of *net* and *tables*, *runs* times: medians and the last run's counts."""
+    write_asset(path, net, material=material, tables=tables, xdmf=False)
+    rs = [run_scene(path, path.with_suffix(f".sim{k}")) for k in range(runs)]
+    return {"real_time_factor": statistics.median(r["real_time_factor"] for r in rs),
+            "real_time_factor_runs": [r["real_time_factor"] for r in rs],
+            "stepping_wall_s": statistics.median(r["stepping_wall_s"] for r in rs),
+            "process_cpu_s": statistics.median(r["process_cpu_s"] for r in rs),
+            "integrator": rs[-1]["integrator"], "volume": rs[-1]["volume"], "load_average": rs[-1]["load_average"]}
+
+
+def speed(organ: str, settings, work: Path, rounds: int) -> dict:
+    """The default scene on the variant assets of a sweep (in *work*), the settings taken in turn
+    *rounds* times, so that a change of the machine's load falls on all of them alike."""
+    runs = {s: [] for s in settings}
+    for k in range(rounds):
+        for s in settings:
+            path = work / f"{organ}-{s}.h5"
+            runs[s].append(run_scene(path, path.with_suffix(f".speed{k}")))
+    out = {}
+    for s, rs in runs.items():
+        out[s] = {"real_time_factor": statistics.median(r["real_time_factor"] for r in rs),
+                  "real_time_factor_runs": [r["real_time_factor"] for r in rs],
+                  "process_cpu_s": statistics.median(r["process_cpu_s"] for r in rs),
+                  "solves": statistics.median(r["integrator"].get("solves", 0) for r in rs),
+                  "factorizations": statistics.median(r["integrator"].get("factorizations", 0) for r in rs),
+                  "load_average": [r["load_average"] for r in rs]}
+        print(f"speed {organ} {s:6s} real time {out[s]['real_time_factor']:.2f} "
+              f"({', '.join(f'{v:.2f}' for v in out[s]['real_time_factor_runs'])}), CPU {out[s]['process_cpu_s']:.2f} s, "
+              f"solves {out[s]['solves']:.0f}, factorizations {out[s]['factorizations']:.0f}", flush=True)
+    return out
 
 
 def sweep_organ(organ: str, settings, work: Path, *, sim_runs: int) -> dict:
@@ -344,12 +371,21 @@ def main(argv=None) -> int:
                     help="base assets, variant assets and the continuum cache")
     ap.add_argument("--json", default=str(OUT))
     ap.add_argument("--table", metavar="JSON", help="print the table of a written run and stop")
+    ap.add_argument("--speed", type=int, metavar="ROUNDS", default=0,
+                    help="after a sweep (its assets in --work, its JSON at --json): the default scene on each "
+                         "organ's variants in turn, ROUNDS times, added to the JSON under 'speed'; no sweep")
     args = ap.parse_args(argv)
     if args.table:
         print(table(json.loads(Path(args.table).read_text())))
         return 0
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
+    if args.speed:
+        doc = json.loads(Path(args.json).read_text())
+        doc["speed"] = {"rounds": args.speed, "organs": {o: speed(o, args.settings, work, args.speed)
+                                                         for o in args.organs}}
+        Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
+        return 0
     doc = {"command": "python scripts/volume_kappa.py " + " ".join(argv if argv is not None else sys.argv[1:]),
            "settings": {"tNU": "kappa = 2(1+NU)/(3(1-2NU)) * the material's largest tangent shear modulus "
                                 "over the calibration range (esmm prepare's rule; t0.45 the default)",
