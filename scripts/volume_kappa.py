@@ -337,26 +337,48 @@ def line(organ: str, setting: str, r: dict) -> str:
     return f"{organ:8s} {setting:6s} kappa {r['bulk_modulus_pa'] / 1e3:8.1f} kPa c {r['volume_factor']:.3f} | {cells}{rt}"
 
 
+def _cell(c) -> str:
+    return "–" if c is None else f"{100 * c['l2']:.2f} / {100 * c['force']:.2f}"
+
+
+def _ok(c) -> bool:
+    return c["l2"] <= 0.05 and c["force"] <= 0.05
+
+
 def table(doc: dict) -> str:
-    """The markdown table: per organ and setting, L2 / force per case, the worst volume change, inversions."""
-    out = ["| organ | setting | kappa [kPa] | kappa / mu0 | c | " + " | ".join(
-        ("gravity", "lift 20 mm", "lift 5 mm", "tension", "compression", "shear")) +
-        " | worst volume change | inverted | real time (CPU s) |", "| --- " * 15 + "|"]
-    for organ, o in doc["organs"].items():
-        for setting, r in o["settings"].items():
-            cs = r["cases"]
-            spec = doc.get("specimen", {}).get("settings", {}).get(setting, {}).get("cases", {})
-            allc = [*cs.values(), *spec.values()]
-            def cell(c):
-                return "–" if c is None else f"{100 * c['l2']:.2f} / {100 * c['force']:.2f}"
-            vol = max((abs(c["volume_change"]) for c in allc), default=float("nan"))
-            sim = r.get("simulate")
-            rt = "–" if not sim else f"{sim['real_time_factor']:.2f} ({sim['process_cpu_s']:.1f})"
-            out.append(f"| {organ} | {setting} | {r['bulk_modulus_pa'] / 1e3:.4g} | {r.get('kappa_over_mu0', 0):.3g} | "
-                       f"{r['volume_factor']:.3f} | "
-                       + " | ".join(cell(cs.get(n)) for n in ("gravity", "lift20", "lift5"))
-                       + " | " + " | ".join(cell(spec.get(n)) for n in SPECIMEN_CASES)
-                       + f" | {100 * vol:.3f} % | {sum(c['inverted'] for c in allc)} | {rt} |")
+    """Two markdown tables: L2 / force [%] per organ case and setting; then per setting the specimen, the
+    largest whole-body volume change, inversions, the cases outside 5 %, and the speed."""
+    organs, spec = doc["organs"], doc.get("specimen", {}).get("settings", {})
+    settings = list(next(iter(organs.values()))["settings"]) if organs else list(spec)
+    names = {"gravity": "gravity", "lift20": "lift 20 mm", "lift5": "lift 5 mm"}
+    head = ["setting", "kappa / mu0"] + [f"{o}: {n}" if i == 0 else n for o in organs
+                                          for i, n in enumerate(names.values())]
+    out = ["| " + " | ".join(head) + " |", "| --- " * len(head) + "|"]
+    for st in settings:
+        r0 = next(iter(organs.values()))["settings"][st]
+        out.append(f"| {st} | {r0['kappa_over_mu0']:.3g} | " + " | ".join(
+            _cell(o["settings"][st]["cases"].get(n)) for o in organs.values() for n in names) + " |")
+    speed = doc.get("speed", {}).get("organs", {})
+    head = ["setting", "c", "tension", "compression", "shear", "volume change, organs / specimen",
+            "inverted", "cases outside 5 %", "real time (" + ", ".join(speed) + ")", "solves / factorizations"]
+    out += ["", "| " + " | ".join(head) + " |", "| --- " * len(head) + "|"]
+    for st in settings:
+        org = [c for o in organs.values() for c in o["settings"][st]["cases"].values()]
+        sp = list(spec.get(st, {}).get("cases", {}).values())
+        vo = max((abs(c["volume_change"]) for c in org), default=float("nan"))
+        vs = max((abs(c["volume_change"]) for c in sp), default=float("nan"))
+        bad = sum(not _ok(c) for c in org + sp)
+        rt = ", ".join(f"{speed[o][st]['real_time_factor']:.2f}" for o in speed if st in speed[o]) or "–"
+        sf = next(iter(organs.values()))["settings"][st].get("simulate", {}).get("integrator", {})
+        if speed:
+            first = next(iter(speed.values()))
+            sf = {"solves": first[st]["solves"], "factorizations": first[st]["factorizations"]} if st in first else sf
+        sc = spec.get(st, {}).get("cases", {})
+        vf = next(iter(organs.values()))["settings"][st]["volume_factor"] if organs else spec[st]["volume_factor"]
+        out.append(f"| {st} | {vf:.3f} | " + " | ".join(_cell(sc.get(n)) for n in SPECIMEN_CASES)
+                   + f" | {100 * vo:.2f} / {100 * vs:.2f} % | {sum(c['inverted'] for c in org + sp)} | "
+                   f"{bad} of {len(org) + len(sp)} | {rt} | "
+                   f"{sf.get('solves', float('nan')):.0f} / {sf.get('factorizations', float('nan')):.0f} |")
     return "\n".join(out)
 
 
