@@ -28,7 +28,9 @@ Settings (``--settings``): ``tNU`` sizes kappa on the material's largest tangent
 calibration range with Poisson ratio NU there (``t0.45`` is the default of
 ``esmm prepare``); ``sNU`` sizes it on the small-strain shear modulus mu0 with Poisson
 ratio NU at small strain; ``off`` is no volume term (the tables compensated without one,
-as ``esmm prepare --no-volume`` makes them).
+as ``esmm prepare --no-volume`` makes them); ``A/B`` is the term of A on the tables
+compensated for the term of B (a diagnosis, not an asset ``esmm prepare`` makes; no
+scene run).
 """
 
 from __future__ import annotations
@@ -72,7 +74,8 @@ ROOT = Path(__file__).resolve().parent.parent
 SHARED = ROOT.parent / "shared" / "data" / "meshes"
 ORGANS = {"liver": ROOT / "data" / "meshes" / "ts_liver_3mm_closed.stl",
           "kidney": SHARED / "openhelp_Kidney_left.stl", "spleen": SHARED / "openhelp_Spleen.stl"}
-SETTINGS = ("t0.45", "t0.40", "t0.35", "t0.30", "t0.25", "s0.49", "s0.45", "off")
+SETTINGS = ("t0.45", "t0.40", "t0.35", "t0.30", "t0.25", "s0.49", "s0.45", "off",
+            "t0.25/t0.45", "s0.45/t0.45", "off/t0.45")
 OUT = ROOT / "docs" / "figures" / "volume_kappa.json"
 ESMM = Path(sys.executable).with_name("esmm")
 MAX_ROUNDS = 10          # validate's default rounds of floor pins per load level
@@ -114,10 +117,18 @@ def volume_spec(raw, setting: str) -> VolumeSpec | None:
 
 
 def with_setting(network, raw, material, setting: str):
-    """(network with the setting's volume term, its tables compensated with it, the spec)."""
-    spec = volume_spec(raw, setting)
+    """(network with the setting's volume term, its tables compensated with it, the spec).
+
+    ``KAPPA/TABLES`` (e.g. ``s0.45/t0.45``): the volume term of KAPPA on the tables compensated for
+    the term of TABLES: not an asset ``esmm prepare`` makes (its compensation is calibrated with the
+    term it carries), the diagnosis of what the compensation's shift does.
+    """
+    kappa_of, _, tables_of = setting.partition("/")
+    spec = volume_spec(raw, kappa_of)
     net = dataclasses.replace(network, volume_term=spec)
-    tables = compensate(raw, net, material=material, volume=spec, reporter=REP).tables
+    spec_c = volume_spec(raw, tables_of) if tables_of else spec
+    tables = compensate(raw, dataclasses.replace(network, volume_term=spec_c), material=material, volume=spec_c,
+                        reporter=REP).tables
     return net, tables, spec
 
 
@@ -295,10 +306,9 @@ def sweep_organ(organ: str, settings, work: Path, *, sim_runs: int) -> dict:
              "kappa_over_mu0": 0.0 if spec is None else spec.bulk_modulus / tangent_shear_modulus(raw, 1.0, 1.0)[0],
              "volume_factor": float(tables.volume_factor), "cases": {}}
         for name, case in cases.items():
-            t = time.perf_counter()
             nw, pins = network(case, net, tables)
-            r["cases"][name] = dict(row(case, *refs[name], nw, pins), seconds_network=time.perf_counter() - t)
-        if sim_runs:
+            r["cases"][name] = row(case, *refs[name], nw, pins)
+        if sim_runs and "/" not in setting:
             r["simulate"] = simulate(net, tables, material, work / f"{organ}-{setting}.h5", sim_runs)
         out["settings"][setting] = r
         print(line(organ, setting, r), flush=True)
@@ -327,6 +337,41 @@ def sweep_specimen(settings, work: Path) -> dict:
 
 # ---------------------------------------------------------------------------------------------
 # Output
+
+
+#: The figures of a case in the JSON, in this order (one list per case; fractions, counts, mm).
+COLUMNS = ("l2", "force", "volume_change", "max_local_volume_change", "inverted", "locking_cells",
+           "max_displacement_mm", "max_error")
+SIM_KEYS = ("real_time_factor", "real_time_factor_runs", "stepping_wall_s", "process_cpu_s", "load_average")
+
+
+def _settings(doc: dict):
+    for o in doc.get("organs", {}).values():
+        yield from o["settings"].values()
+    yield from doc.get("specimen", {}).get("settings", {}).values()
+
+
+def compact(doc: dict) -> dict:
+    """*doc* as written: each case a list in :data:`COLUMNS` order, the scene's run its speed and counts."""
+    for r in _settings(doc):
+        for n, c in r["cases"].items():
+            if isinstance(c, dict):
+                if c.get("element", "p2") != "p2":
+                    r.setdefault("mini_cases", []).append(n)
+                r["cases"][n] = [c[k] for k in COLUMNS]
+        sim = r.get("simulate")
+        if sim and "integrator" in sim:
+            r["simulate"] = {**{k: sim[k] for k in SIM_KEYS if k in sim},
+                             **{k: sim["integrator"].get(k) for k in ("solves", "factorizations")}}
+    return doc
+
+
+def expand(doc: dict) -> dict:
+    """The inverse of :func:`compact` for the cases (each a dict again)."""
+    for r in _settings(doc):
+        r["cases"] = {n: dict(zip(COLUMNS, c, strict=True)) if isinstance(c, list) else c
+                      for n, c in r["cases"].items()}
+    return doc
 
 
 def line(organ: str, setting: str, r: dict) -> str:
@@ -360,7 +405,8 @@ def table(doc: dict) -> str:
             _cell(o["settings"][st]["cases"].get(n)) for o in organs.values() for n in names) + " |")
     speed = doc.get("speed", {}).get("organs", {})
     head = ["setting", "c", "tension", "compression", "shear", "volume change, organs / specimen",
-            "inverted", "cases outside 5 %", "real time (" + ", ".join(speed) + ")", "solves / factorizations"]
+            "inverted", "cases outside 5 %", "real time (" + ", ".join(speed) + ")",
+            "solves / factorizations, " + next(iter(organs), "")]
     out += ["", "| " + " | ".join(head) + " |", "| --- " * len(head) + "|"]
     for st in settings:
         org = [c for o in organs.values() for c in o["settings"][st]["cases"].values()]
@@ -369,7 +415,8 @@ def table(doc: dict) -> str:
         vs = max((abs(c["volume_change"]) for c in sp), default=float("nan"))
         bad = sum(not _ok(c) for c in org + sp)
         rt = ", ".join(f"{speed[o][st]['real_time_factor']:.2f}" for o in speed if st in speed[o]) or "–"
-        sf = next(iter(organs.values()))["settings"][st].get("simulate", {}).get("integrator", {})
+        sim = next(iter(organs.values()))["settings"][st].get("simulate", {})
+        sf = sim.get("integrator", sim)
         if speed:
             first = next(iter(speed.values()))
             sf = {"solves": first[st]["solves"], "factorizations": first[st]["factorizations"]} if st in first else sf
@@ -398,21 +445,26 @@ def main(argv=None) -> int:
                          "organ's variants in turn, ROUNDS times, added to the JSON under 'speed'; no sweep")
     args = ap.parse_args(argv)
     if args.table:
-        print(table(json.loads(Path(args.table).read_text())))
+        print(table(expand(json.loads(Path(args.table).read_text()))))
         return 0
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     if args.speed:
-        doc = json.loads(Path(args.json).read_text())
-        doc["speed"] = {"rounds": args.speed, "organs": {o: speed(o, args.settings, work, args.speed)
+        doc = expand(json.loads(Path(args.json).read_text()))
+        runnable = [st for st in args.settings if "/" not in st]
+        doc["speed"] = {"rounds": args.speed, "organs": {o: speed(o, runnable, work, args.speed)
                                                          for o in args.organs}}
-        Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
+        Path(args.json).write_text(json.dumps(compact(doc), indent=1) + "\n")
+        print(table(doc))
         return 0
     doc = {"command": "python scripts/volume_kappa.py " + " ".join(argv if argv is not None else sys.argv[1:]),
            "settings": {"tNU": "kappa = 2(1+NU)/(3(1-2NU)) * the material's largest tangent shear modulus "
                                 "over the calibration range (esmm prepare's rule; t0.45 the default)",
                         "sNU": "kappa = 2(1+NU)/(3(1-2NU)) * the small-strain shear modulus mu0",
-                        "off": "no volume term, the tables compensated without one"},
+                        "off": "no volume term, the tables compensated without one",
+                        "A/B": "the volume term of A on the tables compensated for the term of B (a diagnosis: "
+                               "esmm prepare compensates for the term the asset carries)"},
+           "columns": list(COLUMNS),
            "cases": "validate's gravity and lift (20 mm, the default scene) and a 5 mm lift (the default scene, "
                     "last waypoint at 5 mm); the specimen's tension 1.2, compression 0.9, shear 0.3 "
                     "(20 mm cube, 2.5 mm elements); L2 and force errors against P2 (MINI where P2 found "
@@ -423,8 +475,8 @@ def main(argv=None) -> int:
     for organ in args.organs:
         doc["organs"][organ] = sweep_organ(organ, args.settings, work, sim_runs=0 if args.no_simulate else args.sim_runs)
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
-    print(table(doc))
+        Path(args.json).write_text(json.dumps(compact(doc), indent=1) + "\n")
+    print(table(expand(doc)))
     print(f"wrote {args.json}")
     return 0
 
