@@ -202,7 +202,9 @@ def row(case, fe, pins_c, nw, pins_n) -> dict:
             "max_local_volume_change": fig["max_local_volume_change_network"],
             "inverted": int(fig["inverted_network"]), "element": fe.info.get("element_used", "p2"),
             "locking_cells": int(fe.info.get("cells_near_locking", 0) or 0),
-            "max_displacement_mm": 1e3 * res.max_displacement_m}
+            "max_displacement_mm": 1e3 * res.max_displacement_m,
+            "force_ratio": float(np.linalg.norm(fig["reaction_network_N"]) / np.linalg.norm(fig["reaction_continuum_N"]))
+            - 1.0}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -341,7 +343,7 @@ def sweep_specimen(settings, work: Path) -> dict:
 
 #: The figures of a case in the JSON, in this order (one list per case; fractions, counts, mm).
 COLUMNS = ("l2", "force", "volume_change", "max_local_volume_change", "inverted", "locking_cells",
-           "max_displacement_mm", "max_error")
+           "max_displacement_mm", "max_error", "force_ratio")
 SIM_KEYS = ("real_time_factor", "real_time_factor_runs", "stepping_wall_s", "process_cpu_s", "load_average")
 
 
@@ -369,7 +371,7 @@ def compact(doc: dict) -> dict:
 def expand(doc: dict) -> dict:
     """The inverse of :func:`compact` for the cases (each a dict again)."""
     for r in _settings(doc):
-        r["cases"] = {n: dict(zip(COLUMNS, c, strict=True)) if isinstance(c, list) else c
+        r["cases"] = {n: dict(zip(COLUMNS, c, strict=False)) if isinstance(c, list) else c
                       for n, c in r["cases"].items()}
     return doc
 
@@ -468,7 +470,8 @@ def main(argv=None) -> int:
            "cases": "validate's gravity and lift (20 mm, the default scene) and a 5 mm lift (the default scene, "
                     "last waypoint at 5 mm); the specimen's tension 1.2, compression 0.9, shear 0.3 "
                     "(20 mm cube, 2.5 mm elements); L2 and force errors against P2 (MINI where P2 found "
-                    "no equilibrium: 'element'); volume_change: the network's whole-body volume ratio - 1",
+                    "no equilibrium: 'element'); volume_change: the network's whole-body volume ratio - 1; force_ratio: |R_network| / "
+                    "|R_continuum| - 1 of the case's reaction (positive: the network's is larger)",
            "load_average_at_start": os.getloadavg(), "organs": {}}
     if not args.no_specimen:
         doc["specimen"] = sweep_specimen(args.settings, work)
