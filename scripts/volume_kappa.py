@@ -427,7 +427,7 @@ def table(doc: dict) -> str:
         out.append(f"| {st} | {vf:.3f} | " + " | ".join(_cell(sc.get(n)) for n in SPECIMEN_CASES)
                    + f" | {100 * vo:.2f} / {100 * vs:.2f} % | {sum(c['inverted'] for c in org + sp)} | "
                    f"{bad} of {len(org) + len(sp)} | {rt} | "
-                   f"{sf.get('solves', float('nan')):.0f} / {sf.get('factorizations', float('nan')):.0f} |")
+                   + (f"{sf['solves']:.0f} / {sf['factorizations']:.0f} |" if "solves" in sf else "– |"))
     return "\n".join(out)
 
 
