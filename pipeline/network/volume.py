@@ -68,8 +68,10 @@ FORMULATIONS = ("nodal", "tet")
 
 #: Poisson ratio of the stiffest calibrated state the volume term is sized for
 #: (docs/design/model.md, "The volume term (nearly incompressible network)"):
-#: kappa = 9.7 times the liver's tangent shear modulus at stretch 1.3, i.e. Poisson ratio 0.4987 at small
-#: strain; the volume changes by at most 0.4 % over the calibration range.
+#: kappa = 9.7 times the liver's tangent shear modulus at stretch 1.3, i.e. Poisson ratio 0.4986 at small
+#: strain; the volume changes by at most 0.4 % over the calibration range. A smaller kappa was measured
+#: against the continuum and not adopted (docs/design/realtime.md, "The volume term's bulk modulus against
+#: the continuum").
 DEFAULT_POISSON = 0.45
 #: Accepted Poisson ratios (0: no volume stiffness beyond the springs'; 0.5 is the incompressible limit).
 POISSON_RANGE = (0.0, 0.4999)
