@@ -130,3 +130,18 @@ def test_one_ramp_carries_no_path_information():
     d = -0.05 * _maxwell(t, s, 20.0)
     h = path_dependence([lam], [d.copy()], [d], ranges=[np.ptp(s)], groups=[0])
     assert h["share"] < 1e-3
+
+
+def test_a_fold_sees_only_its_training_samples():
+    """The samples between two training fitting samples belong to the training set; those next to a held-out
+    fitting sample do not (a nested fold must not see what it holds out)."""
+    from esmm.pipeline.discover.history import _training_samples
+
+    fit_idx = np.array([0, 4, 8, 12, 16])
+    got = _training_samples(fit_idx, [0, 1, 3, 4], 19)
+    want = np.zeros(19, dtype=bool)
+    want[0:5] = True  # between fitting samples 0 and 4, both training
+    want[12:19] = True  # 12 and 16 training, and the tail after the last
+    assert np.array_equal(got, want)
+    assert _training_samples(fit_idx, None, 19).all()
+    assert not _training_samples(fit_idx, [], 19).any()

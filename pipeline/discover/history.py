@@ -150,20 +150,42 @@ def path_dependence(x: Sequence[np.ndarray], e: Sequence[np.ndarray], d: Sequenc
 
 
 def _changes(current: Fitted, candidate: Fitted) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Per record, on every sample where both predict: the current residual (data − model) and the change of
-    the prediction (candidate − current), NaN where either model does not predict."""
+    """Per record: the current residual (data − model) and the change of the prediction (candidate −
+    current), on every sample of the problem's training data; NaN elsewhere and where either model does not
+    predict. A fold's problem (the nested selections') sees none of the samples it holds out."""
     p0, p1 = current.problem, candidate.problem
     c0, c1 = p0.offsets(current.z), p1.offsets(candidate.z)
     e, d = [], []
     for k, r in enumerate(p0.records):
+        train = _training_samples(r.fit_idx, p0.train[k], r.y.size)
+        if not train.any():
+            e.append(np.full(r.y.size, np.nan))
+            d.append(np.full(r.y.size, np.nan))
+            continue
         m0 = p0.full_prediction(k, current.z, c0[k])
         m1 = p1.full_prediction(k, candidate.z, c1[k])
-        good = np.isfinite(m0) & np.isfinite(m1) & np.isfinite(r.y)
-        ek = np.where(good, r.y - m0, np.nan)
-        dk = np.where(good, m1 - m0, np.nan)
-        e.append(ek)
-        d.append(dk)
+        good = train & np.isfinite(m0) & np.isfinite(m1) & np.isfinite(r.y)
+        e.append(np.where(good, r.y - m0, np.nan))
+        d.append(np.where(good, m1 - m0, np.nan))
     return e, d
+
+
+def _training_samples(fit_idx: np.ndarray, positions, n: int) -> np.ndarray:
+    """Which of a record's *n* samples belong to a training set given as *positions* within its fitting
+    samples *fit_idx* (None: all): a fitting sample's own, and every sample between two training ones."""
+    if positions is None:
+        return np.ones(n, dtype=bool)
+    pos = np.asarray(positions, dtype=int)
+    m = fit_idx.size
+    if not pos.size or not m:
+        return np.zeros(n, dtype=bool)
+    infit = np.zeros(m, dtype=bool)
+    infit[pos] = True
+    j = np.searchsorted(fit_idx, np.arange(n), side="right") - 1  # the fitting sample at or before each
+    before = infit[np.clip(j, 0, m - 1)]
+    after = infit[np.clip(j + 1, 0, m - 1)]
+    exact = (j >= 0) & (fit_idx[np.clip(j, 0, m - 1)] == np.arange(n))
+    return np.where(exact, before, np.where(j < 0, after, np.where(j + 1 >= m, before, before & after)))
 
 
 def _path_parts(xs: list[np.ndarray], es: list[np.ndarray], ds: list[np.ndarray], ws: list[float]
