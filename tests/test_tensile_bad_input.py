@@ -302,6 +302,15 @@ def test_header_repeated_mid_file_is_refused_as_several_tests(tmp_path):
     assert "line 32 repeats the header of line 1" in msg and "one file per test" in msg
 
 
+def test_saturated_channel_is_refused_as_saturated_not_as_a_sign(tmp_path):
+    """A load channel pinned at the negative end of its converter's range while the specimen is pulled reads
+    the wrong sign on most rows at one value: the refusal names the saturation, not a sign convention."""
+    t, d, f = _ramp()
+    pinned = np.where(np.arange(f.size) < 25, -1611.32812, f)  # at its end of scale until the last rows
+    msg = refuse(tmp_path, _raw(t, d, pinned), overrides=GEOM)
+    assert "saturated" in msg and "column 3 'force'" in msg and "change its sign" not in msg
+
+
 def test_compression_positive_channel_is_refused(tmp_path):
     t, d, f = _ramp()
     msg = refuse(tmp_path, _raw(t, d, -f), overrides=GEOM)

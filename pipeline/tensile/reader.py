@@ -1090,11 +1090,25 @@ def _check_response(plan: _Plan, x: np.ndarray, stress: np.ndarray, linenos: lis
     n, bad = int(loaded.sum()), int(opposite.sum())
     if n >= 3 and bad * 2 > n:
         i = int(np.flatnonzero(opposite)[0])
+        _refuse_saturated(col.where(label), stress[opposite], n)
         which = "the stress column" if plan.s_col is not None else "the force (or the displacement) column"
         raise InputError(
             f"{col.where(label)}, line {linenos[i]}: {plan.x_name} {x[i]:.4g} with stress {stress[i]:.4g} Pa; on "
             f"{bad} of {n} loaded rows the stress has the opposite sign to the deformation (tension must give "
             f"positive stress): {which} is recorded compression-positive; change its sign and read again"
+        )
+
+
+def _refuse_saturated(where: str, wrong: np.ndarray, n: int) -> None:
+    """A stress of the wrong sign that sits at one value on most of its rows is a saturated channel (the
+    converter or the amplifier at the end of its range, or a zero far off), not a sign convention: say so."""
+    values, counts = np.unique(wrong, return_counts=True)
+    j = int(np.argmax(counts))
+    if counts[j] * 2 > wrong.size and counts[j] >= 3:
+        raise InputError(
+            f"{where}: the stress sits at {values[j]:.4g} Pa on {int(counts[j])} of {n} loaded rows, opposite to "
+            f"the deformation: the load channel is saturated (its converter or amplifier at the end of its range, "
+            f"or its zero far off); test again with a load range that covers the test and the channel zeroed"
         )
 
 
