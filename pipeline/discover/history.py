@@ -119,7 +119,7 @@ def path_dependence(x: Sequence[np.ndarray], e: Sequence[np.ndarray], d: Sequenc
     for k, g in enumerate(groups):
         members.setdefault(g, []).append(k)
     total = float(sum(np.nansum(np.asarray(dk, float) ** 2) for dk in d))
-    parts: list[tuple[np.ndarray, np.ndarray, float]] = []
+    parts: list[tuple[np.ndarray, np.ndarray, float, int]] = []  # (a, b, weight, record) per record
     for ks in members.values():
         a, b = _path_parts([x[k] for k in ks], [e[k] for k in ks], [d[k] for k in ks],
                            [1.0 / max(ranges[k], 1e-300) for k in ks])
@@ -138,13 +138,12 @@ def path_dependence(x: Sequence[np.ndarray], e: Sequence[np.ndarray], d: Sequenc
         c = (w * bk.size) ** 2 * v
         var += c
         ws_den += c * c / nu
-    s = sab
     dof = var * var / ws_den if ws_den > 0 else 1.0
     if var > 0 and math.isfinite(var):
-        t = s / math.sqrt(var)
+        t = sab / math.sqrt(var)
         p = float(stats.t.sf(t, max(dof, 1.0)))
     else:
-        t, p = (math.inf, 0.0) if s > 0 else (0.0, 1.0)
+        t, p = (math.inf, 0.0) if sab > 0 else (0.0, 1.0)
     return {"p": p, "t": float(t), "dof": float(dof), "share": path / total if total > 0 else 0.0,
             "peak_resolutions": float(peak)}
 
