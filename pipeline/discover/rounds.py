@@ -4,9 +4,11 @@ A round (:func:`run_round`): diagnose the current model; fit every candidate
 whose first-order gain can pay for one parameter (:func:`candidate_order`), in
 each of its variants, and the richer variants of kept effects; those whose
 fitted improvement passes the pre-screen go, best first, to the held-out test
-at the round's level (:mod:`.levels`); the first that passes is kept. When
-none passes, the residual is not noise and two more effects are allowed,
-pairs of effects and artefacts are tested at the pairs' level. The state of
+at the round's level (:mod:`.levels`); the first that passes is kept (a
+history effect only if its path-dependent part explains the residual's too,
+:mod:`.history`). When none passes, the residual is not noise and two more
+effects are allowed, pairs of effects and artefacts are tested at the pairs'
+level. The state of
 the search is :class:`~esmm.pipeline.discover.search.Search`.
 """
 
