@@ -32,8 +32,9 @@ T = S/se(S) (Student's t, Welch–Satterthwaite degrees of freedom over the
 records) is judged at the replication check's level, and the largest
 path-dependent change the data support, max |βb|, must reach the record's
 resolution (:func:`~esmm.pipeline.tensile.noise.resolution`, as the held-out
-test's size): an acquisition chain's own path dependence (a force channel's
-residual lag after its correction) is real but below what the machine resolves.
+test's size): an acquisition chain can leave a path dependence of its own (a
+force channel's delay left after its correction), significant on many samples
+but below what the machine resolves.
 
 A record that never returns to a stretch it has passed (one ramp at one rate)
 carries no path information: b vanishes there and so does its weight, so a
