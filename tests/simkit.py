@@ -1,4 +1,6 @@
-"""Stiffness tables from closed forms for the simulator's tests (tests/test_simulate.py, test_implicit.py).
+"""Shared fixtures' builders: stiffness tables from closed forms for the simulator's tests
+(tests/test_simulate.py, test_implicit.py), and a jittered box's spring network (the volume term's and the
+corrections' tests).
 
 Importable because pytest's ``pythonpath`` includes ``tests/``.
 """
@@ -6,7 +8,22 @@ Importable because pytest's ``pythonpath`` includes ``tests/``.
 from __future__ import annotations
 
 import numpy as np
+from esmm.pipeline.mesh.synthetic import box_tets
+from esmm.pipeline.network.springs import network_from_tets, tet_volumes
 from esmm.pipeline.network.tables import StiffnessTables
+
+
+def jittered_box_network(cells, size, *, jitter: float, seed: int):
+    """The spring network of a structured box (*cells* along x, y, z; edges *size* [m]; 6 Kuhn tets per
+    cell) whose nodes are moved by uniform draws within ±*jitter* [m] (generator seeded *seed*), every
+    tetrahedron oriented positive."""
+    b = box_tets(*cells, size)
+    rng = np.random.default_rng(seed)
+    p = b.points + rng.uniform(-jitter, jitter, b.points.shape)
+    t = b.tets.copy()
+    v = tet_volumes(p, t)
+    t[v < 0] = t[v < 0][:, [0, 2, 1, 3]]
+    return network_from_tets(type("M", (), {"points": p, "tets": t})())
 
 
 def make_tables(kind="nonlinear", lo=0.5, hi=2.0, n=301, mu0=2.0e4):

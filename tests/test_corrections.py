@@ -8,7 +8,6 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import scipy.sparse.linalg as spl
-from esmm.pipeline.mesh.synthetic import box_tets
 from esmm.pipeline.network.corrections import (
     CorrectionObjective,
     LinearLoad,
@@ -16,19 +15,13 @@ from esmm.pipeline.network.corrections import (
     fit_corrections,
     linear_errors,
 )
-from esmm.pipeline.network.springs import network_from_tets, tet_volumes
 from esmm.pipeline.network.volume import VolumeSpec
+from simkit import jittered_box_network
 
 
 @pytest.fixture(scope="module")
 def box():
-    b = box_tets(4, 3, 3, (0.04, 0.03, 0.03))
-    rng = np.random.default_rng(3)
-    p = b.points + rng.uniform(-1.5e-3, 1.5e-3, b.points.shape)
-    t = b.tets.copy()
-    v = tet_volumes(p, t)
-    t[v < 0] = t[v < 0][:, [0, 2, 1, 3]]
-    net = network_from_tets(type("M", (), {"points": p, "tets": t})())
+    net = jittered_box_network((4, 3, 3), (0.04, 0.03, 0.03), jitter=1.5e-3, seed=3)
     return replace(net, volume_term=VolumeSpec(2.0e5))
 
 

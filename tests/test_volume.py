@@ -7,8 +7,7 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 from esmm.pipeline.errors import ConfigError, InputError
-from esmm.pipeline.mesh.synthetic import box_tets
-from esmm.pipeline.network.springs import network_from_tets, tet_volumes
+from esmm.pipeline.network.springs import tet_volumes
 from esmm.pipeline.network.volume import (
     VolumeSpec,
     bulk_modulus,
@@ -18,18 +17,13 @@ from esmm.pipeline.network.volume import (
     tangent_shear_modulus,
     volume_elements,
 )
+from simkit import jittered_box_network
 
 
 @pytest.fixture(scope="module")
 def block():
     """A jittered structured block (4 x 3 x 3 cells, 6 Kuhn tets each), 30 x 20 x 20 mm."""
-    b = box_tets(4, 3, 3, (0.03, 0.02, 0.02))
-    rng = np.random.default_rng(3)
-    p = b.points + rng.uniform(-0.8e-3, 0.8e-3, b.points.shape)
-    t = b.tets.copy()
-    v = tet_volumes(p, t)
-    t[v < 0] = t[v < 0][:, [0, 2, 1, 3]]
-    return network_from_tets(type("M", (), {"points": p, "tets": t})())
+    return jittered_box_network((4, 3, 3), (0.03, 0.02, 0.02), jitter=0.8e-3, seed=3)
 
 
 def deformed(net, scale=0.04, seed=1):

@@ -5,27 +5,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from esmm.pipeline.mesh.synthetic import box_tets
-from esmm.pipeline.network.springs import network_from_tets, tet_volumes
 from esmm.pipeline.network.volume import VolumeSpec, bulk_modulus
 from esmm.pipeline.simulate import kernels as K
 from esmm.pipeline.simulate.simulator import Simulator
 from esmm.pipeline.simulate.springterm import build_spring_term
 from esmm.pipeline.simulate.stepper import stable_step
 from esmm.pipeline.simulate.volumeterm import build_volume_term, shape_change
+from simkit import jittered_box_network
 
 KAPPA = 4.0e5   # Pa: ~80 times the liver's small-strain shear modulus
 
 
 @pytest.fixture(scope="module")
 def box():
-    b = box_tets(5, 4, 3, (0.05, 0.04, 0.03))
-    rng = np.random.default_rng(7)
-    p = b.points + rng.uniform(-1.5e-3, 1.5e-3, b.points.shape)
-    t = b.tets.copy()
-    v = tet_volumes(p, t)
-    t[v < 0] = t[v < 0][:, [0, 2, 1, 3]]
-    return network_from_tets(type("M", (), {"points": p, "tets": t})())
+    return jittered_box_network((5, 4, 3), (0.05, 0.04, 0.03), jitter=1.5e-3, seed=7)
 
 
 @pytest.fixture(scope="module")

@@ -246,18 +246,17 @@ def _path_dependent(s: Search, t: Trial, names: list[str]) -> bool:
     residual's, one-sided at :data:`REPLICATION_LEVEL`, and reaches the measurement's resolution
     (:mod:`.history`). Like the replication check it only removes candidates (the search-wide bound is
     the held-out test's), so it is not adjusted for multiplicity. Writes the verdict on a single that fails."""
-    level = REPLICATION_LEVEL
     if not applies(names, s.current.problem.records):
         return True
     h = history_test(s.current, t.fit)
     if len(names) == 1:
         s.candidates[names[0]].history_p, s.candidates[names[0]].history_share = h["p"], h["share"]
-    if h["p"] <= level and h["peak_resolutions"] >= 1.0:
+    if h["p"] <= REPLICATION_LEVEL and h["peak_resolutions"] >= 1.0:
         return True
     why = (f"not kept: it predicts held-out data better (p {t.heldout['p']:.2g}), but not by what depends on the "
            f"path: the part of its change that no function of the stretch alone gives ({h['share']:.2g} of it) "
            f"explains the part of the residual that none gives with one-sided p {h['p']:.2g} (t {h['t']:+.2f} on "
-           f"{h['dof']:.1f} degrees of freedom; needs <= {level:.2g}), reaching {h['peak_resolutions']:.3g} "
+           f"{h['dof']:.1f} degrees of freedom; needs <= {REPLICATION_LEVEL:g}), reaching {h['peak_resolutions']:.3g} "
            "resolutions of the measurement at most (needs 1): on these data it stands for an elastic law the "
            "library does not hold")
     if len(names) == 1:  # a pair that fails is one of many formed; its members keep their own verdicts
