@@ -112,6 +112,30 @@ def test_rupture_is_cut_and_slips_are_found(tmp_path):
     assert rec.cut and abs(rec.cut["index"] - k) <= 1 and rec.test.n == rec.cut["index"]
 
 
+def test_a_shear_record_is_cut_at_its_rupture_too():
+    """A simple-shear pull to failure is cut where the stress breaks, as a tension record is; a shear cycle
+    (the stress falling as the shear goes back) is not a rupture."""
+    from pathlib import Path
+
+    from esmm.pipeline.discover.records import cut_at_rupture
+    from esmm.pipeline.tensile.data import TensileTest
+
+    rng = np.random.default_rng(4)
+    n = 2000
+    gamma = np.linspace(0.0, 0.5, n)
+    stress = 3e3 * gamma + 3.0 * rng.standard_normal(n)
+    k = 1700
+    stress[k:] = 40.0 + 3.0 * rng.standard_normal(n - k)  # the broken specimen: the load cell's offset
+    t = TensileTest(source=Path("shear.csv"), mode="simple_shear", stretch=gamma, stress=stress,
+                    time=np.arange(n) * 0.01)
+    cut, what = cut_at_rupture(t)
+    assert what and abs(what["index"] - k) <= 1 and cut.n == what["index"]
+    back = np.concatenate([gamma, gamma[::-1]])
+    cycle = TensileTest(source=Path("cycle.csv"), mode="simple_shear", stretch=back,
+                        stress=3e3 * back + 3.0 * rng.standard_normal(2 * n), time=np.arange(2 * n) * 0.01)
+    assert cut_at_rupture(cycle)[1] == {}
+
+
 def test_reading_at_rest_is_the_offset(tmp_path):
     truth = syn.Truth("arruda-boyce", BASE, sensor_offset={"force": 0.02})
     [rec] = _records(tmp_path, [syn.load_unload(0.05, 1.4)], truth, rest=30, noise=0.002)

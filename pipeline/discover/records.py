@@ -163,7 +163,7 @@ def undo_force_lag(t: TensileTest, cov: Covariates) -> tuple[TensileTest, dict[s
 
 def cut_at_rupture(t: TensileTest) -> tuple[TensileTest, dict[str, Any]]:
     """*t* without the samples from its rupture on (:func:`~esmm.pipeline.tensile.events.rupture_index`), and what was cut."""
-    if t.time is None or t.mode == "simple_shear":
+    if t.time is None:
         return t, {}
     k = rupture_index(t.stretch, t.stress, noise_model(t.stress).sigma)
     if k is None or k < 10:
