@@ -142,6 +142,52 @@ def test_reading_at_rest_is_the_offset(tmp_path):
     assert rest_reading(rec) * 20e-6 == pytest.approx(0.02, abs=3e-4)
 
 
+def _at_rest_record(rng, noise: str, offset: float):
+    """A machine record: 600 samples at rest, a load-unload cycle to stretch 1.5, the elastic stress (peak
+    about 40 kPa) plus a load-cell *offset* [Pa] and noise of 0.2 % of the peak: Butterworth-filtered
+    (``"filtered"``) or 1/f over the whole band (``"pink"``), quantised to 16 bits of a 100 kPa span."""
+    from pathlib import Path
+
+    from esmm.pipeline.tensile.data import TensileTest
+
+    lam = np.concatenate([np.ones(600), np.linspace(1.0, 1.5, 1500), np.linspace(1.5, 1.0, 1500)])
+    n = lam.size
+    stress = 20e3 * (lam - lam ** -2)
+    if noise == "filtered":
+        b, a = signal.butter(2, 0.1)
+        e = signal.lfilter(b, a, rng.standard_normal(n + 500))[500:]
+    else:
+        f = np.fft.rfftfreq(2 * n)
+        e = np.fft.irfft((rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size))
+                         / np.sqrt(np.maximum(f, f[1])))[:n]
+    y = stress + offset + 0.002 * np.max(stress) * e / e.std()
+    q = 100e3 / 2 ** 16
+    t = TensileTest(source=Path("rest.csv"), mode="uniaxial", stretch=lam, stress=q * np.round(y / q),
+                    time=np.arange(n) * 0.02)
+    [rec] = prepare([t])
+    return rec
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("noise", ["filtered", "pink"])
+def test_a_tared_zero_is_not_read_as_an_offset(noise):
+    """Without an offset, the reading at rest under correlated noise is the tared zero (0.0) in all but about
+    the level's share of records (three binomial SDs over 100 draws); the mean of the samples at rest itself
+    is not zero in any of them."""
+    rng = np.random.default_rng(11)
+    readings = [rest_reading(_at_rest_record(rng, noise, 0.0)) for _ in range(100)]
+    assert sum(r != 0.0 for r in readings) <= 100 * (0.05 + 3 * np.sqrt(0.05 * 0.95 / 100))
+
+
+@pytest.mark.parametrize("noise", ["filtered", "pink"])
+def test_an_offset_is_measured_at_rest(noise):
+    """An offset of 2 % of the peak is the reading at rest, within the noise's share of it."""
+    rng = np.random.default_rng(12)
+    for _ in range(5):
+        rec = _at_rest_record(rng, noise, -800.0)
+        assert rest_reading(rec) == pytest.approx(-800.0, abs=200.0)
+
+
 # --------------------------------------------------------------------------- statistics
 def test_autocorrelation_time_of_an_ar1_series():
     rng = np.random.default_rng(2)

@@ -30,6 +30,7 @@ from ..tensile.data import TensileTest
 from ..tensile.events import SLIP_ALPHA, force_lag, rupture_index, slip_events
 from ..tensile.noise import Noise, noise_model
 from .covariates import Covariates, covariates, thin
+from .statistics import REPLICATION_LEVEL, resolution, segment_mean
 
 
 def reference(mode: str) -> float:
@@ -253,6 +254,15 @@ def _holds(direction: np.ndarray) -> list[tuple[int, int]]:
     return [(a, b) for a, b, v in _runs_of(direction) if v == 0]
 
 
+def _at_rest(rec: Record) -> tuple[float, float, int] | None:
+    """:meth:`Record.preload` where the record starts at its reference state, else None."""
+    pre = rec.preload()
+    span = float(np.ptp(rec.x)) or 1.0
+    if pre is None or abs(float(rec.x[0]) - reference(rec.test.mode)) > 1e-3 * span:
+        return None
+    return pre
+
+
 def rest_reading(rec: Record) -> float | None:
     """The stress the load cell read at rest in the reference state before loading (its offset), or None.
 
@@ -260,12 +270,32 @@ def rest_reading(rec: Record) -> float | None:
     shear 0) starts at zero true force: what the load cell reads there, averaged
     over the samples before the crosshead moves, *is* its offset. It is held,
     not fitted, so an offset can never absorb misfit.
+
+    It is a measurement, so it counts only where it is one: the mean of the
+    samples at rest must differ from zero beyond its standard error (two-sided
+    at :data:`~esmm.pipeline.discover.statistics.REPLICATION_LEVEL`; the variance
+    autocorrelation-consistent, :func:`~esmm.pipeline.discover.statistics.segment_mean`,
+    plus the converter's quantisation q²/12, which averaging a constant reading
+    does not reduce), and reach what the record resolves
+    (:func:`~esmm.pipeline.tensile.noise.resolution`). Otherwise the reading is
+    the tared zero and 0.0 is returned: under correlated (1/f, filtered) noise
+    the mean of a few hundred samples at rest wanders by several noise units, and
+    a correction by it shifts every sample; where the elastic law misfits, a
+    shift of the right sign predicts held-out samples better by the product of
+    the two, whatever the shift's size.
     """
-    pre = rec.preload()
-    span = float(np.ptp(rec.x)) or 1.0
-    if pre is None or abs(float(rec.x[0]) - reference(rec.test.mode)) > 1e-3 * span:
+    pre = _at_rest(rec)
+    if pre is None:
         return None
-    return pre[0]
+    mean, _, n = pre
+    if n < 2:
+        return 0.0
+    _, var, dof = segment_mean(rec.y[:n])
+    se = math.sqrt(var + rec.noise.quantum ** 2 / 12.0)
+    p = 2.0 * float(stats.t.sf(abs(mean) / se, dof)) if se > 0 else (0.0 if mean else 1.0)
+    if p > REPLICATION_LEVEL or abs(mean) < resolution(rec.y, rec.sigma):
+        return 0.0
+    return mean
 
 
 def reads_compression(rec: Record, alpha: float = SLIP_ALPHA) -> bool:
@@ -281,9 +311,9 @@ def reads_compression(rec: Record, alpha: float = SLIP_ALPHA) -> bool:
     if rec.y.size == 0 or not math.isfinite(rec.sigma) or rec.sigma <= 0:
         return False
     z = float(stats.norm.isf(alpha / rec.y.size))
-    rest = rest_reading(rec)
-    n = rec.preload()[2] if rest is not None else math.inf
-    return bool(np.min(rec.y - (rest or 0.0)) < -z * rec.sigma * math.sqrt(1.0 + 1.0 / n))
+    pre = _at_rest(rec)
+    rest, n = (pre[0], pre[2]) if pre is not None else (0.0, math.inf)
+    return bool(np.min(rec.y - rest) < -z * rec.sigma * math.sqrt(1.0 + 1.0 / n))
 
 
 def slip_applicable(rec: Record) -> bool:
