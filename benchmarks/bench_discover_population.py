@@ -203,21 +203,39 @@ def score_effects(rows: list[dict]) -> dict:
     n = len(ok)
     return {"cases": len(rows), "ran": n, "strict_rate": sum(r["strict"] for r in ok) / n if n else None,
             "lenient_rate": sum(r["lenient"] for r in ok) / n if n else None, "by_class": by_class,
-            "by_detectability": _by_detectability(ok), "confusion": {k: confusion[k] for k in sorted(confusion)}}
+            "by_detectability": _by_detectability(ok),
+            "by_identifiability": _by_detectability(ok, key="identifiability", symbol="d_id"),
+            "by_class_identifiable": _by_class_identifiable(ok), "confusion": {k: confusion[k] for k in sorted(confusion)}}
 
 
-def _by_detectability(ok: list[dict]) -> dict:
-    """{bin: {cases, strict, lenient}} of the effect cases by their effect's detectability."""
+def _by_detectability(ok: list[dict], *, key: str = "detectability", symbol: str = "d") -> dict:
+    """{bin: {cases, strict, lenient, nothing}} of the effect cases by their effect's detectability (or, with
+    *key* ``identifiability``, by the part of it no elastic law can take: ``population/cases.py``,
+    ``_detectability``); ``nothing``: cases where discovery kept nothing, the right answer where the record
+    cannot tell the effect from an elastic law."""
     lo, hi = DETECT_BINS
-    keys = (f"d < {lo:g}", f"{lo:g} <= d < {hi:g}", f"d >= {hi:g}", "unknown")
-    out: dict = {k: {"cases": 0, "strict": 0, "lenient": 0} for k in keys}
+    keys = (f"{symbol} < {lo:g}", f"{lo:g} <= {symbol} < {hi:g}", f"{symbol} >= {hi:g}", "unknown")
+    out: dict = {k: {"cases": 0, "strict": 0, "lenient": 0, "nothing": 0} for k in keys}
     for r in ok:
-        d = r.get("detectability")
+        d = r.get(key)
         b = out[keys[3] if d is None else keys[0] if d < lo else keys[1] if d < hi else keys[2]]
         b["cases"] += 1
         b["strict"] += int(r["strict"])
         b["lenient"] += int(r["lenient"])
+        b["nothing"] += int(not r["effects"])
     return {k: v for k, v in out.items() if v["cases"]}
+
+
+def _by_class_identifiable(ok: list[dict]) -> dict:
+    """{class: {cases, strict}} of the effect cases whose records can tell the effect from an elastic law
+    (identifiability at least the upper detectability bin's edge, :data:`DETECT_BINS`)."""
+    out: dict = {}
+    for r in ok:
+        if (r.get("identifiability") or 0.0) >= DETECT_BINS[1]:
+            b = out.setdefault(r["class"], {"cases": 0, "strict": 0})
+            b["cases"] += 1
+            b["strict"] += int(r["strict"])
+    return {k: out[k] for k in CLASSES if k in out}
 
 
 def _row(t: dict, res: dict) -> dict:
@@ -227,6 +245,7 @@ def _row(t: dict, res: dict) -> dict:
             "family": t["family"], "law": t["base_law"]["name"], "format": t["format"],
             "variant": (t["effect"] or {}).get("variant"), "effect_size": (t["effect"] or {}).get("size"),
             "detectability": (t["effect"] or {}).get("detectability"),
+            "identifiability": (t["effect"] or {}).get("identifiability"),
             "files": len(t["files"]), "samples": sum(f["samples"] for f in t["files"]),
             "acquisition_error_of_range": max(f["acquisition_error_of_range"] for f in t["files"]),
             "chain": {k: ch.get(k) for k in ("filter", "order", "f_out", "bits", "quantize_at", "hum_of_noise",
@@ -315,6 +334,10 @@ def table(res: dict) -> str:
         lines.append(f"  {cls:24s} {b['ran']:3d} {b['strict']:7d} {b['lenient']:8d}  {kept}")
     lines.append("  by detectability: " + "; ".join(f"{k}: {v['strict']}/{v['lenient']} of {v['cases']}"
                                                     for k, v in e.get("by_detectability", {}).items()))
+    if e.get("by_identifiability"):
+        lines.append("  by identifiability (the part no elastic law takes): " + "; ".join(
+            f"{k}: {v['strict']}/{v['lenient']} of {v['cases']}, nothing kept {v['nothing']}"
+            for k, v in e["by_identifiability"].items()))
     lines.append(f"runtime: median {rt['median_s']} s, max {rt['max_s']} s, timeouts {len(rt['timeouts'])}, "
                  f"errors {len(res['errors'])}, wall {res['wall_s']} s with {res['jobs']} jobs")
     lines += [f"  error {x['case']} ({x['class']}): {x['message']}" for x in res["errors"]]

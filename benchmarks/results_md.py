@@ -212,6 +212,17 @@ def population_lines(doc: dict) -> list[str]:
                     "`benchmarks/population/cases.py`):", ""]
         out += table(["detectability", "cases", "named alone", "named"],
                      [[fmt(k), fmt(v["cases"]), fmt(v["strict"]), fmt(v["lenient"])] for k, v in det.items()])
+    ide = e.get("by_identifiability")
+    if ide:
+        out += ["", "By the effect's identifiability d_id (the part of d that no smooth elastic law of the stretch "
+                    "can take, `benchmarks/population/cases.py`; with d_id below 3 the records cannot tell the effect "
+                    "from another elastic law by any method, and keeping nothing is the right answer):", ""]
+        out += table(["identifiability", "cases", "named alone", "named", "nothing kept"],
+                     [[fmt(k), fmt(v["cases"]), fmt(v["strict"]), fmt(v["lenient"]), fmt(v["nothing"])]
+                      for k, v in ide.items()])
+        ids = e.get("by_class_identifiable", {})
+        out += ["", "Named alone where d_id >= 30, by class: " + ", ".join(
+            f"{k} {v['strict']}/{v['cases']}" for k, v in ids.items()) + "."]
     out += ["", f"Effect cases: named alone {pct(e['strict_rate'])}, named among others {pct(e['lenient_rate'])} "
                 f"of {fmt(e['ran'])}. Runtime per case: median {fmt(rt['median_s'])} s, largest {fmt(rt['max_s'])} s, "
                 f"{len(rt['timeouts'])} past the {fmt(doc.get('timeout_s'))} s limit, {len(doc.get('errors', []))} "

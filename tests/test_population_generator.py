@@ -531,3 +531,48 @@ def test_rescore_rebuilds_rows_from_the_truths_and_scores_them_again(tmp_path):
     src.write_text(json.dumps(run))
     with pytest.raises(SystemExit, match="other records"):
         B.main(["--rescore", str(src), "--out", str(out)])
+
+
+def test_the_part_no_elastic_law_takes():
+    """``_not_elastic``: a change that is a function of the stretch vanishing at the reference leaves nothing;
+    on a hold (one stretch) no function of the stretch follows a decay, so at least the decay's spread about
+    its mean is left."""
+    from population.cases import IDENTIFY_INTERVALS, _not_elastic
+    from scipy.interpolate import BSpline
+
+    x = np.concatenate([np.linspace(1.0, 1.4, 300), np.full(200, 1.4), np.linspace(1.4, 1.0, 300)])
+    knots = np.concatenate([[1.0] * 3, np.linspace(1.0, 1.4, IDENTIFY_INTERVALS + 1), [1.4] * 3])
+    basis = BSpline.design_matrix(x, knots, 3).toarray() - BSpline.design_matrix(np.array([1.0]), knots, 3).toarray()
+    elastic = 5.0 * (x - 1.0) ** 2 + np.sin(6.0 * (x - 1.0))
+    assert _not_elastic([(elastic, basis, 2.0)]) < 1e-12 * float(np.sum(elastic ** 2))
+    decay = np.zeros_like(x)
+    decay[300:500] = np.exp(-np.arange(200) / 40.0)
+    spread = float(np.sum((decay[300:500] - decay[300:500].mean()) ** 2))
+    assert _not_elastic([(decay, basis, 1.0)]) >= spread * (1 - 1e-9)
+    assert _not_elastic([(np.ones_like(x), basis, 1.0)]) > 0.0  # a constant does not vanish at the reference
+
+
+@pytest.mark.slow
+def test_a_slack_is_not_identifiable_and_a_misstated_area_is(tmp_path):
+    """The generated truth's identifiability (``population/cases.py``, ``_detectability``): a slack on a ramp
+    far out of the noise (d >> 3) is nothing an elastic law cannot take (d_id < 3); two specimens of one
+    material whose stated areas differ are (d_id of the order of d)."""
+    from population import make_case
+
+    todo = plan(2, 303, 0.66)
+    seqs = np.random.SeedSequence(2).spawn(303)
+    seen = {"slack": 0, "specimen_scale": 0}
+    for i, ((cls, kind), seq) in enumerate(zip(todo, seqs)):
+        if cls not in seen or seen[cls] >= 2:
+            continue
+        t = make_case(seq, cls, tmp_path / f"case_{i:04d}", kind=kind)
+        e = t["effect"]
+        if cls == "slack" and t["protocol"]["kind"] == "ramp" and e["detectability"] > 30:
+            assert e["identifiability"] < 3.0
+            seen[cls] += 1
+        elif cls == "specimen_scale":
+            assert e["identifiability"] > 0.3 * e["detectability"] > 30
+            seen[cls] += 1
+        if all(v >= 2 for v in seen.values()):
+            break
+    assert all(v >= 1 for v in seen.values())

@@ -34,7 +34,8 @@ from .exports import allowed, measured_area, measured_length, write
 from .machine import draw_levels, draw_timing
 from .protocols import KINDS, Protocol, build, command, motion
 
-GENERATOR_VERSION = "2.1"  # records bit for bit as "2"; truth.json adds the effect's detectability
+GENERATOR_VERSION = "2.2"  # records bit for bit as "2"; truth.json adds the effect's detectability (2.1) and
+#                             its identifiability (2.2)
 MAX_DURATION, MIN_DURATION = 6000.0, 15.0
 
 
@@ -198,10 +199,11 @@ def make_case(seq: np.random.SeedSequence, cls: str, folder: Path, *, kind: str 
     files = [_record_file(rng, folder, k, s, ch, sp, ks[k], errors[ks[k]], fmt, mode, x0, family, proto, cls,
                           prm, peak) for k, (s, ch, sp) in enumerate(zip(sims, chains, spec_of))]
     size = _effect_size(cls, prm, sims, peak)
-    detect = _detectability(seq, cls, prm, sims, chains, peak, [errors[k] for k in ks])
+    detect, ident = _detectability(seq, cls, prm, sims, chains, peak, [errors[k] for k in ks], x0)
     truth = {"schema": "population-case/1", "generator_version": GENERATOR_VERSION, "case": folder.name,
              "seed": {"entropy": seq.entropy, "spawn_key": list(seq.spawn_key)}, "class": cls,
-             "effect": None if cls == "clean" else {"name": cls, **prm, "size": size, "detectability": detect},
+             "effect": None if cls == "clean" else {"name": cls, **prm, "size": size, "detectability": detect,
+                                                     "identifiability": ident},
              "family": family, "shape": shape, "mode": mode, "base_law": law.describe(),
              "protocol": {"kind": kind, **proto.info, "shortest_segment_s": t_move, "longest_hold_s": t_long},
              "rupture": rup, "format": fmt,
@@ -228,9 +230,11 @@ def _effect_size(cls: str, prm: dict, sims: list[dict], peak: float) -> float | 
 
 
 def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, peak: float,
-                   errors: list[float]) -> float | None:
-    """How far the effect stands out of the acquisition noise in the recorded force: the signal-to-noise
-    ratio of the best test there is for it (the effect known exactly, its absence the alternative),
+                   errors: list[float], x0: float) -> tuple[float | None, float | None]:
+    """How far the effect stands out of the acquisition noise in the recorded force, (d, d_id).
+
+    **d** is the signal-to-noise ratio of the best test there is for the effect (the effect known
+    exactly, its absence the alternative),
 
         d = sqrt( sum_files sum_i Delta_i^2 / (sigma^2 tau) ),
 
@@ -238,16 +242,31 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
     standard deviation of the recorded acquisition error (noise, hum, quantization) and ``tau`` its
     integrated autocorrelation time in samples (:func:`integrated_time`), so that filtered, correlated
     noise counts as the fewer independent samples it is. An effect with d below 2-3 cannot be told
-    from the noise by any method, whatever its size over the force range; d says nothing about whether
-    an elastic law can absorb the effect (a slack is measured against the law at the longer
-    reference length, so what it adds over that re-parametrization is all that counts).
+    from the noise by any method, whatever its size over the force range.
+
+    **d_id** is the same ratio for the part of the record that no elastic law can take: ``Delta``
+    minus its weighted least-squares fit by a smooth function of the stretch alone that vanishes at
+    the reference stretch (a cubic spline of :data:`IDENTIFY_INTERVALS` intervals over the case's
+    stretch range, less its value at the reference; one function shared by every file of the case,
+    the material being one; each basis function put through the force channel's filters and
+    decimation as a force would be, so that their delay is not read as a path dependence). For a
+    slack, ``Delta`` is taken against the law at the longer length where the specimen is taut and
+    zero force where it is slack, itself such a function. A relaxation on one monotone ramp, a slack,
+    a gradual slip or a drift during one ramp is such a function (d_id near 0 however large d is): a
+    record of that protocol cannot tell the effect from another elastic law, by any method that does
+    not know the law. What remains is what the protocol makes identifiable: a hold, an unloading, a
+    second rate, a reading at rest, a second specimen, and features sharper than the spline's
+    intervals (a sudden slip: no smooth law drops while it is stretched).
+
     The noise is a fresh realization from the case's seed (spawn key extended), so the case's own
     files are unchanged.
     """
     if cls == "clean":
-        return None
+        return None, None
     rng = np.random.default_rng(np.random.SeedSequence(seq.entropy, spawn_key=(*seq.spawn_key, 2 ** 30)))
-    total = 0.0
+    lo, hi = min(x0, *(float(np.min(s["x"])) for s in sims)), max(x0, *(float(np.max(s["x"])) for s in sims))
+    d2 = 0.0
+    parts = []
     for s, ch, err in zip(sims, chains, errors):
         force = s["force"] + (E.offset_force(prm, s["t"], peak) if cls == "sensor_offset" else 0.0)
         rec = record_force(force, ch, None)
@@ -256,8 +275,50 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
         var = float(np.var(noise))
         if var <= 0.0:
             continue
-        total += float(np.sum(delta ** 2)) / (var * integrated_time(noise))
-    return float(np.sqrt(total))
+        w = 1.0 / (var * integrated_time(noise))
+        d2 += float(np.sum(delta ** 2)) * w
+        if cls == "slack":  # against the law at the longer length where taut, zero force where slack
+            delta = rec - record_force(np.maximum(s["ref"], 0.0), ch, None)
+        parts.append((delta, _elastic_basis(s["x"], x0, lo, hi, ch), w))
+    if not parts:
+        return 0.0, 0.0
+    return float(np.sqrt(d2)), float(np.sqrt(_not_elastic(parts)))
+
+
+#: cubic B-spline intervals over a case's stretch range for the elastic functions of :func:`_not_elastic`
+IDENTIFY_INTERVALS = 24
+
+
+def _elastic_basis(x: np.ndarray, x0: float, lo: float, hi: float, ch) -> np.ndarray:
+    """The recorded force of each elastic basis function of the stretch history *x* (fine grid), shape
+    (recorded samples, functions): cubic B-splines of :data:`IDENTIFY_INTERVALS` intervals over [lo, hi],
+    less their value at the reference *x0* (every function vanishes there), each put through the force
+    channel's filters and decimation as a force would be."""
+    from scipy.interpolate import BSpline
+
+    k = 3
+    if hi - lo <= 0.0:
+        return np.zeros((record_force(x, ch, None).size, 0))
+    knots = np.concatenate([[lo] * k, np.linspace(lo, hi, IDENTIFY_INTERVALS + 1), [hi] * k])
+    fine = BSpline.design_matrix(np.clip(x, lo, hi), knots, k).tocsc()
+    at0 = BSpline.design_matrix(np.array([x0]), knots, k).toarray()[0]
+    return np.stack([record_force(fine[:, j].toarray().ravel() - at0[j], ch, None)
+                     for j in range(fine.shape[1])], axis=1)
+
+
+def _not_elastic(parts: list) -> float:
+    """sum_i w_i r_i^2 of the residual r of the files' changes after the weighted least-squares fit of
+    one elastic function shared by all files; *parts*: (change, recorded basis, weight) per file
+    (:func:`_detectability`)."""
+    y = np.concatenate([p[0] for p in parts])
+    basis = np.concatenate([p[1] for p in parts])
+    w = np.concatenate([np.full(p[0].size, p[2]) for p in parts])
+    if basis.shape[1] == 0:
+        return float(np.sum(w * y ** 2))
+    sw = np.sqrt(w)
+    coef, *_ = np.linalg.lstsq(basis * sw[:, None], y * sw, rcond=None)
+    r = y - basis @ coef
+    return float(np.sum(w * r ** 2))
 
 
 def integrated_time(v: np.ndarray, c: float = 5.0) -> float:
