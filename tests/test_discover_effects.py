@@ -210,6 +210,16 @@ def test_noise_test_penalises_parameters_not_samples():
     assert better["dbic"] < 0 and better["dchi2"] == pytest.approx(400 * 9, rel=0.1)
 
 
+
+def test_a_candidate_without_parameters_must_change_the_fit():
+    """Δk = 0 (an offset held at its reading at rest): a fit the same to 1e-9 noise variances is the current
+    model and does not pass; one that removes a misfit does."""
+    rng = np.random.default_rng(3)
+    r0 = [rng.standard_normal(400)]
+    assert noise_test(r0, [r0[0] * (1 - 1e-12)], [1.0], 0)["dbic"] > 0
+    assert noise_test([r0[0] + 0.5], r0, [1.0], 0)["dbic"] < 0  # Δχ² about 100
+
+
 def _ar_noise(rng, n: int, phi: float) -> np.ndarray:
     """Unit-variance AR(1) noise (scipy.signal), its transient dropped."""
     e = signal.lfilter([1.0], [1.0, -phi], rng.standard_normal(n + 500))[500:]

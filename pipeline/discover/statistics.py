@@ -102,6 +102,10 @@ def noise_chi2(res: Sequence[np.ndarray], sigma: Sequence[float], tau: Sequence[
     return tot
 
 
+#: the fitted improvement [noise variances] below which a candidate with no parameter of its own is the current model
+SAME_MODEL_CHI2 = 1.0
+
+
 def noise_test(res0: Sequence[np.ndarray], res1: Sequence[np.ndarray], sigma: Sequence[float],
                dk: int, tau: Sequence[float] | None = None) -> dict[str, float]:
     """The pre-screen: the fitted improvement of a candidate (res1) over the current model (res0) in noise units.
@@ -111,10 +115,16 @@ def noise_test(res0: Sequence[np.ndarray], res1: Sequence[np.ndarray], sigma: Se
     with each record's χ² divided by its noise's autocorrelation time *tau*.
     Only a pre-screen (it saves the held-out check of candidates that cannot
     pay for themselves on the data they were fitted to); it decides nothing.
+
+    A candidate without a free parameter of its own (Δk = 0: an offset read at
+    rest, held) must still change the fit by :data:`SAME_MODEL_CHI2` noise
+    variance: below that it is the current model, and what its held-out errors
+    differ by is where the folds' refits, each started from its own model's fit,
+    stopped, not the model.
     """
     n = sum(int(np.isfinite(r).sum()) for r in res1)
     d = noise_chi2(res0, sigma, tau) - noise_chi2(res1, sigma, tau)
-    pen = max(dk, 0) * math.log(max(n, 2))
+    pen = max(dk, 0) * math.log(max(n, 2)) if dk != 0 else SAME_MODEL_CHI2
     return {"dchi2": d, "penalty": pen, "dbic": pen - d}
 
 
