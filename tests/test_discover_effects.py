@@ -188,6 +188,24 @@ def test_an_offset_is_measured_at_rest(noise):
         assert rest_reading(rec) == pytest.approx(-800.0, abs=200.0)
 
 
+def test_one_reading_at_rest_is_judged_by_the_records_noise():
+    """A record whose crosshead moves from its second sample has one reading at rest: an offset far beyond the
+    record's noise (and its resolution) is measured there, a reading within it is the tared zero."""
+    from pathlib import Path
+
+    from esmm.pipeline.tensile.data import TensileTest
+
+    rng = np.random.default_rng(13)
+    lam = np.concatenate([[1.0], np.linspace(1.001, 1.5, 1500), np.linspace(1.5, 1.0, 1500)])
+    stress = 20e3 * (lam - lam ** -2)
+    for offset, measured in ((-800.0, True), (0.0, False)):
+        y = stress + offset + 20.0 * rng.standard_normal(lam.size)
+        [rec] = prepare([TensileTest(source=Path("one.csv"), mode="uniaxial", stretch=lam, stress=y,
+                                     time=np.arange(lam.size) * 0.02)])
+        got = rest_reading(rec)
+        assert (got == pytest.approx(offset, abs=100.0)) if measured else got == 0.0
+
+
 # --------------------------------------------------------------------------- statistics
 def test_autocorrelation_time_of_an_ar1_series():
     rng = np.random.default_rng(2)

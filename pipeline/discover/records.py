@@ -272,7 +272,8 @@ def rest_reading(rec: Record) -> float | None:
     not fitted, so an offset can never absorb misfit.
 
     It is a measurement, so it counts only where it is one: the mean of the
-    samples at rest must differ from zero beyond its standard error (two-sided
+    samples at rest (one sample: its value, its error the record's noise σ) must
+    differ from zero beyond its standard error (two-sided
     at :data:`~esmm.pipeline.discover.statistics.REPLICATION_LEVEL`; the variance
     autocorrelation-consistent, :func:`~esmm.pipeline.discover.statistics.segment_mean`,
     plus the converter's quantisation q²/12, which averaging a constant reading
@@ -288,9 +289,10 @@ def rest_reading(rec: Record) -> float | None:
     if pre is None:
         return None
     mean, _, n = pre
-    if n < 2:
-        return 0.0
-    _, var, dof = segment_mean(rec.y[:n])
+    if n < 2:  # one reading: its error is the record's noise (its noise model, from all its samples)
+        var, dof = rec.sigma ** 2, math.inf
+    else:
+        _, var, dof = segment_mean(rec.y[:n])
     se = math.sqrt(var + rec.noise.quantum ** 2 / 12.0)
     p = 2.0 * float(stats.t.sf(abs(mean) / se, dof)) if se > 0 else (0.0 if mean else 1.0)
     if p > REPLICATION_LEVEL or abs(mean) < resolution(rec.y, rec.sigma):
