@@ -488,7 +488,7 @@ def test_detectability_is_reproduced_and_leaves_the_records_unchanged(tmp_path, 
     again = C.make_case(seq(), "sensor_offset", tmp_path / "b" / "case")
     d = truth["effect"]["detectability"]
     assert d == again["effect"]["detectability"] and d > 0.0
-    monkeypatch.setattr(C, "_detectability", lambda *a, **k: None)  # its extra noise draw taken away
+    monkeypatch.setattr(C, "_detectability", lambda *a, **k: (None, None))  # its extra noise draw taken away
     bare = C.make_case(seq(), "sensor_offset", tmp_path / "c" / "case")
     for f in truth["files"]:
         assert (tmp_path / "a" / "case" / f["file"]).read_bytes() == (tmp_path / "c" / "case" / f["file"]).read_bytes()
