@@ -26,7 +26,10 @@ Scoring:
 * every effect case carries its detectability (``population/cases.py``, ``_detectability``: the
   signal-to-noise ratio of the known effect in the recorded force, correlated noise counted as the
   fewer independent samples it is); the effect cases are also scored by detectability bins, so that
-  misses below the noise are told from misses of an effect that stands out of it.
+  misses below the noise are told from misses of an effect that stands out of it; and its
+  identifiability (the part of the detectability that no smooth elastic law of the stretch can take):
+  the cases are scored by its bins too (with how many kept nothing, the right answer where it is below
+  3), and by class where it is at least 30.
 * runtimes, timeouts, errors (non-zero exits with their last message line), seeds.
 
 ``python benchmarks/bench_discover_population.py --cases N --seed S --jobs J --out results.json

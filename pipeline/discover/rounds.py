@@ -246,8 +246,9 @@ def _path_dependent(s: Search, t: Trial, names: list[str]) -> bool:
     residual's, one-sided at :data:`REPLICATION_LEVEL`, and reaches the measurement's resolution
     (:mod:`.history`). A load cell's drift is judged the same way: its change in time is all it adds to an
     offset (a constant is a function of the stretch), and on a record that returns to the same stretches it
-    must explain what the residual does there over time, not an elastic law's misfit. Like the replication check it only removes candidates (the search-wide bound is
-    the held-out test's), so it is not adjusted for multiplicity. Writes the verdict on a single that fails."""
+    must explain what the residual does there over time, not an elastic law's misfit. Like the replication
+    check it only removes candidates (the search-wide bound is the held-out test's), so it is not adjusted
+    for multiplicity. Writes the verdict on a single that fails."""
     drift = "sensor_offset" in names and t.fit.spec.sensor_offset == 2 and s.current.spec.sensor_offset != 2
     if not (applies(names, s.current.problem.records) or drift):
         return True
