@@ -34,8 +34,8 @@ from .exports import allowed, measured_area, measured_length, write
 from .machine import draw_levels, draw_timing
 from .protocols import KINDS, Protocol, build, command, motion
 
-GENERATOR_VERSION = "2.2"  # records bit for bit as "2"; truth.json adds the effect's detectability (2.1) and
-#                             its identifiability (2.2)
+GENERATOR_VERSION = "2.3"  # records bit for bit as "2"; truth.json adds the effect's detectability (2.1) and
+#                             its identifiability (2.2; 2.3 in stress, one function for specimens of other areas)
 MAX_DURATION, MIN_DURATION = 6000.0, 15.0
 
 
@@ -199,7 +199,8 @@ def make_case(seq: np.random.SeedSequence, cls: str, folder: Path, *, kind: str 
     files = [_record_file(rng, folder, k, s, ch, sp, ks[k], errors[ks[k]], fmt, mode, x0, family, proto, cls,
                           prm, peak) for k, (s, ch, sp) in enumerate(zip(sims, chains, spec_of))]
     size = _effect_size(cls, prm, sims, peak)
-    detect, ident = _detectability(seq, cls, prm, sims, chains, peak, [errors[k] for k in ks], x0)
+    detect, ident = _detectability(seq, cls, prm, sims, chains, peak, [errors[k] for k in ks], x0,
+                                   [sp["area"] for sp in spec_of])
     truth = {"schema": "population-case/1", "generator_version": GENERATOR_VERSION, "case": folder.name,
              "seed": {"entropy": seq.entropy, "spawn_key": list(seq.spawn_key)}, "class": cls,
              "effect": None if cls == "clean" else {"name": cls, **prm, "size": size, "detectability": detect,
@@ -230,7 +231,7 @@ def _effect_size(cls: str, prm: dict, sims: list[dict], peak: float) -> float | 
 
 
 def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, peak: float,
-                   errors: list[float], x0: float) -> tuple[float | None, float | None]:
+                   errors: list[float], x0: float, areas: list[float]) -> tuple[float | None, float | None]:
     """How far the effect stands out of the acquisition noise in the recorded force, (d, d_id).
 
     **d** is the signal-to-noise ratio of the best test there is for the effect (the effect known
@@ -247,8 +248,9 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
     **d_id** is the same ratio for the part of the record that no elastic law can take: ``Delta``
     minus its weighted least-squares fit by a smooth function of the stretch alone that vanishes at
     the reference stretch (a cubic spline of :data:`IDENTIFY_INTERVALS` intervals over the case's
-    stretch range, less its value at the reference; one function shared by every file of the case,
-    the material being one; each basis function put through the force channel's filters and
+    stretch range, less its value at the reference; one function of the stress shared by every file
+    of the case, the material being one, each file's force its specimen's area times it; each basis
+    function put through the force channel's filters and
     decimation as a force would be, so that their delay is not read as a path dependence). For a
     slack, ``Delta`` is taken against the law at the longer length where the specimen is taut and
     zero force where it is slack, itself such a function. A relaxation on one monotone ramp, a slack,
@@ -267,7 +269,7 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
     lo, hi = min(x0, *(float(np.min(s["x"])) for s in sims)), max(x0, *(float(np.max(s["x"])) for s in sims))
     d2 = 0.0
     parts = []
-    for s, ch, err in zip(sims, chains, errors):
+    for s, ch, err, area in zip(sims, chains, errors, areas):
         force = s["force"] + (E.offset_force(prm, s["t"], peak) if cls == "sensor_offset" else 0.0)
         rec = record_force(force, ch, None)
         delta = rec * err if cls == "specimen_scale" else rec - record_force(s["ref"], ch, None)
@@ -279,7 +281,7 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
         d2 += float(np.sum(delta ** 2)) * w
         if cls == "slack":  # against the law at the longer length where taut, zero force where slack
             delta = rec - record_force(np.maximum(s["ref"], 0.0), ch, None)
-        parts.append((delta, _elastic_basis(s["x"], x0, lo, hi, ch), w))
+        parts.append((delta / area, _elastic_basis(s["x"], x0, lo, hi, ch), w * area ** 2))  # in stress
     if not parts:
         return 0.0, 0.0
     return float(np.sqrt(d2)), float(np.sqrt(_not_elastic(parts)))
