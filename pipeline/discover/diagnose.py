@@ -9,6 +9,10 @@ regression on the residual, both in units of each record's noise σ, is the
 score test of "candidate absent": the χ² that one more parameter along it
 would remove at first order (:attr:`Diagnosis.gains`). A candidate whose gain
 cannot pay for even one parameter's Schwarz penalty (ln N) is not fitted.
+Where the candidate's strength is bounded at zero (a term's modulus, a
+relaxation's or softening's strength, a set, a slack, a slip's loss), only the
+regression of the admissible sign counts: a residual that asks for a negative
+modulus is no evidence for the term, whose fit stops at zero strength.
 
 Plain covariate summaries (residual on loading vs unloading, against rate,
 during holds, below the previous maximum, in the toe region, at the
@@ -335,7 +339,7 @@ def _best(sig: _Signatures, name: str, variant: int, grid, sign: float = 0.0) ->
 def _score_viscoelastic(sig: _Signatures) -> float:
     b = sig.prob.bounds
     return _best(sig, "viscoelastic", 1, ({("viscoelastic", "u[0]"): _EPS, ("viscoelastic", "tau[0]"): math.log(t)}
-                                          for t in np.geomspace(b.tau_min * 2, b.tau_max / 10, 7)))
+                                          for t in np.geomspace(b.tau_min * 2, b.tau_max / 10, 7)), +1.0)
 
 
 def _score_kappa(sig: _Signatures) -> float:
@@ -359,20 +363,21 @@ def _score_damage(sig: _Signatures) -> float:
 def _score_cyclic(sig: _Signatures) -> float:
     w = sig.prob.bounds.w_ref
     return _best(sig, "cyclic_softening", 2, ({("cyclic_softening", "d_inf"): _EPS,
-                                               ("cyclic_softening", "eta"): math.log(q * w)} for q in (0.3, 3.0, 30.0)))
+                                               ("cyclic_softening", "eta"): math.log(q * w)} for q in (0.3, 3.0, 30.0)), +1.0)
 
 
 def _score_set(sig: _Signatures) -> float:
-    return _best(sig, "permanent_set", 1, [{("permanent_set", "fraction"): _EPS}])
+    return _best(sig, "permanent_set", 1, [{("permanent_set", "fraction"): _EPS}], +1.0)
 
 
-def _score_per_slot(sig: _Signatures, name: str, value) -> float:
-    """Artefacts with one coefficient per file, slip or specimen: the sum of their separate gains."""
+def _score_per_slot(sig: _Signatures, name: str, value, sign: float = 0.0) -> float:
+    """Artefacts with one coefficient per file, slip or specimen: the sum of their separate gains
+    (*sign* as in :meth:`_Signatures.gain`)."""
     try:
         sigs = sig.per_slot(name, 1, value)
     except Exception:  # noqa: BLE001 - a candidate that cannot be built scores 0
         return 0.0
-    return float(sum(sig.gain(s) for s in sigs))
+    return float(sum(sig.gain(s, sign) for s in sigs))
 
 
 def _score_offset(sig: _Signatures) -> float:
@@ -397,7 +402,7 @@ def _score_term(sig: _Signatures, name: str) -> float:
     stiff, shapes = term_grid(sig.prob, name)
     shape = term.shape_parameter
     grid = ({(None, term.modulus): 1e-6 * stiff, **({(None, shape): v} if shape else {})} for v in shapes)
-    return _best(sig, name, 1, grid)
+    return _best(sig, name, 1, grid, +1.0)
 
 
 def _scores(problem: Problem, z_full: np.ndarray, names: list[str]) -> tuple[dict[str, float], float]:
@@ -408,8 +413,8 @@ def _scores(problem: Problem, z_full: np.ndarray, names: list[str]) -> tuple[dic
         "viscoelastic": _score_viscoelastic, "nonlinear_viscoelastic": _score_kappa, "mullins": _score_mullins,
         "damage": _score_damage, "cyclic_softening": _score_cyclic, "permanent_set": _score_set,
         "sensor_offset": _score_offset,
-        "slack": lambda s: _score_per_slot(s, "slack", lambda p2, i: _EPS * b.xi_span),
-        "grip_slip": lambda s: _score_per_slot(s, "grip_slip", lambda p2, i: _EPS * b.xi_span),
+        "slack": lambda s: _score_per_slot(s, "slack", lambda p2, i: _EPS * b.xi_span, +1.0),
+        "grip_slip": lambda s: _score_per_slot(s, "grip_slip", lambda p2, i: _EPS * b.xi_span, +1.0),
         "specimen_scale": lambda s: _score_per_slot(s, "specimen_scale", lambda p2, i: _EPS),
     }
     out: dict[str, float] = {}
