@@ -79,7 +79,8 @@ def effect_params(f: Fitted, name: str) -> dict[str, Any]:
     simple = {"nonlinear_viscoelastic": (("kappa",), (st.kappa,) if f.spec.nonlinear_viscoelastic else None),
               "mullins": (("r", "m", "beta"), st.mullins), "damage": (("onset", "scale", "shape"), st.damage),
               "cyclic_softening": (("d_inf", "eta"), st.cyclic),
-              "permanent_set": (("fraction",), (st.set_fraction,) if f.spec.permanent_set else None)}
+              "permanent_set": (("fraction", "exponent")[:f.spec.permanent_set],
+                                (st.set_fraction, st.set_exponent)[:f.spec.permanent_set] or None)}
     if name in simple:
         keys, vals = simple[name]
         return {} if vals is None else dict(zip(keys, map(float, vals)))

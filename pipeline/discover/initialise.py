@@ -53,7 +53,9 @@ def _init_cyclic(prob: Problem, z: np.ndarray) -> np.ndarray:
 
 
 def _init_set(prob: Problem, z: np.ndarray) -> np.ndarray:
-    return _grid_search(prob, z, "permanent_set", ({"fraction": f} for f in (0.0, 0.05, 0.1, 0.2, 0.35, 0.5)))
+    exponents = (1.0, 2.0) if prob.spec.permanent_set == 2 else (1.0,)
+    return _grid_search(prob, z, "permanent_set", ({"fraction": f, "exponent": q}
+                                                   for f in (0.0, 0.05, 0.1, 0.2, 0.35, 0.5) for q in exponents))
 
 
 def _init_scales(prob: Problem, z: np.ndarray) -> np.ndarray:
@@ -285,7 +287,8 @@ def _stick_breaking(gs: list[float]) -> list[float]:
 
 
 def extend_variant(prob: Problem, z: np.ndarray, extra: list[int]) -> np.ndarray:
-    """Start the added slots of a richer variant: a small new Prony term far from the others."""
+    """Start the added slots of a richer variant: a small new Prony term far from the others, a small beta,
+    a set's exponent at 1 (the simpler variant's)."""
     z = z.copy()
     b = prob.bounds
     taus = [z[i] for i, s in enumerate(prob.slots) if s.effect == "viscoelastic" and s.name.startswith("tau")
@@ -301,4 +304,6 @@ def extend_variant(prob: Problem, z: np.ndarray, extra: list[int]) -> np.ndarray
             z[i] = 0.05
         elif s.name == "beta":
             z[i] = 0.1
+        elif s.name == "exponent":
+            z[i] = 1.0  # the proportional set the simpler variant fitted
     return np.clip(z, prob.lower, prob.upper)

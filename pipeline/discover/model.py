@@ -20,7 +20,7 @@ Prediction of one file, in this order (docs/design/discovery.md, "The extended m
 
 1. grip slip: ``x ← x - Σ_j δ_j [k ≥ k_j]`` (the extension lost at each slip);
    slack: ``x_true = max(x / (1 + δ_f), 1)`` (tension tests only);
-2. permanent set: ``λ_s = 1 + s_p (max x_true - 1)``, elastic stretch ``x_true/λ_s``;
+2. permanent set: ``λ_s = 1 + s_p (max x_true - 1)^q`` (q = 1 in variant 1), elastic stretch ``x_true/λ_s``;
 3. ``P_e = nominal_stress(elastic law, x_true/λ_s) / λ_s``;
 4. damage ``× (1 - D(ξ_max))``, Mullins ``× η(W, W_max)``, cyclic softening ``× c(α)``;
 5. viscoelastic: ``P = QLV[P_e]`` (with κ: the relaxed part scaled by s(ξ));
@@ -90,7 +90,7 @@ VARIANTS = {
     "mullins": (2, 3),  # (r, m) or (r, m, beta)
     "damage": (3,),  # (onset, scale, shape)
     "cyclic_softening": (2,),  # (d_inf, eta)
-    "permanent_set": (1,),  # fraction
+    "permanent_set": (1, 2),  # fraction, or fraction and exponent
     "slack": (1,),  # one slack length per file
     "sensor_offset": (1, 2),  # offset, or offset + linear drift, per file
     "specimen_scale": (1,),  # one stress scale per specimen
@@ -162,7 +162,7 @@ class Spec:
             "slack": "one slack length per file",
             "damage": "onset, scale, shape",
             "cyclic_softening": "d_inf, eta",
-            "permanent_set": "set fraction",
+            "permanent_set": "set fraction and exponent" if v == 2 else "set fraction (exponent 1)",
             "specimen_scale": "one stress scale per specimen (geometric mean 1)",
             "grip_slip": "one extension loss per detected slip",
         }.get(name, str(v))
@@ -218,6 +218,7 @@ class Values:
     damage: tuple[float, float, float] | None = None  # (onset, scale, shape)
     cyclic: tuple[float, float] | None = None  # (d_inf, eta)
     set_fraction: float = 0.0
+    set_exponent: float = 1.0
     slack: np.ndarray | None = None  # (n_files,) relative slack delta = s / L0
     scale: np.ndarray | None = None  # (n_files,) specimen stress scale
     slips: list[np.ndarray] = field(default_factory=list)  # per file: extension losses (stretch units)
@@ -235,7 +236,7 @@ class Values:
         if self.cyclic is not None:
             c = CyclicSofteningEffect(*self.cyclic)
         if self.set_fraction > 0.0:
-            p = PermanentSetEffect(self.set_fraction)
+            p = PermanentSetEffect(self.set_fraction, self.set_exponent)
         return MaterialEffects(v, m, d, {}, c, p)
 
 
@@ -292,6 +293,8 @@ def effect_slots(spec: Spec, b: Bounds) -> list[Slot]:
                           "stress"))
     if spec.permanent_set:
         slots.append(Slot("fraction", "permanent_set", None, False, 0.0, 0.9))
+        if spec.permanent_set == 2:
+            slots.append(Slot("exponent", "permanent_set", None, False, 0.5, 3.0))
     return slots
 
 
@@ -484,6 +487,7 @@ class ParameterLayout:
             st.cyclic = (v["d_inf"], math.exp(v["eta"]))
         elif effect == "permanent_set":
             st.set_fraction = v["fraction"]
+            st.set_exponent = v.get("exponent", 1.0)
 
     def _file_state(self, st: Values, z_full: np.ndarray) -> None:
         m = len(self.records)
@@ -559,7 +563,7 @@ class ForwardModel:
             params = st.base[r.key if self.directions else None]
             delta = float(st.slack[k]) if st.slack is not None else 0.0
             slips = tuple(float(v) for v in st.slips[k]) if st.slips else ()
-            hit = st.memo[k] = (tuple(sorted(params.items())), delta, slips, st.set_fraction), params
+            hit = st.memo[k] = (tuple(sorted(params.items())), delta, slips, st.set_fraction, st.set_exponent), params
         return hit
 
     def _x_true(self, k: int, st: Values, idx: np.ndarray) -> np.ndarray:
@@ -572,9 +576,9 @@ class ForwardModel:
         delta = float(st.slack[k]) if st.slack is not None else 0.0
         return np.maximum(x / (1.0 + delta), 1.0) if delta > 0.0 else x
 
-    def _path(self, mode: str, xs: list[np.ndarray], set_fraction: float) -> _Path:
+    def _path(self, mode: str, xs: list[np.ndarray], set_fraction: float, set_exponent: float = 1.0) -> _Path:
         """The loading path of several true-stretch arrays of one mode (after the set), evaluated once."""
-        lam_s = [set_stretch(np.maximum.accumulate(x), set_fraction) for x in xs] if set_fraction > 0 \
+        lam_s = [set_stretch(np.maximum.accumulate(x), set_fraction, set_exponent) for x in xs] if set_fraction > 0 \
             and mode != "simple_shear" else [None] * len(xs)
         xe = [x if s is None else x / s for x, s in zip(xs, lam_s)]
         x = np.concatenate(xe) if len(xe) > 1 else xe[0]
@@ -650,7 +654,7 @@ class ForwardModel:
             path = self._paths.get(pkey)
             if path is None:
                 xs = [self._x_true(k, st, self.records[k].fit_idx) for k, _ in pkey[1]]
-                path = self._path(pkey[0], xs, st.set_fraction)
+                path = self._path(pkey[0], xs, st.set_fraction, st.set_exponent)
                 self._remember(self._paths, pkey, path, 16)
             for (_, items), vals in zip(rows.values(), self._compute_elastic(path, [p for p, _ in rows.values()])):
                 for (k, key), val in zip(items, vals):
@@ -667,7 +671,8 @@ class ForwardModel:
             return hit
         _, params = self._key(k, st)
         mode = self.records[k].test.mode
-        return self._compute_elastic(self._path(mode, [self._x_true(k, st, idx)], st.set_fraction), [params])[0][0]
+        path = self._path(mode, [self._x_true(k, st, idx)], st.set_fraction, st.set_exponent)
+        return self._compute_elastic(path, [params])[0][0]
 
     def predict(self, k: int, st: Values, idx: np.ndarray | None = None, *, use_cache: bool = True) -> np.ndarray:
         """Model stress of record k on samples *idx* (default: its fitting samples), before offsets."""
@@ -1153,6 +1158,8 @@ def _effect_values(effects: MaterialEffects) -> dict[tuple[str, str], float]:
         vals.update({("cyclic_softening", "d_inf"): c.d_inf, ("cyclic_softening", "eta"): math.log(c.eta)})
     if effects.permanent_set is not None:
         vals[("permanent_set", "fraction")] = effects.permanent_set.fraction
+        if effects.permanent_set.exponent != 1.0:
+            vals[("permanent_set", "exponent")] = effects.permanent_set.exponent
     return vals
 
 
@@ -1162,7 +1169,8 @@ def spec_of_effects(effects: MaterialEffects, terms=()) -> Spec:
     return Spec(viscoelastic=len(v.g) if v else 0, nonlinear_viscoelastic=int(bool(v and v.kappa)),
                 mullins=3 if effects.mullins else 0, damage=3 if effects.damage else 0,
                 cyclic_softening=2 if effects.cyclic_softening else 0,
-                permanent_set=int(effects.permanent_set is not None), terms=tuple(terms))
+                permanent_set=(0 if effects.permanent_set is None else 1 if effects.permanent_set.exponent == 1.0 else 2),
+                terms=tuple(terms))
 
 
 __all__ = ["VARIANTS", "EFFECTS", "CANDIDATES", "Spec", "Slot", "Values", "Bounds", "ParameterLayout", "ForwardModel",

@@ -192,8 +192,10 @@ def _effect_sentence(res: DiscoverResult, name: str) -> str:
         return (f"it softens from cycle to cycle at the same amplitude, up to {100 * me.cyclic_softening.d_inf:.0f} % "
                 "when cycled long enough (preconditioning)")
     if name == "permanent_set" and me.permanent_set is not None:
+        ps = me.permanent_set
+        power = "" if ps.exponent == 1.0 else f"^{ps.exponent:.3g}"
         return (f"it keeps a residual strain: after a stretch λ it is stress-free only at "
-                f"1 + {me.permanent_set.fraction:.3g}(λ - 1)")
+                f"1 + {ps.fraction:.3g}(λ - 1){power}")
     if name == "specimen_scale":
         f = sorted(v["scale"] for v in p.values())
         return (f"the specimens differ in stiffness by factors {f[0]:.3g}–{f[-1]:.3g} (a cross-section measured "

@@ -73,13 +73,17 @@ Five *material* effects extend a hyperelastic base model with nominal stress
 ``permanent_set`` — residual strain that grows with the largest stretch
     .. math::
 
-        \lambda_s = 1 + s_p\,(\lambda_{max} - 1),\qquad
+        \lambda_s = 1 + s_p\,(\lambda_{max} - 1)^q,\qquad
         P = P_e(\lambda/\lambda_s)/\lambda_s ,
 
     the stress-free stretch :math:`\lambda_s` moves with the largest stretch
     reached (multiplicative split, the set configuration incompressible, hence
     the nominal-area factor :math:`1/\lambda_s`); below it a pulled strip is
-    slack (force 0). Stretch modes in tension only. :func:`set_stretch`.
+    slack (force 0). The exponent q is 1 (a residual strain proportional to
+    the largest strain) unless the data ask for another: filled rubbers'
+    residual strain grows faster than the prestrain (Dorfmann & Ogden 2004,
+    Int. J. Solids Struct. 41:1855). Stretch modes in tension only.
+    :func:`set_stretch`.
 
 Effects compose as
 :math:`P = \mathrm{VE}\bigl[(1-D)\,\eta\,c\;P_e(\lambda/\lambda_s)/\lambda_s\bigr]`,
@@ -355,9 +359,11 @@ def accumulated_energy(W):
     return np.cumsum(np.where(np.isfinite(d), d, 0.0))
 
 
-def set_stretch(lam_max, fraction: float):
-    """The stress-free (set) stretch ``1 + fraction (lam_max - 1)`` after the largest stretch *lam_max* (≥ 1)."""
-    return 1.0 + fraction * np.maximum(np.asarray(lam_max, float) - 1.0, 0.0)
+def set_stretch(lam_max, fraction: float, exponent: float = 1.0):
+    """The stress-free (set) stretch ``1 + fraction (lam_max - 1)**exponent`` after the largest stretch
+    *lam_max* (≥ 1)."""
+    strain = np.maximum(np.asarray(lam_max, float) - 1.0, 0.0)
+    return 1.0 + fraction * (strain if exponent == 1.0 else strain ** exponent)
 
 
 def relaxation_strength(xi, kappa: float, g_sum: float):
@@ -509,17 +515,21 @@ class CyclicSofteningEffect:
 
 @dataclass(frozen=True)
 class PermanentSetEffect:
-    """Residual strain: the set stretch is ``1 + fraction (lam_max - 1)``, ``fraction`` in [0, 1)."""
+    """Residual strain: the set stretch is ``1 + fraction (lam_max - 1)**exponent``, ``fraction`` in [0, 1),
+    ``exponent`` in [0.5, 3] (1: proportional to the largest strain)."""
 
     fraction: float
+    exponent: float = 1.0
 
     def __post_init__(self):
         if not (0.0 <= self.fraction < 1.0):
             raise ConfigError(f"permanent_set effect: fraction must be in [0, 1), got {self.fraction!r}")
+        if not (0.5 <= self.exponent <= 3.0):
+            raise ConfigError(f"permanent_set effect: exponent must be in [0.5, 3], got {self.exponent!r}")
 
     def set_stretch(self, lam_max):
         """λ_s after the largest stretches *lam_max*."""
-        return set_stretch(lam_max, self.fraction)
+        return set_stretch(lam_max, self.fraction, self.exponent)
 
 
 @dataclass(frozen=True)
@@ -640,8 +650,12 @@ class MaterialEffects:
             d["cyclic_softening"] = {"d_inf": self.cyclic_softening.d_inf, "eta": self.cyclic_softening.eta,
                                      "unit_eta": "Pa", "driver": "accumulated variation of W, sum |dW|"}
         if self.permanent_set is not None:
-            d["permanent_set"] = {"fraction": self.permanent_set.fraction,
-                                  "driver": "largest stretch so far: lam_s = 1 + fraction (lam_max - 1)"}
+            ps = self.permanent_set
+            d["permanent_set"] = ({"fraction": ps.fraction,
+                                   "driver": "largest stretch so far: lam_s = 1 + fraction (lam_max - 1)"}
+                                  if ps.exponent == 1.0 else
+                                  {"fraction": ps.fraction, "exponent": ps.exponent,
+                                   "driver": "largest stretch so far: lam_s = 1 + fraction (lam_max - 1)**exponent"})
         if self.intervals:
             d["intervals"] = {k: list(map(float, v)) for k, v in self.intervals.items()}
         return d
@@ -669,7 +683,7 @@ class MaterialEffects:
             cy = d.get("cyclic_softening")
             cyc = CyclicSofteningEffect(float(cy["d_inf"]), float(cy["eta"])) if cy else None
             ps = d.get("permanent_set")
-            pset = PermanentSetEffect(float(ps["fraction"])) if ps else None
+            pset = PermanentSetEffect(float(ps["fraction"]), float(ps.get("exponent", 1.0))) if ps else None
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(f"{where}: incomplete or malformed effect entry ({exc}); see docs/reference/configuration.md") from None
         # strict JSON writes an unbounded side as null: lower -inf, upper +inf
@@ -701,7 +715,9 @@ class MaterialEffects:
             t["cyclic_softening"] = {"d_inf": float(c.d_inf),
                                      "eta": f"{from_si(c.eta, stress_unit, 'stress'):.6g} {stress_unit}"}
         if self.permanent_set is not None:
-            t["permanent_set"] = {"fraction": float(self.permanent_set.fraction)}
+            ps = self.permanent_set
+            t["permanent_set"] = {"fraction": float(ps.fraction),
+                                  **({} if ps.exponent == 1.0 else {"exponent": float(ps.exponent)})}
         return t
 
     @classmethod
