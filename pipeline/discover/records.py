@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -28,7 +28,7 @@ from scipy import stats
 from ..calibrate.problem import stress_scale
 from ..tensile.data import TensileTest
 from ..tensile.events import SLIP_ALPHA, force_lag, rupture_index, slip_events
-from ..tensile.noise import Noise, noise_model
+from ..tensile.noise import Noise, noise_model, quantum
 from .covariates import Covariates, covariates, thin
 from .statistics import REPLICATION_LEVEL, resolution, segment_mean
 
@@ -61,6 +61,9 @@ class Record:
     cut: dict[str, Any] = field(default_factory=dict)
     #: ``{"seconds", "dropped"}`` when the force channel lagged the stretch and was advanced, else empty
     lag: dict[str, Any] = field(default_factory=dict)
+    #: the converter's step of the stress as recorded (before the lag's interpolation moved the readings off
+    #: their grid); None: read from :attr:`test`
+    raw_quantum: float | None = None
 
     def __post_init__(self):
         t = self.test
@@ -78,6 +81,8 @@ class Record:
         self.T = float(self.t[-1] - self.t[0]) if self.t is not None else 0.0
         #: the measurement noise of the stress, from the record alone (size [Pa], correlation, quantisation)
         self.noise: Noise = noise_model(self.y, self.t)
+        if self.raw_quantum and not self.noise.quantum:
+            self.noise = replace(self.noise, quantum=float(self.raw_quantum))
         #: its per-sample standard deviation [Pa]
         self.sigma = self.noise.sigma
         #: samples where the grip slipped (the stretch is shifted from each on)
@@ -129,11 +134,12 @@ def prepare(tests: Sequence[TensileTest], *, max_points: int = 600,
     for i, t in enumerate(tests):
         t, cut = cut_at_rupture(t)
         cov = covariates(t)
+        q = quantum(np.asarray(t.stress, float))
         t, lag = undo_force_lag(t, cov)
         if lag:
             cov = covariates(t)
         idx = thin(t, max_points, cov=cov)
-        out.append(Record(t, cov, idx, 1.0 if weights is None else float(weights[i]), cut, lag))
+        out.append(Record(t, cov, idx, 1.0 if weights is None else float(weights[i]), cut, lag, q))
     return out
 
 

@@ -123,6 +123,10 @@ def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, noise: N
     * it is sustained: the mean stress over the h + 1 samples after the fall
       stays below the level before it by more than half the fall (a spike falls
       back at once);
+    * every threshold above is raised by what the converter's rounding alone can do (the quantum q
+      of :attr:`~esmm.pipeline.tensile.noise.Noise.quantum` on a difference, 2q on a second
+      difference): where the reading sits on few levels its noise model sees the levels' runs as
+      correlation and predicts small falls, and a fall of one level is the rounding's, never a slip;
     * it loses less than :data:`RUPTURE_FRACTION` of the stress (else a rupture),
       and the same run then loads again, the stress rising after the fall by more
       than z s'_h (a softening keeps falling or levels off).
@@ -194,7 +198,8 @@ def _is_slip(x, y, s: int, e: int, k: int, m: int, z: float, scales: dict, loadi
         scales[h] = (max(_lag_scale(y, h, loading, True), noise.second_difference_sd(h)),
                      max(_lag_scale(y, h, loading, False), noise.difference_sd(2 * h)))
     floor = 1e-12 * float(np.max(np.abs(y)))
-    s2, s1 = z * max(scales[h][0], floor), z * max(scales[h][1], floor)
+    q = noise.quantum  # rounding alone moves a difference by up to q, a second difference by up to 2q
+    s2, s1 = z * max(scales[h][0], floor) + 2.0 * q, z * max(scales[h][1], floor) + q
     g = (y[m] - y[k]) - (y[k] - y[k - h])
     if not (g < -s2 and y[k] - y[m] > s1):
         return False
