@@ -54,7 +54,8 @@ def run_round(s: Search, rnd: int, rep) -> bool:
     if (not remaining and not upgradable) or len(s.kept) >= s.crit.max_effects:
         return False
     pairable = len(s.kept) + 2 <= s.crit.max_effects
-    lv = round_levels(s.crit.alpha, rnd, len(remaining) + len(upgradable),
+    fallbacks = sum(1 for n in remaining if len(VARIANTS.get(n, (1,))) > 1)  # a simpler variant checked too
+    lv = round_levels(s.crit.alpha, rnd, len(remaining) + len(upgradable) + fallbacks,
                       sum(1 for n in remaining if n not in TERMS) if pairable else 0)
     s.levels.append(lv)
     order = candidate_order(s, remaining, diag, rnd)
@@ -230,6 +231,11 @@ def _heldout_winner(s: Search, trials: list[Trial], rnd: int, lv: Levels) -> Tri
     for t in checked:
         h = _check(s, t, t.name)
         ok = passes(h, lv.single, s.crit.min_resolution_units)
+        if not ok and t.fallback is not None and t.name not in s.kept:
+            t, h = _simpler_variant(s, t, h, lv)
+            ok = passes(h, lv.single, s.crit.min_resolution_units)
+            if ok:
+                _record(s.candidates[t.name], t)
         if t.name in s.kept:  # a variant upgrade of a kept effect
             if ok:
                 s.upgrades.append(f"round {rnd}: {t.name} extended to {t.fit.spec.variant_text(t.name)} "
@@ -249,6 +255,22 @@ def _heldout_winner(s: Search, trials: list[Trial], rnd: int, lv: Levels) -> Tri
             continue
         return t
     return None
+
+
+def _simpler_variant(s: Search, t: Trial, h: dict, lv: Levels) -> tuple[Trial, dict]:
+    """The simpler variant of a candidate whose chosen (richer) variant failed the held-out check, and its
+    check, when it passes (else *t* and *h* as they were).
+
+    In-sample the richer variant always fits at least as well, and it may pay
+    for its parameters there by fitting what does not hold out (a load cell's
+    drift taking up an elastic misfit over the record's time); the variant it
+    contains is a hypothesis of its own, checked at the same level and counted
+    in the round's family (:func:`run_round`)."""
+    f = t.fallback
+    h2 = _check(s, f, f.name)
+    if passes(h2, lv.single, s.crit.min_resolution_units):
+        return f, h2
+    return t, h
 
 
 def _path_dependent(s: Search, t: Trial, names: list[str]) -> bool:

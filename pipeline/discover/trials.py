@@ -62,6 +62,9 @@ class Trial:
     info: dict[str, float]
     ref: dict[str, float]  # the current model's AICc/BIC, on the candidate's effective sample sizes
     heldout: dict[str, Any] = field(default_factory=dict)  # heldout_test, once checked
+    #: the simplest variant of the same candidate that passed the pre-screen, when this richer one was chosen
+    #: over it: checked on held-out data when this one fails there (it does not condemn what it contains)
+    fallback: Trial | None = None
 
     @property
     def dbic(self) -> float:
@@ -116,10 +119,12 @@ def best_variant(name: str, variants, current: Fitted, *, upgrade: bool = False,
 
     Each fit starts from the fit of the same spec in *warm* when there is one
     (the full search's, for an inner selection), else from the previous variant.
-    Returns the best variant by the pre-screen (None if no fit succeeded).
+    Returns the best variant by the pre-screen (None if no fit succeeded), with the simplest variant that
+    passed the pre-screen as its :attr:`Trial.fallback` when that is another.
     """
     best: Trial | None = None
     prev: Trial | None = None
+    simplest: Trial | None = None
     for v in variants:
         spec = current.spec.with_(name, v)
         if prev is not None and prev.fit.spec.compression:  # a richer relaxation keeps the simpler one's choice
@@ -134,9 +139,13 @@ def best_variant(name: str, variants, current: Fitted, *, upgrade: bool = False,
             break
         if best is None or t.dbic < best.dbic:
             best = t
+        if simplest is None and t.screened:
+            simplest = t
         if not upgrade and t.dbic > 0 and name not in ("viscoelastic", "sensor_offset"):
             break  # the simplest variant does not pay: the richer ones will not either
         prev = t
+    if best is not None and simplest is not None and simplest is not best:
+        best.fallback = simplest
     return best
 
 

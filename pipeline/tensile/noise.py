@@ -120,8 +120,12 @@ def quantum(y: np.ndarray) -> float:
     """The quantisation step of *y*: the smallest step between samples of which nearly all steps are multiples.
 
     Returns 0 when the values are not on a grid (fewer than 90 % of the
-    non-zero steps within 5 % of a multiple of the smallest), or when fewer
-    than 10 steps are non-zero.
+    non-zero steps within 10 % of a multiple of the smallest), or when fewer
+    than 10 steps are non-zero. The 10 %: a converter's levels written with a
+    few decimals are rounded a second time, so its steps are unequal by up to
+    one written digit (a 12-bit step of 0.0122 N written to 0.001 N steps by
+    0.012 and 0.013 N); values off any grid put a fifth of their steps within
+    10 % of a multiple, far from nine tenths.
     """
     y = np.asarray(y, float)
     y = y[np.isfinite(y)]
@@ -134,8 +138,43 @@ def quantum(y: np.ndarray) -> float:
         return 0.0
     q = float(np.min(d))
     r = d / q
-    on_grid = np.abs(r - np.round(r)) <= 0.05
-    return q if float(np.mean(on_grid)) >= 0.9 else 0.0
+    on_grid = np.abs(r - np.round(r)) <= 0.1
+    return max(q if float(np.mean(on_grid)) >= 0.9 else 0.0, level_step(y, grid=q))
+
+
+#: a record whose readings sit on plateaus (runs of three or more equal values) for at least this fraction of
+#: its samples reads its converter's levels, not its noise
+PLATEAU_SHARE = 0.5
+
+
+def level_step(y: np.ndarray, *, grid: float = 0.0) -> float:
+    """The spacing of the converter's levels in a record that rests on them, else 0.
+
+    A converter whose step is larger than the noise before it reads the same
+    level for many samples; a digital filter after it (quantisation at the
+    converter, then filtering and decimation) turns each change of level into a
+    short filtered transition, so the written values are off any grid and
+    their own steps say nothing of the level spacing. The plateaus do: where
+    runs of three or more equal readings (within *grid*, the written
+    resolution) hold at least :data:`PLATEAU_SHARE` of the samples, the step is
+    the lower quartile of the changes between successive plateaus larger than
+    three written digits (a change of several levels at once is rarer than of
+    one; at least ten such changes). The error of such a record against a
+    smooth signal is the rounding's, up to half this step: the noise estimate
+    of third differences, which sees mostly zeros, is far below it.
+    """
+    tol = max(0.5 * grid, 1e-9 * (float(np.max(np.abs(y))) or 1.0))
+    same = np.abs(np.diff(y)) <= tol
+    starts = np.flatnonzero(np.diff(np.concatenate(([0], same.astype(np.int8), [0]))) == 1)
+    stops = np.flatnonzero(np.diff(np.concatenate(([0], same.astype(np.int8), [0]))) == -1)
+    lengths = stops - starts + 1  # samples in each run of equal readings
+    keep = lengths >= 3
+    if float(np.sum(lengths[keep])) < PLATEAU_SHARE * y.size:
+        return 0.0
+    levels = y[starts[keep]]
+    d = np.abs(np.diff(levels))
+    d = d[d > max(3.0 * grid, tol)]
+    return float(np.percentile(d, 25)) if d.size >= 10 else 0.0
 
 
 def _robust_scale(y: np.ndarray, L: int) -> float:
@@ -282,7 +321,7 @@ def noise_sd(y: np.ndarray) -> float:
     return noise_model(y).sigma
 
 
-__all__ = ["Noise", "noise_model", "noise_sd", "quantum", "lag_profile", "robust_sd", "FLAT_RATIO", "FORCE_ACCURACY",
+__all__ = ["Noise", "noise_model", "noise_sd", "quantum", "level_step", "lag_profile", "robust_sd", "FLAT_RATIO", "FORCE_ACCURACY",
            "resolution"]
 
 
