@@ -203,11 +203,18 @@ def _block_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
 
 def _after_first_loading(r: Record) -> int:
     """The first sample after the first loading to the record's largest stretch (0: the record is all first
-    loading, or the rest is too short to be cut in five blocks)."""
+    loading, or the rest is too short to be cut in five blocks, or shorter than one block of the whole).
+
+    A ramp that ends in a short hold or return is a ramp: judged on its tail
+    alone (a twentieth of it, say), a held-out check would see nothing of what
+    happened on the way up (a slip, a load cell's offset), where a ramp that
+    stops at its peak is cut in blocks over all of it.
+    """
     if not r.history:
         return 0
     k = int(np.argmax(r.cov.drive)) + 1
-    return k if r.test.n - k >= MIN_AFTER else 0
+    rest = r.test.n - k
+    return k if rest >= MIN_AFTER and rest >= r.test.n / BLOCKS else 0
 
 
 def _file_fold(name: str, records, held: list[int]) -> Fold:
