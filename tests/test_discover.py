@@ -114,6 +114,22 @@ def test_material_effects_roundtrip_json_and_toml(tmp_path):
         ViscoelasticEffect((0.7, 0.6), (1.0, 2.0))
 
 
+def test_first_order_gain_counts_only_the_admissible_sign():
+    """The score test's χ² along a signature, against hand values: e = 3 s + w (w ⟂ s, s ⟂ the model's
+    span) removes 9 |s|² at first order with a coefficient of either sign or +1, none with −1; with
+    e = −3 s a candidate bounded at zero strength (a modulus, a set, a slip) gains nothing."""
+    from esmm.pipeline.discover.diagnose import _Signatures
+
+    sig = object.__new__(_Signatures)
+    sig.Q = np.array([[1.0], [0.0], [0.0]])  # the current model can move the first sample only
+    s = np.array([0.0, 1.0, 0.0])
+    for e, plus, minus in ((3.0 * s + np.array([0.0, 0.0, 2.0]), 9.0, 0.0), (-3.0 * s, 0.0, 9.0)):
+        sig.e_perp = e
+        assert sig.gain(s) == pytest.approx(9.0)
+        assert sig.gain(s, +1.0) == pytest.approx(plus) and sig.gain(s, -1.0) == pytest.approx(minus)
+    assert sig.gain(np.array([1.0, 0.0, 0.0])) == 0.0  # what the model already spans gains nothing
+
+
 def test_statistics_against_hand_values():
     rng = np.random.default_rng(1)
     white = rng.standard_normal(4000)

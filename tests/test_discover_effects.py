@@ -299,3 +299,48 @@ def test_replication_check_rejects_an_improvement_small_next_to_the_misfit_left(
     assert h["p"] < 1e-6 and h["p_replication"] > 0.05
 
 
+
+
+def test_set_stretch_with_an_exponent_and_its_record():
+    """λ_s = 1 + f (λ_max − 1)^q against hand values; the exponent round-trips, and a proportional set (q = 1)
+    is written as before (no exponent key), so records written before the exponent read unchanged."""
+    np.testing.assert_allclose(set_stretch(np.array([1.0, 1.5, 3.0]), 0.2, 2.0), [1.0, 1.05, 1.8])
+    me = MaterialEffects(None, None, None, {}, None, PermanentSetEffect(0.1, 1.7))
+    assert MaterialEffects.from_dict(json.loads(json.dumps(me.to_dict()))) == me
+    assert MaterialEffects.from_toml_table(me.to_toml_table()).permanent_set.exponent == 1.7
+    plain = MaterialEffects(None, None, None, {}, None, PermanentSetEffect(0.1))
+    assert "exponent" not in plain.to_dict()["permanent_set"] and "exponent" not in plain.to_toml_table()["permanent_set"]
+    assert MaterialEffects.from_dict(plain.to_dict()).permanent_set.exponent == 1.0
+    with pytest.raises(ConfigError, match="exponent"):
+        PermanentSetEffect(0.1, 5.0)
+
+
+def test_a_set_that_grows_faster_than_the_prestrain_is_named_alone():
+    """Cycles to rising peaks of a neo-Hookean strip with a residual stretch 1 + 0.15 (λ_max − 1)²
+    (the population generator's formula, Dorfmann & Ogden 2004): the permanent set is kept in its variant
+    with an exponent, near 2, and nothing else; with the proportional set alone a relaxation and a damage
+    were kept instead."""
+    from pathlib import Path
+
+    from esmm.pipeline.discover import discover
+    from esmm.pipeline.tensile.data import TensileTest
+    from population import history as H
+    from population.laws import ISOTROPIC
+
+    law = ISOTROPIC["neo_hookean"](mu=20e3)
+    peaks = (1.2, 1.35, 1.5, 1.65, 1.8)
+    legs = [np.linspace(1.0, peaks[0], 200)]
+    for a, b in zip(peaks, peaks[1:] + (None,)):
+        legs.append(np.linspace(a, 1.0, 200)[1:])
+        if b is not None:
+            legs.append(np.linspace(1.0, b, 200)[1:])
+    x = np.concatenate(legs)
+    t = np.arange(x.size) * 0.05
+    p = H.permanent_set(x, lambda v: law.stress(v, "uniaxial"), f=0.15, q=2.0)
+    y = p + 0.003 * float(p.max()) * np.random.default_rng(4).standard_normal(x.size)
+    rec = TensileTest(source=Path("set.csv"), mode="uniaxial", stretch=x, stress=y, time=t)
+    from esmm.pipeline.materials.terms import TERMS
+    res = discover([rec], model="arruda-boyce", n_starts=2, max_points=400, nested=False)
+    assert [n for n in res.kept if n not in TERMS] == ["permanent_set"], {n: c.reason for n, c in res.candidates.items()}
+    ps = res.material_effects.permanent_set
+    assert ps.exponent == pytest.approx(2.0, abs=0.3) and ps.fraction == pytest.approx(0.15, rel=0.3)

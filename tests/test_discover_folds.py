@@ -155,3 +155,20 @@ def test_nested_folds_do_not_fork_inside_a_daemonic_worker():
     got = q.get(timeout=60)
     p.join(timeout=60)
     assert got == 1
+
+
+def test_a_ramp_with_a_short_tail_is_cut_in_blocks_over_all_of_it():
+    """A ramp that ends in a short hold is judged as a ramp (blocks over all of it), not on its tail alone;
+    a ramp followed by a long hold keeps its first loading always fitted."""
+    t = np.linspace(0.0, 60.0, 1201)
+    lam = np.minimum(1.0 + 0.01 * t, 1.5)  # the ramp reaches its peak at 50 s: a 10 s hold is a sixth
+    stress, _ = _arruda_boyce(lam)
+    short = TensileTest(source=Path("ramp.csv"), mode="uniaxial", stretch=lam, stress=stress, time=t)
+    [r] = prepare([short], max_points=200)
+    assert r.history and ho._after_first_loading(r) == 0
+    t2 = np.linspace(0.0, 150.0, 3001)
+    lam2 = np.minimum(1.0 + 0.01 * t2, 1.5)
+    long = TensileTest(source=Path("hold.csv"), mode="uniaxial", stretch=lam2, stress=_arruda_boyce(lam2)[0], time=t2)
+    [r2] = prepare([long], max_points=200)
+    k = ho._after_first_loading(r2)
+    assert 0 < k < r2.test.n and r2.x[k - 1] == pytest.approx(1.5)

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 from esmm.pipeline.tensile.events import rupture_index, slip_events
-from esmm.pipeline.tensile.noise import noise_model, noise_sd, quantum
+from esmm.pipeline.tensile.noise import level_step, noise_model, noise_sd, quantum
 from scipy import signal
 
 N = 8000
@@ -99,6 +99,38 @@ def test_quantised_record_floors_at_the_step():
     y2 = np.round((p + 500.0 * rng.standard_normal(N)) / q) * q
     assert noise_sd(y2) == pytest.approx(math.hypot(500.0, q / math.sqrt(12.0)), rel=0.1)
     assert quantum(p + rng.standard_normal(N)) == 0.0
+
+
+def test_levels_written_with_few_decimals_are_still_a_grid():
+    """A 12-bit step of 0.0122 N written to 0.001 N: the steps read 0.012 and 0.013 N, one grid."""
+    rng = np.random.default_rng(6)
+    t, _, p = _signal()
+    force = np.round(np.round((p / 1e5 + 0.002 * rng.standard_normal(N)) / 0.0122) * 0.0122, 3)
+    assert quantum(force) == pytest.approx(0.012, rel=1e-6)
+
+
+def _quantised_then_filtered(rng, p: np.ndarray, q: float, sd: float) -> np.ndarray:
+    """Noise *sd* added, rounded to the converter's step *q*, then a digital low-pass filter (4th-order
+    Butterworth at 0.05 of Nyquist, as a decimating filter after the converter)."""
+    y = np.round((p + sd * rng.standard_normal(p.size)) / q) * q
+    return signal.filtfilt(*signal.butter(4, 0.05), y)
+
+
+def test_levels_of_a_converter_read_before_a_filter():
+    """Quantised at the converter, then filtered: the readings rest on the converter's levels between short
+    transitions, off any grid; the level step is read from the plateaus, the noise is floored at its
+    rounding error, and no transition between levels is taken for a slip. With noise above the step
+    (dithered) there are no plateaus and nothing is read."""
+    rng = np.random.default_rng(8)
+    t, x, p = _signal()
+    q = 2000.0  # a 50 kPa span on ~25 levels
+    y = np.round(_quantised_then_filtered(rng, 0.5 * (p - p[0]) / p.max() * 5e4, q, 10.0))  # written to 1 Pa
+    assert level_step(y, grid=1.0) == pytest.approx(q, rel=0.05)
+    m = noise_model(y, t)
+    assert m.quantum == pytest.approx(q, rel=0.05) and m.sigma >= q / math.sqrt(12.0) * 0.95
+    assert slip_events(x, y, np.ones(N, dtype=int), noise=m) == []
+    dithered = np.round(_quantised_then_filtered(rng, 0.5 * (p - p[0]) / p.max() * 5e4, q, 3000.0))
+    assert level_step(dithered, grid=1.0) == 0.0
 
 
 def test_subsampling_keeps_sigma_on_filtered_noise():

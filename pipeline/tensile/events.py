@@ -127,9 +127,11 @@ def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, noise: N
       of :attr:`~esmm.pipeline.tensile.noise.Noise.quantum` on a difference, 2q on a second
       difference): where the reading sits on few levels its noise model sees the levels' runs as
       correlation and predicts small falls, and a fall of one level is the rounding's, never a slip;
-    * it loses less than :data:`RUPTURE_FRACTION` of the stress (else a rupture),
-      and the same run then loads again, the stress rising after the fall by more
-      than z s'_h (a softening keeps falling or levels off).
+    * the specimen still carries load after it (the stress at its bottom above z s'_h), and the same run
+      then loads again, the stress rising after the fall by more than z s'_h (a softening keeps falling
+      or levels off). How much it loses does not matter: a friction-limited grip can give back most of
+      the extension reached, and a fall after which the stress never comes back is a rupture, cut from
+      the record before slips are sought (:func:`rupture_index`).
 
     Two falls closer than either's duration are one slip (the filter's ringing
     splits a fall). No window counts samples: the fall's own duration sets the lag.
@@ -192,7 +194,7 @@ def _lag_scale(y: np.ndarray, h: int, loading: list[tuple[int, int]], second: bo
 def _is_slip(x, y, s: int, e: int, k: int, m: int, z: float, scales: dict, loading, noise: Noise) -> bool:
     """Whether the fall from sample k to m of the loading run [s, e) is a slip (see :func:`slip_events`)."""
     h = m - k
-    if k - h < s or y[m] <= RUPTURE_FRACTION * y[k]:
+    if k - h < s:
         return False
     if h not in scales:
         scales[h] = (max(_lag_scale(y, h, loading, True), noise.second_difference_sd(h)),
@@ -201,7 +203,7 @@ def _is_slip(x, y, s: int, e: int, k: int, m: int, z: float, scales: dict, loadi
     q = noise.quantum  # rounding alone moves a difference by up to q, a second difference by up to 2q
     s2, s1 = z * max(scales[h][0], floor) + 2.0 * q, z * max(scales[h][1], floor) + q
     g = (y[m] - y[k]) - (y[k] - y[k - h])
-    if not (g < -s2 and y[k] - y[m] > s1):
+    if not (g < -s2 and y[k] - y[m] > s1 and y[m] > s1):
         return False
     # a fall back to where a sudden rise started is a toggle or a spike, not a slip
     jump_before = k - 2 * h >= s and abs((y[k] - y[k - h]) - (y[k - h] - y[k - 2 * h])) > s1

@@ -117,7 +117,9 @@ class Noise:
 
 
 def quantum(y: np.ndarray) -> float:
-    """The quantisation step of *y*: the smallest step between samples of which nearly all steps are multiples.
+    """The quantisation step of *y*: the smallest step between samples of which nearly all steps are multiples,
+    or the spacing of the levels the reading rests on (:func:`level_step`) where that is more than four times
+    larger (the grid is then the written digits', finer than the converter's).
 
     Returns 0 when the values are not on a grid (fewer than 90 % of the
     non-zero steps within 10 % of a multiple of the smallest), or when fewer
@@ -139,7 +141,10 @@ def quantum(y: np.ndarray) -> float:
     q = float(np.min(d))
     r = d / q
     on_grid = np.abs(r - np.round(r)) <= 0.1
-    return max(q if float(np.mean(on_grid)) >= 0.9 else 0.0, level_step(y, grid=q))
+    grid = q if float(np.mean(on_grid)) >= 0.9 else 0.0
+    levels = level_step(y, grid=grid)
+    # a grid much finer than the levels the reading rests on is the written digits', not the converter's
+    return levels if levels > 4.0 * grid else grid
 
 
 #: a record whose readings sit on plateaus (runs of three or more equal values) for at least this fraction of
@@ -157,9 +162,10 @@ def level_step(y: np.ndarray, *, grid: float = 0.0) -> float:
     their own steps say nothing of the level spacing. The plateaus do: where
     runs of three or more equal readings (within *grid*, the written
     resolution) hold at least :data:`PLATEAU_SHARE` of the samples, the step is
-    the lower quartile of the changes between successive plateaus larger than
-    three written digits (a change of several levels at once is rarer than of
-    one; at least ten such changes). The error of such a record against a
+    the lower quartile of the changes between successive resting plateaus (the
+    longest, four fifths of the plateaus' samples) larger than three written
+    digits (a change of several levels at once is rarer than of one; at least
+    five such changes). The error of such a record against a
     smooth signal is the rounding's, up to half this step: the noise estimate
     of third differences, which sees mostly zeros, is far below it.
     """
@@ -171,10 +177,16 @@ def level_step(y: np.ndarray, *, grid: float = 0.0) -> float:
     keep = lengths >= 3
     if float(np.sum(lengths[keep])) < PLATEAU_SHARE * y.size:
         return 0.0
-    levels = y[starts[keep]]
+    # the resting plateaus: the longest, holding four fifths of the plateaus' samples (a filter that settles
+    # slowly after a change of level leaves short runs at values between)
+    idx = np.flatnonzero(keep)
+    order = idx[np.argsort(-lengths[idx], kind="stable")]
+    cover = np.cumsum(lengths[order])
+    rest = np.sort(order[: int(np.searchsorted(cover, 0.8 * cover[-1])) + 1])
+    levels = y[starts[rest]]
     d = np.abs(np.diff(levels))
     d = d[d > max(3.0 * grid, tol)]
-    return float(np.percentile(d, 25)) if d.size >= 10 else 0.0
+    return float(np.percentile(d, 25)) if d.size >= 5 else 0.0
 
 
 def _robust_scale(y: np.ndarray, L: int) -> float:
