@@ -123,10 +123,8 @@ def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, noise: N
     * it is sustained: the mean stress over the h + 1 samples after the fall
       stays below the level before it by more than half the fall (a spike falls
       back at once);
-    * every threshold above is raised by what the converter's rounding alone can do (the quantum q
-      of :attr:`~esmm.pipeline.tensile.noise.Noise.quantum` on a difference, 2q on a second
-      difference): where the reading sits on few levels its noise model sees the levels' runs as
-      correlation and predicts small falls, and a fall of one level is the rounding's, never a slip;
+    * every threshold is raised by what the converter's rounding alone can do (the quantum q on a
+      difference, 2q on a second difference): a fall of one level is the rounding's, never a slip;
     * the specimen still carries load after it (the stress at its bottom above z s'_h), and the same run
       then loads again, the stress rising after the fall by more than z s'_h (a softening keeps falling
       or levels off). How much it loses does not matter: a friction-limited grip can give back most of
