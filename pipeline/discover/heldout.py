@@ -11,7 +11,7 @@ Two fold sets (docs/design/discovery.md, "Held-out data: the folds, and what is 
   file out. A file is never held out if it is the only one of its loading mode
   (that would test extrapolation between modes, not effects).
 * the **artefact scheme** (:func:`artefact_folds`): five consecutive blocks of
-  every file, over all of it (the first loading too). A per-file artefact (slack, grip
+  every file, the first loading always fitted. A per-file artefact (slack, grip
   slips, a specimen's stress scale, a load-cell offset and drift) is estimated
   on the training samples *of the same file* and judged on its held-out
   samples; on a held-out file it could only be estimated from that file's own
@@ -66,25 +66,17 @@ class FoldSet:
 
 
 def artefact_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
-    """The artefact scheme: five consecutive blocks of every file, over all of it.
-
-    Unlike the material scheme's blocks, the first loading is cut too: a
-    slip, a load cell's offset read before the test or a slack shows on the
-    way up, and a check that always fits the first loading sees only what
-    follows it (a staircase's last step, a ramp's return), where the law
-    has taken the artefact up already. The base model is judged on the same
-    blocks, so the law's extrapolation into a held-out block is on both sides.
-    """
-    return _block_folds(records, whole=True)
+    """The artefact scheme: five consecutive blocks of every file, the first loading always fitted."""
+    return _block_folds(records)
 
 
 def fold_sets(records: Sequence[Record]) -> tuple[FoldSet, FoldSet]:
-    """(material scheme, artefact scheme); one object when both are the same blocks."""
+    """(material scheme, artefact scheme); one object when both are the block scheme."""
     scheme, folds = make_folds(records)
     mat = FoldSet("material", scheme, folds)
-    a_scheme, a_folds = artefact_folds(records)
-    if a_scheme == scheme:  # the block scheme over whole records already
+    if scheme.startswith("leave one of"):  # the block scheme already
         return mat, mat
+    a_scheme, a_folds = artefact_folds(records)
     return mat, FoldSet("artefact", a_scheme, a_folds)
 
 
@@ -183,17 +175,16 @@ def _cycle_folds(records: Sequence[Record]) -> tuple[str, list[Fold]] | None:
     return "leave one cycle out, the first always fitted", folds
 
 
-def _block_folds(records: Sequence[Record], *, whole: bool = False) -> tuple[str, list[Fold]]:
+def _block_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
     """Leave one of five consecutive blocks of every file out.
 
     The first loading up to a record's largest stretch is what determines the
     elastic law; where the record goes on after it (a hold, an unloading), the
     blocks are cut from what follows and the first loading is always fitted:
     holding it out would test the elastic law's extrapolation, not the effects.
-    With *whole* (the artefact scheme) the blocks are cut over all of each record.
     """
     folds = []
-    after = [0 if whole else _after_first_loading(r) for r in records]
+    after = [_after_first_loading(r) for r in records]
     for j in range(BLOCKS):
         masks = {}
         for k, r in enumerate(records):

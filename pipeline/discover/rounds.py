@@ -81,8 +81,8 @@ def run_round(s: Search, rnd: int, rep) -> bool:
 
 
 def elastic_first(trials: list[Trial]) -> list[Trial]:
-    """The order of the held-out checks: grip slips, then strain-energy terms, then effects and artefacts,
-    each by fitted improvement (of two nested candidates the simpler first).
+    """The order of the held-out checks: strain-energy terms first, then effects and artefacts, each by
+    fitted improvement (of two nested candidates the simpler first).
 
     Elastic first: the base law is an approximation of the material's, and a
     history effect or an artefact fitted to an elastic misfit also predicts
@@ -90,21 +90,11 @@ def elastic_first(trials: list[Trial]) -> list[Trial]:
     better; a residual that a strain-energy term explains on held-out data
     needs no history, and that explanation is the simpler one. A history
     effect is then judged on what the richer law leaves.
-
-    Grip slips before the law: a slip is fitted only where the record itself
-    shows a sudden, sustained fall of the stress while the stretch advances
-    (:func:`~esmm.pipeline.tensile.events.slip_events`, at most one false event
-    in a hundred clean records), which no elastic law can give. A term checked
-    first takes up the stretch the slip lost (a toe shifts the curve as the
-    slip does) and leaves the fall itself, a few samples, too little for the
-    held-out check; the slip checked first explains both, and the law is then
-    judged on what the slip leaves.
     """
-    slips = [t for t in trials if t.name == "grip_slip"]
     terms = sorted((t for t in trials if t.name in TERMS), key=lambda t: t.dbic)
-    rest = sorted((t for t in trials if t.name not in TERMS and t.name != "grip_slip"), key=lambda t: t.dbic)
+    rest = sorted((t for t in trials if t.name not in TERMS), key=lambda t: t.dbic)
     _nested_after(rest, "nonlinear_viscoelastic", "viscoelastic")
-    return slips + terms + rest
+    return terms + rest
 
 
 def _nested_after(trials: list[Trial], rich: str, simple: str) -> None:
