@@ -80,7 +80,8 @@ def test_the_python_example_runs(page, code, tmp_path):
     p = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
                        timeout=3600)
     assert p.returncode == 0, f"{page}: the example failed:\n{p.stderr[-3000:]}"
-    assert "how far to trust this asset:" in p.stdout and "than real time" in p.stdout
+    # the speed in words, whatever the machine's load: "N times faster/slower than" or "as fast as real time"
+    assert "how far to trust this asset:" in p.stdout and "x real time: " in p.stdout
 
 
 def test_there_is_an_example():
