@@ -203,18 +203,27 @@ def _block_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
 
 def _after_first_loading(r: Record) -> int:
     """The first sample after the first loading to the record's largest stretch (0: the record is all first
-    loading, or the rest is too short to be cut in five blocks, or shorter than one block of the whole).
+    loading, or the rest is too short to be cut in five blocks, or the first loading is one ramp and the rest
+    is shorter than one block of the whole).
 
     A ramp that ends in a short hold or return is a ramp: judged on its tail
     alone (a twentieth of it, say), a held-out check would see nothing of what
     happened on the way up (a slip, a load cell's offset), where a ramp that
-    stops at its peak is cut in blocks over all of it.
+    stops at its peak is cut in blocks over all of it. A first loading that
+    holds or turns on its way (a staircase) keeps it fitted: cut in blocks, its
+    last step is held out and the law extrapolated there, which a relaxation
+    fitted to the law's misfit predicts better on a clean record.
     """
     if not r.history:
         return 0
     k = int(np.argmax(r.cov.drive)) + 1
     rest = r.test.n - k
-    return k if rest >= MIN_AFTER and rest >= r.test.n / BLOCKS else 0
+    d = np.asarray(r.cov.direction[:k])
+    moving = np.flatnonzero(d != 0)
+    ramp = moving.size > 0 and bool(np.all(d[moving[0]:] == 1))
+    if ramp and rest < r.test.n / BLOCKS:
+        return 0
+    return k if rest >= MIN_AFTER else 0
 
 
 def _file_fold(name: str, records, held: list[int]) -> Fold:
