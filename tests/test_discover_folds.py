@@ -159,7 +159,7 @@ def test_nested_folds_do_not_fork_inside_a_daemonic_worker():
 
 def test_a_ramp_with_a_short_tail_is_cut_in_blocks_over_all_of_it():
     """A ramp that ends in a short hold is judged as a ramp (blocks over all of it), not on its tail alone;
-    a ramp followed by a long hold keeps its first loading always fitted."""
+    a ramp followed by a long hold, and a staircase, keep their first loading always fitted."""
     t = np.linspace(0.0, 60.0, 1201)
     lam = np.minimum(1.0 + 0.01 * t, 1.5)  # the ramp reaches its peak at 50 s: a 10 s hold is a sixth
     stress, _ = _arruda_boyce(lam)
@@ -172,3 +172,11 @@ def test_a_ramp_with_a_short_tail_is_cut_in_blocks_over_all_of_it():
     [r2] = prepare([long], max_points=200)
     k = ho._after_first_loading(r2)
     assert 0 < k < r2.test.n and r2.x[k - 1] == pytest.approx(1.5)
+    # a staircase (steps up with holds between) that ends in a short hold keeps its first loading fitted:
+    # cut in blocks, its last step would be held out and the law extrapolated there
+    t3 = np.linspace(0.0, 100.0, 2001)  # the last step reaches 1.5 at 85 s: a 15 s hold, under a fifth
+    lam3 = 1.0 + 0.1 * np.minimum(np.floor(t3 / 20.0) + np.clip(t3 % 20.0 / 5.0, 0.0, 1.0), 5.0)
+    stair = TensileTest(source=Path("stair.csv"), mode="uniaxial", stretch=lam3, stress=_arruda_boyce(lam3)[0], time=t3)
+    [r3] = prepare([stair], max_points=300)
+    k3 = ho._after_first_loading(r3)
+    assert r3.test.n - k3 < r3.test.n / ho.BLOCKS and 0 < k3 and r3.x[k3 - 1] == pytest.approx(1.5)
