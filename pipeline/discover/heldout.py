@@ -220,7 +220,7 @@ def _after_first_loading(r: Record) -> int:
     rest = r.test.n - k
     d = np.asarray(r.cov.direction[:k])
     moving = np.flatnonzero(d != 0)
-    ramp = moving.size > 0 and bool(np.all(d[moving[0]:] == 1))
+    ramp = moving.size > 0 and bool(np.all(d[moving[0]:moving[-1] + 1] == 1))  # the peak may open the hold
     if ramp and rest < r.test.n / BLOCKS:
         return 0
     return k if rest >= MIN_AFTER else 0
