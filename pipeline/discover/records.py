@@ -134,9 +134,11 @@ def prepare(tests: Sequence[TensileTest], *, max_points: int = 600,
     for i, t in enumerate(tests):
         t, cut = cut_at_rupture(t)
         cov = covariates(t)
-        q = quantum(np.asarray(t.stress, float))
+        raw = t
         t, lag = undo_force_lag(t, cov)
-        if lag:
+        q = None
+        if lag:  # the converter's step as recorded: the lag's interpolation moves the readings off their grid
+            q = quantum(np.asarray(raw.stress, float))
             cov = covariates(t)
         idx = thin(t, max_points, cov=cov)
         out.append(Record(t, cov, idx, 1.0 if weights is None else float(weights[i]), cut, lag, q))

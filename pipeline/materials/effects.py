@@ -651,11 +651,9 @@ class MaterialEffects:
                                      "unit_eta": "Pa", "driver": "accumulated variation of W, sum |dW|"}
         if self.permanent_set is not None:
             ps = self.permanent_set
-            d["permanent_set"] = ({"fraction": ps.fraction,
-                                   "driver": "largest stretch so far: lam_s = 1 + fraction (lam_max - 1)"}
-                                  if ps.exponent == 1.0 else
-                                  {"fraction": ps.fraction, "exponent": ps.exponent,
-                                   "driver": "largest stretch so far: lam_s = 1 + fraction (lam_max - 1)**exponent"})
+            power = {} if ps.exponent == 1.0 else {"exponent": ps.exponent}
+            d["permanent_set"] = {"fraction": ps.fraction, **power, "driver": "largest stretch so far: lam_s = 1 + "
+                                  f"fraction (lam_max - 1){'**exponent' if power else ''}"}
         if self.intervals:
             d["intervals"] = {k: list(map(float, v)) for k, v in self.intervals.items()}
         return d

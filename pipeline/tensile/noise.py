@@ -171,8 +171,8 @@ def level_step(y: np.ndarray, *, grid: float = 0.0) -> float:
     """
     tol = max(0.5 * grid, 1e-9 * (float(np.max(np.abs(y))) or 1.0))
     same = np.abs(np.diff(y)) <= tol
-    starts = np.flatnonzero(np.diff(np.concatenate(([0], same.astype(np.int8), [0]))) == 1)
-    stops = np.flatnonzero(np.diff(np.concatenate(([0], same.astype(np.int8), [0]))) == -1)
+    edges = np.diff(np.concatenate(([0], same.astype(np.int8), [0])))
+    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
     lengths = stops - starts + 1  # samples in each run of equal readings
     keep = lengths >= 3
     if float(np.sum(lengths[keep])) < PLATEAU_SHARE * y.size:
