@@ -248,6 +248,33 @@ def test_single_ramp_reports_viscoelasticity_as_not_identifiable(tmp_path):
         assert "cannot be told from rate-dependent relaxation" in res.candidates["damage"].reason
 
 
+def test_stretch_dependent_relaxation_needs_two_levels_or_two_rates(tmp_path):
+    """Loadings at two rates to one peak show a relaxed share that changes with the stretch (the stresses of
+    the two rates at a stretch differ by it); one rate turning at one level does not."""
+    from esmm.pipeline.discover.identify import identifiability
+    from esmm.pipeline.discover.records import prepare
+
+    truth = syn.Truth("arruda-boyce", BASE, viscoelastic={"g": [0.4], "tau": [3.0]})
+    one = identifiability(prepare(_tests(tmp_path / "a", [syn.load_unload(0.02, 1.5)], truth)))
+    two = identifiability(prepare(_tests(tmp_path / "b", [syn.load_unload(0.02, 1.5), syn.load_unload(0.2, 1.5)],
+                                         truth)))
+    assert one["viscoelastic"][1] and not one["nonlinear_viscoelastic"][1]
+    assert "two rates or more" in one["nonlinear_viscoelastic"][2]
+    assert two["nonlinear_viscoelastic"][1] and "2 loading rates" in two["nonlinear_viscoelastic"][2]
+
+
+def test_round_levels_spend_the_round_alpha_over_every_single_and_pair():
+    """Bonferroni within a round: the singles' levels and the pairs' (effect pairs and term-effect pairs)
+    sum to α 2^-r, so the union bound holds whatever is tried."""
+    from esmm.pipeline.discover.levels import round_levels
+
+    lv = round_levels(0.05, 2, 7, 5, 12)
+    assert lv.pairs == 10 + 12
+    assert lv.singles * lv.single + lv.pairs * lv.pair == pytest.approx(0.05 / 4)
+    alone = round_levels(0.05, 1, 3, 1, 0)  # no pair can be formed: all of α_1 to the singles
+    assert alone.pairs == 0 and alone.pair == 0.0 and 3 * alone.single == pytest.approx(0.025)
+
+
 def test_two_hidden_effects_are_both_found(tmp_path):
     truth = syn.Truth("arruda-boyce", BASE, viscoelastic={"g": [0.3], "tau": [2.0]})
     tests = _tests(tmp_path, [syn.load_unload(0.02, 1.5, name="a"), syn.load_unload(0.2, 1.5, name="b")],

@@ -26,6 +26,10 @@ CASES = [
      "a record whose part after the first loading is shorter than one block is cut in blocks over all of it"),
     (4, 276, "cycles to rising peaks with a residual stretch growing as the prestrain to the power 1.8",
      "the permanent set's exponent (without it a damage and a relaxation were kept beside the set)"),
+    (7, 270, "a fibre-reinforced staircase with Schapery's stretch-dependent relaxation",
+     "a strain-energy term tried in a pair with a history effect (after the relaxation, the fibre term and the "
+     "stretch-dependent relaxation each halve the held-out error alone, and neither replicates across the "
+     "blocks while the other's residual is left)"),
 ]
 
 
@@ -39,4 +43,6 @@ def test_population_case_named_alone(tmp_path, seed, case, what, rule):
     tests = read_tests(sorted(str(p) for p in folder.glob("*.csv")), overrides={}, reporter=SILENT)
     res = discover(tests, n_starts=8, max_points=400, nested=False, reporter=SILENT)
     effects = [k for k in res.kept if k not in TERMS]
+    if "nonlinear_viscoelastic" in effects:  # it contains the relaxation it brings in
+        effects.remove("viscoelastic")
     assert effects == [truth["class"]], json.dumps({k: c.reason for k, c in res.candidates.items()}, indent=1)

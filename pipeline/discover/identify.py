@@ -78,11 +78,16 @@ def _nonlinear(records: Sequence[Record], ve: Verdict) -> Verdict:
     if not ve[1]:
         return (True, False, "not identifiable from these data: relaxation itself is not (" + ve[2] + ")")
     levels = stretch_levels(records)
-    if levels < 2:
-        return (True, False, "not identifiable from these data: the records turn or hold at one stretch level only; "
-                "a stretch-dependent relaxation needs holds or cycles at two levels or more")
-    return (True, True, f"identifiable once relaxation is in the model: the records turn or hold at {levels} "
-            "stretch levels")
+    rates = len(_rate_groups(records))
+    if levels < 2 and rates < 2:
+        return (True, False, "not identifiable from these data: the records turn or hold at one stretch level only, "
+                "at one loading rate; a stretch-dependent relaxation needs holds or cycles at two levels or more, "
+                "or loadings at two rates or more")
+    if levels >= 2:
+        return (True, True, f"identifiable once relaxation is in the model: the records turn or hold at {levels} "
+                "stretch levels")
+    return (True, True, f"identifiable once relaxation is in the model: {rates} loading rates, whose stresses at a "
+            "stretch differ by a share that changes with the stretch only if the relaxed amount does")
 
 
 def _mullins(records: Sequence[Record]) -> Verdict:

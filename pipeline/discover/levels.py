@@ -12,7 +12,8 @@ round, every hypothesis that *could* be tested counts, whether or not the
 pre-screen lets it through (the pre-screen sees the same data, so the family
 is fixed before it): the m_s single candidates still open (and the richer
 variants of kept effects), and, when two more effects are allowed, the m_p
-pairs of effects and artefacts that could be formed from them. Singles get
+pairs of effects and artefacts that could be formed from them and the pairs of
+a strain-energy term and one of them. Singles get
 α_r/2 and pairs α_r/2 (all of α_r to singles when no pair can be tried), each
 split equally (Bonferroni): a single is kept at p ≤ α_r/(2 m_s), a pair at
 p ≤ α_r/(2 m_p). By the union bound, on a record where the current model is
@@ -67,9 +68,11 @@ class Levels:
                 "pairs": self.pairs, "level_single": self.single, "level_pair": self.pair}
 
 
-def round_levels(alpha: float, rnd: int, singles: int, pair_pool: int) -> Levels:
-    """The levels of round *rnd* with *singles* hypotheses and pairs formed from *pair_pool* candidates."""
-    return Levels(alpha, rnd, singles, math.comb(pair_pool, 2) if pair_pool >= 2 else 0)
+def round_levels(alpha: float, rnd: int, singles: int, pair_pool: int, term_pairs: int = 0) -> Levels:
+    """The levels of round *rnd* with *singles* hypotheses, the pairs formed from *pair_pool* candidates and
+    *term_pairs* pairs of a strain-energy term and an effect or artefact."""
+    pairs = (math.comb(pair_pool, 2) if pair_pool >= 2 else 0) + max(term_pairs, 0)
+    return Levels(alpha, rnd, singles, pairs)
 
 
 __all__ = ["ALPHA", "Levels", "round_levels"]

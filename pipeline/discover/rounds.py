@@ -55,8 +55,10 @@ def run_round(s: Search, rnd: int, rep) -> bool:
         return False
     pairable = len(s.kept) + 2 <= s.crit.max_effects
     fallbacks = sum(1 for n in remaining if len(VARIANTS.get(n, (1,))) > 1)  # a simpler variant checked too
+    term_pairs = (sum(1 for n in remaining if n in TERMS) * sum(1 for n in remaining if n not in TERMS)
+                  if pairable else 0)
     lv = round_levels(s.crit.alpha, rnd, len(remaining) + len(upgradable) + fallbacks,
-                      sum(1 for n in remaining if n not in TERMS) if pairable else 0)
+                      sum(1 for n in remaining if n not in TERMS) if pairable else 0, term_pairs)
     s.levels.append(lv)
     order = candidate_order(s, remaining, diag, rnd)
     with rep.task(f"round {rnd}: trying {', '.join(order + [u + ' (more terms)' for u in upgradable])}",
@@ -352,11 +354,15 @@ def sync_kept(s: Search, rnd: int) -> None:
 def _try_pairs(singles: dict[str, Trial], s: Search, lv: Levels):
     """When no single candidate passes and the residual is not noise, two effects or artefacts at once
     (effects that mask each other's signature: slack hiding a rate effect, specimen scales hiding a
-    relaxation), from a pool of the two whose held-out error fell most alone and the two that fitted best.
+    relaxation), from a pool of the two whose held-out error fell most alone and the two that fitted best;
+    and the strain-energy term whose held-out error fell most alone with each of that pool (an elastic
+    law's misfit masks an effect or an artefact too: each alone leaves the other's residual, over which no
+    single candidate's improvement replicates).
 
     Each pair is tested at the pairs' level, whose family counts every pair the round's effects and
-    artefacts could form (:mod:`.levels`). Returns ((a, b), trial) of the passing pair with the smallest
-    p-value, or None.
+    artefacts could form and every pair of a term and one of them (:mod:`.levels`); a pair holding a
+    history effect must also explain history (:mod:`.history`). Returns ((a, b), trial) of the passing pair
+    with the smallest p-value, or None.
     """
     current = s.current
     fitted = [n for n, t in singles.items() if t.screened and n not in TERMS]
@@ -364,22 +370,24 @@ def _try_pairs(singles: dict[str, Trial], s: Search, lv: Levels):
                      key=lambda n: -singles[n].heldout["noise_units"])
     by_fit = sorted(fitted, key=lambda n: singles[n].dbic)
     pool = list(dict.fromkeys(by_gain[:PAIR_POOL // 2] + by_fit[:PAIR_POOL // 2]))
+    terms = sorted((n for n, t in singles.items() if n in TERMS and t.screened and t.heldout),
+                   key=lambda n: -singles[n].heldout["gain"])[:1]
+    pairs = [(pool[i], pool[j]) for i in range(len(pool)) for j in range(i + 1, len(pool))]
+    pairs += [(term, n) for term in terms for n in pool]
     passed = []
-    for i in range(len(pool)):
-        for j in range(i + 1, len(pool)):
-            a, b = pool[i], pool[j]
-            spec = current.spec.with_(a, singles[a].fit.spec.variant(a)).with_(b, singles[b].fit.spec.variant(b))
-            if spec.viscoelastic and (singles[a].fit.spec.compression or singles[b].fit.spec.compression):
-                spec = replace(spec, compression=1)  # as the relaxation's single trial chose
-            try:
-                t = compared(f"{a}+{b}", fit_spec(spec, current, init_from=s.warm.get(spec)), current)
-            except FitError:
-                continue
-            s.remember(t.fit)
-            if t.screened and passes(_check(s, t, [a, b]), lv.pair, s.crit.min_resolution_units) \
-                    and not ("slack" in (a, b) and shared_slack_reason(t.fit)) \
-                    and _path_dependent(s, t, [a, b]):
-                passed.append(((a, b), t))
+    for a, b in pairs:
+        spec = current.spec.with_(a, singles[a].fit.spec.variant(a)).with_(b, singles[b].fit.spec.variant(b))
+        if spec.viscoelastic and (singles[a].fit.spec.compression or singles[b].fit.spec.compression):
+            spec = replace(spec, compression=1)  # as the relaxation's single trial chose
+        try:
+            t = compared(f"{a}+{b}", fit_spec(spec, current, init_from=s.warm.get(spec)), current)
+        except FitError:
+            continue
+        s.remember(t.fit)
+        if t.screened and passes(_check(s, t, [a, b]), lv.pair, s.crit.min_resolution_units) \
+                and not ("slack" in (a, b) and shared_slack_reason(t.fit)) \
+                and _path_dependent(s, t, [a, b]):
+            passed.append(((a, b), t))
     return min(passed, key=lambda p: p[1].heldout["p"]) if passed else None
 
 
@@ -393,7 +401,8 @@ def _keep_pair(s: Search, pair, rnd: int, rep) -> None:
         c.kept = True
         c.variant = f.spec.variant_text(n)
         _heldout_fields(c, t, s.levels[-1].pair, s)
-        kind = "corrected in the data" if c.kind == "artefact" else "added to the material"
+        kind = {"artefact": "corrected in the data", "material": "added to the material",
+                "elastic": "added to the strain energy"}[c.kind]
         c.reason = (f"kept ({kind}) in round {rnd} together with {other}: neither alone passed, together fitted "
                     f"Δχ² {t.noise['dchi2']:.4g} and held-out NRMSE {ref:.2%} -> {new:.2%} ({h['scheme']}), "
                     f"one-sided p {h['p']:.2g} <= {s.levels[-1].pair:.2g}")
