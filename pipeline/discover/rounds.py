@@ -211,7 +211,11 @@ def _heldout_winner(s: Search, trials: list[Trial], rnd: int, lv: Levels) -> Tri
     The terms (at most :data:`TERMS_PER_ROUND` fitted) and at most
     :data:`CHECKS_PER_ROUND` others are checked (each check refits every
     fold); the family-wise level counts every candidate of the round all the
-    same.
+    same. A candidate whose richer variant fails the held-out check, or passes
+    it but not the path-dependence check, has its simplest screened variant
+    checked instead (:func:`_simpler_variant`): a load cell's drift that only
+    takes up an elastic misfit over the record's time leaves the offset it
+    contains to be judged on its own.
     """
     n_terms = sum(1 for t in trials if t.name in TERMS)
     checked, skipped = trials[:n_terms + CHECKS_PER_ROUND], trials[n_terms + CHECKS_PER_ROUND:]
@@ -223,11 +227,13 @@ def _heldout_winner(s: Search, trials: list[Trial], rnd: int, lv: Levels) -> Tri
     for t in checked:
         h = _check(s, t, t.name)
         ok = passes(h, lv.single, s.crit.min_resolution_units)
-        if not ok and t.fallback is not None and t.name not in s.kept:
+        fallback = t.fallback if t.name not in s.kept else None
+        if not ok and fallback is not None:
             t, h = _simpler_variant(s, t, h, lv)
             ok = passes(h, lv.single, s.crit.min_resolution_units)
             if ok:
                 _record(s.candidates[t.name], t)
+                fallback = None
         if t.name in s.kept:  # a variant upgrade of a kept effect
             if ok:
                 s.upgrades.append(f"round {rnd}: {t.name} extended to {t.fit.spec.variant_text(t.name)} "
@@ -243,9 +249,14 @@ def _heldout_winner(s: Search, trials: list[Trial], rnd: int, lv: Levels) -> Tri
         if shared:
             c.reason = f"not kept: {shared}"
             continue
-        if not _path_dependent(s, t, [t.name]):
-            continue
-        return t
+        if _path_dependent(s, t, [t.name]):
+            return t
+        if fallback is not None:  # the richer variant's path-dependent part is not history: the simpler one
+            f = fallback
+            if passes(_check(s, f, f.name), lv.single, s.crit.min_resolution_units) and _path_dependent(s, f, [f.name]):
+                _record(c, f)
+                _heldout_fields(c, f, lv.single, s)
+                return f
     return None
 
 
