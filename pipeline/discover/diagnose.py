@@ -339,8 +339,11 @@ def _score_viscoelastic(sig: _Signatures) -> float:
 
 
 def _score_kappa(sig: _Signatures) -> float:
+    """The larger first-order gain of the two forms: the relaxed amount (kappa) or the relaxation times
+    (kappa_tau) depending on stretch."""
     km = sig.prob.bounds.kappa_max
-    return _best(sig, "nonlinear_viscoelastic", 1, [{("nonlinear_viscoelastic", "kappa"): _EPS * km}])
+    return max(_best(sig, "nonlinear_viscoelastic", v, [{("nonlinear_viscoelastic", name): _EPS * km}])
+               for v, name in ((1, "kappa"), (2, "kappa_tau")))
 
 
 def _score_mullins(sig: _Signatures) -> float:
