@@ -10,7 +10,7 @@ import pytest
 from esmm.pipeline.asset.material import storable_effects
 from esmm.pipeline.discover import discover
 from esmm.pipeline.discover import synthetic as syn
-from esmm.pipeline.discover.model import Bounds, Spec, effect_slots
+from esmm.pipeline.discover.model import VARIANTS, Bounds, Spec, effect_slots, spec_of_effects
 from esmm.pipeline.errors import ConfigError
 from esmm.pipeline.materials import get_model
 from esmm.pipeline.materials.effects import (
@@ -118,6 +118,9 @@ def test_the_rate_variant_has_its_own_bounded_slot():
            if s.effect == "nonlinear_viscoelastic"]
     assert s.name == "kappa_tau" and s.lo == -b.kappa_max and s.hi == b.kappa_max == pytest.approx(6.0)
     assert Spec().with_("nonlinear_viscoelastic", 2).viscoelastic == 1
+    # a saved rate form is read back as the rate variant (esmm evaluate), the strength form as the other
+    assert spec_of_effects(MaterialEffects(ViscoelasticEffect((0.3,), (2.0,), kappa_tau=-4.0))).nonlinear_viscoelastic == 2
+    assert spec_of_effects(MaterialEffects(ViscoelasticEffect((0.3,), (2.0,), kappa=-4.0))).nonlinear_viscoelastic == 1
 
 
 # --------------------------------------------------------------------------- the closed loop
@@ -165,8 +168,14 @@ def _staircase_record(tmp_path, kappa_tau: float, seed: int):
     return [read(path)]
 
 
+@pytest.fixture
+def both_forms(monkeypatch):
+    """The search with both forms of a stretch-dependent relaxation as alternative variants."""
+    monkeypatch.setitem(VARIANTS, "nonlinear_viscoelastic", (1, 2))
+
+
 @pytest.mark.slow
-def test_discovery_names_the_rate_form_on_an_independent_record(tmp_path):
+def test_discovery_names_the_rate_form_on_an_independent_record(tmp_path, both_forms):
     res = discover(_staircase_record(tmp_path, -5.0, seed=4), **FAST)
     assert "nonlinear_viscoelastic" in res.kept, (res.kept, {n: c.reason for n, c in res.candidates.items()})
     assert res.final.spec.nonlinear_viscoelastic == 2
@@ -175,7 +184,8 @@ def test_discovery_names_the_rate_form_on_an_independent_record(tmp_path):
 
 
 @pytest.mark.slow
-def test_discovery_adds_no_rate_form_on_plain_qlv(tmp_path):
+def test_discovery_adds_no_rate_form_on_plain_qlv(tmp_path, both_forms):
     res = discover(_staircase_record(tmp_path, 0.0, seed=5), **FAST)
     assert "viscoelastic" in res.kept
     assert "nonlinear_viscoelastic" not in res.kept, {n: c.reason for n, c in res.candidates.items()}
+

@@ -36,7 +36,7 @@ import numpy as np
 from ..calibrate.intervals import lag1
 from ..materials.terms import TERMS
 from .initialise import term_grid
-from .model import CANDIDATES, Problem
+from .model import CANDIDATES, VARIANTS, Problem
 from .records import offset_applicable, reference, slack_applicable
 from .statistics import runs_test
 
@@ -339,11 +339,12 @@ def _score_viscoelastic(sig: _Signatures) -> float:
 
 
 def _score_kappa(sig: _Signatures) -> float:
-    """The larger first-order gain of the two forms: the relaxed amount (kappa) or the relaxation times
-    (kappa_tau) depending on stretch."""
+    """The largest first-order gain of the searched forms: the relaxed amount (kappa, variant 1) or the
+    relaxation times (kappa_tau, variant 2) depending on stretch."""
     km = sig.prob.bounds.kappa_max
-    return max(_best(sig, "nonlinear_viscoelastic", v, [{("nonlinear_viscoelastic", name): _EPS * km}])
-               for v, name in ((1, "kappa"), (2, "kappa_tau")))
+    names = {1: "kappa", 2: "kappa_tau"}
+    return max(_best(sig, "nonlinear_viscoelastic", v, [{("nonlinear_viscoelastic", names[v]): _EPS * km}])
+               for v in VARIANTS["nonlinear_viscoelastic"])
 
 
 def _score_mullins(sig: _Signatures) -> float:
