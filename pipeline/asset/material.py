@@ -86,6 +86,10 @@ def storable_effects(fx: MaterialEffects | None) -> tuple[MaterialEffects | None
         dropped.append(f"the stretch dependence of the relaxation (viscoelastic kappa = {v.kappa:g}): stored "
                        f"as QLV (kappa = 0), which relaxes as much at every stretch")
         v = replace(v, kappa=0.0)
+    if v is not None and v.kappa_tau:
+        dropped.append(f"the stretch dependence of the relaxation times (viscoelastic kappa_tau = {v.kappa_tau:g}): "
+                       f"stored as QLV (kappa_tau = 0), which relaxes as fast at every stretch")
+        v = replace(v, kappa_tau=0.0)
     kept = replace(fx, viscoelastic=v, cyclic_softening=None, permanent_set=None)
     return (kept if kept else None), dropped
 

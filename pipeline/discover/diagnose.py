@@ -40,7 +40,7 @@ import numpy as np
 from ..calibrate.intervals import lag1
 from ..materials.terms import TERMS
 from .initialise import term_grid
-from .model import CANDIDATES, Problem
+from .model import CANDIDATES, VARIANTS, Problem
 from .records import offset_applicable, reference, slack_applicable
 from .statistics import runs_test
 
@@ -343,8 +343,12 @@ def _score_viscoelastic(sig: _Signatures) -> float:
 
 
 def _score_kappa(sig: _Signatures) -> float:
+    """The largest first-order gain of the searched forms: the relaxed amount (kappa, variant 1) or the
+    relaxation times (kappa_tau, variant 2) depending on stretch."""
     km = sig.prob.bounds.kappa_max
-    return _best(sig, "nonlinear_viscoelastic", 1, [{("nonlinear_viscoelastic", "kappa"): _EPS * km}])
+    names = {1: "kappa", 2: "kappa_tau"}
+    return max(_best(sig, "nonlinear_viscoelastic", v, [{("nonlinear_viscoelastic", names[v]): _EPS * km}])
+               for v in VARIANTS["nonlinear_viscoelastic"])
 
 
 def _score_mullins(sig: _Signatures) -> float:

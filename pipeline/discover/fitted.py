@@ -76,7 +76,9 @@ def effect_params(f: Fitted, name: str) -> dict[str, Any]:
     if name == "viscoelastic" and st.g is not None:
         return {"g": [float(v) for v in st.g], "tau": [float(v) for v in st.tau],
                 "g_inf": float(max(0.0, 1 - float(np.sum(st.g))))}
-    simple = {"nonlinear_viscoelastic": (("kappa",), (st.kappa,) if f.spec.nonlinear_viscoelastic else None),
+    nl = f.spec.nonlinear_viscoelastic
+    simple = {"nonlinear_viscoelastic": (("kappa_tau",), (st.kappa_tau,)) if nl == 2 else
+              (("kappa",), (st.kappa,) if nl else None),
               "mullins": (("r", "m", "beta"), st.mullins), "damage": (("onset", "scale", "shape"), st.damage),
               "cyclic_softening": (("d_inf", "eta"), st.cyclic),
               "permanent_set": (("fraction", "exponent")[:f.spec.permanent_set],

@@ -18,7 +18,7 @@ from collections.abc import Iterable, Mapping
 import numpy as np
 from scipy import optimize
 
-from ..materials.effects import qlv_stress
+from ..materials.effects import qlv_rate_decay, qlv_stress
 from ..materials.loading import invariants
 from ..materials.terms import TERMS
 from .model import Problem
@@ -35,12 +35,14 @@ def initialise(prob: Problem, z: np.ndarray, name: str) -> np.ndarray:
 
 
 def _init_kappa(prob: Problem, z: np.ndarray) -> np.ndarray:
-    """The strength's stretch dependence on a grid, each with its own Prony terms by NNLS."""
+    """The stretch dependence (of the relaxed amount, kappa, or of the relaxation times, kappa_tau: the
+    spec's variant) on a grid, each with its own Prony terms by NNLS."""
     km = prob.bounds.kappa_max
+    rate = prob.spec.nonlinear_viscoelastic == 2
     best, zb = math.inf, z
     for q in (-0.6, -0.4, -0.2, 0.0, 0.2, 0.4, 0.6):
-        zk = _set(prob, z, "nonlinear_viscoelastic", {"kappa": q * km})
-        zk, rnorm = _prony_nnls(prob, zk, q * km)
+        zk = _set(prob, z, "nonlinear_viscoelastic", {"kappa_tau" if rate else "kappa": q * km})
+        zk, rnorm = _prony_nnls(prob, zk, 0.0, q * km) if rate else _prony_nnls(prob, zk, q * km)
         if rnorm < best:
             best, zb = rnorm, zk
     return zb
@@ -207,13 +209,13 @@ def _init_prony(prob: Problem, z: np.ndarray, kappa: float = 0.0) -> np.ndarray:
     return _prony_nnls(prob, z, kappa)[0]
 
 
-def _prony_nnls(prob: Problem, z: np.ndarray, kappa: float) -> tuple[np.ndarray, float]:
+def _prony_nnls(prob: Problem, z: np.ndarray, kappa: float, kappa_tau: float = 0.0) -> tuple[np.ndarray, float]:
     """*z* with the Prony terms of least squares over a dictionary of relaxation times (the relaxed part
-    scaled by exp(kappa (xi - 1))), and the residual norm of that fit."""
+    scaled by exp(kappa (xi - 1)), or the times by exp(-kappa_tau (xi - 1))), and the residual norm of that fit."""
     b = prob.bounds
     n_terms = prob.spec.viscoelastic
     taus = np.geomspace(b.tau_min * 2, b.tau_max / 5, 14)
-    system = _relaxation_system(prob, z, taus, kappa)
+    system = _relaxation_system(prob, z, taus, kappa, kappa_tau)
     if system is None:
         return z, math.inf
     A, yv = system
@@ -239,12 +241,13 @@ def _prony_nnls(prob: Problem, z: np.ndarray, kappa: float) -> tuple[np.ndarray,
     return _set(prob, z, "viscoelastic", vals), float(rnorm)
 
 
-def _relaxation_system(prob: Problem, z: np.ndarray, taus: np.ndarray, kappa: float = 0.0,
+def _relaxation_system(prob: Problem, z: np.ndarray, taus: np.ndarray, kappa: float = 0.0, kappa_tau: float = 0.0,
                        ) -> tuple[np.ndarray, np.ndarray] | None:
     """The weighted linear system (atoms, target) of one Prony term per relaxation time in *taus*.
 
     Each atom is the relaxation of the softened elastic stress with one unit term
-    (scaled by exp(kappa (ξ - 1)) for a stretch-dependent strength); the fitted
+    (scaled by exp(kappa (ξ - 1)) for a stretch-dependent strength; its time
+    scaled by exp(-kappa_tau (ξ - 1)) for a stretch-dependent rate); the fitted
     offset columns are projected out, a held offset taken off the data. None where
     no training record has time.
     """
@@ -256,7 +259,8 @@ def _relaxation_system(prob: Problem, z: np.ndarray, taus: np.ndarray, kappa: fl
         idx = r.fit_idx
         sc = st.scale[k] if st.scale is not None else 1.0
         pd = np.nan_to_num(prob.forward.softened(k, st, idx)) * sc
-        atoms = np.stack([qlv_stress(r.t[idx], pd, [1.0], [tau]) - pd for tau in taus], axis=1)
+        atoms = np.stack([qlv_stress(r.t[idx], pd, [1.0], [tau]) - pd for tau in taus], axis=1) if not kappa_tau \
+            else _rate_atoms(r.t[idx], pd, prob.forward.elastic(k, st)[2], taus, kappa_tau)
         if kappa:
             atoms = atoms * np.exp(kappa * (prob.forward.elastic(k, st)[2] - 1.0))[:, None]
         y = r.y[idx] - pd - (prob.forward.pinned[k] if prob.forward.n_offset[k] and prob.forward.pinned[k] is not None else 0.0)
@@ -276,6 +280,15 @@ def _relaxation_system(prob: Problem, z: np.ndarray, taus: np.ndarray, kappa: fl
     return (np.concatenate(cols), np.concatenate(target)) if cols else None
 
 
+def _rate_atoms(t: np.ndarray, pd: np.ndarray, xi: np.ndarray, taus: np.ndarray, kappa_tau: float) -> np.ndarray:
+    """One unit Prony term per relaxation time in *taus* with stretch-dependent times, less *pd*, shape (n, len(taus))."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        a, b = qlv_rate_decay(t, taus, xi, kappa_tau)
+    return np.stack([qlv_stress(None, pd, [1.0], None, decay=(np.ascontiguousarray(a[:, [j]]),
+                                                              np.ascontiguousarray(b[:, [j]]))) - pd
+                     for j in range(taus.size)], axis=1)
+
+
 def _stick_breaking(gs: list[float]) -> list[float]:
     """Prony weights as stick-broken fractions u_j in [1e-3, 0.99] (g_j = u_j prod_{i<j} (1 - u_i))."""
     us, rest = [], 1.0
@@ -288,7 +301,8 @@ def _stick_breaking(gs: list[float]) -> list[float]:
 
 def extend_variant(prob: Problem, z: np.ndarray, extra: list[int]) -> np.ndarray:
     """Start the added slots of a richer variant: a small new Prony term far from the others, a small beta,
-    a set's exponent at 1 (the simpler variant's)."""
+    a set's exponent at 1 (the simpler variant's); the other form of a stretch-dependent relaxation as a new
+    one (:func:`_init_kappa`)."""
     z = z.copy()
     b = prob.bounds
     taus = [z[i] for i, s in enumerate(prob.slots) if s.effect == "viscoelastic" and s.name.startswith("tau")
@@ -306,4 +320,6 @@ def extend_variant(prob: Problem, z: np.ndarray, extra: list[int]) -> np.ndarray
             z[i] = 0.1
         elif s.name == "exponent":
             z[i] = 1.0  # the proportional set the simpler variant fitted
+    if any(prob.slots[i].effect == "nonlinear_viscoelastic" for i in extra):  # another form of it (kappa_tau)
+        z = _init_kappa(prob, np.clip(z, prob.lower, prob.upper))
     return np.clip(z, prob.lower, prob.upper)

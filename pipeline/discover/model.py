@@ -23,7 +23,8 @@ Prediction of one file, in this order (docs/design/discovery.md, "The extended m
 2. permanent set: ``λ_s = 1 + s_p (max x_true - 1)^q`` (q = 1 in variant 1), elastic stretch ``x_true/λ_s``;
 3. ``P_e = nominal_stress(elastic law, x_true/λ_s) / λ_s``;
 4. damage ``× (1 - D(ξ_max))``, Mullins ``× η(W, W_max)``, cyclic softening ``× c(α)``;
-5. viscoelastic: ``P = QLV[P_e]`` (with κ: the relaxed part scaled by s(ξ));
+5. viscoelastic: ``P = QLV[P_e]`` (with κ: the relaxed part scaled by s(ξ); with κ_τ: the
+   relaxation times ``τ_i exp(-κ_τ (ξ - 1))``);
 6. a tension-only specimen cannot carry compression: ``P = max(P, 0)`` (a strip that
    buckles), except, with ``Spec.compression``, on a record that reads compression;
 7. per-specimen stress scale: ``× c_s`` (the scales' geometric mean is held at 1);
@@ -65,6 +66,7 @@ from ..materials.effects import (
     equivalent_stretch,
     mullins_factor,
     qlv_decay,
+    qlv_rate_decay,
     qlv_stress,
     relaxation_strength,
     set_stretch,
@@ -86,7 +88,9 @@ from .records import (
 #: variants of each effect: name -> allowed variant numbers (0 = off)
 VARIANTS = {
     "viscoelastic": (1, 2, 3),  # Prony terms
-    "nonlinear_viscoelastic": (1,),  # kappa (needs viscoelastic)
+    # (needs viscoelastic) kappa: the relaxed amount depends on stretch; or kappa_tau: the relaxation times do
+    # (alternative forms, docs/design/discovery.md, "Stretch-dependent relaxation")
+    "nonlinear_viscoelastic": (1, 2),
     "mullins": (2, 3),  # (r, m) or (r, m, beta)
     "damage": (3,),  # (onset, scale, shape)
     "cyclic_softening": (2,),  # (d_inf, eta)
@@ -96,6 +100,9 @@ VARIANTS = {
     "specimen_scale": (1,),  # one stress scale per specimen
     "grip_slip": (1,),  # one extension loss per detected slip
 }
+#: effects whose variants are alternative forms with as many parameters, not nested (neither contains the
+#: other): each is fitted from the current model and the better fit is the candidate
+ALTERNATIVE_VARIANTS = frozenset({"nonlinear_viscoelastic"})
 #: every effect and artefact a discovery can add (the Spec's integer fields)
 EFFECTS: tuple[str, ...] = tuple(VARIANTS)
 #: every candidate: effects, artefacts and strain-energy terms
@@ -156,7 +163,8 @@ class Spec:
             return f"strain-energy term {TERMS[name].equation}"
         return {
             "viscoelastic": f"{v} Prony term{'s' if v != 1 else ''}",
-            "nonlinear_viscoelastic": "relaxed amount scaled by exp(kappa (xi - 1))",
+            "nonlinear_viscoelastic": ("relaxation times scaled by exp(-kappa_tau (xi - 1))" if v == 2
+                                       else "relaxed amount scaled by exp(kappa (xi - 1))"),
             "mullins": "r, m, beta" if v == 3 else "r, m (beta = 0)",
             "sensor_offset": "offset and drift" if v == 2 else "offset",
             "slack": "one slack length per file",
@@ -214,6 +222,7 @@ class Values:
     g: np.ndarray | None = None
     tau: np.ndarray | None = None
     kappa: float = 0.0
+    kappa_tau: float = 0.0
     mullins: tuple[float, float, float] | None = None  # (r, m, beta)
     damage: tuple[float, float, float] | None = None  # (onset, scale, shape)
     cyclic: tuple[float, float] | None = None  # (d_inf, eta)
@@ -228,7 +237,7 @@ class Values:
     def material_effects(self) -> MaterialEffects:
         v = m = d = c = p = None
         if self.g is not None:
-            v = ViscoelasticEffect(tuple(self.g), tuple(self.tau), float(self.kappa))
+            v = ViscoelasticEffect(tuple(self.g), tuple(self.tau), float(self.kappa), float(self.kappa_tau))
         if self.mullins is not None:
             m = MullinsEffect(*self.mullins)
         if self.damage is not None:
@@ -255,7 +264,8 @@ class Bounds:
 
     def _derive(self) -> None:
         self.xi_span = max(self.xi_max - 1.0, 1e-3)
-        #: |kappa (xi - 1)| <= 3 over the data: the relaxed amount changes by at most e^3 ~ 20 times
+        #: |kappa (xi - 1)| <= 3 over the data: the relaxed amount (kappa) or the relaxation times (kappa_tau)
+        #: change by at most e^3 ~ 20 times
         self.kappa_max = 3.0 / self.xi_span
 
     def to_dict(self) -> dict[str, float]:
@@ -277,7 +287,8 @@ def effect_slots(spec: Spec, b: Bounds) -> list[Slot]:
         slots.append(Slot(f"u[{i}]", "viscoelastic", None, False, 0.0, U_MAX))
         slots.append(Slot(f"tau[{i}]", "viscoelastic", None, True, math.log(b.tau_min), math.log(b.tau_max), "time"))
     if spec.nonlinear_viscoelastic:
-        slots.append(Slot("kappa", "nonlinear_viscoelastic", None, False, -b.kappa_max, b.kappa_max))
+        name = "kappa_tau" if spec.nonlinear_viscoelastic == 2 else "kappa"
+        slots.append(Slot(name, "nonlinear_viscoelastic", None, False, -b.kappa_max, b.kappa_max))
     if spec.mullins:
         slots.append(Slot("s", "mullins", None, False, 0.0, 0.99))  # s = 1/r
         slots.append(Slot("m", "mullins", None, True, math.log(1e-5 * b.w_ref), math.log(10.0 * b.w_ref), "stress"))
@@ -382,7 +393,7 @@ class ParameterLayout:
                 z[i] = {"onset": 1.0 + 0.7 * b.xi_span, "scale": math.log(0.2 * b.xi_span), "shape": 2.0}[s.name]
             elif s.effect == "cyclic_softening":
                 z[i] = {"d_inf": 0.1, "eta": math.log(b.w_ref)}[s.name]
-            else:  # kappa, set fraction, slack, slips, log scales
+            else:  # kappa, kappa_tau, set fraction, slack, slips, log scales
                 z[i] = 0.0
         return np.clip(z, self.lower, self.upper)
 
@@ -478,7 +489,7 @@ class ParameterLayout:
             st.g = np.array(g)
             st.tau = np.exp(np.array([v[f"tau[{j}]"] for j in range(n)]))
         elif effect == "nonlinear_viscoelastic":
-            st.kappa = v["kappa"]
+            st.kappa, st.kappa_tau = v.get("kappa", 0.0), v.get("kappa_tau", 0.0)
         elif effect == "mullins":
             st.mullins = (1.0 / max(v["s"], 1e-12), math.exp(v["m"]), v.get("beta", 0.0))
         elif effect == "damage":
@@ -554,6 +565,7 @@ class ForwardModel:
         self._decays: list[dict] = [dict() for _ in self.records]
         self._soft: list[dict] = [dict() for _ in self.records]
         self._strengths: list[dict] = [dict() for _ in self.records]
+        self._rate_decays: list[dict] = [dict() for _ in self.records]
 
     def _key(self, k: int, st: Values):
         """(cache key of record k's elastic response at *st*, its elastic-law parameters), memoised on *st*."""
@@ -685,8 +697,12 @@ class ForwardModel:
         pe, w, xi = self._elastic(k, st, idx, use_cache)
         p = self._softened_cached(k, st, pe, w, xi) if use_cache else self._softened(k, st, pe, w, xi)
         if st.g is not None and r.t is not None:
-            q = qlv_stress(self._t_fit[k], p, st.g, st.tau, decay=self._decay(k, st.tau)) if fit \
-                else qlv_stress(r.t[idx], p, st.g, st.tau)
+            if st.kappa_tau:
+                decay = self._rate_decay(k, xi, st) if fit else qlv_rate_decay(r.t[idx], st.tau, xi, st.kappa_tau)
+                q = qlv_stress(None, p, st.g, st.tau, decay=decay)
+            else:
+                q = qlv_stress(self._t_fit[k], p, st.g, st.tau, decay=self._decay(k, st.tau)) if fit \
+                    else qlv_stress(r.t[idx], p, st.g, st.tau)
             if st.kappa:
                 with np.errstate(invalid="ignore"):
                     q = p - relaxation_strength(xi, st.kappa, float(np.sum(st.g))) * (p - q)
@@ -708,7 +724,8 @@ class ForwardModel:
         p = np.ascontiguousarray(self._softened_cached(k, st, pe, w, xi), dtype=float)
         g, (a, b), s = _NO_TERMS, (_NO_DECAY, _NO_DECAY), _NO_TERMS
         if st.g is not None and r.t is not None:
-            g, (a, b) = np.ascontiguousarray(st.g, dtype=float), self._decay(k, st.tau)
+            g = np.ascontiguousarray(st.g, dtype=float)
+            a, b = self._rate_decay(k, xi, st) if st.kappa_tau else self._decay(k, st.tau)
             if st.kappa:
                 s = self._strength(k, xi, st)
         flags = np.array([self.clamp[k], st.scale is not None, pin is not None, norm is not None])
@@ -727,6 +744,17 @@ class ForwardModel:
                 s = np.ascontiguousarray(relaxation_strength(xi, st.kappa, float(np.sum(st.g))), dtype=float)
             hit = (xi, s)
             self._remember(self._strengths[k], key, hit, 8)
+        return hit[1]
+
+    def _rate_decay(self, k: int, xi: np.ndarray, st: Values) -> tuple:
+        """The factors of record k's fitting samples with stretch-dependent relaxation times
+        (:func:`qlv_rate_decay`), kept per (ξ, τ, κ_τ)."""
+        key = (id(xi), st.tau.tobytes(), st.kappa_tau)
+        hit = self._rate_decays[k].get(key)
+        if hit is None or hit[0] is not xi:
+            with np.errstate(invalid="ignore", over="ignore"):
+                hit = (xi, qlv_rate_decay(self._t_fit[k], st.tau, xi, st.kappa_tau))
+            self._remember(self._rate_decays[k], key, hit, 8)
         return hit[1]
 
     def _decay(self, k: int, tau: np.ndarray) -> tuple:
@@ -1146,6 +1174,7 @@ def _effect_values(effects: MaterialEffects) -> dict[tuple[str, str], float]:
             rest -= g
             vals[("viscoelastic", f"tau[{j}]")] = math.log(tau)
         vals[("nonlinear_viscoelastic", "kappa")] = v.kappa
+        vals[("nonlinear_viscoelastic", "kappa_tau")] = v.kappa_tau
     if effects.mullins is not None:
         m = effects.mullins
         vals.update({("mullins", "s"): 1.0 / m.r, ("mullins", "m"): math.log(m.m), ("mullins", "beta"): m.beta})
@@ -1166,12 +1195,13 @@ def _effect_values(effects: MaterialEffects) -> dict[tuple[str, str], float]:
 def spec_of_effects(effects: MaterialEffects, terms=()) -> Spec:
     """The Spec of saved material *effects* (and strain-energy *terms*)."""
     v = effects.viscoelastic
-    return Spec(viscoelastic=len(v.g) if v else 0, nonlinear_viscoelastic=int(bool(v and v.kappa)),
+    nl = 0 if v is None else 2 if v.kappa_tau else 1 if v.kappa else 0
+    return Spec(viscoelastic=len(v.g) if v else 0, nonlinear_viscoelastic=nl,
                 mullins=3 if effects.mullins else 0, damage=3 if effects.damage else 0,
                 cyclic_softening=2 if effects.cyclic_softening else 0,
                 permanent_set=(0 if effects.permanent_set is None else 1 if effects.permanent_set.exponent == 1.0 else 2),
                 terms=tuple(terms))
 
 
-__all__ = ["VARIANTS", "EFFECTS", "CANDIDATES", "Spec", "Slot", "Values", "Bounds", "ParameterLayout", "ForwardModel",
+__all__ = ["VARIANTS", "ALTERNATIVE_VARIANTS", "EFFECTS", "CANDIDATES", "Spec", "Slot", "Values", "Bounds", "ParameterLayout", "ForwardModel",
            "Problem", "spec_of_effects"]

@@ -184,6 +184,10 @@ def _effect_sentence(res: DiscoverResult, name: str) -> str:
                 f"reached ({xm:.3g}) the stress is {100 * lost:.0f} % below the undamaged curve")
     if name in TERMS:
         return f"its elastic law needs the strain-energy term {name} ({TERMS[name].equation}), for {TERMS[name].addresses}"
+    if name == "nonlinear_viscoelastic" and me.viscoelastic is not None and me.viscoelastic.kappa_tau:
+        k = me.viscoelastic.kappa_tau
+        return (f"it relaxes {'faster' if k > 0 else 'slower'} at larger stretch (kappa_tau {k:.3g}: relaxation "
+                f"times x{math.exp(-k * (res.final.problem.bounds.xi_span)):.2g} over the stretches tested)")
     if name == "nonlinear_viscoelastic" and me.viscoelastic is not None:
         k = me.viscoelastic.kappa
         return (f"the amount that relaxes {'grows' if k > 0 else 'falls'} with stretch (kappa {k:.3g}: "

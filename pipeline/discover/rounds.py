@@ -28,7 +28,7 @@ from .fitted import Fitted, effect_params, fit_spec
 from .heldout import FoldSet, cached_heldout
 from .history import applies, history_test
 from .levels import Levels, round_levels
-from .model import VARIANTS
+from .model import ALTERNATIVE_VARIANTS, VARIANTS
 from .records import Record
 from .state import Candidate, Criteria, Search, start_search
 from .statistics import REPLICATION_LEVEL
@@ -55,10 +55,11 @@ def run_round(s: Search, rnd: int, rep) -> bool:
         return False
     pairable = len(s.kept) + 2 <= s.crit.max_effects
     fallbacks = sum(1 for n in remaining if len(VARIANTS.get(n, (1,))) > 1)  # a simpler variant checked too
-    term_pairs = (sum(1 for n in remaining if n in TERMS) * sum(1 for n in remaining if n not in TERMS)
-                  if pairable else 0)
+    # in pairs, each form of an effect with alternative forms is a candidate of its own (:func:`_try_pairs`)
+    others = sum(2 if n in ALTERNATIVE_VARIANTS else 1 for n in remaining if n not in TERMS)
+    term_pairs = sum(1 for n in remaining if n in TERMS) * others if pairable else 0
     lv = round_levels(s.crit.alpha, rnd, len(remaining) + len(upgradable) + fallbacks,
-                      sum(1 for n in remaining if n not in TERMS) if pairable else 0, term_pairs)
+                      others if pairable else 0, term_pairs)
     s.levels.append(lv)
     order = candidate_order(s, remaining, diag, rnd)
     with rep.task(f"round {rnd}: trying {', '.join(order + [u + ' (more terms)' for u in upgradable])}",
@@ -387,19 +388,35 @@ def _try_pairs(singles: dict[str, Trial], s: Search, lv: Levels):
     pairs += [(term, n) for term in terms for n in pool]
     passed = []
     for a, b in pairs:
-        spec = current.spec.with_(a, singles[a].fit.spec.variant(a)).with_(b, singles[b].fit.spec.variant(b))
-        if spec.viscoelastic and (singles[a].fit.spec.compression or singles[b].fit.spec.compression):
-            spec = replace(spec, compression=1)  # as the relaxation's single trial chose
-        try:
-            t = compared(f"{a}+{b}", fit_spec(spec, current, init_from=s.warm.get(spec)), current)
-        except FitError:
-            continue
-        s.remember(t.fit)
-        if t.screened and passes(_check(s, t, [a, b]), lv.pair, s.crit.min_resolution_units) \
-                and not ("slack" in (a, b) and shared_slack_reason(t.fit)) \
-                and _path_dependent(s, t, [a, b]):
-            passed.append(((a, b), t))
+        for va, vb in _pair_forms(singles[a], singles[b]):
+            spec = current.spec.with_(a, va).with_(b, vb)
+            if spec.viscoelastic and (singles[a].fit.spec.compression or singles[b].fit.spec.compression):
+                spec = replace(spec, compression=1)  # as the relaxation's single trial chose
+            try:
+                t = compared(f"{a}+{b}", fit_spec(spec, current, init_from=s.warm.get(spec)), current)
+            except FitError:
+                continue
+            s.remember(t.fit)
+            if t.screened and passes(_check(s, t, [a, b]), lv.pair, s.crit.min_resolution_units) \
+                    and not ("slack" in (a, b) and shared_slack_reason(t.fit)) \
+                    and _path_dependent(s, t, [a, b]):
+                passed.append(((a, b), t))
+                break
     return min(passed, key=lambda p: p[1].heldout["p"]) if passed else None
+
+
+def _pair_forms(ta: Trial, tb: Trial) -> list[tuple[int, int]]:
+    """The variants a pair of single trials is tried in: each member's best, then, for a member with
+    alternative forms (:data:`~esmm.pipeline.discover.model.ALTERNATIVE_VARIANTS`), its other screened form
+    (counted as a candidate of its own in the pairs' family, :func:`run_round`)."""
+    va, vb = ta.fit.spec.variant(ta.name), tb.fit.spec.variant(tb.name)
+    out = [(va, vb)]
+    for t, first in ((ta, True), (tb, False)):
+        f = t.fallback
+        if t.name in ALTERNATIVE_VARIANTS and f is not None:
+            v = f.fit.spec.variant(t.name)
+            out.append((v, vb) if first else (va, v))
+    return out
 
 
 def _keep_pair(s: Search, pair, rnd: int, rep) -> None:

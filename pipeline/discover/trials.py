@@ -36,7 +36,7 @@ from ..errors import FitError
 from ..materials.effects import ARTEFACTS
 from .fitted import Fitted, fit_spec
 from .heldout import FoldSet, cached_heldout
-from .model import Spec
+from .model import ALTERNATIVE_VARIANTS, Spec
 from .statistics import (
     REPLICATION_LEVEL,
     HeldoutSegment,
@@ -119,29 +119,36 @@ def best_variant(name: str, variants, current: Fitted, *, upgrade: bool = False,
 
     Each fit starts from the fit of the same spec in *warm* when there is one
     (the full search's, for an inner selection), else from the previous variant.
-    Returns the best variant by the pre-screen (None if no fit succeeded), with the simplest variant that
-    passed the pre-screen as its :attr:`Trial.fallback` when that is another.
+    Alternative variants (:data:`~esmm.pipeline.discover.model.ALTERNATIVE_VARIANTS`: as many
+    parameters, neither containing the other) are each fitted from the current model, and none is
+    skipped because another does not pay. Returns the best variant by the pre-screen (None if no fit
+    succeeded), with the simplest variant that passed the pre-screen as its :attr:`Trial.fallback` when
+    that is another (of alternatives, the other form that passed it: the form that fits the training data
+    best may be the one that takes up an elastic misfit there and fails on held-out data).
     """
+    alternatives = name in ALTERNATIVE_VARIANTS
     best: Trial | None = None
     prev: Trial | None = None
     simplest: Trial | None = None
     for v in variants:
         spec = current.spec.with_(name, v)
-        if prev is not None and prev.fit.spec.compression:  # a richer relaxation keeps the simpler one's choice
-            spec = replace(spec, compression=1)
-        start = (warm or {}).get(spec) or (prev.fit if prev is not None else None)
+        if prev is not None and prev.fit.spec.compression and not alternatives:
+            spec = replace(spec, compression=1)  # a richer relaxation keeps the simpler one's choice
+        start = (warm or {}).get(spec) or (prev.fit if prev is not None and not alternatives else None)
         try:
             t = _clamp_or_not(name, spec, current, start, warm)
         except FitError:
+            if alternatives:
+                continue
             break
         f = t.fit
-        if prev is not None and compared(name, f, prev.fit).dbic >= 0:
+        if prev is not None and not alternatives and compared(name, f, prev.fit).dbic >= 0:
             break
         if best is None or t.dbic < best.dbic:
             best = t
-        if simplest is None and t.screened:
-            simplest = t
-        if not upgrade and t.dbic > 0 and name not in ("viscoelastic", "sensor_offset"):
+        if t.screened and (simplest is None or (alternatives and simplest is best)):
+            simplest = t  # of alternatives: a screened form other than the best, when there is one
+        if not upgrade and not alternatives and t.dbic > 0 and name not in ("viscoelastic", "sensor_offset"):
             break  # the simplest variant does not pay: the richer ones will not either
         prev = t
     if best is not None and simplest is not None and simplest is not best:

@@ -59,6 +59,20 @@ Five *material* effects extend a hyperelastic base model with nominal stress
     stretch — in tendon and ligament it falls with strain (Provenzano et al. 2001),
     in elastomers such as VHB it grows. :func:`relaxation_strength`.
 
+``viscoelastic`` with ``kappa_tau`` — stretch-dependent relaxation rate (nonlinear viscoelasticity)
+    .. math::
+
+        \tau_i(\xi) = \tau_i\,e^{-\kappa_\tau(\xi - 1)},
+        \qquad \dot h_i = \dot P_e - h_i/\tau_i(\xi),
+        \qquad P = g_\infty P_e + \sum_i g_i h_i ,
+
+    the Prony branches of QLV with relaxation *times* that depend on the current
+    uniaxial-equivalent stretch (κ_τ = 0: QLV). The amount that relaxes at
+    equilibrium is that of QLV; how fast it relaxes changes with stretch — the
+    form ligament and tendon show (the relaxation rate falls as strain rises:
+    Provenzano et al. 2001, Hingorani et al. 2004, Duenwald et al. 2009), which
+    the strength form above cannot give. :func:`qlv_rate_stress`.
+
 ``cyclic_softening`` — continuous damage from cycling (Miehe 1995)
     .. math::
 
@@ -129,6 +143,9 @@ __all__ = [
     "cyclic_factor",
     "set_stretch",
     "relaxation_strength",
+    "relaxation_times",
+    "qlv_rate_decay",
+    "qlv_rate_stress",
 ]
 
 #: Effects that become part of the material.
@@ -180,6 +197,36 @@ def _qlv_recursion_py(pe, g, a, b, out, state):  # pragma: no cover - compiled b
             acc += g[i] * h[i]
         out[k] = acc
     state[:] = h
+
+
+def _qlv_rate_decay_py(t, tau, xi, kappa_tau, a, b):  # pragma: no cover - compiled by numba
+    """:func:`_qlv_decay_py` with the relaxation times of step k at the stretch of the step's middle,
+    ``tau_i exp(-kappa_tau (xi_mid - 1))``, ``xi_mid = (xi[k-1] + xi[k]) / 2`` (:func:`qlv_rate_decay`)."""
+    n, m = t.shape[0], tau.shape[0]
+    for i in range(m):
+        a[0, i] = 1.0
+        b[0, i] = 1.0
+    for k in range(1, n):
+        dt = t[k] - t[k - 1]
+        rate = math.exp(kappa_tau * (0.5 * (xi[k - 1] + xi[k]) - 1.0))  # tau_i / tau_i(xi_mid)
+        for i in range(m):
+            if dt > 0.0:
+                x = dt * rate / tau[i]
+                a[k, i] = math.exp(-x)
+                b[k, i] = -math.expm1(-x) / x if x > 1e-12 else 1.0 - 0.5 * x
+            else:
+                a[k, i] = 1.0
+                b[k, i] = 1.0
+
+
+@functools.cache
+def _qlv_rate_kernel():
+    """:func:`_qlv_rate_decay_py` compiled (numba, on first use); the plain-Python one without numba."""
+    try:
+        from numba import njit
+    except ImportError:  # pragma: no cover
+        return _qlv_rate_decay_py
+    return njit(cache=True, nogil=True)(_qlv_rate_decay_py)
 
 
 @functools.cache
@@ -255,6 +302,101 @@ def qlv_stress(t, pe, g, tau, *, return_state: bool = False, decay: tuple | None
     a, b = qlv_decay(t, tau) if decay is None else decay
     _qlv_kernels()[1](pe, g, a, b, out, state)
     return (out, state) if return_state else out
+
+
+def relaxation_times(xi, tau, kappa_tau: float):
+    """The relaxation times at stretch *xi*, ``tau_i exp(-kappa_tau (xi - 1))``, shape ``xi.shape + tau.shape``."""
+    xi = np.asarray(xi, float)
+    return np.asarray(tau, float) * np.exp(-kappa_tau * (xi[..., None] - 1.0))
+
+
+def qlv_rate_decay(t, tau, xi, kappa_tau: float) -> tuple[np.ndarray, np.ndarray]:
+    r"""The factors of the QLV recursion with stretch-dependent relaxation times.
+
+    Over each sample interval :math:`[t_k, t_{k+1}]`, :math:`\Delta = t_{k+1} - t_k`, the
+    relaxation rate is held at the stretch of the interval's middle and the elastic
+    stress is linear, so the branch equation :math:`\dot h_i = \dot P_e - h_i/\tau_i(\xi)`
+    has constant coefficients and is integrated exactly:
+
+    .. math::
+
+        \tau_{i,k} = \tau_i\,e^{-\kappa_\tau(\bar\xi_k - 1)},\quad
+        \bar\xi_k = \tfrac12(\xi_k + \xi_{k+1}),\qquad
+        a_{k+1,i} = e^{-\Delta/\tau_{i,k}},\quad
+        b_{k+1,i} = \frac{\tau_{i,k}}{\Delta}\left(1 - a_{k+1,i}\right),
+
+    and :math:`h_i(t_{k+1}) = a\,h_i(t_k) + b\,(P_e(t_{k+1}) - P_e(t_k))` as in QLV.
+    Where the stretch is held (the holds, where relaxation is measured) this is the
+    exact solution; on a ramp the midpoint rule for :math:`\int dt/\tau_i(\xi(t))` makes
+    the step error third order in Δ (second order over a record), where the
+    stretch at either end of the interval would lag or lead it by half a step
+    (first order). With ``kappa_tau = 0`` the factors are those of
+    :func:`qlv_decay`, bit for bit.
+
+    Parameters
+    ----------
+    t : array_like, shape (n,)
+        Time [s], non-decreasing.
+    tau : array_like, shape (m,)
+        Relaxation times at ξ = 1 [s], positive.
+    xi : array_like, shape (n,)
+        Uniaxial-equivalent stretch of each sample (:func:`equivalent_stretch`).
+    kappa_tau : float
+        Stretch sensitivity of the relaxation rate (> 0: faster relaxation at larger stretch).
+
+    Returns
+    -------
+    (a, b) : tuple of ndarray, each shape (n, m)
+        To pass as ``decay`` to :func:`qlv_stress`.
+    """
+    t = np.ascontiguousarray(t, dtype=float)
+    tau = np.ascontiguousarray(np.atleast_1d(tau), dtype=float)
+    xi = np.ascontiguousarray(xi, dtype=float)
+    if xi.shape != t.shape:
+        raise ConfigError(f"stretch-dependent relaxation rate: xi has {xi.size} samples, t {t.size}")
+    a = np.empty((t.size, tau.size))
+    b = np.empty((t.size, tau.size))
+    if t.size:
+        _qlv_rate_kernel()(t, tau, xi, float(kappa_tau), a, b)
+    return a, b
+
+
+def qlv_rate_stress(t, pe, xi, g, tau, kappa_tau: float, *, return_state: bool = False):
+    r"""Viscoelastic stress history with stretch-dependent relaxation times.
+
+    .. math::
+
+        P = g_\infty P_e + \sum_i g_i h_i,\qquad
+        \dot h_i = \dot P_e - \frac{h_i}{\tau_i\,e^{-\kappa_\tau(\xi - 1)}},\qquad
+        h_i(t_0) = P_e(t_0),
+
+    each Prony branch a Maxwell element whose relaxation time follows the current
+    uniaxial-equivalent stretch ξ; integrated by :func:`qlv_rate_decay` (exact on
+    each interval for a rate held at the interval's middle stretch and a linear
+    :math:`P_e`). ``kappa_tau = 0`` is :func:`qlv_stress` (Fung's QLV), bit for bit.
+
+    Parameters
+    ----------
+    t : array_like, shape (n,)
+        Time [s], non-decreasing.
+    pe : array_like, shape (n,)
+        Elastic (instantaneous) stress history [Pa].
+    xi : array_like, shape (n,)
+        Uniaxial-equivalent stretch of each sample.
+    g, tau : array_like, shape (m,)
+        Prony weights (``sum(g) <= 1``) and relaxation times at ξ = 1 [s].
+    kappa_tau : float
+        Stretch sensitivity of the relaxation rate.
+    return_state : bool
+        Also return the internal variables ``h_i`` at the last sample.
+
+    Returns
+    -------
+    P : ndarray, shape (n,)
+    h : ndarray, shape (m,)
+        Only if *return_state*.
+    """
+    return qlv_stress(t, pe, g, tau, return_state=return_state, decay=qlv_rate_decay(t, tau, xi, kappa_tau))
 
 
 def qlv_step(h, pe_old: float, pe_new: float, dt: float, g, tau):
@@ -405,12 +547,15 @@ class ViscoelasticEffect:
     material parameters are the instantaneous response (G(0) = 1); the
     long-term response is ``g_inf`` times it. ``kappa`` (default 0: Fung's QLV)
     makes the relaxed amount depend on the uniaxial-equivalent stretch
-    (:func:`relaxation_strength`).
+    (:func:`relaxation_strength`); ``kappa_tau`` (default 0) makes the
+    relaxation times depend on it instead (:func:`qlv_rate_stress`). The two
+    are alternative forms: at most one is non-zero.
     """
 
     g: tuple[float, ...]
     tau: tuple[float, ...]
     kappa: float = 0.0
+    kappa_tau: float = 0.0
 
     def __post_init__(self):
         g = tuple(float(v) for v in self.g)
@@ -424,6 +569,12 @@ class ViscoelasticEffect:
         if not math.isfinite(float(self.kappa)):
             raise ConfigError(f"viscoelastic effect: kappa must be a finite number, got {self.kappa!r}")
         object.__setattr__(self, "kappa", float(self.kappa))
+        if not math.isfinite(float(self.kappa_tau)):
+            raise ConfigError(f"viscoelastic effect: kappa_tau must be a finite number, got {self.kappa_tau!r}")
+        object.__setattr__(self, "kappa_tau", float(self.kappa_tau))
+        if self.kappa and self.kappa_tau:
+            raise ConfigError("viscoelastic effect: give kappa (the relaxed amount depends on stretch) or kappa_tau "
+                              "(the relaxation times do), not both")
         order = sorted(range(len(g)), key=lambda i: tau[i])
         object.__setattr__(self, "g", tuple(g[i] for i in order))
         object.__setattr__(self, "tau", tuple(tau[i] for i in order))
@@ -439,13 +590,16 @@ class ViscoelasticEffect:
         return self.g_inf + sum(gi * np.exp(-t / ti) for gi, ti in zip(self.g, self.tau))
 
     def stress(self, t, pe, xi=None):
-        """The stress history for the elastic history *pe* (:func:`qlv_stress`; with ``kappa``
-        also the uniaxial-equivalent stretch *xi* of each sample, :func:`relaxation_strength`)."""
+        """The stress history for the elastic history *pe* (:func:`qlv_stress`; with ``kappa`` or
+        ``kappa_tau`` also the uniaxial-equivalent stretch *xi* of each sample, :func:`relaxation_strength`,
+        :func:`qlv_rate_stress`)."""
+        if (self.kappa or self.kappa_tau) and xi is None:
+            raise ConfigError("viscoelastic effect: stretch-dependent relaxation needs the equivalent stretch xi")
+        if self.kappa_tau:
+            return qlv_rate_stress(t, pe, xi, np.array(self.g), np.array(self.tau), self.kappa_tau)
         p = qlv_stress(t, pe, np.array(self.g), np.array(self.tau))
         if self.kappa == 0.0:
             return p
-        if xi is None:
-            raise ConfigError("viscoelastic effect: stretch-dependent relaxation needs the equivalent stretch xi")
         pe = np.asarray(pe, float)
         return pe - relaxation_strength(xi, self.kappa, sum(self.g)) * (pe - p)
 
@@ -582,6 +736,8 @@ class MaterialEffects:
             out["alpha"] = "accumulated variation of the strain energy sum |dW| [Pa] and the previous W"
         if self.viscoelastic is not None and self.viscoelastic.kappa:
             out["prony_h"] += "; the relaxed part is scaled by relaxation_strength(xi, kappa, sum g)"
+        if self.viscoelastic is not None and self.viscoelastic.kappa_tau:
+            out["prony_h"] += "; the relaxation times follow the stretch xi (relaxation_times(xi, tau, kappa_tau))"
         return out
 
     def stress(self, t, pe, *, W=None, xi=None, history: bool = True):
@@ -631,7 +787,8 @@ class MaterialEffects:
     # ---------------------------------------------------------------- I/O
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict (schema ``esmm.material-effects/1``, SI units)."""
-        new = self.cyclic_softening or self.permanent_set or (self.viscoelastic and self.viscoelastic.kappa)
+        new = self.cyclic_softening or self.permanent_set or (self.viscoelastic and (self.viscoelastic.kappa
+                                                                                    or self.viscoelastic.kappa_tau))
         d: dict[str, Any] = {"schema": SCHEMA, "composition": COMPOSITION if new else "P = QLV[(1 - D) * eta * P_e]"}
         if self.viscoelastic is not None:
             v = self.viscoelastic
@@ -639,6 +796,8 @@ class MaterialEffects:
                                  "reference": "instantaneous", "unit_tau": "s"}
             if v.kappa:
                 d["viscoelastic"]["kappa"] = v.kappa
+            if v.kappa_tau:
+                d["viscoelastic"]["kappa_tau"] = v.kappa_tau
         if self.mullins is not None:
             d["mullins"] = {"r": self.mullins.r, "m": self.mullins.m, "beta": self.mullins.beta,
                             "unit_m": "Pa", "energy": "base strain energy density W [Pa]"}
@@ -673,7 +832,8 @@ class MaterialEffects:
             )
         try:
             v = d.get("viscoelastic")
-            visco = ViscoelasticEffect(tuple(v["g"]), tuple(v["tau"]), float(v.get("kappa", 0.0))) if v else None
+            visco = ViscoelasticEffect(tuple(v["g"]), tuple(v["tau"]), float(v.get("kappa", 0.0)),
+                                       float(v.get("kappa_tau", 0.0))) if v else None
             mu = d.get("mullins")
             mull = MullinsEffect(float(mu["r"]), float(mu["m"]), float(mu.get("beta", 0.0))) if mu else None
             da = d.get("damage")
@@ -701,6 +861,8 @@ class MaterialEffects:
             }
             if v.kappa:
                 t["viscoelastic"]["kappa"] = float(v.kappa)
+            if v.kappa_tau:
+                t["viscoelastic"]["kappa_tau"] = float(v.kappa_tau)
         if self.mullins is not None:
             m = self.mullins
             t["mullins"] = {"r": float(m.r), "m": f"{from_si(m.m, stress_unit, 'stress'):.6g} {stress_unit}",
@@ -754,7 +916,7 @@ class MaterialEffects:
                 raise ConfigError(f"{where}.viscoelastic: reference must be \"instantaneous\", got {ref!r}")
             d["viscoelastic"] = {"g": [float(x) for x in v.get("g", [])],
                                  "tau": [qty(x, "time", "viscoelastic.tau") for x in v.get("tau", [])],
-                                 "kappa": v.get("kappa", 0.0)}
+                                 "kappa": v.get("kappa", 0.0), "kappa_tau": v.get("kappa_tau", 0.0)}
         if "mullins" in t:
             m = t["mullins"]
             d["mullins"] = {"r": m.get("r"), "m": qty(m.get("m"), "stress", "mullins.m"),

@@ -275,6 +275,9 @@ def build_effect_model(effects, tables, law: str) -> EffectModel | None:
         # The kernels advance Fung's QLV (kappa = 0); applying it instead would drop a fitted effect silently.
         raise ConfigError(f"material effects: the simulator cannot apply stretch-dependent relaxation "
                           f"(viscoelastic kappa = {float(v.kappa):g}), only QLV (kappa = 0)")
+    if v is not None and float(getattr(v, "kappa_tau", 0.0)) != 0.0:
+        raise ConfigError(f"material effects: the simulator cannot apply stretch-dependent relaxation times "
+                          f"(viscoelastic kappa_tau = {float(v.kappa_tau):g}), only QLV (kappa_tau = 0)")
     g = np.asarray(v.g if v is not None else (), dtype=np.float64)
     tau = np.asarray(v.tau if v is not None else (), dtype=np.float64)
     g_inf = float(v.g_inf) if v is not None else 1.0
