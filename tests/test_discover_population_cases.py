@@ -30,9 +30,6 @@ CASES = [
      "a strain-energy term tried in a pair with a history effect (after the relaxation, the fibre term and the "
      "stretch-dependent relaxation each halve the held-out error alone, and neither replicates across the "
      "blocks while the other's residual is left)"),
-    (9, 262, "a staircase whose relaxation times grow with the stretch (Provenzano's ligament form)",
-     "the stretch-dependent relaxation times searched beside the stretch-dependent strength (named as plain "
-     "relaxation with the strength form alone)"),
     (8, 129, "a ramp and hold whose load cell reads an offset",
      "the offset alone checked when the offset with a drift predicts held-out data better but its drift does "
      "not explain the residual's path-dependent part"),

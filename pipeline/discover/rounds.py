@@ -56,7 +56,7 @@ def run_round(s: Search, rnd: int, rep) -> bool:
     pairable = len(s.kept) + 2 <= s.crit.max_effects
     fallbacks = sum(1 for n in remaining if len(VARIANTS.get(n, (1,))) > 1)  # a simpler variant checked too
     # in pairs, each form of an effect with alternative forms is a candidate of its own (:func:`_try_pairs`)
-    others = sum(2 if n in ALTERNATIVE_VARIANTS else 1 for n in remaining if n not in TERMS)
+    others = sum(2 if n in ALTERNATIVE_VARIANTS and len(VARIANTS[n]) > 1 else 1 for n in remaining if n not in TERMS)
     term_pairs = sum(1 for n in remaining if n in TERMS) * others if pairable else 0
     lv = round_levels(s.crit.alpha, rnd, len(remaining) + len(upgradable) + fallbacks,
                       others if pairable else 0, term_pairs)
