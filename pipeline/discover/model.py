@@ -699,7 +699,8 @@ class ForwardModel:
         p = self._softened_cached(k, st, pe, w, xi) if use_cache else self._softened(k, st, pe, w, xi)
         if st.g is not None and r.t is not None:
             if st.kappa_tau:
-                decay = self._rate_decay(k, xi, st) if fit else qlv_rate_decay(r.t[idx], st.tau, xi, st.kappa_tau)
+                decay = _rate_decay(self._rate_decays[k], self._t_fit[k], xi, st) if fit \
+                    else qlv_rate_decay(r.t[idx], st.tau, xi, st.kappa_tau)
                 q = qlv_stress(None, p, st.g, st.tau, decay=decay)
             else:
                 q = qlv_stress(self._t_fit[k], p, st.g, st.tau, decay=self._decay(k, st.tau)) if fit \
@@ -726,7 +727,7 @@ class ForwardModel:
         g, (a, b), s = _NO_TERMS, (_NO_DECAY, _NO_DECAY), _NO_TERMS
         if st.g is not None and r.t is not None:
             g = np.ascontiguousarray(st.g, dtype=float)
-            a, b = self._rate_decay(k, xi, st) if st.kappa_tau else self._decay(k, st.tau)
+            a, b = _rate_decay(self._rate_decays[k], self._t_fit[k], xi, st) if st.kappa_tau else self._decay(k, st.tau)
             if st.kappa:
                 s = self._strength(k, xi, st)
         flags = np.array([self.clamp[k], st.scale is not None, pin is not None, norm is not None])
@@ -745,17 +746,6 @@ class ForwardModel:
                 s = np.ascontiguousarray(relaxation_strength(xi, st.kappa, float(np.sum(st.g))), dtype=float)
             hit = (xi, s)
             self._remember(self._strengths[k], key, hit, 8)
-        return hit[1]
-
-    def _rate_decay(self, k: int, xi: np.ndarray, st: Values) -> tuple:
-        """The factors of record k's fitting samples with stretch-dependent relaxation times
-        (:func:`qlv_rate_decay`), kept per (ξ, τ, κ_τ)."""
-        key = (id(xi), st.tau.tobytes(), st.kappa_tau)
-        hit = self._rate_decays[k].get(key)
-        if hit is None or hit[0] is not xi:
-            with np.errstate(invalid="ignore", over="ignore"):
-                hit = (xi, qlv_rate_decay(self._t_fit[k], st.tau, xi, st.kappa_tau))
-            self._remember(self._rate_decays[k], key, hit, 8)
         return hit[1]
 
     def _decay(self, k: int, tau: np.ndarray) -> tuple:
@@ -831,6 +821,20 @@ class ForwardModel:
 
     def n_free_offsets(self, k: int) -> int:
         return self.n_offset[k] - (1 if self.pinned[k] is not None and self.n_offset[k] else 0)
+
+
+def _rate_decay(cache: dict, t: np.ndarray, xi: np.ndarray, st: Values) -> tuple:
+    """The factors of a record's fitting samples (times *t*) with stretch-dependent relaxation times
+    (:func:`qlv_rate_decay`), kept in *cache* per (ξ, τ, κ_τ), the eight most recent."""
+    key = (id(xi), st.tau.tobytes(), st.kappa_tau)
+    hit = cache.get(key)
+    if hit is None or hit[0] is not xi:
+        with np.errstate(invalid="ignore", over="ignore"):
+            hit = (xi, qlv_rate_decay(t, st.tau, xi, st.kappa_tau))
+        cache[key] = hit
+        while len(cache) > 8:
+            cache.pop(next(iter(cache)))
+    return hit[1]
 
 
 # --------------------------------------------------------------------------- problem

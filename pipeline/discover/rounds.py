@@ -254,10 +254,11 @@ def _heldout_winner(s: Search, trials: list[Trial], rnd: int, lv: Levels) -> Tri
             return t
         if fallback is not None:  # the richer variant's path-dependent part is not history: the simpler one
             f = fallback
-            if passes(_check(s, f, f.name), lv.single, s.crit.min_resolution_units) and _path_dependent(s, f, [f.name]):
+            if passes(_check(s, f, f.name), lv.single, s.crit.min_resolution_units):
                 _record(c, f)
                 _heldout_fields(c, f, lv.single, s)
-                return f
+                if _path_dependent(s, f, [f.name]):  # writes its verdict on the candidate as recorded
+                    return f
     return None
 
 
