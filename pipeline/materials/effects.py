@@ -161,8 +161,10 @@ COMPOSITION = "P = VE[(1 - D) * eta * c * P_e(lam/lam_s)/lam_s]"
 
 
 # --------------------------------------------------------------------------- kernels
-def _qlv_decay_py(t, tau, a, b):  # pragma: no cover - compiled by numba (checked in tests/test_discover.py)
-    """Per step k and term i: the decay ``a = exp(-Δ/τ)`` and the ramp factor ``b = τ/Δ (1 - a)``.
+def _qlv_decay_py(t, tau, xi, kappa_tau, a, b):  # pragma: no cover - compiled by numba (checked in tests/test_discover.py)
+    """Per step k and term i: the decay ``a = exp(-Δ r/τ)`` and the ramp factor ``b = τ/(Δ r) (1 - a)``, with
+    ``r = exp(kappa_tau (xi_mid - 1))``, ``xi_mid = (xi[k-1] + xi[k]) / 2``, the step's relaxation rate
+    relative to ``1/τ`` (:func:`qlv_rate_decay`; 1 for QLV, ``kappa_tau = 0``, *xi* then not read).
 
     Row 0 and steps without advance (Δ ≤ 0) get ``a = b = 1``: the recursion
     then adds the stress step to ``h`` unchanged (``1·h + 1·Δp = h + Δp`` exactly).
@@ -173,9 +175,10 @@ def _qlv_decay_py(t, tau, a, b):  # pragma: no cover - compiled by numba (checke
         b[0, i] = 1.0
     for k in range(1, n):
         dt = t[k] - t[k - 1]
+        rate = math.exp(kappa_tau * (0.5 * (xi[k - 1] + xi[k]) - 1.0)) if kappa_tau != 0.0 else 1.0
         for i in range(m):
             if dt > 0.0:
-                x = dt / tau[i]
+                x = dt * rate / tau[i]
                 a[k, i] = math.exp(-x)
                 b[k, i] = -math.expm1(-x) / x if x > 1e-12 else 1.0 - 0.5 * x
             else:
@@ -197,36 +200,6 @@ def _qlv_recursion_py(pe, g, a, b, out, state):  # pragma: no cover - compiled b
             acc += g[i] * h[i]
         out[k] = acc
     state[:] = h
-
-
-def _qlv_rate_decay_py(t, tau, xi, kappa_tau, a, b):  # pragma: no cover - compiled by numba
-    """:func:`_qlv_decay_py` with the relaxation times of step k at the stretch of the step's middle,
-    ``tau_i exp(-kappa_tau (xi_mid - 1))``, ``xi_mid = (xi[k-1] + xi[k]) / 2`` (:func:`qlv_rate_decay`)."""
-    n, m = t.shape[0], tau.shape[0]
-    for i in range(m):
-        a[0, i] = 1.0
-        b[0, i] = 1.0
-    for k in range(1, n):
-        dt = t[k] - t[k - 1]
-        rate = math.exp(kappa_tau * (0.5 * (xi[k - 1] + xi[k]) - 1.0))  # tau_i / tau_i(xi_mid)
-        for i in range(m):
-            if dt > 0.0:
-                x = dt * rate / tau[i]
-                a[k, i] = math.exp(-x)
-                b[k, i] = -math.expm1(-x) / x if x > 1e-12 else 1.0 - 0.5 * x
-            else:
-                a[k, i] = 1.0
-                b[k, i] = 1.0
-
-
-@functools.cache
-def _qlv_rate_kernel():
-    """:func:`_qlv_rate_decay_py` compiled (numba, on first use); the plain-Python one without numba."""
-    try:
-        from numba import njit
-    except ImportError:  # pragma: no cover
-        return _qlv_rate_decay_py
-    return njit(cache=True, nogil=True)(_qlv_rate_decay_py)
 
 
 @functools.cache
@@ -259,11 +232,16 @@ def qlv_decay(t, tau) -> tuple[np.ndarray, np.ndarray]:
     (a, b) : tuple of ndarray, each shape (n, m)
     """
     t = np.ascontiguousarray(t, dtype=float)
+    return _decay(t, tau, t, 0.0)
+
+
+def _decay(t: np.ndarray, tau, xi: np.ndarray, kappa_tau: float) -> tuple[np.ndarray, np.ndarray]:
+    """The factors of :func:`_qlv_decay_py` for contiguous times *t* and stretches *xi*."""
     tau = np.ascontiguousarray(np.atleast_1d(tau), dtype=float)
     a = np.empty((t.size, tau.size))
     b = np.empty((t.size, tau.size))
     if t.size:
-        _qlv_kernels()[0](t, tau, a, b)
+        _qlv_kernels()[0](t, tau, xi, float(kappa_tau), a, b)
     return a, b
 
 
@@ -350,15 +328,10 @@ def qlv_rate_decay(t, tau, xi, kappa_tau: float) -> tuple[np.ndarray, np.ndarray
         To pass as ``decay`` to :func:`qlv_stress`.
     """
     t = np.ascontiguousarray(t, dtype=float)
-    tau = np.ascontiguousarray(np.atleast_1d(tau), dtype=float)
     xi = np.ascontiguousarray(xi, dtype=float)
     if xi.shape != t.shape:
         raise ConfigError(f"stretch-dependent relaxation rate: xi has {xi.size} samples, t {t.size}")
-    a = np.empty((t.size, tau.size))
-    b = np.empty((t.size, tau.size))
-    if t.size:
-        _qlv_rate_kernel()(t, tau, xi, float(kappa_tau), a, b)
-    return a, b
+    return _decay(t, tau, xi, kappa_tau)
 
 
 def qlv_rate_stress(t, pe, xi, g, tau, kappa_tau: float, *, return_state: bool = False):
