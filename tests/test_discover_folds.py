@@ -180,3 +180,82 @@ def test_a_ramp_with_a_short_tail_is_cut_in_blocks_over_all_of_it():
     [r3] = prepare([stair], max_points=300)
     k3 = ho._after_first_loading(r3)
     assert r3.test.n - k3 < r3.test.n / ho.BLOCKS and 0 < k3 and r3.x[k3 - 1] == pytest.approx(1.5)
+
+
+def _slipping_ramp(rng, *, slips=((0.85, 0.08),), peak: float = 1.5, rate: float = 0.01, fs: float = 20.0,
+                   noise: float = 0.002) -> TensileTest:
+    """A ramp of the Arruda-Boyce law whose grip slips at fractions of the ramp's duration, each giving back a
+    fraction of the extension reached over 0.2 s (a smooth step), recorded as :func:`_cyclic_record` records."""
+    t_fine = np.linspace(0.0, (peak - 1.0) / rate, int((peak - 1.0) / rate * fs * 8) + 1)
+    lam = 1.0 + rate * t_fine
+    lost = np.zeros_like(lam)
+    for at, frac in slips:
+        t0 = at * t_fine[-1]
+        s = np.clip((t_fine - t0) / 0.2, 0.0, 1.0)
+        lost += frac * (1.0 + rate * t0 - 1.0) * (3 * s**2 - 2 * s**3)
+    p = signal.filtfilt(*signal.butter(2, 0.2), _arruda_boyce(lam - lost)[0])[::8]
+    t, lam = t_fine[::8], lam[::8]
+    e = signal.lfilter(*signal.butter(2, 0.3), rng.standard_normal(t.size + 500))[500:]
+    p = p + noise * float(p.max()) * e / e.std()
+    return TensileTest(source=Path("slip.csv"), mode="uniaxial", stretch=lam, stress=p, time=t)
+
+
+def test_a_slip_in_the_last_block_is_not_estimated_on_it():
+    """Consecutive blocks: the last block's fold has no training sample after a late slip. Its loss is held at
+    zero, not left at the value the whole record (the held-out samples) gave it: the fold's prediction does not
+    change when the held-out samples after the slip are changed."""
+    rec = _slipping_ramp(np.random.default_rng(5))
+    res = discover([rec], model="arruda-boyce", n_starts=1, max_points=200, candidates=(), nested=False)
+    [r] = res.base.problem.records
+    assert len(r.slips) == 1 and r.slips[0] > 0.8 * r.test.n
+    slip = fit_spec(res.base.spec.with_("grip_slip", 1), res.base)
+    _, folds = ho._block_folds(slip.problem.records)
+    last = folds[-1]
+    assert last.test[0][r.slips[0]]
+    z, fp = ho._fold_fit(slip, last)
+    own = [i for i, s in enumerate(fp.slots) if s.effect == "grip_slip"]
+    assert own and np.all(z[own] == 0.0) and slip.z[own[0]] > 0.0
+    assert ho.unseen_slip(fp.slots[own[0]], fp.records, last.train)
+    assert not any(ho.unseen_slip(fp.slots[own[0]], fp.records, f.train) for f in folds[:-1])
+
+
+def test_slips_are_judged_on_interleaved_short_blocks():
+    """The slip scheme: every fold keeps training samples after each slip, its blocks are at least ten noise
+    correlation lengths long, and every sample after the first loading is held out exactly once."""
+    from esmm.pipeline.discover.trials import judged_on
+
+    rec = _slipping_ramp(np.random.default_rng(6), slips=((0.6, 0.05), (0.9, 0.08)))
+    records = prepare([rec], max_points=200)
+    [r] = records
+    assert len(r.slips) == 2
+    material, artefact = ho.fold_sets(records)
+    fs = artefact.slip
+    assert fs is not None and fs.key == "slip" and "interleaved" in fs.scheme
+    assert judged_on("grip_slip", material, artefact) is fs
+    assert judged_on(["grip_slip", "sensor_offset"], material, artefact) is artefact
+    assert judged_on("sensor_offset", material, artefact) is artefact
+    counts = np.sum([f.test[0] for f in fs.folds], axis=0)
+    assert np.all(counts == 1)
+    for f in fs.folds:
+        runs = np.diff(np.flatnonzero(np.diff(np.concatenate(([0], f.test[0].astype(int), [0])))))[::2]
+        assert runs.min() >= 10 * r.noise.length
+        for j, e in enumerate(r.slips):
+            end = r.slips[j + 1] if j + 1 < len(r.slips) else r.test.n
+            seen = r.fit_idx[f.train[0]]
+            assert np.any((seen >= e) & (seen < end))
+    clean = prepare([_slipping_ramp(np.random.default_rng(7), slips=())], max_points=200)
+    assert ho.fold_sets(clean)[1].slip is None
+
+
+def test_a_late_slip_is_kept_and_a_clean_ramp_keeps_nothing():
+    """A ramp whose grip slips at 92 % of it (the last block) names the slip, judged on the slip scheme, and
+    the same ramp without the slip keeps nothing. Judged on consecutive blocks (the slip held at zero in the
+    last block's fold), the slip failed held out and this record kept a damage for it."""
+    res = discover([_slipping_ramp(np.random.default_rng(8), slips=((0.92, 0.15),))], model="arruda-boyce",
+                   n_starts=2, max_points=300, nested=False)
+    assert res.kept == ["grip_slip"], {n: c.reason for n, c in res.candidates.items()}
+    assert "interleaved" in res.slip_scheme
+    assert res.final.cv["slip"].nrmse < 0.5 * res.base.cv["slip"].nrmse
+    clean = discover([_slipping_ramp(np.random.default_rng(8), slips=())], model="arruda-boyce", n_starts=2,
+                     max_points=300, nested=False)
+    assert clean.kept == [] and clean.slip_scheme == ""

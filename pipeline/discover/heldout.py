@@ -19,8 +19,9 @@ Two fold sets (docs/design/discovery.md, "Held-out data: the folds, and what is 
 
 What a fold refits: every parameter on the fold's training samples; a record
 without training samples (a held-out file) keeps its per-file parameters at
-their neutral values (no slack, no slip, scale 1, no offset): nothing is
-estimated on held-out data.
+their neutral values (no slack, no slip, scale 1, no offset), and so does a
+grip slip that no training sample follows: nothing is estimated on held-out
+data.
 """
 
 from __future__ import annotations
@@ -47,6 +48,8 @@ BLOCKS = 5
 #: a record is cut in blocks after its first loading only when at least this many samples follow it
 #: (BLOCKS blocks of ten samples or more); else the whole record is cut
 MIN_AFTER = 10 * BLOCKS
+#: the slip scheme's blocks are at least this many noise correlation lengths long (:func:`slip_folds`)
+SLIP_BLOCK_CORRELATIONS = 10
 
 
 @dataclass
@@ -60,9 +63,11 @@ class Fold:
 class FoldSet:
     """A held-out scheme: its name (``scheme``), its folds, and the key under which errors are cached."""
 
-    key: str  # "material" or "artefact"
+    key: str  # "material", "artefact" or "slip"
     scheme: str
     folds: list[Fold]
+    #: the artefact scheme's: the folds grip slips are judged on (:func:`slip_folds`), None without slips
+    slip: FoldSet | None = None
 
 
 def artefact_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
@@ -71,13 +76,53 @@ def artefact_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
 
 
 def fold_sets(records: Sequence[Record]) -> tuple[FoldSet, FoldSet]:
-    """(material scheme, artefact scheme); one object when both are the block scheme."""
+    """(material scheme, artefact scheme); one object when both are the block scheme. The artefact
+    scheme carries the slip scheme (:func:`slip_folds`) where a record has grip slips."""
     scheme, folds = make_folds(records)
     mat = FoldSet("material", scheme, folds)
     if scheme.startswith("leave one of"):  # the block scheme already
-        return mat, mat
-    a_scheme, a_folds = artefact_folds(records)
-    return mat, FoldSet("artefact", a_scheme, a_folds)
+        art = mat
+    else:
+        a_scheme, a_folds = artefact_folds(records)
+        art = FoldSet("artefact", a_scheme, a_folds)
+    art.slip = slip_folds(records)
+    return mat, art
+
+
+def slip_folds(records: Sequence[Record]) -> FoldSet | None:
+    """The slip scheme: leave one of five interleaved sets of short blocks of every file out.
+
+    A slip's extension loss shows only in the samples after it, until the next
+    slip: held out in one consecutive block (a slip late in a ramp lies in its
+    last block), it could not be estimated from training samples at all
+    (:func:`unseen_slip`). Short blocks taken in turn put training samples
+    after every slip in every fold, as far as each slip is followed by two
+    blocks or more. A block is at least :data:`SLIP_BLOCK_CORRELATIONS` noise
+    correlation lengths long (the noise of a held-out block is then nearly
+    independent of its neighbours', which the models were fitted to) and a
+    fiftieth of the samples after the first loading; a file too short for two
+    blocks per fold is cut in five consecutive blocks. None when no record has
+    a slip.
+    """
+    if not any(r.slips for r in records):
+        return None
+    masks: list[dict[int, np.ndarray]] = [{} for _ in range(BLOCKS)]
+    for k, r in enumerate(records):
+        n, a = r.test.n, _after_first_loading(r)
+        size = max(int(math.ceil(SLIP_BLOCK_CORRELATIONS * max(r.noise.length, 1.0))),
+                   int(math.ceil((n - a) / (10 * BLOCKS))))
+        pieces = (n - a) // size
+        edges = (a + np.linspace(0, n - a, pieces + 1)).round().astype(int) if pieces >= 2 * BLOCKS \
+            else (a + np.linspace(0, n - a, BLOCKS + 1)).round().astype(int)
+        which = np.arange(edges.size - 1) % BLOCKS
+        for j in range(BLOCKS):
+            mask = np.zeros(n, bool)
+            for i in np.flatnonzero(which == j):
+                mask[edges[i]:edges[i + 1]] = True
+            masks[j][k] = mask
+    folds = [_block_fold(f"blocks {j + 1}, {j + 1 + BLOCKS}, ... of every {BLOCKS}", records, masks[j])
+             for j in range(BLOCKS)]
+    return FoldSet("slip", f"leave one of {BLOCKS} interleaved sets of short blocks out", folds)
 
 
 def make_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
@@ -300,13 +345,34 @@ def cached_heldout(fitted: Fitted, fs: FoldSet) -> Errors:
     return got
 
 
+def unseen_slip(s, records: Sequence[Record], train: Sequence) -> bool:
+    """Whether slot *s* is a grip slip with no training sample between it and the next slip
+    (*train*: per record, None for all its fitting samples, or positions among them).
+
+    A slip's extension loss shows only after it; where no training sample lies
+    before the next slip, the training data see its loss only added to the
+    next one's, and the split between the two would be the whole record's:
+    estimated from held-out samples.
+    """
+    if s.effect != "grip_slip" or s.file is None:
+        return False
+    r = records[s.file]
+    tr = train[s.file]
+    idx = r.fit_idx if tr is None else r.fit_idx[np.asarray(tr, dtype=int)]
+    j = int(s.name[5:-1])
+    end = r.slips[j + 1] if j + 1 < len(r.slips) else r.test.n
+    return not np.any((idx >= r.slips[j]) & (idx < end))
+
+
 def _fold_fit(fitted: Fitted, fold: Fold):
     """The whole model refitted on a fold's training samples (warm start), and that fold's problem.
 
     The slots that act only on records without training samples (a held-out
-    file's slack, slips, specimen scale) are set to their neutral value (0: no
-    slack, no slip, scale e^0 = 1) and not fitted: nothing is estimated on
-    held-out data. (Its offset is not applied either: offsets are estimated on
+    file's slack, slips, specimen scale), and the grip slips that no training
+    sample follows (a slip in the held-out block of its file's last stretch),
+    are set to their neutral value (0: no slack, no slip, scale e^0 = 1) and not
+    fitted: nothing is estimated on held-out data (a slot the training samples
+    do not see would otherwise keep the value the whole record gave it). (Its offset is not applied either: offsets are estimated on
     training samples only.)
     """
     fp = fitted.problem.derived(train=fold.train)
@@ -316,7 +382,7 @@ def _fold_fit(fitted: Fitted, fold: Fold):
         return bool(s.records) and all(k in excluded for k in s.records)
 
     z0 = fitted.z.copy()
-    mine = [i for i, s in enumerate(fp.slots) if own(s)]
+    mine = [i for i, s in enumerate(fp.slots) if own(s) or unseen_slip(s, fp.records, fold.train)]
     z0[mine] = 0.0
     active = [i for i in range(len(fp.slots)) if i not in set(mine)]
     try:

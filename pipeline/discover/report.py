@@ -140,6 +140,7 @@ def result_to_dict(res: DiscoverResult) -> dict[str, Any]:
         "candidates": [c.to_dict() for c in res.candidates.values()],
         "not_identifiable": list(res.not_identifiable),
         "heldout": {"scheme": res.scheme, "folds": list(res.folds), "artefact_scheme": res.artefact_scheme,
+                    "slip_scheme": res.slip_scheme or None,
                     "alpha": res.settings.get("alpha"), "levels": [lv.to_dict() for lv in res.levels],
                     "nested": res.nested},
         "diagnosis": [d.to_dict() for d in res.diagnoses],
@@ -366,7 +367,8 @@ def _md_errors(res: DiscoverResult) -> list[str]:
     n = res.nested or {}
     L = ["## Error before and after", "",
          f"Held-out scheme: {res.scheme} ({len(res.folds)} folds: {'; '.join(res.folds)}); per-file artefacts "
-         f"judged on: {res.artefact_scheme}. NRMSE = RMSE / range of the measured stress; every file counts "
+         f"judged on: {res.artefact_scheme}"
+         + (f"; grip slips on: {res.slip_scheme}" if res.slip_scheme else "") + ". NRMSE = RMSE / range of the measured stress; every file counts "
          "equally; errors on all samples. *Nested*: the whole selection run again inside each fold on its "
          "training samples, the model it chose predicting the fold's held-out samples"
          + (" (not computed, `--no-nested`: the held-out errors chose the model and are optimistic)"

@@ -81,6 +81,7 @@ class DiscoverResult:
     outcome: str = ""  # what is left, in words (empty when the residual is noise)
     levels: list[Levels] = field(default_factory=list)  # the family-wise levels of each round
     artefact_scheme: str = ""  # the folds per-file artefacts were judged on
+    slip_scheme: str = ""  # the folds grip slips were judged on (empty: no record has a slip)
     nested: dict[str, Any] | None = None  # the nested held-out errors before and after (:mod:`.nested`)
 
     @property
@@ -327,4 +328,5 @@ def _result(s: Search, base_fit: FitResult, t_start: float, *, settings: dict[st
         seconds=time.perf_counter() - t_start, base_fit=base_fit,
         outcome=outcome(s.diagnoses[-1], s.kept) if s.diagnoses else "",
         levels=list(s.levels), artefact_scheme=s.artefact.scheme,
+        slip_scheme=s.artefact.slip.scheme if s.artefact.slip is not None else "",
     )

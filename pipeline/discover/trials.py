@@ -177,8 +177,11 @@ def _clamp_or_not(name: str, spec: Spec, current: Fitted, start: Fitted | None,
 
 
 def judged_on(names: str | list[str], material: FoldSet, artefact: FoldSet) -> FoldSet:
-    """The fold set a candidate is judged on: the artefact scheme when every name is a per-file artefact."""
+    """The fold set a candidate is judged on: the artefact scheme when every name is a per-file artefact,
+    its slip scheme for grip slips alone."""
     names = [names] if isinstance(names, str) else names
+    if artefact.slip is not None and all(n == "grip_slip" for n in names):
+        return artefact.slip
     return artefact if all(n in ARTEFACTS for n in names) else material
 
 
