@@ -217,6 +217,12 @@ def test_a_slip_in_the_last_block_is_not_estimated_on_it():
     assert own and np.all(z[own] == 0.0) and slip.z[own[0]] > 0.0
     assert ho.unseen_slip(fp.slots[own[0]], fp.records, last.train)
     assert not any(ho.unseen_slip(fp.slots[own[0]], fp.records, f.train) for f in folds[:-1])
+    # the held-out samples after it are not predicted by the slip model (its loss is unknown to the fold) ...
+    idx, _, _, fold_of = ho.heldout(slip, folds).samples[0]
+    assert np.all(idx[fold_of == len(folds) - 1] < r.slips[0]) and np.any(idx[fold_of == 0] < r.slips[0])
+    # ... and are predicted by the model without slips
+    idx0, _, _, fold0 = ho.heldout(res.base, folds).samples[0]
+    assert np.any(idx0[fold0 == len(folds) - 1] >= r.slips[0])
 
 
 def test_slips_are_judged_on_interleaved_short_blocks():

@@ -312,14 +312,17 @@ def heldout(fitted: Fitted, folds: Sequence[Fold]) -> Errors:
     A held-out *file* keeps its per-file parameters neutral (no slack, slip,
     scale or offset is estimated on it); a held-out *block* is predicted with
     the history of its whole file and the per-file parameters estimated on the
-    rest of that file. ``samples`` holds, per record index, (sample indices,
+    rest of that file. The held-out samples after a grip slip that no training
+    sample follows (:func:`unseen_slip`) are not predicted: the slip's loss is
+    unknown to the fold, and a model judged there would be judged on how well it
+    stands in for the slip. ``samples`` holds, per record index, (sample indices,
     data, prediction, fold number) in time order.
     """
     prob = fitted.problem
     per_file: dict[int, tuple[list, list, list, list]] = {}
     for j, fold in enumerate(folds):
         z, fp = _fold_fit(fitted, fold)
-        add_predictions(fp, z, fold, j, per_file)
+        add_predictions(fp, z, _before_unseen_slips(fp, fold), j, per_file)
     samples = {}
     for k, (idx, ys, ps, fs) in per_file.items():
         i = np.concatenate(idx)
@@ -330,6 +333,24 @@ def heldout(fitted: Fitted, folds: Sequence[Fold]) -> Errors:
     out = error_measures(items, spans)
     out.samples = samples
     return out
+
+
+def _before_unseen_slips(prob, fold: Fold) -> Fold:
+    """*fold* with each record's held-out samples cut at its first slip that no training sample follows."""
+    first: dict[int, int] = {}
+    for s in prob.slots:
+        if unseen_slip(s, prob.records, fold.train):
+            e = prob.records[s.file].slips[int(s.name[5:-1])]
+            first[s.file] = min(e, first.get(s.file, e))
+    if not first:
+        return fold
+    test = list(fold.test)
+    for k, e in first.items():
+        if test[k] is not None:
+            test[k] = test[k].copy()
+            test[k][e:] = False
+            test[k] = test[k] if test[k].any() else None
+    return Fold(fold.name, fold.train, test)
 
 
 def cached_heldout(fitted: Fitted, fs: FoldSet) -> Errors:
