@@ -10,10 +10,12 @@ force against the first variant's median run and, with ``--explicit``, against t
 stepper's (``implicit_accuracy`` of benchmarks/bench_simulate.py, over the lift)::
 
     python scripts/implicit_profile.py A.h5 [B.h5 ...] [--runs 3] [--threads auto]
-        [--variant NAME:key=value,key=value ...] [--explicit] [--out profile.json]
+        [--variant NAME:key=value,key=value ...] [--explicit [--reference DIR]] [--out profile.json]
 
 A variant's keys are :class:`~esmm.pipeline.simulate.implicit.BackwardEuler` keyword arguments
-(numbers, booleans, strings); ``base`` (no keyword) is always the first.
+(numbers, booleans, strings), a key ``scene.FIELD`` a field of the scene
+(``scene.factor=mixed``), a key ``module.attr`` or ``module.Class.attr`` that attribute;
+``base`` (no keyword) is always the first.
 """
 
 from __future__ import annotations
@@ -118,9 +120,14 @@ def _patched(kwargs: dict):
     stepper = {k: v for k, v in kwargs.items() if "." not in k}
     mods = []
     for k, v in kwargs.items():
-        if "." in k:
-            mod, _, attr = k.rpartition(".")
-            mods.append((importlib.import_module(mod), attr, v))
+        if "." in k and not k.startswith("scene."):
+            owner, _, attr = k.rpartition(".")
+            try:
+                obj = importlib.import_module(owner)
+            except ModuleNotFoundError:                  # module.Class.attr
+                mod, _, cls = owner.rpartition(".")
+                obj = getattr(importlib.import_module(mod), cls)
+            mods.append((obj, attr, v))
     return stepper, mods
 
 
@@ -135,12 +142,17 @@ def one_run(asset, scene, out: Path, kwargs: dict, clock: PhaseClock) -> dict:
     advance = BackwardEuler.advance
 
     def timed_advance(self, *a, **k):
+        if cpu[0] == 0.0:               # the phases before the first step (the first factor) not counted
+            clock.reset()
         c = time.thread_time()
         try:
             return advance(self, *a, **k)
         finally:
             cpu[0] += time.thread_time() - c
 
+    import dataclasses
+
+    scene = dataclasses.replace(scene, **{k[6:]: v for k, v in kwargs.items() if k.startswith("scene.")})
     stepper_kw, mods = _patched(kwargs)
     saved = [(m, a, getattr(m, a)) for m, a, _ in mods]
     for m, a, v in mods:
@@ -173,7 +185,8 @@ def _median_run(runs: list) -> dict:
     return sorted(runs, key=lambda r: r["stepping_cpu_s"])[len(runs) // 2]
 
 
-def profile_asset(path: Path, variants: list, scene, runs: int, explicit: bool, work: Path) -> dict:
+def profile_asset(path: Path, variants: list, scene, runs: int, explicit: bool, work: Path,
+                  reference: Path | None = None) -> dict:
     from bench_simulate import _force_difference, implicit_accuracy
     from esmm.pipeline.asset import read_asset
     from esmm.pipeline.simulate.run import simulate_network
@@ -192,10 +205,14 @@ def profile_asset(path: Path, variants: list, scene, runs: int, explicit: bool, 
     row = {"nodes": asset.network.n_nodes, "springs": int(len(asset.network.springs)), "variants": {}}
     ref = None
     if explicit:
-        res = simulate_network(asset.network, asset.tables, scene.with_overrides(method="explicit"),
-                               work / f"{path.stem}-explicit")
-        ref = res.history
-        row["explicit_wall_s"] = res.summary.stepping_wall_s
+        keep = work if reference is None else reference
+        keep.mkdir(parents=True, exist_ok=True)
+        ref = keep / f"{path.stem}-explicit" / "history.h5"
+        if not ref.is_file():
+            res = simulate_network(asset.network, asset.tables, scene.with_overrides(method="explicit"),
+                                   ref.parent)
+            row["explicit_wall_s"] = res.summary.stepping_wall_s
+        row["explicit_history"] = str(ref)
     lift_end = scene.grasper.waypoints[-1].time
     frame_dt = 1.0 / scene.frame_rate
     base_hist = None
@@ -226,6 +243,8 @@ def main(argv=None) -> int:
     ap.add_argument("--duration", default=None)
     ap.add_argument("--variant", action="append", default=[], help="NAME:key=value,... (BackwardEuler kwargs)")
     ap.add_argument("--explicit", action="store_true", help="also the explicit reference, once")
+    ap.add_argument("--reference", type=Path, default=None,
+                    help="folder that keeps the explicit runs (<asset stem>-explicit/history.h5) between calls")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args(argv)
     from esmm.pipeline.simulate.scene import load_scene
@@ -236,7 +255,8 @@ def main(argv=None) -> int:
            "load_average_at_start": os.getloadavg(), "assets": {}}
     with tempfile.TemporaryDirectory() as d:
         for path in a.assets:
-            out["assets"][path.stem] = row = profile_asset(path, variants, scene, a.runs, a.explicit, Path(d))
+            out["assets"][path.stem] = row = profile_asset(path, variants, scene, a.runs, a.explicit, Path(d),
+                                                                a.reference)
             for name, v in row["variants"].items():
                 ph = v["phases_cpu_s"]
                 tot = v["stepping_cpu_s"]
