@@ -1427,3 +1427,28 @@ def add_damping_blocks(x, ij, c, blk, stride, data):
                 data[blk[1, p] + r * sj + q] += val
                 data[blk[2, p] + r * si + q] -= val
                 data[blk[3, p] + r * sj + q] -= val
+
+
+@njit(**JIT_OPTIONS)
+def step_velocity(x, x0, h, v):
+    """``v = (x - x0) / h`` (n, 3): the implicit step's velocities at its end positions *x*."""
+    for a in range(x.shape[0]):
+        for d in range(3):
+            v[a, d] = (x[a, d] - x0[a, d]) / h
+
+
+@njit(**JIT_OPTIONS)
+def step_residual(x, x0, v0, h, mass, alpha, f, movable, g):
+    """The implicit step's residual ``g = m ((x - x0 - h v0) / h^2 + alpha (x - x0) / h) - f`` (n, 3),
+    zero on the nodes that are not *movable* (the numpy expression's arithmetic, element by element)."""
+    hh = h * h
+    for a in range(x.shape[0]):
+        if not movable[a]:
+            g[a, 0] = 0.0
+            g[a, 1] = 0.0
+            g[a, 2] = 0.0
+            continue
+        m = mass[a]
+        for d in range(3):
+            dx = x[a, d] - x0[a, d]
+            g[a, d] = m * ((dx - h * v0[a, d]) / hh + alpha * dx / h) - f[a, d]
