@@ -4,11 +4,11 @@ The implicit stepper factors :math:`A = M/h^2 + (\alpha M + C)/h + K_{springs} +
 volume term's per-tet bound, :meth:`~.volumeterm.VolumeTerm.tangent_bound`), the fixed nodes' rows
 and columns the identity (:meth:`~.implicit_system.StepSystem.matrix`). Summed as sparse matrices
 (the springs' tangent, the volume term's bound, the dashpots' matrix, the masks and the diagonal)
-it cost about half a renewal on the split networks (19 ms against a numeric factorization's 34 ms
+it cost over a third of a renewal on the split networks (19 ms against a numeric factorization's 34 ms
 on the liver's split of 1 736 parents). :class:`BoundAssembly` writes every term into the data of
 one CSR pattern found once per run, the springs' node blocks: the per-tet bound couples only the
 nodes of a tet, which are the springs' on a tetrahedral network. The values are those of the
-sparse sums to rounding (docs/design/realtime.md, "Per phase").
+sparse sums to rounding (docs/design/realtime.md, "The split networks' step made cheaper").
 """
 
 from __future__ import annotations
