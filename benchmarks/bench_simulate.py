@@ -50,6 +50,12 @@ alternating in one process after a warm-up of each (docs/design/twogrid.md):
 ``python benchmarks/bench_simulate.py --parts twogrid``
 (``--two-grid-assets a.h5,b.h5`` to use split assets already prepared).
 
+Split organs (``bench_splits``, part "splits", not in the default parts): the default scene on the
+coarse parents' splits of the liver, the OpenHELP kidney and spleen (``--elements 1500 --split``)
+and on the liver's paper preset, assets taken in turn after a warm-up round, real-time factor per
+run and its median against the goal of three times real time (docs/design/realtime.md):
+``python benchmarks/bench_simulate.py --parts splits`` (about ten minutes on two cores).
+
 Note: on a shared machine the wall times include other processes' load; CPU
 (thread) time of the single-thread runs is reported beside them.
 """
@@ -611,6 +617,52 @@ def bench_two_grid(*, assets=None, runs: int = 3) -> dict:
     return out
 
 
+#: The split organs of part "splits": name -> (surface, prepare keywords); the OpenHELP organs where
+#: ../shared/data is present.
+SPLIT_ORGANS = {"liver_paper": (LIVER, {"config": "paper"}),
+                "liver_split_1500": (LIVER, {"config": "paper", "elements": 1500, "split": True}),
+                "kidney_split_1500": (REPO.parent / "shared" / "data" / "meshes" / "openhelp_Kidney_left.stl",
+                                      {"config": "paper", "elements": 1500, "split": True}),
+                "spleen_split_1500": (REPO.parent / "shared" / "data" / "meshes" / "openhelp_Spleen.stl",
+                                      {"config": "paper", "elements": 1500, "split": True})}
+
+
+def bench_splits(*, runs: int = 3) -> dict:
+    """The default scene on the coarse parents' splits (``esmm prepare --elements 1500 --split``) of the
+    organs of :data:`SPLIT_ORGANS` and on the liver's paper preset (the reference), ``threads = "auto"``:
+    a warm-up round, then *runs* rounds with the assets taken in turn; per asset every run's real-time
+    factor and the median, the median run's iteration counts, the load average. Goal: three times real
+    time (docs/design/realtime.md, "The split networks' step made cheaper"); the scene's figures move
+    with the machine's load, which is recorded beside them."""
+    import os
+
+    from esmm.pipeline.asset import read_asset
+    from esmm.pipeline.prepare import prepare
+    from esmm.pipeline.simulate.run import simulate_network
+    from esmm.pipeline.simulate.scene import load_scene
+
+    out: dict = {"load_average_at_start": os.getloadavg()}
+    scene = load_scene("default")
+    with tempfile.TemporaryDirectory() as d:
+        assets = {}
+        for name, (surface, kw) in SPLIT_ORGANS.items():
+            if surface.is_file():
+                prepare(surface, output=Path(d) / f"{name}.h5", **kw)
+                assets[name] = read_asset(Path(d) / f"{name}.h5")
+        done: dict = {name: [] for name in assets}
+        for i in range(runs + 1):
+            for name, asset in assets.items():
+                res = simulate_network(asset.network, asset.tables, scene, Path(d) / f"{name}-{i}")
+                if i:                                           # the first round is the warm-up
+                    done[name].append(_run_figures(res.summary))
+        for name, figs in done.items():
+            med = sorted(figs, key=lambda f: f["real_time_factor"])[len(figs) // 2]
+            out[name] = {**med, "real_time_factor_runs": [f["real_time_factor"] for f in figs],
+                         "goal_3x_real_time": med["real_time_factor"] >= 3.0}
+    out["load_average_at_end"] = os.getloadavg()
+    return out
+
+
 def run(*, parts=("sizes", "effects", "volume", "demo", "implicit", "scaling"), sizes=None, repeats: int = 5,
         threads: int | None = None, implicit_sizes=("100k", "500k-jacobi"), scaling_sizes=tuple(STEP_SCALING),
         two_grid_assets=None) -> dict:
@@ -618,7 +670,7 @@ def run(*, parts=("sizes", "effects", "volume", "demo", "implicit", "scaling"), 
 
     Parameters
     ----------
-    parts : subset of {"sizes", "effects", "volume", "demo", "implicit", "scaling", "twogrid"}
+    parts : subset of {"sizes", "effects", "volume", "demo", "implicit", "scaling", "twogrid", "splits"}
     sizes : subset of :data:`SIZES` keys, optional
     repeats : int
         Timed repeats per figure (medians).
@@ -678,6 +730,8 @@ def run(*, parts=("sizes", "effects", "volume", "demo", "implicit", "scaling"), 
         res["scaling"] = bench_step_scaling(sizes=scaling_sizes)
     if "twogrid" in parts:
         res["twogrid"] = bench_two_grid(assets=two_grid_assets)
+    if "splits" in parts:
+        res["splits"] = bench_splits()
     res["bench_seconds"] = time.perf_counter() - t0
     return res
 
@@ -690,8 +744,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  epilog="quick: --parts sizes --sizes 5k,50k --threads 1 (about a minute)")
     ap.add_argument("--parts", default="sizes,effects,volume,demo,implicit,scaling",
-                    help="any of sizes, effects, volume, demo, implicit, scaling, twogrid (default: all but "
-                         "twogrid)")
+                    help="any of sizes, effects, volume, demo, implicit, scaling, twogrid, splits (default: all "
+                         "but twogrid and splits)")
     ap.add_argument("--sizes", default=None, help=f"networks to time, any of {', '.join(SIZES)} (default: all)")
     ap.add_argument("--repeats", type=int, default=5, help="timed repeats per figure (default 5)")
     ap.add_argument("--threads", type=int, default=None, help="threads of the multi-thread rows (1: none)")

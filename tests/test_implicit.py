@@ -213,6 +213,24 @@ def test_constraints_keep_their_matrices_for_the_same_rows_and_rebuild_for_other
         np.testing.assert_allclose(cons.cap_inv, fresh.cap_inv, rtol=0, atol=1e-12 * np.abs(fresh.cap_inv).max())
 
 
+def test_constraints_project_into_their_hard_rows_null_space(box):
+    """``project`` removes a vector's components along the hard rows (a node held in place, another
+    along a normal) and leaves the coupling springs' rows (compliance > 0) and the other nodes alone."""
+    cons = Constraints(SparseFactor.of(spd_system(box)), box.n_nodes)
+    nrm = np.array([0.0, 0.6, 0.8])
+    cons.set_rows(np.array([0, 0, 0, 5, 7]), np.vstack([np.eye(3), nrm, [1.0, 0.0, 0.0]]),
+                  np.array([0.0, 0.0, 0.0, 0.0, 1e-3]))
+    z = np.random.default_rng(4).normal(size=3 * box.n_nodes)
+    p = cons.project(z).reshape(-1, 3)
+    zz = z.reshape(-1, 3)
+    assert not p[0].any()
+    assert p[5] @ nrm == pytest.approx(0.0, abs=1e-15)
+    np.testing.assert_allclose(p[5], zz[5] - (zz[5] @ nrm) * nrm, rtol=1e-14)
+    keep = np.ones(box.n_nodes, bool)
+    keep[[0, 5]] = False
+    np.testing.assert_array_equal(p[keep], zz[keep])
+
+
 @pytest.mark.parametrize("kind", ["sparse", "mixed", "two-threads", "float32"])
 def test_constraints_apply_the_capacitance_formula(box, kind):
     """The correction between the two halves of a solve is ``(P^-1 - W C^-1 W^T) r`` with

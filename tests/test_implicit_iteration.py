@@ -139,3 +139,25 @@ def test_the_iterations_beyond_the_fresh_ones_age_the_factor(sim, monkeypatch):
     monkeypatch.setattr(implicit_iteration, "QN_FRESH", 0)
     _, solver, _ = solve_step(sim)
     assert solver.cache.excess == solver.stats.quasi_newton > 0
+
+
+def test_carried_pairs_reach_the_same_root(sim, reference):
+    """``carry_pairs``: the pairs of earlier solves kept over steps and contact changes (projected into
+    the rows' null space, :meth:`StepSolver.set_rows`): the step's root is the same, the held nodes
+    stay where the rows hold them, and the pairs of a first solve are there at the second one's start."""
+    system = system_of(sim)
+    stats = ImplicitStats()
+    cache = FactorCache("factor", "exact", False, system.threads, stats)
+    solver = StepSolver(cache, stats, rtol=1e-9, xtol=1e-13, max_newton=40, carry_pairs=True)
+    cache.begin_step(system)
+    solver.set_rows(system)
+    x = solver.solve(system, system.x0 + system.h * system.v0)
+    sag = np.abs(reference - system.x0).max()
+    np.testing.assert_allclose(x, reference, rtol=0, atol=1e-7 * sag)
+    kept = len(solver.qn.pairs)
+    assert kept > 0
+    solver.set_rows(system)                              # the same rows: every pair carried
+    assert len(solver.qn.pairs) == kept
+    x2 = solver.solve(system, system.x0 + system.h * system.v0)
+    np.testing.assert_allclose(x2, reference, rtol=0, atol=1e-7 * sag)
+    assert np.array_equal(x2[~sim.model.movable], system.x0[~sim.model.movable])

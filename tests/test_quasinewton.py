@@ -81,3 +81,28 @@ def test_secant_step_limits():
     assert secant_step(-1.0, -0.99, max_step=8.0) == 8.0               # nearly flat slope: the longest
     assert secant_step(-1.0, -2.0, max_step=8.0) == 8.0                # steeper: no secant zero ahead
     assert secant_step(-1.0, 0.0, max_step=8.0) == 1.0
+
+
+def test_projected_pairs_live_in_the_new_null_space():
+    """After new constraints the pairs are carried with their steps projected (the curvature recomputed;
+    a pair whose curvature is no longer positive dropped): with a first inverse into the null space,
+    every direction is in it, and the kept pair's secant equation holds there."""
+    A = spd(6, seed=6)
+    rng = np.random.default_rng(7)
+    mem = LBFGSMemory(memory=4)
+    for _ in range(3):
+        s = rng.normal(size=6)
+        mem.update(s, A @ s)
+    mem.update(np.eye(6)[0], A[:, 0])                    # a step along the dof to be held only
+
+    def project(z):
+        out = np.array(z, copy=True)
+        out[0] = 0.0                                     # dof 0 held
+        return out
+
+    mem.project(project)
+    assert len(mem) == 3                                 # the pair along dof 0 has no curvature left
+    for s, y, rho in mem.pairs:
+        assert s[0] == 0.0 and rho == pytest.approx(1.0 / (s @ y))
+    d = mem.direction(rng.normal(size=6), lambda r: project(np.linalg.solve(A, r)))
+    assert d[0] == 0.0

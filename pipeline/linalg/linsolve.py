@@ -376,6 +376,13 @@ class Constraints:
         for a, d in zip(node, e):
             zz[a] -= (zz[a] @ d) * d
 
+    def project(self, z: np.ndarray) -> np.ndarray:
+        """*z* (3n,) without its components along the hard rows (a copy): in their null space."""
+        out = np.array(z, dtype=np.float64, copy=True)
+        if self._hard is not None:
+            self._project_hard(out.reshape(self.n, 3))
+        return out
+
     def gather(self, z: np.ndarray) -> np.ndarray:
         """``J z`` for *z* of shape (3n,) or (3n, k): each row's component of its node."""
         zz = z.reshape(self.n, 3, -1)[self.node]                 # (c, 3, k)

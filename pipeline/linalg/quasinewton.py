@@ -78,6 +78,17 @@ class LBFGSMemory:
             r += s * (a - rho * float(y @ r))
         return r
 
+    def project(self, project: Callable[[np.ndarray], np.ndarray]) -> None:
+        """Each pair's step *s* replaced by ``project(s)`` (into new constraints' null space), its
+        curvature recomputed; the pairs whose curvature is then no longer positive forgotten."""
+        kept = []
+        for s, y, _ in self.pairs:
+            s = project(s)
+            sy = float(s @ y)
+            if sy > 1e-12 * float(np.linalg.norm(s) * np.linalg.norm(y)):
+                kept.append((s, y, 1.0 / sy))
+        self.pairs = kept
+
     def update(self, s: np.ndarray, y: np.ndarray) -> bool:
         """Keep the pair when its curvature is positive (``y.s > 1e-12 |y||s|``); whether it was kept."""
         sy = float(s @ y)

@@ -33,6 +33,7 @@ from ..linalg import twogrid
 from ..linalg.linsolve import Constraints, MixedFactor, SparseFactor, mixed_ordering
 from ..linalg.newton import node_ordering
 from ..linalg.twogrid import TwoGrid, TwoGridConstraints, prolongation
+from .assembly import BoundAssembly
 from .implicit_stats import ImplicitStats, Threads
 from .implicit_system import StepSystem
 from .model import Model
@@ -86,6 +87,7 @@ class FactorCache:
     excess: int = 0
     coarse_cells: np.ndarray | None = field(default=None, repr=False)
     _prolong: object = field(default=None, repr=False)   #: the two-grid's prolongation, once per run
+    _assembly: tuple | None = field(default=None, repr=False)   #: (model, its BoundAssembly or None)
 
     def factored(self, model: Model) -> str:
         """What the factor is taken of on *model*: with the reused factor and ``factor_matrix`` "mixed"
@@ -159,7 +161,7 @@ class FactorCache:
         elif self.factored(model) == "mixed":
             fac = self._mixed_factor(system, x)
         else:
-            A = system.matrix(x, bound=self.factored(model) == "bound")
+            A = self._matrix(system, x)
             if self.perm is None or self.perm.size != A.shape[0]:
                 self.perm = node_ordering(A)
             fac = SparseFactor.of(A, self.perm, single=self.single, analysis=self._analysis(),
@@ -175,6 +177,17 @@ class FactorCache:
         self.constraints = (TwoGridConstraints if isinstance(fac, TwoGrid) else Constraints)(fac, model.n_nodes)
         self.stale = False
         self.excess = 0
+
+    def _matrix(self, system: StepSystem, x: np.ndarray):
+        """The matrix factored at *x*: the bound's in one compiled pass where the model allows
+        (:class:`~.assembly.BoundAssembly`, found once per model), else the system's sparse sums."""
+        model = system.model
+        if self.factored(model) != "bound":
+            return system.matrix(x, bound=False)
+        if self._assembly is None or self._assembly[0] is not model:
+            self._assembly = (model, BoundAssembly.of(model))
+        asm = self._assembly[1]
+        return system.matrix(x, bound=True) if asm is None else asm.matrix(system, x)
 
     def _mixed_factor(self, system: StepSystem, x: np.ndarray) -> MixedFactor:
         """Newton's matrix factored from its parts (:class:`~esmm.pipeline.linalg.linsolve.MixedFactor`):

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..blas import single_threaded_blas
 from ..errors import ConfigError
 from ..linalg.quasinewton import MEMORY
 from . import kernels as K
@@ -143,7 +144,7 @@ class BackwardEuler:
                  haptic_rate: float = HAPTIC_RATE, haptic_drift: bool = True, definite: bool = True,
                  single: bool = True, factor_matrix: str = "bound", threads: int = 1, factor_threads: int = 1,
                  solo_solve_s: float = math.nan, stats: ImplicitStats | None = None,
-                 coarse_cells: np.ndarray | None = None):
+                 coarse_cells: np.ndarray | None = None, carry_pairs: bool = False):
         _check_options(step, iteration, preconditioner, factor_matrix, haptic_rate)
         self.step, self.rtol, self.xtol, self.contact_rounds = step, rtol, xtol, contact_rounds
         self.iteration, self.memory, self.max_newton = iteration, memory, max_newton
@@ -157,7 +158,8 @@ class BackwardEuler:
                                    coarse_cells=coarse_cells)
         #: The iteration of each step's system.
         self.solver = StepSolver(self.factors, self.stats, rtol=rtol, xtol=xtol, max_newton=max_newton,
-                                 quasi=self.quasi, memory=memory, cg_rtol=cg_rtol, max_cg=max_cg)
+                                 quasi=self.quasi, memory=memory, cg_rtol=cg_rtol, max_cg=max_cg,
+                                 carry_pairs=carry_pairs)
         #: The grasper force between solves.
         self.haptics = Haptics(rate=haptic_rate, drift=haptic_drift)
 
@@ -224,7 +226,8 @@ class BackwardEuler:
             return 0.0
         t = time.perf_counter()
         system = self._system(model, state, control)
-        self.factors.refactor(system, system.x0)
+        with single_threaded_blas():             # as while stepping: its time sets the renewals' price
+            self.factors.refactor(system, system.x0)
         return time.perf_counter() - t
 
     # -- one step ------------------------------------------------------------------

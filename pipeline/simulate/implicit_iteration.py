@@ -219,6 +219,7 @@ class StepSolver:
     memory: int = MEMORY
     cg_rtol: float = 0.1
     max_cg: int = 20
+    carry_pairs: bool = False
     record: SolveRecord | None = None       #: the current solve's
     step_quasi: int = 0                     #: the current step's quasi-Newton iterations
     handover_cost: float = 0                #: what the hand-overs cost, in solves (:meth:`_end_solve`)
@@ -278,8 +279,11 @@ class StepSolver:
     def set_rows(self, system: StepSystem) -> None:
         """The constraint rows set again (:meth:`.factorcache.FactorCache.set_rows`); the quasi-Newton
         pairs, taken in the old rows' null space, are forgotten."""
-        self.qn.pairs.clear()
         self.cache.set_rows(system)
+        if self.carry_pairs and self.cache.constraints is not None:
+            self.qn.pairs.project(self.cache.constraints.project)
+        else:
+            self.qn.pairs.clear()
 
     def _end_solve(self) -> None:
         """Record what the solve cost after its hand-over, if it was handed over (:meth:`switch_after`):

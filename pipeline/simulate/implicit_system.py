@@ -162,14 +162,15 @@ class StepSystem:
     def residual(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(f, g): the forces at x and the residual g (n, 3) (zero on fixed nodes)."""
         model, h, x0 = self.model, self.h, self.x0
-        v = (x - x0) / h
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        v = np.empty_like(x)
+        K.step_velocity(x, x0, h, v)
         f = forces(model, self.state, x, v, self.dt_fx, threads=self.threads.solve)
         fc = self.coupling_force(x)
         if fc is not None:
             f = f + fc
-        m = model.mass[:, None]
-        g = m * ((x - x0 - h * self.v0) / (h * h) + model.mass_damping * (x - x0) / h) - f
-        g[~model.movable] = 0.0
+        g = np.empty_like(x)
+        K.step_residual(x, x0, self.v0, h, model.mass, float(model.mass_damping), f, model.movable, g)
         return f, g
 
     def coupling_force(self, x: np.ndarray) -> np.ndarray | None:

@@ -1369,3 +1369,86 @@ def fill_blocks(ij, kt, fl, u, blk, stride, data, definite):
                 data[blk[2, p] + r * si + c] -= val
                 data[blk[3, p] + r * sj + c] -= val
 
+
+
+#: Each local node k of a tet and the even ordering (a, k, b, c) of its tet: ``dV/dx_k`` is
+#: ``(x_b - x_a) x (x_c - x_a) / 6`` (:mod:`esmm.pipeline.network.volume`'s ``_EVEN``).
+TET_EVEN = np.array([[1, 0, 3, 2], [0, 1, 2, 3], [0, 2, 3, 1], [0, 3, 1, 2]], dtype=np.int64)
+
+
+@njit(**JIT_OPTIONS)
+def add_tet_bound(x, tets, w, pos, even, data):
+    """``data[pos[t, 12 a + b]] += w[t] g_a g_b`` for every tet t, ``g = grad V_t`` at *x* (12,): the
+    volume term's per-tet Gauss-Newton blocks (its ``tangent_bound``) summed into a CSR matrix's data,
+    the gradients computed in the same pass (as ``VolumeElements._gradients``: the cross product of
+    two edges over 6)."""
+    g = np.empty(12)
+    for t in range(tets.shape[0]):
+        for k in range(4):
+            a = tets[t, even[k, 0]]
+            b = tets[t, even[k, 2]]
+            c = tets[t, even[k, 3]]
+            u0 = x[b, 0] - x[a, 0]
+            u1 = x[b, 1] - x[a, 1]
+            u2 = x[b, 2] - x[a, 2]
+            v0 = x[c, 0] - x[a, 0]
+            v1 = x[c, 1] - x[a, 1]
+            v2 = x[c, 2] - x[a, 2]
+            g[3 * k] = (u1 * v2 - u2 * v1) / 6.0
+            g[3 * k + 1] = (u2 * v0 - u0 * v2) / 6.0
+            g[3 * k + 2] = (u0 * v1 - u1 * v0) / 6.0
+        for a in range(12):
+            ga = w[t] * g[a]
+            for b in range(12):
+                data[pos[t, 12 * a + b]] += ga * g[b]
+
+
+@njit(**JIT_OPTIONS)
+def add_damping_blocks(x, ij, c, blk, stride, data):
+    """Add each dashpot's block ``c u u^T`` (u = d / L at *x*; none at zero length) into a CSR matrix's
+    *data*, in :func:`fill_blocks`'s layout and signs: the dashpots' damping matrix."""
+    for p in range(ij.shape[1]):
+        i = ij[0, p]
+        j = ij[1, p]
+        d0 = x[j, 0] - x[i, 0]
+        d1 = x[j, 1] - x[i, 1]
+        d2 = x[j, 2] - x[i, 2]
+        L = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        if not L > 0.0:
+            continue
+        u = (d0 / L, d1 / L, d2 / L)
+        a = c[p]
+        si = stride[i]
+        sj = stride[j]
+        for r in range(3):
+            for q in range(3):
+                val = a * (u[r] * u[q])
+                data[blk[0, p] + r * si + q] += val
+                data[blk[1, p] + r * sj + q] += val
+                data[blk[2, p] + r * si + q] -= val
+                data[blk[3, p] + r * sj + q] -= val
+
+
+@njit(**JIT_OPTIONS)
+def step_velocity(x, x0, h, v):
+    """``v = (x - x0) / h`` (n, 3): the implicit step's velocities at its end positions *x*."""
+    for a in range(x.shape[0]):
+        for d in range(3):
+            v[a, d] = (x[a, d] - x0[a, d]) / h
+
+
+@njit(**JIT_OPTIONS)
+def step_residual(x, x0, v0, h, mass, alpha, f, movable, g):
+    """The implicit step's residual ``g = m ((x - x0 - h v0) / h^2 + alpha (x - x0) / h) - f`` (n, 3),
+    zero on the nodes that are not *movable* (the numpy expression's arithmetic, element by element)."""
+    hh = h * h
+    for a in range(x.shape[0]):
+        if not movable[a]:
+            g[a, 0] = 0.0
+            g[a, 1] = 0.0
+            g[a, 2] = 0.0
+            continue
+        m = mass[a]
+        for d in range(3):
+            dx = x[a, d] - x0[a, d]
+            g[a, d] = m * ((dx - h * v0[a, d]) / hh + alpha * dx / h) - f[a, d]
