@@ -345,8 +345,9 @@ def table(doc: dict) -> str:
             for lv, r in s["levels"].items():
                 d = r.get("against_split")
                 diff = "–" if d is None else f"{pct(d['l2'])} / {pct(d['force'])}"
+                lock = f" ({r['cells_near_locking']} at locking)" if r["cells_near_locking"] else ""
                 lines.append(f"| {organ} {key} | {r['element']} on {lv.removeprefix('mini_')} | {r['cells']} "
-                             f"({r['cell_size_mm']:.1f}) | {r['grasped_nodes']} | {r['magnitude_N']:.4f} | {diff} | "
+                             f"({r['cell_size_mm']:.1f}) | {r['grasped_nodes']} | {r['magnitude_N']:.4f}{lock} | {diff} | "
                              f"{pct(nw[lv]['l2'])} / {pct(nw[lv]['force'])} |")
             for lv, msg in s.get("failed", {}).items():
                 lines.append(f"| {organ} {key} | {ELEMENT_OF[lv]} on {lv.removeprefix('mini_')} | no equilibrium: "

@@ -273,15 +273,16 @@ def _solve_case(case, network, tables, material, *, law, terms, bulk, elements, 
 
 
 def _warn_patch(case, rep) -> None:
-    """Warn where P2 on a split network's parents holds a smaller grasp patch than the network does."""
+    """Warn where P2 on a split network's parents holds another grasp patch than the network
+    (:func:`~.cases.grasp_hold`)."""
     hold = case.load.get("grasp_hold", {})
     if hold.get("network_only", 0) > 0:
         rep.warn(f"{case.name}: the network holds {hold['surface_triangles_held']} surface triangles under the "
                  f"grasper, P2 on its parents holds {hold['parent_faces_held']} parent faces whole (the rest at "
                  "the grasped points and edges): the two hold different patches, and the reference's grasper "
-                 "force is not converged there (P2 on the split tetrahedra moves it by 5-6 % on the kidney); read "
-                 "the force error as the case's, not the network's alone (docs/design/validation.md, 'Is the "
-                 "reference converged for the grasper force?')")
+                 "force is not converged there (P2 on the split tetrahedra moves it by 5.7 % on the kidney and "
+                 "10 % on the liver); read the force error as the case's, not the network's alone "
+                 "(docs/design/validation.md, 'Is the reference converged for the grasper force?')")
 
 
 def _first_of(elements, solve, case, rep):
