@@ -162,13 +162,15 @@ def nested_case(case: LoadCase) -> LoadCase:
     for c in case.constraints:
         member = np.zeros(n, bool)
         member[c.nodes] = True
-        u = np.zeros((n, 3))
-        u[c.nodes] = c.displacement
+        u, m = np.zeros((n, 3)), np.zeros((n, 3), bool)
+        u[c.nodes], m[c.nodes] = c.displacement, c.mask
         mid = np.flatnonzero(member[edges[:, 0]] & member[edges[:, 1]])
-        nodes = np.concatenate([c.nodes, n + mid])
-        disp = np.vstack([c.displacement, 0.5 * (u[edges[mid, 0]] + u[edges[mid, 1]])])
-        cons.append(Constraint.clamp(c.name, nodes, disp) if c.mask.all() else
-                    Constraint(c.name, nodes, np.vstack([c.mask, np.ones((mid.size, 3), bool)]), disp))
+        mask = m[edges[mid, 0]] & m[edges[mid, 1]]
+        keep = mask.any(axis=1)
+        mid, mask = mid[keep], mask[keep]
+        disp = np.where(mask, 0.5 * (u[edges[mid, 0]] + u[edges[mid, 1]]), 0.0)
+        cons.append(Constraint(c.name, np.concatenate([c.nodes, n + mid]), np.vstack([c.mask, mask]),
+                               np.vstack([c.displacement, disp])))
     return dataclasses.replace(case, points=pts, tets=tets, constraints=tuple(cons), quadratic_cells=cells)
 
 
@@ -366,7 +368,8 @@ def main(argv=None) -> int:
     ap.add_argument("--load", type=float, default=1.0, help="gravity and the lift scaled by this factor (default 1: "
                     "validate's case)")
     ap.add_argument("--levels", nargs="+", default=list(LEVELS), choices=LEVELS)
-    ap.add_argument("--work", type=Path, default=ROOT / "reference-work", help="assets and cached solutions")
+    ap.add_argument("--work", type=Path, default=Path.home() / ".cache" / "esmm" / "reference_convergence",
+                    help="assets and cached solutions (default ~/.cache/esmm/reference_convergence)")
     ap.add_argument("--json", type=Path, default=OUT, help="read and extended (one entry per organ, asset, lift)")
     ap.add_argument("--table", type=Path, help="print the table of a written JSON and exit")
     args = ap.parse_args(argv)
