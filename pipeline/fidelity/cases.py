@@ -31,7 +31,8 @@ from ..errors import ConfigError
 from ..network.springs import tet_volumes
 
 __all__ = ["CASES", "SPECIMEN_CASES", "ORGAN_CASES", "Constraint", "LoadCase", "Floor", "end_faces",
-           "oriented", "uniaxial_case", "shear_case", "gravity_case", "lift_case", "with_floor_pins", "at_load"]
+           "oriented", "uniaxial_case", "shear_case", "gravity_case", "lift_case", "with_floor_pins", "at_load",
+           "grasp_hold", "parent_faces"]
 
 SPECIMEN_CASES = ("tension", "compression", "shear")
 ORGAN_CASES = ("gravity", "lift")
@@ -354,3 +355,35 @@ def at_load(case: LoadCase, t: float) -> LoadCase:
     """*case* at load factor *t*: gravity and the prescribed displacements scaled (floor pins kept)."""
     cons = tuple(c if c.name == "floor" else replace(c, displacement=t * c.displacement) for c in case.constraints)
     return replace(case, gravity=t * np.asarray(case.gravity, dtype=np.float64), constraints=cons)
+
+
+#: A 10-node tetrahedron's four faces as 6-node triangles: corners, then the middles of 01, 12, 20 (local nodes,
+#: felupe's ``tetra10`` order: :data:`~esmm.pipeline.mesh.refine.TET10_EDGES`).
+_TET10_FACES = ((0, 1, 2, 4, 5, 6), (0, 1, 3, 4, 8, 7), (1, 2, 3, 5, 9, 8), (0, 2, 3, 6, 9, 7))
+
+
+def parent_faces(cells: np.ndarray) -> np.ndarray:
+    """The boundary faces of 10-node tetrahedra *cells* (p, 10) as 6-node triangles (k, 6)."""
+    cells = np.asarray(cells, dtype=np.int64)
+    f6 = np.concatenate([cells[:, list(ix)] for ix in _TET10_FACES])
+    _, first, count = np.unique(np.sort(f6[:, :3], axis=1), axis=0, return_index=True, return_counts=True)
+    return f6[first[count == 1]]
+
+
+def grasp_hold(case: LoadCase, surface_faces) -> dict:
+    """What the grasped nodes of a lift *case* hold, on each side.
+
+    The network (and a continuum on its own tetrahedra) holds every surface triangle whose three corners are
+    grasped. A P2 field on a split network's parents (``case.quadratic_cells``) is held on a parent face only
+    where all six of its nodes are grasped; elsewhere it is held at the grasped points and along edges with
+    all three nodes grasped. ``network_only`` counts the triangles the network holds that lie in no parent
+    face held whole (each held parent face holds its four children): where it is not 0 the two hold different
+    patches (docs/design/validation.md, "Is the reference converged for the grasper force?").
+    """
+    g = case.constraint("grasper").nodes
+    held = int(np.count_nonzero(np.all(np.isin(np.asarray(surface_faces).reshape(-1, 3), g), axis=1)))
+    out = {"grasped_nodes": int(g.size), "surface_triangles_held": held}
+    if case.quadratic_cells is not None:
+        parents = int(np.count_nonzero(np.all(np.isin(parent_faces(case.quadratic_cells), g), axis=1)))
+        out.update(parent_faces_held=parents, network_only=held - 4 * parents)
+    return out
