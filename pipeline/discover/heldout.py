@@ -1,6 +1,6 @@
 """Held-out errors: which data a model is tested on without being fitted to them, and how.
 
-Two fold sets (docs/design/discovery.md, "Held-out data: the folds, and what is refitted"):
+Three fold sets (docs/design/discovery.md, "Held-out data: the folds, and what is refitted"):
 
 * the **material scheme** (:func:`make_folds`), in order of preference: leave one
   loading-rate group out (several strain rates); leave one of five consecutive
@@ -16,6 +16,10 @@ Two fold sets (docs/design/discovery.md, "Held-out data: the folds, and what is 
   on the training samples *of the same file* and judged on its held-out
   samples; on a held-out file it could only be estimated from that file's own
   data, which the base model has no such freedom to use.
+* the **slip scheme** (:func:`slip_folds`, carried by the artefact scheme where
+  a record has a grip slip; grip slips alone are judged on it): five
+  interleaved sets of short blocks, so that every slip has training samples
+  after it in every fold.
 
 What a fold refits: every parameter on the fold's training samples; a record
 without training samples (a held-out file) keeps its per-file parameters at
@@ -390,11 +394,11 @@ def _fold_fit(fitted: Fitted, fold: Fold):
 
     The slots that act only on records without training samples (a held-out
     file's slack, slips, specimen scale), and the grip slips that no training
-    sample follows (a slip in the held-out block of its file's last stretch),
-    are set to their neutral value (0: no slack, no slip, scale e^0 = 1) and not
-    fitted: nothing is estimated on held-out data (a slot the training samples
-    do not see would otherwise keep the value the whole record gave it). (Its offset is not applied either: offsets are estimated on
-    training samples only.)
+    sample follows (:func:`unseen_slip`), are set to their neutral value (0: no
+    slack, no slip, scale e^0 = 1) and not fitted: nothing is estimated on
+    held-out data (a slot the training samples do not see would otherwise keep
+    the value the whole record gave it). (A held-out file's offset is not
+    applied either: offsets are estimated on training samples only.)
     """
     fp = fitted.problem.derived(train=fold.train)
     excluded = {k for k, t in enumerate(fold.train) if t is not None and len(t) == 0}
