@@ -34,7 +34,6 @@ import hashlib
 import json
 import pickle
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -49,39 +48,23 @@ from esmm.pipeline.fidelity.network_solve import solve_network
 from esmm.pipeline.fidelity.solution import Solution
 from esmm.pipeline.fidelity.validate import _on_the_floor, network_terms
 from esmm.pipeline.mesh.refine import quadratic_tets, split_in_eight
-from esmm.pipeline.progress import SILENT
 from esmm.pipeline.simulate.grasper import plan_grasp
 from esmm.pipeline.simulate.runsetup import fixed_nodes
-from esmm.pipeline.simulate.scene import load_scene
+from volume_kappa import (  # the same organs, lift and reporter
+    ESMM,
+    MAX_ROUNDS,
+    ORGANS,
+    REP,
+    ROOT,
+    lift_scene,
+)
 
-ROOT = Path(__file__).resolve().parent.parent
-SHARED = ROOT.parent / "shared" / "data" / "meshes"
-ORGANS = {"liver": ROOT / "data" / "meshes" / "ts_liver_3mm_closed.stl",
-          "kidney": SHARED / "openhelp_Kidney_left.stl", "spleen": SHARED / "openhelp_Spleen.stl"}
 #: The two assets per organ: the split of a coarse parent mesh (docs/design/realtime.md) and the paper split.
 ASSETS = {"coarse_split": ["--elements", "1500", "--split"], "paper_split": ["--config", "paper", "--split"]}
 LEVELS = ("parents", "split", "mini_split", "mini_split2")
 #: The continuum's element at each level.
 ELEMENT_OF = {"parents": "p2", "split": "p2", "mini_split": "mini", "mini_split2": "mini"}
 OUT = ROOT / "docs" / "figures" / "reference_convergence.json"
-ESMM = Path(sys.executable).with_name("esmm")
-MAX_ROUNDS = 10          # validate's default rounds of floor pins per load level
-
-
-class _Quiet:
-    """A reporter that prints warnings only."""
-
-    def step(self, message: str) -> None:
-        pass
-
-    def warn(self, message: str) -> None:
-        print(f"  warning: {message}", flush=True)
-
-    def task(self, description: str, total: float | None = None):
-        return SILENT.task(description, total)
-
-
-REP = _Quiet()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -95,21 +78,6 @@ def asset_path(organ: str, kind: str, work: Path) -> Path:
         subprocess.run([str(ESMM), "prepare", str(ORGANS[organ]), *ASSETS[kind], "-o", str(path)],
                        check=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     return path
-
-
-def lift_scene(mm: float):
-    """The default scene with its last waypoint at *mm* (as ``scripts/volume_kappa.py`` makes it)."""
-    import os
-    import tempfile
-
-    text = ('base = "default"\n[grasper]\nwaypoints = [{ time = "0 s", distance = "0 mm" }, '
-            f'{{ time = "1 s", distance = "{mm:g} mm" }}]\n')
-    with tempfile.NamedTemporaryFile("w", suffix=".toml", delete=False) as fh:
-        fh.write(text)
-    try:
-        return load_scene(fh.name)
-    finally:
-        os.unlink(fh.name)
 
 
 def organ_lift(net, mm: float, grasped=None) -> LoadCase:

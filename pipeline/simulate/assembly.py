@@ -104,8 +104,8 @@ class BoundAssembly:
         K.fill_blocks(sp.ij, kt, fl, u, pat.blk, pat.stride, data, bool(system.definite))
         if self.volume is not None:
             K.add_tet_bound(x, self.tets, self.tet_weight, self.tet_pos, K.TET_EVEN, data)
-        if sp.damped:
-            K.add_damping_blocks(x, sp.ij, sp.sd[-1].astype(np.float64) / h, pat.blk, pat.stride, data)
+        if sp.damped:                                      # the dashpots' c u u^T / h, along the same u
+            K.fill_blocks(sp.ij, sp.sd[-1].astype(np.float64) / h, np.zeros(s), u, pat.blk, pat.stride, data, False)
         out = data[self.keep]
         mov = np.repeat(model.movable, 3)
         out[self.diag[~mov]] = 0.0                         # the fixed nodes' rows: the identity

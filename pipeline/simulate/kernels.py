@@ -1404,32 +1404,6 @@ def add_tet_bound(x, tets, w, pos, even, data):
 
 
 @njit(**JIT_OPTIONS)
-def add_damping_blocks(x, ij, c, blk, stride, data):
-    """Add each dashpot's block ``c u u^T`` (u = d / L at *x*; none at zero length) into a CSR matrix's
-    *data*, in :func:`fill_blocks`'s layout and signs: the dashpots' damping matrix."""
-    for p in range(ij.shape[1]):
-        i = ij[0, p]
-        j = ij[1, p]
-        d0 = x[j, 0] - x[i, 0]
-        d1 = x[j, 1] - x[i, 1]
-        d2 = x[j, 2] - x[i, 2]
-        L = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-        if not L > 0.0:
-            continue
-        u = (d0 / L, d1 / L, d2 / L)
-        a = c[p]
-        si = stride[i]
-        sj = stride[j]
-        for r in range(3):
-            for q in range(3):
-                val = a * (u[r] * u[q])
-                data[blk[0, p] + r * si + q] += val
-                data[blk[1, p] + r * sj + q] += val
-                data[blk[2, p] + r * si + q] -= val
-                data[blk[3, p] + r * sj + q] -= val
-
-
-@njit(**JIT_OPTIONS)
 def step_velocity(x, x0, h, v):
     """``v = (x - x0) / h`` (n, 3): the implicit step's velocities at its end positions *x*."""
     for a in range(x.shape[0]):
