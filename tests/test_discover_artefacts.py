@@ -71,6 +71,36 @@ def test_a_slack_both_mountings_share_is_not_an_artefact(tmp_path):
     assert all(res.candidates[n].kind == "elastic" for n in full.kept), full.kept
 
 
+def _processed_curves(named: bool):
+    """Two processed uniaxial curves (no time) of one Arruda-Boyce material, the second's stress 30 % high
+    (its cross-section understated), 600 samples each, white noise of 0.2 % of the peak; with *named* each
+    file names its specimen as a machine export's header does."""
+    from esmm.pipeline.materials import get_model
+    from esmm.pipeline.materials.loading import nominal_stress
+    from esmm.pipeline.tensile.data import TensileTest
+
+    rng = np.random.default_rng(5)
+    x = np.linspace(1.0, 1.8, 600)
+    p = np.asarray(nominal_stress(get_model("arruda-boyce"), BASE, "uniaxial", x), float)
+    sd = 2e-3 * float(p.max())
+    return [TensileTest(source=Path(f"curve_{k}.csv"), mode="uniaxial", stretch=x,
+                        stress=s * p + rng.normal(0.0, sd, x.size), metadata={"specimen": f"S{k}"} if named else {})
+            for k, s in enumerate((1.0, 1.3))]
+
+
+def test_a_stress_scale_is_tried_on_processed_curves_only_of_named_specimens():
+    """Processed curves carry a misstated cross-section as machine records do: where their files name two
+    specimens the scale is applicable and found; unnamed processed files (one per loading mode of one
+    material, as Treloar's) are not taken for specimens, so the scale is not applicable there."""
+    named = discover(_processed_curves(True), candidates=("specimen_scale",), **FAST)
+    assert named.kept == ["specimen_scale"], named.candidates["specimen_scale"].reason
+    scales = sorted(e.value for e in named.final.estimates if e.key.startswith("specimen_scale"))
+    assert scales[1] / scales[0] == pytest.approx(1.3, rel=0.02)
+    unnamed = discover(_processed_curves(False), candidates=("specimen_scale",), **FAST)
+    assert unnamed.kept == []
+    assert unnamed.candidates["specimen_scale"].reason.startswith("not applicable: one specimen")
+
+
 
 # --------------------------------------------------------------------------- the clamp at zero force
 def _cycle(rng, *, undershoot: bool, sd: float = 300.0, buckle: bool = False):

@@ -162,11 +162,12 @@ def _artefacts(records: Sequence[Record]) -> dict[str, Verdict]:
     else:
         out["sensor_offset"] = (machine, False, processed if not machine else "not identifiable from these data: "
                                 "no sample near the undeformed state, where the true force is known to be zero")
-    if machine and scale_applicable([r for r in records if r.history]):
+    if scale_applicable(records):
         out["specimen_scale"] = (True, True, "applicable: several specimens (files with different specimen ids)")
     else:
-        out["specimen_scale"] = (False, False, processed if not machine else "not applicable: one specimen; its "
-                                 "stress scale is the material's modulus")
+        out["specimen_scale"] = (False, False, "not applicable: one specimen; its stress scale is the material's "
+                                 "modulus" + ("" if machine else " (processed curves count as specimens where "
+                                              "their files name them)"))
     if any(slip_applicable(r) for r in records):
         n = sum(len(r.slips) for r in records)
         out["grip_slip"] = (True, True, f"applicable: {n} sudden drop(s) of stress during loading")

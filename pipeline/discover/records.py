@@ -340,8 +340,17 @@ def specimen_groups(records: Sequence[Record]) -> list[list[int]]:
 
 
 def scale_applicable(records: Sequence[Record]) -> bool:
-    """A per-specimen stress scale needs at least two specimens (one scale is the material's modulus)."""
-    return len(specimen_groups(records)) >= 2
+    """A per-specimen stress scale needs at least two specimens (one scale is the material's modulus).
+
+    Machine records (with time) count their specimens by id, the file stem standing in where the file names
+    none (a testing machine writes one file per specimen and test). A processed curve counts only where its
+    file names its specimen (metadata ``specimen``): a stress computed on a misstated cross-section is as
+    wrong after processing as before, but processed sets often keep one file per loading mode of one
+    material (Treloar's, Budday's), and a scale per mode would take up the law's misfit between the modes.
+    """
+    machine = [r for r in records if r.history]
+    named = {str(r.test.metadata["specimen"]) for r in records if r.test.metadata.get("specimen")}
+    return len(specimen_groups(machine)) >= 2 or len(named) >= 2
 
 
 def set_applicable(rec: Record) -> bool:
