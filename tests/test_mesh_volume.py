@@ -129,8 +129,11 @@ def test_all_paths_failing_lists_them(monkeypatch):
 
 
 @pytest.mark.slow
-def test_falls_back_to_pytetwild(monkeypatch):
+def test_falls_back_to_pytetwild(monkeypatch, tmp_path):
+    """gmsh failing twice, fTetWild meshes; the child works in its own folder, so fTetWild's scratch file
+    (``__tracked_surface.stl``, written in its working directory) is not left in the user's."""
     real = volmod.run_worker
+    monkeypatch.chdir(tmp_path)
 
     def gmsh_broken(command, options, **kw):
         if command == "mesh":
@@ -143,6 +146,7 @@ def test_falls_back_to_pytetwild(monkeypatch):
     assert mesh.path == "pytetwild"
     assert_valid(mesh, s)
     assert sum("PLC Error" in line for line in mesh.log) == 2  # gmsh and gmsh-after-repair
+    assert list(tmp_path.iterdir()) == []
 
 
 def torus_with_dent():

@@ -91,7 +91,7 @@ def run_worker(command: str, options: dict, *, arrays: dict[str, np.ndarray] | N
             proc = subprocess.Popen(
                 child_argv(d),
                 stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                start_new_session=True, env=env,
+                start_new_session=True, env=env, cwd=d,  # fTetWild writes __tracked_surface.stl in its cwd
             )
             try:
                 code = proc.wait(timeout=timeout)
