@@ -137,6 +137,60 @@ def test_the_step_starts_from_the_last_steps_contacts_among_the_candidates():
     assert c.rounds == 2 and not c.slides.sliding.any()
 
 
+def test_a_sliding_contact_stops_where_it_slips_or_creeps_to_the_farther():
+    """:meth:`Slides.slip`: a stopping slide ends at the farther of where the node slips to (the first zero
+    of its reaction along the slide with the other nodes where the held solve left them) and where it
+    creeps to (its reaction's zero, linear along the slide). Node 0's springs never press it into the
+    floor along its slide: it slips the whole way; node 1's press it a tenth of the way along and it
+    creeps farther; node 2's press it three quarters of the way along, past where it creeps to."""
+    n = 4
+    contact = np.array([True, True, True, False])
+    sl = Slides.none(n)
+    x_held = np.zeros((n, 3))
+    x_held[3] = [0.0, 0.0, 1.0]
+    x = x_held.copy()
+    sl.update(np.array([-1.0, -2.0, -1.0, 0.0]), x, contact, final=False)
+    np.testing.assert_array_equal(sl.sliding, [True, True, True, False])
+    slide = np.array([[0.004, 0.0, 0.0], [0.0, 0.002, 0.0], [0.0, 0.0, 0.0]])
+    slide[2] = [0.001, 0.001, 0.0]
+    x_slid = x_held.copy()
+    x_slid[:3] = slide
+    x_slid[3] = [0.0, 0.0, 1.002]
+    along = np.array([0.004, 0.002, 0.001])        # each slide's length along its first nonzero axis
+    frozen = []
+
+    def reaction(y):
+        frozen.append(y[3].copy())
+        s = y[:3].max(axis=1) / along                # the fraction of each slide
+        return np.array([-1.0 - 2.0 * s[0], -2.0 + 20.0 * s[1], -1.0 + (4.0 / 3.0) * s[2], 0.0])
+
+    lam = np.array([3.0, 1.0, 4.0, 0.0])            # all pushed at the slides' ends
+    x = x_slid.copy()
+    leave, changed, started = sl.update(lam, x, contact, final=False, reaction=reaction)
+    assert changed and started == 0 and not leave.any() and sl.moved
+    np.testing.assert_array_equal(frozen, [[0.0, 0.0, 1.0]] * len(frozen))   # the others where they were held
+    s = np.array([1.0, 2.0 / 3.0, 0.75])            # slip; creep (2/(2+1)) past its slip (0.1); slip
+    np.testing.assert_allclose(x[:3], s[:, None] * slide, atol=1e-15)
+    np.testing.assert_allclose(x[3], [0.0, 0.0, 1.0 + s.mean() * 0.002])    # the field taken back by the mean s
+    assert not sl.sliding.any()
+
+
+def test_a_slide_that_slips_to_its_end_moves_nothing():
+    """Where every stopping node slips the whole way, the slide solve's solution stands: nothing moves and,
+    no other contact changing, the step is not solved again."""
+    contact = np.array([True, True])
+    sl = Slides.none(2)
+    x = np.zeros((2, 3))
+    sl.update(np.array([-1.0, 2.0]), x, contact, final=False)
+    x[0] = [0.003, 0.0, 0.0]
+    before = x.copy()
+    leave, changed, started = sl.update(np.array([0.5, 2.0]), x, contact, final=False,
+                                        reaction=lambda y: np.array([-1.0, 2.0]))
+    assert not changed and not sl.moved and not leave.any() and started == 0
+    np.testing.assert_array_equal(x, before)
+    assert not sl.sliding.any()
+
+
 def test_a_sliding_contact_stops_where_the_floor_pushes_again():
     """:class:`Slides` on three held nodes: one pulled slides, then stops where its reaction, linear
     along the slide, is zero; one pulled again after sliding leaves; a pressed one stays held."""
