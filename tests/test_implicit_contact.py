@@ -191,6 +191,32 @@ def test_a_slide_that_slips_to_its_end_moves_nothing():
     assert not sl.sliding.any()
 
 
+def test_the_floor_reads_the_slip_from_the_step_residual_along_its_normal():
+    """:meth:`FloorContact.update` hands :meth:`Slides.slip` the reaction ``g . n`` of the residual it is
+    given (the tilted plane's normal): a node whose reaction along its slide, the other nodes held,
+    stays negative is stuck where the slide ended, and the step is not solved again."""
+    fl = floor("stick")
+    c = contact_of(fl, np.array([True, True]))
+    p = np.array([0.0, 0.0, 0.1])
+    t = np.array([1.0, 0.0, 0.0])
+    x = np.array([p, p + 0.01 * t])
+    g = np.array([-1.0 * NORMAL, 2.0 * NORMAL])
+    changed, moved = c.update(g, x, final=False)
+    assert changed and not moved and c.slides.sliding[0] and c.stats.slides == 1
+    x[0] = p + 0.003 * t                                  # the slide solve: pushed at its end
+    seen = []
+
+    def residual(y):
+        seen.append(y[0] @ t)
+        return np.array([-0.5 * NORMAL + 0.3 * t, 2.0 * NORMAL])      # pulled all along the slide
+
+    changed, moved = c.update(np.array([0.5 * NORMAL, 2.0 * NORMAL]), x, final=False, residual=residual)
+    assert not changed and not moved and not c.slides.sliding.any()
+    np.testing.assert_allclose(x[0], p + 0.003 * t)
+    np.testing.assert_allclose(seen, 0.003 * np.arange(1, 9) / 8, atol=1e-15)   # sampled along the slide
+    np.testing.assert_array_equal(c.active, [True, True])
+
+
 def test_a_sliding_contact_stops_where_the_floor_pushes_again():
     """:class:`Slides` on three held nodes: one pulled slides, then stops where its reaction, linear
     along the slide, is zero; one pulled again after sliding leaves; a pressed one stays held."""
