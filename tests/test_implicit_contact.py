@@ -111,7 +111,7 @@ def test_without_rounds_a_sticking_contact_is_let_go_without_sliding():
 def test_rounds_by_the_floor():
     assert contact_rounds(None, None) == 0
     assert contact_rounds(None, floor("slip")) == 1
-    assert contact_rounds(None, floor("stick")) == 2
+    assert contact_rounds(None, floor("stick")) == 3
     assert contact_rounds(3, floor("slip")) == 3
 
 
@@ -134,7 +134,7 @@ def test_the_step_starts_from_the_last_steps_contacts_among_the_candidates():
     expect[grasped] = False
     np.testing.assert_array_equal(c.active, expect)
     assert not c.candidates[fixed].any() and not c.candidates[grasped].any()
-    assert c.rounds == 2 and not c.slides.sliding.any()
+    assert c.rounds == 3 and not c.slides.sliding.any()
 
 
 def test_a_sliding_contact_stops_where_it_slips_or_creeps_to_the_farther():
@@ -215,6 +215,29 @@ def test_the_floor_reads_the_slip_from_the_step_residual_along_its_normal():
     np.testing.assert_allclose(x[0], p + 0.003 * t)
     np.testing.assert_allclose(seen, 0.003 * np.arange(1, 9) / 8, atol=1e-15)   # sampled along the slide
     np.testing.assert_array_equal(c.active, [True, True])
+
+
+def test_a_node_let_go_after_its_slide_lands_where_it_left_the_plane():
+    """A node that slid 4 mm and was let go (still pulled), then ends the step below the plane, is put
+    where it left the plane, not where it was held at the step's start (which would undo its slide);
+    a node that never left is put where its path from the step's start crossed the plane."""
+    fl = floor("stick")
+    p = np.array([0.0, 0.0, 0.1])
+    t = np.array([1.0, 0.0, 0.0])
+    c = contact_of(fl, np.array([True, False]))
+    x0 = np.array([p, p + 0.02 * NORMAL])
+    x = x0.copy()
+    c.update(np.array([-1.0 * NORMAL, np.zeros(3)]), x, final=False)
+    assert c.slides.sliding[0]
+    x[0] = p + 0.004 * t                                   # the slide solve: still pulled
+    changed, _ = c.update(np.array([-0.5 * NORMAL, np.zeros(3)]), x, final=False)
+    assert changed and not c.active.any()
+    x[0] = p + 0.006 * t - 0.001 * NORMAL                  # the step's end: both below the plane
+    x[1] = p + 0.002 * t - 0.02 * NORMAL
+    c.touchdown(x0, x)
+    np.testing.assert_array_equal(c.active, [True, True])
+    np.testing.assert_allclose(x[0], p + 0.004 * t, atol=1e-15)
+    np.testing.assert_allclose(x[1], p + 0.001 * t, atol=1e-15)   # half way along its path
 
 
 def test_a_sliding_contact_stops_where_the_floor_pushes_again():

@@ -127,12 +127,13 @@ class Slides:
 def contact_rounds(requested: int | None, floor: Floor | None) -> int:
     """Times a step is solved again after its contacts changed: *requested*, or by the floor: none
     without one, once on a frictionless floor (a node the lift peels off leaves in the step it is let
-    go, not a step later), twice on a sticking one (a pulled node slides, then stops or leaves)."""
+    go, not a step later), three times on a sticking one (a pulled node slides, then stops or leaves,
+    and a node that pulls free once its neighbour has left slides and leaves in the same step)."""
     if requested is not None:
         return int(requested)
     if floor is None:
         return 0
-    return 2 if floor.friction == "stick" else 1
+    return 3 if floor.friction == "stick" else 1
 
 
 def on_floor(floor: Floor, x0: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -164,6 +165,9 @@ class FloorContact:
         Re-solves allowed after the contacts changed (:func:`contact_rounds`).
     stats : ImplicitStats
         Where the changes are counted (``contact_changes``, ``slides``).
+    left_at : ndarray, shape (n, 3), or None
+        Where the nodes the floor let go of in this step were then (NaN for the others; None: none
+        yet): where a sticking floor's :meth:`touchdown` starts their path.
     """
 
     floor: Floor | None
@@ -172,6 +176,7 @@ class FloorContact:
     slides: Slides
     rounds: int
     stats: ImplicitStats
+    left_at: np.ndarray | None = None
 
     @classmethod
     def begin(cls, model: Model, state: State, control: Control, *, rounds: int | None,
@@ -228,18 +233,28 @@ class FloorContact:
             leave = contact & (lam < 0.0)
             changed = bool(leave.any())
         contact &= ~leave
+        if leave.any():
+            if self.left_at is None:
+                self.left_at = np.full_like(x, np.nan)
+            self.left_at[leave] = x[leave]
         self.stats.contact_changes += int(leave.sum())
         return changed, moved
 
     def touchdown(self, x0: np.ndarray, x: np.ndarray) -> None:
         """The step's end: free candidates that went below the plane are put back on it (in *x*; where
         their path from *x0* crossed it, with "stick") and held from the next step on (the explicit
-        step's rule, per step)."""
+        step's rule, per step). A node the floor let go of in this step starts its path where it was
+        let go (``left_at``): it left the plane there, after its slide, and landing where it was held
+        at the step's start would undo the slide."""
         floor = self.floor
         if floor is None:
             return
         below = self.candidates & ~self.active & (floor.distance(x) < 0.0)
         if below.any():
-            x[below] = on_floor(floor, x0[below], x[below])
+            start = x0[below]
+            if self.left_at is not None:
+                left = self.left_at[below]
+                start = np.where(np.isnan(left), start, left)
+            x[below] = on_floor(floor, start, x[below])
         self.active |= below
         self.stats.contact_changes += int(below.sum())

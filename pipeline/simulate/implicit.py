@@ -81,7 +81,7 @@ class BackwardEuler:
     contact_rounds : int or None
         Times a step is solved again after its contacts changed. None (default): once on a
         frictionless floor (a node the lift peels off leaves in the step it is let go, not a step
-        later), twice on a sticking one (a pulled node slides, then stops or leaves,
+        later), three times on a sticking one (a pulled node slides, then stops or leaves,
         :class:`~.contact.Slides`); docs/design/simulator.md, "Floor contact, with slides".
     iteration : {"quasi-newton", "newton"}
         How each solve iterates (:mod:`.implicit_iteration`). "quasi-newton" (default): L-BFGS
