@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import time
+from types import SimpleNamespace
 
 import numba
 import numpy as np
@@ -22,6 +23,7 @@ from esmm.pipeline.materials.effects import (
     MullinsEffect,
     ViscoelasticEffect,
 )
+from esmm.pipeline.mesh.refine import split_in_eight
 from esmm.pipeline.mesh.synthetic import box_tets
 from esmm.pipeline.network.forcelaw import tangent_stiffness
 from esmm.pipeline.network.springs import network_from_tets
@@ -299,8 +301,9 @@ LIFT = 0.6          # s: the lift's duration: slow against the slab's first mode
                     # the frame step
 
 
-def lift(slab, tables, stepper, *, frames=24, dt=None, floor=None):
-    """Settle under gravity, grasp the free end's top and lift it 2 mm in LIFT s; (times, forces, frames of x, sim)."""
+def lift(slab, tables, stepper, *, frames=24, dt=None, floor=None, rise=0.002):
+    """Settle under gravity, grasp the free end's top and lift it *rise* (2 mm) in LIFT s; (times, forces,
+    frames of x, sim)."""
     term = build_spring_term(slab, tables, dashpot=2e-4)
     sim = Simulator(term, slab.points, slab.mass, fixed=slab.fixed, gravity=(0, 0, -9.81), mass_damping=DECAY,
                     stepper=stepper, floor=floor)
@@ -311,7 +314,7 @@ def lift(slab, tables, stepper, *, frames=24, dt=None, floor=None):
     # a smooth path (as a hand moves a haptic device): 2 mm up in LIFT s, velocity zero at both ends
     s = np.linspace(0.0, 1.0, 21)
     sim.attach(Grasp(nodes=nodes, offsets=sim.x[nodes] - tip0, wp_t=LIFT * s,
-                     wp_x=tip0 + np.outer(s * s * (3 - 2 * s), [0, 0, 0.002])), check_step=False)
+                     wp_x=tip0 + np.outer(s * s * (3 - 2 * s), [0, 0, rise])), check_step=False)
     step = (1 / 30) if dt is None else dt
     spf = max(1, int(np.ceil(1 / 30 / step - 1e-9)))
     sim.set_time_step(1 / 30 / spf, bound=sim.stepper.bound(sim.model, sim.control), t0=0.0)
@@ -398,6 +401,32 @@ def test_implicit_matches_the_explicit_reference_on_a_sticking_bed(slab, iterati
     lifting = ti <= LIFT
     scale = np.linalg.norm(Fe[te <= LIFT], axis=1).max()
     assert np.linalg.norm(Fi - Fe_i, axis=1)[lifting].max() <= 0.05 * scale
+
+
+def test_a_peel_node_that_pulls_free_after_its_neighbour_leaves_in_the_same_step():
+    """A split slab (mid-edge nodes on its bed, as an asset made with ``--split``) lifted 4 mm off a
+    sticking bed: nodes of the peel line pull free only once a neighbour has left. With a third
+    re-solve they leave in the same step, as the explicit stepper's do (docs/design/simulator.md,
+    "Floor contact, with slides"); with two (the earlier rule) one leaves a step late and the
+    displacement is 11 % of the largest off the explicit stepper's (5 % with three). The renewals'
+    price is fixed so that the run does not depend on timing."""
+    m = box_tets(6, 2, 2, (0.06, 0.02, 0.015))
+    pts, tets, _ = split_in_eight(m.points, m.tets)
+    net = network_from_tets(SimpleNamespace(points=pts, tets=tets))
+    slab = net.with_fixed(np.flatnonzero(net.points[:, 0] < 1e-9))
+    tables = make_tables(mu0=1.0e4)
+    fl = Floor.under(slab.points, (0, 0, -9.81), friction="stick")
+    dt = stable_step(build_spring_term(slab, tables, dashpot=2e-4), slab.mass).dt
+    _, _, Xe, _ = lift(slab, tables, SymplecticEuler(), dt=dt, floor=fl, rise=0.004)
+    u_e = Xe - slab.points
+    errors = {}
+    for rounds in (None, 2):
+        stepper = BackwardEuler(contact_rounds=rounds)
+        stepper.factors.factor_in_solves = lambda: 30.0
+        _, _, Xi, sim = lift(slab, tables, stepper, floor=fl, rise=0.004)
+        assert sim.stepper.stats.slides > 0
+        errors[rounds] = np.linalg.norm(Xi - Xe, axis=2).max() / np.linalg.norm(u_e, axis=2).max()
+    assert errors[None] <= 0.08 < errors[2]
 
 
 def locking_hang(box, load=300):

@@ -111,7 +111,7 @@ def test_without_rounds_a_sticking_contact_is_let_go_without_sliding():
 def test_rounds_by_the_floor():
     assert contact_rounds(None, None) == 0
     assert contact_rounds(None, floor("slip")) == 1
-    assert contact_rounds(None, floor("stick")) == 2
+    assert contact_rounds(None, floor("stick")) == 3
     assert contact_rounds(3, floor("slip")) == 3
 
 
@@ -134,7 +134,110 @@ def test_the_step_starts_from_the_last_steps_contacts_among_the_candidates():
     expect[grasped] = False
     np.testing.assert_array_equal(c.active, expect)
     assert not c.candidates[fixed].any() and not c.candidates[grasped].any()
-    assert c.rounds == 2 and not c.slides.sliding.any()
+    assert c.rounds == 3 and not c.slides.sliding.any()
+
+
+def test_a_sliding_contact_stops_where_it_slips_or_creeps_to_the_farther():
+    """:meth:`Slides.slip`: a stopping slide ends at the farther of where the node slips to (the first zero
+    of its reaction along the slide with the other nodes where the held solve left them) and where it
+    creeps to (its reaction's zero, linear along the slide). Node 0's springs never press it into the
+    floor along its slide: it slips the whole way; node 1's press it a tenth of the way along and it
+    creeps farther; node 2's press it three quarters of the way along, past where it creeps to."""
+    n = 4
+    contact = np.array([True, True, True, False])
+    sl = Slides.none(n)
+    x_held = np.zeros((n, 3))
+    x_held[3] = [0.0, 0.0, 1.0]
+    x = x_held.copy()
+    sl.update(np.array([-1.0, -2.0, -1.0, 0.0]), x, contact, final=False)
+    np.testing.assert_array_equal(sl.sliding, [True, True, True, False])
+    slide = np.array([[0.004, 0.0, 0.0], [0.0, 0.002, 0.0], [0.0, 0.0, 0.0]])
+    slide[2] = [0.001, 0.001, 0.0]
+    x_slid = x_held.copy()
+    x_slid[:3] = slide
+    x_slid[3] = [0.0, 0.0, 1.002]
+    along = np.array([0.004, 0.002, 0.001])        # each slide's length along its first nonzero axis
+    frozen = []
+
+    def reaction(y):
+        frozen.append(y[3].copy())
+        s = y[:3].max(axis=1) / along                # the fraction of each slide
+        return np.array([-1.0 - 2.0 * s[0], -2.0 + 20.0 * s[1], -1.0 + (4.0 / 3.0) * s[2], 0.0])
+
+    lam = np.array([3.0, 1.0, 4.0, 0.0])            # all pushed at the slides' ends
+    x = x_slid.copy()
+    leave, changed, started = sl.update(lam, x, contact, final=False, reaction=reaction)
+    assert changed and started == 0 and not leave.any() and sl.moved
+    np.testing.assert_array_equal(frozen, [[0.0, 0.0, 1.0]] * len(frozen))   # the others where they were held
+    s = np.array([1.0, 2.0 / 3.0, 0.75])            # slip; creep (2/(2+1)) past its slip (0.1); slip
+    np.testing.assert_allclose(x[:3], s[:, None] * slide, atol=1e-15)
+    np.testing.assert_allclose(x[3], [0.0, 0.0, 1.0 + s.mean() * 0.002])    # the field taken back by the mean s
+    assert not sl.sliding.any()
+
+
+def test_a_slide_that_slips_to_its_end_moves_nothing():
+    """Where every stopping node slips the whole way, the slide solve's solution stands: nothing moves and,
+    no other contact changing, the step is not solved again."""
+    contact = np.array([True, True])
+    sl = Slides.none(2)
+    x = np.zeros((2, 3))
+    sl.update(np.array([-1.0, 2.0]), x, contact, final=False)
+    x[0] = [0.003, 0.0, 0.0]
+    before = x.copy()
+    leave, changed, started = sl.update(np.array([0.5, 2.0]), x, contact, final=False,
+                                        reaction=lambda y: np.array([-1.0, 2.0]))
+    assert not changed and not sl.moved and not leave.any() and started == 0
+    np.testing.assert_array_equal(x, before)
+    assert not sl.sliding.any()
+
+
+def test_the_floor_reads_the_slip_from_the_step_residual_along_its_normal():
+    """:meth:`FloorContact.update` hands :meth:`Slides.slip` the reaction ``g . n`` of the residual it is
+    given (the tilted plane's normal): a node whose reaction along its slide, the other nodes held,
+    stays negative is stuck where the slide ended, and the step is not solved again."""
+    fl = floor("stick")
+    c = contact_of(fl, np.array([True, True]))
+    p = np.array([0.0, 0.0, 0.1])
+    t = np.array([1.0, 0.0, 0.0])
+    x = np.array([p, p + 0.01 * t])
+    g = np.array([-1.0 * NORMAL, 2.0 * NORMAL])
+    changed, moved = c.update(g, x, final=False)
+    assert changed and not moved and c.slides.sliding[0] and c.stats.slides == 1
+    x[0] = p + 0.003 * t                                  # the slide solve: pushed at its end
+    seen = []
+
+    def residual(y):
+        seen.append(y[0] @ t)
+        return np.array([-0.5 * NORMAL + 0.3 * t, 2.0 * NORMAL])      # pulled all along the slide
+
+    changed, moved = c.update(np.array([0.5 * NORMAL, 2.0 * NORMAL]), x, final=False, residual=residual)
+    assert not changed and not moved and not c.slides.sliding.any()
+    np.testing.assert_allclose(x[0], p + 0.003 * t)
+    np.testing.assert_allclose(seen, 0.003 * np.arange(1, 9) / 8, atol=1e-15)   # sampled along the slide
+    np.testing.assert_array_equal(c.active, [True, True])
+
+
+def test_a_node_let_go_after_its_slide_lands_where_it_left_the_plane():
+    """A node that slid 4 mm and was let go (still pulled), then ends the step below the plane, is put
+    where it left the plane, not where it was held at the step's start (which would undo its slide);
+    a node that never left is put where its path from the step's start crossed the plane."""
+    fl = floor("stick")
+    p = np.array([0.0, 0.0, 0.1])
+    t = np.array([1.0, 0.0, 0.0])
+    c = contact_of(fl, np.array([True, False]))
+    x0 = np.array([p, p + 0.02 * NORMAL])
+    x = x0.copy()
+    c.update(np.array([-1.0 * NORMAL, np.zeros(3)]), x, final=False)
+    assert c.slides.sliding[0]
+    x[0] = p + 0.004 * t                                   # the slide solve: still pulled
+    changed, _ = c.update(np.array([-0.5 * NORMAL, np.zeros(3)]), x, final=False)
+    assert changed and not c.active.any()
+    x[0] = p + 0.006 * t - 0.001 * NORMAL                  # the step's end: both below the plane
+    x[1] = p + 0.002 * t - 0.02 * NORMAL
+    c.touchdown(x0, x)
+    np.testing.assert_array_equal(c.active, [True, True])
+    np.testing.assert_allclose(x[0], p + 0.004 * t, atol=1e-15)
+    np.testing.assert_allclose(x[1], p + 0.001 * t, atol=1e-15)   # half way along its path
 
 
 def test_a_sliding_contact_stops_where_the_floor_pushes_again():

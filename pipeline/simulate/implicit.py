@@ -81,7 +81,7 @@ class BackwardEuler:
     contact_rounds : int or None
         Times a step is solved again after its contacts changed. None (default): once on a
         frictionless floor (a node the lift peels off leaves in the step it is let go, not a step
-        later), twice on a sticking one (a pulled node slides, then stops or leaves,
+        later), three times on a sticking one (a pulled node slides, then stops or leaves,
         :class:`~.contact.Slides`); docs/design/simulator.md, "Floor contact, with slides".
     iteration : {"quasi-newton", "newton"}
         How each solve iterates (:mod:`.implicit_iteration`). "quasi-newton" (default): L-BFGS
@@ -136,6 +136,14 @@ class BackwardEuler:
         A split network's parents (its ``quadratic_cells``): the reused preconditioner is then the
         two-grid operator on them, not the matrix's factor (:class:`.factorcache.FactorCache`;
         docs/design/twogrid.md).
+    carry_pairs : bool
+        Quasi-Newton: carry the curvature pairs over steps and contact changes, projected
+        (docs/design/realtime.md: fewer iterations, a dearer recursion; off).
+    slip : bool
+        On a sticking floor, a sliding node that the floor pushes again stops at the farther of where
+        it slips to (its neighbours held) and where it creeps to (:meth:`.contact.Slides.slip`;
+        default); False: where it creeps to only (docs/design/simulator.md, "Floor contact, with
+        slides").
     """
 
     def __init__(self, step: float = DEFAULT_STEP, rtol: float = 0.01, xtol: float = 1e-4,
@@ -144,7 +152,7 @@ class BackwardEuler:
                  haptic_rate: float = HAPTIC_RATE, haptic_drift: bool = True, definite: bool = True,
                  single: bool = True, factor_matrix: str = "bound", threads: int = 1, factor_threads: int = 1,
                  solo_solve_s: float = math.nan, stats: ImplicitStats | None = None,
-                 coarse_cells: np.ndarray | None = None, carry_pairs: bool = False):
+                 coarse_cells: np.ndarray | None = None, carry_pairs: bool = False, *, slip: bool = True):
         _check_options(step, iteration, preconditioner, factor_matrix, haptic_rate)
         self.step, self.rtol, self.xtol, self.contact_rounds = step, rtol, xtol, contact_rounds
         self.iteration, self.memory, self.max_newton = iteration, memory, max_newton
@@ -159,7 +167,7 @@ class BackwardEuler:
         #: The iteration of each step's system.
         self.solver = StepSolver(self.factors, self.stats, rtol=rtol, xtol=xtol, max_newton=max_newton,
                                  quasi=self.quasi, memory=memory, cg_rtol=cg_rtol, max_cg=max_cg,
-                                 carry_pairs=carry_pairs)
+                                 carry_pairs=carry_pairs, slip=slip)
         #: The grasper force between solves.
         self.haptics = Haptics(rate=haptic_rate, drift=haptic_drift)
 

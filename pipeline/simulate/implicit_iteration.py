@@ -208,6 +208,11 @@ class StepSolver:
         Quasi-Newton: curvature pairs kept.
     cg_rtol, max_cg : float, int
         Newton: each update's linear solve (:class:`Newton`).
+    carry_pairs : bool
+        Quasi-Newton: the pairs carried over contact changes, projected.
+    slip : bool
+        The floor's slides stop where they slip to, or creep to if farther (:meth:`.contact.Slides.slip`);
+        False: where they creep to.
     """
 
     cache: FactorCache
@@ -220,6 +225,7 @@ class StepSolver:
     cg_rtol: float = 0.1
     max_cg: int = 20
     carry_pairs: bool = False
+    slip: bool = True
     record: SolveRecord | None = None       #: the current solve's
     step_quasi: int = 0                     #: the current step's quasi-Newton iterations
     handover_cost: float = 0                #: what the hand-overs cost, in solves (:meth:`_end_solve`)
@@ -261,7 +267,8 @@ class StepSolver:
             if not rec.exact:                    # ended on the update's length at a modelled residual
                 g, norm = self._exact_residual(system, x)
             self._end_solve()
-            changed, moved = system.contact.update(g, x, final=rounds == extra)
+            changed, moved = system.contact.update(g, x, final=rounds == extra,
+                                                   residual=self._residual(system))
             if changed:
                 self.set_rows(system)
                 if moved:
@@ -275,6 +282,11 @@ class StepSolver:
         if self.quasi:
             self.cache.age(max(0, self.step_quasi - QN_FRESH))
         return x
+
+    def _residual(self, system: StepSystem):
+        """``y -> g``, the step's residual, for the floor's slides (:meth:`.contact.Slides.slip`), or None
+        (``slip`` off)."""
+        return (lambda y: system.residual(y)[1]) if self.slip else None
 
     def set_rows(self, system: StepSystem) -> None:
         """The constraint rows set again (:meth:`.factorcache.FactorCache.set_rows`); the quasi-Newton
