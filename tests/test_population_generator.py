@@ -576,3 +576,25 @@ def test_a_slack_is_not_identifiable_and_a_misstated_area_is(tmp_path):
         if all(v >= 2 for v in seen.values()):
             break
     assert all(v >= 1 for v in seen.values())
+
+
+@pytest.mark.slow
+def test_replicates_are_mounted_with_slacks_of_their_own(tmp_path):
+    """A slack on replicates: each specimen is mounted with the case's slack times its own factor, and the
+    slacks' differences are what no one elastic law takes (d_id of the order of d where factors differ);
+    a protocol the class is not drawn on is refused."""
+    from population import make_case
+
+    seen = 0
+    for k, seq in enumerate(np.random.SeedSequence(901).spawn(4)):
+        t = make_case(seq, "slack", tmp_path / f"c{k}", kind="replicates")
+        e, files = t["effect"], t["files"]
+        assert t["protocol"]["kind"] == "replicates" and len(e["mounting"]) == 3
+        assert len({f["specimen"] for f in files}) == len(files) >= 2
+        f = np.asarray(e["mounting"][: len(files)])
+        if np.ptp(f) > 0.2 and e["detectability"] > 100:
+            assert e["identifiability"] > 0.1 * e["detectability"]
+            seen += 1
+    assert seen >= 1
+    with pytest.raises(ValueError, match="protocol 'staircase' is not drawn for slack"):
+        make_case(np.random.SeedSequence(1), "slack", tmp_path / "x", kind="staircase")

@@ -34,8 +34,9 @@ from .exports import allowed, measured_area, measured_length, write
 from .machine import draw_levels, draw_timing
 from .protocols import KINDS, Protocol, build, command, motion
 
-GENERATOR_VERSION = "2.3"  # records bit for bit as "2"; truth.json adds the effect's detectability (2.1) and
-#                             its identifiability (2.2; 2.3 in stress, one function for specimens of other areas)
+GENERATOR_VERSION = "2.4"  # records bit for bit as "2"; truth.json adds the effect's detectability (2.1) and
+#                             its identifiability (2.2; 2.3 in stress, one function for specimens of other areas);
+#                             2.4: a slack is drawn on replicates too, each specimen with its own mounting's slack
 MAX_DURATION, MIN_DURATION = 6000.0, 15.0
 
 
@@ -50,6 +51,10 @@ def _choose(rng, cls: str, kind: str | None) -> tuple[str, str, str]:
     kinds, shapes = E.PLAN[cls]
     shape = pick(rng, shapes)
     family = pick(rng, {f: 1.0 for f, v in FAMILIES.items() if shape in v["shapes"]})
+    if kind is not None:  # a protocol asked for (a population draws it: :func:`plan` asks for clean cases only)
+        if kind not in kinds:
+            raise ValueError(f"protocol {kind!r} is not drawn for {cls}: use one of {', '.join(kinds)}")
+        return family, shape, kind
     return family, shape, pick(rng, kinds)
 
 
@@ -100,8 +105,11 @@ def _survival(t: np.ndarray, x: np.ndarray, r: dict) -> tuple[np.ndarray, np.nda
     return s, res
 
 
-def _true_force(rng, wp, ch, el: E.Elastic, spec: dict, x0: float, cls: str, prm: dict, rup: dict | None) -> dict:
-    """The true force [N] (and the effect-free reference) on the fine grid of one file."""
+def _true_force(rng, wp, ch, el: E.Elastic, spec: dict, x0: float, cls: str, prm: dict, rup: dict | None,
+                mounting: float = 1.0) -> dict:
+    """The true force [N] (and the effect-free reference) on the fine grid of one file; a slack's is the
+    case's ``delta`` times the specimen's *mounting* factor, and ``common`` the law at the case's slack
+    (the function of the stretch that the specimens' curves share, :func:`_detectability`)."""
     fs = ch.fs
     n = int(np.ceil(wp[-1][0] * fs / ch.ratio)) * ch.ratio
     x = motion(command(wp, fs, n), fs, accel_s=ch.accel_s, ripple=ch.velocity_ripple, ripple_hz=ch.ripple_Hz,
@@ -109,9 +117,11 @@ def _true_force(rng, wp, ch, el: E.Elastic, spec: dict, x0: float, cls: str, prm
     t = np.arange(n) / fs
     xs, slips = (E.slipped(prm, el, x, t) if cls == "grip_slip" else (x, []))
     cap = (lambda v: np.minimum(v, rup["x"])) if rup else (lambda v: v)
+    common = None
     if cls == "slack":
-        p = E.slack_stress(prm, el, cap(xs))
-        ref = el.stress(cap(x / (1.0 + prm["delta"])))
+        p = E.slack_stress({**prm, "delta": prm["delta"] * mounting}, el, cap(xs))
+        ref = el.stress(cap(x / (1.0 + prm["delta"] * mounting)))
+        common = el.stress(cap(x / (1.0 + prm["delta"])))
     else:
         p = E.material_stress(cls, prm, el, cap(xs), 1.0 / fs)
         ref = el.stress(cap(x))
@@ -119,8 +129,10 @@ def _true_force(rng, wp, ch, el: E.Elastic, spec: dict, x0: float, cls: str, prm
         s, res = _survival(t, x, rup)
         p = p * s + res * np.max(p)
         ref = ref * s + res * np.max(ref)
+        common = None if common is None else common * s + res * np.max(common)
     area = spec["area"]
-    return {"t": t, "x": x, "force": p * area, "ref": ref * area, "slips_s": slips, "n": n}
+    return {"t": t, "x": x, "force": p * area, "ref": ref * area, "slips_s": slips, "n": n,
+            "common": ref * area if common is None else common * area}
 
 
 def _stated(spec: dict, error: float) -> tuple[dict, float]:
@@ -160,13 +172,17 @@ def _scale_errors(rng, cls: str, m: int) -> list[float]:
 
 def _draw_material(rng, cls: str, family: str, shape: str, kind: str):
     """Mode, reference, peak(s), the base law and the slack (drawn first: the crosshead then goes
-    further, ``hi (1 + delta)``, so that the specimen still reaches the peak)."""
+    further, ``hi (1 + delta)``, so that the specimen still reaches the peak). Replicates are mounted
+    one by one, each with its own slack: the case's ``delta`` times a factor of 0.5-1.5 per specimen
+    (``mounting``); the files of one specimen share its mounting."""
     mode, x0 = SHAPES[shape]
     hi, lo = draw_range(rng, family, shape)
     if kind not in ("cycles", "rising", "multirate", "replicates"):
         lo = None
     pre = E.draw_artefact("slack", rng, hi - x0) if cls == "slack" else {}
-    top = hi * (1.0 + pre["delta"]) if pre else hi
+    if pre and kind == "replicates":
+        pre["mounting"] = rng.uniform(0.5, 1.5, 3).tolist()
+    top = hi * (1.0 + pre["delta"] * max(pre.get("mounting", [1.0]))) if pre else hi
     lo_all, hi_all = min(x0, top, lo if lo is not None else x0), max(x0, top, lo if lo is not None else x0)
     law = draw_law(rng, family, mode, x0, lo_all, hi_all)
     return mode, x0, hi, lo, law, pre, (lo_all, hi_all)
@@ -177,7 +193,7 @@ def make_case(seq: np.random.SeedSequence, cls: str, folder: Path, *, kind: str 
     rng = np.random.default_rng(seq)
     family, shape, kind = _choose(rng, cls, kind)
     mode, x0, hi, lo, law, pre, (lo_all, hi_all) = _draw_material(rng, cls, family, shape, kind)
-    hi_cmd = hi * (1.0 + pre["delta"]) if cls == "slack" else hi
+    hi_cmd = hi * (1.0 + pre["delta"] * max(pre.get("mounting", [1.0]))) if cls == "slack" else hi
     specs = [draw_specimen(rng, family, shape)]
     proto = _protocol(rng, kind, x0, hi_cmd, lo, loguniform(rng, *FAMILIES[family]["rate"]), specs[0]["gauge_length"])
     specs += [replicate(rng, specs[0]) for _ in range(1, len(proto.files) if kind == "replicates" else 1)]
@@ -187,7 +203,9 @@ def make_case(seq: np.random.SeedSequence, cls: str, folder: Path, *, kind: str 
     rup = _rupture(rng, kind, proto)
     chains = draw_timing(rng, [proto.duration(k) for k in range(len(proto.files))], t_move)
     spec_of = [specs[k] if kind == "replicates" else specs[0] for k in range(len(proto.files))]
-    sims = [_true_force(rng, wp, ch, el, sp, x0, cls, prm, rup) for wp, ch, sp in zip(proto.files, chains, spec_of)]
+    mounting = [prm.get("mounting", [1.0] * 3)[k] if kind == "replicates" else 1.0 for k in range(len(proto.files))]
+    sims = [_true_force(rng, wp, ch, el, sp, x0, cls, prm, rup, m)
+            for wp, ch, sp, m in zip(proto.files, chains, spec_of, mounting)]
     peak = max(float(np.max(np.abs(s["force"]))) for s in sims)
     chains = draw_levels(rng, chains, peak)
     errors = _scale_errors(rng, cls, len(specs))
@@ -252,8 +270,9 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
     of the case, the material being one, each file's force its specimen's area times it; each basis
     function put through the force channel's filters and
     decimation as a force would be, so that their delay is not read as a path dependence). For a
-    slack, ``Delta`` is taken against the law at the longer length where the specimen is taut and
-    zero force where it is slack, itself such a function. A relaxation on one monotone ramp, a slack,
+    slack, ``Delta`` is taken against the law at the case's longer length where the specimen is taut
+    and zero force where it is slack, itself such a function (replicates' own slacks differ around it,
+    which no one function takes). A relaxation on one monotone ramp, a slack,
     a gradual slip or a drift during one ramp is such a function (d_id near 0 however large d is): a
     record of that protocol cannot tell the effect from another elastic law, by any method that does
     not know the law. What remains is what the protocol makes identifiable: a hold, an unloading, a
@@ -272,15 +291,15 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
     for s, ch, err, area in zip(sims, chains, errors, areas):
         force = s["force"] + (E.offset_force(prm, s["t"], peak) if cls == "sensor_offset" else 0.0)
         rec = record_force(force, ch, None)
-        delta = rec * err if cls == "specimen_scale" else rec - record_force(s["ref"], ch, None)
+        delta = rec * err if cls == "specimen_scale" else rec - record_force(s["common"], ch, None)
         noise = record_force(force, ch, rng) - rec
         var = float(np.var(noise))
         if var <= 0.0:
             continue
         w = 1.0 / (var * integrated_time(noise))
         d2 += float(np.sum(delta ** 2)) * w
-        if cls == "slack":  # against the law at the longer length where taut, zero force where slack
-            delta = rec - record_force(np.maximum(s["ref"], 0.0), ch, None)
+        if cls == "slack":  # against the law at the case's longer length where taut, zero force where slack:
+            delta = rec - record_force(np.maximum(s["common"], 0.0), ch, None)  # a function the files share
         parts.append((delta / area, _elastic_basis(s["x"], x0, lo, hi, ch), w * area ** 2))  # in stress
     if not parts:
         return 0.0, 0.0

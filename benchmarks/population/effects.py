@@ -34,7 +34,7 @@ PLAN = {
     "damage": ({"rising": 3, "cycles": 1}, {"tension": 1}),
     "cyclic_softening": ({"cycles": 1}, {"tension": 1}),
     "permanent_set": ({"rising": 3, "cycles": 1}, {"tension": 1}),
-    "slack": ({"ramp": 2, "failure": 1, "cycles": 1, "rising": 1, "multirate": 1}, {"tension": 1}),
+    "slack": ({"ramp": 2, "failure": 1, "cycles": 1, "rising": 1, "multirate": 1, "replicates": 2}, {"tension": 1}),
     "sensor_offset": ({"ramp": 2, "failure": 1, "cycles": 1, "rising": 1, "relaxation": 1, "multirate": 1,
                        "staircase": 1}, {"tension": 4, "compression": 1, "simple_shear": 1}),
     "specimen_scale": ({"replicates": 1}, {"tension": 3, "compression": 1}),

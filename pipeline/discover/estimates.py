@@ -79,6 +79,29 @@ def estimates(problem: Problem, z_full: np.ndarray) -> list[Estimate]:
     return _prony_by_tau(iv.out)
 
 
+def slot_covariance(problem: Problem, z_full: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The fit's joint covariance over the slots of *problem* at *z_full*, and the directions it does not see.
+
+    The covariance of :func:`estimates` (before any derived quantity), restricted to the slots: what a
+    test of several parameters together needs where their errors are correlated (per-file slacks that
+    trade with one elastic law's onset, :mod:`.artefacts`).
+
+    Returns
+    -------
+    cov : ndarray, shape (n_slots, n_slots)
+    null : ndarray, shape (q, n_slots)
+        Rows spanning the unidentified directions (q may be 0), as
+        :func:`~esmm.pipeline.calibrate.intervals.identified_covariance`.
+    """
+    prob = problem
+    prob.z_full = z_full.copy()
+    prob.active = np.arange(len(prob.slots))
+    r0, J, _ = _jacobian(prob, z_full, prob.offsets(z_full))
+    iv = _Intervals(prob, z_full, r0, J)
+    n = len(prob.slots)
+    return iv.cov[:n, :n], iv.null[:, :n]
+
+
 def _residual_at_offsets(prob: Problem, z_full: np.ndarray, coefs) -> np.ndarray:
     """The normalised residual on the training samples with the fitted offsets added explicitly."""
     st = prob.params.values(z_full)
