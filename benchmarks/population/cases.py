@@ -34,9 +34,10 @@ from .exports import allowed, measured_area, measured_length, write
 from .machine import draw_levels, draw_timing
 from .protocols import KINDS, Protocol, build, command, motion
 
-GENERATOR_VERSION = "2.4"  # records bit for bit as "2"; truth.json adds the effect's detectability (2.1) and
+GENERATOR_VERSION = "2.5"  # records bit for bit as "2"; truth.json adds the effect's detectability (2.1) and
 #                             its identifiability (2.2; 2.3 in stress, one function for specimens of other areas);
-#                             2.4: a slack is drawn on replicates too, each specimen with its own mounting's slack
+#                             2.4: a slack is drawn on replicates too, each specimen with its own mounting's slack;
+#                             2.5 (records as 2.4): a slack's d_id against the case's own slacked curve
 MAX_DURATION, MIN_DURATION = 6000.0, 15.0
 
 
@@ -117,11 +118,12 @@ def _true_force(rng, wp, ch, el: E.Elastic, spec: dict, x0: float, cls: str, prm
     t = np.arange(n) / fs
     xs, slips = (E.slipped(prm, el, x, t) if cls == "grip_slip" else (x, []))
     cap = (lambda v: np.minimum(v, rup["x"])) if rup else (lambda v: v)
-    common = None
+    common = shared = None
     if cls == "slack":
         p = E.slack_stress({**prm, "delta": prm["delta"] * mounting}, el, cap(xs))
         ref = el.stress(cap(x / (1.0 + prm["delta"] * mounting)))
         common = el.stress(cap(x / (1.0 + prm["delta"])))
+        shared = E.slack_stress(prm, el, cap(xs))
     else:
         p = E.material_stress(cls, prm, el, cap(xs), 1.0 / fs)
         ref = el.stress(cap(x))
@@ -130,9 +132,11 @@ def _true_force(rng, wp, ch, el: E.Elastic, spec: dict, x0: float, cls: str, prm
         p = p * s + res * np.max(p)
         ref = ref * s + res * np.max(ref)
         common = None if common is None else common * s + res * np.max(common)
+        shared = None if shared is None else shared * s + res * np.max(shared)
     area = spec["area"]
     return {"t": t, "x": x, "force": p * area, "ref": ref * area, "slips_s": slips, "n": n,
-            "common": ref * area if common is None else common * area}
+            "common": ref * area if common is None else common * area,
+            "shared": p * area if shared is None else shared * area}
 
 
 def _stated(spec: dict, error: float) -> tuple[dict, float]:
@@ -270,9 +274,11 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
     of the case, the material being one, each file's force its specimen's area times it; each basis
     function put through the force channel's filters and
     decimation as a force would be, so that their delay is not read as a path dependence). For a
-    slack, ``Delta`` is taken against the law at the case's longer length where the specimen is taut
-    and zero force where it is slack, itself such a function (replicates' own slacks differ around it,
-    which no one function takes). A relaxation on one monotone ramp, a slack,
+    slack, ``Delta`` is taken against the case's own slacked curve (the specimen taut fibre by fibre),
+    itself such a function: a slack in one mounting is nothing an elastic law cannot take, sharp or
+    smooth (d_id 0; generator 2.4 and earlier took it against the sharp slack, so a smooth pick-up's
+    curvature counted as identifiable), and replicates' own slacks differ around it, which no one
+    function takes. A relaxation on one monotone ramp, a slack,
     a gradual slip or a drift during one ramp is such a function (d_id near 0 however large d is): a
     record of that protocol cannot tell the effect from another elastic law, by any method that does
     not know the law. What remains is what the protocol makes identifiable: a hold, an unloading, a
@@ -298,8 +304,8 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
             continue
         w = 1.0 / (var * integrated_time(noise))
         d2 += float(np.sum(delta ** 2)) * w
-        if cls == "slack":  # against the law at the case's longer length where taut, zero force where slack:
-            delta = rec - record_force(np.maximum(s["common"], 0.0), ch, None)  # a function the files share
+        if cls == "slack":  # against the case's own slacked curve: a function of the stretch the files share
+            delta = rec - record_force(s["shared"], ch, None)
         parts.append((delta / area, _elastic_basis(s["x"], x0, lo, hi, ch), w * area ** 2))  # in stress
     if not parts:
         return 0.0, 0.0
