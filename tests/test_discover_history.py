@@ -145,3 +145,38 @@ def test_a_fold_sees_only_its_training_samples():
     assert np.array_equal(got, want)
     assert _training_samples(fit_idx, None, 19).all()
     assert not _training_samples(fit_idx, [], 19).any()
+
+
+def _ramp_record(x_specimen: np.ndarray, stress_of, seed: int = 0):
+    """A prepared record of a ramp at 0.01/s (50 Hz) whose specimen stretch is *x_specimen* of the crosshead's
+    (``stress_of`` its nominal stress), with white noise of 0.2 % of the peak."""
+    from pathlib import Path
+
+    from esmm.pipeline.discover.records import prepare
+    from esmm.pipeline.tensile.data import TensileTest
+
+    x = np.linspace(1.0, 1.3, x_specimen.size)
+    p = stress_of(x_specimen)
+    rng = np.random.default_rng(seed)
+    t = np.arange(x.size) / FS
+    test = TensileTest(source=Path("r.csv"), mode="uniaxial", stretch=x,
+                       stress=p + rng.normal(0.0, 0.002 * float(np.max(p)), x.size), time=t)
+    return prepare([test])[0]
+
+
+def test_a_slips_fall_is_not_a_softening_and_a_falling_law_is():
+    """A grip slip near the end of a ramp gives back 0.08 of stretch, so the stress never regains its
+    maximum: the fall is the slip's (detected), not a softening of the material, which
+    ``strain_softening`` would otherwise call it (exempting damage from the history test and calling it
+    identifiable on a single ramp). A law whose stress falls at rising stretch (the stress of the same
+    Ogden solid times 1 - D, D rising past 1.2) without a slip is a softening."""
+    from esmm.pipeline.discover.records import strain_softening
+
+    n = 1501
+    x = np.linspace(1.0, 1.3, n)
+    slipped = x - 0.08 * (x >= 1.25)
+    r = _ramp_record(slipped, _elastic)
+    assert r.slips, "the slip is detected"
+    assert not strain_softening(r)
+    damage = 1.0 - 0.9 * np.clip((x - 1.2) / 0.1, 0.0, 1.0) ** 2
+    assert strain_softening(_ramp_record(x, lambda v: _elastic(v) * damage))

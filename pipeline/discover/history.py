@@ -17,7 +17,8 @@ signature that no function of the stretch can give explain the part of the
 residual that no function of the stretch can give? With e the current model's
 residual (data − model) and d the candidate's change of the prediction, both
 on every sample, and P the least-squares projection onto smooth functions of
-the stretch (a cubic spline of :data:`KNOTS` intervals over the stretch range,
+the specimen's stretch (the crosshead's less the slips and the slack the current
+model holds; a cubic spline of :data:`KNOTS` intervals over the stretch range,
 one per loading mode and direction, shared by the files: one material has one
 elastic law), a = e − Pe and b = d − Pd are the path-dependent parts. Under the
 null "nothing depends on the path", a is measurement noise (any elastic misfit
@@ -86,7 +87,8 @@ def history_test(current: Fitted, candidate: Fitted) -> dict[str, float]:
     """
     prob = current.problem
     e, d = _changes(current, candidate)
-    return path_dependence([r.x for r in prob.records], e, d, ranges=[r.range for r in prob.records],
+    x = [prob.specimen_stretch(k, current.z) for k in range(len(prob.records))]
+    return path_dependence(x, e, d, ranges=[r.range for r in prob.records],
                            groups=[(r.test.mode, r.key) for r in prob.records],
                            resolutions=[resolution(r.y, r.sigma) for r in prob.records])
 

@@ -1076,6 +1076,11 @@ class Problem:
         idx = np.arange(r.test.n)
         return self.forward.add_offsets(k, self.forward.predict(k, st, idx), coef, idx)
 
+    def specimen_stretch(self, k: int, z_full: np.ndarray) -> np.ndarray:
+        """The specimen's stretch of record k on *all* its samples: the crosshead's less the slips and the
+        slack of *z_full* (what the elastic law is a function of)."""
+        return self.forward._x_true(k, self.params.values(z_full), np.arange(self.records[k].test.n))
+
     def fit_residuals(self, z_full: np.ndarray) -> list[np.ndarray]:
         """Unnormalised residuals (Pa, model - data) on each record's training samples."""
         st = self.params.values(z_full)

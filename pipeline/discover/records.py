@@ -378,7 +378,10 @@ def strain_softening(rec: Record, alpha: float = SLIP_ALPHA) -> bool:
     standard deviation of the noise's difference across any lag
     (:meth:`~esmm.pipeline.tensile.noise.Noise.difference_sd`) and z the normal
     quantile of *alpha* over the record's samples (Bonferroni: a clean record is
-    called softening with probability at most *alpha*).
+    called softening with probability at most *alpha*). A detected grip slip's
+    fall is the slip's (the specimen's stretch falls there, not the stress at a
+    rising stretch), and after it the crosshead's stretch is no longer the
+    specimen's: the run is judged in its parts between the slips' falls.
     """
     if not rec.tension_only:
         return False
@@ -386,12 +389,27 @@ def strain_softening(rec: Record, alpha: float = SLIP_ALPHA) -> bool:
     drop = z * math.sqrt(2.0) * rec.sigma
     d = rec.cov.direction
     for s0, e0 in [(a, b) for a, b, v in _runs_of(d) if v > 0]:
-        y = rec.y[s0:e0]
-        top = np.maximum.accumulate(y)
-        later = np.maximum.accumulate(y[::-1])[::-1]
-        if np.any((y < top - drop) & (later < top)):
-            return True
+        for a, b in _between_slips(rec.y, rec.slips, s0, e0):
+            y = rec.y[a:b]
+            top = np.maximum.accumulate(y)
+            later = np.maximum.accumulate(y[::-1])[::-1]
+            if np.any((y < top - drop) & (later < top)):
+                return True
     return False
+
+
+def _between_slips(y: np.ndarray, slips: Sequence[int], s0: int, e0: int) -> list[tuple[int, int]]:
+    """The parts of the run [s0, e0) of *y* apart from each slip's fall (from where the stress starts to fall
+    to the slip's last sample, *slips*), each at least two samples long."""
+    out, a = [], s0
+    for m in sorted(int(v) for v in slips if s0 <= v < e0):
+        k = m
+        while k > a and y[k - 1] > y[k]:
+            k -= 1
+        out.append((a, k))
+        a = m + 1
+    out.append((a, e0))
+    return [(p, q) for p, q in out if q - p >= 2]
 
 
 def _runs_of(a: np.ndarray) -> list[tuple[int, int, int]]:
