@@ -399,14 +399,14 @@ def strain_softening(rec: Record, alpha: float = SLIP_ALPHA) -> bool:
 
 
 def _between_slips(y: np.ndarray, slips: Sequence[int], s0: int, e0: int) -> list[tuple[int, int]]:
-    """The parts of the run [s0, e0) of *y* apart from each slip's fall (from where the stress starts to fall
-    to the slip's last sample, *slips*), each at least two samples long."""
+    """The parts of the run [s0, e0) of *y* apart from each slip's fall (from the stress's peak before the
+    slip's last sample, *slips*, to that sample: a fall the filter's ringing splits is one), each at least two
+    samples long."""
     out, a = [], s0
     for m in sorted(int(v) for v in slips if s0 <= v < e0):
-        k = m
-        while k > a and y[k - 1] > y[k]:
-            k -= 1
-        out.append((a, k))
+        if m < a:
+            continue
+        out.append((a, a + int(np.argmax(y[a:m + 1]))))
         a = m + 1
     out.append((a, e0))
     return [(p, q) for p, q in out if q - p >= 2]
