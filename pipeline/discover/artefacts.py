@@ -37,8 +37,8 @@ the misfit of effects not yet found would inflate its standard errors):
    (:func:`slack_spread` at least 1: every slack set to their mean moves the
    predicted stress on some record by its resolution, the history test's size
    requirement): on tens of thousands of samples a test of differences alone is
-   passed by any misfit the slacks can take, and clean tendon-like replicates
-   gave slacks 0.5-2 % apart at p below 0.05.
+   passed by any misfit the slacks can take, and clean toe-law replicates and
+   multirate sets gave slacks 0.5-2 % apart at p below 0.05.
 
 Both are necessary conditions added to the held-out test, so they can only
 lower the rate at which artefacts are added to clean records; their cost is
