@@ -50,6 +50,7 @@ docs/guide/discover.md).
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 
 import numpy as np
 from scipy import stats
@@ -89,13 +90,20 @@ def _rows(est: list[Estimate], name: str) -> list[tuple[float, float]]:
     return out
 
 
-def _estimates(f: Fitted) -> list[Estimate]:
+@contextmanager
+def _state_kept(f: Fitted):
+    """The problem of *f* with its optimiser state (``z_full``, ``active``) put back afterwards."""
     prob = f.problem
     saved = (prob.z_full, prob.active)
     try:
-        return estimates(prob, f.z)
+        yield prob
     finally:
         prob.z_full, prob.active = saved
+
+
+def _estimates(f: Fitted) -> list[Estimate]:
+    with _state_kept(f) as prob:
+        return estimates(prob, f.z)
 
 
 def determined(rows: list[tuple[float, float]]) -> float:
@@ -154,12 +162,9 @@ def _slack_slots(f: Fitted) -> list[int]:
 
 def _slack_covariance(f: Fitted) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """(per-file slacks, their joint covariance, the unidentified directions among them or None) of *f*."""
-    prob, idx = f.problem, _slack_slots(f)
-    saved = (prob.z_full, prob.active)
-    try:
+    idx = _slack_slots(f)
+    with _state_kept(f) as prob:
         cov, null = slot_covariance(prob, f.z)
-    finally:
-        prob.z_full, prob.active = saved
     return np.asarray(f.z)[idx], cov[np.ix_(idx, idx)], (null[:, idx] if null.size else None)
 
 
@@ -181,11 +186,12 @@ def slack_spread(f: Fitted) -> float:
     return worst
 
 
-def shared_slack_reason(f: Fitted) -> str | None:
-    """Why the per-file slack of *f* is not an artefact (its files' slacks agree), or None."""
+def shared_slack_reason(f: Fitted, covariance: tuple | None = None) -> str | None:
+    """Why the per-file slack of *f* is not an artefact (its files' slacks agree), or None (*covariance*:
+    :func:`_slack_covariance` of *f*, when already computed)."""
     if len(_slack_slots(f)) < 2:
         return None
-    p = equal_values(*_slack_covariance(f))
+    p = equal_values(*(covariance or _slack_covariance(f)))
     if p > LEVEL:
         return (f"the files' slacks agree within their errors (joint Wald test of their differences, p {p:.2g} > "
                 f"{LEVEL:g}); a slack every specimen shares is the material's curve starting above its reference "
@@ -203,8 +209,9 @@ def artefact_reason(f: Fitted, name: str) -> str | None:
     """Why the artefact *name* of *f* does not belong in the final model (module docstring), or None."""
     if name not in _NEUTRAL:
         return None
+    covariance = None
     if name == "slack":  # jointly: the slacks' common part trades with an elastic onset (the module's docstring)
-        vals, cov, null = _slack_covariance(f)
+        covariance = vals, cov, null = _slack_covariance(f)
         p, m = (joint_wald(vals, cov, null=null), vals.size) if vals.size else (None, 0)
     else:
         rows = _rows(_estimates(f), name)
@@ -213,7 +220,7 @@ def artefact_reason(f: Fitted, name: str) -> str | None:
         return (f"the fit does not determine its size: its {m} per-file value(s) do not differ "
                 f"from none jointly (Wald p {p:.2g} > {LEVEL:g}); what it fits is the noise's slow wander or "
                 "the fold design's luck")
-    return shared_slack_reason(f) if name == "slack" else None
+    return shared_slack_reason(f, covariance) if name == "slack" else None
 
 
 __all__ = ["LEVEL", "artefact_reason", "determined", "equal_values", "heterogeneity", "joint_wald",

@@ -63,11 +63,7 @@ def estimates(problem: Problem, z_full: np.ndarray) -> list[Estimate]:
         of their relaxation time.
     """
     prob = problem
-    prob.z_full = z_full.copy()
-    prob.active = np.arange(len(prob.slots))
-    coefs = prob.offsets(z_full)
-    r0, J, off_keys = _jacobian(prob, z_full, coefs)
-    iv = _Intervals(prob, z_full, r0, J)
+    iv, coefs, off_keys = _fit_intervals(prob, z_full)
     st = prob.params.values(z_full)
     _slot_estimates(iv, prob, z_full)
     if st.g is not None:
@@ -93,13 +89,19 @@ def slot_covariance(problem: Problem, z_full: np.ndarray) -> tuple[np.ndarray, n
         Rows spanning the unidentified directions (q may be 0), as
         :func:`~esmm.pipeline.calibrate.intervals.identified_covariance`.
     """
-    prob = problem
+    iv, _, _ = _fit_intervals(problem, z_full)
+    n = len(problem.slots)
+    return iv.cov[:n, :n], iv.null[:, :n]
+
+
+def _fit_intervals(prob: Problem, z_full: np.ndarray) -> tuple[_Intervals, list, list[tuple[int, int]]]:
+    """The covariance of the fit at *z_full* over every slot and the offset coefficients, the offsets, and
+    the (record, coefficient) keys of the offset columns (*prob* left with every slot active at *z_full*)."""
     prob.z_full = z_full.copy()
     prob.active = np.arange(len(prob.slots))
-    r0, J, _ = _jacobian(prob, z_full, prob.offsets(z_full))
-    iv = _Intervals(prob, z_full, r0, J)
-    n = len(prob.slots)
-    return iv.cov[:n, :n], iv.null[:, :n]
+    coefs = prob.offsets(z_full)
+    r0, J, off_keys = _jacobian(prob, z_full, coefs)
+    return _Intervals(prob, z_full, r0, J), coefs, off_keys
 
 
 def _residual_at_offsets(prob: Problem, z_full: np.ndarray, coefs) -> np.ndarray:

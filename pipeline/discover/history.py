@@ -87,8 +87,7 @@ def history_test(current: Fitted, candidate: Fitted) -> dict[str, float]:
     """
     prob = current.problem
     e, d = _changes(current, candidate)
-    x = [prob.specimen_stretch(k, current.z) for k in range(len(prob.records))]
-    return path_dependence(x, e, d, ranges=[r.range for r in prob.records],
+    return path_dependence(prob.specimen_stretches(current.z), e, d, ranges=[r.range for r in prob.records],
                            groups=[(r.test.mode, r.key) for r in prob.records],
                            resolutions=[resolution(r.y, r.sigma) for r in prob.records])
 

@@ -1076,10 +1076,11 @@ class Problem:
         idx = np.arange(r.test.n)
         return self.forward.add_offsets(k, self.forward.predict(k, st, idx), coef, idx)
 
-    def specimen_stretch(self, k: int, z_full: np.ndarray) -> np.ndarray:
-        """The specimen's stretch of record k on *all* its samples: the crosshead's less the slips and the
+    def specimen_stretches(self, z_full: np.ndarray) -> list[np.ndarray]:
+        """The specimen's stretch of each record on *all* its samples: the crosshead's less the slips and the
         slack of *z_full* (what the elastic law is a function of)."""
-        return self.forward._x_true(k, self.params.values(z_full), np.arange(self.records[k].test.n))
+        st = self.params.values(z_full)
+        return [self.forward._x_true(k, st, np.arange(r.test.n)) for k, r in enumerate(self.records)]
 
     def fit_residuals(self, z_full: np.ndarray) -> list[np.ndarray]:
         """Unnormalised residuals (Pa, model - data) on each record's training samples."""
