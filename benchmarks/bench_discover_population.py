@@ -29,7 +29,9 @@ Scoring:
   misses below the noise are told from misses of an effect that stands out of it; and its
   identifiability (the part of the detectability that no smooth elastic law of the stretch can take):
   the cases are scored by its bins too (with how many kept nothing, the right answer where it is below
-  3), and by class where it is at least 30.
+  3), and by class where it is at least 30; of those, also where the part that neither an elastic law
+  nor the class's neighbour takes is at least 30 (a stretch-dependent relaxation told from a plain one,
+  a load cell's drift from a relaxation; ``population/cases.py``, ``NEIGHBOURS``).
 * runtimes, timeouts, errors (non-zero exits with their last message line), seeds.
 
 ``python benchmarks/bench_discover_population.py --cases N --seed S --jobs J --out results.json
@@ -56,11 +58,13 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import numpy as np
+
 HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
-from population import CLASSES, GENERATOR_VERSION, generate  # noqa: E402
+from population import CLASSES, GENERATOR_VERSION, generate, make_case, plan  # noqa: E402
 
 #: ``make bench``'s population (override with ESMM_BENCH_POPULATION_CASES); ``make bench-discover``
 #: runs 303 cases, 200 of them clean (103 with an effect).
@@ -230,14 +234,20 @@ def _by_detectability(ok: list[dict], *, key: str = "detectability", symbol: str
 
 
 def _by_class_identifiable(ok: list[dict]) -> dict:
-    """{class: {cases, strict}} of the effect cases whose records can tell the effect from an elastic law
-    (identifiability at least the upper detectability bin's edge, :data:`DETECT_BINS`)."""
+    """{class: {cases, strict, from_neighbour: {cases, strict}}} of the effect cases whose records can tell
+    the effect from an elastic law (identifiability at least the upper detectability bin's edge,
+    :data:`DETECT_BINS`); ``from_neighbour`` counts those of them that can also be told from the class's
+    neighbour (``population/cases.py``, ``NEIGHBOURS``: a stretch-dependent relaxation from a plain one, a
+    load cell's drift from a relaxation), at the same edge; a class without a neighbour counts them all."""
     out: dict = {}
     for r in ok:
         if (r.get("identifiability") or 0.0) >= DETECT_BINS[1]:
-            b = out.setdefault(r["class"], {"cases": 0, "strict": 0})
+            b = out.setdefault(r["class"], {"cases": 0, "strict": 0, "from_neighbour": {"cases": 0, "strict": 0}})
             b["cases"] += 1
             b["strict"] += int(r["strict"])
+            if all(v >= DETECT_BINS[1] for v in (r.get("identifiability_from") or {}).values()):
+                b["from_neighbour"]["cases"] += 1
+                b["from_neighbour"]["strict"] += int(r["strict"])
     return {k: out[k] for k in CLASSES if k in out}
 
 
@@ -249,6 +259,7 @@ def _row(t: dict, res: dict) -> dict:
             "variant": (t["effect"] or {}).get("variant"), "effect_size": (t["effect"] or {}).get("size"),
             "detectability": (t["effect"] or {}).get("detectability"),
             "identifiability": (t["effect"] or {}).get("identifiability"),
+            "identifiability_from": (t["effect"] or {}).get("identifiability_from"),
             "files": len(t["files"]), "samples": sum(f["samples"] for f in t["files"]),
             "acquisition_error_of_range": max(f["acquisition_error_of_range"] for f in t["files"]),
             "chain": {k: ch.get(k) for k in ("filter", "order", "f_out", "bits", "quantize_at", "hum_of_noise",
@@ -341,6 +352,11 @@ def table(res: dict) -> str:
         lines.append("  by identifiability (the part no elastic law takes): " + "; ".join(
             f"{k}: {v['strict']}/{v['lenient']} of {v['cases']}, nothing kept {v['nothing']}"
             for k, v in e["by_identifiability"].items()))
+        ids = e.get("by_class_identifiable", {})
+        n, k = (sum(v[f] for v in ids.values()) for f in ("cases", "strict"))
+        nb = [v.get("from_neighbour", v) for v in ids.values()]
+        lines.append(f"  named alone where d_id >= {DETECT_BINS[1]:g}: {k}/{n}; where the neighbouring class's "
+                     f"d_id is too: {sum(v['strict'] for v in nb)}/{sum(v['cases'] for v in nb)}")
     lines.append(f"runtime: median {rt['median_s']} s, max {rt['max_s']} s, timeouts {len(rt['timeouts'])}, "
                  f"errors {len(res['errors'])}, wall {res['wall_s']} s with {res['jobs']} jobs")
     lines += [f"  error {x['case']} ({x['class']}): {x['message']}" for x in res["errors"]]
@@ -374,11 +390,17 @@ def main(argv=None) -> int:
                          "(the runtimes are then the choice's alone)")
     ap.add_argument("--rescore", default=None, metavar="JSON",
                     help="score a finished run's esmm outputs again with this version's judge and truths into --out")
+    ap.add_argument("--classes", default=None, metavar="A,B",
+                    help="with --rescore: regenerate only the cases of these classes (the others keep the run's rows)")
     args = ap.parse_args(argv)
     if args.merge:
         return merge(args.merge, Path(args.out))
     if args.rescore:
-        return rescore(Path(args.rescore), Path(args.out))
+        classes = [c.strip() for c in args.classes.split(",") if c.strip()] if args.classes else None
+        bad = [c for c in classes or () if c not in CLASSES]
+        if bad:
+            ap.error(f"--classes: unknown class {bad[0]!r}; the classes are {', '.join(CLASSES)}")
+        return rescore(Path(args.rescore), Path(args.out), classes=classes)
     try:
         k, n = (int(v) for v in args.shard.split("/"))
         if not 0 <= k < n:
@@ -431,16 +453,28 @@ def merge(paths: list[str], out: Path) -> int:
 RUN_KEYS = ("status", "seconds", "effects", "terms", "ruptures", "warnings", "rc", "message")
 
 
-def rescore(path: Path, out: Path) -> int:
+def rescore(path: Path, out: Path, *, classes: list[str] | None = None) -> int:
     """Score the esmm outputs of a finished run (*path*) again: its population regenerated from its seed
     (a temporary folder), each row rebuilt from the case's truth of this generator and the run's own result.
-    Refuses a population whose records differ from the run's (sample counts per case)."""
+    With *classes*, only the cases of those classes are regenerated and rebuilt (a case depends only on the
+    seed, its index and its line of the plan), the others keeping the run's rows: for a run whose generator
+    wrote other records for another class. Refuses a population whose records differ from the run's
+    (sample counts per case)."""
     doc = json.loads(path.read_text())
     pop = doc["population"]
+    redo = [r for r in doc["cases"] if classes is None or r["class"] in classes]
     with tempfile.TemporaryDirectory(prefix="esmm-rescore-") as work:
-        generate(pop["seed"], pop["cases"], Path(work), clean_fraction=pop["clean_fraction"])
-        truths = {r["case"]: json.loads((Path(work) / r["case"] / "truth.json").read_text()) for r in doc["cases"]}
-    rows = [_row(truths[r["case"]], {k: r[k] for k in RUN_KEYS if k in r}) for r in doc["cases"]]
+        if classes is None:
+            generate(pop["seed"], pop["cases"], Path(work), clean_fraction=pop["clean_fraction"])
+        else:
+            todo = plan(pop["seed"], pop["cases"], pop["clean_fraction"])
+            seqs = np.random.SeedSequence(pop["seed"]).spawn(pop["cases"])
+            for r in redo:
+                i = int(r["case"].rsplit("_", 1)[1])
+                make_case(seqs[i], todo[i][0], Path(work) / r["case"], kind=todo[i][1])
+        truths = {r["case"]: json.loads((Path(work) / r["case"] / "truth.json").read_text()) for r in redo}
+    rows = [_row(truths[r["case"]], {k: r[k] for k in RUN_KEYS if k in r}) if r["case"] in truths else r
+            for r in doc["cases"]]
     moved = [r["case"] for r, old in zip(rows, doc["cases"]) if r["samples"] != old["samples"]]
     if moved:
         raise SystemExit(f"--rescore: this generator writes other records than the run's ({', '.join(moved[:5])})")
@@ -448,8 +482,9 @@ def rescore(path: Path, out: Path) -> int:
     res = {**kept, "population": {**pop, "generator_version": GENERATOR_VERSION,
                                   "run_generator_version": pop.get("run_generator_version",
                                                                    pop["generator_version"])},
-           "rescore_command": f"python benchmarks/bench_discover_population.py --rescore {path} --out {out}",
-           **score(rows)}
+           "rescore_command": f"python benchmarks/bench_discover_population.py --rescore {path} --out {out}"
+                              + (f" --classes {','.join(classes)}" if classes else ""),
+           **({"rescored_classes": classes} if classes else {}), **score(rows)}
     _write(out, res)
     print(table({"esmm": "-", "jobs": "-", "wall_s": "-", **res,
                  "population": {**res["population"], "folder": "-"}}))

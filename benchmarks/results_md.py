@@ -191,9 +191,12 @@ def population_lines(doc: dict) -> list[str]:
     invented, the effect cases by class, runtimes; per case in the JSON."""
     pop, c, e, rt = doc["population"], doc["clean"], doc["effects"], doc["runtime"]
     lo, hi = c["fp_ci95"]
-    out = [f"Population seed {fmt(pop['seed'])}, {fmt(pop['cases'])} cases (generator "
-           f"{fmt(pop['generator_version'])}, clean fraction {fmt(pop['clean_fraction'])}); command: "
-           f"`{fmt(doc.get('command'))}`.", ""]
+    gen = fmt(pop.get("run_generator_version", pop["generator_version"]))
+    if "run_generator_version" in pop:  # scored again with a later generator's truths (same records)
+        which = ", ".join(doc.get("rescored_classes") or ()) or "every case"
+        gen += f"; truths of generator {fmt(pop['generator_version'])} for {which}: `{fmt(doc.get('rescore_command'))}`"
+    out = [f"Population seed {fmt(pop['seed'])}, {fmt(pop['cases'])} cases (generator {gen}, clean fraction "
+           f"{fmt(pop['clean_fraction'])}); command: `{fmt(doc.get('command'))}`.", ""]
     out += table(["clean cases run", "false positives", "rate", "95 % interval (Clopper-Pearson)",
                   "elastic terms added"],
                  [[fmt(c["ran"]), fmt(c["false_positives"]), pct(c["fp_rate"]), f"{pct(lo)} - {pct(hi)}",
@@ -223,6 +226,13 @@ def population_lines(doc: dict) -> list[str]:
         ids = e.get("by_class_identifiable", {})
         out += ["", "Named alone where d_id >= 30, by class: " + ", ".join(
             f"{k} {v['strict']}/{v['cases']}" for k, v in ids.items()) + "."]
+        nb = {k: v["from_neighbour"] for k, v in ids.items() if "from_neighbour" in v}
+        if nb:
+            out += ["", "Of those, named alone where the records can also tell the effect from its neighbouring "
+                        "class (d_id against an elastic law and that class >= 30: a stretch-dependent relaxation "
+                        "against a plain one, a load cell's drift against a relaxation): "
+                    + ", ".join(f"{k} {v['strict']}/{v['cases']}" for k, v in nb.items())
+                    + f"; in all {sum(v['strict'] for v in nb.values())}/{sum(v['cases'] for v in nb.values())}."]
     out += ["", f"Effect cases: named alone {pct(e['strict_rate'])}, named among others {pct(e['lenient_rate'])} "
                 f"of {fmt(e['ran'])}. Runtime per case: median {fmt(rt['median_s'])} s, largest {fmt(rt['max_s'])} s, "
                 f"{len(rt['timeouts'])} past the {fmt(doc.get('timeout_s'))} s limit, {len(doc.get('errors', []))} "

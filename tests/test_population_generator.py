@@ -468,6 +468,25 @@ def test_scoring_takes_discontinuous_damage_mullins_as_damage_and_only_that():
     assert B.judge("mullins", ["damage"], "discontinuous_damage")[2] == ["damage"]
 
 
+def test_identifiable_cases_are_also_counted_against_the_neighbouring_class():
+    """``by_class_identifiable``: d_id >= 30 counts a case identifiable; ``from_neighbour`` only where its
+    ``identifiability_from`` values reach 30 too (a class without a neighbour: every identifiable case)."""
+    import bench_discover_population as B
+
+    def row(cls, d_id, strict, nb=None):
+        return {"class": cls, "identifiability": d_id, "strict": strict,
+                "identifiability_from": None if nb is None else {"viscoelastic": nb}}
+
+    rows = [row("nonlinear_viscoelastic", 500.0, False, 12.0), row("nonlinear_viscoelastic", 80.0, True, 45.0),
+            row("nonlinear_viscoelastic", 10.0, True, 2.0), row("mullins", 300.0, True),
+            row("sensor_offset", 40.0, False, 31.0)]
+    got = B._by_class_identifiable(rows)
+    assert got["nonlinear_viscoelastic"] == {"cases": 2, "strict": 1, "from_neighbour": {"cases": 1, "strict": 1}}
+    assert got["mullins"]["from_neighbour"] == {"cases": 1, "strict": 1}
+    assert got["sensor_offset"]["from_neighbour"] == {"cases": 1, "strict": 0}
+    assert list(got) == [c for c in B.CLASSES if c in got]
+
+
 def test_integrated_time_of_white_and_ar1_noise():
     from population.cases import integrated_time
 
@@ -488,7 +507,11 @@ def test_detectability_is_reproduced_and_leaves_the_records_unchanged(tmp_path, 
     again = C.make_case(seq(), "sensor_offset", tmp_path / "b" / "case")
     d = truth["effect"]["detectability"]
     assert d == again["effect"]["detectability"] and d > 0.0
-    monkeypatch.setattr(C, "_detectability", lambda *a, **k: (None, None))  # its extra noise draw taken away
+    # against a plain relaxation too (a neighbour of an offset's drift): never more than against a law alone
+    d_nb = truth["effect"]["identifiability_from"]["viscoelastic"]
+    assert d_nb == again["effect"]["identifiability_from"]["viscoelastic"]
+    assert 0.0 <= d_nb <= truth["effect"]["identifiability"] * (1 + 1e-9)
+    monkeypatch.setattr(C, "_detectability", lambda *a, **k: (None, None, {}))  # its extra noise draw taken away
     bare = C.make_case(seq(), "sensor_offset", tmp_path / "c" / "case")
     for f in truth["files"]:
         assert (tmp_path / "a" / "case" / f["file"]).read_bytes() == (tmp_path / "c" / "case" / f["file"]).read_bytes()
@@ -527,6 +550,13 @@ def test_rescore_rebuilds_rows_from_the_truths_and_scores_them_again(tmp_path):
             assert (r["strict"], r["detectability"] > 0) == (right, True)
     n_eff = len(classes) - classes.count("clean")
     assert n_eff >= 2 and sum(v["cases"] for v in doc["effects"]["by_detectability"].values()) == n_eff
+    # one class rebuilt: the others keep the run's rows (here without their detectability)
+    assert "mullins" in classes
+    assert B.main(["--rescore", str(src), "--out", str(out), "--classes", "mullins"]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["rescored_classes"] == ["mullins"] and "--classes mullins" in doc["rescore_command"]
+    for cls, r in zip(classes, doc["cases"]):
+        assert ("detectability" in r) == (cls == "mullins")
     run["cases"][0]["samples"] += 1  # records that are not the run's are refused
     src.write_text(json.dumps(run))
     with pytest.raises(SystemExit, match="other records"):
@@ -550,6 +580,36 @@ def test_the_part_no_elastic_law_takes():
     spread = float(np.sum((decay[300:500] - decay[300:500].mean()) ** 2))
     assert _not_elastic([(decay, basis, 1.0)]) >= spread * (1 - 1e-9)
     assert _not_elastic([(np.ones_like(x), basis, 1.0)]) > 0.0  # a constant does not vanish at the reference
+
+
+def test_the_part_neither_an_elastic_law_nor_a_plain_relaxation_takes():
+    """The neighbour's d_id (``population/cases.py``, ``_relaxation_atoms``): on a two-step staircase, a plain
+    relaxation whose time lies between the dictionary's is taken by the elastic functions and the relaxation
+    atoms (strengths >= 0) to a part in 10^4 of what the elastic functions leave; the same relaxation with
+    its time growing tenfold with the stretch (the generator's stretch-dependent rate) is not; nor is a
+    stress that grows in the holds (the atoms' strengths cannot be negative), which the signed fit takes."""
+    from population.cases import RELAX_TIMES, _elastic_basis, _not_elastic, _relaxation_atoms
+
+    dt = 0.01
+    t = np.arange(0.0, 200.0, dt)
+    x = 1.0 + 0.1 * np.clip(t / 5.0, 0, 1) + 0.1 * np.clip((t - 100.0) / 5.0, 0, 1)
+    pe = 4.0 * (x - 1.0) + 30.0 * (x - 1.0) ** 3
+    ch = A.Chain(f_out=10.0, ratio=10, filter="butter", order=2, cutoff_of_nyquist=0.3, ripple_db=0.5,
+                 decimator="fir", cic_order=2, bits=16, quantize_at="adc", capacity_N=10.0, noise_sd_of_capacity=1e-4,
+                 pink_corner_Hz=0.0, hum_of_noise=0.0, hum_Hz=50.0, encoder_step_m=1e-7, encoder_phase=0.5,
+                 position="latched", velocity_ripple=0.0, ripple_Hz=1.0, velocity_noise=0.0, accel_s=0.1)
+    atoms = _relaxation_atoms({"t": t, "x": x, "common": pe}, ch, 1.0, (5.0, 95.0))
+    assert atoms.shape[1] == RELAX_TIMES
+    basis = _elastic_basis(x, 1.0, 1.0, 1.2, ch)
+    both = np.hstack([basis, atoms])
+    k = basis.shape[1]
+    plain = A.record_force(R.hereditary(R.Prony([0.3], [7.3]), dt, pe) - pe, ch, None)
+    rate = A.record_force(R.strain_dependent_rate([0.3], [7.3], dt, pe, x, np.log(10.0) / 0.2) - pe, ch, None)
+    left = _not_elastic([(plain, basis, 1.0)])  # the holds' decays: no function of the stretch follows them
+    assert left > 1e-3 * float(np.sum(plain ** 2))
+    assert _not_elastic([(plain, both, 1.0)], signed=k) < 1e-4 * left
+    assert _not_elastic([(rate, both, 1.0)], signed=k) > 0.01 * _not_elastic([(rate, basis, 1.0)])
+    assert _not_elastic([(-plain, both, 1.0)], signed=k) > 0.99 * left > 1e4 * _not_elastic([(-plain, both, 1.0)])
 
 
 @pytest.mark.slow

@@ -34,10 +34,11 @@ from .exports import allowed, measured_area, measured_length, write
 from .machine import draw_levels, draw_timing
 from .protocols import KINDS, Protocol, build, command, motion
 
-GENERATOR_VERSION = "2.5"  # records bit for bit as "2"; truth.json adds the effect's detectability (2.1) and
+GENERATOR_VERSION = "2.6"  # records bit for bit as "2"; truth.json adds the effect's detectability (2.1) and
 #                             its identifiability (2.2; 2.3 in stress, one function for specimens of other areas);
 #                             2.4: a slack is drawn on replicates too, each specimen with its own mounting's slack;
-#                             2.5 (records as 2.4): a slack's d_id against the case's own slacked curve
+#                             2.5 (records as 2.4): a slack's d_id against the case's own slacked curve;
+#                             2.6 (records as 2.4): d_id against the neighbouring class (NEIGHBOURS) too
 MAX_DURATION, MIN_DURATION = 6000.0, 15.0
 
 
@@ -221,12 +222,12 @@ def make_case(seq: np.random.SeedSequence, cls: str, folder: Path, *, kind: str 
     files = [_record_file(rng, folder, k, s, ch, sp, ks[k], errors[ks[k]], fmt, mode, x0, family, proto, cls,
                           prm, peak) for k, (s, ch, sp) in enumerate(zip(sims, chains, spec_of))]
     size = _effect_size(cls, prm, sims, peak)
-    detect, ident = _detectability(seq, cls, prm, sims, chains, peak, [errors[k] for k in ks], x0,
-                                   [sp["area"] for sp in spec_of])
+    detect, ident, beside = _detectability(seq, cls, prm, sims, chains, peak, [errors[k] for k in ks], x0,
+                                           [sp["area"] for sp in spec_of], times=(t_move, t_long))
     truth = {"schema": "population-case/1", "generator_version": GENERATOR_VERSION, "case": folder.name,
              "seed": {"entropy": seq.entropy, "spawn_key": list(seq.spawn_key)}, "class": cls,
              "effect": None if cls == "clean" else {"name": cls, **prm, "size": size, "detectability": detect,
-                                                     "identifiability": ident},
+                                                     "identifiability": ident, **beside},
              "family": family, "shape": shape, "mode": mode, "base_law": law.describe(),
              "protocol": {"kind": kind, **proto.info, "shortest_segment_s": t_move, "longest_hold_s": t_long},
              "rupture": rup, "format": fmt,
@@ -253,8 +254,9 @@ def _effect_size(cls: str, prm: dict, sims: list[dict], peak: float) -> float | 
 
 
 def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, peak: float,
-                   errors: list[float], x0: float, areas: list[float]) -> tuple[float | None, float | None]:
-    """How far the effect stands out of the acquisition noise in the recorded force, (d, d_id).
+                   errors: list[float], x0: float, areas: list[float], *,
+                   times: tuple[float, float]) -> tuple[float | None, float | None, dict]:
+    """How far the effect stands out of the acquisition noise in the recorded force, (d, d_id, beside).
 
     **d** is the signal-to-noise ratio of the best test there is for the effect (the effect known
     exactly, its absence the alternative),
@@ -285,15 +287,20 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
     second rate, a reading at rest, a second specimen, and features sharper than the spline's
     intervals (a sudden slip: no smooth law drops while it is stretched).
 
+    **beside** holds, for a class with a neighbour (:data:`NEIGHBOURS`), ``identifiability_from``:
+    {neighbour: d_id against it}, the same ratio for what neither an elastic law nor the neighbour
+    takes (:func:`_relaxation_atoms`). A stretch-dependent relaxation whose change with the stretch
+    stays below the noise is a plain relaxation to any method; d_id alone counts it identifiable.
+
     The noise is a fresh realization from the case's seed (spawn key extended), so the case's own
-    files are unchanged.
+    files are unchanged. (*times*: the protocol's shortest moving segment and longest hold or file.)
     """
     if cls == "clean":
-        return None, None
+        return None, None, {}
     rng = np.random.default_rng(np.random.SeedSequence(seq.entropy, spawn_key=(*seq.spawn_key, 2 ** 30)))
     lo, hi = min(x0, *(float(np.min(s["x"])) for s in sims)), max(x0, *(float(np.max(s["x"])) for s in sims))
     d2 = 0.0
-    parts = []
+    parts, atoms = [], []
     for s, ch, err, area in zip(sims, chains, errors, areas):
         force = s["force"] + (E.offset_force(prm, s["t"], peak) if cls == "sensor_offset" else 0.0)
         rec = record_force(force, ch, None)
@@ -307,9 +314,16 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
         if cls == "slack":  # against the case's own slacked curve: a function of the stretch the files share
             delta = rec - record_force(s["shared"], ch, None)
         parts.append((delta / area, _elastic_basis(s["x"], x0, lo, hi, ch), w * area ** 2))  # in stress
+        if cls in NEIGHBOURS:
+            atoms.append(_relaxation_atoms(s, ch, area, times))
     if not parts:
-        return 0.0, 0.0
-    return float(np.sqrt(d2)), float(np.sqrt(_not_elastic(parts)))
+        return 0.0, 0.0, {}
+    beside = {}
+    if cls in NEIGHBOURS and len(atoms) == len(parts):
+        extended = [(y, np.hstack([b, a]), w) for (y, b, w), a in zip(parts, atoms)]
+        d_nb = float(np.sqrt(_not_elastic(extended, signed=parts[0][1].shape[1])))
+        beside = {"identifiability_from": {NEIGHBOURS[cls]: d_nb}}
+    return float(np.sqrt(d2)), float(np.sqrt(_not_elastic(parts))), beside
 
 
 #: cubic B-spline intervals over a case's stretch range for the elastic functions of :func:`_not_elastic`
@@ -333,19 +347,53 @@ def _elastic_basis(x: np.ndarray, x0: float, lo: float, hi: float, ch) -> np.nda
                      for j in range(fine.shape[1])], axis=1)
 
 
-def _not_elastic(parts: list) -> float:
+def _not_elastic(parts: list, *, signed: int | None = None) -> float:
     """sum_i w_i r_i^2 of the residual r of the files' changes after the weighted least-squares fit of
     one elastic function shared by all files; *parts*: (change, recorded basis, weight) per file
-    (:func:`_detectability`)."""
+    (:func:`_detectability`). With *signed*, only the first *signed* columns take either sign, the
+    others (a neighbour's relaxation strengths) are non-negative."""
     y = np.concatenate([p[0] for p in parts])
     basis = np.concatenate([p[1] for p in parts])
     w = np.concatenate([np.full(p[0].size, p[2]) for p in parts])
     if basis.shape[1] == 0:
         return float(np.sum(w * y ** 2))
     sw = np.sqrt(w)
-    coef, *_ = np.linalg.lstsq(basis * sw[:, None], y * sw, rcond=None)
+    if signed is None or signed >= basis.shape[1]:
+        coef, *_ = np.linalg.lstsq(basis * sw[:, None], y * sw, rcond=None)
+    else:
+        from scipy.optimize import lsq_linear
+
+        a = basis * sw[:, None]
+        norm = np.linalg.norm(a, axis=0)
+        norm[norm == 0.0] = 1.0  # columns of unit length: the atoms' scales span many decades
+        lo = np.r_[np.full(signed, -np.inf), np.zeros(basis.shape[1] - signed)]
+        coef = lsq_linear(a / norm, y * sw, bounds=(lo, np.inf), method="bvls").x / norm
     r = y - basis @ coef
     return float(np.sum(w * r ** 2))
+
+
+#: the class a generated effect is nearest to in the vocabulary of a fitter, when it can look like it:
+#: a stretch-dependent relaxation whose dependence is small is a plain relaxation, and a load cell's
+#: drift over a record's holds is a slow relaxation
+NEIGHBOURS = {"nonlinear_viscoelastic": "viscoelastic", "sensor_offset": "viscoelastic"}
+#: relaxation times of the neighbour's atoms: this many, log-spaced from a tenth of the protocol's shortest
+#: moving segment to five times its longest hold or file
+RELAX_TIMES = 24
+
+
+def _relaxation_atoms(sim: dict, ch, area: float, times: tuple[float, float]) -> np.ndarray:
+    """The recorded stress of one unit Prony term per relaxation time (quasi-linear viscoelasticity of
+    the file's elastic force, :func:`.relaxation.hereditary`), less the elastic stress, shape (recorded
+    samples, :data:`RELAX_TIMES`): a plain relaxation of strengths g_j >= 0 is ``sum_j g_j atom_j``."""
+    from .relaxation import Prony, hereditary
+
+    t_move, t_long = times
+    t = sim["t"]
+    dt = float(t[1] - t[0]) if t.size > 1 else 1.0
+    pe = sim["common"]
+    taus = np.geomspace(0.1 * t_move, 5.0 * max(t_long, float(t[-1])), RELAX_TIMES)
+    return np.stack([record_force(hereditary(Prony([1.0], [tau]), dt, pe) - pe, ch, None) / area
+                     for tau in taus], axis=1)
 
 
 def integrated_time(v: np.ndarray, c: float = 5.0) -> float:
