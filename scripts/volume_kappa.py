@@ -20,9 +20,22 @@ and its tables compensated again *with that term* (the compensation's own cache)
 The continuum does not depend on the network's volume term, so each case's continuum
 is solved once and cached (``--work``); the network is solved for every setting.
 
+``--split-parents N`` takes the accurate assets instead of the paper preset: each organ
+prepared as ``esmm prepare MESH --config paper --elements N --split`` (every parent tet
+split in eight; the meshes and options of ``bench_splits`` in
+benchmarks/bench_simulate.py), the continuum P2 on the parents node for node as
+``esmm validate`` solves it. Their variants get their own names in ``--work``, so a
+paper-preset sweep and a split sweep can share one work folder (and its continuum cache).
+
     python scripts/volume_kappa.py                  # everything; writes docs/figures/volume_kappa.json
     python scripts/volume_kappa.py --organs liver --settings t0.45 s0.49 --no-simulate --json out.json
     python scripts/volume_kappa.py --table docs/figures/volume_kappa.json     # the table of a written run
+    python scripts/volume_kappa.py --split-parents 1500 --settings t0.45 t0.25 --no-simulate \
+        --json docs/figures/volume_kappa_splits.json                           # the split assets
+    python scripts/volume_kappa.py --split-parents 1500 --settings t0.45 t0.25 --speed 3 \
+        --json docs/figures/volume_kappa_splits.json                           # their speed, in turn
+    python scripts/volume_kappa.py --merge A.json B.json --settings t0.45 t0.25 --json out.json
+                                       # sweeps run apart (organs in parallel, settings in phases) joined
 
 Settings (``--settings``): ``tNU`` sizes kappa on the material's largest tangent over the
 calibration range with Poisson ratio NU there (``t0.45`` is the default of
@@ -232,12 +245,25 @@ def organ_cases(net) -> dict:
     return {"gravity": g, "lift20": l20, "lift5": l5}
 
 
-def base_asset(organ: str, work: Path) -> Path:
-    """The organ's paper-preset asset (prepared once into *work*)."""
-    path = work / f"{organ}.h5"
+def stem(organ: str, *, split_parents: int | None) -> str:
+    """The file stem of the organ's assets in ``--work``: ``liver`` (paper preset) or ``liver-split1500``,
+    so that the two kinds of asset and their variants never overwrite each other."""
+    return organ if split_parents is None else f"{organ}-split{split_parents}"
+
+
+def prepare_command(organ: str, *, split_parents: int | None) -> list[str]:
+    """The ``esmm prepare`` arguments (after the mesh) of the organ's base asset: the paper preset, or its
+    split of about *split_parents* parents (``--elements N --split``, as ``bench_splits`` prepares them)."""
+    args = ["--config", "paper"]
+    return args if split_parents is None else [*args, "--elements", str(split_parents), "--split"]
+
+
+def base_asset(organ: str, work: Path, *, split_parents: int | None = None) -> Path:
+    """The organ's base asset (prepared once into *work*): the paper preset, or its split (*split_parents*)."""
+    path = work / f"{stem(organ, split_parents=split_parents)}.h5"
     if not path.exists():
-        subprocess.run([str(ESMM), "prepare", str(ORGANS[organ]), "--config", "paper", "-o", str(path)],
-                       check=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        subprocess.run([str(ESMM), "prepare", str(ORGANS[organ]), *prepare_command(organ, split_parents=split_parents),
+                        "-o", str(path)], check=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     return path
 
 
@@ -266,14 +292,26 @@ def simulate(net, tables, material, path: Path, runs: int) -> dict:
             "integrator": rs[-1]["integrator"], "volume": rs[-1]["volume"], "load_average": rs[-1]["load_average"]}
 
 
-def speed(organ: str, settings, work: Path, rounds: int) -> dict:
-    """The default scene on the variant assets of a sweep (in *work*), the settings taken in turn
-    *rounds* times, so that a change of the machine's load falls on all of them alike."""
+def variant_asset(organ: str, setting: str, work: Path, *, split_parents: int | None = None) -> Path:
+    """The organ's asset with *setting*'s volume term and its tables compensated with it, in *work*: the
+    sweep's (written beside its cases), or made here from the base asset where it is missing (the
+    compensation's cache makes that quick), so that ``--speed`` needs no network solve."""
+    path = work / f"{stem(organ, split_parents=split_parents)}-{setting}.h5"
+    if not path.exists():
+        asset = read_asset(base_asset(organ, work, split_parents=split_parents))
+        net, tables, _ = with_setting(asset.network, raw_tables(asset.tables, asset.material), asset.material, setting)
+        write_asset(path, net, material=asset.material, tables=tables, xdmf=False)
+    return path
+
+
+def speed(organ: str, settings, work: Path, rounds: int, *, split_parents: int | None = None) -> dict:
+    """The default scene on the variant assets of a sweep (in *work*; the splits' with *split_parents*), the
+    settings taken in turn *rounds* times, so that a change of the machine's load falls on all of them alike."""
     runs = {s: [] for s in settings}
+    paths = {s: variant_asset(organ, s, work, split_parents=split_parents) for s in settings}
     for k in range(rounds):
         for s in settings:
-            path = work / f"{organ}-{s}.h5"
-            runs[s].append(run_scene(path, path.with_suffix(f".speed{k}")))
+            runs[s].append(run_scene(paths[s], paths[s].with_suffix(f".speed{k}")))
     out = {}
     for s, rs in runs.items():
         out[s] = {"real_time_factor": statistics.median(r["real_time_factor"] for r in rs),
@@ -288,12 +326,20 @@ def speed(organ: str, settings, work: Path, rounds: int) -> dict:
     return out
 
 
-def sweep_organ(organ: str, settings, work: Path, *, sim_runs: int) -> dict:
-    asset = read_asset(base_asset(organ, work))
+def sweep_organ(organ: str, settings, work: Path, *, sim_runs: int, split_parents: int | None = None) -> dict:
+    """Validate's organ cases (and the scene, *sim_runs* times) per setting on the organ's base asset:
+    the paper preset, or its split of about *split_parents* parents; each setting's variant written to
+    *work* (for ``--speed``)."""
+    variants = stem(organ, split_parents=split_parents)
+    asset = read_asset(base_asset(organ, work, split_parents=split_parents))
     material = asset.material
     raw = raw_tables(asset.tables, material)
     cases = organ_cases(asset.network)
-    out = {"nodes": asset.network.n_nodes, "springs": asset.network.n_springs, "tets": asset.network.n_tets,
+    qc = asset.network.quadratic_cells
+    out = {"asset": "esmm prepare " + ORGANS[organ].name + " " + " ".join(prepare_command(organ, split_parents=split_parents)),
+           "parents": None if qc is None else int(qc.shape[0]),
+           "nodes": asset.network.n_nodes, "springs": asset.network.n_springs, "tets": asset.network.n_tets,
+           "grasp_hold": {n: c.load.get("grasp_hold") for n, c in cases.items() if "grasp_hold" in c.load},
            "asset_bulk_modulus_pa": asset.network.volume_term.bulk_modulus,
            "asset_volume_factor": float(asset.tables.volume_factor), "settings": {}}
     refs = {}
@@ -310,8 +356,10 @@ def sweep_organ(organ: str, settings, work: Path, *, sim_runs: int) -> dict:
         for name, case in cases.items():
             nw, pins = network(case, net, tables)
             r["cases"][name] = row(case, *refs[name], nw, pins)
+        if "/" not in setting:    # the variant, for the scene here or for --speed later
+            write_asset(work / f"{variants}-{setting}.h5", net, material=material, tables=tables, xdmf=False)
         if sim_runs and "/" not in setting:
-            r["simulate"] = simulate(net, tables, material, work / f"{organ}-{setting}.h5", sim_runs)
+            r["simulate"] = simulate(net, tables, material, work / f"{variants}-{setting}.h5", sim_runs)
         out["settings"][setting] = r
         print(line(organ, setting, r), flush=True)
     return out
@@ -395,13 +443,16 @@ def _ok(c) -> bool:
 def table(doc: dict) -> str:
     """Two markdown tables: L2 / force [%] per organ case and setting; then per setting the specimen, the
     largest whole-body volume change, inversions, the cases outside 5 %, and the speed."""
-    organs, spec = doc["organs"], doc.get("specimen", {}).get("settings", {})
-    settings = list(next(iter(organs.values()))["settings"]) if organs else list(spec)
+    spec = doc.get("specimen", {}).get("settings", {})
+    settings = list(dict.fromkeys([*(st for o in doc["organs"].values() for st in o["settings"]), *spec]))
+    empty = {"kappa_over_mu0": float("nan"), "volume_factor": float("nan"), "cases": {}}
+    organs = {n: {"settings": {st: o["settings"].get(st, empty) for st in settings}}   # a partial sweep: blanks
+              for n, o in doc["organs"].items()}
     names = {"gravity": "gravity", "lift20": "lift 20 mm", "lift5": "lift 5 mm"}
     head = ["setting", "kappa / mu0"] + [f"{o}: {n}" if i == 0 else n for o in organs
                                           for i, n in enumerate(names.values())]
     out = ["| " + " | ".join(head) + " |", "| --- " * len(head) + "|"]
-    for st in settings:
+    for st in settings if organs else ():      # the specimen alone: its table only
         r0 = next(iter(organs.values()))["settings"][st]
         out.append(f"| {st} | {r0['kappa_over_mu0']:.3g} | " + " | ".join(
             _cell(o["settings"][st]["cases"].get(n)) for o in organs.values() for n in names) + " |")
@@ -417,18 +468,54 @@ def table(doc: dict) -> str:
         vs = max((abs(c["volume_change"]) for c in sp), default=float("nan"))
         bad = sum(not _ok(c) for c in org + sp)
         rt = ", ".join(f"{speed[o][st]['real_time_factor']:.2f}" for o in speed if st in speed[o]) or "–"
-        sim = next(iter(organs.values()))["settings"][st].get("simulate", {})
+        sim = next(iter(organs.values()))["settings"][st].get("simulate", {}) if organs else {}
         sf = sim.get("integrator", sim)
         if speed:
             first = next(iter(speed.values()))
             sf = {"solves": first[st]["solves"], "factorizations": first[st]["factorizations"]} if st in first else sf
         sc = spec.get(st, {}).get("cases", {})
-        vf = next(iter(organs.values()))["settings"][st]["volume_factor"] if organs else spec[st]["volume_factor"]
+        vf = next(iter(organs.values()))["settings"][st]["volume_factor"] if organs else spec.get(st, empty)["volume_factor"]
         out.append(f"| {st} | {vf:.3f} | " + " | ".join(_cell(sc.get(n)) for n in SPECIMEN_CASES)
                    + f" | {100 * vo:.2f} / {100 * vs:.2f} % | {sum(c['inverted'] for c in org + sp)} | "
                    f"{bad} of {len(org) + len(sp)} | {rt} | "
                    + (f"{sf['solves']:.0f} / {sf['factorizations']:.0f} |" if "solves" in sf else "– |"))
     return "\n".join(out)
+
+
+def merge(parts, *, settings) -> dict:
+    """One document of several sweeps' JSONs *parts* (the organs run as separate processes, the settings in
+    phases, the specimen apart): their organs' settings, the specimen's and the speed's joined, in the order
+    of *settings*; every part must have swept the same assets (``--split-parents``)."""
+    docs = [expand(json.loads(Path(p).read_text())) for p in parts]
+    split = {d.get("assets", {}).get("split_parents") for d in docs}
+    if len(split) != 1:
+        raise SystemExit(f"--merge: the parts swept different assets (split_parents {sorted(split, key=str)})")
+    out = {**{k: v for k, v in docs[0].items() if k not in ("organs", "specimen", "speed", "command")},
+           "commands": list(dict.fromkeys(c for d in docs for c in [*d.get("commands", [d.get("command")]),
+                                                                   d.get("speed", {}).get("command")] if c)),
+           "merged_from": [str(p) for p in parts], "organs": {}}
+    order = {st: k for k, st in enumerate(settings)}
+
+    def join(into: dict, part: dict) -> dict:
+        keep = {k: v for k, v in part.items() if k != "settings"}
+        into.update(keep)
+        both = {**into.get("settings", {}), **part["settings"]}
+        into["settings"] = dict(sorted(both.items(), key=lambda kv: order.get(kv[0], len(order))))
+        return into
+    for d in docs:
+        for organ, o in d.get("organs", {}).items():
+            out["organs"][organ] = join(out["organs"].get(organ, {}), o)
+        if "specimen" in d:
+            out["specimen"] = join(out.get("specimen", {}), d["specimen"])
+        if "speed" in d:      # each organ's settings were alternated within one run: never mixed across runs
+            out.setdefault("speed", {"rounds": d["speed"]["rounds"], "organs": {}})["organs"].update(d["speed"]["organs"])
+    return out
+
+
+def write_doc(doc: dict, path) -> None:
+    """*doc* written compact to *path*, *doc* itself left expanded (it is written again as it grows)."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(compact(json.loads(json.dumps(doc))), indent=1) + "\n")
 
 
 def main(argv=None) -> int:
@@ -445,18 +532,33 @@ def main(argv=None) -> int:
     ap.add_argument("--speed", type=int, metavar="ROUNDS", default=0,
                     help="after a sweep (its assets in --work, its JSON at --json): the default scene on each "
                          "organ's variants in turn, ROUNDS times, added to the JSON under 'speed'; no sweep")
+    ap.add_argument("--merge", nargs="+", metavar="JSON",
+                    help="join the JSONs of sweeps run apart (same assets) into --json, in --settings order; no sweep")
+    ap.add_argument("--split-parents", type=int, metavar="N",
+                    help="the organs as split assets (esmm prepare MESH --config paper --elements N --split, "
+                         "as bench_splits prepares them) instead of the paper preset; the specimen is unchanged")
     args = ap.parse_args(argv)
     if args.table:
         print(table(expand(json.loads(Path(args.table).read_text()))))
+        return 0
+    if args.merge:
+        doc = merge(args.merge, settings=args.settings)
+        write_doc(doc, args.json)
+        print(table(expand(doc)))
         return 0
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     if args.speed:
         doc = expand(json.loads(Path(args.json).read_text()))
+        if doc.get("assets", {}).get("split_parents") != args.split_parents:
+            raise SystemExit(f"--speed: {args.json} was swept with split_parents "
+                             f"{doc.get('assets', {}).get('split_parents')}, not {args.split_parents}")
         runnable = [st for st in args.settings if "/" not in st]
-        doc["speed"] = {"rounds": args.speed, "organs": {o: speed(o, runnable, work, args.speed)
-                                                         for o in args.organs}}
-        Path(args.json).write_text(json.dumps(compact(doc), indent=1) + "\n")
+        doc["speed"] = {"rounds": args.speed, "command": "python scripts/volume_kappa.py " + " ".join(
+                            argv if argv is not None else sys.argv[1:]), "load_average_at_start": os.getloadavg(),
+                        "organs": {o: speed(o, runnable, work, args.speed, split_parents=args.split_parents)
+                                   for o in args.organs}}
+        write_doc(doc, args.json)
         print(table(doc))
         return 0
     doc = {"command": "python scripts/volume_kappa.py " + " ".join(argv if argv is not None else sys.argv[1:]),
@@ -472,13 +574,19 @@ def main(argv=None) -> int:
                     "(20 mm cube, 2.5 mm elements); L2 and force errors against P2 (MINI where P2 found "
                     "no equilibrium: 'element'); volume_change: the network's whole-body volume ratio - 1; force_ratio: |R_network| / "
                     "|R_continuum| - 1 of the case's reaction (positive: the network's is larger)",
+           "assets": {"split_parents": args.split_parents,
+                      "organs": "paper preset (esmm prepare MESH --config paper)" if args.split_parents is None else
+                      f"split assets (esmm prepare MESH --config paper --elements {args.split_parents} --split: every "
+                      "parent tet split in eight; the continuum P2 on the parents, node for node)",
+                      "specimen": "the 20 mm cube at 2.5 mm elements (unsplit), as esmm validate --specimen"},
            "load_average_at_start": os.getloadavg(), "organs": {}}
     if not args.no_specimen:
         doc["specimen"] = sweep_specimen(args.settings, work)
     for organ in args.organs:
-        doc["organs"][organ] = sweep_organ(organ, args.settings, work, sim_runs=0 if args.no_simulate else args.sim_runs)
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(compact(doc), indent=1) + "\n")
+        doc["organs"][organ] = sweep_organ(organ, args.settings, work, sim_runs=0 if args.no_simulate else args.sim_runs,
+                                           split_parents=args.split_parents)
+        write_doc(doc, args.json)       # after every organ: a long sweep's finished organs kept
+    write_doc(doc, args.json)           # (and the specimen's, where no organ is swept)
     print(table(expand(doc)))
     print(f"wrote {args.json}")
     return 0
