@@ -49,8 +49,6 @@ FOLD_FTOL = 1e-5
 MAX_FOLDS = 5
 #: blocks of the block schemes
 BLOCKS = 5
-#: the block schemes' note where a timed record is cut over all of it (:func:`within_training_stretch`)
-NOT_SCORED = "; samples above the stretches a fold was fitted to not scored"
 #: a record is cut in blocks after its first loading only when at least this many samples follow it
 #: (BLOCKS blocks of ten samples or more); else the whole record is cut
 MIN_AFTER = 10 * BLOCKS
@@ -131,10 +129,7 @@ def slip_folds(records: Sequence[Record]) -> FoldSet | None:
             masks[j][k] = mask
     folds = [_block_fold(f"blocks {j + 1}, {j + 1 + BLOCKS}, ... of every {BLOCKS}", records, masks[j],
                          within_training=True) for j in range(BLOCKS)]
-    scheme = f"leave one of {BLOCKS} interleaved sets of short blocks out"
-    if any(r.history and not _after_first_loading(r) for r in records):
-        scheme += NOT_SCORED
-    return FoldSet("slip", scheme, folds)
+    return FoldSet("slip", f"leave one of {BLOCKS} interleaved sets of short blocks out", folds)
 
 
 def make_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
@@ -255,8 +250,6 @@ def _block_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
     scheme = f"leave one of {BLOCKS} consecutive blocks out" + (" (of every file)" if len(records) > 1 else "")
     if any(after):
         scheme += ", the first loading always fitted"
-    if any(r.history and not a for r, a in zip(records, after)):
-        scheme += NOT_SCORED
     return scheme, folds
 
 
