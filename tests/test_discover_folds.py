@@ -7,7 +7,6 @@ grid, noise filtered with scipy.signal), not by esmm's synthetic module.
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -210,11 +209,7 @@ def test_a_slip_in_the_last_block_is_not_estimated_on_it():
     [r] = res.base.problem.records
     assert len(r.slips) == 1 and r.slips[0] > 0.8 * r.test.n
     slip = fit_spec(res.base.spec.with_("grip_slip", 1), res.base)
-    _, scored = ho._block_folds(slip.problem.records)
-    # the ramp's last block lies above the other blocks' stretches: not scored for any model ...
-    assert ho.heldout(slip, scored).samples[0][3].max() < len(scored) - 1
-    # ... so the slip's handling is read with every held-out sample scored
-    folds = [replace(f, within_training=False) for f in scored]
+    _, folds = ho._block_folds(slip.problem.records)
     last = folds[-1]
     assert last.test[0][r.slips[0]]
     z, fp = ho._fold_fit(slip, last)
@@ -270,35 +265,3 @@ def test_a_late_slip_is_kept_and_a_clean_ramp_keeps_nothing():
     clean = discover([_slipping_ramp(np.random.default_rng(8), slips=())], model="arruda-boyce", n_starts=2,
                      max_points=300, nested=False)
     assert clean.kept == [] and clean.slip_scheme == ""
-
-
-def test_held_out_samples_beyond_the_training_stretch_are_not_scored():
-    """On a ramp cut in blocks, the last block lies above every training stretch: its samples test how the
-    law extrapolates, and are left out of the held-out errors; the first block (at rest, then the start of
-    the ramp) stays, as does a held-out file, predicted whole, and a held-out cycle of rising cycles."""
-    t = np.linspace(0.0, 60.0, 1201)
-    lam = np.where(t < 5.0, 1.0, np.minimum(1.0 + 0.01 * (t - 5.0), 1.5))
-    ramp = TensileTest(source=Path("ramp.csv"), mode="uniaxial", stretch=lam, stress=_arruda_boyce(lam)[0], time=t)
-    [r] = prepare([ramp], max_points=200)
-    scheme, folds = ho.make_folds([r])
-    assert scheme.startswith("leave one of 5 consecutive blocks out") and ho._after_first_loading(r) == 0
-    assert all(f.within_training for f in folds)
-
-    class P:
-        records = [r]
-
-    first, last = (ho.within_training_stretch(P, folds[j]) for j in (0, -1))
-    assert np.array_equal(first.test[0], folds[0].test[0])  # below the training stretches: kept
-    assert last.test[0] is None  # the last block is all above them
-    mid = ho.within_training_stretch(P, folds[2])
-    assert np.array_equal(mid.test[0], folds[2].test[0])
-    whole = ho.Fold("file", [np.zeros(0, dtype=int)], [np.ones(r.test.n, bool)])
-    assert ho.within_training_stretch(P, whole) is whole
-    # a held-out cycle of rising cycles is scored whole: its new peak is where damage grows
-    t2 = np.linspace(0.0, 120.0, 2401)
-    lam2 = 1.0 + np.abs(np.sin(np.pi * t2 / 30.0)) * (0.1 + 0.1 * np.floor(t2 / 30.0))
-    rising = TensileTest(source=Path("rising.csv"), mode="uniaxial", stretch=lam2, stress=_arruda_boyce(lam2)[0],
-                         time=t2)
-    [r2] = prepare([rising], max_points=300)
-    scheme2, folds2 = ho.make_folds([r2])
-    assert scheme2.startswith("leave one cycle out") and not any(f.within_training for f in folds2)

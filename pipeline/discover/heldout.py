@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -61,9 +61,6 @@ class Fold:
     name: str
     train: list  # per record: None (all fitting samples) or positions (possibly empty)
     test: list  # per record: None (not tested) or a boolean mask over all samples
-    #: held-out samples above the largest stretch of their record's training samples are not scored
-    #: (:func:`within_training_stretch`): the block schemes, which cut a loading into consecutive pieces
-    within_training: bool = False
 
 
 @dataclass
@@ -127,8 +124,8 @@ def slip_folds(records: Sequence[Record]) -> FoldSet | None:
             for i in np.flatnonzero(which == j):
                 mask[edges[i]:edges[i + 1]] = True
             masks[j][k] = mask
-    folds = [_block_fold(f"blocks {j + 1}, {j + 1 + BLOCKS}, ... of every {BLOCKS}", records, masks[j],
-                         within_training=True) for j in range(BLOCKS)]
+    folds = [_block_fold(f"blocks {j + 1}, {j + 1 + BLOCKS}, ... of every {BLOCKS}", records, masks[j])
+             for j in range(BLOCKS)]
     return FoldSet("slip", f"leave one of {BLOCKS} interleaved sets of short blocks out", folds)
 
 
@@ -246,7 +243,7 @@ def _block_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
             mask = np.zeros(n, bool)
             mask[edges[j]:edges[j + 1]] = True
             masks[k] = mask
-        folds.append(_block_fold(f"block {j + 1}/{BLOCKS}", records, masks, within_training=True))
+        folds.append(_block_fold(f"block {j + 1}/{BLOCKS}", records, masks))
     scheme = f"leave one of {BLOCKS} consecutive blocks out" + (" (of every file)" if len(records) > 1 else "")
     if any(after):
         scheme += ", the first loading always fitted"
@@ -284,9 +281,8 @@ def _file_fold(name: str, records, held: list[int]) -> Fold:
     return Fold(name, train, test)
 
 
-def _block_fold(name: str, records, masks: dict[int, np.ndarray], *, within_training: bool = False) -> Fold:
-    """Hold out the samples in *masks* (record index -> boolean mask over all its samples); *within_training*:
-    :attr:`Fold.within_training`."""
+def _block_fold(name: str, records, masks: dict[int, np.ndarray]) -> Fold:
+    """Hold out the samples in *masks* (record index -> boolean mask over all its samples)."""
     train, test = [], []
     for k, r in enumerate(records):
         mask = masks.get(k)
@@ -296,7 +292,7 @@ def _block_fold(name: str, records, masks: dict[int, np.ndarray], *, within_trai
         else:
             train.append(np.flatnonzero(~mask[r.fit_idx]))
             test.append(mask)
-    return Fold(name, train, test, within_training)
+    return Fold(name, train, test)
 
 
 def add_predictions(prob, z: np.ndarray, fold: Fold, j: int, out: dict) -> None:
@@ -330,10 +326,7 @@ def heldout(fitted: Fitted, folds: Sequence[Fold]) -> Errors:
     per_file: dict[int, tuple[list, list, list, list]] = {}
     for j, fold in enumerate(folds):
         z, fp = _fold_fit(fitted, fold)
-        scored = _before_unseen_slips(fp, fold)
-        if fold.within_training:
-            scored = within_training_stretch(fp, scored)
-        add_predictions(fp, z, scored, j, per_file)
+        add_predictions(fp, z, _before_unseen_slips(fp, fold), j, per_file)
     samples = {}
     for k, (idx, ys, ps, fs) in per_file.items():
         i = np.concatenate(idx)
@@ -361,35 +354,7 @@ def _before_unseen_slips(prob, fold: Fold) -> Fold:
             test[k] = test[k].copy()
             test[k][e:] = False
             test[k] = test[k] if test[k].any() else None
-    return replace(fold, test=test)
-
-
-def within_training_stretch(prob, fold: Fold) -> Fold:
-    """*fold* with each record's held-out samples beyond the largest stretch of its training samples left out
-    (records with training samples and time only: a held-out file is predicted whole, and a curve without
-    time, its blocks cut in the order of its rows, is scored as before: not measured).
-
-    Above the largest stretch the fold was fitted to, a held-out sample tests
-    how the elastic law extrapolates, not the effect (as a first loading is
-    always fitted where a record goes on after it, :func:`_block_folds`; a held-out cycle of rising cycles
-    is scored whole: what its new peak shows is damage's and Mullins softening's primary path); below
-    it the reference state anchors every law (no stress at ξ = 1), and the
-    samples at rest before loading, where a load cell's offset shows, stay.
-    """
-    test = list(fold.test)
-    changed = False
-    for k, mask in enumerate(test):
-        tr = fold.train[k]
-        r = prob.records[k]
-        if mask is None or (tr is not None and len(tr) == 0) or not r.history:
-            continue
-        idx = r.fit_idx if tr is None else r.fit_idx[np.asarray(tr, dtype=int)]
-        top = float(np.max(r.cov.drive[idx]))
-        beyond = mask & (r.cov.drive > top + 1e-9 * max(abs(top), 1.0))
-        if beyond.any():
-            test[k] = mask & ~beyond if (mask & ~beyond).any() else None
-            changed = True
-    return replace(fold, test=test) if changed else fold
+    return Fold(fold.name, fold.train, test)
 
 
 def cached_heldout(fitted: Fitted, fs: FoldSet) -> Errors:

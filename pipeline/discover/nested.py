@@ -38,7 +38,7 @@ import multiprocessing
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -47,7 +47,7 @@ from ..blas import single_threaded_blas, usable_cores
 from ..errors import FitError
 from ..progress import SILENT
 from .fitted import Fitted, finish
-from .heldout import Fold, FoldSet, add_predictions, fold_sets, unseen_slip, within_training_stretch
+from .heldout import Fold, FoldSet, add_predictions, fold_sets, unseen_slip
 from .model import Problem, Spec
 from .records import prepare
 from .rounds import run_search
@@ -108,7 +108,7 @@ def inner_folds(fs: FoldSet, outer: Fold, skip: int | None) -> FoldSet:
             keep = None if mask is None else mask & ~outer.test[k] if outer.test[k] is not None else mask
             test.append(keep if keep is not None and keep.any() else None)
         if any(t is not None for t in test):
-            folds.append(replace(f, train=train, test=test))
+            folds.append(Fold(f.name, train, test))
     slip = inner_folds(fs.slip, outer, None) if fs.slip is not None else None
     return FoldSet(fs.key, fs.scheme, folds, slip)
 
@@ -121,7 +121,7 @@ def _expand(fs: FoldSet, keep: list[int], m: int) -> FoldSet:
         test: list = [None] * m
         for i, k in enumerate(keep):
             train[k], test[k] = f.train[i], f.test[i]
-        folds.append(replace(f, train=train, test=test))
+        folds.append(Fold(f.name, train, test))
     return FoldSet(fs.key, fs.scheme, folds, _expand(fs.slip, keep, m) if fs.slip is not None else None)
 
 
@@ -237,14 +237,14 @@ def _run_folds(ctx: _Context, rep) -> list[tuple[dict, dict, list[str]]]:
 
 def _predict(f: Fitted, outer: Fold, j: int, out: dict) -> None:
     """Predictions of *f* on the outer fold's held-out samples (a held-out file's own slots, and the slips no
-    training sample follows, neutral; above the training stretches not scored where the fold says so)."""
+    training sample follows, neutral)."""
     prob = f.problem
     z = f.z.copy()
     empty = {k for k, t in enumerate(prob.train) if t is not None and len(t) == 0}
     for i, s in enumerate(prob.slots):
         if (s.records and all(k in empty for k in s.records)) or unseen_slip(s, prob.records, prob.train):
             z[i] = 0.0
-    add_predictions(prob, z, within_training_stretch(prob, outer) if outer.within_training else outer, j, out)
+    add_predictions(prob, z, outer, j, out)
 
 
 def _errors(records, got: dict):
