@@ -58,13 +58,11 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import numpy as np
-
 HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
-from population import CLASSES, GENERATOR_VERSION, generate, make_case, plan  # noqa: E402
+from population import CLASSES, GENERATOR_VERSION, generate  # noqa: E402
 
 #: ``make bench``'s population (override with ESMM_BENCH_POPULATION_CASES); ``make bench-discover``
 #: runs 303 cases, 200 of them clean (103 with an effect).
@@ -464,14 +462,8 @@ def rescore(path: Path, out: Path, *, classes: list[str] | None = None) -> int:
     pop = doc["population"]
     redo = [r for r in doc["cases"] if classes is None or r["class"] in classes]
     with tempfile.TemporaryDirectory(prefix="esmm-rescore-") as work:
-        if classes is None:
-            generate(pop["seed"], pop["cases"], Path(work), clean_fraction=pop["clean_fraction"])
-        else:
-            todo = plan(pop["seed"], pop["cases"], pop["clean_fraction"])
-            seqs = np.random.SeedSequence(pop["seed"]).spawn(pop["cases"])
-            for r in redo:
-                i = int(r["case"].rsplit("_", 1)[1])
-                make_case(seqs[i], todo[i][0], Path(work) / r["case"], kind=todo[i][1])
+        generate(pop["seed"], pop["cases"], Path(work), clean_fraction=pop["clean_fraction"],
+                 only=None if classes is None else [int(r["case"].rsplit("_", 1)[1]) for r in redo])
         truths = {r["case"]: json.loads((Path(work) / r["case"] / "truth.json").read_text()) for r in redo}
     rows = [_row(truths[r["case"]], {k: r[k] for k in RUN_KEYS if k in r}) if r["case"] in truths else r
             for r in doc["cases"]]

@@ -33,6 +33,7 @@ from .draws import (
 from .exports import allowed, measured_area, measured_length, write
 from .machine import draw_levels, draw_timing
 from .protocols import KINDS, Protocol, build, command, motion
+from .relaxation import Prony, hereditary
 
 GENERATOR_VERSION = "2.6"  # records bit for bit as "2"; truth.json adds the effect's detectability (2.1) and
 #                             its identifiability (2.2; 2.3 in stress, one function for specimens of other areas);
@@ -319,7 +320,7 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
     if not parts:
         return 0.0, 0.0, {}
     beside = {}
-    if cls in NEIGHBOURS and len(atoms) == len(parts):
+    if atoms:
         extended = [(y, np.hstack([b, a]), w) for (y, b, w), a in zip(parts, atoms)]
         d_nb = float(np.sqrt(_not_elastic(extended, signed=parts[0][1].shape[1])))
         beside = {"identifiability_from": {NEIGHBOURS[cls]: d_nb}}
@@ -385,8 +386,6 @@ def _relaxation_atoms(sim: dict, ch, area: float, times: tuple[float, float]) ->
     """The recorded stress of one unit Prony term per relaxation time (quasi-linear viscoelasticity of
     the file's elastic force, :func:`.relaxation.hereditary`), less the elastic stress, shape (recorded
     samples, :data:`RELAX_TIMES`): a plain relaxation of strengths g_j >= 0 is ``sum_j g_j atom_j``."""
-    from .relaxation import Prony, hereditary
-
     t_move, t_long = times
     t = sim["t"]
     dt = float(t[1] - t[0]) if t.size > 1 else 1.0
@@ -476,16 +475,20 @@ def plan(seed: int, n_cases: int, clean_fraction: float = 0.5) -> list[tuple[str
     return out
 
 
-def generate(seed: int, n_cases: int, out_dir, *, clean_fraction: float = 0.5) -> list[dict]:
+def generate(seed: int, n_cases: int, out_dir, *, clean_fraction: float = 0.5, only=None) -> list[dict]:
     """Write ``n_cases`` case folders (``case_0000`` ...) under ``out_dir`` and ``index.json``;
     returns the index. Case i depends only on (seed, i) and its line of :func:`plan`, so a
-    population is reproduced exactly from its seed."""
+    population is reproduced exactly from its seed (*only*: the indices of the cases to write, the
+    index listing those; default every case)."""
     todo = plan(seed, n_cases, clean_fraction)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     seqs = np.random.SeedSequence(seed).spawn(n_cases)
+    keep = None if only is None else set(only)
     index = []
     for i, ((cls, kind), seq) in enumerate(zip(todo, seqs)):
+        if keep is not None and i not in keep:
+            continue
         truth = make_case(seq, cls, out / f"case_{i:04d}", kind=kind)
         index.append({"case": truth["case"], "class": truth["class"], "protocol": truth["protocol"]["kind"],
                       "files": [f["file"] for f in truth["files"]]})
