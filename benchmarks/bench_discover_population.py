@@ -31,7 +31,8 @@ Scoring:
   the cases are scored by its bins too (with how many kept nothing, the right answer where it is below
   3), and by class where it is at least 30; of those, also where the part that neither an elastic law
   nor the class's neighbour takes is at least 30 (a stretch-dependent relaxation told from a plain one,
-  a load cell's drift from a relaxation; ``population/cases.py``, ``NEIGHBOURS``).
+  a load cell's drift from a relaxation, a Mullins softening from a damage; ``population/cases.py``,
+  ``NEIGHBOURS``).
 * runtimes, timeouts, errors (non-zero exits with their last message line), seeds.
 
 ``python benchmarks/bench_discover_population.py --cases N --seed S --jobs J --out results.json
@@ -236,14 +237,17 @@ def _by_class_identifiable(ok: list[dict]) -> dict:
     the effect from an elastic law (identifiability at least the upper detectability bin's edge,
     :data:`DETECT_BINS`); ``from_neighbour`` counts those of them that can also be told from the class's
     neighbour (``population/cases.py``, ``NEIGHBOURS``: a stretch-dependent relaxation from a plain one, a
-    load cell's drift from a relaxation), at the same edge; a class without a neighbour counts them all."""
+    load cell's drift from a relaxation, a Mullins softening from a damage), at the same edge; a class
+    without a neighbour, or whose variant the neighbour's name is right for (:data:`SAME_CLASS`), counts
+    them all."""
     out: dict = {}
     for r in ok:
         if (r.get("identifiability") or 0.0) >= DETECT_BINS[1]:
             b = out.setdefault(r["class"], {"cases": 0, "strict": 0, "from_neighbour": {"cases": 0, "strict": 0}})
             b["cases"] += 1
             b["strict"] += int(r["strict"])
-            if all(v >= DETECT_BINS[1] for v in (r.get("identifiability_from") or {}).values()):
+            alias = SAME_CLASS.get((r["class"], r.get("variant")))
+            if all(v >= DETECT_BINS[1] for k, v in (r.get("identifiability_from") or {}).items() if k != alias):
                 b["from_neighbour"]["cases"] += 1
                 b["from_neighbour"]["strict"] += int(r["strict"])
     return {k: out[k] for k in CLASSES if k in out}

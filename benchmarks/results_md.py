@@ -230,7 +230,8 @@ def population_lines(doc: dict) -> list[str]:
         if nb:
             out += ["", "Of those, named alone where the records can also tell the effect from its neighbouring "
                         "class (d_id against an elastic law and that class >= 30: a stretch-dependent relaxation "
-                        "against a plain one, a load cell's drift against a relaxation): "
+                        "against a plain one, a load cell's drift against a relaxation, a Mullins softening against a "
+                        "damage): "
                     + ", ".join(f"{k} {v['strict']}/{v['cases']}" for k, v in nb.items())
                     + f"; in all {sum(v['strict'] for v in nb.values())}/{sum(v['cases'] for v in nb.values())}."]
     out += ["", f"Effect cases: named alone {pct(e['strict_rate'])}, named among others {pct(e['lenient_rate'])} "

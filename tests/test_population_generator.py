@@ -470,19 +470,22 @@ def test_scoring_takes_discontinuous_damage_mullins_as_damage_and_only_that():
 
 def test_identifiable_cases_are_also_counted_against_the_neighbouring_class():
     """``by_class_identifiable``: d_id >= 30 counts a case identifiable; ``from_neighbour`` only where its
-    ``identifiability_from`` values reach 30 too (a class without a neighbour: every identifiable case)."""
+    ``identifiability_from`` values reach 30 too (a class without a neighbour, or a variant for which the
+    neighbour's name is right too: every identifiable case)."""
     import bench_discover_population as B
 
-    def row(cls, d_id, strict, nb=None):
-        return {"class": cls, "identifiability": d_id, "strict": strict,
-                "identifiability_from": None if nb is None else {"viscoelastic": nb}}
+    def row(cls, d_id, strict, nb=None, variant=None):
+        name = "damage" if cls == "mullins" else "viscoelastic"
+        return {"class": cls, "identifiability": d_id, "strict": strict, "variant": variant,
+                "identifiability_from": None if nb is None else {name: nb}}
 
     rows = [row("nonlinear_viscoelastic", 500.0, False, 12.0), row("nonlinear_viscoelastic", 80.0, True, 45.0),
             row("nonlinear_viscoelastic", 10.0, True, 2.0), row("mullins", 300.0, True),
+            row("mullins", 200.0, True, 0.5, "discontinuous_damage"), row("mullins", 90.0, True, 2.0, "ogden_roxburgh"),
             row("sensor_offset", 40.0, False, 31.0)]
     got = B._by_class_identifiable(rows)
     assert got["nonlinear_viscoelastic"] == {"cases": 2, "strict": 1, "from_neighbour": {"cases": 1, "strict": 1}}
-    assert got["mullins"]["from_neighbour"] == {"cases": 1, "strict": 1}
+    assert got["mullins"] == {"cases": 3, "strict": 3, "from_neighbour": {"cases": 2, "strict": 2}}
     assert got["sensor_offset"]["from_neighbour"] == {"cases": 1, "strict": 0}
     assert list(got) == [c for c in B.CLASSES if c in got]
 
@@ -610,6 +613,45 @@ def test_the_part_neither_an_elastic_law_nor_a_plain_relaxation_takes():
     assert _not_elastic([(plain, both, 1.0)], signed=k) < 1e-4 * left
     assert _not_elastic([(rate, both, 1.0)], signed=k) > 0.01 * _not_elastic([(rate, basis, 1.0)])
     assert _not_elastic([(-plain, both, 1.0)], signed=k) > 0.99 * left > 1e4 * _not_elastic([(-plain, both, 1.0)])
+
+
+def test_the_part_neither_an_elastic_law_nor_a_damage_takes():
+    """The Mullins softening's neighbour (``population/cases.py``, ``_damage_atoms``): on cycles to rising
+    peaks, Miehe's discontinuous damage (the primary loading scaled too) is taken by the elastic functions
+    and the damage atoms (strengths >= 0) to a part in 10^4 of what the elastic functions leave, and so is
+    Simo's damage past an onset; Ogden and Roxburgh's softening, which reloads
+    to the primary curve at each new peak, is not. On cycles to one peak the same softening is taken: a
+    first loading and a reloading are two curves, which an elastic law and a damage function take."""
+    from population.cases import DAMAGE_KNOTS, _damage_atoms, _elastic_basis, _not_elastic
+
+    dt = 0.01
+
+    def path(peaks):
+        legs = [np.linspace(1.0, p, 400) for p in peaks]
+        return np.concatenate([np.concatenate([leg, leg[::-1]]) for leg in legs])
+
+    ch = A.Chain(f_out=10.0, ratio=10, filter="butter", order=2, cutoff_of_nyquist=0.3, ripple_db=0.5,
+                 decimator="fir", cic_order=2, bits=16, quantize_at="adc", capacity_N=10.0, noise_sd_of_capacity=1e-4,
+                 pink_corner_Hz=0.0, hum_of_noise=0.0, hum_Hz=50.0, encoder_step_m=1e-7, encoder_phase=0.5,
+                 position="latched", velocity_ripple=0.0, ripple_Hz=1.0, velocity_noise=0.0, accel_s=0.1)
+
+    def left(x, effect):
+        pe = 4.0 * (x - 1.0) + 30.0 * (x - 1.0) ** 3
+        w0 = 2.0 * (x - 1.0) ** 2 + 7.5 * (x - 1.0) ** 4
+        sim = {"t": np.arange(x.size) * dt, "x": x, "common": pe, "energy": w0}
+        atoms = _damage_atoms(sim, ch, 1.0)
+        assert atoms.shape[1] == DAMAGE_KNOTS
+        basis = _elastic_basis(x, 1.0, 1.0, float(x.max()), ch)
+        y = A.record_force(effect(pe, w0) - pe, ch, None)
+        return _not_elastic([(y, np.hstack([basis, atoms]), 1.0)], signed=basis.shape[1]) / _not_elastic(
+            [(y, basis, 1.0)])
+
+    rising = path([1.1, 1.2, 1.3, 1.4])
+    assert left(rising, lambda pe, w: H.mullins_discontinuous(pe, w, d_inf=0.4, eta=0.05)) < 1e-4
+    assert left(rising, lambda pe, w: H.simo_damage(pe, w, xi0=0.2, a=0.3, b=0.4)) < 1e-4
+    pseudo = lambda pe, w: H.mullins_pseudo_elastic(pe, w, r=1.5, m=0.02, beta=0.1)  # noqa: E731
+    assert left(rising, pseudo) > 0.05
+    assert left(path([1.4, 1.4, 1.4]), pseudo) < 1e-3
 
 
 @pytest.mark.slow

@@ -35,11 +35,12 @@ from .machine import draw_levels, draw_timing
 from .protocols import KINDS, Protocol, build, command, motion
 from .relaxation import Prony, hereditary
 
-GENERATOR_VERSION = "2.6"  # records bit for bit as "2"; truth.json adds the effect's detectability (2.1) and
+GENERATOR_VERSION = "2.7"  # records bit for bit as "2"; truth.json adds the effect's detectability (2.1) and
 #                             its identifiability (2.2; 2.3 in stress, one function for specimens of other areas);
 #                             2.4: a slack is drawn on replicates too, each specimen with its own mounting's slack;
 #                             2.5 (records as 2.4): a slack's d_id against the case's own slacked curve;
-#                             2.6 (records as 2.4): d_id against the neighbouring class (NEIGHBOURS) too
+#                             2.6 (records as 2.4): d_id against the neighbouring class (NEIGHBOURS) too;
+#                             2.7 (records as 2.4): a Mullins softening's d_id against damage too
 MAX_DURATION, MIN_DURATION = 6000.0, 15.0
 
 
@@ -138,7 +139,8 @@ def _true_force(rng, wp, ch, el: E.Elastic, spec: dict, x0: float, cls: str, prm
     area = spec["area"]
     return {"t": t, "x": x, "force": p * area, "ref": ref * area, "slips_s": slips, "n": n,
             "common": ref * area if common is None else common * area,
-            "shared": p * area if shared is None else shared * area}
+            "shared": p * area if shared is None else shared * area,
+            **({"energy": el.energy(cap(xs))} if cls in DAMAGE_NEIGHBOURED else {})}
 
 
 def _stated(spec: dict, error: float) -> tuple[dict, float]:
@@ -290,8 +292,10 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
 
     **beside** holds, for a class with a neighbour (:data:`NEIGHBOURS`), ``identifiability_from``:
     {neighbour: d_id against it}, the same ratio for what neither an elastic law nor the neighbour
-    takes (:func:`_relaxation_atoms`). A stretch-dependent relaxation whose change with the stretch
-    stays below the noise is a plain relaxation to any method; d_id alone counts it identifiable.
+    takes (:func:`_relaxation_atoms`, :func:`_damage_atoms`). A stretch-dependent relaxation whose change
+    with the stretch stays below the noise is a plain relaxation to any method, and a Mullins softening
+    that scales the primary loading too (Miehe's discontinuous damage) is a damage; d_id alone counts
+    them identifiable.
 
     The noise is a fresh realization from the case's seed (spawn key extended), so the case's own
     files are unchanged. (*times*: the protocol's shortest moving segment and longest hold or file.)
@@ -316,7 +320,8 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
             delta = rec - record_force(s["shared"], ch, None)
         parts.append((delta / area, _elastic_basis(s["x"], x0, lo, hi, ch), w * area ** 2))  # in stress
         if cls in NEIGHBOURS:
-            atoms.append(_relaxation_atoms(s, ch, area, times))
+            atoms.append(_damage_atoms(s, ch, area) if cls in DAMAGE_NEIGHBOURED
+                         else _relaxation_atoms(s, ch, area, times))
     if not parts:
         return 0.0, 0.0, {}
     beside = {}
@@ -374,9 +379,12 @@ def _not_elastic(parts: list, *, signed: int | None = None) -> float:
 
 
 #: the class a generated effect is nearest to in the vocabulary of a fitter, when it can look like it:
-#: a stretch-dependent relaxation whose dependence is small is a plain relaxation, and a load cell's
-#: drift over a record's holds is a slow relaxation
-NEIGHBOURS = {"nonlinear_viscoelastic": "viscoelastic", "sensor_offset": "viscoelastic"}
+#: a stretch-dependent relaxation whose dependence is small is a plain relaxation, a load cell's
+#: drift over a record's holds is a slow relaxation, and a Mullins softening that scales the primary
+#: loading as well as the reloadings (a discontinuous damage in the largest energy) is a damage
+NEIGHBOURS = {"nonlinear_viscoelastic": "viscoelastic", "sensor_offset": "viscoelastic", "mullins": "damage"}
+#: the classes whose neighbour is damage (their simulations keep the elastic energy along the path)
+DAMAGE_NEIGHBOURED = ("mullins",)
 #: relaxation times of the neighbour's atoms: this many, log-spaced from a tenth of the protocol's shortest
 #: moving segment to five times its longest hold or file
 RELAX_TIMES = 24
@@ -393,6 +401,23 @@ def _relaxation_atoms(sim: dict, ch, area: float, times: tuple[float, float]) ->
     taus = np.geomspace(0.1 * t_move, 5.0 * max(t_long, float(t[-1])), RELAX_TIMES)
     return np.stack([record_force(hereditary(Prony([1.0], [tau]), dt, pe) - pe, ch, None) / area
                      for tau in taus], axis=1)
+
+
+#: knots of the neighbour's damage function, equally spaced in sqrt(2 W_max) from 0 to its largest value
+DAMAGE_KNOTS = 24
+
+
+def _damage_atoms(sim: dict, ch, area: float) -> np.ndarray:
+    """The recorded stress of the elastic stress times each ramp of a damage function, negated, shape
+    (recorded samples, :data:`DAMAGE_KNOTS`): a damage, the stress ``g(xi) P_e`` with ``g`` any
+    non-increasing function from 1 of ``xi = sqrt(2 max_past W)`` (Simo 1987; Miehe's 1995 discontinuous
+    damage is one), piecewise linear on the knots, is ``P_e + sum_j c_j atom_j`` with ``c_j >= 0``
+    (``g = 1 - sum_j c_j h_j``, ``h_j`` rising from 0 to 1 between knots j and j + 1)."""
+    pe = sim["common"]
+    xi = np.maximum.accumulate(np.sqrt(2.0 * np.maximum(sim["energy"], 0.0)))
+    edges = np.linspace(0.0, max(float(xi[-1]), 1e-300), DAMAGE_KNOTS + 1)
+    ramps = np.clip((xi[:, None] - edges[:-1]) / np.diff(edges), 0.0, 1.0)
+    return np.stack([record_force(-pe * ramps[:, j], ch, None) / area for j in range(DAMAGE_KNOTS)], axis=1)
 
 
 def integrated_time(v: np.ndarray, c: float = 5.0) -> float:
