@@ -404,8 +404,7 @@ def _score_offset(sig: _Signatures) -> float:
 def _score_term(sig: _Signatures, name: str) -> float:
     term = TERMS[name]
     stiff, shapes = term_grid(sig.prob, name)
-    shape = term.shape_parameter
-    grid = ({(None, term.modulus): 1e-6 * stiff, **({(None, shape): v} if shape else {})} for v in shapes)
+    grid = ({(None, term.modulus): 1e-6 * stiff, **{(None, k): x for k, x in v.items()}} for v in shapes)
     return _best(sig, name, 1, grid, +1.0)
 
 

@@ -12,6 +12,7 @@ full fit frees everything.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Iterable, Mapping
 
@@ -99,12 +100,14 @@ def _init_slips(prob: Problem, z: np.ndarray) -> np.ndarray:
     return np.clip(z, prob.lower, prob.upper)
 
 
-def term_grid(prob: Problem, name: str) -> tuple[float, list]:
-    """A secant stiffness of the data [Pa] and the data-derived values of term *name*'s shape parameter.
+def term_grid(prob: Problem, name: str) -> tuple[float, list[dict[str, float]]]:
+    """A secant stiffness of the data [Pa] and the data-derived values of term *name*'s shape parameters
+    (every combination; one empty dict for a term without any).
 
     Exponential rates are set so that the exponent reaches 0.3 to 10 at the
     largest invariant in the data; Gent's Jm from just above the largest
-    I1 - 3 to ten times it; the toe width from a tenth of the stretch span to all of it.
+    I1 - 3 to ten times it; the toe width from a tenth of the stretch span to all of it, and its
+    recruitment shape uniform or starting slowly (p = 1, 3).
     """
     recs = prob.records
     stiff = max(r.scale for r in recs) / prob.bounds.xi_span
@@ -114,19 +117,18 @@ def term_grid(prob: Problem, name: str) -> tuple[float, list]:
               "i1exp_b": [q / max(i1, 1e-9) for q in (0.3, 1.0, 3.0, 10.0)],
               "gent_J": [i1 * q for q in (1.05, 1.5, 3.0, 10.0)],
               "fexp_k2": [q / max((i1 / 3) ** 2, 1e-12) for q in (0.3, 1.0, 3.0, 10.0)],
-              "toe_delta": [prob.bounds.xi_span * q for q in (0.1, 0.25, 0.5, 1.0)]}
-    shape = TERMS[name].shape_parameter
-    return stiff, (shapes[shape] if shape else [None])
+              "toe_delta": [prob.bounds.xi_span * q for q in (0.1, 0.25, 0.5, 1.0)],
+              "toe_p": [1.0, 3.0]}
+    names = TERMS[name].shape_parameters
+    return stiff, [dict(zip(names, v)) for v in itertools.product(*(shapes[n] for n in names))]
 
 
 def _init_term(prob: Problem, z: np.ndarray, name: str) -> np.ndarray:
     """A strain-energy term: grid over decades of its modulus and over its shape parameter."""
     term = TERMS[name]
     stiff, shapes = term_grid(prob, name)
-    shape = term.shape_parameter
     # from "off" (the current model: the start is never worse than it) to ten times the data's stiffness
-    grid = [{term.modulus: stiff * 10.0**e, **({shape: v} if shape else {})} for e in (-12, -4, -3, -2, -1, 0, 1)
-            for v in shapes]
+    grid = [{term.modulus: stiff * 10.0**e, **v} for e in (-12, -4, -3, -2, -1, 0, 1) for v in shapes]
     return _grid_search_base(prob, z, grid)
 
 

@@ -68,6 +68,10 @@ class Parameter:
         False for parameters that homogeneous tests cannot identify together
         with the others (held at their value unless a user frees them; see
         docs/design/model.md for the reason per model).
+    optional
+        True for a parameter added to a model after files were written without
+        it: a file that does not give it takes the default, the law such files
+        were written with (the toe's recruitment shape).
     """
 
     name: str
@@ -78,6 +82,7 @@ class Parameter:
     description: str
     directional: bool = False
     fit: bool = True
+    optional: bool = False
 
     def __post_init__(self):
         if self.kind not in PARAMETER_KINDS:
@@ -199,6 +204,9 @@ class MaterialModel:
             raise self.unknown_parameter_error(unknown[0], where=where)
         out: dict[str, float] = {}
         for p in self.parameters:
+            if p.name not in params and p.optional:
+                out[p.name] = p.default
+                continue
             if p.name not in params:
                 raise ConfigError(
                     f"{loc}parameter {p.name!r} of model {self.name!r} is missing; "
@@ -244,13 +252,18 @@ class MaterialModel:
 
     # --------------------------------------------------------- for subclasses
     def _args(self, params: Mapping[str, float]) -> dict[str, float]:
-        try:
-            return {n: _parameter_value(params[n]) for n in self.parameter_names}
-        except KeyError as exc:
-            raise ConfigError(
-                f"parameter {exc.args[0]!r} of model {self.name!r} is missing; "
-                f"its parameters are {', '.join(self.parameter_names)}"
-            ) from None
+        out: dict[str, float] = {}
+        for p in self.parameters:
+            if p.name in params:
+                out[p.name] = _parameter_value(params[p.name])
+            elif p.optional:
+                out[p.name] = p.default
+            else:
+                raise ConfigError(
+                    f"parameter {p.name!r} of model {self.name!r} is missing; "
+                    f"its parameters are {', '.join(self.parameter_names)}"
+                )
+        return out
 
     def _check_extra(self, params: dict[str, float], *, where: str) -> None:
         """Cross-parameter conditions (override where needed)."""

@@ -17,7 +17,7 @@ structure each addresses is in :data:`TERMS` (``addresses``) and in
 docs/design/discovery.md. The library follows the model-discovery literature
 (constitutive artificial neural networks, Linka & Kuhl 2023; EUCLID, Flaschel et
 al. 2021): invariant-based terms, linear in a modulus, with at most one
-nonlinear shape parameter each. Every function is written with numpy operations
+nonlinear shape parameter each (two for the toe). Every function is written with numpy operations
 that broadcast over its parameters as well as over the invariants (a parameter
 may be an array of shape (m, 1): m parameter sets at once, as
 :attr:`~esmm.pipeline.materials.base.MaterialModel.array_parameters` promises).
@@ -64,23 +64,30 @@ may be an array of shape (m, 1): m parameter sets at once, as
     :math:`W_{11} = \tfrac{k_1}{9}(1 + 2k_2q^2)e^{k_2q^2}`. Exponential fibre stiffening.
 
 ``toe`` — fibre recruitment (a toe region; after Shearer 2015, Hamedzadeh et al. 2018)
-    Fibres of modulus :math:`E_t` straighten at stretches spread uniformly over
+    Fibres of modulus :math:`E_t` straighten at stretches spread over
     :math:`[1, 1+\delta]`, in the uniaxial-equivalent stretch :math:`\xi \ge 1`
-    (:math:`\xi^2 + 2/\xi = I_1`, ξ = λ in uniaxial tension):
+    (:math:`\xi^2 + 2/\xi = I_1`, ξ = λ in uniaxial tension), the fraction straight
+    at ξ being :math:`F = r^p`, :math:`r = (\xi-1)/\delta` (a Beta(p, 1)
+    distribution: p = 1 uniform, Shearer's; p > 1 a recruitment that starts slowly
+    and gathers pace, as the Weibull distributions fitted to collagen do). With
+    :math:`u = \xi - 1`, the fibre stress is :math:`W'(\xi) = E_t\int_0^u F`:
 
     .. math::
 
-        W = E_t\begin{cases} \dfrac{(\xi-1)^3}{6\delta} & \xi \le 1+\delta \\[4pt]
-            \dfrac{(\xi-1-\delta/2)^2}{2} + \dfrac{\delta^2}{24} & \xi > 1+\delta \end{cases}
+        W = E_t\begin{cases} \dfrac{\delta^2 r^{p+2}}{(p+1)(p+2)} & u \le \delta \\[4pt]
+            \dfrac{(u-\delta p/(p+1))^2}{2} + \dfrac{\delta^2 p}{2(p+1)^2(p+2)} & u > \delta \end{cases}
 
-    so the fibre stress :math:`W'(\xi)` rises quadratically over the toe and
-    linearly (slope :math:`E_t`) once every fibre is straight (C² at
-    :math:`1+\delta`). With :math:`d\xi/dI_1 = \xi^2/(2(\xi^3-1))`:
-    :math:`W_1 = W'(\xi)\,\xi^2/(2(\xi^3-1))` and
-    :math:`W_{11} = [W''\xi^2/(2(\xi^3-1)) - W'(\xi^4+2\xi)/(2(\xi^3-1)^2)]\,\xi^2/(2(\xi^3-1))`,
-    evaluated in forms without 0/0 near ξ = 1 (:math:`W_{11}` grows as
-    :math:`(I_1-3)^{-1/2}` there while the stress tangent stays finite; it is set
-    to 0 at :math:`I_1 = 3` exactly, where the toe's tangent is 0).
+    so :math:`W'(\xi)` rises as :math:`u^{p+1}` over the toe and linearly (slope
+    :math:`E_t`) once every fibre is straight (C² at :math:`1+\delta` for p ≥ 0).
+    With :math:`h = d\xi/dI_1 = \xi^2/(2(\xi^3-1))`: :math:`W_1 = W'(\xi)\,h` and
+    :math:`W_{11} = [W''h + W'h']\,h`, :math:`h' = -(\xi^4+2\xi)/(2(\xi^3-1)^2)`,
+    evaluated in forms without 0/0 near ξ = 1 (:math:`W_{11}` goes as
+    :math:`(I_1-3)^{(p-2)/2}` there: unbounded for p < 2, p = 1 included, while the
+    stress tangent stays finite; it is set to 0 at :math:`I_1 = 3` exactly). The shape p is the
+    one term of the library with a second shape parameter: a uniform recruitment
+    fitted to a slow start leaves a residual at the toe's foot that a permanent set,
+    a slack or an offset then takes (docs/design/model.md). Files written
+    before p existed read as p = 1, the law they were written with.
 
 Parameter names carry the term's prefix, so they never clash with a base
 model's (``c2``, ``i2exp_a``, ``i2exp_b``, ...).
@@ -134,9 +141,9 @@ class Term:
         return next(p.name for p in self.parameters if p.kind == "stress")
 
     @property
-    def shape_parameter(self) -> str | None:
-        """The name of its dimensionless shape parameter (None for one-parameter terms)."""
-        return next((p.name for p in self.parameters if p.kind != "stress"), None)
+    def shape_parameters(self) -> tuple[str, ...]:
+        """The names of its dimensionless shape parameters (none for one-parameter terms)."""
+        return tuple(p.name for p in self.parameters if p.kind != "stress")
 
 
 def _z(I1, I2):
@@ -322,41 +329,48 @@ def _xi_u(I1):
     return xi, u, xi * xi + xi + 1.0
 
 
-def toe_energy(I1, I2, toe_E, toe_delta):
-    """W = E (ξ-1)³/(6δ) on the toe, E[(ξ-1-δ/2)²/2 + δ²/24] beyond [Pa] (module docstring)."""
+def toe_energy(I1, I2, toe_E, toe_delta, toe_p=1.0):
+    """W = E δ² r^(p+2)/((p+1)(p+2)) on the toe, E[(u - δp/(p+1))²/2 + δ²p/(2(p+1)²(p+2))] beyond [Pa]
+    (module docstring)."""
     _, u, _ = _xi_u(I1)
-    d = toe_delta
-    w = np.where(u <= d, u**3 / (6.0 * d), 0.5 * (u - 0.5 * d) ** 2 + d * d / 24.0)
+    d, p = toe_delta, toe_p
+    r = np.minimum(u / d, 1.0)
+    w = np.where(u <= d, d * d * r ** (p + 2.0) / ((p + 1.0) * (p + 2.0)),
+                 0.5 * (u - d * p / (p + 1.0)) ** 2 + d * d * p / (2.0 * (p + 1.0) ** 2 * (p + 2.0)))
     return toe_E * w + _z(I1, I2)
 
 
-def _toe_g(u, E, d):
+def _toe_g(u, E, d, p):
     """W'(ξ) and W''(ξ) of the toe law."""
-    g = np.where(u <= d, E * u * u / (2.0 * d), E * (u - 0.5 * d))
-    gp = np.where(u <= d, E * u / d, E)
+    r = np.minimum(u / d, 1.0)
+    g = np.where(u <= d, E * d * r ** (p + 1.0) / (p + 1.0), E * (u - d * p / (p + 1.0)))
+    gp = np.where(u <= d, E * r ** p, E)
     return g, gp
 
 
-def toe_dW(I1, I2, toe_E, toe_delta):
+def toe_dW(I1, I2, toe_E, toe_delta, toe_p=1.0):
     """(W1, W2) = (W'(ξ) ξ²/(2(ξ³-1)), 0), with ξ³ - 1 = u (ξ² + ξ + 1)."""
     xi, u, s = _xi_u(I1)
-    d = toe_delta
-    # on the toe W' = E u²/(2δ): W1 = E u ξ²/(4 δ s), no 0/0 at u = 0
+    d, p = toe_delta, toe_p
+    r = np.minimum(u / d, 1.0)
+    # on the toe W'/u = E r^p/(p+1): W1 = E r^p ξ²/(2 (p+1) s), no 0/0 at u = 0
     with np.errstate(invalid="ignore", divide="ignore"):
-        beyond = toe_E * (u - 0.5 * d) * xi * xi / (2.0 * u * s)
-    w1 = np.where(u <= d, toe_E * u * xi * xi / (4.0 * d * s), beyond)
+        beyond = toe_E * (u - d * p / (p + 1.0)) * xi * xi / (2.0 * u * s)
+    w1 = np.where(u <= d, toe_E * r ** p * xi * xi / (2.0 * (p + 1.0) * s), beyond)
     return w1 + _z(I1, I2), _z(I1, I2)
 
 
-def toe_d2W(I1, I2, toe_E, toe_delta):
+def toe_d2W(I1, I2, toe_E, toe_delta, toe_p=1.0):
     """(W11, W12, W22) = ([W'' h + W' h'] h, 0, 0), h = dξ/dI1 = ξ²/(2 u s), h' = -(ξ⁴ + 2ξ)/(2 u² s²)."""
     xi, u, s = _xi_u(I1)
-    d, E = toe_delta, toe_E
-    g, gp = _toe_g(u, E, d)
+    d, E, p = toe_delta, toe_E, toe_p
+    g, gp = _toe_g(u, E, d, p)
+    r = np.minimum(u / d, 1.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         h = xi * xi / (2.0 * u * s)
-        # on the toe: W'' h + W' h' = E ξ²/(2 δ s) - E (ξ⁴ + 2ξ)/(4 δ s²), both finite at u = 0
-        inner_toe = E * xi * xi / (2.0 * d * s) - E * (xi**4 + 2.0 * xi) / (4.0 * d * s * s)
+        # on the toe: W'' h + W' h' = (E r^p / u) [ξ²/(2s) - (ξ⁴ + 2ξ)/(2 (p+1) s²)], no 0/0 at u = 0 for p >= 1
+        inner_toe = E * r ** p / np.where(u > 0.0, u, 1.0) * (
+            xi * xi / (2.0 * s) - (xi**4 + 2.0 * xi) / (2.0 * (p + 1.0) * s * s))
         inner_lin = gp * h - g * (xi**4 + 2.0 * xi) / (2.0 * u * u * s * s)
         w11 = np.where(u <= d, inner_toe, inner_lin) * h
     w11 = np.where(u > 0.0, w11, 0.0)
@@ -369,8 +383,8 @@ def _stress(name: str, default: float, what: str) -> Parameter:
     return Parameter(name, "stress", default, 0.0, 1.0e11, what)
 
 
-def _shape(name: str, default: float, lo: float, hi: float, what: str) -> Parameter:
-    return Parameter(name, "dimensionless", default, lo, hi, what)
+def _shape(name: str, default: float, lo: float, hi: float, what: str, *, optional: bool = False) -> Parameter:
+    return Parameter(name, "dimensionless", default, lo, hi, what, optional=optional)
 
 
 #: name -> Term (one entry per term; see the module docstring for each equation)
@@ -402,8 +416,11 @@ TERMS: dict[str, Term] = {
              "k1/(2k2)*(exp(k2*(I1/3-1)^2)-1)", fibreexp_energy, fibreexp_dW, fibreexp_d2W,
              "exponential fibre stiffening (isotropized fibres)"),
         Term("toe", (_stress("toe_E", 1.0e6, "modulus of the recruited fibres"),
-                     _shape("toe_delta", 0.02, 1e-4, 2.0, "width of the recruitment (toe) in stretch")),
-             "E*{(xi-1)^3/(6d) on the toe; (xi-1-d/2)^2/2 + d^2/24 beyond}, xi^2 + 2/xi = I1",
+                     _shape("toe_delta", 0.02, 1e-4, 2.0, "width of the recruitment (toe) in stretch"),
+                     _shape("toe_p", 1.0, 0.5, 8.0, "shape of the recruitment: fraction straight = ((xi-1)/d)^p",
+                            optional=True)),
+             "E*{d^2 r^(p+2)/((p+1)(p+2)) on the toe; (xi-1-d p/(p+1))^2/2 + d^2 p/(2(p+1)^2(p+2)) beyond}, "
+             "r = (xi-1)/d, xi^2 + 2/xi = I1",
              toe_energy, toe_dW, toe_d2W,
              "a toe region: fibres straightening one after another, then a linear region"),
     )
