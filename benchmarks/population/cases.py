@@ -140,7 +140,7 @@ def _true_force(rng, wp, ch, el: E.Elastic, spec: dict, x0: float, cls: str, prm
     return {"t": t, "x": x, "force": p * area, "ref": ref * area, "slips_s": slips, "n": n,
             "common": ref * area if common is None else common * area,
             "shared": p * area if shared is None else shared * area,
-            **({"energy": el.energy(cap(xs))} if cls in DAMAGE_NEIGHBOURED else {})}
+            **({"energy": el.energy(cap(xs))} if NEIGHBOURS.get(cls) == "damage" else {})}
 
 
 def _stated(spec: dict, error: float) -> tuple[dict, float]:
@@ -320,7 +320,7 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
             delta = rec - record_force(s["shared"], ch, None)
         parts.append((delta / area, _elastic_basis(s["x"], x0, lo, hi, ch), w * area ** 2))  # in stress
         if cls in NEIGHBOURS:
-            atoms.append(_damage_atoms(s, ch, area) if cls in DAMAGE_NEIGHBOURED
+            atoms.append(_damage_atoms(s, ch, area) if NEIGHBOURS[cls] == "damage"
                          else _relaxation_atoms(s, ch, area, times))
     if not parts:
         return 0.0, 0.0, {}
@@ -383,8 +383,6 @@ def _not_elastic(parts: list, *, signed: int | None = None) -> float:
 #: drift over a record's holds is a slow relaxation, and a Mullins softening that scales the primary
 #: loading as well as the reloadings (a discontinuous damage in the largest energy) is a damage
 NEIGHBOURS = {"nonlinear_viscoelastic": "viscoelastic", "sensor_offset": "viscoelastic", "mullins": "damage"}
-#: the classes whose neighbour is damage (their simulations keep the elastic energy along the path)
-DAMAGE_NEIGHBOURED = ("mullins",)
 #: relaxation times of the neighbour's atoms: this many, log-spaced from a tenth of the protocol's shortest
 #: moving segment to five times its longest hold or file
 RELAX_TIMES = 24
@@ -412,7 +410,8 @@ def _damage_atoms(sim: dict, ch, area: float) -> np.ndarray:
     (recorded samples, :data:`DAMAGE_KNOTS`): a damage, the stress ``g(xi) P_e`` with ``g`` any
     non-increasing function from 1 of ``xi = sqrt(2 max_past W)`` (Simo 1987; Miehe's 1995 discontinuous
     damage is one), piecewise linear on the knots, is ``P_e + sum_j c_j atom_j`` with ``c_j >= 0``
-    (``g = 1 - sum_j c_j h_j``, ``h_j`` rising from 0 to 1 between knots j and j + 1)."""
+    (``g = 1 - sum_j c_j h_j``, ``h_j`` rising from 0 to 1 between knots j and j + 1). *sim* carries the
+    elastic energy along the path (:func:`_true_force` keeps it where the neighbour is damage)."""
     pe = sim["common"]
     xi = np.maximum.accumulate(np.sqrt(2.0 * np.maximum(sim["energy"], 0.0)))
     edges = np.linspace(0.0, max(float(xi[-1]), 1e-300), DAMAGE_KNOTS + 1)

@@ -365,11 +365,10 @@ def toe_d2W(I1, I2, toe_E, toe_delta, toe_p=1.0):
     xi, u, s = _xi_u(I1)
     d, E, p = toe_delta, toe_E, toe_p
     g, gp = _toe_g(u, E, d, p)
-    r = np.minimum(u / d, 1.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         h = xi * xi / (2.0 * u * s)
-        # on the toe: W'' h + W' h' = (E r^p / u) [ξ²/(2s) - (ξ⁴ + 2ξ)/(2 (p+1) s²)], no 0/0 at u = 0 for p >= 1
-        inner_toe = E * r ** p / np.where(u > 0.0, u, 1.0) * (
+        # on the toe W'' = E r^p: W'' h + W' h' = (W'' / u) [ξ²/(2s) - (ξ⁴ + 2ξ)/(2 (p+1) s²)], no 0/0 at u = 0
+        inner_toe = gp / np.where(u > 0.0, u, 1.0) * (
             xi * xi / (2.0 * s) - (xi**4 + 2.0 * xi) / (2.0 * (p + 1.0) * s * s))
         inner_lin = gp * h - g * (xi**4 + 2.0 * xi) / (2.0 * u * u * s * s)
         w11 = np.where(u <= d, inner_toe, inner_lin) * h
