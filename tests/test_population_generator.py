@@ -700,3 +700,37 @@ def test_replicates_are_mounted_with_slacks_of_their_own(tmp_path):
     assert seen >= 1
     with pytest.raises(ValueError, match="protocol 'staircase' is not drawn for slack"):
         make_case(np.random.SeedSequence(1), "slack", tmp_path / "x", kind="staircase")
+
+
+class _Draws:
+    """A stand-in for the writer's generator: every uniform draw is *u* (0: a processed export with time;
+    0.99: without)."""
+
+    def __init__(self, u: float):
+        self.u = u
+
+    def uniform(self, *args, **kwargs) -> float:
+        return self.u
+
+
+@pytest.mark.parametrize("cls", ["viscoelastic", "nonlinear_viscoelastic"])
+def test_a_relaxation_written_without_time_is_not_identifiable(tmp_path, monkeypatch, cls):
+    """A file written without its time column cannot show a change in time: a relaxation's d_id and its
+    neighbour's ratio count only the files with time (generator 2.8), while d, the effect known exactly,
+    is the same whether the time column is written or not."""
+    import population.cases as C
+
+    truths = {}
+    for u in (0.0, 0.99):
+        monkeypatch.setattr(C, "write", lambda fmt, path, rec, rng, u=u: X.write("processed", path, rec, _Draws(u)))
+        truths[u] = C.make_case(np.random.SeedSequence(11, spawn_key=(5,)), cls, tmp_path / str(u) / "case",
+                                kind="staircase")
+    timed, untimed = truths[0.0], truths[0.99]
+    assert [f["export"]["time"] for f in timed["files"]] == [True]
+    assert [f["export"]["time"] for f in untimed["files"]] == [False]
+    assert "time" not in (tmp_path / "0.99" / "case" / untimed["files"][0]["file"]).read_text().splitlines()[3]
+    assert timed["effect"]["identifiability"] > 30.0
+    assert untimed["effect"]["identifiability"] == 0.0
+    assert untimed["effect"]["detectability"] == pytest.approx(timed["effect"]["detectability"], rel=1e-12)
+    if cls == "nonlinear_viscoelastic":
+        assert untimed["effect"].get("identifiability_from", {}).get("viscoelastic", 0.0) == 0.0

@@ -35,12 +35,13 @@ from .machine import draw_levels, draw_timing
 from .protocols import KINDS, Protocol, build, command, motion
 from .relaxation import Prony, hereditary
 
-GENERATOR_VERSION = "2.7"  # records bit for bit as "2"; truth.json adds the effect's detectability (2.1) and
+GENERATOR_VERSION = "2.8"  # records bit for bit as "2"; truth.json adds the effect's detectability (2.1) and
 #                             its identifiability (2.2; 2.3 in stress, one function for specimens of other areas);
 #                             2.4: a slack is drawn on replicates too, each specimen with its own mounting's slack;
 #                             2.5 (records as 2.4): a slack's d_id against the case's own slacked curve;
 #                             2.6 (records as 2.4): d_id against the neighbouring class (NEIGHBOURS) too;
-#                             2.7 (records as 2.4): a Mullins softening's d_id against damage too
+#                             2.7 (records as 2.4): a Mullins softening's d_id against damage too;
+#                             2.8 (records as 2.4): a relaxation's d_id over the files written with time only
 MAX_DURATION, MIN_DURATION = 6000.0, 15.0
 
 
@@ -226,7 +227,8 @@ def make_case(seq: np.random.SeedSequence, cls: str, folder: Path, *, kind: str 
                           prm, peak) for k, (s, ch, sp) in enumerate(zip(sims, chains, spec_of))]
     size = _effect_size(cls, prm, sims, peak)
     detect, ident, beside = _detectability(seq, cls, prm, sims, chains, peak, [errors[k] for k in ks], x0,
-                                           [sp["area"] for sp in spec_of], times=(t_move, t_long))
+                                           [sp["area"] for sp in spec_of], times=(t_move, t_long),
+                                           timed=[f["export"].get("time", True) for f in files])
     truth = {"schema": "population-case/1", "generator_version": GENERATOR_VERSION, "case": folder.name,
              "seed": {"entropy": seq.entropy, "spawn_key": list(seq.spawn_key)}, "class": cls,
              "effect": None if cls == "clean" else {"name": cls, **prm, "size": size, "detectability": detect,
@@ -258,7 +260,7 @@ def _effect_size(cls: str, prm: dict, sims: list[dict], peak: float) -> float | 
 
 def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, peak: float,
                    errors: list[float], x0: float, areas: list[float], *,
-                   times: tuple[float, float]) -> tuple[float | None, float | None, dict]:
+                   times: tuple[float, float], timed: list[bool]) -> tuple[float | None, float | None, dict]:
     """How far the effect stands out of the acquisition noise in the recorded force, (d, d_id, beside).
 
     **d** is the signal-to-noise ratio of the best test there is for the effect (the effect known
@@ -297,6 +299,11 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
     that scales the primary loading too (Miehe's discontinuous damage) is a damage; d_id alone counts
     them identifiable.
 
+    A relaxation (:data:`RATE_CLASSES`) is a change of the stress in time: a file written without its
+    time column (*timed* False; a lab's processed export) cannot show it, however far it stands out of
+    the noise, so d_id and the neighbour's ratio count the files with time only (d counts every file:
+    the effect known exactly, its times included).
+
     The noise is a fresh realization from the case's seed (spawn key extended), so the case's own
     files are unchanged. (*times*: the protocol's shortest moving segment and longest hold or file.)
     """
@@ -306,7 +313,7 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
     lo, hi = min(x0, *(float(np.min(s["x"])) for s in sims)), max(x0, *(float(np.max(s["x"])) for s in sims))
     d2 = 0.0
     parts, atoms = [], []
-    for s, ch, err, area in zip(sims, chains, errors, areas):
+    for s, ch, err, area, with_time in zip(sims, chains, errors, areas, timed):
         force = s["force"] + (E.offset_force(prm, s["t"], peak) if cls == "sensor_offset" else 0.0)
         rec = record_force(force, ch, None)
         delta = rec * err if cls == "specimen_scale" else rec - record_force(s["common"], ch, None)
@@ -316,6 +323,8 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
             continue
         w = 1.0 / (var * integrated_time(noise))
         d2 += float(np.sum(delta ** 2)) * w
+        if cls in RATE_CLASSES and not with_time:
+            continue
         if cls == "slack":  # against the case's own slacked curve: a function of the stretch the files share
             delta = rec - record_force(s["shared"], ch, None)
         parts.append((delta / area, _elastic_basis(s["x"], x0, lo, hi, ch), w * area ** 2))  # in stress
@@ -323,7 +332,7 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
             atoms.append(_damage_atoms(s, ch, area) if NEIGHBOURS[cls] == "damage"
                          else _relaxation_atoms(s, ch, area, times))
     if not parts:
-        return 0.0, 0.0, {}
+        return float(np.sqrt(d2)), 0.0, {}
     beside = {}
     if atoms:
         extended = [(y, np.hstack([b, a]), w) for (y, b, w), a in zip(parts, atoms)]
@@ -383,6 +392,8 @@ def _not_elastic(parts: list, *, signed: int | None = None) -> float:
 #: drift over a record's holds is a slow relaxation, and a Mullins softening that scales the primary
 #: loading as well as the reloadings (a discontinuous damage in the largest energy) is a damage
 NEIGHBOURS = {"nonlinear_viscoelastic": "viscoelastic", "sensor_offset": "viscoelastic", "mullins": "damage"}
+#: the classes whose effect is a change in time, which a file without its time column cannot show
+RATE_CLASSES = ("viscoelastic", "nonlinear_viscoelastic")
 #: relaxation times of the neighbour's atoms: this many, log-spaced from a tenth of the protocol's shortest
 #: moving segment to five times its longest hold or file
 RELAX_TIMES = 24
