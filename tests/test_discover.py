@@ -393,3 +393,50 @@ def test_cli_discover_without_nested_errors_keeps_the_same(run_cli, tmp_path):
     assert "not computed, `--no-nested`" in (tmp_path / "out1" / "discover.md").read_text()
     code, _, stderr = run_cli("calibrate", *paths, "--no-nested")
     assert code == 2 and "--no-nested" in stderr and stderr.count("\n") == 1
+
+
+# --------------------------------------------------------------------------- records without time
+def _untimed(x, y=None, mode="uniaxial"):
+    from esmm.pipeline.tensile import TensileTest
+
+    x = np.asarray(x, float)
+    y = 1e4 * (x - (0.0 if mode == "simple_shear" else 1.0)) if y is None else y
+    return TensileTest(source=Path("p.csv"), mode=mode, stretch=x, stress=y)
+
+
+def _path(*points, n=200):
+    """A stretch path through *points*, *n* rows per leg."""
+    return np.concatenate([np.linspace(a, b, n, endpoint=False) for a, b in zip(points, points[1:])] + [[points[-1]]])
+
+
+def test_a_record_goes_back_and_forth_where_its_stretch_turns_back_twice():
+    """A cycle and a reloading turn the stretch back twice; a monotonic sweep (Budday's curves run from
+    compression through the reference state to tension), one loading and unloading (an averaged loop) and a
+    ramp whose jitter stays within 5 % of its span do not."""
+    from esmm.pipeline.discover.covariates import reverses
+
+    rng = np.random.default_rng(0)
+    assert reverses(_path(1.0, 1.2, 1.05, 1.35, 1.1, 1.5)) and reverses(_path(0.0, 0.3, -0.3, 0.3))
+    assert reverses(_path(1.0, 0.8, 0.95, 0.7))  # compression cycles
+    noisy_ramp = np.linspace(1.0, 1.5, 800) + rng.normal(0, 0.004, 800)
+    for x in (np.linspace(0.9, 1.1, 33), _path(1.0, 1.4, 1.0), noisy_ramp, np.ones(5), _path(1.0, 1.5, 1.48, 1.6)):
+        assert not reverses(x)
+
+
+def test_cycles_without_time_say_why_their_rows_are_not_a_history():
+    """A cyclic record without time is not read in row order (a relaxation's loop and recovery look like the
+    rate-independent effects there): none of them is identifiable, and the reason says to export the time
+    column; a record that turns once keeps the general reason."""
+    from esmm.pipeline.discover.identify import identifiability
+    from esmm.pipeline.discover.records import prepare
+
+    rng = np.random.default_rng(1)
+    x = _path(1.0, 1.2, 1.0, 1.35, 1.0, 1.5, 1.0)
+    cycles = identifiability(prepare([_untimed(x, 1e4 * (x - 1.0) + rng.normal(0, 20.0, x.size))]))
+    for name in ("mullins", "damage", "permanent_set", "cyclic_softening"):
+        assert not cycles[name][1] and "p.csv goes back and forth" in cycles[name][2]
+        assert "export the time column" in cycles[name][2]
+    assert not cycles["viscoelastic"][1] and "no time column" in cycles["viscoelastic"][2]
+    loop = _path(1.0, 1.5, 1.0)
+    once = identifiability(prepare([_untimed(loop, 1e4 * (loop - 1.0) + rng.normal(0, 20.0, loop.size))]))
+    assert not once["mullins"][1] and "back and forth" not in once["mullins"][2]

@@ -34,6 +34,8 @@ TOE_FRACTION = 0.10
 HIGH_FRACTION = 0.80
 #: "below the previous maximum": more than this fraction of the span below it
 BELOW_MAX_FRACTION = 0.02
+#: a record's stretch turns back where it retreats from its running extreme by more than this fraction of its span
+REVERSAL_FRACTION = 0.05
 
 
 @dataclass
@@ -216,6 +218,39 @@ def _timed_segments(x: np.ndarray, mag: np.ndarray, t: np.ndarray, w: int):
         if d == 0:
             hold_time[s:e] = t[s:e] - t[s]
     return elapsed, rate, direction, hold_time
+
+
+def reverses(x: np.ndarray, fraction: float = REVERSAL_FRACTION) -> bool:
+    """The stretch turns back at least twice (loads, unloads and loads again, or the reverse), each time by
+    more than *fraction* of its span.
+
+    A record without time that does this is a cyclic test written without its
+    time column. Its rows are not read as its loading history: without time a
+    relaxation's loop and its recovery after unloading look like Mullins
+    softening, damage, a permanent set or cyclic softening, so the discovery
+    says what the time column would let it try (docs/design/discovery-results.md,
+    "Records without time", measures what reading the rows would do). A curve
+    that turns once (an averaged loop) or a monotonic sweep from compression to
+    tension (Budday's) is not such a test.
+    """
+    x = np.asarray(x, float)
+    span = float(np.ptp(x)) if x.size else 0.0
+    if span <= 0:
+        return False
+    tol = fraction * span
+    turns, hi, lo, heading = 0, x[0], x[0], 0
+    for v in x[1:]:
+        if heading >= 0:
+            hi = max(hi, v)
+        if heading <= 0:
+            lo = min(lo, v)
+        if heading >= 0 and v < hi - tol:
+            turns, heading, lo = turns + (heading > 0), -1, v
+        elif heading <= 0 and v > lo + tol:
+            turns, heading, hi = turns + (heading < 0), 1, v
+        if turns >= 2:
+            return True
+    return False
 
 
 def _untimed_segments(mag: np.ndarray):

@@ -12,6 +12,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..materials.terms import TERMS
+from .covariates import reverses
 from .model import CANDIDATES
 from .records import (
     Record,
@@ -35,16 +36,30 @@ def identifiability(records: Sequence[Record]) -> dict[str, Verdict]:
     out: dict[str, Verdict] = {}
     out["viscoelastic"] = _viscoelastic(records)
     out["nonlinear_viscoelastic"] = _nonlinear(records, out["viscoelastic"])
-    out["mullins"] = _mullins(records)
-    out["damage"] = _damage(records)
-    out["cyclic_softening"] = _cyclic(records)
-    out["permanent_set"] = _set(records, out["viscoelastic"])
+    out["mullins"] = _untimed_cycles(records, _mullins(records))
+    out["damage"] = _untimed_cycles(records, _damage(records))
+    out["cyclic_softening"] = _untimed_cycles(records, _cyclic(records))
+    out["permanent_set"] = _untimed_cycles(records, _set(records, out["viscoelastic"]))
     out.update(_artefacts(records))
     for n, t in TERMS.items():
         out[n] = (True, True, f"a strain-energy term ({t.addresses}); identifiable from the shape of the "
                   "stress-stretch curves")
     assert set(out) == set(CANDIDATES)
     return out
+
+
+def _untimed_cycles(records: Sequence[Record], verdict: Verdict) -> Verdict:
+    """A rate-independent history effect that is not identifiable, where files without time go back and forth
+    (:func:`~esmm.pipeline.discover.covariates.reverses`): the reason says why their rows are not read as the
+    loading history, and what would make the effect identifiable."""
+    cyclic = [r.name for r in records if not r.history and reverses(r.x)]
+    if verdict[1] or not cyclic:
+        return verdict
+    return (verdict[0], False, f"not identifiable from these data: {', '.join(cyclic)} "
+            f"{'goes' if len(cyclic) == 1 else 'go'} back and forth, but without a time column the rows are not "
+            "read as the loading history: there a relaxation's loop and its recovery after unloading look like "
+            "Mullins softening, damage, a permanent set or cyclic softening (docs/design/discovery-results.md, "
+            "\"Records without time\"); export the time column with the test")
 
 
 def _rate_groups(records: Sequence[Record]) -> list[float]:
