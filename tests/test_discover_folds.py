@@ -237,9 +237,13 @@ def test_slips_are_judged_on_interleaved_short_blocks():
     material, artefact = ho.fold_sets(records)
     fs = artefact.slip
     assert fs is not None and fs.key == "slip" and "interleaved" in fs.scheme
-    assert judged_on("grip_slip", material, artefact) is fs
-    assert judged_on(["grip_slip", "sensor_offset"], material, artefact) is artefact
-    assert judged_on("sensor_offset", material, artefact) is artefact
+    # on a ramp the last blocks lie above the stretch the other folds were fitted to: an artefact is judged
+    # within it, a strain-energy term on the folds as they are (test_held_out_samples_above_...)
+    got = judged_on("grip_slip", material, artefact)
+    assert got.key == "slip+within" and [f.name for f in got.folds] == [f.name for f in fs.folds]
+    assert judged_on(["grip_slip", "sensor_offset"], material, artefact).key == artefact.key + "+within"
+    assert judged_on("sensor_offset", material, artefact).key == artefact.key + "+within"
+    assert judged_on("mooney", material, artefact) is material
     counts = np.sum([f.test[0] for f in fs.folds], axis=0)
     assert np.all(counts == 1)
     for f in fs.folds:
@@ -261,7 +265,37 @@ def test_a_late_slip_is_kept_and_a_clean_ramp_keeps_nothing():
                    n_starts=2, max_points=300, nested=False)
     assert res.kept == ["grip_slip"], {n: c.reason for n, c in res.candidates.items()}
     assert "interleaved" in res.slip_scheme
-    assert res.final.cv["slip"].nrmse < 0.5 * res.base.cv["slip"].nrmse
+    assert res.final.cv["slip+within"].nrmse < 0.5 * res.base.cv["slip+within"].nrmse
     clean = discover([_slipping_ramp(np.random.default_rng(8), slips=())], model="arruda-boyce", n_starts=2,
                      max_points=300, nested=False)
     assert clean.kept == [] and clean.slip_scheme == ""
+
+
+def test_held_out_samples_above_the_training_stretch_are_not_scored_for_effects_and_artefacts():
+    """On a ramp cut in blocks, the last block lies above every training stretch: its samples test how the
+    law extrapolates, so an effect or an artefact is judged without them; a strain-energy term, whose business
+    the extrapolation is, is judged on every block. The first block (at rest, then the start of the ramp)
+    stays, as does a held-out file, predicted whole, and a held-out cycle of rising cycles."""
+    from esmm.pipeline.discover.trials import judged_on
+
+    t = np.linspace(0.0, 60.0, 1201)
+    lam = np.where(t < 5.0, 1.0, np.minimum(1.0 + 0.01 * (t - 5.0), 1.5))
+    ramp = TensileTest(source=Path("ramp.csv"), mode="uniaxial", stretch=lam, stress=_arruda_boyce(lam)[0], time=t)
+    [r] = prepare([ramp], max_points=200)
+    material, artefact = ho.fold_sets([r])
+    assert material.scheme.startswith("leave one of 5 consecutive blocks out") and ho._after_first_loading(r) == 0
+    assert [f.beyond for f in material.folds] == [False, False, False, False, True]
+    within = judged_on("sensor_offset", material, artefact)
+    assert within.key == "material+within" and "not scored" in within.scheme
+    assert judged_on("viscoelastic", material, artefact).key == "material+within"
+    assert judged_on(["viscoelastic", "i2exp"], material, artefact) is material
+    assert material.within().within().key == "material+within"
+    first, last = (ho.within_training_stretch([r], within.folds[j]) for j in (0, -1))
+    assert np.array_equal(first.test[0], material.folds[0].test[0])
+    assert last.test[0] is None  # the last block is all above the others
+    whole = ho.Fold("file", [np.zeros(0, dtype=int)], [np.ones(r.test.n, bool)])
+    assert ho.within_training_stretch([r], whole) is whole
+    cycles, blocks = ho.fold_sets(prepare([_cyclic_record(np.random.default_rng(5), d_inf=0.0, cycles=4)],
+                                          max_points=200))
+    assert cycles.scheme.startswith("leave one cycle out") and cycles.within() is cycles
+    assert blocks.within() is blocks  # cut after the first loading to the largest stretch: nothing above it

@@ -21,6 +21,10 @@ Three fold sets (docs/design/discovery.md, "Held-out data: the folds, and what i
   interleaved sets of short blocks, so that every slip has training samples
   after it in every fold.
 
+Effects and artefacts are judged with the held-out samples of a ramp's blocks that lie above the largest
+stretch of the fold's training samples not scored (:meth:`FoldSet.within`): there the elastic law is
+extrapolated, which is a strain-energy term's business, judged on every sample.
+
 What a fold refits: every parameter on the fold's training samples; a record
 without training samples (a held-out file) keeps its per-file parameters at
 their neutral values (no slack, no slip, scale 1, no offset), and so does a
@@ -32,7 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -61,6 +65,12 @@ class Fold:
     name: str
     train: list  # per record: None (all fitting samples) or positions (possibly empty)
     test: list  # per record: None (not tested) or a boolean mask over all samples
+    #: a block of the block or slip scheme holds out samples above the largest stretch of its record's training
+    #: samples (:func:`_beyond_training`)
+    beyond: bool = False
+    #: held-out samples above the largest stretch of their record's training samples are not scored
+    #: (:func:`within_training_stretch`; :meth:`FoldSet.within`)
+    within_training: bool = False
 
 
 @dataclass
@@ -72,6 +82,17 @@ class FoldSet:
     folds: list[Fold]
     #: the artefact scheme's: the folds grip slips are judged on (:func:`slip_folds`), None without slips
     slip: FoldSet | None = None
+
+    def within(self) -> FoldSet:
+        """The same folds, their blocks scored within the stretch each fold was fitted to
+        (:func:`within_training_stretch`): what an effect or an artefact is judged on. A strain-energy term is
+        judged on the folds as they are, where a held-out block above the training's stretch tests how the law
+        extrapolates, which is the term's business."""
+        slip = self.slip.within() if self.slip is not None else None
+        if all(f.within_training == f.beyond for f in self.folds) and slip is self.slip:
+            return self
+        return FoldSet(self.key + "+within", self.scheme + "; held-out samples above the stretch the fold was "
+                       "fitted to not scored", [replace(f, within_training=f.beyond) for f in self.folds], slip)
 
 
 def artefact_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
@@ -124,8 +145,8 @@ def slip_folds(records: Sequence[Record]) -> FoldSet | None:
             for i in np.flatnonzero(which == j):
                 mask[edges[i]:edges[i + 1]] = True
             masks[j][k] = mask
-    folds = [_block_fold(f"blocks {j + 1}, {j + 1 + BLOCKS}, ... of every {BLOCKS}", records, masks[j])
-             for j in range(BLOCKS)]
+    folds = [_block_fold(f"blocks {j + 1}, {j + 1 + BLOCKS}, ... of every {BLOCKS}", records, masks[j],
+                         blocks=True) for j in range(BLOCKS)]
     return FoldSet("slip", f"leave one of {BLOCKS} interleaved sets of short blocks out", folds)
 
 
@@ -243,7 +264,7 @@ def _block_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
             mask = np.zeros(n, bool)
             mask[edges[j]:edges[j + 1]] = True
             masks[k] = mask
-        folds.append(_block_fold(f"block {j + 1}/{BLOCKS}", records, masks))
+        folds.append(_block_fold(f"block {j + 1}/{BLOCKS}", records, masks, blocks=True))
     scheme = f"leave one of {BLOCKS} consecutive blocks out" + (" (of every file)" if len(records) > 1 else "")
     if any(after):
         scheme += ", the first loading always fitted"
@@ -267,12 +288,17 @@ def _after_first_loading(r: Record) -> int:
         return 0
     k = int(np.argmax(r.cov.drive)) + 1
     rest = r.test.n - k
-    d = np.asarray(r.cov.direction[:k])
-    moving = np.flatnonzero(d != 0)
-    ramp = moving.size > 0 and bool(np.all(d[moving[0]:moving[-1] + 1] == 1))  # the peak may open the hold
-    if ramp and rest < r.test.n / BLOCKS:
+    if _ramp_to_peak(r) and rest < r.test.n / BLOCKS:
         return 0
     return k if rest >= MIN_AFTER else 0
+
+
+def _ramp_to_peak(r: Record) -> bool:
+    """The record loads to its largest stretch in one run, without a hold or a turn on the way (the peak may
+    open a hold)."""
+    d = np.asarray(r.cov.direction[:int(np.argmax(r.cov.drive)) + 1])
+    moving = np.flatnonzero(d != 0)
+    return moving.size > 0 and bool(np.all(d[moving[0]:moving[-1] + 1] == 1))
 
 
 def _file_fold(name: str, records, held: list[int]) -> Fold:
@@ -281,8 +307,9 @@ def _file_fold(name: str, records, held: list[int]) -> Fold:
     return Fold(name, train, test)
 
 
-def _block_fold(name: str, records, masks: dict[int, np.ndarray]) -> Fold:
-    """Hold out the samples in *masks* (record index -> boolean mask over all its samples)."""
+def _block_fold(name: str, records, masks: dict[int, np.ndarray], *, blocks: bool = False) -> Fold:
+    """Hold out the samples in *masks* (record index -> boolean mask over all its samples); *blocks*: a fold of
+    the block or slip scheme, whose held-out samples may lie above its training's stretch (:attr:`Fold.beyond`)."""
     train, test = [], []
     for k, r in enumerate(records):
         mask = masks.get(k)
@@ -292,7 +319,9 @@ def _block_fold(name: str, records, masks: dict[int, np.ndarray]) -> Fold:
         else:
             train.append(np.flatnonzero(~mask[r.fit_idx]))
             test.append(mask)
-    return Fold(name, train, test)
+    fold = Fold(name, train, test)
+    fold.beyond = blocks and within_training_stretch(records, fold) is not fold
+    return fold
 
 
 def add_predictions(prob, z: np.ndarray, fold: Fold, j: int, out: dict) -> None:
@@ -326,7 +355,10 @@ def heldout(fitted: Fitted, folds: Sequence[Fold]) -> Errors:
     per_file: dict[int, tuple[list, list, list, list]] = {}
     for j, fold in enumerate(folds):
         z, fp = _fold_fit(fitted, fold)
-        add_predictions(fp, z, _before_unseen_slips(fp, fold), j, per_file)
+        scored = _before_unseen_slips(fp, fold)
+        if fold.within_training:
+            scored = within_training_stretch(fp.records, scored)
+        add_predictions(fp, z, scored, j, per_file)
     samples = {}
     for k, (idx, ys, ps, fs) in per_file.items():
         i = np.concatenate(idx)
@@ -354,7 +386,36 @@ def _before_unseen_slips(prob, fold: Fold) -> Fold:
             test[k] = test[k].copy()
             test[k][e:] = False
             test[k] = test[k] if test[k].any() else None
-    return Fold(fold.name, fold.train, test)
+    return replace(fold, test=test)
+
+
+def within_training_stretch(records: Sequence[Record], fold: Fold) -> Fold:
+    """*fold* with each record's held-out samples above the largest stretch of its training samples left out,
+    in records that load to their peak in one ramp (:func:`_ramp_to_peak`) with time and training samples: a
+    held-out file is predicted whole, the blocks of a curve without time are cut in the order of its rows, not
+    of its loading, and a new peak of cycles to rising peaks is where damage and Mullins softening show.
+
+    Above the largest stretch the fold was fitted to, a held-out sample tests
+    how the elastic law extrapolates, not the effect or the artefact judged: on
+    a ramp cut in consecutive blocks the last block is all extrapolation, and an
+    exponential law's error there can be a hundred times the record's range,
+    which no offset or scale of the specimen can show through. Below it every
+    law is anchored (no stress at the reference state), and the samples at rest
+    before loading, where a load cell's offset shows, stay.
+    """
+    test = list(fold.test)
+    changed = False
+    for k, mask in enumerate(test):
+        tr, r = fold.train[k], records[k]
+        if mask is None or (tr is not None and len(tr) == 0) or not r.history or not _ramp_to_peak(r):
+            continue
+        idx = r.fit_idx if tr is None else r.fit_idx[np.asarray(tr, dtype=int)]
+        top = float(np.max(r.cov.drive[idx]))
+        beyond = mask & (r.cov.drive > top + 1e-9 * max(abs(top), 1.0))
+        if beyond.any():
+            test[k] = mask & ~beyond if (mask & ~beyond).any() else None
+            changed = True
+    return replace(fold, test=test) if changed else fold
 
 
 def cached_heldout(fitted: Fitted, fs: FoldSet) -> Errors:

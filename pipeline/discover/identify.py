@@ -79,14 +79,26 @@ def _viscoelastic(records: Sequence[Record]) -> Verdict:
     rates = _rate_groups(timed)
     several_rates = len(rates) >= 2
     unloading = any(r.cov.has_unloading for r in timed)
-    holds = any(r.cov.has_hold and float(np.nanmax(r.cov.hold_time)) >= 5 * float(np.median(np.diff(r.t)))
-                for r in timed)
+    holds = any(_loaded_hold(r) for r in timed)
     if not (several_rates or unloading or holds):
         return (True, False, "not identifiable from these data: one monotonic ramp at one rate "
                 f"({rates[0] if rates else float('nan'):.3g} /s) cannot separate a rate effect from the elastic "
                 "curve; test at a second rate, or add an unloading or a hold")
     why = [w for w, ok in (("several rates", several_rates), ("unloading", unloading), ("holds", holds)) if ok]
     return (True, True, "identifiable: " + ", ".join(why))
+
+
+def _loaded_hold(r: Record) -> bool:
+    """A hold of five samples or more once the record has been loaded (its largest stretch so far 1 % of its
+    span past the reference). A machine record often starts at rest before the crosshead moves: a hold there
+    has no stress to relax, and says nothing of a relaxation (a hold at the reference state after a loading
+    does: the stress recovers)."""
+    c = r.cov
+    if not c.has_hold:
+        return False
+    loaded = c.max_so_far > 1.0 + 0.01 * (float(np.max(c.drive)) - 1.0)
+    held = np.where((c.direction == 0) & loaded, np.nan_to_num(c.hold_time), 0.0)
+    return float(np.max(held)) >= 5 * float(np.median(np.diff(r.t)))
 
 
 def _nonlinear(records: Sequence[Record], ve: Verdict) -> Verdict:

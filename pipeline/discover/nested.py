@@ -38,7 +38,7 @@ import multiprocessing
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -108,7 +108,7 @@ def inner_folds(fs: FoldSet, outer: Fold, skip: int | None) -> FoldSet:
             keep = None if mask is None else mask & ~outer.test[k] if outer.test[k] is not None else mask
             test.append(keep if keep is not None and keep.any() else None)
         if any(t is not None for t in test):
-            folds.append(Fold(f.name, train, test))
+            folds.append(replace(f, train=train, test=test))
     slip = inner_folds(fs.slip, outer, None) if fs.slip is not None else None
     return FoldSet(fs.key, fs.scheme, folds, slip)
 
@@ -121,7 +121,7 @@ def _expand(fs: FoldSet, keep: list[int], m: int) -> FoldSet:
         test: list = [None] * m
         for i, k in enumerate(keep):
             train[k], test[k] = f.train[i], f.test[i]
-        folds.append(Fold(f.name, train, test))
+        folds.append(replace(f, train=train, test=test))
     return FoldSet(fs.key, fs.scheme, folds, _expand(fs.slip, keep, m) if fs.slip is not None else None)
 
 

@@ -34,6 +34,7 @@ import numpy as np
 
 from ..errors import FitError
 from ..materials.effects import ARTEFACTS
+from ..materials.terms import TERMS
 from .fitted import Fitted, fit_spec
 from .heldout import FoldSet, cached_heldout
 from .model import ALTERNATIVE_VARIANTS, Spec
@@ -178,11 +179,14 @@ def _clamp_or_not(name: str, spec: Spec, current: Fitted, start: Fitted | None,
 
 def judged_on(names: str | list[str], material: FoldSet, artefact: FoldSet) -> FoldSet:
     """The fold set a candidate is judged on: the artefact scheme when every name is a per-file artefact,
-    its slip scheme for grip slips alone."""
+    its slip scheme for grip slips alone; scored within the stretch each fold was fitted to
+    (:meth:`~esmm.pipeline.discover.heldout.FoldSet.within`) unless a strain-energy term is among them."""
     names = [names] if isinstance(names, str) else names
     if artefact.slip is not None and all(n == "grip_slip" for n in names):
-        return artefact.slip
-    return artefact if all(n in ARTEFACTS for n in names) else material
+        fs = artefact.slip
+    else:
+        fs = artefact if all(n in ARTEFACTS for n in names) else material
+    return fs if any(n in TERMS for n in names) else fs.within()
 
 
 def check_heldout(t: Trial, current: Fitted, fs: FoldSet) -> dict[str, Any]:
