@@ -440,3 +440,28 @@ def test_cycles_without_time_say_why_their_rows_are_not_a_history():
     loop = _path(1.0, 1.5, 1.0)
     once = identifiability(prepare([_untimed(loop, 1e4 * (loop - 1.0) + rng.normal(0, 20.0, loop.size))]))
     assert not once["mullins"][1] and "back and forth" not in once["mullins"][2]
+
+
+def test_a_rest_before_loading_is_no_hold_for_a_relaxation():
+    """A machine record that rests before the crosshead moves, then ramps: the rest has no stress to relax,
+    so a relaxation is not identifiable from the one ramp; a hold at the peak, or at the reference state
+    after a loading (where the stress recovers), makes it identifiable."""
+    from esmm.pipeline.discover.identify import identifiability
+    from esmm.pipeline.discover.records import prepare
+    from esmm.pipeline.tensile import TensileTest
+
+    def record(*legs):
+        t, x = [0.0], [1.0]
+        for duration, target in legs:
+            tt = np.linspace(t[-1], t[-1] + duration, int(duration * 20) + 1)[1:]
+            t += tt.tolist()
+            x += np.linspace(x[-1], target, tt.size + 1)[1:].tolist()
+        t, x = np.asarray(t), np.asarray(x)
+        y = 1e4 * (x - 1.0) + np.random.default_rng(2).normal(0.0, 5.0, x.size)
+        return TensileTest(source=Path("r.csv"), mode="uniaxial", stretch=x, stress=y, time=t)
+
+    rest_then_ramp = identifiability(prepare([record((8.0, 1.0), (20.0, 1.4))]))["viscoelastic"]
+    assert not rest_then_ramp[1] and "one monotonic ramp" in rest_then_ramp[2]
+    assert identifiability(prepare([record((8.0, 1.0), (20.0, 1.4), (10.0, 1.4))]))["viscoelastic"][1]
+    recovery = identifiability(prepare([record((20.0, 1.4), (20.0, 1.0), (10.0, 1.0))]))["viscoelastic"]
+    assert recovery[1] and "holds" in recovery[2]

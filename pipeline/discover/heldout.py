@@ -66,7 +66,7 @@ class Fold:
     train: list  # per record: None (all fitting samples) or positions (possibly empty)
     test: list  # per record: None (not tested) or a boolean mask over all samples
     #: a block of the block or slip scheme holds out samples above the largest stretch of its record's training
-    #: samples (:func:`_beyond_training`)
+    #: samples (:func:`within_training_stretch`)
     beyond: bool = False
     #: held-out samples above the largest stretch of their record's training samples are not scored
     #: (:func:`within_training_stretch`; :meth:`FoldSet.within`)
