@@ -299,10 +299,8 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
     that scales the primary loading too (Miehe's discontinuous damage) is a damage; d_id alone counts
     them identifiable.
 
-    A relaxation (:data:`RATE_CLASSES`) is a change of the stress in time: a file written without its
-    time column (*timed* False; a lab's processed export) cannot show it, however far it stands out of
-    the noise, so d_id and the neighbour's ratio count the files with time only (d counts every file:
-    the effect known exactly, its times included).
+    A relaxation (:data:`RATE_CLASSES`) is a change in time, which a file written without its time
+    column (*timed* False) cannot show: d_id and the neighbour's ratio count the files with time only.
 
     The noise is a fresh realization from the case's seed (spawn key extended), so the case's own
     files are unchanged. (*times*: the protocol's shortest moving segment and longest hold or file.)
