@@ -36,10 +36,11 @@ def identifiability(records: Sequence[Record]) -> dict[str, Verdict]:
     out: dict[str, Verdict] = {}
     out["viscoelastic"] = _viscoelastic(records)
     out["nonlinear_viscoelastic"] = _nonlinear(records, out["viscoelastic"])
-    out["mullins"] = _untimed_cycles(records, _mullins(records))
-    out["damage"] = _untimed_cycles(records, _damage(records))
-    out["cyclic_softening"] = _untimed_cycles(records, _cyclic(records))
-    out["permanent_set"] = _untimed_cycles(records, _set(records, out["viscoelastic"]))
+    cyclic = [r.name for r in records if not r.history and reverses(r.x)]
+    out["mullins"] = _untimed_cycles(cyclic, _mullins(records))
+    out["damage"] = _untimed_cycles(cyclic, _damage(records))
+    out["cyclic_softening"] = _untimed_cycles(cyclic, _cyclic(records))
+    out["permanent_set"] = _untimed_cycles(cyclic, _set(records, out["viscoelastic"]))
     out.update(_artefacts(records))
     for n, t in TERMS.items():
         out[n] = (True, True, f"a strain-energy term ({t.addresses}); identifiable from the shape of the "
@@ -48,11 +49,10 @@ def identifiability(records: Sequence[Record]) -> dict[str, Verdict]:
     return out
 
 
-def _untimed_cycles(records: Sequence[Record], verdict: Verdict) -> Verdict:
+def _untimed_cycles(cyclic: list[str], verdict: Verdict) -> Verdict:
     """A rate-independent history effect that is not identifiable, where files without time go back and forth
-    (:func:`~esmm.pipeline.discover.covariates.reverses`): the reason says why their rows are not read as the
-    loading history, and what would make the effect identifiable."""
-    cyclic = [r.name for r in records if not r.history and reverses(r.x)]
+    (*cyclic*, their names: :func:`~esmm.pipeline.discover.covariates.reverses`): the reason says why their rows
+    are not read as the loading history, and what would make the effect identifiable."""
     if verdict[1] or not cyclic:
         return verdict
     return (verdict[0], False, f"not identifiable from these data: {', '.join(cyclic)} "
