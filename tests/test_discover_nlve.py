@@ -10,7 +10,7 @@ import pytest
 from esmm.pipeline.asset.material import storable_effects
 from esmm.pipeline.discover import discover
 from esmm.pipeline.discover import synthetic as syn
-from esmm.pipeline.discover.model import VARIANTS, Bounds, Spec, effect_slots, spec_of_effects
+from esmm.pipeline.discover.model import Bounds, Spec, effect_slots, spec_of_effects
 from esmm.pipeline.errors import ConfigError
 from esmm.pipeline.materials import get_model
 from esmm.pipeline.materials.effects import (
@@ -168,15 +168,8 @@ def _staircase_record(tmp_path, kappa_tau: float, seed: int):
     return [read(path)]
 
 
-@pytest.fixture
-def both_forms(monkeypatch):
-    """The search with both forms of a stretch-dependent relaxation as alternative variants (the rate form is
-    fitted, read and written but not searched by default)."""
-    monkeypatch.setitem(VARIANTS, "nonlinear_viscoelastic", (1, 2))
-
-
 @pytest.mark.slow
-def test_discovery_names_the_rate_form_on_an_independent_record(tmp_path, both_forms):
+def test_discovery_names_the_rate_form_on_an_independent_record(tmp_path):
     res = discover(_staircase_record(tmp_path, -5.0, seed=4), **FAST)
     assert "nonlinear_viscoelastic" in res.kept, (res.kept, {n: c.reason for n, c in res.candidates.items()})
     assert res.final.spec.nonlinear_viscoelastic == 2
@@ -185,7 +178,7 @@ def test_discovery_names_the_rate_form_on_an_independent_record(tmp_path, both_f
 
 
 @pytest.mark.slow
-def test_discovery_adds_no_rate_form_on_plain_qlv(tmp_path, both_forms):
+def test_discovery_adds_no_rate_form_on_plain_qlv(tmp_path):
     res = discover(_staircase_record(tmp_path, 0.0, seed=5), **FAST)
     assert "viscoelastic" in res.kept
     assert "nonlinear_viscoelastic" not in res.kept, {n: c.reason for n, c in res.candidates.items()}

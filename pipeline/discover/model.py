@@ -88,10 +88,9 @@ from .records import (
 #: variants of each effect: name -> allowed variant numbers (0 = off)
 VARIANTS = {
     "viscoelastic": (1, 2, 3),  # Prony terms
-    # (needs viscoelastic) kappa: the relaxed amount depends on stretch. Variant 2, kappa_tau (the relaxation
-    # times do), is fitted, read and written like it but not searched: searched beside it as an alternative form
-    # it named no more of a fresh population's cases (docs/design/discovery.md, "Stretch-dependent relaxation")
-    "nonlinear_viscoelastic": (1,),
+    # (needs viscoelastic) two alternative forms, one parameter each: 1, kappa (the relaxed amount depends on
+    # stretch); 2, kappa_tau (the relaxation times do) (docs/design/discovery.md, "Stretch-dependent relaxation")
+    "nonlinear_viscoelastic": (1, 2),
     "mullins": (2, 3),  # (r, m) or (r, m, beta)
     "damage": (3,),  # (onset, scale, shape)
     "cyclic_softening": (2,),  # (d_inf, eta)
