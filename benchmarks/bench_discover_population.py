@@ -31,7 +31,7 @@ Scoring:
   the cases are scored by its bins too (with how many kept nothing, the right answer where it is below
   3), and by class where it is at least 30; of those, also where the part that neither an elastic law
   nor the class's neighbour takes is at least 30 (a stretch-dependent relaxation told from a plain one,
-  a load cell's drift from a relaxation, a Mullins softening from a damage; ``population/cases.py``,
+  a load cell's drift from a relaxation, a Mullins softening from a damage and back; ``population/cases.py``,
   ``NEIGHBOURS``).
 * runtimes, timeouts, errors (non-zero exits with their last message line), seeds.
 
@@ -237,7 +237,7 @@ def _by_class_identifiable(ok: list[dict]) -> dict:
     the effect from an elastic law (identifiability at least the upper detectability bin's edge,
     :data:`DETECT_BINS`); ``from_neighbour`` counts those of them that can also be told from the class's
     neighbour (``population/cases.py``, ``NEIGHBOURS``: a stretch-dependent relaxation from a plain one, a
-    load cell's drift from a relaxation, a Mullins softening from a damage), at the same edge; a class
+    load cell's drift from a relaxation, a Mullins softening from a damage and back), at the same edge; a class
     without a neighbour, or whose variant the neighbour's name is right for (:data:`SAME_CLASS`), counts
     them all."""
     out: dict = {}
@@ -460,8 +460,8 @@ def rescore(path: Path, out: Path, *, classes: list[str] | None = None) -> int:
     (a temporary folder), each row rebuilt from the case's truth of this generator and the run's own result.
     With *classes*, only the cases of those classes are regenerated and rebuilt (a case depends only on the
     seed, its index and its line of the plan), the others keeping the run's rows: for a run whose generator
-    wrote other records for another class. Refuses a population whose records differ from the run's
-    (sample counts per case)."""
+    wrote other records for another class; the classes and commands of an earlier partial rescore are kept
+    beside this one's. Refuses a population whose records differ from the run's (sample counts per case)."""
     doc = json.loads(path.read_text())
     pop = doc["population"]
     redo = [r for r in doc["cases"] if classes is None or r["class"] in classes]
@@ -475,12 +475,16 @@ def rescore(path: Path, out: Path, *, classes: list[str] | None = None) -> int:
     if moved:
         raise SystemExit(f"--rescore: this generator writes other records than the run's ({', '.join(moved[:5])})")
     kept = {k: v for k, v in doc.items() if k not in ("clean", "effects", "runtime", "errors", "cases")}
+    command = (f"python benchmarks/bench_discover_population.py --rescore {path} --out {out}"
+               + (f" --classes {','.join(classes)}" if classes else ""))
+    before = doc.get("rescore_command") if doc.get("rescored_classes") and classes else None
     res = {**kept, "population": {**pop, "generator_version": GENERATOR_VERSION,
                                   "run_generator_version": pop.get("run_generator_version",
                                                                    pop["generator_version"])},
-           "rescore_command": f"python benchmarks/bench_discover_population.py --rescore {path} --out {out}"
-                              + (f" --classes {','.join(classes)}" if classes else ""),
-           **({"rescored_classes": classes} if classes else {}), **score(rows)}
+           "rescore_command": command if before is None else [*([before] if isinstance(before, str) else before),
+                                                              command],
+           **({"rescored_classes": list(dict.fromkeys([*doc.get("rescored_classes", []), *classes]))}
+              if classes else {}), **score(rows)}
     _write(out, res)
     print(table({"esmm": "-", "jobs": "-", "wall_s": "-", **res,
                  "population": {**res["population"], "folder": "-"}}))

@@ -194,7 +194,9 @@ def population_lines(doc: dict) -> list[str]:
     gen = fmt(pop.get("run_generator_version", pop["generator_version"]))
     if "run_generator_version" in pop:  # scored again with a later generator's truths (same records)
         which = ", ".join(doc.get("rescored_classes") or ()) or "every case"
-        gen += f"; truths of generator {fmt(pop['generator_version'])} for {which}: `{fmt(doc.get('rescore_command'))}`"
+        cmds = doc.get("rescore_command")
+        cmds = "`, then `".join(cmds) if isinstance(cmds, list) else fmt(cmds)
+        gen += f"; truths of generator {fmt(pop['generator_version'])} for {which}: `{cmds}`"
     out = [f"Population seed {fmt(pop['seed'])}, {fmt(pop['cases'])} cases (generator {gen}, clean fraction "
            f"{fmt(pop['clean_fraction'])}); command: `{fmt(doc.get('command'))}`.", ""]
     out += table(["clean cases run", "false positives", "rate", "95 % interval (Clopper-Pearson)",
@@ -231,7 +233,7 @@ def population_lines(doc: dict) -> list[str]:
             out += ["", "Of those, named alone where the records can also tell the effect from its neighbouring "
                         "class (d_id against an elastic law and that class >= 30: a stretch-dependent relaxation "
                         "against a plain one, a load cell's drift against a relaxation, a Mullins softening against a "
-                        "damage): "
+                        "damage and, in truths of generator 2.9 on, a damage against a Mullins softening): "
                     + ", ".join(f"{k} {v['strict']}/{v['cases']}" for k, v in nb.items())
                     + f"; in all {sum(v['strict'] for v in nb.values())}/{sum(v['cases'] for v in nb.values())}."]
     out += ["", f"Effect cases: named alone {pct(e['strict_rate'])}, named among others {pct(e['lenient_rate'])} "

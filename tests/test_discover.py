@@ -248,9 +248,9 @@ def test_single_ramp_reports_viscoelasticity_as_not_identifiable(tmp_path):
         assert "cannot be told from rate-dependent relaxation" in res.candidates["damage"].reason
 
 
-def test_stretch_dependent_relaxation_needs_two_stretch_levels(tmp_path):
-    """Holds or turning points at two stretch levels make it identifiable; loadings at two rates to one peak
-    do not (there its strength takes up what the law and the relaxation leave between the rates)."""
+def test_stretch_dependent_relaxation_needs_two_stretch_levels_or_two_rates(tmp_path):
+    """Holds or turning points at two stretch levels make it identifiable, and so do loadings at two rates to
+    one peak (the stretch changes while the stress relaxes); cycles at one rate to one peak do not."""
     from esmm.pipeline.discover.identify import identifiability
     from esmm.pipeline.discover.records import prepare
 
@@ -258,9 +258,12 @@ def test_stretch_dependent_relaxation_needs_two_stretch_levels(tmp_path):
     two_rates = identifiability(prepare(_tests(tmp_path / "a", [syn.load_unload(0.02, 1.5),
                                                                  syn.load_unload(0.2, 1.5)], truth)))
     levels = identifiability(prepare(_tests(tmp_path / "b", [syn.cycles(0.05, [1.2, 1.35, 1.5])], truth)))
-    assert two_rates["viscoelastic"][1] and not two_rates["nonlinear_viscoelastic"][1]
-    assert "between the rates" in two_rates["nonlinear_viscoelastic"][2]
+    one = identifiability(prepare(_tests(tmp_path / "c", [syn.cycles(0.05, [1.5, 1.5, 1.5])], truth)))
+    assert two_rates["viscoelastic"][1] and two_rates["nonlinear_viscoelastic"][1]
+    assert "load at 2 rates" in two_rates["nonlinear_viscoelastic"][2]
     assert levels["nonlinear_viscoelastic"][1] and "3 stretch levels" in levels["nonlinear_viscoelastic"][2]
+    assert one["viscoelastic"][1] and not one["nonlinear_viscoelastic"][1]
+    assert "one stretch level only, at one rate" in one["nonlinear_viscoelastic"][2]
 
 
 def test_round_levels_spend_the_round_alpha_over_every_single_and_pair():

@@ -560,6 +560,15 @@ def test_rescore_rebuilds_rows_from_the_truths_and_scores_them_again(tmp_path):
     assert doc["rescored_classes"] == ["mullins"] and "--classes mullins" in doc["rescore_command"]
     for cls, r in zip(classes, doc["cases"]):
         assert ("detectability" in r) == (cls == "mullins")
+    # a second class rebuilt on that output: both classes and both commands are said
+    other = next(c for c in classes if c not in ("clean", "mullins"))
+    again = tmp_path / "again2.json"
+    assert B.main(["--rescore", str(out), "--out", str(again), "--classes", other]) == 0
+    doc = json.loads(again.read_text())
+    assert doc["rescored_classes"] == ["mullins", other]
+    assert [c.rsplit(" ", 1)[1] for c in doc["rescore_command"]] == ["mullins", other]
+    for cls, r in zip(classes, doc["cases"]):
+        assert ("detectability" in r) == (cls in ("mullins", other))
     run["cases"][0]["samples"] += 1  # records that are not the run's are refused
     src.write_text(json.dumps(run))
     with pytest.raises(SystemExit, match="other records"):
@@ -653,6 +662,46 @@ def test_the_part_neither_an_elastic_law_nor_a_damage_takes():
     assert left(rising, pseudo) > 0.05
     assert left(path([1.4, 1.4, 1.4]), pseudo) < 1e-3
 
+
+
+def test_the_part_neither_an_elastic_law_nor_a_mullins_softening_takes():
+    """The damage's neighbour (``population/cases.py``, ``_mullins_atoms``): on cycles to rising peaks,
+    Ogden and Roxburgh's softening without beta (the primary curve elastic, each reloading below it by a
+    function of the energy it lacks) is taken by the elastic functions and the softening atoms (strengths
+    >= 0) to a part in 10^4 of what the elastic functions leave; Simo's damage and Miehe's discontinuous
+    damage, which soften the primary curve at each new peak, are not. On cycles to one peak Simo's damage
+    is taken: its first loading is an elastic law, and each reloading below it differs by g(W) - g(W_max),
+    a non-decreasing function of the energy lacking."""
+    from population.cases import MULLINS_KNOTS, _elastic_basis, _mullins_atoms, _not_elastic
+
+    dt = 0.01
+
+    def path(peaks):
+        legs = [np.linspace(1.0, p, 400) for p in peaks]
+        return np.concatenate([np.concatenate([leg, leg[::-1]]) for leg in legs])
+
+    ch = A.Chain(f_out=10.0, ratio=10, filter="butter", order=2, cutoff_of_nyquist=0.3, ripple_db=0.5,
+                 decimator="fir", cic_order=2, bits=16, quantize_at="adc", capacity_N=10.0, noise_sd_of_capacity=1e-4,
+                 pink_corner_Hz=0.0, hum_of_noise=0.0, hum_Hz=50.0, encoder_step_m=1e-7, encoder_phase=0.5,
+                 position="latched", velocity_ripple=0.0, ripple_Hz=1.0, velocity_noise=0.0, accel_s=0.1)
+
+    def left(x, effect):
+        pe = 4.0 * (x - 1.0) + 30.0 * (x - 1.0) ** 3
+        w0 = 2.0 * (x - 1.0) ** 2 + 7.5 * (x - 1.0) ** 4
+        sim = {"t": np.arange(x.size) * dt, "x": x, "common": pe, "energy": w0}
+        atoms = _mullins_atoms(sim, ch, 1.0)
+        assert atoms.shape[1] == MULLINS_KNOTS
+        basis = _elastic_basis(x, 1.0, 1.0, float(x.max()), ch)
+        y = A.record_force(effect(pe, w0) - pe, ch, None)
+        return _not_elastic([(y, np.hstack([basis, atoms]), 1.0)], signed=basis.shape[1]) / _not_elastic(
+            [(y, basis, 1.0)])
+
+    rising = path([1.1, 1.2, 1.3, 1.4])
+    simo = lambda pe, w: H.simo_damage(pe, w, xi0=0.2, a=0.3, b=0.4)  # noqa: E731
+    assert left(rising, lambda pe, w: H.mullins_pseudo_elastic(pe, w, r=1.5, m=0.02, beta=0.0)) < 1e-4
+    assert left(rising, simo) > 0.05
+    assert left(rising, lambda pe, w: H.mullins_discontinuous(pe, w, d_inf=0.4, eta=0.05)) > 0.05
+    assert left(path([1.4, 1.4, 1.4]), simo) < 1e-3
 
 @pytest.mark.slow
 def test_a_slack_is_not_identifiable_and_a_misstated_area_is(tmp_path):

@@ -35,13 +35,14 @@ from .machine import draw_levels, draw_timing
 from .protocols import KINDS, Protocol, build, command, motion
 from .relaxation import Prony, hereditary
 
-GENERATOR_VERSION = "2.8"  # records bit for bit as "2"; truth.json adds the effect's detectability (2.1) and
+GENERATOR_VERSION = "2.9"  # records bit for bit as "2"; truth.json adds the effect's detectability (2.1) and
 #                             its identifiability (2.2; 2.3 in stress, one function for specimens of other areas);
 #                             2.4: a slack is drawn on replicates too, each specimen with its own mounting's slack;
 #                             2.5 (records as 2.4): a slack's d_id against the case's own slacked curve;
 #                             2.6 (records as 2.4): d_id against the neighbouring class (NEIGHBOURS) too;
 #                             2.7 (records as 2.4): a Mullins softening's d_id against damage too;
-#                             2.8 (records as 2.4): a relaxation's d_id over the files written with time only
+#                             2.8 (records as 2.4): a relaxation's d_id over the files written with time only;
+#                             2.9 (records as 2.4): a damage's d_id against a Mullins softening too
 MAX_DURATION, MIN_DURATION = 6000.0, 15.0
 
 
@@ -141,7 +142,7 @@ def _true_force(rng, wp, ch, el: E.Elastic, spec: dict, x0: float, cls: str, prm
     return {"t": t, "x": x, "force": p * area, "ref": ref * area, "slips_s": slips, "n": n,
             "common": ref * area if common is None else common * area,
             "shared": p * area if shared is None else shared * area,
-            **({"energy": el.energy(cap(xs))} if NEIGHBOURS.get(cls) == "damage" else {})}
+            **({"energy": el.energy(cap(xs))} if NEIGHBOURS.get(cls) in ("damage", "mullins") else {})}
 
 
 def _stated(spec: dict, error: float) -> tuple[dict, float]:
@@ -294,10 +295,11 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
 
     **beside** holds, for a class with a neighbour (:data:`NEIGHBOURS`), ``identifiability_from``:
     {neighbour: d_id against it}, the same ratio for what neither an elastic law nor the neighbour
-    takes (:func:`_relaxation_atoms`, :func:`_damage_atoms`). A stretch-dependent relaxation whose change
-    with the stretch stays below the noise is a plain relaxation to any method, and a Mullins softening
-    that scales the primary loading too (Miehe's discontinuous damage) is a damage; d_id alone counts
-    them identifiable.
+    takes (:func:`_relaxation_atoms`, :func:`_damage_atoms`, :func:`_mullins_atoms`). A stretch-dependent
+    relaxation whose change with the stretch stays below the noise is a plain relaxation to any method, a
+    Mullins softening that scales the primary loading too (Miehe's discontinuous damage) is a damage, and a
+    damage whose primary loading an elastic law takes, seen only where the reloadings fall below the
+    largest energy, is a Mullins softening; d_id alone counts them identifiable.
 
     A relaxation (:data:`RATE_CLASSES`) is a change in time, which a file written without its time
     column (*timed* False) cannot show: d_id and the neighbour's ratio count the files with time only.
@@ -327,8 +329,7 @@ def _detectability(seq, cls: str, prm: dict, sims: list[dict], chains: list, pea
             delta = rec - record_force(s["shared"], ch, None)
         parts.append((delta / area, _elastic_basis(s["x"], x0, lo, hi, ch), w * area ** 2))  # in stress
         if cls in NEIGHBOURS:
-            atoms.append(_damage_atoms(s, ch, area) if NEIGHBOURS[cls] == "damage"
-                         else _relaxation_atoms(s, ch, area, times))
+            atoms.append(NEIGHBOUR_ATOMS[NEIGHBOURS[cls]](s, ch, area, times))
     if not parts:
         return float(np.sqrt(d2)), 0.0, {}
     beside = {}
@@ -388,8 +389,10 @@ def _not_elastic(parts: list, *, signed: int | None = None) -> float:
 #: the class a generated effect is nearest to in the vocabulary of a fitter, when it can look like it:
 #: a stretch-dependent relaxation whose dependence is small is a plain relaxation, a load cell's
 #: drift over a record's holds is a slow relaxation, and a Mullins softening that scales the primary
-#: loading as well as the reloadings (a discontinuous damage in the largest energy) is a damage
-NEIGHBOURS = {"nonlinear_viscoelastic": "viscoelastic", "sensor_offset": "viscoelastic", "mullins": "damage"}
+#: loading as well as the reloadings (a discontinuous damage in the largest energy) is a damage, and a
+#: damage whose reloadings below the largest energy carry most of its change is a Mullins softening
+NEIGHBOURS = {"nonlinear_viscoelastic": "viscoelastic", "sensor_offset": "viscoelastic", "mullins": "damage",
+              "damage": "mullins"}
 #: the classes whose effect is a change in time, which a file without its time column cannot show
 RATE_CLASSES = ("viscoelastic", "nonlinear_viscoelastic")
 #: relaxation times of the neighbour's atoms: this many, log-spaced from a tenth of the protocol's shortest
@@ -414,7 +417,7 @@ def _relaxation_atoms(sim: dict, ch, area: float, times: tuple[float, float]) ->
 DAMAGE_KNOTS = 24
 
 
-def _damage_atoms(sim: dict, ch, area: float) -> np.ndarray:
+def _damage_atoms(sim: dict, ch, area: float, times=None) -> np.ndarray:
     """The recorded stress of the elastic stress times each ramp of a damage function, negated, shape
     (recorded samples, :data:`DAMAGE_KNOTS`): a damage, the stress ``g(xi) P_e`` with ``g`` any
     non-increasing function from 1 of ``xi = sqrt(2 max_past W)`` (Simo 1987; Miehe's 1995 discontinuous
@@ -426,6 +429,31 @@ def _damage_atoms(sim: dict, ch, area: float) -> np.ndarray:
     edges = np.linspace(0.0, max(float(xi[-1]), 1e-300), DAMAGE_KNOTS + 1)
     ramps = np.clip((xi[:, None] - edges[:-1]) / np.diff(edges), 0.0, 1.0)
     return np.stack([record_force(-pe * ramps[:, j], ch, None) / area for j in range(DAMAGE_KNOTS)], axis=1)
+
+
+#: knots of the Mullins neighbour's softening function, equally spaced in sqrt(2 (W_max - W)) from 0 to its
+#: largest value
+MULLINS_KNOTS = 24
+
+
+def _mullins_atoms(sim: dict, ch, area: float, times=None) -> np.ndarray:
+    """The recorded stress of the elastic stress times each ramp of a softening function, negated, shape
+    (recorded samples, :data:`MULLINS_KNOTS`): a Mullins softening, the stress ``(1 - f(u)) P_e`` with ``f``
+    any non-decreasing function from 0 of ``u = sqrt(2 (max_past W - W))`` (Ogden & Roxburgh 1999 with
+    beta = 0, ``f = erf(u^2 / 2m) / r``, is one; the primary loading, where ``W = max_past W``, is
+    elastic), piecewise linear on the knots, is ``P_e + sum_j c_j atom_j`` with ``c_j >= 0``. Beta > 0
+    makes ``f`` depend on the largest energy too, which this family does not hold: against a Mullins
+    softening with beta, the ratio counts more as identifiable than it is."""
+    pe = sim["common"]
+    w = np.maximum(sim["energy"], 0.0)
+    u = np.sqrt(2.0 * np.maximum(np.maximum.accumulate(w) - w, 0.0))
+    edges = np.linspace(0.0, max(float(np.max(u)), 1e-300), MULLINS_KNOTS + 1)
+    ramps = np.clip((u[:, None] - edges[:-1]) / np.diff(edges), 0.0, 1.0)
+    return np.stack([record_force(-pe * ramps[:, j], ch, None) / area for j in range(MULLINS_KNOTS)], axis=1)
+
+
+#: the atoms of each neighbouring class (:data:`NEIGHBOURS`), by its name
+NEIGHBOUR_ATOMS = {"viscoelastic": _relaxation_atoms, "damage": _damage_atoms, "mullins": _mullins_atoms}
 
 
 def integrated_time(v: np.ndarray, c: float = 5.0) -> float:

@@ -102,19 +102,22 @@ def _loaded_hold(r: Record) -> bool:
 
 
 def _nonlinear(records: Sequence[Record], ve: Verdict) -> Verdict:
-    """Holds or turning points at two stretch levels or more. Loadings at two rates to one peak show in
-    principle a relaxed share that changes with the stretch, but there the stretch-dependent strength also
-    takes up what the law and the Prony terms leave between the rates (docs/design/discovery.md, "The
-    extended model"), so such records alone do not make it identifiable."""
+    """Holds or turning points at two stretch levels or more, or loadings at two rates or more. Between two
+    rates to one peak the stretch changes while the stress relaxes, so a relaxed share or a relaxation time
+    that changes with the stretch shapes each rate's curve differently; with the strength form alone that
+    freedom also took up what the law and the Prony terms leave between the rates, and it was not identifiable
+    there; with the rate form beside it, it names the effect on such records and invents it on none of the
+    plain relaxations and clean records measured (docs/design/discovery.md, "Stretch-dependent relaxation")."""
     if not ve[1]:
         return (True, False, "not identifiable from these data: relaxation itself is not (" + ve[2] + ")")
     levels = stretch_levels(records)
-    if levels < 2:
-        return (True, False, "not identifiable from these data: the records turn or hold at one stretch level only; "
-                "a stretch-dependent relaxation needs holds or cycles at two levels or more (loadings at several "
-                "rates to one peak leave it to be told from what the law and the relaxation leave between the rates)")
-    return (True, True, f"identifiable once relaxation is in the model: the records turn or hold at {levels} "
-            "stretch levels")
+    rates = len(_rate_groups([r for r in records if r.history]))
+    if levels < 2 and rates < 2:
+        return (True, False, "not identifiable from these data: the records turn or hold at one stretch level only, "
+                "at one rate; a stretch-dependent relaxation needs holds or cycles at two levels or more, or "
+                "loadings at two rates or more")
+    why = f"turn or hold at {levels} stretch levels" if levels >= 2 else f"load at {rates} rates"
+    return (True, True, f"identifiable once relaxation is in the model: the records {why}")
 
 
 def _mullins(records: Sequence[Record]) -> Verdict:
