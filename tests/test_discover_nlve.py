@@ -124,16 +124,10 @@ def test_the_rate_variant_has_its_own_bounded_slot():
 
 
 # --------------------------------------------------------------------------- the closed loop
-def _staircase_record(tmp_path, kappa_tau: float, seed: int):
-    """A staircase in stretch (ramps at 0.05 /s, 30 s holds at 1.1 ... 1.4), one Prony term whose time
-    follows the stretch, integrated by solve_ivp segment by segment; force noise low-pass filtered
-    (2nd-order Butterworth at 0.2 of Nyquist) and quantised; written as a raw file."""
-    knots_t, knots_x, t_now = [0.0], [1.0], 0.0
-    for lvl in (1.1, 1.2, 1.3, 1.4):
-        t_now += (lvl - knots_x[-1]) / 0.05
-        knots_t += [t_now, t_now + 30.0]
-        knots_x += [lvl, lvl]
-        t_now += 30.0
+def _record(path, knots_t, knots_x, kappa_tau: float, seed: int, *, dt: float = 0.05):
+    """A stretch history piecewise linear through the knots, one Prony term (g 0.4, tau 3 s) whose time follows
+    the stretch, integrated by solve_ivp segment by segment; force noise low-pass filtered (2nd-order
+    Butterworth at 0.2 of Nyquist) and quantised; written as a raw file at *path*."""
     model = get_model("arruda-boyce")
 
     def history(s):
@@ -141,7 +135,7 @@ def _staircase_record(tmp_path, kappa_tau: float, seed: int):
         return x, np.asarray(nominal_stress(model, BASE, "uniaxial", np.atleast_1d(x)), float).reshape(np.shape(s))
 
     g, tau = 0.4, 3.0
-    t = np.arange(0.0, knots_t[-1] + 1e-9, 0.05)
+    t = np.arange(0.0, knots_t[-1] + 1e-9, dt)
     h_all, h0 = np.empty(t.size), 0.0
     for a, b in zip(knots_t[:-1], knots_t[1:]):
         sel = (t >= a) & (t <= b)
@@ -162,10 +156,29 @@ def _staircase_record(tmp_path, kappa_tau: float, seed: int):
     area, gauge = 20e-6, 0.03
     force = stress * area + 0.004 * float(np.max(stress)) * area * noise / np.std(noise)
     force = np.round(force / 1e-4) * 1e-4  # the converter's step
-    path = syn.write_csv(tmp_path / f"staircase_{seed}.csv",
-                         {"time": t, "displacement": (history(t)[0] - 1.0) * gauge, "force": force},
-                         gauge_length=gauge, area=area)
-    return [read(path)]
+    return read(syn.write_csv(path, {"time": t, "displacement": (history(t)[0] - 1.0) * gauge, "force": force},
+                              gauge_length=gauge, area=area))
+
+
+def _staircase_record(tmp_path, kappa_tau: float, seed: int):
+    """A staircase in stretch: ramps at 0.05 /s, 30 s holds at 1.1 ... 1.4 (:func:`_record`)."""
+    knots_t, knots_x, t_now = [0.0], [1.0], 0.0
+    for lvl in (1.1, 1.2, 1.3, 1.4):
+        t_now += (lvl - knots_x[-1]) / 0.05
+        knots_t += [t_now, t_now + 30.0]
+        knots_x += [lvl, lvl]
+        t_now += 30.0
+    return [_record(tmp_path / f"staircase_{seed}.csv", knots_t, knots_x, kappa_tau, seed)]
+
+
+def _two_rates_records(tmp_path, kappa_tau: float, seed: int):
+    """Two load-unload cycles to one peak (stretch 1.4), at 0.02 and 0.2 /s, no hold (:func:`_record`)."""
+    out = []
+    for k, rate in enumerate((0.02, 0.2)):
+        top = 0.4 / rate
+        out.append(_record(tmp_path / f"rate_{k}_{seed}.csv", [0.0, top, 2 * top], [1.0, 1.4, 1.0], kappa_tau,
+                           seed + k, dt=0.002 / rate))
+    return out
 
 
 @pytest.mark.slow
@@ -183,3 +196,51 @@ def test_discovery_adds_no_rate_form_on_plain_qlv(tmp_path):
     assert "viscoelastic" in res.kept
     assert "nonlinear_viscoelastic" not in res.kept, {n: c.reason for n, c in res.candidates.items()}
 
+
+
+@pytest.mark.slow
+def test_two_rates_to_one_peak_name_the_rate_form_and_add_none_to_plain_qlv(tmp_path):
+    """Loadings at two rates to one peak make a stretch-dependent relaxation identifiable
+    (``identify._nonlinear``): its rate form is named on records integrated independently of esmm, and
+    nothing is added to a plain relaxation recorded the same way."""
+    for sub in ("a", "b"):
+        (tmp_path / sub).mkdir()
+    res = discover(_two_rates_records(tmp_path / "a", -5.0, seed=6), **FAST)
+    assert "nonlinear_viscoelastic" in res.kept, (res.kept, {n: c.reason for n, c in res.candidates.items()})
+    assert res.final.spec.nonlinear_viscoelastic == 2
+    plain = discover(_two_rates_records(tmp_path / "b", 0.0, seed=8), **FAST)
+    assert "viscoelastic" in plain.kept
+    assert "nonlinear_viscoelastic" not in plain.kept, {n: c.reason for n, c in plain.candidates.items()}
+
+
+@pytest.mark.parametrize("relaxation_stays", [False, True])
+def test_backward_elimination_judges_a_brought_in_relaxation_once_its_container_goes(monkeypatch, relaxation_stays):
+    """A stretch-dependent relaxation brings a plain one into the model (``rounds.sync_kept``), which is never
+    tested alone; where the backward elimination removes the stretch-dependent one, the plain one is judged
+    next, on its own, before what was kept earlier (the judgement itself stubbed: this is the order)."""
+    from types import SimpleNamespace as NS
+
+    from esmm.pipeline.discover import rounds
+
+    verdicts = {"nonlinear_viscoelastic": False, "viscoelastic": relaxation_stays, "toe": True}
+    calls = []
+
+    def judged(s, name, f):
+        calls.append(name)
+        left = [n for n in s.kept if n != name]
+        reduced = NS(spec=NS(names=lambda: left), cv={"k": NS(nrmse=0.01)})
+        return verdicts[name], reduced, {"p": 0.5}, 1e-3
+
+    monkeypatch.setattr(rounds, "_judged_without", judged)
+    monkeypatch.setattr(rounds, "judged_on", lambda *a: NS(key="k"))
+    kept = ["toe", "nonlinear_viscoelastic", "viscoelastic"]
+    s = NS(kept=list(kept), kept_round={n: 1 for n in kept}, material=None, artefact=None,
+           current=NS(spec=NS(names=lambda: kept), cv={"k": NS(nrmse=0.02)}),
+           candidates={n: NS(round=1, kept=True, reason="kept") for n in kept})
+    rounds.backward(s, NS(step=lambda *a: None))
+    if relaxation_stays:
+        assert calls == ["nonlinear_viscoelastic", "viscoelastic", "toe"]
+        assert s.kept == ["toe", "viscoelastic"] and "judged on its own" in s.candidates["viscoelastic"].reason
+    else:
+        assert calls == ["nonlinear_viscoelastic", "viscoelastic"]
+        assert s.kept == ["toe"] and not s.candidates["viscoelastic"].kept

@@ -104,10 +104,10 @@ def _loaded_hold(r: Record) -> bool:
 def _nonlinear(records: Sequence[Record], ve: Verdict) -> Verdict:
     """Holds or turning points at two stretch levels or more, or loadings at two rates or more. Between two
     rates to one peak the stretch changes while the stress relaxes, so a relaxed share or a relaxation time
-    that changes with the stretch shapes each rate's curve differently; with the strength form alone that
-    freedom also took up what the law and the Prony terms leave between the rates, and it was not identifiable
-    there; with the rate form beside it, it names the effect on such records and invents it on none of the
-    plain relaxations and clean records measured (docs/design/discovery.md, "Stretch-dependent relaxation")."""
+    that follows the stretch shapes each rate's curve differently. The strength form alone also takes up
+    there what the law and the Prony terms leave between the rates; it is the rate form, searched beside it,
+    that names such records, and neither is kept on plain relaxations or clean records at several rates
+    (docs/design/discovery.md, "Stretch-dependent relaxation")."""
     if not ve[1]:
         return (True, False, "not identifiable from these data: relaxation itself is not (" + ve[2] + ")")
     levels = stretch_levels(records)
