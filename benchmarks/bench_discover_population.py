@@ -474,7 +474,8 @@ def rescore(path: Path, out: Path, *, classes: list[str] | None = None) -> int:
     moved = [r["case"] for r, old in zip(rows, doc["cases"]) if r["samples"] != old["samples"]]
     if moved:
         raise SystemExit(f"--rescore: this generator writes other records than the run's ({', '.join(moved[:5])})")
-    kept = {k: v for k, v in doc.items() if k not in ("clean", "effects", "runtime", "errors", "cases")}
+    kept = {k: v for k, v in doc.items()
+            if k not in ("clean", "effects", "runtime", "errors", "cases", "rescore_command", "rescored_classes")}
     command = (f"python benchmarks/bench_discover_population.py --rescore {path} --out {out}"
                + (f" --classes {','.join(classes)}" if classes else ""))
     before = doc.get("rescore_command") if doc.get("rescored_classes") and classes else None
