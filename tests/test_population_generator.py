@@ -594,6 +594,37 @@ def test_the_part_no_elastic_law_takes():
     assert _not_elastic([(np.ones_like(x), basis, 1.0)]) > 0.0  # a constant does not vanish at the reference
 
 
+def _quiet_chain():
+    """A 10 Hz chain (Butterworth, FIR decimator, 16 bits) through which the neighbours' atoms are recorded."""
+    return A.Chain(f_out=10.0, ratio=10, filter="butter", order=2, cutoff_of_nyquist=0.3, ripple_db=0.5,
+                   decimator="fir", cic_order=2, bits=16, quantize_at="adc", capacity_N=10.0, noise_sd_of_capacity=1e-4,
+                   pink_corner_Hz=0.0, hum_of_noise=0.0, hum_Hz=50.0, encoder_step_m=1e-7, encoder_phase=0.5,
+                   position="latched", velocity_ripple=0.0, ripple_Hz=1.0, velocity_noise=0.0, accel_s=0.1)
+
+
+def _cycles_to(peaks) -> np.ndarray:
+    """Load-unload cycles from stretch 1 to each of *peaks*, 400 samples a leg."""
+    legs = [np.linspace(1.0, p, 400) for p in peaks]
+    return np.concatenate([np.concatenate([leg, leg[::-1]]) for leg in legs])
+
+
+def _left_beside(atoms_of, knots: int, x: np.ndarray, effect) -> float:
+    """What the elastic functions and the neighbour's atoms (``atoms_of``, strengths >= 0) leave of an effect's
+    change on the stretch path *x*, as a fraction of what the elastic functions alone leave; a cubic law
+    with its energy, through :func:`_quiet_chain`."""
+    from population.cases import _elastic_basis, _not_elastic
+
+    ch = _quiet_chain()
+    pe = 4.0 * (x - 1.0) + 30.0 * (x - 1.0) ** 3
+    w0 = 2.0 * (x - 1.0) ** 2 + 7.5 * (x - 1.0) ** 4
+    atoms = atoms_of({"t": np.arange(x.size) * 0.01, "x": x, "common": pe, "energy": w0}, ch, 1.0)
+    assert atoms.shape[1] == knots
+    basis = _elastic_basis(x, 1.0, 1.0, float(x.max()), ch)
+    y = A.record_force(effect(pe, w0) - pe, ch, None)
+    return _not_elastic([(y, np.hstack([basis, atoms]), 1.0)], signed=basis.shape[1]) / _not_elastic(
+        [(y, basis, 1.0)])
+
+
 def test_the_part_neither_an_elastic_law_nor_a_plain_relaxation_takes():
     """The neighbour's d_id (``population/cases.py``, ``_relaxation_atoms``): on a two-step staircase, a plain
     relaxation whose time lies between the dictionary's is taken by the elastic functions and the relaxation
@@ -606,10 +637,7 @@ def test_the_part_neither_an_elastic_law_nor_a_plain_relaxation_takes():
     t = np.arange(0.0, 200.0, dt)
     x = 1.0 + 0.1 * np.clip(t / 5.0, 0, 1) + 0.1 * np.clip((t - 100.0) / 5.0, 0, 1)
     pe = 4.0 * (x - 1.0) + 30.0 * (x - 1.0) ** 3
-    ch = A.Chain(f_out=10.0, ratio=10, filter="butter", order=2, cutoff_of_nyquist=0.3, ripple_db=0.5,
-                 decimator="fir", cic_order=2, bits=16, quantize_at="adc", capacity_N=10.0, noise_sd_of_capacity=1e-4,
-                 pink_corner_Hz=0.0, hum_of_noise=0.0, hum_Hz=50.0, encoder_step_m=1e-7, encoder_phase=0.5,
-                 position="latched", velocity_ripple=0.0, ripple_Hz=1.0, velocity_noise=0.0, accel_s=0.1)
+    ch = _quiet_chain()
     atoms = _relaxation_atoms({"t": t, "x": x, "common": pe}, ch, 1.0, (5.0, 95.0))
     assert atoms.shape[1] == RELAX_TIMES
     basis = _elastic_basis(x, 1.0, 1.0, 1.2, ch)
@@ -631,36 +659,17 @@ def test_the_part_neither_an_elastic_law_nor_a_damage_takes():
     Simo's damage past an onset; Ogden and Roxburgh's softening, which reloads
     to the primary curve at each new peak, is not. On cycles to one peak the same softening is taken: a
     first loading and a reloading are two curves, which an elastic law and a damage function take."""
-    from population.cases import DAMAGE_KNOTS, _damage_atoms, _elastic_basis, _not_elastic
-
-    dt = 0.01
-
-    def path(peaks):
-        legs = [np.linspace(1.0, p, 400) for p in peaks]
-        return np.concatenate([np.concatenate([leg, leg[::-1]]) for leg in legs])
-
-    ch = A.Chain(f_out=10.0, ratio=10, filter="butter", order=2, cutoff_of_nyquist=0.3, ripple_db=0.5,
-                 decimator="fir", cic_order=2, bits=16, quantize_at="adc", capacity_N=10.0, noise_sd_of_capacity=1e-4,
-                 pink_corner_Hz=0.0, hum_of_noise=0.0, hum_Hz=50.0, encoder_step_m=1e-7, encoder_phase=0.5,
-                 position="latched", velocity_ripple=0.0, ripple_Hz=1.0, velocity_noise=0.0, accel_s=0.1)
+    from population.cases import DAMAGE_KNOTS, _damage_atoms
 
     def left(x, effect):
-        pe = 4.0 * (x - 1.0) + 30.0 * (x - 1.0) ** 3
-        w0 = 2.0 * (x - 1.0) ** 2 + 7.5 * (x - 1.0) ** 4
-        sim = {"t": np.arange(x.size) * dt, "x": x, "common": pe, "energy": w0}
-        atoms = _damage_atoms(sim, ch, 1.0)
-        assert atoms.shape[1] == DAMAGE_KNOTS
-        basis = _elastic_basis(x, 1.0, 1.0, float(x.max()), ch)
-        y = A.record_force(effect(pe, w0) - pe, ch, None)
-        return _not_elastic([(y, np.hstack([basis, atoms]), 1.0)], signed=basis.shape[1]) / _not_elastic(
-            [(y, basis, 1.0)])
+        return _left_beside(_damage_atoms, DAMAGE_KNOTS, x, effect)
 
-    rising = path([1.1, 1.2, 1.3, 1.4])
+    rising = _cycles_to([1.1, 1.2, 1.3, 1.4])
     assert left(rising, lambda pe, w: H.mullins_discontinuous(pe, w, d_inf=0.4, eta=0.05)) < 1e-4
     assert left(rising, lambda pe, w: H.simo_damage(pe, w, xi0=0.2, a=0.3, b=0.4)) < 1e-4
     pseudo = lambda pe, w: H.mullins_pseudo_elastic(pe, w, r=1.5, m=0.02, beta=0.1)  # noqa: E731
     assert left(rising, pseudo) > 0.05
-    assert left(path([1.4, 1.4, 1.4]), pseudo) < 1e-3
+    assert left(_cycles_to([1.4, 1.4, 1.4]), pseudo) < 1e-3
 
 
 
@@ -672,36 +681,17 @@ def test_the_part_neither_an_elastic_law_nor_a_mullins_softening_takes():
     damage, which soften the primary curve at each new peak, are not. On cycles to one peak Simo's damage
     is taken: its first loading is an elastic law, and each reloading below it differs by g(W) - g(W_max),
     a non-decreasing function of the energy lacking."""
-    from population.cases import MULLINS_KNOTS, _elastic_basis, _mullins_atoms, _not_elastic
-
-    dt = 0.01
-
-    def path(peaks):
-        legs = [np.linspace(1.0, p, 400) for p in peaks]
-        return np.concatenate([np.concatenate([leg, leg[::-1]]) for leg in legs])
-
-    ch = A.Chain(f_out=10.0, ratio=10, filter="butter", order=2, cutoff_of_nyquist=0.3, ripple_db=0.5,
-                 decimator="fir", cic_order=2, bits=16, quantize_at="adc", capacity_N=10.0, noise_sd_of_capacity=1e-4,
-                 pink_corner_Hz=0.0, hum_of_noise=0.0, hum_Hz=50.0, encoder_step_m=1e-7, encoder_phase=0.5,
-                 position="latched", velocity_ripple=0.0, ripple_Hz=1.0, velocity_noise=0.0, accel_s=0.1)
+    from population.cases import MULLINS_KNOTS, _mullins_atoms
 
     def left(x, effect):
-        pe = 4.0 * (x - 1.0) + 30.0 * (x - 1.0) ** 3
-        w0 = 2.0 * (x - 1.0) ** 2 + 7.5 * (x - 1.0) ** 4
-        sim = {"t": np.arange(x.size) * dt, "x": x, "common": pe, "energy": w0}
-        atoms = _mullins_atoms(sim, ch, 1.0)
-        assert atoms.shape[1] == MULLINS_KNOTS
-        basis = _elastic_basis(x, 1.0, 1.0, float(x.max()), ch)
-        y = A.record_force(effect(pe, w0) - pe, ch, None)
-        return _not_elastic([(y, np.hstack([basis, atoms]), 1.0)], signed=basis.shape[1]) / _not_elastic(
-            [(y, basis, 1.0)])
+        return _left_beside(_mullins_atoms, MULLINS_KNOTS, x, effect)
 
-    rising = path([1.1, 1.2, 1.3, 1.4])
+    rising = _cycles_to([1.1, 1.2, 1.3, 1.4])
     simo = lambda pe, w: H.simo_damage(pe, w, xi0=0.2, a=0.3, b=0.4)  # noqa: E731
     assert left(rising, lambda pe, w: H.mullins_pseudo_elastic(pe, w, r=1.5, m=0.02, beta=0.0)) < 1e-4
     assert left(rising, simo) > 0.05
     assert left(rising, lambda pe, w: H.mullins_discontinuous(pe, w, d_inf=0.4, eta=0.05)) > 0.05
-    assert left(path([1.4, 1.4, 1.4]), simo) < 1e-3
+    assert left(_cycles_to([1.4, 1.4, 1.4]), simo) < 1e-3
 
 @pytest.mark.slow
 def test_a_slack_is_not_identifiable_and_a_misstated_area_is(tmp_path):
