@@ -34,6 +34,7 @@ from .state import Candidate, Criteria, Search, start_search
 from .statistics import REPLICATION_LEVEL
 from .trials import (
     Trial,
+    adds_nothing,
     best_variant,
     check_heldout,
     compared,
@@ -152,7 +153,13 @@ def _try_candidates(s: Search, order: list[str], rnd: int, advance) -> tuple[lis
     singles: dict[str, Trial] = {}
     for n in order:
         c = s.candidates[n]
-        t = best_variant(n, VARIANTS.get(n, (1,)), s.current, warm=s.warm)
+        variants = [v for v in VARIANTS.get(n, (1,)) if not adds_nothing(n, v, s.current)]
+        if not variants:
+            advance(1)
+            c.reason = ("not fitted: every reading at rest is the tared zero, so the offset held there is the "
+                        "current model; no record drifts where a drift could be told")
+            continue
+        t = best_variant(n, variants, s.current, warm=s.warm)
         advance(1)
         if t is not None:
             s.remember(t.fit)
