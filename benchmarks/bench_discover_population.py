@@ -32,7 +32,9 @@ Scoring:
   3), and by class where it is at least 30; of those, also where the part that neither an elastic law
   nor the class's neighbour takes is at least 30 (a stretch-dependent relaxation told from a plain one,
   a load cell's drift from a relaxation, a Mullins softening from a damage and back; ``population/cases.py``,
-  ``NEIGHBOURS``).
+  ``NEIGHBOURS``); and, of those, the cases whose files were written without a time column, which esmm
+  reads as processed curves with no loading history and no machine artefacts (every class but a specimen
+  scale, ``READ_WITHOUT_TIME``), counted apart.
 * runtimes, timeouts, errors (non-zero exits with their last message line), seeds.
 
 ``python benchmarks/bench_discover_population.py --cases N --seed S --jobs J --out results.json
@@ -128,6 +130,10 @@ def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float | None, 
 SAME_CLASS = {("mullins", "discontinuous_damage"): "damage"}
 #: detectability bins of the effect cases (signal-to-noise ratio of the known effect).
 DETECT_BINS = (3.0, 30.0)
+#: the classes esmm names from curves written without their time column: it reads such a curve as processed
+#: (docs/design/discovery.md: no loading history, not even in a cyclic file, and no machine artefacts); the
+#: identifiable cases of other classes whose files have no time are counted apart (``without_time``)
+READ_WITHOUT_TIME = frozenset({"specimen_scale"})
 
 
 def judge(true: str, effects: list[str], variant: str | None = None) -> tuple[bool, bool, list[str]]:
@@ -239,13 +245,18 @@ def _by_class_identifiable(ok: list[dict]) -> dict:
     neighbour (``population/cases.py``, ``NEIGHBOURS``: a stretch-dependent relaxation from a plain one, a
     load cell's drift from a relaxation, a Mullins softening from a damage and back), at the same edge; a class
     without a neighbour, or whose variant the neighbour's name is right for (:data:`SAME_CLASS`), counts
-    them all."""
+    them all; ``without_time`` counts those whose files were written without a time column, of a class esmm
+    does not read from such files (:data:`READ_WITHOUT_TIME`; only rows that say whether they have time)."""
     out: dict = {}
     for r in ok:
         if (r.get("identifiability") or 0.0) >= DETECT_BINS[1]:
-            b = out.setdefault(r["class"], {"cases": 0, "strict": 0, "from_neighbour": {"cases": 0, "strict": 0}})
+            b = out.setdefault(r["class"], {"cases": 0, "strict": 0, "from_neighbour": {"cases": 0, "strict": 0},
+                                            "without_time": {"cases": 0, "strict": 0}})
             b["cases"] += 1
             b["strict"] += int(r["strict"])
+            if r.get("timed") is False and r["class"] not in READ_WITHOUT_TIME:
+                b["without_time"]["cases"] += 1
+                b["without_time"]["strict"] += int(r["strict"])
             alias = SAME_CLASS.get((r["class"], r.get("variant")))
             if all(v >= DETECT_BINS[1] for k, v in (r.get("identifiability_from") or {}).items() if k != alias):
                 b["from_neighbour"]["cases"] += 1
@@ -263,6 +274,7 @@ def _row(t: dict, res: dict) -> dict:
             "identifiability": (t["effect"] or {}).get("identifiability"),
             "identifiability_from": (t["effect"] or {}).get("identifiability_from"),
             "files": len(t["files"]), "samples": sum(f["samples"] for f in t["files"]),
+            "timed": all((f.get("export") or {}).get("time", True) for f in t["files"]),
             "acquisition_error_of_range": max(f["acquisition_error_of_range"] for f in t["files"]),
             "chain": {k: ch.get(k) for k in ("filter", "order", "f_out", "bits", "quantize_at", "hum_of_noise",
                                              "decimator", "position", "force_lag_s", "force_lag_of_segment")},
@@ -357,8 +369,10 @@ def table(res: dict) -> str:
         ids = e.get("by_class_identifiable", {})
         n, k = (sum(v[f] for v in ids.values()) for f in ("cases", "strict"))
         nb = [v.get("from_neighbour", v) for v in ids.values()]
+        wt = [v.get("without_time", {"cases": 0, "strict": 0}) for v in ids.values()]
         lines.append(f"  named alone where d_id >= {DETECT_BINS[1]:g}: {k}/{n}; where the neighbouring class's "
-                     f"d_id is too: {sum(v['strict'] for v in nb)}/{sum(v['cases'] for v in nb)}")
+                     f"d_id is too: {sum(v['strict'] for v in nb)}/{sum(v['cases'] for v in nb)}; written without "
+                     f"time (no history or artefact read): {sum(v['strict'] for v in wt)}/{sum(v['cases'] for v in wt)}")
     lines.append(f"runtime: median {rt['median_s']} s, max {rt['max_s']} s, timeouts {len(rt['timeouts'])}, "
                  f"errors {len(res['errors'])}, wall {res['wall_s']} s with {res['jobs']} jobs")
     lines += [f"  error {x['case']} ({x['class']}): {x['message']}" for x in res["errors"]]

@@ -236,6 +236,13 @@ def population_lines(doc: dict) -> list[str]:
                         "damage and, in truths of generator 2.9 on, a damage against a Mullins softening): "
                     + ", ".join(f"{k} {v['strict']}/{v['cases']}" for k, v in nb.items())
                     + f"; in all {sum(v['strict'] for v in nb.values())}/{sum(v['cases'] for v in nb.values())}."]
+        wt = {k: v["without_time"] for k, v in ids.items() if v.get("without_time", {}).get("cases")}
+        if wt:
+            out += ["", "Of the cases where d_id >= 30, those whose files were written without a time column, which "
+                        "esmm reads as processed curves (no loading history, no machine artefacts; docs/design/"
+                        "discovery.md), named alone: " + ", ".join(f"{k} {v['strict']}/{v['cases']}"
+                                                                   for k, v in wt.items())
+                    + f"; in all {sum(v['strict'] for v in wt.values())}/{sum(v['cases'] for v in wt.values())}."]
     out += ["", f"Effect cases: named alone {pct(e['strict_rate'])}, named among others {pct(e['lenient_rate'])} "
                 f"of {fmt(e['ran'])}. Runtime per case: median {fmt(rt['median_s'])} s, largest {fmt(rt['max_s'])} s, "
                 f"{len(rt['timeouts'])} past the {fmt(doc.get('timeout_s'))} s limit, {len(doc.get('errors', []))} "

@@ -229,63 +229,64 @@ def test_replicates_mounted_with_their_own_slacks_on_a_toe_law_keep_the_slack(tm
     assert "slack" in res.kept, (res.kept, res.candidates["slack"].reason)
 
 
-def _offset_fit(stress_offsets, *, variant: int = 1, names_rest: bool = True):
-    """A stand-in for a fitted model with a load-cell offset of *variant* on records built from
-    :func:`_offset_record` (only what :func:`~esmm.pipeline.discover.trials.size_units` reads)."""
+def _offset_fit(stress_offsets, *, variant: int = 1, names_rest: bool = True, back: bool = True):
+    """A stand-in for a fitted model with a load-cell offset of *variant* (0: none) on records built from
+    :func:`_offset_record` (only what :func:`~esmm.pipeline.discover.trials.adds_nothing` reads)."""
     from types import SimpleNamespace
 
     from esmm.pipeline.discover.model import Bounds, Problem, Spec
     from esmm.pipeline.discover.records import prepare
     from esmm.pipeline.materials import get_model
 
-    recs = prepare([_offset_record(np.random.default_rng(k), o, at_rest=names_rest)
+    recs = prepare([_offset_record(np.random.default_rng(k), o, at_rest=names_rest, back=back)
                     for k, o in enumerate(stress_offsets)])
     spec = Spec(sensor_offset=variant)
     prob = Problem(get_model("arruda-boyce"), recs, spec, fixed={}, directions=None, bounds=Bounds(recs, 1.0))
     return SimpleNamespace(spec=spec, problem=prob)
 
 
-def _offset_record(rng, offset: float, *, at_rest: bool = True):
-    """A machine record of a load-unload cycle to stretch 1.5 (peak about 40 kPa, noise 20 Pa) plus a load-cell
-    *offset* [Pa]; 300 samples at rest first, or none (the crosshead moves from the first sample on)."""
+def _offset_record(rng, offset: float, *, at_rest: bool = True, back: bool = True):
+    """A machine record of a load-unload cycle to stretch 1.5 (or its loading alone: *back* False; peak about
+    40 kPa, noise 20 Pa) plus a load-cell *offset* [Pa]; 300 samples at rest first, or none (the crosshead
+    moves from the first sample on)."""
     from esmm.pipeline.tensile.data import TensileTest
 
     up = np.linspace(1.0 if at_rest else 1.01, 1.5, 1500)
-    lam = np.concatenate([np.ones(300) if at_rest else [], up, up[::-1]])
+    lam = np.concatenate([np.ones(300) if at_rest else [], up, up[::-1] if back else []])
     y = 20e3 * (lam - lam ** -2) + offset + 20.0 * rng.standard_normal(lam.size)
     return TensileTest(source=Path(f"offset_{offset:g}.csv"), mode="uniaxial", stretch=lam, stress=y,
                        time=np.arange(lam.size) * 0.02)
 
 
-def test_an_offset_read_at_rest_is_sized_by_its_reading_a_fitted_one_by_its_held_out_fall():
-    """The held-out test's size requirement (one squared resolution of held-out fall) is waived only where
-    the offset's size is measured: every offset of the model held at a reading at rest that is one (no drift,
-    no record whose offset is fitted, not a tared zero on every record); pairs keep it."""
-    from esmm.pipeline.discover.trials import size_units
+def test_an_offset_held_at_the_tared_zero_without_a_drift_is_the_current_model():
+    """Held at zero on every record it corrects and with no drift to fit, an offset adds nothing: it is not a
+    candidate. A reading that is a measurement, a record without one (its offset fitted), a drift that a
+    record can show (a cycle back to rest) or an offset already in the model make it one."""
+    from esmm.pipeline.discover.trials import adds_nothing
 
-    assert size_units(_offset_fit([-800.0]), "sensor_offset", 1.0) == 0.0
-    assert size_units(_offset_fit([-800.0, 0.0]), ["sensor_offset"], 1.0) == 0.0  # a tared zero beside it
-    assert size_units(_offset_fit([0.0]), "sensor_offset", 1.0) == 1.0  # no reading: nothing measured
-    assert size_units(_offset_fit([-800.0], variant=2), "sensor_offset", 1.0) == 1.0  # the drift is fitted
-    assert size_units(_offset_fit([-800.0], names_rest=False), "sensor_offset", 1.0) == 1.0  # offset fitted
-    assert size_units(_offset_fit([-800.0]), ["sensor_offset", "viscoelastic"], 1.0) == 1.0
-    assert size_units(_offset_fit([-800.0]), "viscoelastic", 1.0) == 1.0
+    assert adds_nothing("sensor_offset", 1, _offset_fit([0.0, 0.0], variant=0))
+    assert not adds_nothing("sensor_offset", 2, _offset_fit([0.0], variant=0))  # its drift can be told
+    assert adds_nothing("sensor_offset", 2, _offset_fit([0.0], variant=0, back=False))  # a ramp: no drift
+    assert not adds_nothing("sensor_offset", 1, _offset_fit([0.0, -800.0], variant=0))
+    assert not adds_nothing("sensor_offset", 1, _offset_fit([0.0], variant=0, names_rest=False))
+    assert not adds_nothing("sensor_offset", 1, _offset_fit([0.0], variant=1))
+    assert not adds_nothing("viscoelastic", 1, _offset_fit([0.0], variant=0))
 
 
 @pytest.mark.slow
-def test_an_offset_read_at_rest_that_the_law_half_takes_up_is_kept(tmp_path):
-    """A neo-Hookean staircase of the independent generator recorded with a load-cell offset of 3.5 % of its
-    peak (seed 13, case 168 of its 303): read at rest, the offset lowers the held-out error 0.36 → 0.12 %, far
-    beyond the noise and replicated, but only 0.99 squared resolutions, since the law takes up the rest of it
-    in the training folds. Its size is the reading's, which reaches the record's resolution: it is kept."""
+def test_a_clean_pull_to_failure_keeps_no_offset_held_at_the_tared_zero(tmp_path):
+    """A clean Demiray pull to failure of the independent generator (seed 18, case 121 of its 303), tared at
+    rest: an offset held at 0 Pa "gained" 1.41 → 0.60 % held out, from where its fit landed; it is the
+    base model and is not fitted."""
     from esmm.pipeline.tensile.files import read_tests
     from population import make_case
+    from population.cases import plan
 
-    truth = make_case(np.random.SeedSequence(13).spawn(303)[168], "sensor_offset", tmp_path)
-    assert truth["protocol"]["kind"] == "staircase" and truth["effect"]["variant"] == "offset", truth["effect"]
+    cls, kind = plan(18, 303, 0.66)[121]
+    truth = make_case(np.random.SeedSequence(18).spawn(303)[121], cls, tmp_path, kind=kind)
+    assert cls == "clean" and truth["protocol"]["kind"] == "failure", truth["protocol"]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = discover(read_tests([tmp_path / f["file"] for f in truth["files"]]), nested=False, n_starts=8)
-    c = res.candidates["sensor_offset"]
-    assert res.kept == ["sensor_offset"], (res.kept, c.reason)
-    assert c.heldout_p_replication < 1e-6 and c.heldout_gain > 0.5
+    assert res.kept == [], (res.kept, res.candidates["sensor_offset"].reason)
+    assert res.candidates["sensor_offset"].reason.startswith("not fitted: every reading at rest is the tared zero")

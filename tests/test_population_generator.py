@@ -474,19 +474,25 @@ def test_identifiable_cases_are_also_counted_against_the_neighbouring_class():
     neighbour's name is right too: every identifiable case)."""
     import bench_discover_population as B
 
-    def row(cls, d_id, strict, nb=None, variant=None):
+    def row(cls, d_id, strict, nb=None, variant=None, timed=True):
         name = "damage" if cls == "mullins" else "viscoelastic"
-        return {"class": cls, "identifiability": d_id, "strict": strict, "variant": variant,
+        return {"class": cls, "identifiability": d_id, "strict": strict, "variant": variant, "timed": timed,
                 "identifiability_from": None if nb is None else {name: nb}}
 
     rows = [row("nonlinear_viscoelastic", 500.0, False, 12.0), row("nonlinear_viscoelastic", 80.0, True, 45.0),
             row("nonlinear_viscoelastic", 10.0, True, 2.0), row("mullins", 300.0, True),
             row("mullins", 200.0, True, 0.5, "discontinuous_damage"), row("mullins", 90.0, True, 2.0, "ogden_roxburgh"),
-            row("sensor_offset", 40.0, False, 31.0)]
+            row("sensor_offset", 40.0, False, 31.0), row("mullins", 70.0, False, timed=False),
+            row("mullins", 5.0, False, timed=False), row("specimen_scale", 900.0, True, timed=False)]
     got = B._by_class_identifiable(rows)
-    assert got["nonlinear_viscoelastic"] == {"cases": 2, "strict": 1, "from_neighbour": {"cases": 1, "strict": 1}}
-    assert got["mullins"] == {"cases": 3, "strict": 3, "from_neighbour": {"cases": 2, "strict": 2}}
+    none = {"cases": 0, "strict": 0}
+    assert got["nonlinear_viscoelastic"] == {"cases": 2, "strict": 1, "from_neighbour": {"cases": 1, "strict": 1},
+                                             "without_time": none}
+    # the curve without time is identifiable, and counted apart; one below the edge is neither
+    assert got["mullins"] == {"cases": 4, "strict": 3, "from_neighbour": {"cases": 3, "strict": 2},
+                              "without_time": {"cases": 1, "strict": 0}}
     assert got["sensor_offset"]["from_neighbour"] == {"cases": 1, "strict": 0}
+    assert got["specimen_scale"]["without_time"] == none  # esmm reads a scale from processed curves
     assert list(got) == [c for c in B.CLASSES if c in got]
 
 

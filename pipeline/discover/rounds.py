@@ -41,7 +41,6 @@ from .trials import (
     judged_on,
     noise_taus,
     passes,
-    size_units,
 )
 
 #: the most strain-energy terms fitted per round (the best by their first-order gain)
@@ -243,11 +242,11 @@ def _heldout_winner(s: Search, trials: list[Trial], rnd: int, lv: Levels) -> Tri
                 f"{CHECKS_PER_ROUND} candidates with larger fitted improvements were checked first")
     for t in checked:
         h = _check(s, t, t.name)
-        ok = passes(h, lv.single, _size(s, t.fit, t.name))
+        ok = passes(h, lv.single, s.crit.min_resolution_units)
         fallback = t.fallback if t.name not in s.kept else None
         if not ok and fallback is not None:
             t, h = _simpler_variant(s, t, h, lv)
-            ok = passes(h, lv.single, _size(s, t.fit, t.name))
+            ok = passes(h, lv.single, s.crit.min_resolution_units)
             if ok:
                 _record(s.candidates[t.name], t)
                 fallback = None
@@ -270,17 +269,12 @@ def _heldout_winner(s: Search, trials: list[Trial], rnd: int, lv: Levels) -> Tri
             return t
         if fallback is not None:  # the richer variant's path-dependent part is not history: the simpler one
             f = fallback
-            if passes(_check(s, f, f.name), lv.single, _size(s, f.fit, f.name)):
+            if passes(_check(s, f, f.name), lv.single, s.crit.min_resolution_units):
                 _record(c, f)
                 _heldout_fields(c, f, lv.single, s)
                 if _path_dependent(s, f, [f.name]):  # writes its verdict on the candidate as recorded
                     return f
     return None
-
-
-def _size(s: Search, f: Fitted, names: str | list[str]) -> float:
-    """The held-out test's size requirement for *names* in *f* (:func:`~.trials.size_units`)."""
-    return size_units(f, names, s.crit.min_resolution_units)
 
 
 def _simpler_variant(s: Search, t: Trial, h: dict, lv: Levels) -> tuple[Trial, dict]:
@@ -294,7 +288,7 @@ def _simpler_variant(s: Search, t: Trial, h: dict, lv: Levels) -> tuple[Trial, d
     in the round's family (:func:`run_round`)."""
     f = t.fallback
     h2 = _check(s, f, f.name)
-    if passes(h2, lv.single, _size(s, f.fit, f.name)):
+    if passes(h2, lv.single, s.crit.min_resolution_units):
         return f, h2
     return t, h
 
@@ -345,7 +339,7 @@ def _rejected_text(t: Trial, h: dict, level: float, s: Search) -> str:
             f"p {h['p']:.2g} (needs <= {level:.2g}); replicated across the held-out segments p "
             f"{h['p_replication']:.2g} (t {h['t_replication']:+.2f} on {h['dof']:.1f} degrees of freedom; needs <= "
             f"{REPLICATION_LEVEL:g}); {h['resolution_units']:+.3g} squared resolutions per sample (needs "
-            f"{_size(s, t.fit, t.name):g})")
+            f"{s.crit.min_resolution_units:g})")
 
 
 def _keep(s: Search, t: Trial, rnd: int, rep) -> None:
@@ -561,7 +555,7 @@ def _judged_without(s: Search, name: str, f: Fitted):
     t = compared(name, f, without)
     h = check_heldout(t, without, judged_on(name, s.material, s.artefact))
     level = s.candidates[name].heldout_level or s.levels[max(s.kept_round.get(name, 1), 1) - 1].single
-    return t.screened and passes(h, level, _size(s, f, name)), without, h, level
+    return t.screened and passes(h, level, s.crit.min_resolution_units), without, h, level
 
 
 def _still_passes(s: Search, name: str, f: Fitted) -> bool:

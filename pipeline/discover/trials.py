@@ -15,8 +15,7 @@ parameter refitted) with
   of the improvement in squared resolutions (the larger of the noise and the
   force channel's accuracy). The search keeps a candidate when the p-value is
   below the level its family-wise control gives it (:mod:`.levels`) and the
-  size is at least :data:`MIN_RESOLUTION_UNITS` (an offset read at rest is
-  sized by its reading instead: :func:`size_units`).
+  size is at least :data:`MIN_RESOLUTION_UNITS`.
 
 Material effects and strain-energy terms are judged on the material scheme's
 folds, per-file artefacts on the artefact scheme's (:mod:`.heldout`). AICc
@@ -218,27 +217,9 @@ def check_heldout(t: Trial, current: Fitted, fs: FoldSet) -> dict[str, Any]:
 def passes(h: dict[str, Any], level: float, min_units: float = MIN_RESOLUTION_UNITS) -> bool:
     """The decision: the noise test's p-value at most *level*, the replication check's at most
     :data:`~esmm.pipeline.discover.statistics.REPLICATION_LEVEL`, and the improvement at least *min_units*
-    squared resolutions (:func:`size_units`: none for an offset read at rest)."""
+    squared resolutions."""
     return (bool(h) and h["p"] <= level and h["p_replication"] <= REPLICATION_LEVEL
             and h["resolution_units"] >= min_units)
-
-
-def size_units(f: Fitted, names: str | list[str], min_units: float) -> float:
-    """The size requirement of the held-out test for *names* in the model *f*: *min_units*, except for a load
-    cell's offset that *f* holds at its readings at rest on every record it corrects (no parameter of its own,
-    no drift), whose size is measured rather than fitted: each reading already reaches its record's resolution
-    (:func:`~esmm.pipeline.discover.records.rest_reading`), so the held-out test judges only whether correcting
-    by it predicts better (0.0). The held-out fall of such an offset is what the elastic law could not take up
-    of it, not its size: a reading of 3.5 % of the peak lowered a staircase's held-out error 0.36 → 0.12 % and
-    measured 0.99 squared resolutions."""
-    if (names if isinstance(names, str) else tuple(names)) not in ("sensor_offset", ("sensor_offset",)) \
-            or f.spec.sensor_offset != 1:
-        return min_units
-    fw = f.problem.forward
-    corrected = [k for k in range(len(fw.records)) if fw.n_offset[k]]
-    if corrected and all(fw.pinned[k] is not None for k in corrected) and any(fw.pinned[k] for k in corrected):
-        return 0.0
-    return min_units
 
 
 def segments(f: Fitted, e0, e1) -> list[HeldoutSegment]:
