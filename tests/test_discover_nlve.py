@@ -229,14 +229,14 @@ def test_backward_elimination_judges_a_brought_in_relaxation_once_its_container_
         calls.append(name)
         left = [n for n in s.kept if n != name]
         reduced = NS(spec=NS(names=lambda: left), cv={"k": NS(nrmse=0.01)})
-        return verdicts[name], reduced, {"p": 0.5}, 1e-3
+        return verdicts[name], reduced, {"p": 0.5, "p_replication": 0.01, "resolution_units": 2.0}, 1e-3
 
     monkeypatch.setattr(rounds, "_judged_without", judged)
     monkeypatch.setattr(rounds, "judged_on", lambda *a: NS(key="k"))
     kept = ["toe", "nonlinear_viscoelastic", "viscoelastic"]
     s = NS(kept=list(kept), kept_round={n: 1 for n in kept}, material=None, artefact=None,
            current=NS(spec=NS(names=lambda: kept), cv={"k": NS(nrmse=0.02)}),
-           candidates={n: NS(round=1, kept=True, reason="kept") for n in kept})
+           candidates={n: NS(round=1, kept=True, reason="kept") for n in kept}, crit=NS(min_resolution_units=1.0))
     rounds.backward(s, NS(step=lambda *a: None))
     if relaxation_stays:
         assert calls == ["nonlinear_viscoelastic", "viscoelastic", "toe"]
@@ -244,3 +244,18 @@ def test_backward_elimination_judges_a_brought_in_relaxation_once_its_container_
     else:
         assert calls == ["nonlinear_viscoelastic", "viscoelastic"]
         assert s.kept == ["toe"] and not s.candidates["viscoelastic"].kept
+    # the removal names the check that failed, and only that one
+    why = s.candidates["nonlinear_viscoelastic"].reason
+    assert "beyond the noise p 0.5 > 0.001" in why and "replicated" not in why and "resolutions" not in why
+
+
+def test_a_removal_names_every_held_out_check_that_fails():
+    """The backward elimination's reason names what failed: the noise test, the replication check, the size
+    requirement, or (all three passing) the pre-screen."""
+    from esmm.pipeline.discover.rounds import failed_checks
+
+    h = {"p": 1e-5, "p_replication": 0.2, "resolution_units": 0.4}
+    assert failed_checks(h, 1e-3, 1.0) == ("replicated across the held-out segments p 0.2 > 0.05; "
+                                           "0.4 squared resolutions per sample < 1")
+    assert failed_checks({**h, "p": 0.01}, 1e-3, 0.3).startswith("beyond the noise p 0.01 > 0.001; replicated")
+    assert "pre-screen" in failed_checks({"p": 0.0, "p_replication": 0.0, "resolution_units": 5.0}, 1e-3, 1.0)

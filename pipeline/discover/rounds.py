@@ -489,12 +489,25 @@ def backward(s: Search, rep) -> None:
             continue
         c.kept = False
         c.reason = (f"kept in round {c.round}, then removed: given {', '.join(n for n in s.kept if n != name)}, it "
-                    f"no longer predicts held-out data better (held-out NRMSE {reduced.cv[fs.key].nrmse:.2%} without "
-                    f"it, {s.current.cv[fs.key].nrmse:.2%} with it; p {h['p']:.2g}, level {level:.2g})")
+                    f"no longer passes the held-out test (held-out NRMSE {reduced.cv[fs.key].nrmse:.2%} without "
+                    f"it, {s.current.cv[fs.key].nrmse:.2%} with it; {failed_checks(h, level, s.crit.min_resolution_units)})")
         rep.step(f"removed {name}: the others explain what it did")
         s.kept.remove(name)
         s.current = reduced
         sync_kept(s, c.round)
+
+
+def failed_checks(h: dict, level: float, min_units: float) -> str:
+    """What of the held-out test *h* fails at *level* and *min_units* squared resolutions, in words (every
+    check that fails, so that a removal names its reason; where all three pass, the pre-screen failed)."""
+    out = []
+    if h["p"] > level:
+        out.append(f"beyond the noise p {h['p']:.2g} > {level:.2g}")
+    if h["p_replication"] > REPLICATION_LEVEL:
+        out.append(f"replicated across the held-out segments p {h['p_replication']:.2g} > {REPLICATION_LEVEL:g}")
+    if h["resolution_units"] < min_units:
+        out.append(f"{h['resolution_units']:.3g} squared resolutions per sample < {min_units:g}")
+    return "; ".join(out) or "its fitted improvement no longer pays for its parameters (the pre-screen)"
 
 
 def drop_unsupported_artefacts(s: Search, rep) -> None:
