@@ -38,6 +38,7 @@ from .trials import (
     best_variant,
     check_heldout,
     compared,
+    failing_checks,
     judged_on,
     noise_taus,
     passes,
@@ -498,16 +499,10 @@ def backward(s: Search, rep) -> None:
 
 
 def failed_checks(h: dict, level: float, min_units: float) -> str:
-    """What of the held-out test *h* fails at *level* and *min_units* squared resolutions, in words (every
-    check that fails, so that a removal names its reason; where all three pass, the pre-screen failed)."""
-    out = []
-    if h["p"] > level:
-        out.append(f"beyond the noise p {h['p']:.2g} > {level:.2g}")
-    if h["p_replication"] > REPLICATION_LEVEL:
-        out.append(f"replicated across the held-out segments p {h['p_replication']:.2g} > {REPLICATION_LEVEL:g}")
-    if h["resolution_units"] < min_units:
-        out.append(f"{h['resolution_units']:.3g} squared resolutions per sample < {min_units:g}")
-    return "; ".join(out) or "its fitted improvement no longer pays for its parameters (the pre-screen)"
+    """Why a kept candidate judged again fails, in words: every held-out check that fails
+    (:func:`~.trials.failing_checks`) or, where all three pass, the pre-screen."""
+    return "; ".join(failing_checks(h, level, min_units)) or \
+        "its fitted improvement no longer pays for its parameters (the pre-screen)"
 
 
 def drop_unsupported_artefacts(s: Search, rep) -> None:

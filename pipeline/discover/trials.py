@@ -217,9 +217,20 @@ def check_heldout(t: Trial, current: Fitted, fs: FoldSet) -> dict[str, Any]:
 def passes(h: dict[str, Any], level: float, min_units: float = MIN_RESOLUTION_UNITS) -> bool:
     """The decision: the noise test's p-value at most *level*, the replication check's at most
     :data:`~esmm.pipeline.discover.statistics.REPLICATION_LEVEL`, and the improvement at least *min_units*
-    squared resolutions."""
-    return (bool(h) and h["p"] <= level and h["p_replication"] <= REPLICATION_LEVEL
-            and h["resolution_units"] >= min_units)
+    squared resolutions (:func:`failing_checks` empty)."""
+    return bool(h) and not failing_checks(h, level, min_units)
+
+
+def failing_checks(h: dict[str, Any], level: float, min_units: float = MIN_RESOLUTION_UNITS) -> list[str]:
+    """The checks of the held-out test *h* that fail at *level* and *min_units*, each in words (a NaN fails)."""
+    out = []
+    if not h["p"] <= level:
+        out.append(f"beyond the noise p {h['p']:.2g} > {level:.2g}")
+    if not h["p_replication"] <= REPLICATION_LEVEL:
+        out.append(f"replicated across the held-out segments p {h['p_replication']:.2g} > {REPLICATION_LEVEL:g}")
+    if not h["resolution_units"] >= min_units:
+        out.append(f"{h['resolution_units']:.3g} squared resolutions per sample < {min_units:g}")
+    return out
 
 
 def segments(f: Fitted, e0, e1) -> list[HeldoutSegment]:
