@@ -259,3 +259,46 @@ def test_a_removal_names_every_held_out_check_that_fails():
                                            "0.4 squared resolutions per sample < 1")
     assert failed_checks({**h, "p": 0.01}, 1e-3, 0.3).startswith("beyond the noise p 0.01 > 0.001; replicated")
     assert "pre-screen" in failed_checks({"p": 0.0, "p_replication": 0.0, "resolution_units": 5.0}, 1e-3, 1.0)
+
+
+def test_a_nested_pair_is_checked_at_the_rank_of_its_better_fit():
+    """Strain-energy terms first, then the rest by fitted improvement; a plain relaxation is checked just before
+    the stretch-dependent one that outranks it (simpler first), not the stretch-dependent one moved down
+    behind candidates that fit worse than it."""
+    from types import SimpleNamespace as T
+
+    from esmm.pipeline.discover.rounds import elastic_first
+
+    def order(*pairs):
+        return [t.name for t in elastic_first([T(name=n, dbic=d) for n, d in pairs])]
+
+    assert order(("nonlinear_viscoelastic", -100.0), ("sensor_offset", -90.0), ("yeoh", -5.0),
+                 ("mullins", -50.0), ("viscoelastic", -10.0)) == \
+        ["yeoh", "viscoelastic", "nonlinear_viscoelastic", "sensor_offset", "mullins"]
+    assert order(("viscoelastic", -100.0), ("sensor_offset", -90.0), ("nonlinear_viscoelastic", -10.0)) == \
+        ["viscoelastic", "sensor_offset", "nonlinear_viscoelastic"]
+    assert order(("nonlinear_viscoelastic", -100.0), ("sensor_offset", -90.0)) == \
+        ["nonlinear_viscoelastic", "sensor_offset"]
+
+
+@pytest.mark.slow
+def test_two_rates_name_the_rate_form_before_an_offset_takes_it_up(tmp_path):
+    """A neo-Hookean strip pulled at two rates a decade apart whose one slow relaxation time grows with the
+    stretch (the independent generator's seed 18, case 128 of its 303; d_id 119 against a plain relaxation).
+    The rate form outranked every other candidate, but checked behind the plain relaxation's poor fit it came
+    after a load cell's drift, which took it up (kept alone, held out 1.31 → 0.09 %); checked at its own rank,
+    the relaxation and its stretch dependence are named and nothing else."""
+    import warnings
+
+    from esmm.pipeline.tensile.files import read_tests
+    from population import make_case
+    from population.cases import plan
+
+    cls, kind = plan(18, 303, 0.66)[128]
+    truth = make_case(np.random.SeedSequence(18).spawn(303)[128], cls, tmp_path, kind=kind)
+    assert cls == "nonlinear_viscoelastic" and truth["protocol"]["kind"] == "multirate", truth["protocol"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = discover(read_tests([tmp_path / f["file"] for f in truth["files"]]), nested=False, n_starts=8)
+    assert sorted(res.kept) == ["nonlinear_viscoelastic", "viscoelastic"], \
+        (res.kept, {n: c.reason for n, c in res.candidates.items()})

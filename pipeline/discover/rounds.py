@@ -111,11 +111,13 @@ def elastic_first(trials: list[Trial]) -> list[Trial]:
 
 
 def _nested_after(trials: list[Trial], rich: str, simple: str) -> None:
-    """Check the simpler of two nested candidates first: the richer one (which always fits at least as
-    well) is kept only when the simpler one does not pass."""
+    """Check the simpler of two nested candidates first, where the richer one ranks: the richer one (which
+    always fits at least as well) is kept only when the simpler one does not pass, and the pair is checked
+    at the rank of its better fit (the simpler one moved up, not the richer one down behind candidates that
+    fit worse than it)."""
     names = [t.name for t in trials]
     if rich in names and simple in names and names.index(rich) < names.index(simple):
-        trials.insert(names.index(simple), trials.pop(names.index(rich)))
+        trials.insert(names.index(rich), trials.pop(names.index(simple)))
 
 
 def candidate_order(s: Search, remaining: list[str], diag: Diagnosis, rnd: int) -> list[str]:
