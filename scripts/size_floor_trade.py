@@ -1,0 +1,96 @@
+#!/usr/bin/env python3
+"""What the held-out test's size requirement costs and buys: identifiable effects it alone refuses, and clean
+records a lower floor would let a candidate through on.
+
+Usage::
+
+    .venv/bin/python scripts/size_floor_trade.py FOLDER [FOLDER ...] [--floors 0.25 0.5 0.75 0.9]
+
+Each ``FOLDER`` is a population run by ``benchmarks/bench_discover_population.py --work FOLDER``: every
+case folder holds ``truth.json`` and the discovery's ``esmm.json``. A candidate's held-out check is read from
+``esmm.json`` (its last check: round 1 on a record where nothing was kept). For each floor below the
+default of one squared resolution per sample it counts
+
+* the **identifiable misses** (d_id >= 30, the true effect not named alone) whose true class passed the
+  noise test and the replication check but not the size requirement, and had at least the floor;
+* the **clean records** (nothing kept) on which a material effect or an artefact passed the first two
+  checks with at least the floor: a candidate that a lower floor could have kept first, before the history
+  test and the artefacts' own checks (an upper bound).
+
+docs/design/discovery-results.md, "What the size requirement costs", quotes it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_discover_population import DETECT_BINS, judge  # noqa: E402
+from esmm.pipeline.materials.terms import TERM_NAMES  # noqa: E402
+
+
+def _short(c: dict, lo: float) -> bool:
+    """Did candidate *c* pass the noise test and the replication check, with at least *lo* but under one
+    squared resolution per sample?"""
+    p, level, rep = c.get("heldout_p"), c.get("heldout_level"), c.get("heldout_p_replication")
+    units = c.get("heldout_noise_units") or 0.0
+    return (p is not None and level is not None and p <= level and rep is not None and rep <= 0.05
+            and lo <= units < 1.0 and not c.get("kept"))
+
+
+def _cases(folders: list[Path]):
+    """(truth effect or None, esmm.json) of every case that ran."""
+    for folder in folders:
+        for case in sorted(folder.glob("case_*")):
+            out = case / "esmm.json"
+            if not out.exists():
+                continue
+            truth = json.loads((case / "truth.json").read_text())
+            yield truth.get("effect"), json.loads(out.read_text())
+
+
+def trade(folders: list[Path], floors: list[float]) -> dict:
+    """{floor: {clean, clean_reached, misses, misses_reached}} over the cases of *folders*."""
+    out = {f: {"clean": 0, "clean_reached": 0, "misses": 0, "misses_reached": 0} for f in floors}
+    for effect, res in _cases(folders):
+        kept = [k for k in res.get("effects") or [] if k not in TERM_NAMES]
+        cands = res.get("candidates") or []
+        for f, row in out.items():
+            if effect is None:
+                if kept:
+                    continue
+                row["clean"] += 1
+                row["clean_reached"] += any(c["name"] not in TERM_NAMES and _short(c, f) for c in cands)
+                continue
+            if (effect.get("identifiability") or 0.0) < DETECT_BINS[1]:
+                continue
+            if judge(effect["name"], kept, effect.get("variant"))[0]:
+                continue
+            row["misses"] += 1
+            row["misses_reached"] += any(c["name"] == effect["name"] and _short(c, f) for c in cands)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("folders", nargs="+", type=Path)
+    ap.add_argument("--floors", nargs="+", type=float, default=[0.25, 0.5, 0.75, 0.9])
+    args = ap.parse_args(argv)
+    missing = [str(f) for f in args.folders if not f.is_dir()]
+    if missing:
+        print(f"size_floor_trade: no population folder {missing[0]}; run bench_discover_population.py "
+              "--work FOLDER first", file=sys.stderr)
+        return 2
+    for f, row in trade(args.folders, args.floors).items():
+        print(f"floor {f:g}: identifiable misses reached {row['misses_reached']} of {row['misses']}; "
+              f"clean records with a candidate through {row['clean_reached']} of {row['clean']}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
