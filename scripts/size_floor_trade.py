@@ -1,10 +1,11 @@
 #!/usr/bin/env python3
-"""What the held-out test's size requirement costs and buys: identifiable effects it alone refuses, and clean
-records a lower floor would let a candidate through on.
+"""What the held-out test's size requirement (or its replication check) costs and buys: identifiable effects it
+alone refuses, and clean records a looser setting would let a candidate through on.
 
 Usage::
 
     .venv/bin/python scripts/size_floor_trade.py FOLDER [FOLDER ...] [--floors 0.25 0.5 0.75 0.9]
+    .venv/bin/python scripts/size_floor_trade.py FOLDER [FOLDER ...] --check replication --floors 0.1 0.2 0.5
 
 Each ``FOLDER`` is a population run by ``benchmarks/bench_discover_population.py --work FOLDER``: every
 case folder holds ``truth.json`` and the discovery's ``esmm.json``. A candidate's held-out check is read from
@@ -17,7 +18,10 @@ default of one squared resolution per sample it counts
   checks with at least the floor: a candidate that a lower floor could have kept first, before the history
   test and the artefacts' own checks (an upper bound).
 
-docs/design/discovery-results.md, "What the size requirement costs", quotes it.
+With ``--check replication`` the same for the replication check: the noise test and the size requirement
+passed, the replication p-value above its level of 0.05 but at most the value given.
+
+docs/design/discovery-results.md, "What the size requirement and the replication check cost", quotes it.
 """
 
 from __future__ import annotations
@@ -34,13 +38,17 @@ from bench_discover_population import DETECT_BINS, judge  # noqa: E402
 from esmm.pipeline.materials.terms import TERM_NAMES  # noqa: E402
 
 
-def _short(c: dict, lo: float) -> bool:
-    """Did candidate *c* pass the noise test and the replication check, with at least *lo* but under one
-    squared resolution per sample?"""
+def _short(c: dict, lo: float, check: str = "size") -> bool:
+    """Was candidate *c* refused by *check* alone, and would the looser value *lo* let it through: for the
+    size requirement at least *lo* but under one squared resolution per sample, for the replication check a
+    p-value above 0.05 but at most *lo*?"""
     p, level, rep = c.get("heldout_p"), c.get("heldout_level"), c.get("heldout_p_replication")
     units = c.get("heldout_noise_units") or 0.0
-    return (p is not None and level is not None and p <= level and rep is not None and rep <= 0.05
-            and lo <= units < 1.0 and not c.get("kept"))
+    if p is None or level is None or rep is None or not p <= level or c.get("kept"):
+        return False
+    if check == "replication":
+        return units >= 1.0 and 0.05 < rep <= lo
+    return rep <= 0.05 and lo <= units < 1.0
 
 
 def _cases(folders: list[Path]):
@@ -54,8 +62,8 @@ def _cases(folders: list[Path]):
             yield truth.get("effect"), json.loads(out.read_text())
 
 
-def trade(folders: list[Path], floors: list[float]) -> dict:
-    """{floor: {clean, clean_reached, misses, misses_reached}} over the cases of *folders*."""
+def trade(folders: list[Path], floors: list[float], check: str = "size") -> dict:
+    """{floor: {clean, clean_reached, misses, misses_reached}} over the cases of *folders* (:func:`_short`)."""
     out = {f: {"clean": 0, "clean_reached": 0, "misses": 0, "misses_reached": 0} for f in floors}
     for effect, res in _cases(folders):
         kept = [k for k in res.get("effects") or [] if k not in TERM_NAMES]
@@ -65,29 +73,31 @@ def trade(folders: list[Path], floors: list[float]) -> dict:
                 if kept:
                     continue
                 row["clean"] += 1
-                row["clean_reached"] += any(c["name"] not in TERM_NAMES and _short(c, f) for c in cands)
+                row["clean_reached"] += any(c["name"] not in TERM_NAMES and _short(c, f, check) for c in cands)
                 continue
             if (effect.get("identifiability") or 0.0) < DETECT_BINS[1]:
                 continue
             if judge(effect["name"], kept, effect.get("variant"))[0]:
                 continue
             row["misses"] += 1
-            row["misses_reached"] += any(c["name"] == effect["name"] and _short(c, f) for c in cands)
+            row["misses_reached"] += any(c["name"] == effect["name"] and _short(c, f, check) for c in cands)
     return out
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("folders", nargs="+", type=Path)
-    ap.add_argument("--floors", nargs="+", type=float, default=[0.25, 0.5, 0.75, 0.9])
+    ap.add_argument("--floors", nargs="+", type=float, default=[0.25, 0.5, 0.75, 0.9],
+                    help="looser settings: size floors in squared resolutions, or replication levels")
+    ap.add_argument("--check", choices=("size", "replication"), default="size")
     args = ap.parse_args(argv)
     missing = [str(f) for f in args.folders if not f.is_dir()]
     if missing:
         print(f"size_floor_trade: no population folder {missing[0]}; run bench_discover_population.py "
               "--work FOLDER first", file=sys.stderr)
         return 2
-    for f, row in trade(args.folders, args.floors).items():
-        print(f"floor {f:g}: identifiable misses reached {row['misses_reached']} of {row['misses']}; "
+    for f, row in trade(args.folders, args.floors, args.check).items():
+        print(f"{args.check} {f:g}: identifiable misses reached {row['misses_reached']} of {row['misses']}; "
               f"clean records with a candidate through {row['clean_reached']} of {row['clean']}")
     return 0
 

@@ -48,3 +48,13 @@ def test_a_missing_folder_is_one_line_and_exit_2(tmp_path, capsys):
     assert _script().main([str(tmp_path / "nowhere")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "bench_discover_population.py --work" in err
+
+
+def test_the_replication_trade_counts_checks_the_replication_alone_refused(tmp_path):
+    pop = tmp_path / "pop"
+    _case(pop, "case_0000", None, [], [_check("viscoelastic", 3.0, rep=0.08)])  # through at 0.1
+    _case(pop, "case_0001", None, [], [_check("viscoelastic", 0.5, rep=0.08)])  # too small as well
+    _case(pop, "case_0002", {"name": "damage", "identifiability": 50.0}, [], [_check("damage", 2.0, rep=0.3)])
+    rows = _script().trade([pop], [0.1, 0.5], "replication")
+    assert rows[0.1] == {"clean": 2, "clean_reached": 1, "misses": 1, "misses_reached": 0}
+    assert rows[0.5] == {"clean": 2, "clean_reached": 1, "misses": 1, "misses_reached": 1}
