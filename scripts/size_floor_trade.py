@@ -35,20 +35,24 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_discover_population import DETECT_BINS, judge  # noqa: E402
+from esmm.pipeline.discover.trials import passes  # noqa: E402
 from esmm.pipeline.materials.terms import TERM_NAMES  # noqa: E402
 
 
 def _short(c: dict, lo: float, check: str = "size") -> bool:
-    """Was candidate *c* refused by *check* alone, and would the looser value *lo* let it through: for the
-    size requirement at least *lo* but under one squared resolution per sample, for the replication check a
-    p-value above 0.05 but at most *lo*?"""
-    p, level, rep = c.get("heldout_p"), c.get("heldout_level"), c.get("heldout_p_replication")
-    units = c.get("heldout_noise_units") or 0.0
-    if p is None or level is None or rep is None or not p <= level or c.get("kept"):
+    """Was candidate *c* refused by *check* alone, and would the looser value *lo* let it through (the size
+    floor in squared resolutions, or the replication level)? The decision is the search's own
+    (:func:`~esmm.pipeline.discover.trials.passes`) on the check as ``esmm.json`` records it."""
+    if c.get("kept") or any(c.get(k) is None for k in ("heldout_p", "heldout_level", "heldout_p_replication")):
+        return False
+    h = {"p": c["heldout_p"], "p_replication": c["heldout_p_replication"],
+         "resolution_units": c.get("heldout_noise_units") or 0.0}
+    level = c["heldout_level"]
+    if passes(h, level):
         return False
     if check == "replication":
-        return units >= 1.0 and 0.05 < rep <= lo
-    return rep <= 0.05 and lo <= units < 1.0
+        return passes({**h, "p_replication": 0.0}, level) and h["p_replication"] <= lo
+    return passes(h, level, lo)
 
 
 def _cases(folders: list[Path]):

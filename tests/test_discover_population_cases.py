@@ -33,6 +33,9 @@ CASES = [
     (8, 129, "a ramp and hold whose load cell reads an offset",
      "the offset alone checked when the offset with a drift predicts held-out data better but its drift does "
      "not explain the residual's path-dependent part"),
+    (18, 128, "a neo-Hookean strip pulled at two rates a decade apart, one slow relaxation time growing with the "
+     "stretch", "a plain and a stretch-dependent relaxation checked at the rank of the better fit (checked behind "
+     "the plain one's poor fit, the stretch-dependent one came after a load cell's drift, which took it up)"),
 ]
 
 

@@ -8,27 +8,16 @@ cycling records, which reverse at every peak, the lag read must be the chain's.
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-ROOT = Path(__file__).resolve().parent.parent
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("population_lag", ROOT / "scripts" / "population_lag.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+from scriptkit import load_script
 
 
 @pytest.mark.slow
 def test_the_lag_read_on_generated_cycles_is_the_chains_delay(tmp_path):
     from population import make_case
 
-    mod = _script()
+    mod = load_script("population_lag")
     rows = []
     for k, seq in enumerate(np.random.SeedSequence(31).spawn(12)):
         make_case(seq, "clean", tmp_path / f"c{k}", kind="cycles")

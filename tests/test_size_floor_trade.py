@@ -3,18 +3,10 @@ hand-made population folders whose answer is known."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("size_floor_trade", ROOT / "scripts" / "size_floor_trade.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+from scriptkit import load_script
 
 
 def _check(name, units, *, p=1e-9, rep=1e-3, kept=False):
@@ -39,13 +31,13 @@ def test_the_trade_counts_only_checks_the_size_requirement_alone_refused(tmp_pat
     _case(pop, "case_0004", set_, ["permanent_set"], [_check("permanent_set", 3.0, kept=True)])  # named
     _case(pop, "case_0005", {**set_, "identifiability": 12.0}, [], [_check("permanent_set", 0.9)])  # not identifiable
     (pop / "case_0006").mkdir()  # a case that did not run
-    rows = _script().trade([pop], [0.25, 0.5])
+    rows = load_script("size_floor_trade").trade([pop], [0.25, 0.5])
     assert rows[0.25] == {"clean": 2, "clean_reached": 1, "misses": 1, "misses_reached": 1}
     assert rows[0.5] == {"clean": 2, "clean_reached": 1, "misses": 1, "misses_reached": 0}
 
 
 def test_a_missing_folder_is_one_line_and_exit_2(tmp_path, capsys):
-    assert _script().main([str(tmp_path / "nowhere")]) == 2
+    assert load_script("size_floor_trade").main([str(tmp_path / "nowhere")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "bench_discover_population.py --work" in err
 
@@ -55,6 +47,6 @@ def test_the_replication_trade_counts_checks_the_replication_alone_refused(tmp_p
     _case(pop, "case_0000", None, [], [_check("viscoelastic", 3.0, rep=0.08)])  # through at 0.1
     _case(pop, "case_0001", None, [], [_check("viscoelastic", 0.5, rep=0.08)])  # too small as well
     _case(pop, "case_0002", {"name": "damage", "identifiability": 50.0}, [], [_check("damage", 2.0, rep=0.3)])
-    rows = _script().trade([pop], [0.1, 0.5], "replication")
+    rows = load_script("size_floor_trade").trade([pop], [0.1, 0.5], "replication")
     assert rows[0.1] == {"clean": 2, "clean_reached": 1, "misses": 1, "misses_reached": 0}
     assert rows[0.5] == {"clean": 2, "clean_reached": 1, "misses": 1, "misses_reached": 1}
