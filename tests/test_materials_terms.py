@@ -12,7 +12,8 @@ from esmm.pipeline.materials.material import Material, load_material
 from esmm.pipeline.materials.stability import drucker_check
 from esmm.pipeline.materials.terms import TERMS
 
-SHAPES = {"i2exp_b": 0.7, "i1exp_b": 0.5, "gent_J": 40.0, "fexp_k2": 2.0, "toe_delta": 0.1, "toe_p": 2.5}
+SHAPES = {"i2exp_b": 0.7, "i1exp_b": 0.5, "gent_J": 40.0, "fexp_k2": 2.0, "toe_delta": 0.1, "toe_p": 2.5,
+          "tw_eta": 0.1, "tw_k": 2.5}
 
 
 def _params(term):
@@ -72,6 +73,35 @@ def test_toe_stress_is_the_integral_of_the_recruited_fraction(shape):
     expected = [E * integrate.quad(lambda s: min((s - 1.0) / d, 1.0) ** shape, 1.0, x, points=[1 + d],
                                    epsabs=0.0, epsrel=1e-12)[0] for x in lam]
     np.testing.assert_allclose(nominal_stress(m, p, "uniaxial", lam), expected, rtol=1e-9)
+
+
+@pytest.mark.parametrize("shape", [1.0, 1.7, 4.0])
+def test_weibull_toe_stress_is_the_integral_of_the_recruited_fraction(shape):
+    """The Weibull toe's fibre stress is E times the integral of F(s) = 1 - exp(-((s-1)/η)^k), by quadrature
+    here, not by the closed form: on both sides of z = 1 (its series and its incomplete-gamma branch), and
+    far into the tail, where it is E (λ - 1 - η Γ(1 + 1/k)) to rounding."""
+    from scipy import integrate
+    from scipy.special import gamma
+
+    E, eta = 2e6, 0.05
+    m = get_model("esedf+toeweibull")
+    p = {**m.defaults(), "mu": 0.0, "A1": 0.0, "A2": 0.0, "tw_E": E, "tw_eta": eta, "tw_k": shape}
+    lam = np.array([1.0005, 1.003, 1.03, 1.0499, 1.0501, 1.12, 1.4])
+    expected = [E * integrate.quad(lambda s: -np.expm1(-(((s - 1.0) / eta) ** shape)), 1.0, x,
+                                   epsabs=0.0, epsrel=1e-12, limit=200)[0] for x in lam]
+    np.testing.assert_allclose(nominal_stress(m, p, "uniaxial", lam), expected, rtol=1e-9)
+    far = nominal_stress(m, p, "uniaxial", np.array([2.5]))
+    np.testing.assert_allclose(far, E * (1.5 - eta * gamma(1.0 + 1.0 / shape)), rtol=1e-12)
+
+
+def test_weibull_toe_broadcasts_over_parameter_sets():
+    """m parameter sets at once (shape (m, 1)) give the rows one set at a time gives."""
+    term = TERMS["toeweibull"]
+    I1 = invariants("uniaxial", np.linspace(1.0, 1.3, 9))[0]
+    eta, k = np.array([[0.02], [0.1]]), np.array([[1.2], [5.0]])
+    together = term.d2W(I1, 3.0, 1e6, eta, k)[0]
+    for i in range(2):
+        np.testing.assert_array_equal(together[i], term.d2W(I1, 3.0, 1e6, eta[i, 0], k[i, 0])[0])
 
 
 def test_i2_term_makes_compression_stiffer_than_tension():

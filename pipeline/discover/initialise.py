@@ -107,7 +107,8 @@ def term_grid(prob: Problem, name: str) -> tuple[float, list[dict[str, float]]]:
     Exponential rates are set so that the exponent reaches 0.3 to 10 at the
     largest invariant in the data; Gent's Jm from just above the largest
     I1 - 3 to ten times it; the toe width from a tenth of the stretch span to all of it, and its
-    recruitment shape uniform or starting slowly (p = 1, 3).
+    recruitment shape uniform or starting slowly (p = 1, 3); the Weibull toe's scale likewise, its shape
+    1.5 or 3.
     """
     recs = prob.records
     stiff = max(r.scale for r in recs) / prob.bounds.xi_span
@@ -118,7 +119,9 @@ def term_grid(prob: Problem, name: str) -> tuple[float, list[dict[str, float]]]:
               "gent_J": [i1 * q for q in (1.05, 1.5, 3.0, 10.0)],
               "fexp_k2": [q / max((i1 / 3) ** 2, 1e-12) for q in (0.3, 1.0, 3.0, 10.0)],
               "toe_delta": [prob.bounds.xi_span * q for q in (0.1, 0.25, 0.5, 1.0)],
-              "toe_p": [1.0, 3.0]}
+              "toe_p": [1.0, 3.0],
+              "tw_eta": [prob.bounds.xi_span * q for q in (0.1, 0.25, 0.5, 1.0)],
+              "tw_k": [1.5, 3.0]}
     names = TERMS[name].shape_parameters
     return stiff, [dict(zip(names, v)) for v in itertools.product(*(shapes[n] for n in names))]
 

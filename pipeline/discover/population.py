@@ -42,7 +42,8 @@ from .search import discover
 
 #: strain-energy terms that the data of a population case cannot tell apart (scored as one name)
 TERM_FAMILY = {"mooney": "I2 term", "i2exp": "I2 term", "i2log": "I2 term", "i1exp": "I1 stiffening",
-               "yeoh": "I1 stiffening", "gent": "I1 stiffening", "fibreexp": "I1 stiffening", "toe": "toe"}
+               "yeoh": "I1 stiffening", "gent": "I1 stiffening", "fibreexp": "I1 stiffening", "toe": "toe",
+               "toeweibull": "toe"}
 GAUGE = 0.03  # m
 AREA = 20e-6  # m2
 

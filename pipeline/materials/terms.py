@@ -17,7 +17,7 @@ structure each addresses is in :data:`TERMS` (``addresses``) and in
 docs/design/discovery.md. The library follows the model-discovery literature
 (constitutive artificial neural networks, Linka & Kuhl 2023; EUCLID, Flaschel et
 al. 2021): invariant-based terms, linear in a modulus, with at most one
-nonlinear shape parameter each (two for the toe). Every function is written with numpy operations
+nonlinear shape parameter each (two for the toes). Every function is written with numpy operations
 that broadcast over its parameters as well as over the invariants (a parameter
 may be an array of shape (m, 1): m parameter sets at once, as
 :attr:`~esmm.pipeline.materials.base.MaterialModel.array_parameters` promises).
@@ -89,6 +89,29 @@ may be an array of shape (m, 1): m parameter sets at once, as
     a slack or an offset then takes (docs/design/model.md). Files written
     before p existed read as p = 1, the law they were written with.
 
+``toeweibull`` — Weibull fibre recruitment (Hamedzadeh, Gasser & Federico 2018)
+    The toe with the straight fraction a Weibull distribution of the straightening
+    stretch, :math:`F(u) = 1 - e^{-z}`, :math:`z = (u/\eta)^k`, u = ξ − 1 (η the
+    scale, k the shape): recruitment starts as :math:`u^k` and ends in a tail rather
+    than at a stretch where every fibre is straight. With :math:`P_a(z)` the
+    regularized lower incomplete gamma function, :math:`g_1 = \Gamma(1+1/k)P_{1/k}(z)`,
+    :math:`g_2 = \Gamma(1+2/k)P_{2/k}(z)`:
+
+    .. math::
+
+        W'(\xi) = E\int_0^u F = E\,[u - \eta g_1], \qquad
+        W = E\int_0^u (u - t) F(t)\,dt = E\,[u^2/2 - u\eta g_1 + \eta^2 g_2/2],
+
+    :math:`W'' = E F`, and W1, W11 through h = dξ/dI1 as for ``toe``. For z < 1 the
+    brackets are summed as the series :math:`u\sum_n (-1)^{n+1}z^n/(n!(nk+1))` and
+    :math:`u^2\sum_n (-1)^{n+1}z^n/(n!(nk+1)(nk+2))` (no cancellation as u → 0).
+    Why a second toe: the Beta(p, 1) recruitment of ``toe`` ends at 1 + δ with a
+    kink in the fibres' stiffness; a Weibull recruitment, the distribution fitted to
+    collagen, turns into the linear region gradually, and a compact toe fitted to it
+    leaves a smooth residual of a few tenths of a per cent of the stress that a
+    history effect or an artefact then takes (docs/design/model.md). The two are
+    alternatives with the same number of parameters; a discovery keeps one of them.
+
 Parameter names carry the term's prefix, so they never clash with a base
 model's (``c2``, ``i2exp_a``, ``i2exp_b``, ...).
 """
@@ -99,6 +122,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+
+from scipy.special import gamma, gammainc
 
 from .base import Parameter, broadcast_zeros
 from .effects import equivalent_stretch
@@ -124,6 +149,9 @@ class Term:
         ``f(**params)`` -> the I1 where W locks (None: never).
     addresses : str
         The residual structure it can explain (for reports and docs).
+    alternatives : tuple of str
+        Terms that are other forms of the same structure (the two toes): a discovery that keeps one does
+        not try the others.
     """
 
     name: str
@@ -134,6 +162,7 @@ class Term:
     d2W: Callable
     addresses: str
     max_I1: Callable | None = None
+    alternatives: tuple[str, ...] = ()
 
     @property
     def modulus(self) -> str:
@@ -377,6 +406,55 @@ def toe_d2W(I1, I2, toe_E, toe_delta, toe_p=1.0):
     return w11 + z, z, z
 
 
+# --------------------------------------------------------------------------- toeweibull
+#: series terms for z < 1: 1/18! ~ 2e-16, below double precision
+_TW_TERMS = 18
+
+
+def _tw_parts(I1, eta, k):
+    """(ξ, u, s, F, G1 = ∫F/u, G2 = ∫(u-t)F/u²) of the Weibull recruitment (module docstring)."""
+    xi, u, s = _xi_u(I1)
+    with np.errstate(over="ignore"):  # far into the tail z is inf: F = 1, P(a, z) = 1
+        z = (u / eta) ** k
+    zs = np.minimum(z, 1.0)
+    g1s = np.zeros_like(zs)
+    g2s = np.zeros_like(zs)
+    term = np.ones_like(zs)
+    for n in range(1, _TW_TERMS + 1):
+        term = -term * zs / n  # (-1)^n z^n / n!
+        g1s = g1s - term / (n * k + 1.0)
+        g2s = g2s - term / ((n * k + 1.0) * (n * k + 2.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = eta * gamma(1.0 + 1.0 / k) * gammainc(1.0 / k, z) / u
+        b = eta * eta * gamma(1.0 + 2.0 / k) * gammainc(2.0 / k, z) / (u * u)
+        g1 = np.where(z < 1.0, g1s, 1.0 - a)
+        g2 = np.where(z < 1.0, g2s, 0.5 - a + 0.5 * b)
+    return xi, u, s, -np.expm1(-z), g1, g2
+
+
+def toeweibull_energy(I1, I2, tw_E, tw_eta, tw_k):
+    """W = E [u²/2 - u η g1 + η² g2/2], u = ξ - 1 [Pa] (module docstring)."""
+    _, u, _, _, _, g2 = _tw_parts(I1, tw_eta, tw_k)
+    return tw_E * u * u * g2 + _z(I1, I2)
+
+
+def toeweibull_dW(I1, I2, tw_E, tw_eta, tw_k):
+    """(W1, W2) = (W'(ξ) ξ²/(2 u s), 0) = (E G1 ξ²/(2s), 0): no 0/0 at u = 0."""
+    xi, _, s, _, g1, _ = _tw_parts(I1, tw_eta, tw_k)
+    return tw_E * g1 * xi * xi / (2.0 * s) + _z(I1, I2), _z(I1, I2)
+
+
+def toeweibull_d2W(I1, I2, tw_E, tw_eta, tw_k):
+    """(W11, W12, W22) = ([W'' h + W' h'] h, 0, 0) = (E/u [F ξ²/(2s) - G1 (ξ⁴ + 2ξ)/(2s²)] h, 0, 0)."""
+    xi, u, s, f, g1, _ = _tw_parts(I1, tw_eta, tw_k)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inner = (f * xi * xi / (2.0 * s) - g1 * (xi**4 + 2.0 * xi) / (2.0 * s * s)) / u
+        w11 = tw_E * inner * xi * xi / (2.0 * u * s)
+    w11 = np.where(u > 0.0, w11, 0.0)
+    z = _z(I1, I2)
+    return w11 + z, z, z
+
+
 # --------------------------------------------------------------------------- registry
 def _stress(name: str, default: float, what: str) -> Parameter:
     return Parameter(name, "stress", default, 0.0, 1.0e11, what)
@@ -421,7 +499,16 @@ TERMS: dict[str, Term] = {
              "E*{d^2 r^(p+2)/((p+1)(p+2)) on the toe; (xi-1-d p/(p+1))^2/2 + d^2 p/(2(p+1)^2(p+2)) beyond}, "
              "r = (xi-1)/d, xi^2 + 2/xi = I1",
              toe_energy, toe_dW, toe_d2W,
-             "a toe region: fibres straightening one after another, then a linear region"),
+             "a toe region: fibres straightening one after another, then a linear region",
+             alternatives=("toeweibull",)),
+        Term("toeweibull", (_stress("tw_E", 1.0e6, "modulus of the recruited fibres"),
+                            _shape("tw_eta", 0.02, 1e-4, 2.0, "Weibull scale of the straightening stretch"),
+                            _shape("tw_k", 2.0, 1.0, 10.0, "Weibull shape of the straightening stretch")),
+             "E*(u^2/2 - u*eta*G(1+1/k)*P(1/k,z) + eta^2*G(1+2/k)*P(2/k,z)/2), z = (u/eta)^k, u = xi-1, "
+             "xi^2 + 2/xi = I1",
+             toeweibull_energy, toeweibull_dW, toeweibull_d2W,
+             "a toe region that turns into the linear region gradually (Weibull-distributed fibre recruitment)",
+             alternatives=("toe",)),
     )
 }
 
