@@ -122,7 +122,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-
 from scipy.special import gamma, gammainc
 
 from .base import Parameter, broadcast_zeros
