@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from esmm.pipeline.errors import ConfigError, QualityError
 
@@ -155,6 +156,9 @@ def run(args, ui) -> int:
 
         if not args.out.strip():
             raise ConfigError("--out: empty folder name; give the folder for the assets")
+        if args.out.lower().endswith(".h5") and not Path(args.out).is_dir():
+            raise ConfigError(f"--out {args.out}: --out names the folder for a batch's assets, not an asset file; "
+                              f"to write one asset give -o {args.out}")
         check_out_dir(args.out, "--out")
 
         summary = prepare_batch(args.inputs, out_dir=args.out, options=options, argv=argv,

@@ -176,6 +176,17 @@ def test_cli_names_the_flag_of_a_bad_batch_option(tmp_path, capsys, args, flag):
     assert not (tmp_path / "o").exists()
 
 
+def test_prepare_out_named_like_an_asset_file_is_refused(tmp_path, capsys):
+    """``--out liver.h5`` for one organ would make a folder called liver.h5: refused, pointing at -o."""
+    from esmm.cli.main import main
+
+    out = tmp_path / "liver.h5"
+    code = main(["prepare", str(tmp_path / "liver.stl"), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and f"give -o {out}" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
 def test_refuses_duplicate_names_and_bad_worker_counts(tmp_path):
     with pytest.raises(ConfigError, match="same output 'a'"):
         run_jobs(write_jobs(tmp_path, ["a", "a"]), out_dir=tmp_path / "o", scheduler="serial")
