@@ -7,8 +7,8 @@ Usage::
 
 Each draw is a uniaxial tension curve of the independent population's ``WeibullToe`` law
 (benchmarks/population/fibres.py: a neo-Hookean matrix and fibres along the load that straighten at
-Weibull-distributed stretches, each linear in its own strain), over the stretch ranges and parameter
-ranges the population draws for tendon and for soft tissue (``benchmarks/population/draws.py``), at 400
+Weibull-distributed stretches, each linear in its own strain), drawn by the population's own draw
+(``benchmarks/population/draws.py``) for its two families with that law, tendon and skin/vessel, at 400
 stretches. Each curve is fitted by least squares (nine starts) with a neo-Hookean matrix plus one of the
 two toes, ``toe`` (the Beta(p, 1) recruitment, compact) and ``toeweibull``, their stresses evaluated by
 esmm's own terms; the misfit printed is the rms residual in per cent of the curve's peak stress. No noise:
@@ -30,6 +30,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from esmm.pipeline.materials import get_model  # noqa: E402
 from esmm.pipeline.materials.loading import nominal_stress  # noqa: E402
+from population.draws import FAMILIES, _fibre  # noqa: E402
 from population.fibres import WeibullToe  # noqa: E402
 
 #: the term's modulus and its two shape parameters, in the order fitted
@@ -37,16 +38,9 @@ FORMS = {"toe": ("toe_E", "toe_delta", "toe_p"), "toeweibull": ("tw_E", "tw_eta"
 
 
 def draw(rng: np.random.Generator, family: str) -> tuple[WeibullToe, float]:
-    """A Weibull-toe law and its largest stretch, over the population's ranges for *family*."""
-    if family == "tendon":
-        x_max = rng.uniform(1.04, 1.12)
-        law = WeibullToe(mu=10 ** rng.uniform(4, 6), e_f=10 ** rng.uniform(np.log10(2e8), np.log10(1.5e9)),
-                         s0=0.0, eta=rng.uniform(0.15, 0.45) * (x_max - 1), k=rng.uniform(1.5, 4.0))
-    else:
-        x_max = rng.uniform(1.15, 1.7)
-        law = WeibullToe(mu=10 ** rng.uniform(np.log10(2e3), 5), e_f=10 ** rng.uniform(np.log10(2e6), 8),
-                         s0=0.0, eta=rng.uniform(0.2, 0.6) * (x_max - 1), k=rng.uniform(1.5, 4.0))
-    return law, x_max
+    """A Weibull-toe law and its largest stretch, drawn as the population draws them for *family*."""
+    x_max = float(rng.uniform(*FAMILIES[family]["x_max"]))
+    return _fibre("toe", rng, family, x_max), x_max
 
 
 def misfit(x: np.ndarray, P: np.ndarray, form: str) -> float:
@@ -81,7 +75,7 @@ def main(argv=None) -> int:
     rows = []
     for i in range(args.draws):
         family = "tendon" if i % 2 else "soft tissue"
-        law, x_max = draw(rng, family)
+        law, x_max = draw(rng, "tendon" if i % 2 else "skin_vessel")
         x = np.linspace(1.0, x_max, 400)
         P = law.stress(x, "uniaxial")
         rows.append({"family": family, "x_max": x_max, "k": law.params["k"],

@@ -114,13 +114,14 @@ def term_grid(prob: Problem, name: str) -> tuple[float, list[dict[str, float]]]:
     stiff = max(r.scale for r in recs) / prob.bounds.xi_span
     i1 = max(float(np.nanmax(invariants(r.test.mode, r.x)[0])) for r in recs) - 3.0
     i2 = max(float(np.nanmax(invariants(r.test.mode, r.x)[1])) for r in recs) - 3.0
+    widths = [prob.bounds.xi_span * q for q in (0.1, 0.25, 0.5, 1.0)]  # of either toe, in stretch
     shapes = {"i2exp_b": [q / max(i2, 1e-9) for q in (0.3, 1.0, 3.0, 10.0)],
               "i1exp_b": [q / max(i1, 1e-9) for q in (0.3, 1.0, 3.0, 10.0)],
               "gent_J": [i1 * q for q in (1.05, 1.5, 3.0, 10.0)],
               "fexp_k2": [q / max((i1 / 3) ** 2, 1e-12) for q in (0.3, 1.0, 3.0, 10.0)],
-              "toe_delta": [prob.bounds.xi_span * q for q in (0.1, 0.25, 0.5, 1.0)],
+              "toe_delta": widths,
               "toe_p": [1.0, 3.0],
-              "tw_eta": [prob.bounds.xi_span * q for q in (0.1, 0.25, 0.5, 1.0)],
+              "tw_eta": widths,
               "tw_k": [1.5, 3.0]}
     names = TERMS[name].shape_parameters
     return stiff, [dict(zip(names, v)) for v in itertools.product(*(shapes[n] for n in names))]

@@ -57,8 +57,8 @@ def run_round(s: Search, rnd: int, rep) -> bool:
 
     Returns False when the search is over.
     """
-    _alternatives_of_kept(s)
-    remaining = [n for n in s.testable if n not in s.kept and not _alternative_kept(s, n)]
+    blocked = _alternatives_of_kept(s)
+    remaining = [n for n in s.testable if n not in s.kept and n not in blocked]
     diag = diagnose(s.current.problem, s.current.z, candidates=remaining, errors=s.current.errors)
     s.diagnoses.append(diag)
     upgradable = [n for n in s.kept if n in VARIANTS and s.current.spec.variant(n) < max(VARIANTS[n])]
@@ -94,21 +94,18 @@ def run_round(s: Search, rnd: int, rep) -> bool:
     return True
 
 
-def _alternative_kept(s: Search, name: str) -> str | None:
-    """The kept term of which term *name* is another form (:attr:`~esmm.pipeline.materials.terms.Term.alternatives`),
-    or None."""
-    if name not in TERMS:
-        return None
-    return next((k for k in s.kept if k in TERMS[name].alternatives), None)
-
-
-def _alternatives_of_kept(s: Search) -> None:
-    """Say why a term is no longer tried: another form of it is kept (one toe, not two)."""
+def _alternatives_of_kept(s: Search) -> set[str]:
+    """The terms no longer tried because another form of them is kept
+    (:attr:`~esmm.pipeline.materials.terms.Term.alternatives`: one toe, not two); each candidate's reason says so."""
+    blocked = set()
     for n in s.testable:
-        k = _alternative_kept(s, n)
-        if k is not None and n not in s.kept:
-            s.candidates[n].reason = (f"not tried after round {s.kept_round[k]}: {k}, another form of the same "
-                                      "term, was kept")
+        if n in s.kept or n not in TERMS:
+            continue
+        k = next((k for k in s.kept if k in TERMS[n].alternatives), None)
+        if k is not None:
+            blocked.add(n)
+            s.candidates[n].reason = f"not tried after round {s.kept_round[k]}: {k}, another form of the same term, was kept"
+    return blocked
 
 
 def elastic_first(trials: list[Trial]) -> list[Trial]:
