@@ -827,6 +827,41 @@ def test_clock_time_column_is_read_in_seconds(tmp_path, delim, comma):
     assert test.metadata["time_format"] == "hh:mm:ss"
 
 
+@pytest.mark.parametrize("sep,zone", [(" ", ""), ("T", "Z"), ("T", "+02:00")])
+def test_date_and_time_stamps_are_read_in_seconds_across_midnight(tmp_path, sep, zone):
+    """A data logger's ISO 8601 timestamps: read in seconds, in order across midnight, the offset applied
+    (expected values from the standard library's own ISO parser, not the reader's arithmetic)."""
+    import datetime as dt
+    t, lam, p = truth()
+    t = t * 7.0
+    start = dt.datetime(2024, 2, 29, 23, 59, 58, 500000)  # a leap day, two seconds before midnight
+    stamps = [(start + dt.timedelta(seconds=float(a))).isoformat(sep=sep, timespec="milliseconds") + zone
+              for a in t]
+    rows = "".join(f"{s},{b:.6f},{c:.4f}\n" for s, b, c in zip(stamps, lam, p))
+    test = read(write(tmp_path, "stamps.csv", "Timestamp,stretch,stress [Pa]\n" + rows))
+    parsed = [dt.datetime.fromisoformat(s.replace("Z", "+00:00")) for s in stamps]
+    np.testing.assert_allclose(test.time, [(d - parsed[0]).total_seconds() for d in parsed], atol=1e-6)
+    assert test.metadata["time_format"] == "date and time"
+
+
+def test_bose_wintest_export_reads_disp_and_load_1(tmp_path):
+    """Bose ElectroForce WinTest's layout: a preamble, a sample counter, two clocks, the actuator's
+    position ('Disp', not zero at the start) and 'Load 1' (load cell 1: a channel number, not the unit
+    '1'), the units in brackets on the row below."""
+    t, lam, p = truth()
+    L, A = 20.0, 10.0  # mm, mm²
+    rows = "".join(f"{i}\t{a:.3f}\t{a % 5:.3f}\t{(b - 1) * L - 2.34:.5f}\t{c * A * 1e-6:.6f}\n"
+                   for i, (a, b, c) in enumerate(zip(t, lam, p)))
+    text = ("WinTest Data File\nTest: pull\n\nPoints\tElapsed Time \tScan Time \tDisp \tLoad 1 \n"
+            "\t(Sec)\t(Sec)\t(mm)\t(N)\n" + rows)
+    test = read(write(tmp_path, "bose.txt", text), overrides={"gauge_length": "20 mm", "area": "10 mm2"})
+    np.testing.assert_allclose(test.time, t, atol=1e-3)
+    np.testing.assert_allclose(test.stretch, lam, atol=1e-6)
+    np.testing.assert_allclose(test.stress, p, rtol=1e-4, atol=1e-3)
+    assert test.metadata["displacement_start"] == pytest.approx(-2.34e-3)
+    assert any("'Points' not used" in n for n in test.metadata["column_notes"])
+
+
 def test_results_block_after_the_data_is_set_aside(tmp_path):
     t, lam, p = truth()
     rows = "".join(f"{a:.2f},{b:.6f},{c:.4f}\n" for a, b, c in zip(t, lam, p))

@@ -50,11 +50,12 @@ def _add(quantity: str, *names: str) -> None:
 
 
 _add("time", "time", "t", "elapsed time", "test time", "total time", "time elapsed",
+     "timestamp", "time stamp", "date time", "datetime", "date/time",
      "running time", "zeit", "prüfzeit", "pruefzeit", "testzeit",
      "时间", "试验时间", "测试时间", "时间 s")
 _add("displacement", "displacement", "extension", "axial displacement", "elongation", "position", "crosshead",
      "crosshead position", "crosshead displacement", "crosshead extension", "crosshead travel",
-     "machine extension", "tensile extension", "travel", "stroke",
+     "machine extension", "tensile extension", "travel", "stroke", "disp", "axial disp", "actuator position",
      "standard travel", "grip separation", "grip to grip separation", "deformation",
      "weg", "standardweg", "traversenweg", "traversenposition", "verlängerung", "dehnweg",
      "位移", "伸长", "伸长量", "变形", "横梁位移", "横梁位置", "试验机位移")
@@ -80,11 +81,13 @@ DERIVED = frozenset({"tensile extension", "crosshead extension", "tensile load",
 KNOWN_UNUSED: dict[str, str] = {
     "tenacity": "force per linear density (N/tex)",
     "pip count": "a counter channel of Instron Bluehill",
+    "points": "a sample counter (Bose ElectroForce WinTest)",
+    "scan time": "the time within one scan of Bose ElectroForce WinTest (the record's clock is its elapsed time)",
 }
 
 #: Names whose values are absolute positions: stretch uses the change from the first sample.
 ABSOLUTE_POSITION = frozenset(
-    {"position", "crosshead position", "traversenposition", "横梁位置"}
+    {"position", "crosshead position", "traversenposition", "横梁位置", "disp", "axial disp", "actuator position"}
 )
 
 # Explicit spellings of the sidecar's ``columns`` entries (besides the names above).
@@ -120,7 +123,8 @@ def split_header(cell: str) -> tuple[str, str | None]:
     ``"Time (s)" -> ("Time", "s")``, ``"Strain [%]" -> ("Strain", "%")``,
     ``"Kraft / N" -> ("Kraft", "N")``, ``"Load, kN" -> ("Load", "kN")``,
     ``"Extension mm" -> ("Extension", "mm")`` (the last two only with a known
-    unit and name), ``"Strain [-]" -> ("Strain", "-")``, ``"stretch" -> ("stretch", None)``.
+    unit and name; a trailing number is a channel, ``"Load 1" -> ("Load 1", None)``),
+    ``"Strain [-]" -> ("Strain", "-")``, ``"stretch" -> ("stretch", None)``.
     A bracketed qualifier that names a quantity is dropped, not taken as a unit:
     ``"Tensile strain (Extension)" -> ("Tensile strain", None)``.
     """
@@ -141,6 +145,8 @@ def split_header(cell: str) -> tuple[str, str | None]:
         return c, unit
     for pattern in (_UNIT_SLASH, _UNIT_COMMA, _UNIT_WORD):
         m = pattern.match(c)
+        if pattern is _UNIT_WORD and m and m.group("unit").isdigit():
+            break                                  # "Load 1": a channel number, not the unit "1"
         if m and (pattern is _UNIT_SLASH or (is_unit_cell(m.group("unit")) and
                                               (pattern is _UNIT_COMMA or quantity_of(m.group("name"))))):
             return m.group("name").strip(), m.group("unit").strip()
