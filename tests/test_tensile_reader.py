@@ -844,6 +844,42 @@ def test_date_and_time_stamps_are_read_in_seconds_across_midnight(tmp_path, sep,
     assert test.metadata["time_format"] == "date and time"
 
 
+@pytest.mark.parametrize("delim,decimal,group", [(",", ".", ","), (";", ",", ".")])
+def test_thousands_grouped_by_a_spreadsheet_are_read(tmp_path, delim, decimal, group):
+    """A spreadsheet's export with its number format's thousands grouping, in English ("1,234.5", quoted in a
+    comma-separated file) and in German ("1.234,5"): the grouping mark is dropped, the decimal mark kept."""
+    t, lam, p = truth()
+    p = p * 5e3  # up to thousands of Pa
+
+    def fmt(v):
+        text = f"{v:,.4f}".replace(",", "_").replace(".", decimal).replace("_", group)
+        return f'"{text}"' if delim == "," else text
+
+    rows = "".join(delim.join([fmt(a), fmt(b), fmt(c)]) + "\n" for a, b, c in zip(t, lam, p))
+    test = read(write(tmp_path, "grouped.csv", delim.join(["time [s]", "stretch", "stress [Pa]"]) + "\n" + rows))
+    assert max(p) > 1e4
+    np.testing.assert_allclose(test.stress, p, atol=1e-4)
+    np.testing.assert_allclose(test.stretch, lam, atol=1e-4)
+
+
+@pytest.mark.parametrize("comma", [False, True])
+def test_columns_aligned_by_blanks_are_read(tmp_path, comma):
+    """A fixed-width export (an older controller's ``.dat``): columns aligned by runs of spaces, names that
+    hold single spaces (``Time (s)``), and in German a decimal comma with the units on the row below."""
+    t, lam, p = truth()
+    if comma:
+        head = "    Zeit     Dehnung    Spannung\n       s           %          Pa\n"
+        rows = "".join(f"{a:8.3f}{(b - 1) * 100:12.5f}{c:12.4f}\n".replace(".", ",") for a, b, c in zip(t, lam, p))
+    else:
+        head = "# controller export\nTime (s)     Stretch      Stress (Pa)\n"
+        rows = "".join(f"  {a:8.3f}  {b:11.6f}  {c:11.4f}  \n" for a, b, c in zip(t, lam, p))
+    test = read(write(tmp_path, "aligned.dat", head + rows))
+    np.testing.assert_allclose(test.time, t, atol=1e-3)
+    np.testing.assert_allclose(test.stretch, lam, atol=1e-6)
+    np.testing.assert_allclose(test.stress, p, atol=1e-3)
+    assert test.metadata["delimiter"] == "whitespace"
+
+
 def test_bose_wintest_export_reads_disp_and_load_1(tmp_path):
     """Bose ElectroForce WinTest's layout: a preamble, a sample counter, two clocks, the actuator's
     position ('Disp', not zero at the start) and 'Load 1' (load cell 1: a channel number, not the unit

@@ -381,10 +381,12 @@ def columns_value(e: Entry) -> list[str]:
 
 def delimiter_value(e: Entry) -> str:
     v = str(e.value)
-    table = {",": ",", ";": ";", "\t": "\t", "tab": "\t", "\\t": "\t", "|": "|"}
+    table = {",": ",", ";": ";", "\t": "\t", "tab": "\t", "\\t": "\t", "|": "|",
+             " ": " ", "space": " ", "spaces": " ", "whitespace": " ", "blank": " ", "blanks": " "}
     key = v if v in table else v.strip().lower()
     if key not in table:
-        raise e.error(f"{e.where}: delimiter {v!r} not supported; use ',', ';', '|' or 'tab'")
+        raise e.error(f"{e.where}: delimiter {v!r} not supported; use ',', ';', '|', 'tab' or 'whitespace' "
+                      "(columns aligned by blanks)")
     return table[key]
 
 

@@ -292,10 +292,30 @@ class _Layout:
     trailer: list[tuple[int, str]]             # a results block after the data (line number, text): not read
 
 
+#: The delimiter of columns aligned by blanks (a run of spaces or tabs; fixed-width exports, ``.dat`` files).
+WHITESPACE = " "
+
+
 def _split(line: str, delim: str) -> list[str]:
+    if delim == WHITESPACE:
+        line = line.replace("\t", " ").strip()
+        if '"' not in line:
+            return line.split()
     if '"' in line:
         return next(csv.reader([line], delimiter=delim, quotechar='"', skipinitialspace=True))
     return line.split(delim)
+
+
+def _split_names(line: str, delim: str, n: int) -> list[str]:
+    """A header or units line's cells: as a data row's, except that between columns aligned by blanks a name
+    may hold single spaces (``Time (s)   Extension (mm)``): where splitting at every blank does not give the
+    *n* columns of the data, the line is split at runs of two or more blanks or at tabs."""
+    cells = _split(line, delim)
+    if delim == WHITESPACE and len(cells) != n and '"' not in line:
+        wide = [c for c in re.split(r" {2,}|\t", line.strip()) if c.strip()]
+        if len(wide) == n:
+            return wide
+    return cells
 
 
 def _is_number(cell: str) -> bool:
@@ -327,7 +347,9 @@ def _detect_delimiter(sample: list[str], label: str) -> str:
     """The delimiter that splits the (last) lines into a steady number of fields, most of them numbers.
 
     Ties go to tab, ``;``, ``|``, ``,`` in this order (a decimal comma makes ``,``
-    steady in ``;``- and ``|``-delimited files too, but its fields are not numbers).
+    steady in ``;``- and ``|``-delimited files too, but its fields are not numbers). Where none of them
+    splits the rows steadily into numbers alone, runs of blanks that do are the delimiter
+    (:data:`WHITESPACE`: columns aligned by spaces).
     """
     stripped = [_QUOTED.sub("x", s) for s in sample]
     best = None
@@ -342,13 +364,27 @@ def _detect_delimiter(sample: list[str], label: str) -> str:
         score = (steady >= 0.8, numeric, steady, -rank)
         if best is None or score > best[0]:
             best = (score, d)
+    blanks = _rows_of_numbers(sample, WHITESPACE)   # columns aligned by blanks: only where they do better
+    if blanks >= 0.8 and (best is None or blanks > _rows_of_numbers(sample, best[1])):
+        return WHITESPACE
     if best is not None:
         return best[1]
     raise InputError(
-        f"{label}: cannot find the column delimiter (',', ';', tab or '|') in the data rows; "
+        f"{label}: cannot find the column delimiter (',', ';', tab, '|' or aligned blanks) in the data rows; "
         f"a test needs at least two columns (e.g. stretch and stress) - export it as CSV, "
         f"or state delimiter = \"...\" in the sidecar"
     )
+
+
+def _rows_of_numbers(sample: list[str], delim: str) -> float:
+    """The share of *sample*'s lines that *delim* splits into the most common number (two or more) of fields,
+    every one a number."""
+    rows = [_split(s, delim) for s in sample]
+    counts = [len(r) for r in rows]
+    mode = max(set(counts), key=counts.count)
+    if mode < 2:
+        return 0.0
+    return sum(len(r) == mode and all(_is_number(c) for c in r) for r in rows) / len(rows)
 
 
 def _skip(line: str) -> bool:
@@ -366,13 +402,14 @@ def _layout(lines: list[str], label: str, delimiter: str | None) -> _Layout:
     head, first = _head(lines, delim, label)
     header = units = None
     j = len(head) - 1
+    width = len(_split(lines[first], delim))
     if j >= 0:
-        cells = _split(head[j][1], delim)
+        cells = _split_names(head[j][1], delim, width)
         if _units_row(cells, under_header=j >= 1):
             units = (head[j][0], cells)
             j -= 1
     if j >= 0:
-        header = (head[j][0], _split(head[j][1], delim))
+        header = (head[j][0], _split_names(head[j][1], delim, width))
     head_end = header[0] if header else (units[0] if units else first + 1)
     top = [(i, lines[i - 1]) for i in range(1, head_end) if lines[i - 1].lstrip().startswith("#")]
     data_lines, linenos = _data_rows(lines, first, delim)
@@ -688,7 +725,8 @@ def _parse(layout: _Layout, cols: list[_Column], decimal: str, label: str, *,
     if not (decimal == "," and delim == ","):
         src = [ln.replace(",", ".") for ln in lines] if decimal == "," else lines
         try:
-            arr = np.loadtxt(src, delimiter=delim, quotechar='"', usecols=use, ndmin=2, comments=None,
+            arr = np.loadtxt(src, delimiter=None if delim == WHITESPACE else delim, quotechar='"', usecols=use,
+                             ndmin=2, comments=None,
                              dtype=np.float64, encoding=None, converters=dict.fromkeys(clock, _clock_seconds))
         except (ValueError, IndexError):
             arr = None
@@ -712,7 +750,8 @@ def _parse_slow(layout: _Layout, cols: list[_Column], decimal: str, label: str, 
     delim = layout.delimiter
     need = max(c.index for c in cols) + 1
     out = np.empty((len(layout.data_lines), len(cols)))
-    reader = csv.reader(layout.data_lines, delimiter=delim, quotechar='"', skipinitialspace=True)
+    reader = ((_split(ln, delim) for ln in layout.data_lines) if delim == WHITESPACE else
+              csv.reader(layout.data_lines, delimiter=delim, quotechar='"', skipinitialspace=True))
     for r, row in enumerate(reader):
         if len(row) < need:
             raise InputError(
@@ -725,7 +764,7 @@ def _parse_slow(layout: _Layout, cols: list[_Column], decimal: str, label: str, 
                 if c.index in clock:
                     out[r, k] = _clock_seconds(cell)
                 else:
-                    out[r, k] = float(cell.replace(",", ".") if decimal == "," else cell)
+                    out[r, k] = _number(cell, decimal)
             except ValueError:
                 _refuse_repeated_header(layout, r, label)
                 what = "is empty" if not cell else f"has text {cell!r}"
@@ -759,29 +798,49 @@ def _data_decimal(layout: _Layout, cols: list[_Column], md: M.Metadata, label: s
         return None
 
 
+#: A number with its thousands grouped, by the decimal mark: ``1,002.83`` (a spreadsheet's export in English),
+#: ``1.002,83`` (in German); the grouping mark is dropped. Only with the decimal mark after the groups: ``1,002``
+#: or ``1.002`` alone may be either reading, and stays an error.
+_GROUPED = {".": re.compile(r"[-+]?\d{1,3}(?:,\d{3})+\.\d*(?:[eE][-+]?\d+)?"),
+            ",": re.compile(r"[-+]?\d{1,3}(?:\.\d{3})+,\d*(?:[eE][-+]?\d+)?")}
+
+
+def _number(cell: str, decimal: str) -> float:
+    """A data cell as a float, in the file's decimal mark, its thousands grouping (:data:`_GROUPED`) dropped."""
+    if _GROUPED[decimal].fullmatch(cell):
+        cell = cell.replace("," if decimal == "." else ".", "")
+    return float(cell.replace(",", ".") if decimal == "," else cell)
+
+
 def _decimal(layout: _Layout, cols: list[_Column], md: M.Metadata, label: str) -> str:
+    """The data's decimal mark: as stated (``decimal``), else the one its numbers use. Numbers with both marks
+    are read where every one that has the other mark groups thousands with it (``1,002.83``)."""
     e = md.get("decimal")
     if e is not None:
         return M.decimal_value(e)
     lines = layout.data_lines
     idx = list(range(len(lines))) if len(lines) <= 400 else list(range(200)) + list(range(len(lines) - 200, len(lines)))
-    comma = dot = None
+    first: dict[str, int] = {}
+    marked: dict[str, list[str]] = {",": [], ".": []}
     for r in idx:
         cells = _split(lines[r], layout.delimiter)
         for c in cols:
             if c.index < len(cells):
-                v = cells[c.index]
-                if comma is None and "," in v:
-                    comma = r
-                if dot is None and "." in v:
-                    dot = r
-    if comma is not None and dot is not None:
-        raise InputError(
-            f"{label}: numbers mix '.' (line {layout.data_linenos[dot]}) and ',' (line "
-            f"{layout.data_linenos[comma]}) as decimal mark; export without thousands separators, "
-            f"or state decimal = \".\" or \",\" in the sidecar"
-        )
-    return "," if comma is not None else "."
+                v = cells[c.index].strip().strip('"').strip()
+                for mark in ",.":
+                    if mark in v:
+                        first.setdefault(mark, r)
+                        marked[mark].append(v)
+    if len(first) < 2:
+        return "," if "," in first else "."
+    for mark, other in ((".", ","), (",", ".")):
+        if all(_GROUPED[mark].fullmatch(v) for v in marked[other]):
+            return mark
+    raise InputError(
+        f"{label}: numbers mix '.' (line {layout.data_linenos[first['.']]}) and ',' (line "
+        f"{layout.data_linenos[first[',']]}) as decimal mark; export without thousands separators, "
+        f"or state decimal = \".\" or \",\" in the sidecar"
+    )
 
 
 # ---------------------------------------------------------------------------
@@ -1240,7 +1299,7 @@ def _metadata(md: M.Metadata, geo: M.Geometry, plan: _Plan, layout: _Layout, col
         "mode": plan.mode,
         "mode_from": plan.mode_from,
         "encoding": enc,
-        "delimiter": layout.delimiter,
+        "delimiter": "whitespace" if layout.delimiter == WHITESPACE else layout.delimiter,
         "decimal": decimal,
         "columns": [c.quantity or C.IGNORE for c in cols],
         "units": [c.unit or "" for c in cols],
