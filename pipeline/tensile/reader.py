@@ -685,7 +685,7 @@ def _need_unit(col: _Column, label: str, md: M.Metadata) -> float:
 # numbers
 
 
-_CLOCK = re.compile(r"^\s*\"?\s*(?:(\d{4})-(\d{1,2})-(\d{1,2})[T ]\s*)?(\d+):([0-5]?\d):([0-5]?\d(?:[.,]\d*)?)"
+_CLOCK = re.compile(r"^\s*\"?\s*(?:(\d{4})-(\d{2})-(\d{2})[T ]\s*)?(\d+):([0-5]?\d):([0-5]?\d(?:[.,]\d*)?)"
                     r"\s*(Z|[+-]\d{2}:?\d{2})?\s*\"?\s*$")
 
 
@@ -702,10 +702,12 @@ def _clock_seconds(cell: str) -> float:
     m = _CLOCK.match(cell)
     if m is None:
         raise ValueError(f"not a clock time: {cell!r}")
-    y, _, _, h, mi, sec, _ = m.groups()
+    y, mo, d, h, mi, sec, tz = m.groups()
     if y is None:
         return int(h) * 3600.0 + int(mi) * 60.0 + float(sec.replace(",", "."))
-    stamp = datetime.datetime.fromisoformat(cell.strip().strip('"').strip().replace(",", "."))
+    whole, _, frac = sec.replace(",", ".").partition(".")
+    stamp = datetime.datetime.fromisoformat(
+        f"{y}-{mo}-{d}T{int(h):02d}:{int(mi):02d}:{int(whole):02d}{'.' + frac if frac else ''}{tz or ''}")
     if stamp.tzinfo is not None:
         stamp = stamp.astimezone(datetime.UTC).replace(tzinfo=None)
     return (stamp - _EPOCH).total_seconds()
