@@ -131,6 +131,16 @@ def _patched(kwargs: dict):
     return stepper, mods
 
 
+def stepper_with(stepper_kw: dict):
+    """The implicit stepper's constructor with the variant's keyword arguments, which win over those the run's
+    setup passes from the scene (``factor_matrix``, ``iteration``, ``rtol``, ...)."""
+    from esmm.pipeline.simulate.implicit import BackwardEuler
+
+    def make(*a, **k):
+        return BackwardEuler(*a, **{**k, **stepper_kw})
+    return make
+
+
 def one_run(asset, scene, out: Path, kwargs: dict, clock: PhaseClock) -> dict:
     """The scene on *asset* with the implicit stepper made with *kwargs*; its figures."""
     import esmm.pipeline.simulate.frames as frames
@@ -157,7 +167,7 @@ def one_run(asset, scene, out: Path, kwargs: dict, clock: PhaseClock) -> dict:
     saved = [(m, a, getattr(m, a)) for m, a, _ in mods]
     for m, a, v in mods:
         setattr(m, a, v)
-    runsetup.BackwardEuler = functools.partial(BackwardEuler, **stepper_kw)
+    runsetup.BackwardEuler = stepper_with(stepper_kw)
     BackwardEuler.advance = timed_advance
     clock.reset()
     undo = clock.install()
