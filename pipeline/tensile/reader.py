@@ -695,7 +695,7 @@ _EPOCH = datetime.datetime(2000, 1, 1)
 
 def _clock_seconds(cell: str) -> float:
     """``"01:02:03.5"`` (hours:minutes:seconds, a clock time or an elapsed time) in seconds; with an ISO 8601
-    date before it (``"2024-03-01 12:00:03.5"``, ``T`` or a space between, a ``Z`` or UTC offset after), in
+    date before it (``"YYYY-MM-DD hh:mm:ss.s"``, ``T`` or a space between, a ``Z`` or UTC offset after), in
     seconds from :data:`_EPOCH` by :meth:`datetime.datetime.fromisoformat` (the calendar and the offset are
     the standard library's), so that a record across midnight keeps its order (the time is used from its
     first sample on; float64 resolves 0.2 µs at that size)."""
