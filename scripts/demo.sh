@@ -3,7 +3,19 @@
 set -euo pipefail
 OUT="${1:-demo-output}"
 ESMM="${ESMM:-.venv/bin/esmm}"
+# The demo owns its output folder: a folder it wrote before (its marker inside) is replaced whole, so that
+# a second `make demo` does not stop at the first stage's refusal to write beside an earlier fit; any other
+# non-empty folder is left alone.
+if [ -e "$OUT" ] && [ -n "$(ls -A "$OUT" 2>/dev/null)" ]; then
+    if [ -f "$OUT/.esmm-demo" ]; then
+        rm -rf -- "$OUT"
+    else
+        echo "demo: $OUT exists and was not written by this demo; remove it, or give another folder: make demo DEMO_OUT=dir" >&2
+        exit 2
+    fi
+fi
 mkdir -p "$OUT"
+echo "written by scripts/demo.sh (make demo); the next run replaces this folder" > "$OUT/.esmm-demo"
 say() { printf '\n== %s\n' "$*"; }
 
 say "1/9 calibrate: Arruda-Boyce on Treloar's rubber (published: C_R ~ 0.27 MPa, N ~ 26)"
