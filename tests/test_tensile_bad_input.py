@@ -107,8 +107,8 @@ def test_nan_and_text_in_a_numeric_column(tmp_path):
     assert "line 3 is empty" in msg
     msg = refuse(tmp_path, "stretch,stress [kPa]\n1,0\n1.1,-inf\n")
     assert "'-inf' is not a finite number" in msg
-    msg = refuse(tmp_path, "stretch,stress [kPa]\n1,0\n1.1,1\nMaximum,1\n")      # a footer
-    assert "column 1 'stretch', line 4" in msg and "'Maximum'" in msg
+    msg = refuse(tmp_path, "stretch,stress [kPa]\n1,0\nPeak,1\n1.2,3\n")   # text within the data
+    assert "column 1 'stretch', line 3" in msg and "'Peak'" in msg
     msg = refuse(tmp_path, 'stretch,stress [kPa]\n"1","0"\n"1,1","2"\n"1.2","3"\n')
     assert "numbers mix '.' (line 4) and ',' (line 3)" in msg
 

@@ -906,6 +906,19 @@ def test_bose_wintest_export_reads_disp_and_load_1(tmp_path):
     assert any("'Points' not used" in n for n in test.metadata["column_notes"])
 
 
+def test_a_spreadsheets_summary_rows_under_the_data_are_set_aside(tmp_path):
+    """Max / Mean / SD rows right under the columns (no blank line between, as a spreadsheet appends them): set
+    aside with a warning that names their lines; the data read whole."""
+    t, lam, p = truth()
+    rows = "".join(f"{a:.2f},{b:.6f},{c:.4f},\n" for a, b, c in zip(t, lam, p))
+    summary = f"Maximum,,{max(p):.4f},\nMean:,,{np.mean(p):.4f},\nSD,,{np.std(p):.4f},\n"
+    rep = ListReporter()
+    test = read(write(tmp_path, "sheet.csv", "time [s],stretch,stress [Pa],\n" + rows + summary), reporter=rep)
+    assert test.n == len(t)
+    np.testing.assert_allclose(test.stress, p, atol=1e-4)
+    assert any(f"lines {len(t) + 2}-{len(t) + 4} after the data" in w for w in rep.warnings)
+
+
 def test_results_block_after_the_data_is_set_aside(tmp_path):
     t, lam, p = truth()
     rows = "".join(f"{a:.2f},{b:.6f},{c:.4f}\n" for a, b, c in zip(t, lam, p))

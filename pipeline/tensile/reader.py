@@ -519,10 +519,31 @@ def _data_rows(lines: list[str], first: int, delim: str) -> tuple[list[str], lis
 TRAILER_MAX_LINES = 30
 
 
+#: First cells of the summary rows a spreadsheet appends right under its columns (``Max,,12.3``).
+SUMMARY_LABELS = frozenset({"max", "maximum", "min", "minimum", "mean", "average", "avg", "median", "std", "sd",
+                            "stdev", "std dev", "standard deviation", "sum", "total", "count", "range"})
+
+
+def _summary_rows(data: list[str], delim: str) -> int:
+    """How many of the last rows (at most :data:`TRAILER_MAX_LINES`) are a spreadsheet's summary: each starts with a
+    statistic's name (:data:`SUMMARY_LABELS`, a colon allowed)."""
+    n = 0
+    for ln in reversed(data[-TRAILER_MAX_LINES:]):
+        first = C.clean_cell((_split(ln, delim) or [""])[0]).rstrip(":").strip().lower()
+        if first not in SUMMARY_LABELS:
+            break
+        n += 1
+    return n if n < len(data) else 0
+
+
 def _trailer(data: list[str], linenos: list[int], delim: str, header: tuple[int, list[str]] | None):
     """Split off a results block that machine software writes after the data: it follows a blank
     line, starts with a row that is text or narrower than the data, is short, and does not repeat
-    the header (that would be a second test). Returns (data rows, their line numbers, the block)."""
+    the header (that would be a second test); or, right under the data, the summary rows a
+    spreadsheet appends (:func:`_summary_rows`). Returns (data rows, their line numbers, the block)."""
+    n = _summary_rows(data, delim)
+    if n:
+        return data[:-n], linenos[:-n], list(zip(linenos[-n:], data[-n:]))
     width = _filled(_split(data[0], delim))
     for k in range(max(1, len(data) - TRAILER_MAX_LINES), len(data)):
         if linenos[k] - linenos[k - 1] < 2:   # not after a blank (or comment) line
