@@ -400,9 +400,10 @@ def _layout(lines: list[str], label: str, delimiter: str | None) -> _Layout:
     lines, delimiter = _excel_separator(lines, delimiter)
     delim = delimiter or _detect_delimiter(_last_rows(lines, label), label)
     head, first = _head(lines, delim, label)
+    data_lines, linenos = _data_rows(lines, first, delim)
+    width = len(_split(data_lines[0], delim))           # the data's fields (its first row is lines[first])
     header = units = None
     j = len(head) - 1
-    width = len(_split(lines[first], delim))
     if j >= 0:
         cells = _split_names(head[j][1], delim, width)
         if _units_row(cells, under_header=j >= 1):
@@ -412,7 +413,6 @@ def _layout(lines: list[str], label: str, delimiter: str | None) -> _Layout:
         header = (head[j][0], _split_names(head[j][1], delim, width))
     head_end = header[0] if header else (units[0] if units else first + 1)
     top = [(i, lines[i - 1]) for i in range(1, head_end) if lines[i - 1].lstrip().startswith("#")]
-    data_lines, linenos = _data_rows(lines, first, delim)
     data_lines, linenos, trailer = _trailer(data_lines, linenos, delim, header)
     return _Layout(
         delimiter=delim,
@@ -421,7 +421,7 @@ def _layout(lines: list[str], label: str, delimiter: str | None) -> _Layout:
         units_row=units,
         data_lines=data_lines,
         data_linenos=linenos,
-        n_fields=len(_split(data_lines[0], delim)),
+        n_fields=width,
         preamble=[ln.strip() for _, ln in head[: max(j, 0)]],
         preamble_cells=[(i, _split(ln, delim)) for i, ln in head[: max(j, 0)]],
         trailer=trailer,
@@ -837,6 +837,15 @@ def _number(cell: str, decimal: str) -> float:
     return float(cell.replace(",", ".") if decimal == "," else cell)
 
 
+def _used_cells(layout: _Layout, cols: list[_Column], rows: list[int]):
+    """(row, cell) of the used columns in data rows *rows*, unquoted."""
+    for r in rows:
+        cells = _split(layout.data_lines[r], layout.delimiter)
+        for c in cols:
+            if c.index < len(cells):
+                yield r, cells[c.index].strip().strip('"').strip()
+
+
 def _decimal(layout: _Layout, cols: list[_Column], md: M.Metadata, label: str) -> str:
     """The data's decimal mark: as stated (``decimal``), else the one its numbers use. Numbers with both marks
     are read where every one that has the other mark groups thousands with it (``1,002.83``)."""
@@ -846,20 +855,14 @@ def _decimal(layout: _Layout, cols: list[_Column], md: M.Metadata, label: str) -
     lines = layout.data_lines
     idx = list(range(len(lines))) if len(lines) <= 400 else list(range(200)) + list(range(len(lines) - 200, len(lines)))
     first: dict[str, int] = {}
-    marked: dict[str, list[str]] = {",": [], ".": []}
-    for r in idx:
-        cells = _split(lines[r], layout.delimiter)
-        for c in cols:
-            if c.index < len(cells):
-                v = cells[c.index].strip().strip('"').strip()
-                for mark in ",.":
-                    if mark in v:
-                        first.setdefault(mark, r)
-                        marked[mark].append(v)
+    for r, v in _used_cells(layout, cols, idx):
+        for mark in ",.":
+            if mark in v:
+                first.setdefault(mark, r)
     if len(first) < 2:
         return "," if "," in first else "."
-    for mark, other in ((".", ","), (",", ".")):
-        if all(_GROUPED[mark].fullmatch(v) for v in marked[other]):
+    for mark, other in ((".", ","), (",", ".")):        # both marks: rare; the cells read again
+        if all(_GROUPED[mark].fullmatch(v) for _, v in _used_cells(layout, cols, idx) if other in v):
             return mark
     raise InputError(
         f"{label}: numbers mix '.' (line {layout.data_linenos[first['.']]}) and ',' (line "
