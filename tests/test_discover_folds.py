@@ -285,8 +285,9 @@ def test_held_out_samples_above_the_training_stretch_are_not_scored_for_effects_
     material, artefact = ho.fold_sets([r])
     assert material.scheme.startswith("leave one of 5 consecutive blocks out") and ho._after_first_loading(r) == 0
     assert [f.beyond for f in material.folds] == [False, False, False, False, True]
-    within = judged_on("sensor_offset", material, artefact)
+    within = judged_on("viscoelastic", material, artefact)
     assert within.key == "material+within" and "not scored" in within.scheme
+    assert judged_on("sensor_offset", material, artefact).key == "artefact+within"  # the samples at rest cut apart
     assert judged_on("viscoelastic", material, artefact).key == "material+within"
     assert judged_on(["viscoelastic", "i2exp"], material, artefact) is material
     assert material.within().within().key == "material+within"
@@ -299,3 +300,59 @@ def test_held_out_samples_above_the_training_stretch_are_not_scored_for_effects_
                                           max_points=200))
     assert cycles.scheme.startswith("leave one cycle out") and cycles.within() is cycles
     assert blocks.within() is blocks  # cut after the first loading to the largest stretch: nothing above it
+
+
+def _staircase(rng, offset: float, *, rest: int = 400, fs: float = 20.0) -> TensileTest:
+    """A machine record of an Arruda-Boyce staircase (at rest, then ramps to 1.25 and 1.5 at 0.02/s, each
+    followed by a 40 s hold), low-pass filtered noise of 30 Pa, plus a load cell's *offset* [Pa]."""
+    t = np.arange(0.0, rest / fs + 2 * (12.5 + 40.0), 1.0 / fs)
+    t0 = rest / fs
+    knots_t = [0.0, t0, t0 + 12.5, t0 + 52.5, t0 + 65.0, t0 + 105.0]
+    lam = np.interp(t, knots_t, [1.0, 1.0, 1.25, 1.25, 1.5, 1.5])
+    b, a = signal.butter(2, 0.2)
+    noise = signal.lfilter(b, a, rng.standard_normal(t.size))
+    y = _arruda_boyce(lam)[0] + offset + 30.0 * noise / noise.std()
+    return TensileTest(source=Path(f"stairs_{offset:g}.csv"), mode="uniaxial", stretch=lam, stress=y, time=t)
+
+
+def test_the_samples_at_rest_are_held_out_in_blocks_and_each_fold_reads_the_offset_from_its_own():
+    """On a staircase the first loading is always fitted; the samples read at rest before it (where a load
+    cell's offset shows) are cut in five blocks of their own in the artefact scheme, one held out per fold,
+    and a fold's offset is the mean of its training samples at rest, never of what it predicts."""
+    from esmm.pipeline.discover.model import Bounds, Problem
+    from esmm.pipeline.materials import get_model
+
+    [r] = prepare([_staircase(np.random.default_rng(3), -900.0)], max_points=300)
+    material, artefact = ho.fold_sets([r])
+    assert material.scheme.endswith("the first loading always fitted") and material is not artefact
+    assert "the samples at rest in blocks of their own" in artefact.scheme
+    rest = r.preload()[2]
+    held = np.stack([f.test[0][:rest] for f in artefact.folds])
+    assert np.array_equal(held.sum(axis=0), np.ones(rest, int))  # every sample at rest held out once
+    assert not any(f.test[0][:rest].any() for f in material.folds)
+    after = [np.flatnonzero(f.test[0][rest:]) + rest for f in artefact.folds]
+    assert all(np.array_equal(a, np.flatnonzero(m.test[0])) for a, m in zip(after, material.folds))
+    prob = Problem(get_model("arruda-boyce"), [r], Spec(sensor_offset=1), fixed={}, directions=None,
+                   bounds=Bounds([r], 1.0))
+    assert prob.pinned[0] == pytest.approx(np.mean(r.y[:rest]))
+    for f in artefact.folds:
+        pin = ho.read_pins(prob, f.test)[0]
+        assert pin == np.mean(r.y[:rest][~f.test[0][:rest]]) and pin != prob.pinned[0]
+    assert ho.read_pins(prob, [np.ones(r.test.n, bool)]) == [0.0]  # nothing left to read: none applied
+    from esmm.pipeline.discover.nested import Restricted  # a nested outer fold: its held-out samples unread
+
+    f = artefact.folds[2]
+    outer = Restricted(get_model("arruda-boyce"), [r], Spec(sensor_offset=1), fixed={}, directions=None,
+                       bounds=Bounds([r], 1.0), outer=f.train, unread=f.test)
+    assert outer.pinned == ho.read_pins(prob, f.test) and outer.derived(Spec(sensor_offset=2)).pinned == outer.pinned
+
+
+@pytest.mark.parametrize("offset, kept", [(-900.0, ["sensor_offset"]), (0.0, [])])
+def test_an_offset_read_at_rest_before_a_staircase_is_named(offset, kept):
+    """A staircase whose load cell reads −900 Pa at rest (2 % of the peak, 30 noise units): with the samples
+    at rest always fitted, the holds alone were left to show the offset, and it fell short of one squared
+    resolution per held-out sample (0.19); judged on its own blocks at rest too, it is named. Tared (no
+    offset), nothing is kept."""
+    res = discover([_staircase(np.random.default_rng(4), offset)], model="arruda-boyce", n_starts=2,
+                   max_points=300, nested=False)
+    assert res.kept == kept, {n: c.reason for n, c in res.candidates.items()}

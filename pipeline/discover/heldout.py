@@ -11,11 +11,13 @@ Three fold sets (docs/design/discovery.md, "Held-out data: the folds, and what i
   file out. A file is never held out if it is the only one of its loading mode
   (that would test extrapolation between modes, not effects).
 * the **artefact scheme** (:func:`artefact_folds`): five consecutive blocks of
-  every file, the first loading always fitted. A per-file artefact (slack, grip
+  every file, the first loading always fitted, and the samples at rest before
+  loading in five blocks of their own. A per-file artefact (slack, grip
   slips, a specimen's stress scale, a load-cell offset and drift) is estimated
   on the training samples *of the same file* and judged on its held-out
-  samples; on a held-out file it could only be estimated from that file's own
-  data, which the base model has no such freedom to use.
+  samples (an offset read at rest is read from the fold's training samples at
+  rest, :func:`read_pins`); on a held-out file it could only be estimated from
+  that file's own data, which the base model has no such freedom to use.
 * the **slip scheme** (:func:`slip_folds`, carried by the artefact scheme where
   a record has a grip slip; grip slips alone are judged on it): five
   interleaved sets of short blocks, so that every slip has training samples
@@ -42,7 +44,7 @@ import numpy as np
 
 from ..errors import FitError
 from .fitted import Fitted
-from .records import Record
+from .records import Record, rest_reading, rest_samples
 from .statistics import Errors, error_measures
 
 #: a fold's refit from the full-data optimum: at most this many evaluations per parameter (plus two) ...
@@ -96,8 +98,16 @@ class FoldSet:
 
 
 def artefact_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
-    """The artefact scheme: five consecutive blocks of every file, the first loading always fitted."""
-    return _block_folds(records)
+    """The artefact scheme: five consecutive blocks of every file, the first loading always fitted, and the
+    samples read at rest before loading cut in five blocks of their own, one held out in each fold.
+
+    A load cell's offset is read at rest (:func:`~esmm.pipeline.discover.records.rest_reading`), not fitted:
+    where those samples lay in the first loading, always fitted (a staircase, a relaxation, cycles), no fold
+    held out what shows an offset, and the reading was never checked against data it was not read from. With
+    the samples at rest in the blocks, each fold reads the offset from its own training samples at rest
+    (:func:`read_pins`) and predicts the held-out ones, where a model without it predicts no force.
+    """
+    return _block_folds(records, rest=True)
 
 
 def fold_sets(records: Sequence[Record]) -> tuple[FoldSet, FoldSet]:
@@ -105,7 +115,7 @@ def fold_sets(records: Sequence[Record]) -> tuple[FoldSet, FoldSet]:
     scheme carries the slip scheme (:func:`slip_folds`) where a record has grip slips."""
     scheme, folds = make_folds(records)
     mat = FoldSet("material", scheme, folds)
-    if scheme.startswith("leave one of"):  # the block scheme already
+    if scheme.startswith("leave one of") and not any(_rest_blocks(r) for r in records):  # the same blocks
         art = mat
     else:
         a_scheme, a_folds = artefact_folds(records)
@@ -245,8 +255,9 @@ def _cycle_folds(records: Sequence[Record]) -> tuple[str, list[Fold]] | None:
     return "leave one cycle out, the first always fitted", folds
 
 
-def _block_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
-    """Leave one of five consecutive blocks of every file out.
+def _block_folds(records: Sequence[Record], *, rest: bool = False) -> tuple[str, list[Fold]]:
+    """Leave one of five consecutive blocks of every file out (*rest*: the samples at rest too, in five
+    blocks of their own, :func:`artefact_folds`).
 
     The first loading up to a record's largest stretch is what determines the
     elastic law; where the record goes on after it (a hold, an unloading), the
@@ -255,20 +266,34 @@ def _block_folds(records: Sequence[Record]) -> tuple[str, list[Fold]]:
     """
     folds = []
     after = [_after_first_loading(r) for r in records]
+    at_rest = [_rest_blocks(r) if rest else 0 for r in records]
     for j in range(BLOCKS):
         masks = {}
         for k, r in enumerate(records):
-            n = r.test.n
-            a = after[k]
+            n, a, q = r.test.n, after[k], at_rest[k]
+            a = max(a, q)
             edges = (a + np.linspace(0, n - a, BLOCKS + 1)).round().astype(int)
             mask = np.zeros(n, bool)
             mask[edges[j]:edges[j + 1]] = True
+            if q:
+                cut = np.linspace(0, q, BLOCKS + 1).round().astype(int)
+                mask[cut[j]:cut[j + 1]] = True
             masks[k] = mask
         folds.append(_block_fold(f"block {j + 1}/{BLOCKS}", records, masks, blocks=True))
     scheme = f"leave one of {BLOCKS} consecutive blocks out" + (" (of every file)" if len(records) > 1 else "")
     if any(after):
         scheme += ", the first loading always fitted"
+    if any(at_rest):
+        scheme += ", the samples at rest in blocks of their own"
     return scheme, folds
+
+
+def _rest_blocks(r: Record) -> int:
+    """The samples at rest before loading that the artefact scheme cuts in blocks of their own (0: none; a
+    record at rest for fewer than two samples per block keeps them where the blocks put them: in its first
+    block, or in a first loading always fitted)."""
+    n = rest_samples(r)
+    return n if n >= 2 * BLOCKS and n < r.test.n - MIN_AFTER else 0
 
 
 def _after_first_loading(r: Record) -> int:
@@ -450,6 +475,22 @@ def unseen_slip(s, records: Sequence[Record], train: Sequence) -> bool:
     return not np.any((idx >= r.slips[j]) & (idx < end))
 
 
+def read_pins(prob, held: Sequence[np.ndarray | None]) -> list[float | None]:
+    """Per record of *prob*, the load cell's offset read at rest without the samples *held* (per record: a
+    boolean mask over its samples, or None) nor those *prob* may not see (``prob.unread``): the reading of
+    every sample at rest where none is held out, 0 (none applied) where every one is."""
+    out = []
+    for k, r in enumerate(prob.records):
+        pin, mask, unread = prob.pinned[k], held[k], prob.unread[k]
+        if not prob.forward.n_offset[k] or pin is None or (mask is None and unread is None):
+            out.append(pin)
+            continue
+        mask = unread if mask is None else mask if unread is None else mask | unread
+        v = rest_reading(r, held=mask)
+        out.append(0.0 if v is None else v)
+    return out
+
+
 def _fold_fit(fitted: Fitted, fold: Fold):
     """The whole model refitted on a fold's training samples (warm start), and that fold's problem.
 
@@ -461,7 +502,8 @@ def _fold_fit(fitted: Fitted, fold: Fold):
     the value the whole record gave it). (A held-out file's offset is not
     applied either: offsets are estimated on training samples only.)
     """
-    fp = fitted.problem.derived(train=fold.train)
+    prob = fitted.problem
+    fp = prob.derived(train=fold.train, pins=read_pins(prob, fold.test))
     excluded = {k for k, t in enumerate(fold.train) if t is not None and len(t) == 0}
 
     def own(s) -> bool:

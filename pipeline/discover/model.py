@@ -879,6 +879,11 @@ class Problem:
         self.params = ParameterLayout(self.model, self.records, spec, fixed=self.fixed, directions=directions,
                                       bounds=bounds, free_scales=free_scales)
         self.forward = ForwardModel(self.model, self.records, spec, directions=directions)
+        #: per record: the load cell's offset read at rest and held (``forward.pinned``; a fold's own, read
+        #: from its training samples, :meth:`derived`)
+        self.pinned = self.forward.pinned
+        #: per record: the samples whose readings the offset may not be read from (None: every one may be read)
+        self.unread: list[np.ndarray | None] = [None] * len(self.records)
         self._setup(train)
 
     def _setup(self, train) -> None:
@@ -892,11 +897,13 @@ class Problem:
         self.active = np.arange(len(slots))
         self.z_full = self.params.default_z()
 
-    def derived(self, spec: Spec | None = None, *, train=None) -> Problem:
+    def derived(self, spec: Spec | None = None, *, train=None, pins=None) -> Problem:
         """The problem of the same records, base and bounds with another *spec* and/or training set.
 
         With the same spec (a held-out fold) the parameter layout and the forward model, with
-        its caches, are shared: they do not depend on the training set.
+        its caches, are shared: they do not depend on the training set. *pins*: per record, the
+        load cell's offset read at rest from the fold's training samples (in place of
+        ``forward.pinned``, read from all of them).
         """
         if spec is not None and spec != self.spec:
             return Problem(self.base_model, self.records, spec, fixed=self.fixed, directions=self.directions,
@@ -904,6 +911,8 @@ class Problem:
         new = object.__new__(Problem)
         new.__dict__.update(self.__dict__)
         new._setup(train)
+        if pins is not None:
+            new.pinned = list(pins)
         return new
 
     def set_train(self, train) -> None:
@@ -950,7 +959,7 @@ class Problem:
         coef = None
         X = self._X[k]
         n_offset = self.forward.n_offset[k]
-        pin = self.forward.pinned[k] if n_offset else None
+        pin = self.pinned[k] if n_offset else None
         if pin is not None:
             coef = np.array([pin] + [0.0] * (n_offset - 1))
         fused = X is None or not self._pos[k].size

@@ -47,7 +47,7 @@ from ..blas import single_threaded_blas, usable_cores
 from ..errors import FitError
 from ..progress import SILENT
 from .fitted import Fitted, finish
-from .heldout import Fold, FoldSet, add_predictions, fold_sets, unseen_slip
+from .heldout import Fold, FoldSet, add_predictions, fold_sets, read_pins, unseen_slip
 from .model import Problem, Spec
 from .records import prepare
 from .rounds import run_search
@@ -66,17 +66,23 @@ class Restricted(Problem):
     the restriction: the training set asked for is intersected with *outer*.
     """
 
-    def __init__(self, *args, outer: Sequence | None = None, **kwargs):
+    def __init__(self, *args, outer: Sequence | None = None, unread: Sequence | None = None, **kwargs):
         self.outer = list(outer) if outer is not None else None
         super().__init__(*args, **kwargs)
+        if unread is not None:  # the outer fold's held-out samples: no offset is read from them
+            self.unread = list(unread)
+            self.pinned = read_pins(self, [None] * len(self.records))
 
     def set_train(self, train) -> None:
         super().set_train(_intersect_all(self.outer, train, len(self.records)))
 
-    def derived(self, spec=None, *, train=None) -> Restricted:
-        return Restricted(self.base_model, self.records, self.spec if spec is None else spec, fixed=self.fixed,
-                          directions=self.directions, bounds=self.bounds, train=train,
-                          free_scales=self.free_scales, outer=self.outer)
+    def derived(self, spec=None, *, train=None, pins=None) -> Restricted:
+        new = Restricted(self.base_model, self.records, self.spec if spec is None else spec, fixed=self.fixed,
+                         directions=self.directions, bounds=self.bounds, train=train,
+                         free_scales=self.free_scales, outer=self.outer, unread=self.unread)
+        if pins is not None:
+            new.pinned = list(pins)
+        return new
 
 
 def _intersect(a, b):
@@ -177,7 +183,7 @@ def _restricted_base(ctx: _Context, outer: Fold) -> Fitted:
     """The base model refitted on the outer fold's training samples (from its fit on all data)."""
     p = ctx.base.problem
     prob = Restricted(p.base_model, p.records, p.spec, fixed=p.fixed, directions=p.directions, bounds=p.bounds,
-                      free_scales=p.free_scales, outer=outer.train)
+                      free_scales=p.free_scales, outer=outer.train, unread=outer.test)
     try:
         z, _ = prob.solve(ctx.base.z.copy())
     except FitError:

@@ -271,7 +271,13 @@ def _at_rest(rec: Record) -> tuple[float, float, int] | None:
     return pre
 
 
-def rest_reading(rec: Record) -> float | None:
+def rest_samples(rec: Record) -> int:
+    """How many samples the record reads at rest in its reference state before loading (0: none)."""
+    pre = _at_rest(rec)
+    return 0 if pre is None else pre[2]
+
+
+def rest_reading(rec: Record, held: np.ndarray | None = None) -> float | None:
     """The stress the load cell read at rest in the reference state before loading (its offset), or None.
 
     A machine record whose first sample is at the reference state (stretch 1,
@@ -292,15 +298,25 @@ def rest_reading(rec: Record) -> float | None:
     a correction by it shifts every sample; where the elastic law misfits, a
     shift of the right sign predicts held-out samples better by the product of
     the two, whatever the shift's size.
+
+    *held*: a boolean mask over the record's samples; the samples at rest it marks
+    are held out and not read (a held-out fold reads the offset from its training
+    samples only, :func:`~esmm.pipeline.discover.heldout.artefact_folds`).
     """
     pre = _at_rest(rec)
     if pre is None:
         return None
     mean, _, n = pre
+    seg = rec.y[:n]
+    if held is not None and np.any(held[:n]):
+        seg = seg[~held[:n]]
+        if seg.size == 0:  # every reading at rest held out: none to read
+            return None
+        mean, n = float(np.mean(seg)), seg.size
     if n < 2:  # one reading: its error is the record's noise (its noise model, from all its samples)
         var, dof = rec.sigma ** 2, math.inf
     else:
-        _, var, dof = segment_mean(rec.y[:n])
+        _, var, dof = segment_mean(seg)
     se = math.sqrt(var + rec.noise.quantum ** 2 / 12.0)
     p = 2.0 * float(stats.t.sf(abs(mean) / se, dof)) if se > 0 else (0.0 if mean else 1.0)
     if p > REPLICATION_LEVEL or abs(mean) < resolution(rec.y, rec.sigma):
@@ -456,5 +472,5 @@ def largest_span(records: Sequence[Record]) -> float:
 
 
 __all__ = ["Record", "prepare", "view_test", "fitting_view", "cut_at_rupture", "reference", "machine_record",
-           "slack_applicable", "offset_applicable", "drift_applicable", "rest_reading", "reads_compression", "slip_applicable", "specimen_groups",
+           "slack_applicable", "offset_applicable", "drift_applicable", "rest_reading", "rest_samples", "reads_compression", "slip_applicable", "specimen_groups",
            "scale_applicable", "set_applicable", "strain_softening", "repeated_cycles", "stretch_levels", "largest_span"]
