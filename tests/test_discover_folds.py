@@ -320,6 +320,7 @@ def test_the_samples_at_rest_are_held_out_in_blocks_and_each_fold_reads_the_offs
     cell's offset shows) are cut in five blocks of their own in the artefact scheme, one held out per fold,
     and a fold's offset is the mean of its training samples at rest, never of what it predicts."""
     from esmm.pipeline.discover.model import Bounds, Problem
+    from esmm.pipeline.discover.nested import Restricted
     from esmm.pipeline.materials import get_model
 
     [r] = prepare([_staircase(np.random.default_rng(3), -900.0)], max_points=300)
@@ -339,9 +340,7 @@ def test_the_samples_at_rest_are_held_out_in_blocks_and_each_fold_reads_the_offs
         pin = ho.read_pins(prob, f.test)[0]
         assert pin == np.mean(r.y[:rest][~f.test[0][:rest]]) and pin != prob.pinned[0]
     assert ho.read_pins(prob, [np.ones(r.test.n, bool)]) == [0.0]  # nothing left to read: none applied
-    from esmm.pipeline.discover.nested import Restricted  # a nested outer fold: its held-out samples unread
-
-    f = artefact.folds[2]
+    f = artefact.folds[2]  # a nested outer fold: its held-out samples unread
     outer = Restricted(get_model("arruda-boyce"), [r], Spec(sensor_offset=1), fixed={}, directions=None,
                        bounds=Bounds([r], 1.0), outer=f.train, unread=f.test)
     assert outer.pinned == ho.read_pins(prob, f.test) and outer.derived(Spec(sensor_offset=2)).pinned == outer.pinned
