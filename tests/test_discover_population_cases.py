@@ -13,6 +13,7 @@ from esmm.pipeline.discover import discover
 from esmm.pipeline.materials.terms import TERMS
 from esmm.pipeline.progress import SILENT
 from esmm.pipeline.tensile.files import read_tests
+from esmm.pipeline.tensile.noise import quantum
 from population import make_case, plan
 
 #: (seed, case, what the case is, the rule that names its effect)
@@ -42,6 +43,13 @@ CASES = [
     (22, 67, "a tendon staircase whose load cell reads an offset of 3.5 % of the peak at rest",
      "the samples at rest held out in blocks of their own, each fold reading the offset from its training "
      "samples (in the always-fitted first loading, no fold held out what shows the offset, and it was rejected)"),
+    (24, 60, "a toe-law tendon ramp with two grip slips, its force on a 12-bit converter's 4.88 N step",
+     "the converter's step read as the grid the ramp climbs one level at a time (read as four steps, from the "
+     "larger changes between the plateaus where the toe climbs fast and the slips fall, it put the noise at four "
+     "times its size and no fall counted as a slip)"),
+    (24, 301, "Fung's quasi-linear relaxation over cycles, its force on a 12-bit converter's step",
+     "the converter's step read as the grid the cycles climb one level at a time (read as four steps, the "
+     "relaxation's loops were within the noise it put at four times its size)"),
 ]
 
 
@@ -75,3 +83,17 @@ def test_population_clean_weibull_toe_keeps_one_toe(tmp_path):
     res = discover(tests, n_starts=8, max_points=400, nested=False, reporter=SILENT)
     assert res.kept == ["toeweibull"], json.dumps({k: c.reason for k, c in res.candidates.items()}, indent=1)
     assert "another form of the same term" in res.candidates["toe"].reason
+
+
+@pytest.mark.slow
+def test_population_converter_step_read_as_the_grid(tmp_path):
+    """A force written on a 12-bit converter's step (seed 24, case 60: 4.88 N, written to 0.1 N), a toe-law
+    ramp whose plateaus shorten as it stiffens and two slips: the step read is the converter's, within the
+    written digit, against the generator's own chain; not the multiple the plateaus' larger changes give."""
+    seed, case, n = 24, 60, 303
+    cls, kind = plan(seed, n, 0.66)[case]
+    folder = tmp_path / f"case_{case:04d}"
+    truth = make_case(np.random.SeedSequence(seed).spawn(n)[case], cls, folder, kind=kind)
+    lsb = truth["files"][0]["chain"]["lsb_N"]
+    test = read_tests([str(folder / truth["files"][0]["file"])], overrides={}, reporter=SILENT)[0]
+    assert quantum(np.asarray(test.force, float)) == pytest.approx(lsb, abs=0.1)

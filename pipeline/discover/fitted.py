@@ -51,6 +51,12 @@ def fit_spec(spec: Spec, current: Fitted, *, init_from: Fitted | None = None) ->
     Started from *init_from* (default *current*), its new effects first set by
     :func:`~esmm.pipeline.discover.initialise.initialise` and the added slots of
     a richer variant by :func:`~esmm.pipeline.discover.initialise.extend_variant`.
+    A fit stopped by its evaluation cap where its objective is still above the
+    current model's (its parameters carried over, the new ones at their starting
+    values) is continued once from where it stopped: a start far from the
+    optimum (a slip's extension loss from its fall, taken on an elastic law
+    that misfits the toe) can spend the cap reshaping the law and end worse
+    than the model it extends, and its Δχ² then reads as a rejection.
     """
     prob = current.problem.derived(spec)
     src = init_from or current
@@ -64,8 +70,16 @@ def fit_spec(spec: Spec, current: Fitted, *, init_from: Fitted | None = None) ->
              and s.file is None and s.key not in old_keys]
     if extra:
         z0 = extend_variant(prob, z0, extra)
-    z, _ = prob.solve(z0)
+    z, sol = prob.solve(z0)
+    if sol is not None and sol.status == 0 and _cost(prob, z) > _cost(prob, prob.params.transfer(
+            current.problem.params, current.z)):
+        z, _ = prob.solve(z)
     return finish(prob, z)
+
+
+def _cost(prob: Problem, z: np.ndarray) -> float:
+    """The objective of *prob* at *z* (every slot as given)."""
+    return prob.cost(z[prob.active]) if prob.active.size else 0.0
 
 
 def effect_params(f: Fitted, name: str) -> dict[str, Any]:

@@ -167,7 +167,11 @@ def level_step(y: np.ndarray, *, grid: float = 0.0) -> float:
     digits (a change of several levels at once is rarer than of one; at least
     five such changes). The error of such a record against a
     smooth signal is the rounding's, up to half this step: the noise estimate
-    of third differences, which sees mostly zeros, is far below it.
+    of third differences, which sees mostly zeros, is far below it. Where the
+    resting plateaus step mostly by one *grid* (their median change within 1.5
+    grids), the grid is the converter's own (quantised at the output, a ramp
+    climbing its levels one at a time): 0, the grid stands; the changes larger
+    than three grids would be a multiple of it.
     """
     tol = max(0.5 * grid, 1e-9 * (float(np.max(np.abs(y))) or 1.0))
     same = np.abs(np.diff(y)) <= tol
@@ -185,6 +189,9 @@ def level_step(y: np.ndarray, *, grid: float = 0.0) -> float:
     rest = np.sort(order[: int(np.searchsorted(cover, 0.8 * cover[-1])) + 1])
     levels = y[starts[rest]]
     d = np.abs(np.diff(levels))
+    moves = d[d > tol]
+    if grid > 0.0 and moves.size >= 5 and float(np.median(moves)) <= 1.5 * grid:
+        return 0.0  # the plateaus step by the grid itself: the grid is the converter's, not the written digits'
     d = d[d > max(3.0 * grid, tol)]
     return float(np.percentile(d, 25)) if d.size >= 5 else 0.0
 
