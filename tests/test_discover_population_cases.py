@@ -47,6 +47,10 @@ CASES = [
      "the converter's step read as the grid the ramp climbs one level at a time (read as four steps, from the "
      "larger changes between the plateaus where the toe climbs fast and the slips fall, it put the noise at four "
      "times its size and no fall counted as a slip)"),
+    (24, 138, "a toe-law tendon ramp with one grip slip at a third of its peak force",
+     "a fit stopped by its evaluation cap above the current model's objective continued once (started from the "
+     "slip's loss of extension on a law that misfits the toe, it ended worse than the model it extends, and the "
+     "slip was rejected by the pre-screen)"),
     (24, 301, "Fung's quasi-linear relaxation over cycles, its force on a 12-bit converter's step",
      "the converter's step read as the grid the cycles climb one level at a time (read as four steps, the "
      "relaxation's loops were within the noise it put at four times its size)"),
