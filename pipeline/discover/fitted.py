@@ -52,8 +52,8 @@ def fit_spec(spec: Spec, current: Fitted, *, init_from: Fitted | None = None) ->
     :func:`~esmm.pipeline.discover.initialise.initialise` and the added slots of
     a richer variant by :func:`~esmm.pipeline.discover.initialise.extend_variant`.
     A fit stopped by its evaluation cap where its objective is still above the
-    current model's (its parameters carried over, the new ones at their starting
-    values) is continued once from where it stopped: a start far from the
+    current model's (its parameters carried over, the new ones at their
+    defaults) is continued once from where it stopped: a start far from the
     optimum (a slip's extension loss from its fall, taken on an elastic law
     that misfits the toe) can spend the cap reshaping the law and end worse
     than the model it extends, and its Δχ² then reads as a rejection.

@@ -170,8 +170,9 @@ def level_step(y: np.ndarray, *, grid: float = 0.0) -> float:
     of third differences, which sees mostly zeros, is far below it. Where the
     resting plateaus step mostly by one *grid* (their median change within 1.5
     grids), the grid is the converter's own (quantised at the output, a ramp
-    climbing its levels one at a time): 0, the grid stands; the changes larger
-    than three grids would be a multiple of it.
+    climbing its levels one at a time) and 0 is returned: the grid stands, where
+    the quartile of the larger changes alone (a fast toe, slips) would read a
+    multiple of the step.
     """
     tol = max(0.5 * grid, 1e-9 * (float(np.max(np.abs(y))) or 1.0))
     same = np.abs(np.diff(y)) <= tol
