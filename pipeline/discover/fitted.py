@@ -71,15 +71,10 @@ def fit_spec(spec: Spec, current: Fitted, *, init_from: Fitted | None = None) ->
     if extra:
         z0 = extend_variant(prob, z0, extra)
     z, sol = prob.solve(z0)
-    if sol is not None and sol.status == 0 and _cost(prob, z) > _cost(prob, prob.params.transfer(
-            current.problem.params, current.z)):
+    if sol is not None and sol.status == 0 and prob.objective(z) > prob.objective(
+            prob.params.transfer(current.problem.params, current.z)):
         z, _ = prob.solve(z)
     return finish(prob, z)
-
-
-def _cost(prob: Problem, z: np.ndarray) -> float:
-    """The objective of *prob* at *z* (every slot as given)."""
-    return prob.cost(z[prob.active]) if prob.active.size else 0.0
 
 
 def effect_params(f: Fitted, name: str) -> dict[str, Any]:

@@ -141,17 +141,10 @@ def _grid_search_base(prob: Problem, z: np.ndarray, grid) -> np.ndarray:
     best, zb = math.inf, z
     for values in grid:
         zz = prob.params.set_base(z, {None: values, **{d: values for d in (prob.directions or [])}})
-        c = _cost(prob, zz)
+        c = prob.objective(zz)
         if c < best:
             best, zb = c, zz
     return zb
-
-
-def _cost(prob: Problem, z: np.ndarray) -> float:
-    """The objective at *z* with nothing free."""
-    prob.z_full = z
-    prob.active = np.zeros(0, dtype=int)
-    return prob.cost(np.zeros(0))
 
 
 def _set(prob: Problem, z: np.ndarray, effect: str, values: Mapping[str, float]) -> np.ndarray:
@@ -167,7 +160,7 @@ def _grid_search(prob: Problem, z: np.ndarray, effect: str, grid: Iterable[Mappi
     best, zb = math.inf, z
     for values in grid:
         zz = _set(prob, z, effect, values)
-        c = _cost(prob, zz)
+        c = prob.objective(zz)
         if c < best:
             best, zb = c, zz
     return zb

@@ -1048,6 +1048,12 @@ class Problem:
         r = self.residuals(z)
         return 0.5 * float(r @ r)
 
+    def objective(self, z_full: np.ndarray) -> float:
+        """The objective at *z_full* (every slot as given); the optimiser's state is left as it is."""
+        _, blocks = self._evaluated(z_full)
+        r = np.concatenate(blocks + [self.constraint_residual(z_full)])
+        return 0.5 * float(r @ r)
+
     def solve(self, z_full0: np.ndarray, *, active: Sequence[int] | None = None, max_nfev: int | None = None,
               ftol: float = 1e-5):
         """Least squares from *z_full0* over the *active* slots (default: all); returns z_full."""
