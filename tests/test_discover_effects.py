@@ -18,11 +18,13 @@ from esmm.pipeline.discover.statistics import (
 from esmm.pipeline.errors import ConfigError
 from esmm.pipeline.materials.effects import (
     CyclicSofteningEffect,
+    DamageEffect,
     MaterialEffects,
     PermanentSetEffect,
     ViscoelasticEffect,
     accumulated_energy,
     cyclic_factor,
+    damage_factor,
     qlv_stress,
     relaxation_strength,
     set_stretch,
@@ -81,6 +83,23 @@ def test_material_effects_record_new_fields_round_trip_and_old_records_read():
     assert MaterialEffects(ViscoelasticEffect((0.4,), (3.0,))).to_dict()["composition"] == old["composition"]
     with pytest.raises(ConfigError, match="d_inf"):
         CyclicSofteningEffect(1.2, 1.0)
+
+
+def test_a_damage_floor_is_what_damage_leaves_and_is_recorded():
+    """1 - D = b + (1 - b) exp(-((xi - onset)/s)^k): 1 below the onset, b far beyond it, the Weibull damage
+    (b = 0) bit for bit, and the floor through discover.json and params.toml (absent where it is 0)."""
+    xi = np.array([0.9, 1.1, 1.2, 1.5, 3.0, 50.0])
+    plain = damage_factor(xi, 1.1, 0.2, 1.5)
+    np.testing.assert_array_equal(damage_factor(xi, 1.1, 0.2, 1.5, 0.0), plain)
+    got = damage_factor(xi, 1.1, 0.2, 1.5, 0.6)
+    np.testing.assert_allclose(got, 0.6 + 0.4 * plain, rtol=1e-15)
+    assert got[0] == got[1] == 1.0 and got[-1] == pytest.approx(0.6) and plain[-1] == pytest.approx(0.0)
+    me = MaterialEffects(damage=DamageEffect(1.1, 0.2, 1.5, 0.6))
+    assert MaterialEffects.from_dict(json.loads(json.dumps(me.to_dict()))) == me
+    assert MaterialEffects.from_toml_table(me.to_toml_table()).damage.floor == 0.6
+    assert "floor" not in MaterialEffects(damage=DamageEffect(1.1, 0.2, 1.5)).to_toml_table()["damage"]
+    with pytest.raises(ConfigError, match="floor"):
+        DamageEffect(1.1, 0.2, 1.5, 1.0)
 
 
 # --------------------------------------------------------------------------- records

@@ -107,11 +107,13 @@ def test_tangent_is_the_derivative_of_the_compiled_forces(box, law):
     assert fd_check(term, deformed(box, scale=0.03)) < 2e-3
 
 
-def test_tangent_with_effects_follows_their_factors(box):
-    """QLV's instantaneous factor, Mullins reloading and damage on its primary path, against finite differences."""
+@pytest.mark.parametrize("floor", [0.0, 0.6])
+def test_tangent_with_effects_follows_their_factors(box, floor):
+    """QLV's instantaneous factor, Mullins reloading and damage on its primary path (with and without a
+    floor), against finite differences."""
     tables = make_tables()
     fx = MaterialEffects(ViscoelasticEffect((0.3, 0.2), (0.05, 0.5)), MullinsEffect(2.0, 2.0, 0.1),
-                         DamageEffect(1.02, 0.05, 2.0))
+                         DamageEffect(1.02, 0.05, 2.0, floor))
     term = build_spring_term(box, tables, effects=fx)
     x = deformed(box, scale=0.03)
     state = term.new_state()

@@ -97,12 +97,12 @@ def material_energy(tables, lam):
 # one spring: the kernel against the discovery's reference functions
 # ---------------------------------------------------------------------------
 
-@pytest.mark.parametrize("law", ["secant", "energy"])
-def test_one_spring_history_matches_reference(law):
+@pytest.mark.parametrize("law, floor", [("secant", 0.0), ("energy", 0.0), ("energy", 0.55)])
+def test_one_spring_history_matches_reference(law, floor):
     tables = make_tables()                                   # anisotropic, stiffening
     cos2 = np.array([0.2, 0.3, 0.5])
     net = one_spring(cos2=tuple(cos2))
-    fx = MaterialEffects(VISCO, MullinsEffect(2.5, 300.0, 0.2), DamageEffect(1.25, 0.15, 2.0))
+    fx = MaterialEffects(VISCO, MullinsEffect(2.5, 300.0, 0.2), DamageEffect(1.25, 0.15, 2.0, floor))
     model = build_spring_term(net, tables, law=law, effects=fx)
     assert model.n_directions == 3
     st = model.effects.new_state(1)
@@ -118,7 +118,7 @@ def test_one_spring_history_matches_reference(law):
         fe = float(w @ tables.force_function(lam, law=law))
         W = float(cos2 @ material_energy(tables, lam))
         wmax, ximax = max(wmax, W), max(ximax, float(equivalent_stretch(lam**2 + 2 / lam)))
-        p = fe * float(mullins_factor(W, wmax, 2.5, 300.0, 0.2)) * float(damage_factor(ximax, 1.25, 0.15, 2.0))
+        p = fe * float(mullins_factor(W, wmax, 2.5, 300.0, 0.2)) * float(damage_factor(ximax, 1.25, 0.15, 2.0, floor))
         h, F = qlv_step(h, pold, p, dt, np.array(VISCO.g), np.array(VISCO.tau))
         pold = p
         assert f[1, 0] == pytest.approx(-F, rel=1e-6, abs=1e-12), lam   # tension pulls node 1 back
@@ -508,6 +508,28 @@ def test_effects_an_asset_cannot_store_are_said_not_dropped(tmp_path):
                  encoding="utf-8")
     path = _asset(tmp_path, load_material(str(p)))
     assert validate_asset(path) == [] and read_asset(path).effects is None
+
+
+def test_a_damage_floor_travels_to_the_asset_and_the_simulator(tmp_path, fit_material):
+    """A damage with a floor (the fraction of the stress it leaves) is stored, read back and applied; an asset
+    without one is written as before and reads a floor of 0."""
+    import h5py
+    from esmm.pipeline.asset import read_asset, validate_asset
+    from esmm.pipeline.materials.material import load_material
+    from esmm.pipeline.simulate.run import read_asset_for_simulation
+
+    p = tmp_path / "params.toml"
+    p.write_text(load_material("porcine_liver_paper").to_toml() + EFFECTS_TOML + "floor = 0.6\n", encoding="utf-8")
+    path = _asset(tmp_path, load_material(str(p)))
+    assert validate_asset(path) == []
+    assert read_asset(path).effects.damage.floor == 0.6
+    *_, got = read_asset_for_simulation(path, with_effects=True)
+    assert got.damage.factor(np.array([50.0]))[0] == pytest.approx(0.6)
+    (tmp_path / "old").mkdir()
+    old = _asset(tmp_path / "old", fit_material)
+    with h5py.File(old) as f:  # an asset without a floor is written as before
+        assert "floor" not in f["/material/effects/damage"]
+    assert read_asset(old).effects.damage.floor == 0.0
 
 
 def test_asset_without_effects_has_none(tmp_path):

@@ -183,11 +183,15 @@ def _write_effects(g: h5py.Group, material) -> None:
     if fx.damage is not None:
         da = fx.damage
         sg = hdf5.typed_group(eg, "damage", *GROUPS["/material/effects/damage"][:2])
-        sg.attrs["model"] = "Weibull: 1 - D = exp(-(((xi_max - onset)_+) / scale)^shape)"
+        sg.attrs["model"] = ("Weibull with a floor: 1 - D = floor + (1 - floor) exp(-(((xi_max - onset)_+) / scale)^shape)"
+                             if da.floor else "Weibull: 1 - D = exp(-(((xi_max - onset)_+) / scale)^shape)")
         hdf5.put(sg, "onset", float(da.onset), "1", dtype=np.float64,
                  description="uniaxial-equivalent stretch where damage starts")
         hdf5.put(sg, "scale", float(da.scale), "1", dtype=np.float64, description="stretch scale")
         hdf5.put(sg, "shape", float(da.shape), "1", dtype=np.float64, description="Weibull shape")
+        if da.floor:
+            hdf5.put(sg, "floor", float(da.floor), "1", dtype=np.float64,
+                     description="fraction of the stress damage leaves at large stretch")
 
 
 def read_effects(f: h5py.File) -> MaterialEffects | None:
@@ -208,7 +212,8 @@ def read_effects(f: h5py.File) -> MaterialEffects | None:
     if "mullins" in g:
         d["mullins"] = {k: float(g[f"mullins/{k}"][()]) for k in ("r", "m", "beta")}
     if "damage" in g:
-        d["damage"] = {k: float(g[f"damage/{k}"][()]) for k in ("onset", "scale", "shape")}
+        d["damage"] = {k: float(g[f"damage/{k}"][()]) for k in ("onset", "scale", "shape", "floor")
+                       if k != "floor" or "damage/floor" in g}
     try:
         d["intervals"] = json.loads(hdf5.attr_str(g.attrs.get("intervals", "{}")) or "{}")
     except json.JSONDecodeError:

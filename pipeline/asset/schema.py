@@ -62,6 +62,7 @@ DATASETS: dict[str, tuple[str, str, bool]] = {
     "/material/effects/damage/onset": ("1", "f", True),
     "/material/effects/damage/scale": ("1", "f", True),
     "/material/effects/damage/shape": ("1", "f", True),
+    "/material/effects/damage/floor": ("1", "f", False),
     "/volume/bulk_modulus": ("Pa", "f", True),
     "/volume/rest_volume": ("m3", "f", True),
     "/volume/shear_modulus": ("Pa", "f", False),

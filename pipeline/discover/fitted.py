@@ -88,7 +88,7 @@ def effect_params(f: Fitted, name: str) -> dict[str, Any]:
     nl = f.spec.nonlinear_viscoelastic
     simple = {"nonlinear_viscoelastic": (("kappa_tau",), (st.kappa_tau,)) if nl == 2 else
               (("kappa",), (st.kappa,) if nl else None),
-              "mullins": (("r", "m", "beta"), st.mullins), "damage": (("onset", "scale", "shape"), st.damage),
+              "mullins": (("r", "m", "beta"), st.mullins), "damage": (("onset", "scale", "shape", "floor"), st.damage),
               "cyclic_softening": (("d_inf", "eta"), st.cyclic),
               "permanent_set": (("fraction", "exponent")[:f.spec.permanent_set],
                                 (st.set_fraction, st.set_exponent)[:f.spec.permanent_set] or None)}

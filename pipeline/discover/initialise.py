@@ -317,6 +317,8 @@ def extend_variant(prob: Problem, z: np.ndarray, extra: list[int]) -> np.ndarray
             z[i] = 0.05
         elif s.name == "beta":
             z[i] = 0.1
+        elif s.name == "floor":
+            z[i] = 0.0  # the damage the simpler variant fitted, which leaves nothing at large stretch
         elif s.name == "exponent":
             z[i] = 1.0  # the proportional set the simpler variant fitted
     if any(prob.slots[i].effect == "nonlinear_viscoelastic" for i in extra):  # another form of it (kappa_tau)

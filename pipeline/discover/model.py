@@ -92,7 +92,7 @@ VARIANTS = {
     # stretch); 2, kappa_tau (the relaxation times do) (docs/design/discovery.md, "Stretch-dependent relaxation")
     "nonlinear_viscoelastic": (1, 2),
     "mullins": (2, 3),  # (r, m) or (r, m, beta)
-    "damage": (3,),  # (onset, scale, shape)
+    "damage": (3, 4),  # (onset, scale, shape), or with a floor (the fraction damage leaves)
     "cyclic_softening": (2,),  # (d_inf, eta)
     "permanent_set": (1, 2),  # fraction, or fraction and exponent
     "slack": (1,),  # one slack length per file
@@ -168,7 +168,7 @@ class Spec:
             "mullins": "r, m, beta" if v == 3 else "r, m (beta = 0)",
             "sensor_offset": "offset and drift" if v == 2 else "offset",
             "slack": "one slack length per file",
-            "damage": "onset, scale, shape",
+            "damage": "onset, scale, shape, floor" if v == 4 else "onset, scale, shape",
             "cyclic_softening": "d_inf, eta",
             "permanent_set": "set fraction and exponent" if v == 2 else "set fraction (exponent 1)",
             "specimen_scale": "one stress scale per specimen (geometric mean 1)",
@@ -298,6 +298,8 @@ def effect_slots(spec: Spec, b: Bounds) -> list[Slot]:
         slots.append(Slot("onset", "damage", None, False, 1.0, b.xi_max))
         slots.append(Slot("scale", "damage", None, True, math.log(1e-3 * b.xi_span), math.log(10.0 * b.xi_span)))
         slots.append(Slot("shape", "damage", None, False, 1.0, 8.0))
+        if spec.damage == 4:
+            slots.append(Slot("floor", "damage", None, False, 0.0, 0.95))
     if spec.cyclic_softening:
         slots.append(Slot("d_inf", "cyclic_softening", None, False, 0.0, 0.95))
         slots.append(Slot("eta", "cyclic_softening", None, True, math.log(1e-3 * b.w_ref), math.log(1e3 * b.w_ref),
@@ -390,7 +392,8 @@ class ParameterLayout:
             elif s.effect == "mullins":
                 z[i] = {"s": 0.3, "m": math.log(0.1 * b.w_ref), "beta": 0.0}[s.name]
             elif s.effect == "damage":
-                z[i] = {"onset": 1.0 + 0.7 * b.xi_span, "scale": math.log(0.2 * b.xi_span), "shape": 2.0}[s.name]
+                z[i] = {"onset": 1.0 + 0.7 * b.xi_span, "scale": math.log(0.2 * b.xi_span), "shape": 2.0,
+                        "floor": 0.0}[s.name]
             elif s.effect == "cyclic_softening":
                 z[i] = {"d_inf": 0.1, "eta": math.log(b.w_ref)}[s.name]
             else:  # kappa, kappa_tau, set fraction, slack, slips, log scales
@@ -493,7 +496,7 @@ class ParameterLayout:
         elif effect == "mullins":
             st.mullins = (1.0 / max(v["s"], 1e-12), math.exp(v["m"]), v.get("beta", 0.0))
         elif effect == "damage":
-            st.damage = (v["onset"], math.exp(v["scale"]), v["shape"])
+            st.damage = (v["onset"], math.exp(v["scale"]), v["shape"]) + ((v["floor"],) if "floor" in v else ())
         elif effect == "cyclic_softening":
             st.cyclic = (v["d_inf"], math.exp(v["eta"]))
         elif effect == "permanent_set":
@@ -1206,7 +1209,7 @@ def _effect_values(effects: MaterialEffects) -> dict[tuple[str, str], float]:
     if effects.damage is not None:
         d = effects.damage
         vals.update({("damage", "onset"): d.onset, ("damage", "scale"): math.log(d.scale),
-                     ("damage", "shape"): d.shape})
+                     ("damage", "shape"): d.shape, ("damage", "floor"): d.floor})
     if effects.cyclic_softening is not None:
         c = effects.cyclic_softening
         vals.update({("cyclic_softening", "d_inf"): c.d_inf, ("cyclic_softening", "eta"): math.log(c.eta)})
@@ -1222,7 +1225,7 @@ def spec_of_effects(effects: MaterialEffects, terms=()) -> Spec:
     v = effects.viscoelastic
     nl = 0 if v is None else 2 if v.kappa_tau else 1 if v.kappa else 0
     return Spec(viscoelastic=len(v.g) if v else 0, nonlinear_viscoelastic=nl,
-                mullins=3 if effects.mullins else 0, damage=3 if effects.damage else 0,
+                mullins=3 if effects.mullins else 0, damage=(4 if effects.damage.floor else 3) if effects.damage else 0,
                 cyclic_softening=2 if effects.cyclic_softening else 0,
                 permanent_set=(0 if effects.permanent_set is None else 1 if effects.permanent_set.exponent == 1.0 else 2),
                 terms=tuple(terms))

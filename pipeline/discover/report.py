@@ -177,12 +177,14 @@ def _effect_sentence(res: DiscoverResult, name: str) -> str:
         d = me.damage
         xm = max(float(np.max(r.cov.drive)) for r in res.records)
         lost = 1.0 - float(d.factor(np.array([xm]))[0])
+        left = (f"; however far it is stretched, {100 * d.floor:.0f} % of the undamaged stress remains"
+                if d.floor else "")
         if d.onset - 1.0 <= 0.05 * max(xm - 1.0, 1e-9):
             return (f"it softens irreversibly with the largest stretch reached, from the first loading on (a "
                     f"gradual, stretch-dependent softening rather than tearing at a threshold): at the largest "
-                    f"stretch reached ({xm:.3g}) the stress is {100 * lost:.0f} % below the unsoftened curve")
+                    f"stretch reached ({xm:.3g}) the stress is {100 * lost:.0f} % below the unsoftened curve{left}")
         return (f"it is damaged irreversibly beyond a stretch of about {d.onset:.3g}: at the largest stretch "
-                f"reached ({xm:.3g}) the stress is {100 * lost:.0f} % below the undamaged curve")
+                f"reached ({xm:.3g}) the stress is {100 * lost:.0f} % below the undamaged curve{left}")
     if name in TERMS:
         return f"its elastic law needs the strain-energy term {name} ({TERMS[name].equation}), for {TERMS[name].addresses}"
     if name == "nonlinear_viscoelastic" and me.viscoelastic is not None and me.viscoelastic.kappa_tau:

@@ -40,12 +40,16 @@ Five *material* effects extend a hyperelastic base model with nominal stress
     .. math::
 
         P = (1 - D)\,P_e, \qquad
-        D = 1 - \exp\!\left[-\left(\frac{(\xi_{max} - \lambda_d)_+}{s}\right)^{k}\right],
+        D = (1 - b)\left(1 - \exp\!\left[-\left(\frac{(\xi_{max} - \lambda_d)_+}{s}\right)^{k}\right]\right),
 
     with :math:`\xi` the uniaxial-equivalent stretch (the uniaxial stretch
     :math:`\ge 1` with the same :math:`I_1`; it *is* the stretch in uniaxial
     tension) and :math:`\xi_{max}` its maximum so far. Unlike Mullins softening,
-    damage also lowers the primary loading curve.
+    damage also lowers the primary loading curve. The floor b ∈ [0, 1) is the
+    fraction damage leaves however far the specimen is stretched (b = 0 unless the
+    data ask for it): Simo's (1987, Comput. Methods Appl. Mech. Eng. 60:153)
+    damage function tends to such a residual fraction, which a form that decays to
+    zero bends down too far at large stretch.
 
 ``viscoelastic`` with ``kappa`` — stretch-dependent relaxation (nonlinear viscoelasticity)
     .. math::
@@ -426,7 +430,7 @@ def mullins_factor(W, W_max, r: float, m: float, beta: float = 0.0):
     return 1.0 - (1.0 / r) * erf((W_max - W) / (m + beta * W_max))
 
 
-def damage_factor(xi_max, onset: float, scale: float, shape: float):
+def damage_factor(xi_max, onset: float, scale: float, shape: float, floor: float = 0.0):
     """Remaining fraction ``1 - D`` of the stress after damage (Weibull in ξ_max).
 
     Parameters
@@ -439,13 +443,16 @@ def damage_factor(xi_max, onset: float, scale: float, shape: float):
         s > 0, stretch scale of the damage growth.
     shape : float
         k ≥ 1, Weibull shape (k = 1: exponential; large k: abrupt).
+    floor : float
+        b ∈ [0, 1): the fraction left at large stretch (0: the stress decays to zero).
 
     Returns
     -------
     ndarray, shape (n,)
     """
     x = np.maximum(np.asarray(xi_max, float) - onset, 0.0) / scale
-    return np.exp(-(x**shape))
+    f = np.exp(-(x**shape))
+    return f if floor == 0.0 else floor + (1.0 - floor) * f
 
 
 def cyclic_factor(alpha, d_inf: float, eta: float):
@@ -602,14 +609,18 @@ class MullinsEffect:
 class DamageEffect:
     """Weibull damage in the largest uniaxial-equivalent stretch so far.
 
-    ``onset`` λ_d (≥ 1), ``scale`` s (> 0, stretch units), ``shape`` k (≥ 1).
+    ``onset`` λ_d (≥ 1), ``scale`` s (> 0, stretch units), ``shape`` k (≥ 1), ``floor`` b
+    (in [0, 1): the fraction of the stress damage leaves at large stretch; default 0).
     """
 
     onset: float
     scale: float
     shape: float = 1.0
+    floor: float = 0.0
 
     def __post_init__(self):
+        if not (0.0 <= self.floor < 1.0):
+            raise ConfigError(f"damage effect: floor must be in [0, 1), got {self.floor!r}")
         if not (self.onset >= 1.0 and math.isfinite(self.onset)):
             raise ConfigError(f"damage effect: onset must be a stretch >= 1, got {self.onset!r}")
         if not (self.scale > 0.0 and math.isfinite(self.scale)):
@@ -619,7 +630,7 @@ class DamageEffect:
 
     def factor(self, xi_max):
         """Remaining stress fraction ``1 - D`` for the largest stretches *xi_max*."""
-        return damage_factor(xi_max, self.onset, self.scale, self.shape)
+        return damage_factor(xi_max, self.onset, self.scale, self.shape, self.floor)
 
 
 @dataclass(frozen=True)
@@ -776,7 +787,7 @@ class MaterialEffects:
                             "unit_m": "Pa", "energy": "base strain energy density W [Pa]"}
         if self.damage is not None:
             d["damage"] = {"onset": self.damage.onset, "scale": self.damage.scale,
-                           "shape": self.damage.shape,
+                           "shape": self.damage.shape, **({"floor": self.damage.floor} if self.damage.floor else {}),
                            "driver": "largest uniaxial-equivalent stretch so far"}
         if self.cyclic_softening is not None:
             d["cyclic_softening"] = {"d_inf": self.cyclic_softening.d_inf, "eta": self.cyclic_softening.eta,
@@ -810,7 +821,8 @@ class MaterialEffects:
             mu = d.get("mullins")
             mull = MullinsEffect(float(mu["r"]), float(mu["m"]), float(mu.get("beta", 0.0))) if mu else None
             da = d.get("damage")
-            dam = DamageEffect(float(da["onset"]), float(da["scale"]), float(da.get("shape", 1.0))) if da else None
+            dam = DamageEffect(float(da["onset"]), float(da["scale"]), float(da.get("shape", 1.0)),
+                               float(da.get("floor", 0.0))) if da else None
             cy = d.get("cyclic_softening")
             cyc = CyclicSofteningEffect(float(cy["d_inf"]), float(cy["eta"])) if cy else None
             ps = d.get("permanent_set")
@@ -842,7 +854,8 @@ class MaterialEffects:
                             "beta": float(m.beta)}
         if self.damage is not None:
             da = self.damage
-            t["damage"] = {"onset": float(da.onset), "scale": float(da.scale), "shape": float(da.shape)}
+            t["damage"] = {"onset": float(da.onset), "scale": float(da.scale), "shape": float(da.shape),
+                           **({"floor": float(da.floor)} if da.floor else {})}
         if self.cyclic_softening is not None:
             c = self.cyclic_softening
             t["cyclic_softening"] = {"d_inf": float(c.d_inf),

@@ -216,7 +216,7 @@ class EffectModel:
             parts.append(f"Mullins (r {e.mullins.r:.3g}, m {e.mullins.m:.3g} Pa, beta {e.mullins.beta:.3g})")
         if e.damage is not None:
             parts.append(f"damage (onset {e.damage.onset:.3g}, scale {e.damage.scale:.3g}, "
-                         f"shape {e.damage.shape:.3g})")
+                         f"shape {e.damage.shape:.3g}" + (f", floor {e.damage.floor:.3g})" if e.damage.floor else ")"))
         return "; ".join(parts) + " per spring"
 
     def describe(self) -> dict:
@@ -285,7 +285,8 @@ def build_effect_model(effects, tables, law: str) -> EffectModel | None:
             1.0 if mu is not None else 0.0, (1.0 / mu.r) if mu is not None else 0.0,
             mu.m if mu is not None else 1.0, mu.beta if mu is not None else 0.0,
             1.0 if da is not None else 0.0, da.onset if da is not None else 1.0,
-            da.scale if da is not None else 1.0, da.shape if da is not None else 1.0]
+            da.scale if da is not None else 1.0, da.shape if da is not None else 1.0,
+            float(getattr(da, "floor", 0.0)) if da is not None else 0.0]
     assert len(head) == K.FXP_HEAD
     fxp = np.ascontiguousarray(np.concatenate([head, g, tau]), dtype=np.float64)
     W = _material_energy(tables)

@@ -119,7 +119,7 @@ and its force is (docs/design/model.md, "Material effects")
 material's uniaxial energy density [Pa] and the uniaxial-equivalent stretch of a
 spring at the cell's left node, with their increments (xi is exact for lam >= 1
 and below the grid). Parameters ``fxp`` (float64): [g_inf, nt, mullins_on, 1/r, m,
-beta, damage_on, onset, scale, shape, g_1..g_nt, tau_1..tau_nt]; ``ab`` (2, nt):
+beta, damage_on, onset, scale, shape, floor, g_1..g_nt, tau_1..tau_nt]; ``ab`` (2, nt):
 a_i and b_i of the current step (from :func:`prony_ab`); ``mode`` one of
 :data:`FX_STEP`, :data:`FX_PEEK`, :data:`FX_RELAXED`, :data:`FX_SETTLE`.
 """
@@ -142,7 +142,7 @@ FX_RELAXED = 2    #: long-term force g_inf * P (maxima including the current str
 FX_SETTLE = 3     #: commit the maxima and a fully relaxed history at the current stretch (h = 0)
 
 #: Number of leading scalars in ``fxp`` before the Prony weights.
-FXP_HEAD = 10
+FXP_HEAD = 11
 
 #: Springs per block (buffers of 8 x BLOCK doubles stay in L1).
 BLOCK = 64
@@ -335,6 +335,7 @@ def _effects_block(p0, nb, sd, lam_min, inv_h, damped, a1, a0, etab, fxp, ab, h,
     onset = fxp[7]
     dscale = fxp[8]
     dshape = fxp[9]
+    dfloor = fxp[10]
     commit_max = mode == FX_STEP or mode == FX_SETTLE
     for b in range(nb):
         p = p0 + b
@@ -353,7 +354,7 @@ def _effects_block(p0, nb, sd, lam_min, inv_h, damped, a1, a0, etab, fxp, ab, h,
                 ximax[p] = xi
             e = max(xi - onset, 0.0) / dscale
             if e > 0.0:
-                fac = np.exp(-(e ** dshape))
+                fac = dfloor + (1.0 - dfloor) * np.exp(-(e ** dshape))
         if mullins:
             k = kk[b]
             tr = (buf[4, b] - lam_min) * inv_h - k     # unclipped: the energy continues linearly off the grid
@@ -1239,6 +1240,7 @@ def _effect_factor(p, lam, k, tr, lam_min, inv_h, sd, aniso, etab, fxp, wmax, xi
         onset = fxp[7]
         dscale = fxp[8]
         dshape = fxp[9]
+        dfloor = fxp[10]
         if lam >= 1.0:
             xi = lam
             dxi = 1.0
@@ -1253,9 +1255,10 @@ def _effect_factor(p, lam, k, tr, lam_min, inv_h, sd, aniso, etab, fxp, wmax, xi
         xi = max(ximax[p], xi)
         e = max(xi - onset, 0.0) / dscale
         if e > 0.0:
-            fac = np.exp(-(e ** dshape))
+            ef = (1.0 - dfloor) * np.exp(-(e ** dshape))
+            fac = dfloor + ef
             if primary:
-                dfac = -fac * dshape * e ** (dshape - 1.0) * dxi / dscale
+                dfac = -ef * dshape * e ** (dshape - 1.0) * dxi / dscale
     if fxp[2] != 0.0:                               # Mullins
         inv_r = fxp[3]
         m_w = fxp[4]
