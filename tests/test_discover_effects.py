@@ -100,6 +100,15 @@ def test_a_damage_floor_is_what_damage_leaves_and_is_recorded():
     assert "floor" not in MaterialEffects(damage=DamageEffect(1.1, 0.2, 1.5)).to_toml_table()["damage"]
     with pytest.raises(ConfigError, match="floor"):
         DamageEffect(1.1, 0.2, 1.5, 1.0)
+    # a saved floor is read back as damage's variant 4, with its own bounded slot (esmm evaluate refits it)
+    from esmm.pipeline.discover.model import VARIANTS, Bounds, effect_slots, spec_of_effects
+
+    spec = spec_of_effects(me)
+    assert spec.damage == 4 and spec_of_effects(MaterialEffects(damage=DamageEffect(1.1, 0.2, 1.5))).damage == 3
+    b = Bounds.from_dict({"tau_min": 0.01, "tau_max": 100.0, "w_ref": 1e3, "xi_max": 1.5})
+    [floor] = [s for s in effect_slots(spec, b) if s.name == "floor"]
+    assert (floor.effect, floor.lo, floor.hi) == ("damage", 0.0, 0.95)
+    assert VARIANTS["damage"] == (3,)  # not searched (docs/design/discovery.md, the effects' table)
 
 
 # --------------------------------------------------------------------------- records

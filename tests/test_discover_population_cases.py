@@ -102,21 +102,3 @@ def test_population_converter_step_read_as_the_grid(tmp_path):
     test = read_tests([str(folder / truth["files"][0]["file"])], overrides={}, reporter=SILENT)[0]
     assert quantum(np.asarray(test.force, float)) == pytest.approx(lsb, abs=0.1)
 
-
-@pytest.mark.slow
-def test_population_damage_with_a_floor(tmp_path):
-    """Seed 22, case 184: toe-law cycles to rising peaks with Simo's damage, which leaves a fraction b = 0.67
-    of the stress however far the tendon is stretched. The Weibull damage, which decays to zero, bent down too
-    far at the largest peaks and a cyclic softening was kept instead; with the floor (damage's richer variant)
-    the damage is named alone, its floor within 0.1 of the fraction Simo's form leaves."""
-    seed, case, n = 22, 184, 303
-    cls, kind = plan(seed, n, 0.66)[case]
-    folder = tmp_path / f"case_{case:04d}"
-    truth = make_case(np.random.SeedSequence(seed).spawn(n)[case], cls, folder, kind=kind)
-    assert truth["effect"]["variant"] == "simo1987"
-    tests = read_tests(sorted(str(p) for p in folder.glob("*.csv")), overrides={}, reporter=SILENT)
-    res = discover(tests, n_starts=8, max_points=400, nested=False, reporter=SILENT)
-    assert [k for k in res.kept if k not in TERMS] == ["damage"], json.dumps(
-        {k: c.reason for k, c in res.candidates.items()}, indent=1)
-    floor = res.final.values.material_effects().damage.floor
-    assert floor == pytest.approx(truth["effect"]["b"], abs=0.1)
