@@ -101,4 +101,3 @@ def test_population_converter_step_read_as_the_grid(tmp_path):
     lsb = truth["files"][0]["chain"]["lsb_N"]
     test = read_tests([str(folder / truth["files"][0]["file"])], overrides={}, reporter=SILENT)[0]
     assert quantum(np.asarray(test.force, float)) == pytest.approx(lsb, abs=0.1)
-

@@ -212,8 +212,8 @@ def read_effects(f: h5py.File) -> MaterialEffects | None:
     if "mullins" in g:
         d["mullins"] = {k: float(g[f"mullins/{k}"][()]) for k in ("r", "m", "beta")}
     if "damage" in g:
-        d["damage"] = {k: float(g[f"damage/{k}"][()]) for k in ("onset", "scale", "shape", "floor")
-                       if k != "floor" or "damage/floor" in g}
+        keys = ("onset", "scale", "shape") + (("floor",) if "damage/floor" in g else ())  # written where non-zero
+        d["damage"] = {k: float(g[f"damage/{k}"][()]) for k in keys}
     try:
         d["intervals"] = json.loads(hdf5.attr_str(g.attrs.get("intervals", "{}")) or "{}")
     except json.JSONDecodeError:

@@ -286,7 +286,7 @@ def build_effect_model(effects, tables, law: str) -> EffectModel | None:
             mu.m if mu is not None else 1.0, mu.beta if mu is not None else 0.0,
             1.0 if da is not None else 0.0, da.onset if da is not None else 1.0,
             da.scale if da is not None else 1.0, da.shape if da is not None else 1.0,
-            float(getattr(da, "floor", 0.0)) if da is not None else 0.0]
+            da.floor if da is not None else 0.0]
     assert len(head) == K.FXP_HEAD
     fxp = np.ascontiguousarray(np.concatenate([head, g, tau]), dtype=np.float64)
     W = _material_energy(tables)
