@@ -41,6 +41,20 @@ def test_huge_organ_suggests_smaller_unit(tmp_path):
         read_surface(path)
 
 
+def test_small_organ_read_where_its_unit_is_given(tmp_path):
+    """An 8 mm organ (a lymph node, a mouse's kidney) is refused on the default unit, whose error it
+    would be, and read with a warning where the user gives the unit: the size is then theirs."""
+    from esmm.pipeline.progress import ListReporter
+
+    path = write_stl(sphere(0.004), tmp_path / "node.stl", unit="mm")  # 8 mm across
+    with pytest.raises(InputError, match=r"not a plausible organ size.*unit cm"):
+        read_surface(path)
+    rep = ListReporter()
+    back = read_surface(path, unit="mm", reporter=rep)
+    assert back.extent() == pytest.approx(0.008, rel=1e-3)
+    assert any("8 mm across" in w and "as given" in w for w in rep.warnings)
+
+
 def test_unknown_unit_is_named(tmp_path):
     path = write_stl(sphere(), tmp_path / "organ.stl")
     with pytest.raises(InputError, match="unit"):

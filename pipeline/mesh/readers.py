@@ -89,7 +89,8 @@ def read_surface(path: str | os.PathLike, *, unit: str | None = None, label: int
     ------
     InputError
         The file is missing, empty, truncated, of an unknown format, has no
-        triangles, or its size is not plausible in ``unit``.
+        triangles, or its size is not plausible in ``unit`` (where the unit
+        was given, a warning instead).
     """
     rep = ensure(reporter)
     p = Path(path)
@@ -129,7 +130,10 @@ def read_surface(path: str | os.PathLike, *, unit: str | None = None, label: int
     if faces.min() < 0 or faces.max() >= pts.shape[0]:
         raise InputError(f"{p}: a triangle refers to a point that does not exist; the file is corrupt")
     surf = Surface(pts * scale, faces, f"{p.name} ({what}, {unit})")
-    check_unit_sanity(surf, unit=unit, where=f"{p} (unit from its header)" if from_header else str(p))
+    odd = check_unit_sanity(surf, unit=unit, where=f"{p} (unit from its header)" if from_header else str(p),
+                            given=given is not None and not from_header)
+    if odd:
+        rep.warn(odd)
     rep.step(f"read {p.name}: {what}, {surf.n_points} points, {surf.n_faces} triangles, "
              f"extent {surf.extent() * 1e3:.1f} mm")
     size = check_organ_size(surf.volume(), surf.extent(), name=p.name, unit=unit)
@@ -185,15 +189,21 @@ def _check_content(p: Path, suf: str) -> None:
                      f"rename it to {rename}")
 
 
-def check_unit_sanity(surface: Surface, *, unit: str, where: str = "") -> None:
+def check_unit_sanity(surface: Surface, *, unit: str, where: str = "", given: bool = False) -> str | None:
     """Refuse an organ whose largest extent is not 10-400 mm; suggest a unit.
 
-    Never rescales: a wrong unit changes every stiffness and mass downstream.
+    Never rescales: a wrong unit changes every stiffness and mass downstream. Where the unit was
+    *given* by the user (not defaulted, not read from a mask's header), the size is theirs to
+    vouch for (a mouse's kidney, a lymph node): the message is returned for a warning instead.
     """
     ext_m = surface.extent()
     lo, hi = ORGAN_EXTENT_MM
     if lo <= ext_m * 1e3 <= hi:
-        return
+        return None
+    if given:
+        return (f"unit: {where + ': ' if where else ''}the organ is {ext_m * 1e3:.4g} mm across, outside "
+                f"the {lo:g}-{hi:g} mm of most organs; read as {unit}, as given (the scenes' distances, "
+                f"such as the default lift of 20 mm, are absolute)")
     f_given = factor(unit, "length")
     raw = ext_m / f_given  # extent in file units
     good = [u for u in ("m", "cm", "mm", "um") if lo <= raw * factor(u, "length") * 1e3 <= hi
