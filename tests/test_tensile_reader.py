@@ -12,6 +12,7 @@ import pytest
 from esmm.pipeline.errors import InputError
 from esmm.pipeline.progress import ListReporter
 from esmm.pipeline.tensile import MODES, NotATestError, TensileTest, read
+from esmm.pipeline.tensile.columns import quantity_of
 
 FIXTURES = Path(__file__).resolve().parent / "data" / "tensile"
 MU = 20e3
@@ -468,6 +469,16 @@ def test_mts_like_tab_export_with_unit_words(tmp_path):
     assert t.metadata["preamble"] == ["Test data"]
     np.testing.assert_allclose(t.stretch, [1.0, 1.1])
     np.testing.assert_allclose(t.stress, [0.0, 0.02e3 / 40e-6])
+
+
+def test_channel_numbers_and_abbreviations_in_names(tmp_path):
+    """Data-acquisition software names a channel by its number before or after the quantity."""
+    text = "Time (s),Ch 1 Displ. (mm),Force Ch2 (N)\n0,0,0\n1,1.5,0.02\n"
+    t = read(write(tmp_path, "t.csv", text), overrides={"gauge_length": "15 mm", "area": "40 mm2"})
+    np.testing.assert_allclose(t.stretch, [1.0, 1.1])
+    np.testing.assert_allclose(t.stress, [0.0, 0.02 / 40e-6])
+    assert [quantity_of(n) for n in ("Load 1", "Ch 2 Load", "Force Chan 3", "Extension 2")] == [
+        "force", "force", "force", "displacement"]
 
 
 def test_german_headers_slash_units(tmp_path):

@@ -56,7 +56,7 @@ _add("time", "time", "t", "elapsed time", "test time", "total time", "time elaps
 _add("displacement", "displacement", "extension", "axial displacement", "elongation", "position", "crosshead",
      "crosshead position", "crosshead displacement", "crosshead extension", "crosshead travel",
      "machine extension", "tensile extension", "travel", "stroke", "disp", "axial disp", "actuator position",
-     "standard travel", "grip separation", "grip to grip separation", "deformation",
+     "standard travel", "grip separation", "grip to grip separation", "deformation", "displ",
      "weg", "standardweg", "traversenweg", "traversenposition", "verlängerung", "dehnweg",
      "位移", "伸长", "伸长量", "变形", "横梁位移", "横梁位置", "试验机位移")
 _add("force", "force", "load", "axial force", "axial load", "standard force", "tensile force", "load cell", "tensile load",
@@ -106,7 +106,8 @@ _UNIT_SLASH = re.compile(r"^(?P<name>.*\S)\s+/\s*(?P<unit>\S+)$")
 _UNIT_COMMA = re.compile(r"^(?P<name>.*\S)\s*,\s*(?P<unit>\S+)$")
 _UNIT_WORD = re.compile(r"^(?P<name>.*\S)\s+(?P<unit>\S+)$")
 _SEPARATORS = re.compile(r"[\s_\-.:]+")
-_CHANNEL = re.compile(r"\s+\d+$")
+_CHANNEL = re.compile(r"\s+(ch|chan|channel)?\s*\d+$")
+_CHANNEL_FIRST = re.compile(r"^(ch|chan|channel)\s*\d+\s+")
 
 
 def clean_cell(cell: str) -> str:
@@ -159,9 +160,10 @@ def _is_qualifier(content: str) -> bool:
 
 
 def normalise_name(name: str) -> str:
-    """Lower case; ``_ - . :`` and runs of spaces become one space; a trailing channel number goes."""
+    """Lower case; ``_ - . :`` and runs of spaces become one space; a channel number goes (``Load 1``,
+    ``Force Ch1``, ``Ch 2 Load``: what data-acquisition software appends or prepends)."""
     n = _SEPARATORS.sub(" ", clean_cell(name).lower()).strip()
-    return _CHANNEL.sub("", n)
+    return _CHANNEL_FIRST.sub("", _CHANNEL.sub("", n))
 
 
 def quantity_of(name: str) -> str | None:
