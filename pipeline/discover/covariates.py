@@ -203,9 +203,10 @@ def _timed_segments(x: np.ndarray, mag: np.ndarray, t: np.ndarray, w: int):
     *w* samples (:func:`rate_window`)."""
     n = x.size
     elapsed = t - t[0]
-    rate = np.gradient(_smooth(x, w), t) if n > 2 else np.zeros(n)
+    with np.errstate(divide="ignore", invalid="ignore"):     # repeated time stamps (a clock coarser than the
+        rate = np.gradient(_smooth(x, w), t) if n > 2 else np.zeros(n)          # sampling): no rate there
+        mag_rate = np.gradient(_smooth(mag, w), t) if n > 2 else np.zeros(n)
     rate = np.where(np.isfinite(rate), rate, 0.0)
-    mag_rate = np.gradient(_smooth(mag, w), t) if n > 2 else np.zeros(n)
     mag_rate = np.where(np.isfinite(mag_rate), mag_rate, 0.0)
     tol = HOLD_FRACTION * (float(np.max(np.abs(rate))) if n else 0.0)
     direction = np.where(mag_rate > tol, 1, np.where(mag_rate < -tol, -1, 0)).astype(np.int8)

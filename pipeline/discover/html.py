@@ -50,8 +50,13 @@ def verdict_of(doc: dict[str, Any]) -> tuple[str, str, list[str], list[str]]:
         advice.append("do not report or average those values")
     found = ("found: " + ", ".join(kept).replace("_", " ")) if kept else "nothing to add"
     level = "poor" if reasons else "good"
+    undetermined = f"the data do not determine {', '.join(unident)}"
+    if doc.get("outcome"):
+        poor = f"{found}, but not everything is explained" + (f"; {undetermined}" if unident else "")
+    else:       # the residual is the noise: what is poor is the parameters alone
+        poor = f"{found}; what is left is the records' noise, but {undetermined}"
     head = {"good": f"Good: {found}; what is left is the records' noise. {change}",
-            "poor": f"Poor: {found}, but not everything is explained. {change}"}[level]
+            "poor": f"Poor: {poor}. {change}"}[level]
     return level, head, reasons, advice
 
 

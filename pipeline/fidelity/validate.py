@@ -332,7 +332,7 @@ def _solve_cases(cases, network, tables, material, *, jobs, rep, **options) -> t
         return c.name, res, None, time.perf_counter() - t_case
 
     results, failed, case_seconds = [], {}, {}
-    for name, res, err, seconds in map_cases(one, cases, jobs=jobs, reporter=rep):
+    for name, res, err, seconds in map_cases(one, cases, jobs=jobs, reporter=rep, names=[c.name for c in cases]):
         case_seconds[name] = seconds
         if res is None:
             failed[name] = err

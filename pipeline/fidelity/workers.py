@@ -7,8 +7,8 @@ case at a time (the factorizations run on one thread,
 where the process may use more than one core. The workers are forked: they
 inherit the network, tables and material without copying them, and each sends
 back its result and what it would have reported (its steps and warnings,
-replayed in the cases' order, so that the output reads as a serial run's; the
-progress bars inside a case are not shown). The answers are a serial run's,
+replayed in the cases' order, so that the output reads as a serial run's, with
+a line as each case ends; the progress bars inside a case are not shown). The answers are a serial run's,
 number for number: each worker solves its case with the same code on the same
 inputs.
 """
@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 import os
+import time
 from collections.abc import Callable, Iterator, Sequence
 
 from ..blas import single_threaded_blas, usable_cores
@@ -68,29 +69,38 @@ def _worker(i: int):
     return out, rec.log
 
 
-def map_cases(fn: Callable, items: Sequence, *, jobs: int | None = None, reporter) -> list:
+def map_cases(fn: Callable, items: Sequence, *, jobs: int | None = None, reporter,
+              names: Sequence[str] | None = None) -> list:
     """``[fn(item, reporter) for item in items]``, in up to *jobs* forked processes (default: the usable cores).
 
     Serial where one process is asked for or usable, there is one item, or the
     platform cannot fork. In workers, *fn* reports to a recorder whose steps and
     warnings are replayed on *reporter* afterwards, case by case, and its
-    result must pickle. An exception raised by *fn* is raised here.
+    result must pickle. An exception raised by *fn* is raised here. Each case
+    that ends is reported as a step at once (by its name in *names*), so that a
+    log shows progress where no progress bar is drawn.
     """
     global _SHARED
     n = len(items)
     workers = min(n, usable_cores() if jobs is None else max(1, int(jobs)))
     if workers <= 1 or "fork" not in multiprocessing.get_all_start_methods():
         return [fn(item, reporter) for item in items]
-    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures import ProcessPoolExecutor, as_completed
 
     _SHARED = (fn, items)
+    names = [f"case {i + 1}" for i in range(n)] if names is None else list(names)
+    reporter.step(f"solving {n} cases in {workers} processes: {', '.join(names)}")
+    t0 = time.perf_counter()
     try:
         with reporter.task(f"{n} cases in {workers} processes", total=n) as advance, \
                 ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
                                     initializer=_die_with_parent, initargs=(os.getpid(),)) as pool:
-            got = []
-            for out in pool.map(_worker, range(n)):
-                got.append(out)
+            futures = {pool.submit(_worker, i): i for i in range(n)}
+            got: list = [None] * n
+            for done, fut in enumerate(as_completed(futures), 1):
+                i = futures[fut]
+                got[i] = fut.result()
+                reporter.step(f"{names[i]}: solved ({done} of {n}, {time.perf_counter() - t0:.0f} s)")
                 advance(1)
     finally:
         _SHARED = None
