@@ -101,3 +101,18 @@ def test_batch_report_opens_in_a_browser(run_cli, tmp_path):
         page = check_page(html, browser=browser)
         assert page.problems == [], html
     assert "2 of 2 group(s) give a usable fit" in check_page(out / "report.html", browser=browser).text
+
+
+def test_discover_verdict_says_why_it_is_poor():
+    """Poor for undetermined parameters alone reads as noise left; a systematic residual reads as unexplained."""
+    from esmm.pipeline.discover.html import verdict_of
+
+    doc = {"base": {"nrmse": 0.01, "heldout_nrmse": 0.012}, "final": {"nrmse": 0.01, "heldout_nrmse": 0.012,
+           "parameters": {"mu": {"not_identifiable": True}, "N": {}}}, "effects": [], "outcome": ""}
+    level, head, reasons, _ = verdict_of(doc)
+    assert level == "poor" and "records' noise" in head and "do not determine mu" in head
+    assert "not everything" not in head
+    level, head, reasons, _ = verdict_of({**doc, "outcome": "What is left is systematic"})
+    assert level == "poor" and "not everything is explained; the data do not determine mu" in head
+    level, head, _, _ = verdict_of({**doc, "final": {**doc["final"], "parameters": {}}})
+    assert level == "good" and head.startswith("Good: nothing to add; what is left is the records' noise")
