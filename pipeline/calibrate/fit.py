@@ -230,10 +230,11 @@ def _problem(tests, *, model, loss, n_starts, weights, fixed, free) -> FitProble
 
 
 def _least_squares(prob: FitProblem, z0, *, loss: str, f_scale: float, max_nfev: int):
-    return optimize.least_squares(
-        prob.residuals, z0, bounds=(prob.layout.lower, prob.layout.upper), loss=loss, f_scale=f_scale,
-        x_scale="jac", method="trf", max_nfev=max_nfev,
-    )
+    with np.errstate(over="ignore"):            # a trial step whose cost overflows is rejected by trf itself
+        return optimize.least_squares(
+            prob.residuals, z0, bounds=(prob.layout.lower, prob.layout.upper), loss=loss, f_scale=f_scale,
+            x_scale="jac", method="trf", max_nfev=max_nfev,
+        )
 
 
 def _best_start(prob: FitProblem, starts, *, loss: str, f_scale: float, reporter):

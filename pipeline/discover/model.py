@@ -1074,7 +1074,8 @@ class Problem:
         z0 = np.where(z0 <= lo, lo + 1e-10 * np.maximum(1, np.abs(lo)), z0)
         z0 = np.where(z0 >= hi, hi - 1e-10 * np.maximum(1, np.abs(hi)), z0)
         try:
-            with single_threaded_blas():
+            # a trial step whose cost overflows is rejected by trf itself: no warning for it
+            with single_threaded_blas(), np.errstate(over="ignore"):
                 sol = optimize.least_squares(self.residuals, z0, jac=self.jac, bounds=(lo, hi),
                                              x_scale="jac", method="trf", ftol=ftol, xtol=1e-8,
                                              max_nfev=max_nfev or 12 * (self.active.size + 2))

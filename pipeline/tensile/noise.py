@@ -23,8 +23,13 @@ and without any model of the material:
   term growing like L⁶ (its third derivative; the median removed in blocks of
   48 L samples takes off its slowly varying part, the robust scale the few
   samples at turning points, slips and breaks). σ is the plateau between the
-  two rises: the first doubling of the lag that raises s by less than
-  :data:`FLAT_RATIO`. A record without a plateau (its correlated noise and its
+  two rises: a doubling of the lag that raises s by less than
+  :data:`FLAT_RATIO`. A profile can hold two plateaus: the converter's white
+  floor (its quantisation, an aliased hum) at the shortest lags, below the
+  filtered amplifier noise, whose s rises to its own σ once the lag passes its
+  correlation length and is flat again there. The per-sample noise is the sum,
+  so σ is read at the start of the *last* plateau, one held over two doublings
+  (a signal's rise does not flatten again). A record without a plateau (its correlated noise and its
   signal share one time scale) gets the value where s rises least, flagged
   ``separable = False``. A quantised record is floored at q/√12;
 * the **correlation**: ρ(k) = exp(−k/ℓ) fitted to the rising part of s²(L)
@@ -47,6 +52,8 @@ from scipy import optimize
 
 #: a doubling of the lag that raises the robust scale by less than this factor is flat (the plateau)
 FLAT_RATIO = 1.15
+#: a plateau after the first is taken only where this many successive doublings are flat (a 4x range of lags)
+LATER_PLATEAU = 2
 #: the lags used need at least this many third differences per lag span (3 L)
 MIN_SPANS = 12
 #: the robust scale drops this fraction of the values on either side
@@ -239,7 +246,12 @@ def _plateau(profile: list[tuple[int, float]]) -> tuple[int, bool]:
 
     The profile is read through its running maximum: positively correlated
     noise makes s(L) rise with L, and a dip after a rise (a quantised record's
-    rounding pattern at one lag) is not the noise falling.
+    rounding pattern at one lag) is not the noise falling. The plateau is the
+    last run of flat doublings (module docstring: a white floor at the shortest
+    lags lies below the filtered noise's σ), read at the run's first flat step
+    as a single plateau always was; a run after the first must hold over
+    :data:`LATER_PLATEAU` doublings (a single flat step at long lags can be the
+    signal's, or a few events', between two rises).
     """
     s = np.maximum.accumulate(np.array([v for _, v in profile]))
     if s.size == 1:
@@ -247,11 +259,13 @@ def _plateau(profile: list[tuple[int, float]]) -> tuple[int, bool]:
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = s[1:] / s[:-1]
     ratio = np.where(np.isfinite(ratio), ratio, np.inf)
-    flat = np.flatnonzero(ratio < FLAT_RATIO)
-    if flat.size:
-        j = int(flat[0])
-        return (j if j == 0 else j + 1), True
-    return int(np.argmin(ratio)) + 1, False
+    flat = ratio < FLAT_RATIO
+    if not flat.any():
+        return int(np.argmin(ratio)) + 1, False
+    starts = np.flatnonzero(flat & ~np.concatenate(([False], flat[:-1])))   # the first step of each flat run
+    long = [int(k) for k in starts[1:] if flat[k:k + LATER_PLATEAU].sum() == LATER_PLATEAU]
+    j = long[-1] if long else int(starts[0])
+    return (j if j == 0 else j + 1), True
 
 
 def _length(profile: list[tuple[int, float]], j: int, sigma: float) -> float:
