@@ -58,6 +58,25 @@ def test_noise_sd_within_20_percent_on_white_and_filtered_noise(kind):
     assert m.separable
 
 
+@pytest.mark.parametrize("kind", ["zero-phase", "butter4"])
+def test_noise_sd_where_a_quantised_floor_lies_below_filtered_noise(kind):
+    """A converter's step after a smoothing filter: its rounding is white and makes a first plateau of the
+    lag profile at the shortest lags, below the filtered noise, whose own plateau comes at longer lags;
+    σ is the second (the per-sample noise), within 20 % of the recorded error's SD. The first plateau
+    alone read 0.31 and 0.37 of it here."""
+    rng = np.random.default_rng(3)
+    t, _, p = _signal()
+    w = 300.0 * rng.standard_normal(N + 4000)
+    sos = signal.butter(4, 0.1, output="sos")
+    e = (signal.sosfiltfilt(sos, w) if kind == "zero-phase" else signal.sosfilt(sos, w))[4000:]
+    q = float(np.std(e))                                         # a step of the filtered noise's size
+    y = np.round((p + e) / q) * q
+    m = noise_model(y, t)
+    first = m.profile[0][1]
+    assert m.sigma == pytest.approx(float(np.std(y - p)), rel=0.2), (kind, m.profile)
+    assert m.sigma > 1.5 * first, (kind, m.profile)              # the white floor is not the noise
+
+
 def test_noise_correlation_time_of_ar1_noise():
     """AR(1) with ρ = 0.9: correlation length -1/ln 0.9 = 9.5 samples, 0.95 s at 10 Hz; white noise: none."""
     rng = np.random.default_rng(3)
