@@ -56,6 +56,11 @@ and on the liver's paper preset, assets taken in turn after a warm-up round, rea
 run and its median against the goal of three times real time (docs/design/realtime.md):
 ``python benchmarks/bench_simulate.py --parts splits`` (about ten minutes on two cores).
 
+Beside a job (``bench_beside_a_job``, part "beside", not in the default parts): the default scene on
+the paper preset of the bundled and SOFA livers and the OpenHELP kidney and spleen, alone and beside
+one CPU-bound process, against three times real time alone and real time beside it:
+``python benchmarks/bench_simulate.py --parts beside`` (about five minutes on two cores).
+
 Note: on a shared machine the wall times include other processes' load; CPU
 (thread) time of the single-thread runs is reported beside them.
 """
@@ -663,6 +668,57 @@ def bench_splits(*, runs: int = 3) -> dict:
     return out
 
 
+BESIDE_ORGANS = {"liver": LIVER, "kidney": REPO.parent / "shared" / "data" / "meshes" / "openhelp_Kidney_left.stl",
+                 "spleen": REPO.parent / "shared" / "data" / "meshes" / "openhelp_Spleen.stl",
+                 "sofa_liver": REPO / "data" / "meshes" / "sofa_liver.stl"}
+
+
+def bench_beside_a_job(*, runs: int = 3) -> dict:
+    """The default scene on the paper preset of the organs of :data:`BESIDE_ORGANS`, alone and beside one
+    CPU-bound process (a busy Python loop, as another program on a two-core machine): per condition a
+    warm-up round, then *runs* rounds with the assets taken in turn; every run's real-time factor, its
+    quasi-Newton iterations, factorizations and threads, and the median. Goals: three times real time
+    alone, real time beside one job (docs/design/realtime.md)."""
+    import os
+    import subprocess
+    import sys
+
+    from esmm.pipeline.asset import read_asset
+    from esmm.pipeline.prepare import prepare
+    from esmm.pipeline.simulate.run import simulate_network
+    from esmm.pipeline.simulate.scene import load_scene
+
+    out: dict = {"load_average_at_start": os.getloadavg(), "runs": runs}
+    scene = load_scene("default")
+    with tempfile.TemporaryDirectory() as d:
+        assets = {}
+        for name, surface in BESIDE_ORGANS.items():
+            if surface.is_file():
+                prepare(surface, output=Path(d) / f"{name}.h5", config="paper")
+                assets[name] = read_asset(Path(d) / f"{name}.h5")
+        for cond in ("alone", "beside_one_job"):
+            hog = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if cond != "alone" else None
+            try:
+                got: dict = {name: [] for name in assets}
+                for i in range(runs + 1):
+                    for name, asset in assets.items():
+                        s = simulate_network(asset.network, asset.tables, scene, Path(d) / f"{name}-{cond}-{i}").summary
+                        if i:                                   # the first round is the warm-up
+                            got[name].append({"real_time_factor": s.real_time_factor, "threads": s.threads,
+                                              "quasi_newton": s.integrator["quasi_newton"],
+                                              "factorizations": s.integrator["factorizations"]})
+            finally:
+                if hog is not None:
+                    hog.kill()
+                    hog.wait()
+            out[cond] = {name: {"real_time_factor": statistics.median(r["real_time_factor"] for r in v), "runs": v}
+                         for name, v in got.items()}
+    out["goal_3x_alone"] = {n: v["real_time_factor"] >= 3.0 for n, v in out.get("alone", {}).items()}
+    out["goal_1x_beside_one_job"] = {n: v["real_time_factor"] >= 1.0 for n, v in out.get("beside_one_job", {}).items()}
+    out["load_average_at_end"] = os.getloadavg()
+    return out
+
+
 def run(*, parts=("sizes", "effects", "volume", "demo", "implicit", "scaling"), sizes=None, repeats: int = 5,
         threads: int | None = None, implicit_sizes=("100k", "500k-jacobi"), scaling_sizes=tuple(STEP_SCALING),
         two_grid_assets=None) -> dict:
@@ -670,7 +726,7 @@ def run(*, parts=("sizes", "effects", "volume", "demo", "implicit", "scaling"), 
 
     Parameters
     ----------
-    parts : subset of {"sizes", "effects", "volume", "demo", "implicit", "scaling", "twogrid", "splits"}
+    parts : subset of {"sizes", "effects", "volume", "demo", "implicit", "scaling", "twogrid", "splits", "beside"}
     sizes : subset of :data:`SIZES` keys, optional
     repeats : int
         Timed repeats per figure (medians).
@@ -732,6 +788,8 @@ def run(*, parts=("sizes", "effects", "volume", "demo", "implicit", "scaling"), 
         res["twogrid"] = bench_two_grid(assets=two_grid_assets)
     if "splits" in parts:
         res["splits"] = bench_splits()
+    if "beside" in parts:
+        res["beside"] = bench_beside_a_job()
     res["bench_seconds"] = time.perf_counter() - t0
     return res
 
@@ -744,8 +802,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  epilog="quick: --parts sizes --sizes 5k,50k --threads 1 (about a minute)")
     ap.add_argument("--parts", default="sizes,effects,volume,demo,implicit,scaling",
-                    help="any of sizes, effects, volume, demo, implicit, scaling, twogrid, splits (default: all "
-                         "but twogrid and splits)")
+                    help="any of sizes, effects, volume, demo, implicit, scaling, twogrid, splits, beside "
+                         "(default: all but twogrid, splits and beside)")
     ap.add_argument("--sizes", default=None, help=f"networks to time, any of {', '.join(SIZES)} (default: all)")
     ap.add_argument("--repeats", type=int, default=5, help="timed repeats per figure (default 5)")
     ap.add_argument("--threads", type=int, default=None, help="threads of the multi-thread rows (1: none)")
