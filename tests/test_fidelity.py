@@ -610,3 +610,37 @@ def test_case_workers_end_with_a_killed_parent():
     while time.monotonic() < deadline and any(running(k) for k in kids):
         time.sleep(0.2)
     assert len(kids) == 2 and not any(running(k) for k in kids)
+
+
+def _column_lift(lift_mm: float, height: float = 0.02):
+    """A 10 x 10 x *height* column held at its bottom face, its top face's centre node lifted."""
+    from esmm.pipeline.fidelity.cases import lift_case
+    from esmm.pipeline.simulate.scene import load_scene
+
+    b = box_tets(2, 2, 4, (0.01, 0.01, height))
+    pts = b.points
+    fixed = np.flatnonzero(pts[:, 2] < 1e-9)
+    top = int(np.argmin(np.linalg.norm(pts - [0.005, 0.005, height], axis=1)))
+    return lift_case(pts, b.tets, scene=load_scene("default"), fixed=fixed, grasped=[top],
+                     lift=[0.0, 0.0, lift_mm * 1e-3], density=1000.0, weight=1.0)
+
+
+def test_lift_stretch_of_a_column_is_its_axial_stretch():
+    """Lifting the top of a column held at its base by d stretches the vertical segment between them by
+    (H + d)/H (the largest over every inner segment: slanted ones stretch less); the lift at which it
+    reaches a given stretch s is (s - 1) H."""
+    from esmm.pipeline.fidelity.cases import lift_stretch
+
+    ls = lift_stretch(_column_lift(5.0))
+    assert ls.stretch == pytest.approx(25.0 / 20.0, rel=1e-12) and ls.length == pytest.approx(0.02)
+    assert ls.lift_at(1.361) == pytest.approx(0.361 * 0.02, rel=1e-9)
+
+
+def test_a_lift_past_the_locking_stretch_is_refused_at_once(liver):
+    """A lift that stretches an inner segment past the material's locking (1.361 on the liver) has no
+    equilibrium: refused before either solver runs, with the lift that would lock that segment."""
+    from esmm.pipeline.fidelity.validate import _reachable
+
+    _reachable(_column_lift(5.0), liver)                                  # 1.25: a case the solvers try
+    with pytest.raises(SimulationError, match=r"stretches at least 1\.500.*locking stretch 1\.361.*below 7\.22 mm"):
+        _reachable(_column_lift(10.0), liver)

@@ -23,6 +23,7 @@ Cases (docs/design/validation.md, "Load cases (the same on both sides)", states 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -32,7 +33,7 @@ from ..network.springs import tet_volumes
 
 __all__ = ["CASES", "SPECIMEN_CASES", "ORGAN_CASES", "Constraint", "LoadCase", "Floor", "end_faces",
            "oriented", "uniaxial_case", "shear_case", "gravity_case", "lift_case", "with_floor_pins", "at_load",
-           "grasp_hold", "parent_faces"]
+           "grasp_hold", "parent_faces", "LiftStretch", "lift_stretch"]
 
 SPECIMEN_CASES = ("tension", "compression", "shear")
 ORGAN_CASES = ("gravity", "lift")
@@ -387,3 +388,68 @@ def grasp_hold(case: LoadCase, surface_faces) -> dict:
         parents = int(np.count_nonzero(np.all(np.isin(parent_faces(case.quadratic_cells), g), axis=1)))
         out.update(parent_faces_held=parents, network_only=held - 4 * parents)
     return out
+
+
+@dataclass(frozen=True)
+class LiftStretch:
+    """The stretch a lift forces along a straight segment inside the body (:func:`lift_stretch`).
+
+    Attributes
+    ----------
+    stretch : float
+        r = |x_g + u_g - x_h| / |x_g - x_h| (1 where no segment is found).
+    length : float
+        |x_g - x_h| [m].
+    grasped, anchor : int
+        The segment's ends (-1 where none is found).
+    reach : tuple
+        (x_g - x_h, the unit direction of u_g), for :meth:`lift_at`; () where none is found.
+    """
+
+    stretch: float = 1.0
+    length: float = 0.0
+    grasped: int = -1
+    anchor: int = -1
+    reach: tuple = ()
+
+    def lift_at(self, s: float) -> float:
+        """The displacement's length [m] along its direction at which this segment's ratio reaches *s*."""
+        if not self.reach:
+            return math.inf
+        d, u = np.asarray(self.reach[0]), np.asarray(self.reach[1])      # x_g - x_h, the unit direction of u_g
+        b = float(d @ u)
+        return -b + math.sqrt(max(b * b - float(d @ d) * (1.0 - s * s), 0.0))
+
+
+def lift_stretch(case: LoadCase, *, samples: int = 40, pairs: int = 30) -> LiftStretch:
+    """The largest stretch a lift *case* forces along a straight segment inside the body.
+
+    An anchor node h (held at rest) and a grasped node g (moved by u_g) joined by a straight segment that
+    lies inside the body: the deformed segment joins x_h and x_g + u_g, so it is at least |x_g + u_g - x_h|
+    long, and somewhere along it the stretch in its direction, hence the largest principal stretch, is at
+    least the ratio r of that distance to |x_g - x_h|. An isochoric material then has Ī1 >= r² + 2/r there,
+    whatever the continuum does elsewhere: where that passes the material's locking invariant the case has
+    no equilibrium. For each grasped node its *pairs* most stretched anchors are tried, the first whose
+    *samples* points along the segment all lie in a tetrahedron counting.
+    """
+    import pyvista as pv
+
+    anchor, grasp = case.constraint("anchor"), case.constraint("grasper")
+    pts = case.points
+    grid = pv.UnstructuredGrid({pv.CellType.TETRA: np.asarray(case.tets, dtype=np.int64)}, pts)
+    t = np.linspace(0.02, 0.98, samples)[:, None]
+    best = LiftStretch()
+    for g, u in zip(grasp.nodes, grasp.displacement):
+        d0 = np.linalg.norm(pts[g] - pts[anchor.nodes], axis=1)
+        r = np.linalg.norm(pts[g] + u - pts[anchor.nodes], axis=1) / np.where(d0 > 0, d0, np.inf)
+        for j in np.argsort(-r)[:pairs]:
+            if r[j] <= best.stretch:
+                break
+            h = anchor.nodes[j]
+            if np.all(grid.find_containing_cell(pts[h] + t * (pts[g] - pts[h])) >= 0):
+                norm = float(np.linalg.norm(u)) or 1.0
+                best = LiftStretch(float(r[j]), float(d0[j]), int(g), int(h),
+                                   (tuple(pts[g] - pts[h]), tuple(np.asarray(u) / norm)))
+                break
+    return best
+

@@ -39,12 +39,13 @@ from .cases import (
     grasp_hold,
     gravity_case,
     lift_case,
+    lift_stretch,
     shear_case,
     uniaxial_case,
     with_floor_pins,
 )
 from .compare import CaseResult, compare
-from .continuum import NEAR_LOCKING, solve_continuum
+from .continuum import NEAR_LOCKING, max_i1, solve_continuum
 from .html import write_validation_html
 from .material import DEFAULT_BULK_RATIO, bulk_modulus, check_continuum
 from .network_solve import solve_network
@@ -236,13 +237,35 @@ def _on_the_floor(case, solve, max_rounds: int, rep):
     return sol, pins
 
 
+def _reachable(case, material) -> None:
+    """Refuse a lift that stretches a segment inside the body past the material's locking
+    (:func:`~.cases.lift_stretch`): no continuum has an equilibrium there, and its solvers would spend their
+    iteration budgets (25 minutes on a small organ) to say so."""
+    i1_lock = max_i1(material)
+    if case.name != "lift" or not np.isfinite(i1_lock):
+        return
+    ls = lift_stretch(case)
+    if ls.stretch ** 2 + 2.0 / ls.stretch < i1_lock:
+        return
+    lam = float(np.max(np.roots([1.0, 0.0, -i1_lock, 2.0]).real))        # λ² + 2/λ = Ī1_lock, the larger root
+    lift = float(np.linalg.norm(case.constraint("grasper").displacement[0]))
+    raise SimulationError(
+        f"the continuum cannot follow this lift: the grasp moves node {ls.grasped} by {lift * 1e3:.3g} mm while "
+        f"anchor node {ls.anchor}, {ls.length * 1e3:.3g} mm away through the organ, is held, so the segment "
+        f"between them stretches at least {ls.stretch:.3f} somewhere, past the material's locking stretch "
+        f"{lam:.3f}; give a scene (--scene) whose lift stays well below {ls.lift_at(lam) * 1e3:.3g} mm "
+        "(where that segment would lock)")
+
+
 def _solve_case(case, network, tables, material, *, law, terms, bulk, elements, max_rounds: int, rep) -> CaseResult:
     """Both solutions of *case* and their comparison.
 
     On a floor each solver has its own sticking contact, found along its
     load path (:func:`_on_the_floor`): the contact set is part of the answer.
     The continuum takes the first of *elements* that finds an equilibrium.
+    A lift that no continuum can follow is refused first (:func:`_reachable`).
     """
+    _reachable(case, material)
     def net(c, start):
         return solve_network(c, network, tables, law=law, terms=terms, start=start, steps=1, reporter=rep)
 
