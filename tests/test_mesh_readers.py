@@ -53,6 +53,8 @@ def test_small_organ_read_where_its_unit_is_given(tmp_path):
     back = read_surface(path, unit="mm", reporter=rep)
     assert back.extent() == pytest.approx(0.008, rel=1e-3)
     assert any("8 mm across" in w and "as given" in w for w in rep.warnings)
+    with pytest.raises(InputError, match=r"not a plausible organ size.*unit m\b"):     # a liver in metres,
+        read_surface(write_stl(sphere(0.1), tmp_path / "m.stl", unit="m"), unit="mm")   # 0.2 mm "as given"
 
 
 def test_unknown_unit_is_named(tmp_path):

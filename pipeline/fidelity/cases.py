@@ -452,4 +452,3 @@ def lift_stretch(case: LoadCase, *, samples: int = 40, pairs: int = 30) -> LiftS
                                    (tuple(pts[g] - pts[h]), tuple(np.asarray(u) / norm)))
                 break
     return best
-

@@ -266,6 +266,7 @@ def _solve_case(case, network, tables, material, *, law, terms, bulk, elements, 
     A lift that no continuum can follow is refused first (:func:`_reachable`).
     """
     _reachable(case, material)
+
     def net(c, start):
         return solve_network(c, network, tables, law=law, terms=terms, start=start, steps=1, reporter=rep)
 

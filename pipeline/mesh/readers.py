@@ -49,6 +49,9 @@ from .surface import Surface
 
 #: Plausible organ size: largest bounding-box extent in mm.
 ORGAN_EXTENT_MM = (10.0, 400.0)
+#: Largest extent [mm] read, with a warning, where the user gives the unit: a lymph node or a small animal's
+#: organ lies below the band above; below a millimetre or beyond a metre the given unit is the error
+GIVEN_EXTENT_MM = (1.0, 1000.0)
 
 SURFACE_SUFFIXES = (".stl", ".obj", ".ply", ".vtk", ".vtp", ".vtu", ".msh", ".nii", ".nii.gz")
 
@@ -193,14 +196,15 @@ def check_unit_sanity(surface: Surface, *, unit: str, where: str = "", given: bo
     """Refuse an organ whose largest extent is not 10-400 mm; suggest a unit.
 
     Never rescales: a wrong unit changes every stiffness and mass downstream. Where the unit was
-    *given* by the user (not defaulted, not read from a mask's header), the size is theirs to
-    vouch for (a mouse's kidney, a lymph node): the message is returned for a warning instead.
+    *given* by the user (not defaulted, not read from a mask's header), a size within
+    :data:`GIVEN_EXTENT_MM` is theirs to vouch for (a mouse's kidney, a lymph node): the message is
+    returned for a warning instead.
     """
     ext_m = surface.extent()
     lo, hi = ORGAN_EXTENT_MM
     if lo <= ext_m * 1e3 <= hi:
         return None
-    if given:
+    if given and GIVEN_EXTENT_MM[0] <= ext_m * 1e3 <= GIVEN_EXTENT_MM[1]:
         return (f"unit: {where + ': ' if where else ''}the organ is {ext_m * 1e3:.4g} mm across, outside "
                 f"the {lo:g}-{hi:g} mm of most organs; read as {unit}, as given (the scenes' distances, "
                 f"such as the default lift of 20 mm, are absolute)")
