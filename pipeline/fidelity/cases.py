@@ -421,7 +421,7 @@ class LiftStretch:
         return -b + math.sqrt(max(b * b - float(d @ d) * (1.0 - s * s), 0.0))
 
 
-def lift_stretch(case: LoadCase, *, samples: int = 40, pairs: int = 30) -> LiftStretch:
+def lift_stretch(case: LoadCase, *, pairs: int = 30) -> LiftStretch:
     """The largest stretch a lift *case* forces along a straight segment inside the body.
 
     An anchor node h (held at rest) and a grasped node g (moved by u_g) joined by a straight segment that
@@ -429,15 +429,32 @@ def lift_stretch(case: LoadCase, *, samples: int = 40, pairs: int = 30) -> LiftS
     long, and somewhere along it the stretch in its direction, hence the largest principal stretch, is at
     least the ratio r of that distance to |x_g - x_h|. An isochoric material then has Ī1 >= r² + 2/r there,
     whatever the continuum does elsewhere: where that passes the material's locking invariant the case has
-    no equilibrium. For each grasped node its *pairs* most stretched anchors are tried, the first whose
-    *samples* points along the segment all lie in a tetrahedron counting.
+    no equilibrium. For each grasped node its *pairs* most stretched anchors are tried; a segment counts
+    where its midpoint lies in a tetrahedron and it crosses the mesh's boundary nowhere between its ends
+    (then all of it is inside: where in doubt, a grazing or a crossing near an end, it does not count).
     """
     import pyvista as pv
+    import vtk
 
     anchor, grasp = case.constraint("anchor"), case.constraint("grasper")
     pts = case.points
     grid = pv.UnstructuredGrid({pv.CellType.TETRA: np.asarray(case.tets, dtype=np.int64)}, pts)
-    t = np.linspace(0.02, 0.98, samples)[:, None]
+    boundary = vtk.vtkDataSetSurfaceFilter()
+    boundary.SetInputData(grid)
+    boundary.Update()
+    tree = vtk.vtkOBBTree()
+    tree.SetDataSet(boundary.GetOutput())
+    tree.BuildLocator()
+    hits = vtk.vtkPoints()
+
+    def inside(a: np.ndarray, b: np.ndarray) -> bool:
+        if grid.find_containing_cell((a + b) / 2.0) < 0:
+            return False
+        tree.IntersectWithLine(a, b, hits, None)
+        tol = 1e-6 * float(np.linalg.norm(b - a))
+        return all(min(np.linalg.norm(np.array(hits.GetPoint(k)) - e) for e in (a, b)) <= tol
+                   for k in range(hits.GetNumberOfPoints()))
+
     best = LiftStretch()
     for g, u in zip(grasp.nodes, grasp.displacement):
         d0 = np.linalg.norm(pts[g] - pts[anchor.nodes], axis=1)
@@ -446,7 +463,7 @@ def lift_stretch(case: LoadCase, *, samples: int = 40, pairs: int = 30) -> LiftS
             if r[j] <= best.stretch:
                 break
             h = anchor.nodes[j]
-            if np.all(grid.find_containing_cell(pts[h] + t * (pts[g] - pts[h])) >= 0):
+            if inside(pts[h], pts[g]):
                 norm = float(np.linalg.norm(u)) or 1.0
                 best = LiftStretch(float(r[j]), float(d0[j]), int(g), int(h),
                                    (tuple(pts[g] - pts[h]), tuple(np.asarray(u) / norm)))
