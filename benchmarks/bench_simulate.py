@@ -632,6 +632,36 @@ SPLIT_ORGANS = {"liver_paper": (LIVER, {"config": "paper"}),
                                       {"config": "paper", "elements": 1500, "split": True})}
 
 
+def _prepared(organs: dict, folder: Path) -> dict:
+    """The assets of *organs* (name -> (surface, prepare keywords)) prepared in *folder* and read; an organ
+    whose surface is absent (../shared not beside the checkout) is left out."""
+    from esmm.pipeline.asset import read_asset
+    from esmm.pipeline.prepare import prepare
+
+    assets = {}
+    for name, (surface, kw) in organs.items():
+        if surface.is_file():
+            prepare(surface, output=folder / f"{name}.h5", **kw)
+            assets[name] = read_asset(folder / f"{name}.h5")
+    return assets
+
+
+def _scene_rounds(assets: dict, folder: Path, *, runs: int, tag: str = "") -> dict:
+    """The default scene on every asset, a warm-up round then *runs* rounds with the assets taken in turn:
+    name -> the measured rounds' summaries."""
+    from esmm.pipeline.simulate.run import simulate_network
+    from esmm.pipeline.simulate.scene import load_scene
+
+    scene = load_scene("default")
+    done: dict = {name: [] for name in assets}
+    for i in range(runs + 1):
+        for name, asset in assets.items():
+            res = simulate_network(asset.network, asset.tables, scene, folder / f"{name}{tag}-{i}")
+            if i:                                               # the first round is the warm-up
+                done[name].append(res.summary)
+    return done
+
+
 def bench_splits(*, runs: int = 3) -> dict:
     """The default scene on the coarse parents' splits (``esmm prepare --elements 1500 --split``) of the
     organs of :data:`SPLIT_ORGANS` and on the liver's paper preset (the reference), ``threads = "auto"``:
@@ -641,26 +671,11 @@ def bench_splits(*, runs: int = 3) -> dict:
     with the machine's load, which is recorded beside them."""
     import os
 
-    from esmm.pipeline.asset import read_asset
-    from esmm.pipeline.prepare import prepare
-    from esmm.pipeline.simulate.run import simulate_network
-    from esmm.pipeline.simulate.scene import load_scene
-
     out: dict = {"load_average_at_start": os.getloadavg()}
-    scene = load_scene("default")
     with tempfile.TemporaryDirectory() as d:
-        assets = {}
-        for name, (surface, kw) in SPLIT_ORGANS.items():
-            if surface.is_file():
-                prepare(surface, output=Path(d) / f"{name}.h5", **kw)
-                assets[name] = read_asset(Path(d) / f"{name}.h5")
-        done: dict = {name: [] for name in assets}
-        for i in range(runs + 1):
-            for name, asset in assets.items():
-                res = simulate_network(asset.network, asset.tables, scene, Path(d) / f"{name}-{i}")
-                if i:                                           # the first round is the warm-up
-                    done[name].append(_run_figures(res.summary))
-        for name, figs in done.items():
+        done = _scene_rounds(_prepared(SPLIT_ORGANS, Path(d)), Path(d), runs=runs)
+        for name, summaries in done.items():
+            figs = [_run_figures(s) for s in summaries]
             med = sorted(figs, key=lambda f: f["real_time_factor"])[len(figs) // 2]
             out[name] = {**med, "real_time_factor_runs": [f["real_time_factor"] for f in figs],
                          "goal_3x_real_time": med["real_time_factor"] >= 3.0}
@@ -668,9 +683,11 @@ def bench_splits(*, runs: int = 3) -> dict:
     return out
 
 
-BESIDE_ORGANS = {"liver": LIVER, "kidney": REPO.parent / "shared" / "data" / "meshes" / "openhelp_Kidney_left.stl",
-                 "spleen": REPO.parent / "shared" / "data" / "meshes" / "openhelp_Spleen.stl",
-                 "sofa_liver": REPO / "data" / "meshes" / "sofa_liver.stl"}
+#: The organs of part "beside": name -> (surface, prepare keywords), the paper preset (the default asset).
+BESIDE_ORGANS = {"liver": (LIVER, {"config": "paper"}),
+                 "kidney": (REPO.parent / "shared" / "data" / "meshes" / "openhelp_Kidney_left.stl", {"config": "paper"}),
+                 "spleen": (REPO.parent / "shared" / "data" / "meshes" / "openhelp_Spleen.stl", {"config": "paper"}),
+                 "sofa_liver": (REPO / "data" / "meshes" / "sofa_liver.stl", {"config": "paper"})}
 
 
 def bench_beside_a_job(*, runs: int = 3) -> dict:
@@ -683,34 +700,21 @@ def bench_beside_a_job(*, runs: int = 3) -> dict:
     import subprocess
     import sys
 
-    from esmm.pipeline.asset import read_asset
-    from esmm.pipeline.prepare import prepare
-    from esmm.pipeline.simulate.run import simulate_network
-    from esmm.pipeline.simulate.scene import load_scene
-
     out: dict = {"load_average_at_start": os.getloadavg(), "runs": runs}
-    scene = load_scene("default")
     with tempfile.TemporaryDirectory() as d:
-        assets = {}
-        for name, surface in BESIDE_ORGANS.items():
-            if surface.is_file():
-                prepare(surface, output=Path(d) / f"{name}.h5", config="paper")
-                assets[name] = read_asset(Path(d) / f"{name}.h5")
+        assets = _prepared(BESIDE_ORGANS, Path(d))
         for cond in ("alone", "beside_one_job"):
             hog = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if cond != "alone" else None
             try:
-                got: dict = {name: [] for name in assets}
-                for i in range(runs + 1):
-                    for name, asset in assets.items():
-                        s = simulate_network(asset.network, asset.tables, scene, Path(d) / f"{name}-{cond}-{i}").summary
-                        if i:                                   # the first round is the warm-up
-                            got[name].append({"real_time_factor": s.real_time_factor, "threads": s.threads,
-                                              "quasi_newton": s.integrator["quasi_newton"],
-                                              "factorizations": s.integrator["factorizations"]})
+                done = _scene_rounds(assets, Path(d), runs=runs, tag=f"-{cond}")
             finally:
                 if hog is not None:
                     hog.kill()
                     hog.wait()
+            got = {name: [{"real_time_factor": s.real_time_factor, "threads": s.threads,
+                           "quasi_newton": s.integrator["quasi_newton"],
+                           "factorizations": s.integrator["factorizations"]} for s in summaries]
+                   for name, summaries in done.items()}
             out[cond] = {name: {"real_time_factor": statistics.median(r["real_time_factor"] for r in v), "runs": v}
                          for name, v in got.items()}
     out["goal_3x_alone"] = {n: v["real_time_factor"] >= 3.0 for n, v in out.get("alone", {}).items()}

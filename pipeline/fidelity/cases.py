@@ -390,7 +390,7 @@ def grasp_hold(case: LoadCase, surface_faces) -> dict:
     return out
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class LiftStretch:
     """The stretch a lift forces along a straight segment inside the body (:func:`lift_stretch`).
 
@@ -402,23 +402,26 @@ class LiftStretch:
         |x_g - x_h| [m].
     grasped, anchor : int
         The segment's ends (-1 where none is found).
-    reach : tuple
-        (x_g - x_h, the unit direction of u_g), for :meth:`lift_at`; () where none is found.
+    offset : ndarray, shape (3,), or None
+        x_g - x_h [m] (None where none is found).
+    direction : ndarray, shape (3,), or None
+        The unit direction of u_g.
     """
 
     stretch: float = 1.0
     length: float = 0.0
     grasped: int = -1
     anchor: int = -1
-    reach: tuple = ()
+    offset: np.ndarray | None = None
+    direction: np.ndarray | None = None
 
     def lift_at(self, s: float) -> float:
-        """The displacement's length [m] along its direction at which this segment's ratio reaches *s*."""
-        if not self.reach:
+        """The displacement's length L [m] along its direction at which this segment's ratio reaches *s*:
+        the positive root of |d + L e|² = s² |d|²."""
+        if self.offset is None:
             return math.inf
-        d, u = np.asarray(self.reach[0]), np.asarray(self.reach[1])      # x_g - x_h, the unit direction of u_g
-        b = float(d @ u)
-        return -b + math.sqrt(max(b * b - float(d @ d) * (1.0 - s * s), 0.0))
+        b = float(self.offset @ self.direction)
+        return -b + math.sqrt(max(b * b - float(self.offset @ self.offset) * (1.0 - s * s), 0.0))
 
 
 def lift_stretch(case: LoadCase, *, pairs: int = 30) -> LiftStretch:
@@ -464,8 +467,7 @@ def lift_stretch(case: LoadCase, *, pairs: int = 30) -> LiftStretch:
                 break
             h = anchor.nodes[j]
             if inside(pts[h], pts[g]):
-                norm = float(np.linalg.norm(u)) or 1.0
-                best = LiftStretch(float(r[j]), float(d0[j]), int(g), int(h),
-                                   (tuple(pts[g] - pts[h]), tuple(np.asarray(u) / norm)))
+                best = LiftStretch(float(r[j]), float(d0[j]), int(g), int(h), pts[g] - pts[h],
+                                   np.asarray(u) / (float(np.linalg.norm(u)) or 1.0))
                 break
     return best

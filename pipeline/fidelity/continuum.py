@@ -182,7 +182,7 @@ def solve_continuum(case: LoadCase, material, *, bulk: float | None = None, elem
     with rep.task(f"continuum {case.name} (felupe, {ncells} tets, {element})", total=1.0) as advance:
         done_steps, cuts = _apply_load(case, stepper, path, steps=steps, max_cuts=max_cuts, budget=budget,
                                        advance=advance)
-    return _solution(case, solid, body, stepper.field, members, K, max_i1(material), {
+    return _solution(case, solid, body, stepper.field, members, K, _max_i1(material), {
         "bulk_modulus_Pa": K, "element": element, "elements": ELEMENTS[element], "dofs": ndof,
         "load_steps": done_steps, "step_cuts": cuts, "newton_iterations": stepper.iterations,
         "factorisations": stepper.factorisations, "lu_fallbacks": int(getattr(stepper.solver, "fallbacks", 0)),
@@ -315,7 +315,7 @@ def _newton(fem, field, solid, body, dof0, dof1, ext0, check, max_iter, solver, 
 NEAR_LOCKING = 0.99
 
 
-def max_i1(material) -> float:
+def _max_i1(material) -> float:
     """The material's locking value of Ī1 (inf for a material that does not lock)."""
     return float(material.model_obj.max_I1(material.params_for(None)))
 

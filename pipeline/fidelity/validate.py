@@ -45,7 +45,7 @@ from .cases import (
     with_floor_pins,
 )
 from .compare import CaseResult, compare
-from .continuum import NEAR_LOCKING, max_i1, solve_continuum
+from .continuum import NEAR_LOCKING, solve_continuum
 from .html import write_validation_html
 from .material import DEFAULT_BULK_RATIO, bulk_modulus, check_continuum
 from .network_solve import solve_network
@@ -241,13 +241,12 @@ def _reachable(case, material) -> None:
     """Refuse a lift that stretches a segment inside the body past the material's locking
     (:func:`~.cases.lift_stretch`): no continuum has an equilibrium there, and its solvers would spend their
     iteration budgets (25 minutes on a small organ) to say so."""
-    i1_lock = max_i1(material)
-    if case.name != "lift" or not np.isfinite(i1_lock):
+    lam = material.stretch_range()[1]           # uniaxial locking: λ² + 2/λ = Ī1_lock, increasing in λ > 1
+    if case.name != "lift" or not np.isfinite(lam):
         return
     ls = lift_stretch(case)
-    if ls.stretch ** 2 + 2.0 / ls.stretch < i1_lock:
+    if ls.stretch < lam:
         return
-    lam = float(np.max(np.roots([1.0, 0.0, -i1_lock, 2.0]).real))        # λ² + 2/λ = Ī1_lock, the larger root
     lift = float(np.linalg.norm(case.constraint("grasper").displacement[0]))
     raise SimulationError(
         f"the continuum cannot follow this lift: the grasp moves node {ls.grasped} by {lift * 1e3:.3g} mm while "
