@@ -6,6 +6,8 @@ about itself, without any model of the material.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy import stats
 
@@ -126,10 +128,9 @@ def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, noise: N
     * every threshold is raised by what the converter's rounding alone can do (the quantum q on a
       difference, 2q on a second difference): a fall of one level is the rounding's, never a slip;
     * the specimen still carries load after it (the stress at its bottom above z s'_h), and the same run
-      then loads again, the stress rising after the fall by more than z s'_h (a softening keeps falling
-      or levels off). How much it loses does not matter: a friction-limited grip can give back most of
-      the extension reached, and a fall after which the stress never comes back is a rupture, cut from
-      the record before slips are sought (:func:`rupture_index`).
+      then loads again (:func:`_loads_again`: means of the run's thirds after the fall at the single-test
+      level, a slip late in a ramp found). A fall after which the stress never comes back is a rupture,
+      cut before slips are sought (:func:`rupture_index`).
 
     Two falls closer than either's duration are one slip (the filter's ringing
     splits a fall). No window counts samples: the fall's own duration sets the lag.
@@ -157,7 +158,7 @@ def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, noise: N
     n_load = sum(e - s for s, e in loading)
     if n_load < 8:
         return []
-    z = float(stats.norm.isf(alpha / n_load))
+    zz = (float(stats.norm.isf(alpha / n_load)), float(stats.norm.isf(alpha)))  # the fall's, the reload's
     noise = noise if noise is not None else noise_model(y)
     scales: dict[int, float] = {}
     falls: list[tuple[int, int]] = []
@@ -167,7 +168,7 @@ def slip_events(x: np.ndarray, y: np.ndarray, direction: np.ndarray, *, noise: N
             m = k
             while m + 1 < e and y[m + 1] < y[m]:
                 m += 1
-            if m > k and _is_slip(x, y, s, e, k, m, z, scales, loading, noise):
+            if m > k and _is_slip(x, y, s, e, k, m, zz, scales, loading, noise):
                 if falls and k - falls[-1][1] <= max(m - k, falls[-1][1] - falls[-1][0]):
                     falls[-1] = (falls[-1][0], m)  # one slip whose fall the filter's ringing split in two
                 else:
@@ -189,8 +190,32 @@ def _lag_scale(y: np.ndarray, h: int, loading: list[tuple[int, int]], second: bo
     return robust_sd(g - np.median(g)) if g.size >= 8 else 0.0
 
 
-def _is_slip(x, y, s: int, e: int, k: int, m: int, z: float, scales: dict, loading, noise: Noise) -> bool:
-    """Whether the fall from sample k to m of the loading run [s, e) is a slip (see :func:`slip_events`)."""
+def _mean_sd(noise: Noise, w: int) -> float:
+    """Standard deviation of the noise's mean over *w* consecutive samples: σ √(Σ_k (w − |k|) ρ(k)) / w."""
+    k = np.abs(np.arange(1 - w, w)).astype(float)
+    var = float(np.sum((w - k) * np.asarray(noise.rho(k), float)))
+    return noise.sigma * math.sqrt(max(var, 0.0)) / w
+
+
+def _loads_again(y: np.ndarray, m: int, e: int, z1: float, noise: Noise, floor: float) -> bool:
+    """After a fall to sample m, the run [.., e) loads again: the mean of its last third exceeds the mean of its
+    first third by more than z1 √2 s_w + q, s_w the noise's sd of a mean of that many samples (its correlation
+    counted), z1 the single-test quantile: the fall test already bounds a clean record's false slips; this one
+    tells a slip from a fall that levels off or keeps falling, and means, not the largest reading, keep the
+    noise's own excursions from passing."""
+    n = e - m
+    if n < 3:
+        return False
+    w = n // 3
+    rise = float(np.mean(y[e - w:e]) - np.mean(y[m:m + w]))
+    return rise > z1 * math.sqrt(2.0) * max(_mean_sd(noise, w), floor) + noise.quantum
+
+
+def _is_slip(x, y, s: int, e: int, k: int, m: int, zz: tuple[float, float], scales: dict, loading,
+             noise: Noise) -> bool:
+    """Whether the fall from sample k to m of the loading run [s, e) is a slip (see :func:`slip_events`);
+    *zz*: the fall's quantile (Bonferroni over the loading samples) and the reload's."""
+    z, z1 = zz
     h = m - k
     if k - h < s:
         return False
@@ -210,7 +235,7 @@ def _is_slip(x, y, s: int, e: int, k: int, m: int, z: float, scales: dict, loadi
     after = y[m:min(e, m + h + 1)]
     if not float(np.mean(after)) < y[k] - 0.5 * (y[k] - y[m]):
         return False
-    return bool(_falls(x, y, k, m, 0.0) and float(np.max(y[m:e])) - y[m] > s1)
+    return bool(_falls(x, y, k, m, 0.0) and _loads_again(y, m, e, z1, noise, floor))
 
 
 def force_lag(x: np.ndarray, y: np.ndarray, t: np.ndarray, direction: np.ndarray) -> float:
