@@ -190,13 +190,6 @@ def _lag_scale(y: np.ndarray, h: int, loading: list[tuple[int, int]], second: bo
     return robust_sd(g - np.median(g)) if g.size >= 8 else 0.0
 
 
-def _mean_sd(noise: Noise, w: int) -> float:
-    """Standard deviation of the noise's mean over *w* consecutive samples: σ √(Σ_k (w − |k|) ρ(k)) / w."""
-    k = np.abs(np.arange(1 - w, w)).astype(float)
-    var = float(np.sum((w - k) * np.asarray(noise.rho(k), float)))
-    return noise.sigma * math.sqrt(max(var, 0.0)) / w
-
-
 def _loads_again(y: np.ndarray, m: int, e: int, z1: float, noise: Noise, floor: float) -> bool:
     """After a fall to sample m, the run [.., e) loads again: the mean of its last third exceeds the mean of its
     first third by more than z1 √2 s_w + q, s_w the noise's sd of a mean of that many samples (its correlation
@@ -208,7 +201,7 @@ def _loads_again(y: np.ndarray, m: int, e: int, z1: float, noise: Noise, floor: 
         return False
     w = n // 3
     rise = float(np.mean(y[e - w:e]) - np.mean(y[m:m + w]))
-    return rise > z1 * math.sqrt(2.0) * max(_mean_sd(noise, w), floor) + noise.quantum
+    return rise > z1 * math.sqrt(2.0) * max(noise.mean_sd(w), floor) + noise.quantum
 
 
 def _is_slip(x, y, s: int, e: int, k: int, m: int, zz: tuple[float, float], scales: dict, loading,

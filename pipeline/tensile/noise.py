@@ -117,6 +117,12 @@ class Noise:
         """Standard deviation of the noise's y_{j+k} − 2y_j + y_{j−k}: σ √(6 − 8ρ(k) + 2ρ(2k))."""
         return self.sigma * math.sqrt(max(6.0 - 8.0 * float(self.rho(k)) + 2.0 * float(self.rho(2 * k)), 0.0))
 
+    def mean_sd(self, w: int) -> float:
+        """Standard deviation of the noise's mean over *w* consecutive samples: σ √(Σ_k (w − |k|) ρ(k)) / w."""
+        k = np.abs(np.arange(1 - w, w)).astype(float)
+        var = float(np.sum((w - k) * np.asarray(self.rho(k), float)))
+        return self.sigma * math.sqrt(max(var, 0.0)) / w
+
     def to_dict(self) -> dict:
         return {"sd": self.sigma, "quantum": self.quantum, "correlation_samples": self.length,
                 "correlation_time_s": self.correlation_time if math.isfinite(self.correlation_time) else None,
