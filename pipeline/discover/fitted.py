@@ -71,15 +71,9 @@ def fit_spec(spec: Spec, current: Fitted, *, init_from: Fitted | None = None) ->
     if extra:
         z0 = extend_variant(prob, z0, extra)
     z, sol = prob.solve(z0)
-    if sol is None:
-        return finish(prob, z)
-    ref = prob.params.transfer(current.problem.params, current.z)
-    if sol.status == 0 and prob.objective(z) > prob.objective(ref):
+    if sol is not None and sol.status == 0 and prob.objective(z) > prob.objective(
+            prob.params.transfer(current.problem.params, current.z)):
         z, _ = prob.solve(z)
-    if prob.objective(z) > prob.objective(ref):
-        z2, _ = prob.solve(ref)
-        if prob.objective(z2) < prob.objective(z):
-            z = z2
     return finish(prob, z)
 
 

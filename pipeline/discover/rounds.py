@@ -484,13 +484,10 @@ def backward(s: Search, rep) -> None:
     candidate, latest first, is judged again against the model without it, at
     the level it was kept at. A relaxation that a stretch-dependent one brought
     in is judged with it; where that one goes, the relaxation is judged on its
-    own next (it was never tested alone). After a removal, those already judged
-    are judged again: they passed beside what has gone, and the final model is
-    one in which every kept candidate passes given the others.
+    own next (it was never tested alone).
     """
     seen: set[str] = set()
-    removed = False
-    while len(s.kept) >= 2 or (removed and s.kept):
+    while len(s.kept) >= 2:
         name = next((n for n in reversed(s.kept) if n not in seen
                      and not (n == "viscoelastic" and "nonlinear_viscoelastic" in s.kept)), None)
         if name is None:
@@ -509,16 +506,13 @@ def backward(s: Search, rep) -> None:
                              f"(p {h['p']:.2g}, level {level:.2g})")
             continue
         c.kept = False
-        others = ", ".join(n for n in s.kept if n != name) or "the base law alone, once the others had gone"
-        c.reason = (f"kept in round {c.round}, then removed: given {others}, it "
+        c.reason = (f"kept in round {c.round}, then removed: given {', '.join(n for n in s.kept if n != name)}, it "
                     f"no longer passes the held-out test (held-out NRMSE {reduced.cv[fs.key].nrmse:.2%} without "
                     f"it, {s.current.cv[fs.key].nrmse:.2%} with it; {failed_checks(h, level, s.crit.min_resolution_units)})")
-        rep.step(f"removed {name}: " + ("the others explain what it did" if len(s.kept) > 1 else
-                                         "on its own it does not pass"))
+        rep.step(f"removed {name}: the others explain what it did")
         s.kept.remove(name)
         s.current = reduced
         sync_kept(s, c.round)
-        seen, removed = {name}, True
 
 
 def failed_checks(h: dict, level: float, min_units: float) -> str:
