@@ -79,6 +79,35 @@ def test_cyclic_softening_found_when_the_first_cycle_is_always_fitted(cycles, d_
     assert res.material_effects.cyclic_softening.d_inf == pytest.approx(d_inf, rel=0.15)
 
 
+def test_a_kept_model_in_a_poorer_optimum_than_a_model_nested_in_it_is_fitted_again_from_that_one():
+    """The backward elimination fits the model without each kept candidate. Where that nested fit fits the data
+    better than the kept model (an optimum the optimiser's path left it in: here the kept fit is spoilt by
+    moving its law's parameters), the kept model is fitted again from the nested fit and that fit, better than
+    both, becomes the current model; the judgement is made on it."""
+    from esmm.pipeline.discover import rounds
+    from esmm.pipeline.discover.fitted import finish
+    from esmm.pipeline.discover.heldout import fold_sets
+    from esmm.pipeline.discover.state import Criteria, start_search
+
+    rec = _cyclic_record(np.random.default_rng(3), d_inf=0.3, cycles=4)
+    res = discover([rec], model="arruda-boyce", n_starts=1, max_points=200, candidates=(), nested=False)
+    records = list(res.base.problem.records)
+    material, artefact = fold_sets(records)
+    both = fit_spec(res.base.spec.with_("cyclic_softening", 1).with_("mooney", 1), res.base)
+    z = both.z.copy()
+    z[0] = np.clip(z[0] + 1.0, both.problem.lower[0], both.problem.upper[0])  # the law's first parameter moved
+    spoilt = finish(both.problem, z)
+    s = start_search(res.base, material, artefact, records, ("cyclic_softening", "mooney"), Criteria())
+    s.current, s.kept = spoilt, ["cyclic_softening", "mooney"]
+    for n in s.kept:
+        s.candidates[n].heldout_level = 0.01
+    ok, without, h, level = rounds._judged_without(s, "mooney", s.current)
+    obj = s.current.problem.objective
+    assert without.problem.objective(without.z) < spoilt.problem.objective(spoilt.z)
+    assert s.current is not spoilt and obj(s.current.z) <= without.problem.objective(without.z)
+    assert s.current.spec == spoilt.spec and level == 0.01
+
+
 def test_cycle_folds_never_hold_out_the_first_cycle():
     rec = _cyclic_record(np.random.default_rng(2), d_inf=0.2, cycles=4)
     [r] = prepare([rec], max_points=200)

@@ -241,12 +241,43 @@ def test_backward_elimination_judges_a_brought_in_relaxation_once_its_container_
     if relaxation_stays:
         assert calls == ["nonlinear_viscoelastic", "viscoelastic", "toe"]
         assert s.kept == ["toe", "viscoelastic"] and "judged on its own" in s.candidates["viscoelastic"].reason
-    else:
-        assert calls == ["nonlinear_viscoelastic", "viscoelastic"]
+    else:  # the toe, judged beside both, is judged again once they have gone
+        assert calls == ["nonlinear_viscoelastic", "viscoelastic", "toe"]
         assert s.kept == ["toe"] and not s.candidates["viscoelastic"].kept
     # the removal names the check that failed, and only that one
     why = s.candidates["nonlinear_viscoelastic"].reason
     assert "beyond the noise p 0.5 > 0.001" in why and "replicated" not in why and "resolutions" not in why
+
+
+def test_what_passed_beside_a_removed_candidate_is_judged_again_down_to_the_last(monkeypatch):
+    """The elimination ends on a model in which every kept candidate passes given the others: a relaxation
+    that passed beside a toe is judged again once the toe goes, and, the last one left, against the base law
+    (the judgement stubbed: it passes only while the toe is in)."""
+    from types import SimpleNamespace as NS
+
+    from esmm.pipeline.discover import rounds
+
+    calls = []
+
+    def judged(s, name, f):
+        calls.append(name)
+        left = [n for n in s.kept if n != name]
+        reduced = NS(spec=NS(names=lambda: left), cv={"k": NS(nrmse=0.01)})
+        ok = name == "viscoelastic" and "toe" in s.kept
+        return ok, reduced, {"p": 0.5, "p_replication": 0.01, "resolution_units": 2.0}, 1e-3
+
+    monkeypatch.setattr(rounds, "_judged_without", judged)
+    monkeypatch.setattr(rounds, "judged_on", lambda *a: NS(key="k"))
+    kept = ["toe", "viscoelastic"]
+    steps = []
+    s = NS(kept=list(kept), kept_round={"toe": 1, "viscoelastic": 2}, material=None, artefact=None,
+           current=NS(spec=NS(names=lambda: kept), cv={"k": NS(nrmse=0.02)}),
+           candidates={n: NS(round=r, kept=True, reason="kept") for n, r in (("toe", 1), ("viscoelastic", 2))},
+           crit=NS(min_resolution_units=1.0))
+    rounds.backward(s, NS(step=steps.append))
+    assert calls == ["viscoelastic", "toe", "viscoelastic"] and s.kept == []
+    assert "given the base law alone" in s.candidates["viscoelastic"].reason
+    assert steps[-1] == "removed viscoelastic: on its own it does not pass"
 
 
 def test_a_removal_names_every_held_out_check_that_fails():

@@ -484,10 +484,13 @@ def backward(s: Search, rep) -> None:
     candidate, latest first, is judged again against the model without it, at
     the level it was kept at. A relaxation that a stretch-dependent one brought
     in is judged with it; where that one goes, the relaxation is judged on its
-    own next (it was never tested alone).
+    own next (it was never tested alone). After a removal, those already judged
+    are judged again: they passed beside what has gone, and the final model is
+    one in which every kept candidate passes given the others.
     """
     seen: set[str] = set()
-    while len(s.kept) >= 2:
+    removed = False
+    while len(s.kept) >= 2 or (removed and s.kept):
         name = next((n for n in reversed(s.kept) if n not in seen
                      and not (n == "viscoelastic" and "nonlinear_viscoelastic" in s.kept)), None)
         if name is None:
@@ -506,13 +509,16 @@ def backward(s: Search, rep) -> None:
                              f"(p {h['p']:.2g}, level {level:.2g})")
             continue
         c.kept = False
-        c.reason = (f"kept in round {c.round}, then removed: given {', '.join(n for n in s.kept if n != name)}, it "
+        others = ", ".join(n for n in s.kept if n != name) or "the base law alone, once the others had gone"
+        c.reason = (f"kept in round {c.round}, then removed: given {others}, it "
                     f"no longer passes the held-out test (held-out NRMSE {reduced.cv[fs.key].nrmse:.2%} without "
                     f"it, {s.current.cv[fs.key].nrmse:.2%} with it; {failed_checks(h, level, s.crit.min_resolution_units)})")
-        rep.step(f"removed {name}: the others explain what it did")
+        rep.step(f"removed {name}: " + ("the others explain what it did" if len(s.kept) > 1 else
+                                         "on its own it does not pass"))
         s.kept.remove(name)
         s.current = reduced
         sync_kept(s, c.round)
+        seen, removed = {name}, True
 
 
 def failed_checks(h: dict, level: float, min_units: float) -> str:
@@ -571,12 +577,27 @@ def drop_unsupported_artefacts(s: Search, rep) -> None:
 
 def _judged_without(s: Search, name: str, f: Fitted):
     """*name* in *f* judged again against *f* refitted without it, at the level it was kept at:
-    (passes, the fit without it, the held-out test, the level), or None when that fit fails."""
+    (passes, the fit without it, the held-out test, the level), or None when that fit fails.
+
+    Where the fit without *name* fits the data better than *f* (a model nested
+    in *f*), *f* sits in a poorer optimum than it could: it is fitted again from
+    the nested fit (the search's own start for an added candidate), the better of
+    the two taken, and when *f* is the search's current model that fit replaces it.
+    """
     spec = f.spec.with_(name, 0)
     try:
         without = fit_spec(spec, f, init_from=s.warm.get(spec))
     except FitError:
         return None
+    if without.problem.objective(without.z) < f.problem.objective(f.z):
+        try:
+            again = fit_spec(f.spec, without)
+        except FitError:
+            again = None
+        if again is not None and again.problem.objective(again.z) < f.problem.objective(f.z):
+            if f is s.current:
+                s.current = again
+            f = again
     t = compared(name, f, without)
     h = check_heldout(t, without, judged_on(name, s.material, s.artefact))
     level = s.candidates[name].heldout_level or s.levels[max(s.kept_round.get(name, 1), 1) - 1].single
