@@ -589,12 +589,13 @@ def _judged_without(s: Search, name: str, f: Fitted):
         without = fit_spec(spec, f, init_from=s.warm.get(spec))
     except FitError:
         return None
-    if without.problem.objective(without.z) < f.problem.objective(f.z):
+    kept_objective = f.problem.objective(f.z)
+    if without.problem.objective(without.z) < kept_objective:
         try:
             again = fit_spec(f.spec, without)
         except FitError:
             again = None
-        if again is not None and again.problem.objective(again.z) < f.problem.objective(f.z):
+        if again is not None and again.problem.objective(again.z) < kept_objective:
             if f is s.current:
                 s.current = again
             f = again
